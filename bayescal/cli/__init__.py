@@ -1,0 +1,72 @@
+"""The ``bayescal`` command line: argument parsing only; the work is in the library.
+
+Exit codes: 0 success; 1 the computation ran but did not succeed (for
+example an identification that did not converge); 2 bad input or usage (a
+one-line message on stderr names the file, row or key).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import warnings
+
+from ..errors import BayescalError
+
+__all__ = ["main", "build_parser", "EXIT_OK", "EXIT_FAILED", "EXIT_INPUT"]
+
+EXIT_OK, EXIT_FAILED, EXIT_INPUT = 0, 1, 2
+
+#: Subcommand modules, each with ``register(subparsers)`` setting ``func``.
+COMMANDS = ("identify", "simulate")
+
+_EPILOG = """\
+examples:
+  bayescal simulate --machine examples/prs3/machine.toml --poses 36 --seed 1 --out rec.csv
+  bayescal identify examples/prs3/recording.csv --machine examples/prs3/machine.toml
+  bayescal identify rec.csv --machine m.toml --method tsvd --k 25 --json answer.json
+
+exit codes: 0 success, 1 computed but not successful, 2 bad input or usage.
+Run 'bayescal COMMAND --help' for each command.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .. import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="bayescal",
+        description="Kinematic calibration of parallel manipulators and hybrid machine tools.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"bayescal {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        importlib.import_module(f".{name}", __name__).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return EXIT_INPUT
+    try:
+        with warnings.catch_warnings():
+            # numerical trouble is reported in the result and the exit code, not as a warning dump
+            warnings.simplefilter("ignore")
+            return int(args.func(args))
+    except BayescalError as exc:
+        print(f"bayescal {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except KeyboardInterrupt:
+        print(f"bayescal {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,154 @@
+"""Identifiability: SVD of the column-scaled Jacobian, and an identifiable parameter set.
+
+Columns are scaled to unit norm (the usual scaling for identifiability,
+independent of the units of each parameter), so singular values compare
+directions in parameter space fairly.  A parameter whose scaled column lies
+(numerically) in the span of columns already kept is fixed at its nominal
+value; its column's expression in the kept columns names the combination
+the measurement sees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .params import ParamLayout
+
+__all__ = ["Identifiability", "analyse_identifiability"]
+
+#: Relative singular value below which a direction counts as structurally unidentifiable.
+STRUCTURAL_RTOL = 1e-8
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    """What the poses can identify.
+
+    Attributes
+    ----------
+    singular_values : ndarray, shape (P,)
+        Of the whitened, column-normalised Jacobian of all parameters, descending.
+    rank : int
+        Numerical rank (singular values above ``STRUCTURAL_RTOL`` times the largest).
+    kept : tuple of str
+        Identifiable parameter set chosen (in the priority order given).
+    fixed : tuple of str
+        Parameters fixed at nominal.
+    combinations : tuple of str
+        For each fixed parameter, the kept parameters it cannot be told apart
+        from, in words.
+    condition_number : float
+        Of the column-normalised Jacobian of the kept set.
+    """
+
+    singular_values: NDArray
+    rank: int
+    kept: tuple[str, ...]
+    fixed: tuple[str, ...]
+    combinations: tuple[str, ...]
+    condition_number: float
+    kept_index: NDArray
+    fixed_index: NDArray
+
+    def report(self) -> str:
+        s = self.singular_values
+        lines = [
+            f"Identifiability: {len(s)} parameters, numerical rank {self.rank}, "
+            f"{len(self.kept)} kept, {len(self.fixed)} fixed at nominal",
+            f"  singular values (column-normalised): max {s[0]:.3g}, min kept {s[self.rank - 1]:.3g}, "
+            f"condition number of kept set {self.condition_number:.3g}",
+        ]
+        lines += [f"  - {c}" for c in self.combinations]
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {
+            "singular_values": self.singular_values,
+            "rank": self.rank,
+            "kept": list(self.kept),
+            "fixed": list(self.fixed),
+            "combinations": list(self.combinations),
+            "condition_number": self.condition_number,
+        }
+
+
+def analyse_identifiability(
+    J: NDArray,
+    layout: ParamLayout,
+    *,
+    candidates: NDArray | None = None,
+    rtol: float = STRUCTURAL_RTOL,
+) -> Identifiability:
+    """Find an identifiable parameter set and name what cannot be identified.
+
+    Parameters
+    ----------
+    J : ndarray, shape (n_rows, P)
+        Whitened identification Jacobian (rows divided by the noise sigma).
+    layout : ParamLayout
+        Names and units of the P parameters.
+    candidates : ndarray of int, optional
+        Parameters allowed to be identified, in priority order (those earlier
+        are kept in preference).  Default: all, in layout order (machine
+        parameters before the tool point).
+    rtol : float
+        Relative singular-value threshold for structural deficiency.
+
+    Returns
+    -------
+    Identifiability
+    """
+    J = np.asarray(J, dtype=float)
+    P = J.shape[1]
+    order = np.arange(P) if candidates is None else np.asarray(candidates, dtype=int)
+    norms = np.linalg.norm(J, axis=0)
+    safe = np.where(norms > 0, norms, 1.0)
+    Js = J / safe
+    s_all = np.linalg.svd(Js[:, order], compute_uv=False)
+    rank = int(np.sum(s_all > rtol * s_all[0])) if s_all.size and s_all[0] > 0 else 0
+    kept: list[int] = []
+    Q = np.zeros((J.shape[0], 0))
+    fixed: list[int] = []
+    for j in order:
+        if norms[j] <= 1e-12 * max(norms.max(), 1e-300):
+            fixed.append(j)
+            continue
+        c = Js[:, j]
+        res = c - Q @ (Q.T @ c)
+        res = res - Q @ (Q.T @ res)  # re-orthogonalise (classical Gram-Schmidt twice)
+        if np.linalg.norm(res) > 10 * rtol:
+            kept.append(j)
+            Q = np.column_stack([Q, res / np.linalg.norm(res)])
+        else:
+            fixed.append(j)
+    # the greedy pass keeps at most `rank` columns; trim if round-off let one more through
+    while len(kept) > rank:
+        fixed.append(kept.pop())
+    combos = []
+    names, units = layout.names, layout.units
+    for j in fixed:
+        if norms[j] <= 1e-12 * max(norms.max(), 1e-300):
+            combos.append(f"{names[j]} does not affect the measurement at these poses")
+            continue
+        # J_j = J_K c: changing theta_j by 1 looks like changing the kept ones by c
+        c, *_ = np.linalg.lstsq(J[:, kept], J[:, j], rcond=None)
+        big = np.flatnonzero(np.abs(c) * safe[kept] > 1e-6 * norms[j])
+        terms = ", ".join(f"{names[kept[i]]} by {c[i]:+.4g} {units[kept[i]]}" for i in big[np.argsort(-np.abs(c[big]) * safe[np.array(kept)[big]])])
+        combos.append(
+            f"{names[j]}: a change of 1 {units[j]} looks the same to the measurement as changing {terms}; "
+            f"fixed at nominal, only the combination is identified"
+        )
+    s_kept = np.linalg.svd(Js[:, kept], compute_uv=False) if kept else np.array([np.nan])
+    return Identifiability(
+        singular_values=s_all,
+        rank=rank,
+        kept=tuple(names[j] for j in kept),
+        fixed=tuple(names[j] for j in fixed),
+        combinations=tuple(combos),
+        condition_number=float(s_kept[0] / s_kept[-1]) if kept else float("inf"),
+        kept_index=np.array(sorted(kept), dtype=int),
+        fixed_index=np.array(sorted(fixed), dtype=int),
+    )

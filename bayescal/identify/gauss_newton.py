@@ -1,0 +1,247 @@
+"""Iterated (Gauss-Newton) identification with LS, ridge or TSVD steps.
+
+Each iteration linearises ``h`` at the current ``theta`` and solves the
+linearised problem for the *total* deviation from nominal,
+
+    A phi ~ z,   A = W J S,   z = W (y - h(theta)) + A phi_current,
+
+where ``W`` whitens the rows (divides by the instrument sigma) and ``S``
+scales the columns by the parameter tolerances (``theta = S phi``).  With
+LS this is plain Gauss-Newton.  With ridge the fixed point minimises
+``|W (y - h)|^2 + lam |phi|^2``: Tikhonov regularisation towards nominal,
+the MAP estimate under the tolerance prior when ``lam = 1``.  With TSVD the
+solution is restricted to the ``k`` best-determined directions ``V_k`` of
+``A`` at the start geometry, and Gauss-Newton runs on the coordinates in
+that fixed subspace.  (The seed applies its filters to the increment
+instead; on the total deviation the regularised solution does not depend on
+the number of iterations, and a fixed TSVD subspace cannot flip between
+nearly equal singular values from one iteration to the next.)
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import ConvergenceWarning, InputError
+from ..identifiability import analyse_identifiability
+from ..measurement import MeasurementModel
+from .result import IdentificationResult
+from .solvers import LS_RCOND, filtered_solve
+
+__all__ = ["identify", "resolve_free", "whitened_system"]
+
+
+def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tuple[NDArray, NDArray]:
+    """Whitened residual ``W (y - h)`` (N,) and Jacobian ``W J`` (N, P) at ``theta``."""
+    sig = model.sigma
+    r = (model.residual(prediction) / sig).reshape(-1)
+    J = (model.jacobian(theta, prediction) / sig[None, :, None]).reshape(-1, model.n_params)
+    return r, J
+
+
+def resolve_free(model: MeasurementModel, free, theta0: NDArray):
+    """Indices of the parameters to identify, and the identifiability analysis if automatic."""
+    layout = model.machine.layout
+    if free is None or (isinstance(free, str) and free == "auto"):
+        pred = model.predict(theta0)
+        _, J = whitened_system(model, theta0, pred) if model.y_measured is not None else (None, None)
+        if J is None:
+            J = (model.jacobian(theta0, pred) / model.sigma[None, :, None]).reshape(-1, model.n_params)
+        ida = analyse_identifiability(J, layout)
+        return ida.kept_index, ida
+    if isinstance(free, str) and free == "all":
+        return np.arange(len(layout)), None
+    idx = np.array([layout.index(f) if isinstance(f, str) else int(f) for f in free], dtype=int)
+    if idx.size == 0:
+        raise InputError("free: expected at least one parameter to identify")
+    if np.unique(idx).size != idx.size:
+        raise InputError("free: parameters listed twice")
+    return np.sort(idx), None
+
+
+def identify(
+    model: MeasurementModel,
+    *,
+    method: str = "ls",
+    lam: float | None = None,
+    k: int | None = None,
+    free: ArrayLike | str | None = None,
+    theta0: ArrayLike | None = None,
+    scale: ArrayLike | None = None,
+    max_iter: int = 50,
+    xtol: float = 1e-8,
+) -> IdentificationResult:
+    """Identify geometric errors from a measurement model with measured values.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        With ``y_measured`` (e.g. from :meth:`MeasurementModel.from_recording`).
+    method : {"ls", "ridge", "tsvd"}
+        Least squares, ridge estimation or truncated SVD (see the module docstring).
+    lam : float, optional
+        Ridge parameter, dimensionless (relative to the whitened,
+        tolerance-scaled matrix); ``lam = 1`` is the MAP estimate under the
+        tolerance prior.  Required for ridge.
+    k : int, optional
+        Number of singular values TSVD keeps.  Required for tsvd.
+    free : sequence of str or int, "auto", "all" or None
+        Parameters to identify.  ``None``/"auto": the identifiable set found by
+        :func:`bayescal.identifiability.analyse_identifiability`; the others
+        stay at ``theta0``.
+    theta0 : array_like, shape (P,), optional
+        Start (and value of fixed parameters); zeros (nominal) by default.
+    scale : array_like, shape (P,), optional
+        Column scaling, in parameter units; defaults to the machine's tolerances.
+    max_iter : int
+        Gauss-Newton iterations at most.
+    xtol : float
+        Convergence when the largest change of ``theta / scale`` is below this.
+
+    Returns
+    -------
+    IdentificationResult
+        ``success`` is False (with a warning and a message) when LS meets an
+        ill-posed matrix, the iteration diverges, or a pose cannot be solved.
+    """
+    machine = model.machine
+    P = machine.n_params
+    if model.y_measured is None:
+        raise InputError("identify: the measurement model has no measured values")
+    if method not in ("ls", "ridge", "tsvd"):
+        raise InputError(f"method: expected 'ls', 'ridge' or 'tsvd', got {method!r}")
+    if method == "ridge" and (lam is None or not np.isfinite(lam) or lam < 0):
+        raise InputError(f"lam: ridge needs a number >= 0, got {lam!r}")
+    theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float).reshape(P)
+    S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
+    if np.any(S_all <= 0):
+        raise InputError("scale: expected positive values")
+    idx, ida = resolve_free(model, free, theta)
+    n_rows = model.n_poses * model.dof
+    if n_rows < idx.size:
+        raise InputError(
+            f"{model.n_poses} poses give {n_rows} measured components for {idx.size} parameters; "
+            f"expected at least {idx.size // model.dof + 1} poses"
+        )
+    if method == "tsvd" and (k is None or int(k) != k or not 1 <= k <= idx.size):
+        raise InputError(f"k: tsvd needs an integer from 1 to {idx.size} (identified parameters), got {k!r}")
+    S = S_all[idx]
+
+    pred = model.predict(theta)
+    if not pred.success.all():
+        i = int(np.flatnonzero(~pred.success)[0])
+        raise InputError(f"pose {i + 1} (q = {model.q[i].tolist()}): {pred.poses.message[i]} at the start geometry")
+    r, J = whitened_system(model, theta, pred)
+    res_before = model.residual(pred)
+    history, costs = [theta.copy()], [float(r @ r)]
+    success, message, it = False, "", 0
+    sol = None
+    basis = None  # TSVD: the fixed subspace V_k, in scaled coordinates
+    if method == "tsvd":
+        basis = np.linalg.svd(J[:, idx] * S, full_matrices=False)[2][: int(k)].T
+    phi0 = theta[idx] / S
+    step = np.zeros(idx.size)
+    for it in range(1, max_iter + 1):
+        A = J[:, idx] * S
+        phi = theta[idx] / S
+        if basis is None:
+            sol = filtered_solve(A, r + A @ phi, method, lam=lam, k=k)
+        else:
+            # least squares for the coordinates c of phi = phi0 + V_k c
+            sub = filtered_solve(A @ basis, r + A @ (phi - phi0), "ls")
+            sol = type(sub)(x=phi0 + basis @ sub.x, s=sub.s, f=sub.f, V=basis @ sub.V, Utz=sub.Utz)
+        if method == "ls" and sol.s[-1] <= LS_RCOND * sol.s[0]:
+            worst = np.argsort(-np.abs(sol.V[:, -1]))[:4]
+            names = ", ".join(machine.layout.names[idx[j]] for j in worst)
+            message = (
+                f"least squares is ill-posed: the identification matrix is rank deficient "
+                f"(smallest/largest singular value {sol.s[-1] / sol.s[0]:.1e}); the measurement does not "
+                f"separate {names}. Use ridge or tsvd, or let bayescal reduce the parameter set (free='auto')"
+            )
+            break
+        step = sol.x - phi
+        if not np.all(np.isfinite(step)) or np.max(np.abs(sol.x)) > 1e6:
+            message = "diverged: the estimate grew beyond a million tolerances"
+            break
+        theta_new = theta.copy()
+        theta_new[idx] = S * sol.x
+        pred_new = model.predict(theta_new, guess=pred.poses)
+        if not pred_new.success.all():
+            i = int(np.flatnonzero(~pred_new.success)[0])
+            message = f"diverged: pose {i + 1} cannot be solved at the updated geometry ({pred_new.poses.message[i]})"
+            break
+        theta, pred = theta_new, pred_new
+        r, J = whitened_system(model, theta, pred)
+        history.append(theta.copy())
+        costs.append(float(r @ r))
+        # converged: a negligible step, or a small step that no longer lowers the cost
+        # (round-off floor of an ill-conditioned problem, about eps * condition number)
+        small = np.max(np.abs(step))
+        if small < xtol or (small < 1e3 * xtol and abs(costs[-2] - costs[-1]) <= 1e-12 * max(costs[-1], 1.0)):
+            success = True
+            break
+    else:
+        message = f"did not converge in {max_iter} iterations (last step {np.max(np.abs(step)):.2e} tolerances)"
+    # final linearisation at the solution, for singular values and covariance
+    A = J[:, idx] * S
+    if basis is None:
+        final = filtered_solve(A, r + A @ (theta[idx] / S), method, lam=lam, k=k)
+    else:
+        sub = filtered_solve(A @ basis, r, "ls")
+        full_s = np.linalg.svd(A, compute_uv=False)
+        final = type(sub)(x=sub.x, s=sub.s, f=sub.f, V=basis @ sub.V, Utz=sub.Utz)
+        object.__setattr__(final, "s", sub.s)
+    noise_given = machine.noise.given
+    dof_fit = max(n_rows - float(final.f.sum()), 1.0)
+    chi2 = float(r @ r)
+    if method == "ridge":
+        cov_phi = (final.V / (final.s**2 + lam)) @ final.V.T
+        kind = "Laplace (ridge as MAP: (A^T A + lam I)^-1)"
+    else:
+        cov_phi = final.covariance()
+        kind = "linearised (A^T A)^-1" if method == "ls" else "linearised, kept directions only (truncation bias not included)"
+    if not noise_given:
+        cov_phi = cov_phi * (chi2 / dof_fit)
+    cov = cov_phi * np.outer(S, S)
+    if not success and sol is not None and method == "ls" and "ill-posed" in message:
+        cov = None
+    if not success:
+        warnings.warn(message, ConvergenceWarning, stacklevel=2)
+    res_after = model.residual(pred)
+    free_mask = np.zeros(P, dtype=bool)
+    free_mask[idx] = True
+    fixed = tuple(n for n, f in zip(machine.layout.names, free_mask) if not f)
+    return IdentificationResult(
+        machine_name=machine.name,
+        kind=machine.kind,
+        method=method,
+        lam=None if method != "ridge" else float(lam),
+        k=None if method != "tsvd" else int(k),
+        names=machine.layout.names,
+        units=machine.layout.units,
+        theta=theta,
+        free=free_mask,
+        covariance=cov,
+        covariance_kind=kind if noise_given else kind + ", scaled by reduced chi-square",
+        rms_before=model.rms(res_before),
+        rms_after=model.rms(res_after),
+        residuals_before=res_before,
+        residuals_after=res_after,
+        singular_values=final.s,
+        filter_factors=final.f,
+        rank=int(np.sum(final.s > LS_RCOND * final.s[0])),
+        iterations=len(history) - 1,
+        history=np.array(history),
+        cost_history=np.array(costs),
+        success=success,
+        message=message,
+        fixed=fixed,
+        unidentifiable=() if ida is None else ida.combinations,
+        dof=model.dof,
+        n_poses=model.n_poses,
+        chi2=chi2,
+        noise_given=noise_given,
+    )

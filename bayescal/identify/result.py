@@ -1,0 +1,211 @@
+"""The answer of an identification: named parameters with uncertainty, fit statistics, history."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["IdentificationResult", "ParameterEstimate"]
+
+STRONG_CORRELATION = 0.95
+
+
+@dataclass(frozen=True)
+class ParameterEstimate:
+    """One identified error (actual minus nominal)."""
+
+    name: str
+    value: float
+    std: float | None
+    unit: str
+    identified: bool
+
+
+@dataclass(frozen=True)
+class IdentificationResult:
+    """What an identification found.
+
+    Attributes
+    ----------
+    machine_name, kind : str
+    method : str
+        ``ls``, ``ridge``, ``tsvd`` (or a method added later).
+    lam, k : float or int or None
+        The regularisation actually used.
+    names, units : tuple of str
+        All parameters of the machine.
+    theta : ndarray, shape (P,)
+        Identified errors; fixed parameters stay at their start value.
+    free : ndarray of bool, shape (P,)
+        Which parameters were identified.
+    covariance : ndarray, shape (n_free, n_free) or None
+        Of the identified parameters (see ``covariance_kind``).
+    covariance_kind : str
+        How ``covariance`` was obtained.
+    rms_before, rms_after : dict
+        ``{"position": mm, "angle": rad or None}`` against nominal and calibrated model.
+    residuals_before, residuals_after : ndarray, shape (n_poses, dof)
+        ``y - h`` in mm and rad.
+    singular_values : ndarray
+        Of the whitened, tolerance-scaled identification matrix at the solution.
+    filter_factors : ndarray
+    rank : int
+        Numerical rank of that matrix.
+    iterations : int
+    history : ndarray, shape (iterations + 1, P)
+        ``theta`` after each Gauss-Newton iteration (row 0: the start).
+    cost_history : ndarray, shape (iterations + 1,)
+        Whitened sum of squared residuals after each iteration.
+    success : bool
+    message : str
+    fixed : tuple of str
+        Parameters held at nominal, and ``unidentifiable`` explains why.
+    unidentifiable : tuple of str
+    dof : int
+        6, 5 or 3.
+    n_poses : int
+    chi2 : float
+        Whitened sum of squared residuals after calibration.
+    noise_given : bool
+        Whether the instrument sigma came from the machine file; if not, the
+        covariance was scaled by the reduced chi-square.
+    """
+
+    machine_name: str
+    kind: str
+    method: str
+    lam: float | None
+    k: int | None
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    theta: NDArray
+    free: NDArray
+    covariance: NDArray | None
+    covariance_kind: str
+    rms_before: dict
+    rms_after: dict
+    residuals_before: NDArray
+    residuals_after: NDArray
+    singular_values: NDArray
+    filter_factors: NDArray
+    rank: int
+    iterations: int
+    history: NDArray
+    cost_history: NDArray
+    success: bool
+    message: str
+    fixed: tuple[str, ...] = ()
+    unidentifiable: tuple[str, ...] = ()
+    dof: int = 6
+    n_poses: int = 0
+    chi2: float = float("nan")
+    noise_given: bool = True
+    extras: dict = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ access
+    @property
+    def std(self) -> NDArray:
+        """Standard deviation per parameter (NaN where not identified or not defined)."""
+        out = np.full(self.theta.shape, np.nan)
+        if self.covariance is not None:
+            out[self.free] = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+        return out
+
+    @property
+    def parameters(self) -> tuple[ParameterEstimate, ...]:
+        std = self.std
+        return tuple(
+            ParameterEstimate(n, float(v), None if not np.isfinite(s) else float(s), u, bool(f))
+            for n, v, s, u, f in zip(self.names, self.theta, std, self.units, self.free)
+        )
+
+    @property
+    def free_names(self) -> tuple[str, ...]:
+        return tuple(n for n, f in zip(self.names, self.free) if f)
+
+    def correlations(self, threshold: float = STRONG_CORRELATION) -> list[tuple[str, str, float]]:
+        """Pairs of identified parameters with ``|correlation| >= threshold``, strongest first."""
+        if self.covariance is None:
+            return []
+        d = np.sqrt(np.clip(np.diag(self.covariance), 1e-300, None))
+        C = self.covariance / np.outer(d, d)
+        names = self.free_names
+        iu = np.triu_indices(len(names), 1)
+        pairs = [(names[i], names[j], float(C[i, j])) for i, j in zip(*iu) if abs(C[i, j]) >= threshold]
+        return sorted(pairs, key=lambda p: -abs(p[2]))
+
+    # ----------------------------------------------------------------- output
+    def to_dict(self) -> dict:
+        """The JSON answer of ``bayescal identify`` (FORMATS.md section 3), plus details."""
+        return {
+            "machine": self.machine_name,
+            "kind": self.kind,
+            "method": self.method,
+            "lam": self.lam,
+            "k": self.k,
+            "success": self.success,
+            "message": self.message,
+            "parameters": [
+                {"name": p.name, "value": p.value, "std": p.std, "unit": p.unit, "identified": p.identified}
+                for p in self.parameters
+            ],
+            "rms_before": self.rms_before,
+            "rms_after": self.rms_after,
+            "dof": self.dof,
+            "n_poses": self.n_poses,
+            "iterations": self.iterations,
+            "chi2": self.chi2,
+            "rank": self.rank,
+            "singular_values": self.singular_values,
+            "covariance_kind": self.covariance_kind,
+            "fixed": list(self.fixed),
+            "unidentifiable": list(self.unidentifiable),
+            "strong_correlations": [{"a": a, "b": b, "correlation": c} for a, b, c in self.correlations()],
+            "cost_history": self.cost_history,
+            **self.extras,
+        }
+
+    def report(self, *, max_combinations: int = 10) -> str:
+        """A readable report: fit statistics, parameters with std and unit, warnings."""
+        reg = f" (lambda = {self.lam:.4g})" if self.lam is not None else f" (k = {self.k})" if self.k is not None else ""
+        status = "converged" if self.success else "FAILED"
+        nfree = int(self.free.sum())
+        rows = self.n_poses * self.dof
+        lines = [
+            f"bayescal identification of '{self.machine_name}' ({self.kind})",
+            f"  method          {self.method}{reg}: {status} after {self.iterations} iterations",
+        ]
+        if self.message:
+            lines.append(f"  message         {self.message}")
+        lines += [
+            f"  measurement     {self.dof}-DOF, {self.n_poses} poses, {rows} residuals, {nfree} parameters identified",
+            f"  chi-square      {self.chi2:.4g} (reduced {self.chi2 / max(rows - nfree, 1):.4g}); "
+            f"noise sigma {'from the machine file' if self.noise_given else 'default, covariance scaled by reduced chi-square'}",
+            f"  RMS position    {self.rms_before['position']:.6f} mm before, {self.rms_after['position']:.6f} mm after",
+        ]
+        if self.rms_before.get("angle") is not None:
+            lines.append(
+                f"  RMS angle       {self.rms_before['angle']:.3e} rad before, {self.rms_after['angle']:.3e} rad after"
+            )
+        if self.singular_values.size:
+            s = self.singular_values
+            lines.append(f"  identification matrix: rank {self.rank}, condition number {s[0] / s[-1]:.3g}")
+        lines.append(f"  covariance      {self.covariance_kind}")
+        lines += ["", f"  {'parameter':<36}{'value':>14}{'std':>12}  unit"]
+        for p in self.parameters:
+            if not p.identified:
+                continue
+            std = f"{p.std:12.3e}" if p.std is not None else f"{'-':>12}"
+            lines.append(f"  {p.name:<36}{p.value:14.6g}{std}  {p.unit}")
+        corr = self.correlations()
+        if corr:
+            lines += ["", f"  strongly correlated pairs (|r| >= {STRONG_CORRELATION}):"]
+            lines += [f"    {a} ~ {b}: {c:+.3f}" for a, b, c in corr[:15]]
+            if len(corr) > 15:
+                lines.append(f"    ... and {len(corr) - 15} more")
+        if self.fixed:
+            lines += ["", f"  not identifiable from these poses, fixed at nominal: {', '.join(self.fixed)}"]
+            lines += [f"    - {c}" for c in self.unidentifiable[:max_combinations]]
+        return "\n".join(lines)

@@ -1,0 +1,147 @@
+"""Strict reading of machine files (TOML, FORMATS.md section 1).
+
+The kind-specific keys are read by each machine module through
+:class:`TomlTable`, which names the file and the dotted key in every error.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import MachineFileError
+
+__all__ = ["read_toml", "TomlTable", "format_toml_value"]
+
+
+def read_toml(path: str | os.PathLike) -> "TomlTable":
+    """Parse a TOML file; a missing file or a syntax error raises MachineFileError."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            doc = tomllib.load(fh)
+    except FileNotFoundError:
+        raise MachineFileError(str(path), "", "file not found") from None
+    except IsADirectoryError:
+        raise MachineFileError(str(path), "", "is a folder, expected a machine file (TOML)") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise MachineFileError(str(path), "", f"not valid TOML ({exc})") from exc
+    return TomlTable(doc, str(path), "")
+
+
+class TomlTable:
+    """A view of one TOML table that validates values and names them in errors."""
+
+    def __init__(self, data: dict[str, Any], path: str, prefix: str):
+        self.data, self.path, self.prefix = data, path, prefix
+
+    def _key(self, key: str) -> str:
+        return f"{self.prefix}.{key}" if self.prefix else key
+
+    def error(self, key: str, expected: str) -> MachineFileError:
+        return MachineFileError(self.path, self._key(key), expected)
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def keys(self):
+        return self.data.keys()
+
+    def reject_unknown(self, allowed: set[str]) -> None:
+        """Raise for keys not in ``allowed`` (typos must not pass silently)."""
+        for key in self.data:
+            if key not in allowed:
+                raise self.error(key, f"unknown key; expected one of: {', '.join(sorted(allowed))}")
+
+    def string(self, key: str, default: str | None = None) -> str:
+        if key not in self.data:
+            if default is None:
+                raise self.error(key, "missing; expected a string")
+            return default
+        v = self.data[key]
+        if not isinstance(v, str):
+            raise self.error(key, f"expected a string, got {v!r}")
+        return v
+
+    def number(self, key: str, default: float | None = None, *, positive: bool = False) -> float:
+        if key not in self.data:
+            if default is None:
+                raise self.error(key, "missing; expected a number")
+            return float(default)
+        v = self.data[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise self.error(key, f"expected a finite number, got {v!r}")
+        if positive and v <= 0:
+            raise self.error(key, f"expected a positive number, got {v!r}")
+        return float(v)
+
+    def vector(self, key: str, n: int = 3, *, unit: bool = False, default=None) -> np.ndarray:
+        if key not in self.data:
+            if default is None:
+                raise self.error(key, f"missing; expected a list of {n} numbers")
+            return np.asarray(default, dtype=float)
+        v = self.data[key]
+        if (
+            not isinstance(v, list)
+            or len(v) != n
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in v)
+        ):
+            raise self.error(key, f"expected a list of {n} finite numbers, got {v!r}")
+        arr = np.asarray(v, dtype=float)
+        if unit:
+            norm = float(np.linalg.norm(arr))
+            if abs(norm - 1.0) > 1e-6:
+                raise self.error(key, f"expected a unit vector (norm 1 within 1e-6), got norm {norm:.9g}")
+            arr = arr / norm
+        return arr
+
+    def matrix(self, key: str, rows: int, cols: int) -> np.ndarray:
+        v = self.data.get(key)
+        ok = isinstance(v, list) and len(v) == rows and all(
+            isinstance(r, list)
+            and len(r) == cols
+            and all(not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) for x in r)
+            for r in v
+        )
+        if not ok:
+            raise self.error(key, f"expected {rows} lists of {cols} finite numbers, got {v!r}")
+        return np.asarray(v, dtype=float)
+
+    def table(self, key: str, *, required: bool = True) -> "TomlTable | None":
+        if key not in self.data:
+            if required:
+                raise self.error(key, "missing table")
+            return None
+        v = self.data[key]
+        if not isinstance(v, dict):
+            raise self.error(key, f"expected a table [{key}], got {type(v).__name__}")
+        return TomlTable(v, self.path, self._key(key))
+
+    def array_of_tables(self, key: str, n: int | None = None) -> list["TomlTable"]:
+        v = self.data.get(key)
+        if not isinstance(v, list) or not v or not all(isinstance(t, dict) for t in v):
+            raise self.error(key, f"missing or malformed; expected one or more [[{key}]] tables")
+        if n is not None and len(v) != n:
+            raise self.error(key, f"expected {n} [[{key}]] tables, got {len(v)}")
+        return [TomlTable(t, self.path, f"{self._key(key)}[{i + 1}]") for i, t in enumerate(v)]
+
+
+def format_toml_value(v: Any) -> str:
+    """Format a number, string, vector or matrix as TOML with full float precision."""
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    arr = np.asarray(v)
+    if arr.ndim >= 1:
+        return "[" + ", ".join(format_toml_value(x) for x in (arr.tolist() if arr.ndim == 1 else list(arr))) + "]"
+    return format_toml_value(arr.item())

@@ -1,0 +1,228 @@
+"""Recordings of measured poses (CSV, FORMATS.md section 2), read strictly."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import RecordingError
+from .answers import write_text_atomic
+
+__all__ = ["Recording", "read_recording", "write_recording", "recording_to_csv"]
+
+_Q = re.compile(r"^q([1-9][0-9]*)$")
+_POS = ("x", "y", "z")
+_ROT = ("rx", "ry", "rz")
+_AXIS = ("nx", "ny", "nz")
+AXIS_NORM_TOL = 1e-3
+
+
+@dataclass(frozen=True)
+class Recording:
+    """Measured poses in measurement order.
+
+    Attributes
+    ----------
+    q : ndarray, shape (n_poses, n_actuators)
+        Commanded actuator positions, mm (prismatic) or rad (revolute).
+    position : ndarray, shape (n_poses, 3)
+        Measured tool point, base frame, mm.
+    rotvec : ndarray, shape (n_poses, 3) or None
+        Measured platform orientation (rotation vector, rad), 6-DOF only.
+    axis : ndarray, shape (n_poses, 3) or None
+        Measured unit tool axis, 5-DOF only.
+    aux : dict of str to ndarray, shape (n_poses,)
+        Auxiliary channels in file order.
+    path : str
+        Where it was read from (for messages), or ``"<memory>"``.
+    """
+
+    q: NDArray
+    position: NDArray
+    rotvec: NDArray | None = None
+    axis: NDArray | None = None
+    aux: dict[str, NDArray] = field(default_factory=dict)
+    path: str = "<memory>"
+
+    @property
+    def n_poses(self) -> int:
+        return self.q.shape[0]
+
+    @property
+    def n_actuators(self) -> int:
+        return self.q.shape[1]
+
+    @property
+    def dof(self) -> int:
+        """6 (position + orientation), 5 (position + tool axis) or 3 (position only)."""
+        if self.rotvec is not None:
+            return 6
+        if self.axis is not None:
+            return 5
+        return 3
+
+    def subset(self, idx) -> "Recording":
+        """The poses ``idx`` (an index array or boolean mask), order kept."""
+        idx = np.asarray(idx)
+        return Recording(
+            q=self.q[idx],
+            position=self.position[idx],
+            rotvec=None if self.rotvec is None else self.rotvec[idx],
+            axis=None if self.axis is None else self.axis[idx],
+            aux={k: v[idx] for k, v in self.aux.items()},
+            path=self.path,
+        )
+
+    def check_machine(self, n_actuators: int, q_limits: NDArray | None, machine_path: str = "") -> None:
+        """Raise RecordingError if the actuator count or ``q_limits`` do not fit."""
+        if self.n_actuators != n_actuators:
+            raise RecordingError(
+                self.path, 1, None,
+                f"{self.n_actuators} actuator columns (q1..q{self.n_actuators}) but the machine "
+                f"{machine_path} has {n_actuators} actuators; expected q1..q{n_actuators}",
+            )
+        if q_limits is None:
+            return
+        lo, hi = q_limits[:, 0], q_limits[:, 1]
+        span = np.maximum(hi - lo, 1.0)
+        bad = (self.q < lo - 1e-9 * span) | (self.q > hi + 1e-9 * span)
+        if bad.any():
+            r, c = map(int, np.argwhere(bad)[0])
+            raise RecordingError(
+                self.path, r + 2, f"q{c + 1}",
+                f"value {self.q[r, c]!r} outside q_limits [{lo[c]!r}, {hi[c]!r}] of the machine file",
+            )
+
+
+def _number(text: str, path: str, line: int, col: str) -> float:
+    s = text.strip()
+    if s == "":
+        raise RecordingError(path, line, col, "empty cell; expected a number")
+    try:
+        v = float(s)
+    except ValueError:
+        raise RecordingError(path, line, col, f"expected a number, got {s!r}") from None
+    if not math.isfinite(v):
+        raise RecordingError(path, line, col, f"expected a finite number, got {s!r}")
+    return v
+
+
+def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recording:
+    """Read a recording CSV strictly.
+
+    Parameters
+    ----------
+    path : path-like
+        The CSV file (used for messages only if ``text`` is given).
+    text : str, optional
+        The file's content, to parse from memory.
+
+    Returns
+    -------
+    Recording
+
+    Raises
+    ------
+    RecordingError
+        For empty cells, non-numbers, non-unit tool axes, duplicate or
+        incomplete columns, and ragged rows, naming line and column.
+    """
+    path = str(path)
+    if text is None:
+        try:
+            with open(path, encoding="utf-8-sig", newline="") as fh:
+                text = fh.read()
+        except FileNotFoundError:
+            raise RecordingError(path, None, None, "file not found") from None
+        except IsADirectoryError:
+            raise RecordingError(path, None, None, "is a folder, expected a recording (CSV)") from None
+        except UnicodeDecodeError as exc:
+            raise RecordingError(path, None, None, f"not a UTF-8 text file ({exc})") from None
+    rows = list(csv.reader(io.StringIO(text)))
+    while rows and all(c.strip() == "" for c in rows[-1]):
+        rows.pop()
+    if not rows:
+        raise RecordingError(path, 1, None, "empty file; expected a header row")
+    header = [h.strip() for h in rows[0]]
+    seen: dict[str, int] = {}
+    for j, h in enumerate(header):
+        if h == "":
+            raise RecordingError(path, 1, None, f"column {j + 1} has an empty name")
+        if h in seen:
+            raise RecordingError(path, 1, h, f"duplicate column (columns {seen[h] + 1} and {j + 1})")
+        seen[h] = j
+    qnums = sorted(int(m.group(1)) for h in header if (m := _Q.match(h)))
+    if not qnums:
+        raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ...")
+    if qnums != list(range(1, len(qnums) + 1)):
+        missing = sorted(set(range(1, max(qnums) + 1)) - set(qnums))
+        raise RecordingError(path, 1, None, f"actuator columns must be q1..qN without gaps; missing q{missing[0]}")
+    for group, label in ((_POS, "position"), (_ROT, "rotation vector"), (_AXIS, "tool axis")):
+        present = [c for c in group if c in seen]
+        if group is _POS and len(present) != 3:
+            missing = [c for c in group if c not in seen]
+            raise RecordingError(path, 1, missing[0], "missing measured position column; expected x, y, z")
+        if 0 < len(present) < 3:
+            missing = [c for c in group if c not in seen]
+            raise RecordingError(path, 1, missing[0], f"incomplete {label}: expected all of {', '.join(group)}")
+    if _ROT[0] in seen and _AXIS[0] in seen:
+        raise RecordingError(
+            path, 1, "nx", "both a rotation vector (rx, ry, rz) and a tool axis (nx, ny, nz); expected one of them"
+        )
+    if len(rows) < 2:
+        raise RecordingError(path, 2, None, "no data rows; expected one row per measured pose")
+    data = np.empty((len(rows) - 1, len(header)))
+    for i, row in enumerate(rows[1:]):
+        line = i + 2
+        if len(row) != len(header):
+            raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
+        for j, cell in enumerate(row):
+            data[i, j] = _number(cell, path, line, header[j])
+    col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
+    q = col([f"q{k}" for k in qnums])
+    rotvec = col(_ROT) if _ROT[0] in seen else None
+    axis = None
+    if _AXIS[0] in seen:
+        axis = col(_AXIS)
+        norms = np.linalg.norm(axis, axis=1)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > AXIS_NORM_TOL)
+        if bad.size:
+            raise RecordingError(
+                path, int(bad[0]) + 2, "nx",
+                f"tool axis (nx, ny, nz) has norm {norms[bad[0]]:.6g}; expected a unit vector (within {AXIS_NORM_TOL})",
+            )
+        axis = axis / norms[:, None]
+    known = set(_POS + _ROT + _AXIS) | {f"q{k}" for k in qnums}
+    aux = {h: data[:, seen[h]].copy() for h in header if h not in known}
+    return Recording(q=q, position=col(_POS), rotvec=rotvec, axis=axis, aux=aux, path=path)
+
+
+def recording_to_csv(rec: Recording, *, precision: int = 12) -> str:
+    """The CSV text of a recording (FORMATS.md column names, measurement order)."""
+    cols: list[tuple[str, NDArray]] = [(f"q{k + 1}", rec.q[:, k]) for k in range(rec.n_actuators)]
+    cols += [(c, rec.position[:, k]) for k, c in enumerate(_POS)]
+    if rec.rotvec is not None:
+        cols += [(c, rec.rotvec[:, k]) for k, c in enumerate(_ROT)]
+    if rec.axis is not None:
+        cols += [(c, rec.axis[:, k]) for k, c in enumerate(_AXIS)]
+    cols += list(rec.aux.items())
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow([c for c, _ in cols])
+    fmt = f"{{:.{precision}g}}"
+    for i in range(rec.n_poses):
+        w.writerow([fmt.format(float(v[i])) for _, v in cols])
+    return out.getvalue()
+
+
+def write_recording(path: str | os.PathLike, rec: Recording, *, precision: int = 12) -> Path:
+    """Write a recording CSV atomically."""
+    return write_text_atomic(path, recording_to_csv(rec, precision=precision))

@@ -1,0 +1,46 @@
+"""Kinematic families.  ``load_machine`` reads a machine file of any shipped kind."""
+
+from __future__ import annotations
+
+import os
+
+from ..errors import MachineFileError
+from ..io.machine_file import read_toml
+from .base import Machine, MeasurementNoise, ToolPoses
+from .prs3 import Prs3
+
+__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "Prs3", "KINDS", "load_machine", "machine_from_text"]
+
+#: Machine kinds by the ``kind`` string of the machine file.
+KINDS: dict[str, type[Machine]] = {Prs3.kind: Prs3}
+
+
+def _build(doc, path: str) -> Machine:
+    kind = doc.string("kind")
+    if kind not in KINDS:
+        raise MachineFileError(path, "kind", f"unknown kind {kind!r}; expected one of: {', '.join(KINDS)}")
+    return KINDS[kind].from_toml(doc, path)
+
+
+def load_machine(path: str | os.PathLike) -> Machine:
+    """Read a machine file (FORMATS.md section 1) of any shipped kind.
+
+    Raises
+    ------
+    MachineFileError
+        Naming the file, the key and what was expected.
+    """
+    return _build(read_toml(path), str(path))
+
+
+def machine_from_text(text: str, path: str = "<memory>") -> Machine:
+    """Build a machine from machine-file text (as written by ``Machine.to_toml``)."""
+    import tomllib
+
+    from ..io.machine_file import TomlTable
+
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise MachineFileError(path, "", f"not valid TOML ({exc})") from exc
+    return _build(TomlTable(doc, path, ""), path)

@@ -1,0 +1,165 @@
+"""What every machine kind provides: the interface all consumers rely on.
+
+A machine is immutable.  Its geometry is the nominal geometry plus a
+parameter vector ``theta`` of geometric errors (actual minus nominal), laid
+out by :attr:`Machine.layout`.  ``theta`` may be one vector (shape ``(P,)``)
+or one per pose (shape ``(n_poses, P)``): per-pose geometry is how physical
+effects (thermal growth, ...) and vectorised samplers (one pose block per
+walker) use the same kinematics.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import InputError
+from ..params import ParamLayout
+
+__all__ = ["Machine", "ToolPoses", "MeasurementNoise"]
+
+
+@dataclass(frozen=True)
+class MeasurementNoise:
+    """The instrument's one-sigma noise.
+
+    Attributes
+    ----------
+    sigma_position : float
+        mm, per axis.
+    sigma_angle : float
+        rad, per component of the small orientation error.
+    given : bool
+        True when read from the machine file's ``[measurement]`` table, False
+        for the documented defaults.
+    """
+
+    sigma_position: float = 0.005
+    sigma_angle: float = 5.0e-5
+    given: bool = False
+
+
+@dataclass(frozen=True)
+class ToolPoses:
+    """Solved tool poses, one per commanded actuator vector.
+
+    Attributes
+    ----------
+    position : ndarray, shape (n_poses, 3)
+        Tool point, base frame, mm.
+    rotation : ndarray, shape (n_poses, 3, 3)
+        Platform orientation ``R_base_platform``.
+    success : ndarray of bool, shape (n_poses,)
+        Whether the forward kinematics converged for each pose.
+    message : tuple of str
+        Per pose: ``""`` or why it failed.
+    state : object
+        Kind-specific solution (e.g. the platform pose) for warm starts and
+        for the Jacobian.
+    """
+
+    position: NDArray
+    rotation: NDArray
+    success: NDArray
+    message: tuple[str, ...]
+    state: object = None
+
+    @property
+    def axis(self) -> NDArray:
+        """Tool axis ``R e_z``, shape (n_poses, 3)."""
+        return self.rotation[..., :, 2]
+
+
+class Machine(ABC):
+    """A kinematic family with its nominal geometry.
+
+    Subclasses set :attr:`kind` and implement :meth:`forward`,
+    :meth:`tool_jacobian`, :meth:`to_toml` and :meth:`from_toml`.
+    """
+
+    kind: ClassVar[str] = ""
+
+    name: str
+    layout: ParamLayout
+    tolerance: NDArray
+    noise: MeasurementNoise
+    q_limits: NDArray | None
+    source: str
+
+    @property
+    @abstractmethod
+    def n_actuators(self) -> int:
+        """Number of actuated joints (columns q1..qN of a recording)."""
+
+    @property
+    def n_params(self) -> int:
+        return len(self.layout)
+
+    def check_theta(self, theta: ArrayLike | None, n_poses: int | None = None) -> NDArray:
+        """``theta`` as an array of shape ``(P,)`` or ``(n_poses, P)``; zeros if None."""
+        if theta is None:
+            return np.zeros(self.n_params)
+        theta = np.asarray(theta, dtype=float)
+        if theta.shape[-1] != self.n_params or theta.ndim not in (1, 2):
+            raise InputError(f"theta: expected shape ({self.n_params},) or (n_poses, {self.n_params}), got {theta.shape}")
+        if theta.ndim == 2 and n_poses is not None and theta.shape[0] != n_poses:
+            raise InputError(f"theta: {theta.shape[0]} rows for {n_poses} poses")
+        return theta
+
+    def check_q(self, q: ArrayLike) -> NDArray:
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        if q.ndim != 2 or q.shape[1] != self.n_actuators:
+            raise InputError(f"q: expected shape (n_poses, {self.n_actuators}), got {np.shape(q)}")
+        return q
+
+    @abstractmethod
+    def forward(self, q: ArrayLike, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> ToolPoses:
+        """Tool poses for commanded actuator positions ``q`` (n_poses, n_actuators)."""
+
+    @abstractmethod
+    def tool_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
+        """Derivative of the tool pose with respect to ``theta``.
+
+        Returns
+        -------
+        ndarray, shape (n_poses, 6, P)
+            Rows 0-2: tool point (mm per unit of each parameter); rows 3-5:
+            small rotation of the platform in the base frame (rad per unit),
+            ``R(theta + d) = exp([J_rot d]x) R(theta)``.
+        """
+
+    @abstractmethod
+    def to_toml(self, theta: ArrayLike | None = None) -> str:
+        """Machine file text of the geometry ``nominal + theta`` (errors folded in)."""
+
+    @classmethod
+    @abstractmethod
+    def from_toml(cls, table, path: str) -> "Machine":
+        """Build from a parsed machine file (:class:`bayescal.io.TomlTable`)."""
+
+    def guess_from_measurement(
+        self, q: NDArray, position: NDArray, rotation: NDArray | None = None, axis: NDArray | None = None
+    ) -> ToolPoses | None:
+        """A forward-kinematics start built from measured tool poses, or None.
+
+        Starting Newton from the measurement keeps the solution on the
+        branch the real machine is on, whatever the machine file's layout.
+        """
+        return None
+
+    def home_q(self) -> NDArray:
+        """A reference actuator vector: the middle of ``q_limits``."""
+        if self.q_limits is None:
+            raise InputError(f"{self.source}: the machine file has no [workspace] q_limits; they are needed here")
+        return self.q_limits.mean(axis=1)
+
+    def sample_q(self, n: int, rng: np.random.Generator) -> NDArray:
+        """``n`` actuator vectors drawn uniformly within ``q_limits``."""
+        if self.q_limits is None:
+            raise InputError(f"{self.source}: the machine file has no [workspace] q_limits; they are needed to draw poses")
+        lo, hi = self.q_limits[:, 0], self.q_limits[:, 1]
+        return lo + (hi - lo) * rng.random((n, self.n_actuators))

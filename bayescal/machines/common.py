@@ -1,0 +1,70 @@
+"""Machine-file tables shared by every kind: measurement, workspace, tolerance."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..io.machine_file import TomlTable, format_toml_value
+from .base import MeasurementNoise
+
+__all__ = ["read_noise", "read_q_limits", "read_tolerance", "common_toml"]
+
+
+def read_noise(doc: TomlTable) -> MeasurementNoise:
+    """The optional ``[measurement]`` table (sigma_position mm, sigma_angle rad)."""
+    t = doc.table("measurement", required=False)
+    if t is None:
+        return MeasurementNoise()
+    t.reject_unknown({"sigma_position", "sigma_angle"})
+    d = MeasurementNoise()
+    return MeasurementNoise(
+        sigma_position=t.number("sigma_position", d.sigma_position, positive=True),
+        sigma_angle=t.number("sigma_angle", d.sigma_angle, positive=True),
+        given=True,
+    )
+
+
+def read_q_limits(doc: TomlTable, n_actuators: int) -> NDArray | None:
+    """The optional ``[workspace] q_limits``: one ``[min, max]`` per actuator."""
+    t = doc.table("workspace", required=False)
+    if t is None:
+        return None
+    t.reject_unknown({"q_limits"})
+    lim = t.matrix("q_limits", n_actuators, 2)
+    bad = np.flatnonzero(lim[:, 0] >= lim[:, 1])
+    if bad.size:
+        raise t.error("q_limits", f"actuator q{bad[0] + 1}: expected min < max, got {lim[bad[0]].tolist()}")
+    return lim
+
+
+def read_tolerance(doc: TomlTable, defaults: dict[str, float]) -> dict[str, float]:
+    """One-sigma tolerance per parameter group from the optional ``[tolerance]`` table.
+
+    Keys are the parameter groups (``defaults``' keys, mm or rad); missing
+    keys take the documented defaults.
+    """
+    t = doc.table("tolerance", required=False)
+    values = dict(defaults)
+    if t is not None:
+        t.reject_unknown(set(defaults))
+        for k in t.keys():
+            values[k] = t.number(k, positive=True)
+    return values
+
+
+def common_toml(machine, tolerance_groups: dict[str, float]) -> str:
+    """The [measurement], [workspace] and [tolerance] tables of a machine file."""
+    out = []
+    if machine.noise.given:
+        out += [
+            "[measurement]",
+            f"sigma_position = {format_toml_value(machine.noise.sigma_position)}",
+            f"sigma_angle = {format_toml_value(machine.noise.sigma_angle)}",
+            "",
+        ]
+    if machine.q_limits is not None:
+        out += ["[workspace]", f"q_limits = {format_toml_value(machine.q_limits)}", ""]
+    if tolerance_groups:
+        out += ["[tolerance]"] + [f"{k} = {format_toml_value(v)}" for k, v in tolerance_groups.items()] + [""]
+    return "\n".join(out)

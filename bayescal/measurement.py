@@ -1,0 +1,270 @@
+"""Measurement models ``y = h(q, theta)`` and their Jacobians ``J = dh/dtheta``.
+
+Per pose, the rows of ``y`` are
+
+* position-only (3-DOF): the tool point, mm;
+* 6-DOF: the tool point and the small rotation ``log(R R_ref^T)`` (rad) of
+  the platform relative to a reference orientation ``R_ref`` (the measured
+  one when the model comes from a recording, so the measured ``y`` is zero
+  there and ``y - h`` is the orientation error ``log(R_meas R^T)``);
+* 5-DOF: the tool point and two components ``t_k . n`` of the tool axis
+  ``n = R e_z`` on a tangent basis ``t_1, t_2`` of the reference axis (rad to
+  first order); the torsion about the tool axis is not observed.
+
+Every consumer (solvers, filters, samplers, planning, diagnosis) works on
+this object and never on a machine directly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import InputError, KinematicsError
+from .geometry import left_jacobian_inverse, skew, so3_exp, so3_log, tangent_basis
+from .io.recording import Recording
+from .machines.base import Machine, ToolPoses
+
+__all__ = ["MeasurementModel", "Prediction", "rows_per_pose"]
+
+
+def rows_per_pose(dof: int) -> int:
+    """Number of measured components per pose for a 6-, 5- or 3-DOF measurement."""
+    if dof not in (3, 5, 6):
+        raise InputError(f"dof: expected 6, 5 or 3, got {dof!r}")
+    return dof
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Model output at one parameter vector.
+
+    Attributes
+    ----------
+    y : ndarray, shape (n_poses, dof)
+        Predicted measurement rows.
+    poses : ToolPoses
+        The solved tool poses (warm start for the next call).
+    """
+
+    y: NDArray
+    poses: ToolPoses
+
+    @property
+    def success(self) -> NDArray:
+        return self.poses.success
+
+
+@dataclass(frozen=True, eq=False)
+class MeasurementModel:
+    """``h(theta)`` for a fixed list of commanded poses.
+
+    Parameters
+    ----------
+    machine : Machine
+    q : ndarray, shape (n_poses, n_actuators)
+        Commanded actuator positions.
+    dof : int
+        6, 5 or 3.
+    y_measured : ndarray, shape (n_poses, dof), optional
+        The measurement in the same rows as ``h`` (zeros in the orientation
+        rows for a recording; see the module docstring).
+    R_ref : ndarray, shape (n_poses, 3, 3), optional
+        Reference orientations (6-DOF) or orientations whose ``e_z`` is the
+        reference axis (5-DOF).  Defaults to the nominal model's.
+    aux : dict of str to ndarray, optional
+        Auxiliary channels, carried for effects and diagnosis.
+    guess : ToolPoses, optional
+        Start for the forward kinematics (from the measurement).
+    """
+
+    machine: Machine
+    q: NDArray
+    dof: int = 6
+    y_measured: NDArray | None = None
+    R_ref: NDArray | None = None
+    aux: dict | None = None
+    guess: ToolPoses | None = None
+
+    def __post_init__(self) -> None:
+        q = self.machine.check_q(self.q)
+        object.__setattr__(self, "q", q)
+        rows_per_pose(self.dof)
+        if self.R_ref is None and self.dof != 3:
+            nominal = self.machine.forward(q, None, guess=self.guess)
+            if not nominal.success.all():
+                i = int(np.flatnonzero(~nominal.success)[0])
+                raise KinematicsError(f"pose {i + 1} (q = {q[i].tolist()}): {nominal.message[i]}")
+            object.__setattr__(self, "R_ref", nominal.rotation)
+        if self.dof == 5:
+            object.__setattr__(self, "_tangent", tangent_basis(self.R_ref[:, :, 2]))
+        if self.y_measured is not None:
+            y = np.asarray(self.y_measured, dtype=float)
+            if y.shape != (self.n_poses, self.dof):
+                raise InputError(f"y_measured: expected shape ({self.n_poses}, {self.dof}), got {y.shape}")
+            object.__setattr__(self, "y_measured", y)
+
+    # ----------------------------------------------------------- construction
+    @classmethod
+    def from_recording(cls, machine: Machine, rec: Recording, *, dof: int | None = None) -> "MeasurementModel":
+        """The model of a recording, optionally using fewer DOF than were measured.
+
+        Parameters
+        ----------
+        machine : Machine
+        rec : Recording
+            Checked against the machine's actuator count and ``q_limits``.
+        dof : int, optional
+            6, 5 or 3; at most what the recording holds (a 6-DOF recording
+            can be used as 5-DOF or position-only).  Default: the recording's.
+        """
+        rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
+        have = rec.dof
+        dof = have if dof is None else dof
+        rows_per_pose(dof)
+        if dof > have:
+            raise InputError(f"dof={dof} asked for, but {rec.path} holds a {have}-DOF measurement")
+        R_meas = so3_exp(rec.rotvec) if rec.rotvec is not None else None
+        guess = machine.guess_from_measurement(rec.q, rec.position, R_meas, rec.axis)
+        n = rec.n_poses
+        y = np.zeros((n, dof))
+        y[:, :3] = rec.position
+        R_ref = None
+        if dof == 6:
+            R_ref = R_meas
+        elif dof == 5:
+            axis = rec.axis if rec.axis is not None else R_meas[:, :, 2]
+            # any rotation whose third column is the measured axis will do as a reference
+            R_ref = _frame_with_z(axis)
+        return cls(machine=machine, q=rec.q, dof=dof, y_measured=y, R_ref=R_ref, aux=dict(rec.aux), guess=guess)
+
+    # ------------------------------------------------------------- properties
+    @property
+    def n_poses(self) -> int:
+        return self.q.shape[0]
+
+    @property
+    def n_params(self) -> int:
+        return self.machine.n_params
+
+    @property
+    def sigma(self) -> NDArray:
+        """One-sigma noise per row of a pose, shape (dof,): mm then rad."""
+        nz = self.machine.noise
+        return np.array([nz.sigma_position] * 3 + [nz.sigma_angle] * (self.dof - 3))
+
+    def subset(self, idx) -> "MeasurementModel":
+        """The model restricted to poses ``idx`` (order kept)."""
+        idx = np.asarray(idx)
+        g = self.guess
+        if g is not None:
+            st = g.state
+            sub_state = type(st)(**{k: getattr(st, k)[idx] for k in st.__dataclass_fields__}) if st is not None else None
+            g = ToolPoses(g.position[idx], g.rotation[idx], g.success[idx], tuple(np.asarray(g.message, dtype=object)[idx]), sub_state)
+        return MeasurementModel(
+            machine=self.machine,
+            q=self.q[idx],
+            dof=self.dof,
+            y_measured=None if self.y_measured is None else self.y_measured[idx],
+            R_ref=None if self.R_ref is None else self.R_ref[idx],
+            aux=None if self.aux is None else {k: v[idx] for k, v in self.aux.items()},
+            guess=g,
+        )
+
+    # ---------------------------------------------------------------- the model
+    def _rows(self, poses: ToolPoses) -> NDArray:
+        y = np.empty((poses.position.shape[0], self.dof))
+        y[:, :3] = poses.position
+        if self.dof == 6:
+            y[:, 3:] = so3_log(poses.rotation @ np.swapaxes(self._tile(self.R_ref, y.shape[0]), -1, -2))
+        elif self.dof == 5:
+            y[:, 3:] = np.einsum("nkj,nj->nk", self._tile(self._tangent, y.shape[0]), poses.rotation[:, :, 2])
+        return y
+
+    def _tile(self, arr: NDArray, n_rows: int) -> NDArray:
+        reps = n_rows // arr.shape[0]
+        return arr if reps == 1 else np.tile(arr, (reps,) + (1,) * (arr.ndim - 1))
+
+    def predict(self, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> Prediction:
+        """``h(theta)`` for every pose.
+
+        Parameters
+        ----------
+        theta : array_like, shape (P,), (n_poses, P) or (n_sets * n_poses, P)
+            Geometric errors.  With ``n_sets`` stacked blocks (one per
+            walker or sigma point), ``q`` is tiled: this is how samplers
+            evaluate many parameter vectors in one vectorised call.
+        guess : ToolPoses, optional
+            Warm start (an earlier prediction's ``poses``).
+
+        Returns
+        -------
+        Prediction
+            ``y`` of shape (n_rows, dof); check ``success`` per pose.
+        """
+        theta = np.asarray(theta if theta is not None else np.zeros(self.n_params), dtype=float)
+        q = self.q
+        if theta.ndim == 2 and theta.shape[0] != self.n_poses:
+            if theta.shape[0] % self.n_poses:
+                raise InputError(f"theta: {theta.shape[0]} rows is not a multiple of {self.n_poses} poses")
+            q = np.tile(q, (theta.shape[0] // self.n_poses, 1))
+        g = guess if guess is not None else self.guess
+        if g is not None and g.position.shape[0] != q.shape[0]:
+            g = _tile_poses(g, q.shape[0] // g.position.shape[0])
+        poses = self.machine.forward(q, theta, guess=g)
+        return Prediction(y=self._rows(poses), poses=poses)
+
+    def jacobian(self, theta: ArrayLike | None, prediction: Prediction) -> NDArray:
+        """``dh/dtheta`` at ``theta``, shape (n_poses, dof, P), analytic.
+
+        Orientation rows: ``J_l^{-1}(h_rot) J_w`` (6-DOF) and
+        ``t_k . (J_w x n)`` = ``-t_k^T [n]x J_w`` (5-DOF), where ``J_w`` is the
+        platform's small-rotation Jacobian.
+        """
+        Jt = self.machine.tool_jacobian(self.q, theta, prediction.poses)
+        n = self.n_poses
+        J = np.empty((n, self.dof, Jt.shape[2]))
+        J[:, :3] = Jt[:, :3]
+        if self.dof == 6:
+            J[:, 3:] = left_jacobian_inverse(prediction.y[:, 3:]) @ Jt[:, 3:]
+        elif self.dof == 5:
+            nvec = prediction.poses.rotation[:, :, 2]
+            J[:, 3:] = -np.einsum("nkj,nji,nip->nkp", self._tangent, skew(nvec), Jt[:, 3:])
+        return J
+
+    def residual(self, prediction: Prediction) -> NDArray:
+        """``y_measured - h``, shape (n_poses, dof); mm then rad."""
+        if self.y_measured is None:
+            raise InputError("this measurement model has no measured values (y_measured)")
+        return self.y_measured - prediction.y
+
+    def errors(self, residual: NDArray) -> tuple[NDArray, NDArray | None]:
+        """Per-pose position error norm (mm) and orientation error norm (rad, None for 3-DOF)."""
+        pos = np.linalg.norm(residual[:, :3], axis=1)
+        ang = np.linalg.norm(residual[:, 3:], axis=1) if self.dof > 3 else None
+        return pos, ang
+
+    def rms(self, residual: NDArray) -> dict[str, float | None]:
+        """Root-mean-square of the per-pose error norms: ``{"position": mm, "angle": rad or None}``."""
+        pos, ang = self.errors(residual)
+        return {
+            "position": float(np.sqrt(np.mean(pos**2))),
+            "angle": None if ang is None else float(np.sqrt(np.mean(ang**2))),
+        }
+
+
+def _frame_with_z(axis: NDArray) -> NDArray:
+    t = tangent_basis(axis)
+    return np.stack([t[:, 0], t[:, 1], axis], axis=-1)
+
+
+def _tile_poses(p: ToolPoses, reps: int) -> ToolPoses:
+    st = p.state
+    tiled = None
+    if st is not None and hasattr(st, "__dataclass_fields__"):
+        tiled = type(st)(**{k: np.tile(getattr(st, k), (reps,) + (1,) * (getattr(st, k).ndim - 1)) for k in st.__dataclass_fields__})
+    return ToolPoses(
+        np.tile(p.position, (reps, 1)), np.tile(p.rotation, (reps, 1, 1)), np.tile(p.success, reps), p.message * reps, tiled
+    )

@@ -1,0 +1,167 @@
+"""Simulated machines and recordings: the truth that tests and studies check against.
+
+A true machine is the nominal one plus errors drawn from the tolerances.
+Poses are drawn within ``q_limits``; the instrument adds Gaussian noise.
+Physical effects plug in as :class:`PoseTransform` objects: each maps the
+commanded actuator positions and the per-pose geometric errors (with the
+auxiliary channels and the measurement order) to what the machine really
+does, before the forward kinematics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import InputError
+from .geometry import so3_exp, so3_log, tangent_basis
+from .io.recording import Recording
+from .machines.base import Machine
+from .measurement import rows_per_pose
+
+__all__ = ["PoseTransform", "SimulatedRecording", "draw_errors", "draw_poses", "simulate_recording", "measure"]
+
+
+class PoseTransform(Protocol):
+    """A physical effect as seen by the simulator (see the module docstring)."""
+
+    def transform(
+        self, q: NDArray, theta: NDArray, aux: dict[str, NDArray], order: NDArray
+    ) -> tuple[NDArray, NDArray]:
+        """Return the actual ``q`` (n, m) and per-pose ``theta`` (n, P)."""
+
+
+@dataclass(frozen=True)
+class SimulatedRecording:
+    """A recording with its truth.
+
+    Attributes
+    ----------
+    recording : Recording
+    theta_true : ndarray, shape (P,)
+        Geometric errors of the true machine.
+    seed : int
+    names : tuple of str
+    """
+
+    recording: Recording
+    theta_true: NDArray
+    seed: int
+    names: tuple[str, ...]
+    info: dict = field(default_factory=dict)
+
+    def truth_dict(self) -> dict:
+        return {
+            "seed": self.seed,
+            "parameters": [{"name": n, "value": float(v)} for n, v in zip(self.names, self.theta_true)],
+            **self.info,
+        }
+
+
+def draw_errors(machine: Machine, rng: np.random.Generator, *, tolerance: NDArray | None = None) -> NDArray:
+    """Geometric errors ``N(0, tolerance^2)`` per parameter (mm or rad)."""
+    tol = machine.tolerance if tolerance is None else np.asarray(tolerance, dtype=float)
+    return rng.normal(size=machine.n_params) * tol
+
+
+def draw_poses(machine: Machine, n: int, rng: np.random.Generator, theta: NDArray | None = None) -> NDArray:
+    """``n`` actuator vectors within ``q_limits`` at which the machine (with ``theta``) can be solved."""
+    out: list[NDArray] = []
+    for _ in range(50):
+        q = machine.sample_q(max(2 * (n - len(out)), 8), rng)
+        ok = machine.forward(q, theta).success
+        out.extend(q[ok])
+        if len(out) >= n:
+            return np.array(out[:n])
+    raise InputError(f"{machine.source}: could not find {n} solvable poses within q_limits")
+
+
+def measure(
+    machine: Machine,
+    q: NDArray,
+    theta: NDArray,
+    dof: int,
+    rng: np.random.Generator | None,
+    *,
+    aux: dict[str, NDArray] | None = None,
+    effects: Sequence[PoseTransform] = (),
+) -> Recording:
+    """What the instrument reads at commanded ``q`` on the true machine ``theta``.
+
+    Noise: ``N(0, sigma_position^2)`` per axis; orientation ``exp(N(0,
+    sigma_angle^2 I)) R`` (6-DOF) or the axis tilted by ``N(0, sigma_angle^2)``
+    in two tangent directions (5-DOF).  ``rng=None`` gives noise-free data.
+    """
+    rows_per_pose(dof)
+    n = q.shape[0]
+    aux = {} if aux is None else dict(aux)
+    q_true, th = q, np.broadcast_to(theta, (n, machine.n_params)).copy()
+    for eff in effects:
+        q_true, th = eff.transform(q_true, th, aux, np.arange(n))
+    poses = machine.forward(q_true, th)
+    if not poses.success.all():
+        i = int(np.flatnonzero(~poses.success)[0])
+        raise InputError(f"simulated pose {i + 1} (q = {q[i].tolist()}) cannot be solved: {poses.message[i]}")
+    sp, sa = machine.noise.sigma_position, machine.noise.sigma_angle
+    pos = poses.position.copy()
+    R = poses.rotation
+    if rng is not None:
+        pos += rng.normal(size=pos.shape) * sp
+    rotvec = axis = None
+    if dof == 6:
+        noise = rng.normal(size=(n, 3)) * sa if rng is not None else np.zeros((n, 3))
+        rotvec = so3_log(so3_exp(noise) @ R)
+    elif dof == 5:
+        axis = R[:, :, 2].copy()
+        if rng is not None:
+            t = tangent_basis(axis)
+            e = rng.normal(size=(n, 2)) * sa
+            axis = axis + e[:, :1] * t[:, 0] + e[:, 1:] * t[:, 1]
+            axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    return Recording(q=q.copy(), position=pos, rotvec=rotvec, axis=axis, aux=aux)
+
+
+def simulate_recording(
+    machine: Machine,
+    n_poses: int,
+    *,
+    seed: int,
+    dof: int = 6,
+    tolerance: NDArray | None = None,
+    theta_true: NDArray | None = None,
+    effects: Sequence[PoseTransform] = (),
+    aux: dict[str, NDArray] | None = None,
+) -> SimulatedRecording:
+    """Draw a true machine and poses, and simulate what the instrument records.
+
+    Parameters
+    ----------
+    machine : Machine
+        Nominal machine (with ``q_limits`` and the instrument noise).
+    n_poses : int
+    seed : int
+        Seeds everything (errors, poses, noise).
+    dof : {6, 5, 3}
+    tolerance : ndarray, shape (P,), optional
+        One-sigma errors to draw the true machine from; the machine's by default.
+    theta_true : ndarray, shape (P,), optional
+        Use these errors instead of drawing them.
+    effects : sequence of PoseTransform
+        Physics beyond the geometric model, applied before the kinematics.
+    aux : dict, optional
+        Auxiliary channels to record (each of shape (n_poses,)).
+
+    Returns
+    -------
+    SimulatedRecording
+    """
+    if n_poses < 1:
+        raise InputError(f"n_poses: expected at least 1, got {n_poses}")
+    rng = np.random.default_rng(seed)
+    theta = draw_errors(machine, rng, tolerance=tolerance) if theta_true is None else np.asarray(theta_true, float)
+    q = draw_poses(machine, n_poses, rng, theta)
+    rec = measure(machine, q, theta, dof, rng, aux=aux, effects=effects)
+    return SimulatedRecording(recording=rec, theta_true=theta, seed=seed, names=machine.layout.names)

@@ -1,0 +1,57 @@
+import json
+
+import numpy as np
+import pytest
+
+from bayescal.cli import main
+from tests.conftest import PRS3_FILE
+
+
+def test_simulate_identify_end_to_end(tmp_path, capsys):
+    rec = tmp_path / "rec.csv"
+    assert main(["simulate", "--machine", str(PRS3_FILE), "--poses", "40", "--seed", "5", "--out", str(rec)]) == 0
+    truth = json.loads((tmp_path / "rec.truth.json").read_text())
+    out_json, cal = tmp_path / "a.json", tmp_path / "cal.toml"
+    code = main([
+        "identify", str(rec), "--machine", str(PRS3_FILE), "--method", "ridge", "--lam", "1",
+        "--json", str(out_json), "--write-machine", str(cal),
+    ])
+    assert code == 0
+    report = capsys.readouterr().out
+    assert "RMS position" in report and "chain1.link_length" in report
+    ans = json.loads(out_json.read_text())
+    assert ans["method"] == "ridge" and ans["machine"] == "spindle head A"
+    assert ans["rms_after"]["position"] < 0.2 * ans["rms_before"]["position"]
+    assert len(ans["parameters"]) == len(truth["parameters"])
+    # the calibrated machine file alone predicts the true machine on fresh poses
+    from bayescal.machines import load_machine
+
+    nominal, calibrated, true = load_machine(PRS3_FILE), load_machine(cal), load_machine(tmp_path / "rec.truth.toml")
+    q = nominal.sample_q(200, np.random.default_rng(0))
+    err_cal = np.linalg.norm(calibrated.forward(q).position - true.forward(q).position, axis=1)
+    err_nom = np.linalg.norm(nominal.forward(q).position - true.forward(q).position, axis=1)
+    sigma = nominal.noise.sigma_position
+    assert np.sqrt(np.mean(err_cal**2)) < 3 * sigma < np.sqrt(np.mean(err_nom**2))
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("q1,q2,q3,x,y,z\n500,,500,0,0,0\n")
+    assert main(["identify", str(bad), "--machine", str(PRS3_FILE)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.csv" in err[0] and "q2" in err[0] and "line 2" in err[0]
+
+
+def test_ls_ill_posed_exit_1(tmp_path, capsys):
+    rec = tmp_path / "rec5.csv"
+    main(["simulate", "--machine", str(PRS3_FILE), "--poses", "30", "--seed", "2", "--dof", "5", "--out", str(rec), "--quiet"])
+    assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--free", "all"]) == 1
+    assert "ill-posed" in capsys.readouterr().out
+
+
+def test_help_teaches_with_examples(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["identify", "--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert "examples:" in out and "--write-machine" in out

@@ -1,0 +1,29 @@
+"""Shared fixtures: the bundled 3-PRS machine and seeded simulated recordings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bayescal.machines import load_machine
+from bayescal.simulate import simulate_recording
+
+ROOT = Path(__file__).resolve().parents[1]
+PRS3_FILE = ROOT / "examples" / "prs3" / "machine.toml"
+
+
+@pytest.fixture(scope="session")
+def prs3():
+    return load_machine(PRS3_FILE)
+
+
+@pytest.fixture(scope="session")
+def rng():
+    return np.random.default_rng(20261122)
+
+
+@pytest.fixture(scope="session")
+def sim6(prs3):
+    return simulate_recording(prs3, 36, seed=11, dof=6)

@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+
+from bayescal.errors import ConvergenceWarning, InputError
+from bayescal.identify import identify
+from bayescal.measurement import MeasurementModel
+from bayescal.simulate import measure
+
+
+def _noise_free_model(prs3, dof, seed=2, n=40):
+    rng = np.random.default_rng(seed)
+    theta = rng.normal(size=prs3.n_params) * prs3.tolerance
+    q = prs3.sample_q(n, rng)
+    return MeasurementModel.from_recording(prs3, measure(prs3, q, theta, dof, None)), theta
+
+
+@pytest.mark.parametrize("dof", [6, 5, 3])
+def test_noise_free_recovery_of_identifiable_combinations(prs3, dof):
+    model, theta = _noise_free_model(prs3, dof)
+    res = identify(model, method="ls")
+    assert res.success, res.message
+    assert res.rms_after["position"] < 1e-9
+    # the difference from the truth lies in the unidentifiable (null) directions only:
+    # predictions agree to 1e-9 mm on fresh poses
+    fresh = MeasurementModel(prs3, prs3.sample_q(50, np.random.default_rng(9)), dof)
+    assert np.abs(fresh.predict(res.theta).y - fresh.predict(theta).y).max() < 1e-9
+    if dof == 6:
+        # sphere centres relative to the tool point are identifiable exactly
+        i = [prs3.layout.index(f"chain{c}.sphere_center.{x}") for c in (1, 2, 3) for x in "xyz"]
+        t = [prs3.layout.index(f"tool.point.{x}") for x in "xyz"]
+        rel = lambda th: th[i].reshape(3, 3) - th[t]  # noqa: E731
+        assert np.allclose(rel(res.theta), rel(theta), atol=1e-9)
+
+
+def test_full_rank_tsvd_equals_ls(prs3, sim6):
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    ls = identify(model, method="ls")
+    tsvd = identify(model, method="tsvd", k=int(ls.free.sum()))
+    assert ls.success and tsvd.success
+    assert np.allclose(ls.theta, tsvd.theta, atol=1e-6 * prs3.tolerance.max())
+
+
+def test_ridge_fixed_point_is_the_penalised_minimum(prs3, sim6):
+    """At convergence the ridge gradient  -J^T W^2 r + lam S^-2 theta  vanishes."""
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    res = identify(model, method="ridge", lam=0.5)
+    assert res.success
+    pred = model.predict(res.theta)
+    sig = model.sigma
+    r = (model.residual(pred) / sig).reshape(-1)
+    J = (model.jacobian(res.theta, pred) / sig[None, :, None]).reshape(-1, prs3.n_params)[:, res.free]
+    S = prs3.tolerance[res.free]
+    grad = -(J * S).T @ r + 0.5 * res.theta[res.free] / S
+    assert np.abs(grad).max() < 1e-6 * np.abs((J * S).T @ r).max() + 1e-8
+
+
+def test_ls_on_rank_deficient_set_fails_clearly(prs3):
+    model, _ = _noise_free_model(prs3, 5)
+    with pytest.warns(ConvergenceWarning, match="ill-posed"):
+        res = identify(model, method="ls", free="all")
+    assert not res.success
+    assert "ill-posed" in res.message and "ridge or tsvd" in res.message
+    # ridge and TSVD still succeed on the same set
+    assert identify(model, method="ridge", lam=1.0, free="all").success
+    assert identify(model, method="tsvd", k=30, free="all").success
+
+
+def test_bad_arguments(prs3, sim6):
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    with pytest.raises(InputError, match="lam"):
+        identify(model, method="ridge")
+    with pytest.raises(InputError, match="k"):
+        identify(model, method="tsvd", k=99)
+    with pytest.raises(InputError, match="unknown parameter"):
+        identify(model, free=["chain9.link_length"])
+    with pytest.raises(InputError, match="poses"):
+        identify(model.subset(np.arange(3)), method="ls", free="all")
+
+
+def test_report_and_dict(prs3, sim6):
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    res = identify(model, method="ridge", lam=1.0)
+    d = res.to_dict()
+    assert {"machine", "method", "parameters", "rms_before", "rms_after"} <= set(d)
+    p = d["parameters"][0]
+    assert set(p) >= {"name", "value", "std", "unit"} and p["unit"] == "mm" and p["std"] > 0
+    assert d["rms_after"]["position"] < d["rms_before"]["position"]
+    text = res.report()
+    assert "chain1.link_length" in text and "tool.point.x" in text

@@ -1,0 +1,46 @@
+import pytest
+
+from bayescal.errors import MachineFileError
+from bayescal.machines import load_machine, machine_from_text
+from tests.conftest import PRS3_FILE
+
+GOOD = PRS3_FILE.read_text()
+
+
+@pytest.mark.parametrize(
+    "edit,key,match",
+    [
+        (lambda s: s.replace('kind = "3-PRS"', 'kind = "hexapod"'), "kind", "unknown kind"),
+        (lambda s: s.replace("link_length    = 400.0", "link_length    = -400.0", 1), "chain[1].link_length", "positive"),
+        (lambda s: s.replace("rail_direction = [0.0, 0.0, 1.0]", "rail_direction = [0.0, 0.0, 2.0]", 1), "chain[1].rail_direction", "unit vector"),
+        (lambda s: s.replace("sphere_center  = [150.0, 0.0, 0.0]", "sphere_center  = [150.0, 0.0]", 1), "chain[1].sphere_center", "3 finite numbers"),
+        (lambda s: s.replace("point = [0.0, 0.0, -100.0]", "pointt = [0.0, 0.0, -100.0]"), "tool.pointt", "unknown key"),
+        (lambda s: s.replace("[450.0, 550.0], [450.0, 550.0], [450.0, 550.0]", "[450.0, 550.0], [550.0, 450.0], [450.0, 550.0]"), "workspace.q_limits", "min < max"),
+        (lambda s: s.replace("sigma_position = 0.005", 'sigma_position = "small"'), "measurement.sigma_position", "number"),
+        (lambda s: s + "\n[tolerance]\nlink_lenght = 0.01\n", "tolerance.link_lenght", "unknown key"),
+        (lambda s: s[: s.rindex("[[chain]]")] + s[s.index("[tool]") :], "chain", "expected 3"),
+    ],
+)
+def test_malformed_machine_files_name_the_key(tmp_path, edit, key, match):
+    p = tmp_path / "m.toml"
+    p.write_text(edit(GOOD))
+    with pytest.raises(MachineFileError, match=match) as err:
+        load_machine(p)
+    assert err.value.key == key
+    assert str(p) in str(err.value)
+
+
+def test_syntax_error_and_missing_file(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_text("kind = \n")
+    with pytest.raises(MachineFileError, match="not valid TOML"):
+        load_machine(p)
+    with pytest.raises(MachineFileError, match="file not found"):
+        load_machine(tmp_path / "none.toml")
+
+
+def test_tolerance_table_overrides_defaults():
+    m = machine_from_text(GOOD + "\n[tolerance]\nlink_length = 0.01\n")
+    i = m.layout.index("chain2.link_length")
+    assert m.tolerance[i] == 0.01
+    assert m.tolerance[m.layout.index("chain2.rail_origin.x")] == 0.05

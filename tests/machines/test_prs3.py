@@ -1,0 +1,77 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bayescal.geometry import so3_log
+from bayescal.machines import machine_from_text
+
+
+def test_symmetric_closed_form(prs3):
+    """Equal slider positions on the symmetric head: pure translation, z from Pythagoras."""
+    q = np.array([[500.0, 500.0, 500.0], [470.0, 470.0, 470.0]])
+    poses = prs3.forward(q)
+    assert poses.success.all()
+    assert np.allclose(poses.rotation, np.eye(3), atol=1e-12)
+    h = np.sqrt(400.0**2 - (300.0 - 150.0) ** 2)
+    expected_z = q[:, 0] - h - 100.0  # platform below the sliders, tool 100 mm below the platform
+    assert np.allclose(poses.position[:, 2], expected_z, atol=1e-10)
+    assert np.allclose(poses.position[:, :2], 0.0, atol=1e-10)
+
+
+@given(st.lists(st.floats(450.0, 550.0), min_size=3, max_size=3))
+@settings(max_examples=40, deadline=None)
+def test_forward_then_inverse_round_trip(prs3, q):
+    q = np.array([q])
+    theta = np.random.default_rng(3).normal(size=prs3.n_params) * prs3.tolerance * 5
+    poses = prs3.forward(q, theta)
+    assert poses.success.all()
+    st_ = poses.state
+    assert np.allclose(prs3.inverse(st_.p, st_.R, theta), q, atol=1e-8)
+
+
+def test_constraints_hold_at_solution(prs3, rng):
+    q = prs3.sample_q(20, rng)
+    theta = rng.normal(size=prs3.n_params) * prs3.tolerance
+    poses = prs3.forward(q, theta)
+    g = prs3.geometry_arrays(theta)
+    A = poses.state.p[:, None, :] + np.einsum("nij,kj->nki", poses.rotation, g["sphere_center"])
+    C = g["rail_origin"][None] + q[:, :, None] * g["rail_direction"][None]
+    d = A - C
+    assert np.allclose(np.linalg.norm(d, axis=2), g["link_length"][None], atol=1e-9)
+    assert np.allclose(np.einsum("nki,ki->nk", d, g["revolute_axis"]), 0.0, atol=1e-9)
+
+
+def test_tool_jacobian_against_central_differences(prs3, rng):
+    q = prs3.sample_q(8, rng)
+    theta = rng.normal(size=prs3.n_params) * prs3.tolerance * 10
+    poses = prs3.forward(q, theta)
+    J = prs3.tool_jacobian(q, theta, poses)
+    for k, unit in enumerate(prs3.layout.units):
+        h = 1e-5 if unit == "mm" else 1e-7
+        e = np.zeros(prs3.n_params)
+        e[k] = h
+        pp, pm = prs3.forward(q, theta + e, guess=poses), prs3.forward(q, theta - e, guess=poses)
+        fd_pos = (pp.position - pm.position) / (2 * h)
+        fd_rot = so3_log(pp.rotation @ np.swapaxes(pm.rotation, 1, 2)) / (2 * h)
+        scale = np.abs(J).max()
+        assert np.allclose(J[:, :3, k], fd_pos, atol=1e-7 * scale), prs3.layout.names[k]
+        assert np.allclose(J[:, 3:, k], fd_rot, atol=1e-7 * scale), prs3.layout.names[k]
+
+
+def test_unreachable_pose_is_reported_not_raised(prs3):
+    q = np.array([[500.0, 500.0, 500.0], [0.0, 2000.0, 500.0]])
+    poses = prs3.forward(q)
+    assert poses.success.tolist() == [True, False]
+    assert poses.message[1]
+
+
+def test_written_machine_reproduces_the_model(prs3, rng):
+    theta = rng.normal(size=prs3.n_params) * prs3.tolerance * 3
+    again = machine_from_text(prs3.to_toml(theta))
+    q = prs3.sample_q(15, rng)
+    a, b = prs3.forward(q, theta), again.forward(q)
+    assert np.allclose(a.position, b.position, atol=1e-10)
+    assert np.allclose(a.rotation, b.rotation, atol=1e-12)
+    assert again.q_limits.tolist() == prs3.q_limits.tolist()
+    assert again.noise == prs3.noise

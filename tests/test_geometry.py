@@ -1,0 +1,84 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from bayescal.geometry import (
+    left_jacobian_inverse,
+    right_jacobian_inverse,
+    rotation_from_tilt_torsion,
+    so3_exp,
+    so3_log,
+    tangent_basis,
+    tilt_torsion_angles,
+    tilted_direction,
+)
+
+rotvecs = arrays(np.float64, 3, elements=st.floats(-1.5, 1.5))
+
+
+@given(rotvecs)
+@settings(max_examples=50, deadline=None)
+def test_exp_log_round_trip(w):
+    R = so3_exp(w)
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.isclose(np.linalg.det(R), 1.0)
+    assert np.allclose(so3_log(R), w, atol=1e-9)
+
+
+def test_exp_matches_closed_form_about_z():
+    a = 0.3
+    R = so3_exp([0, 0, a])
+    assert np.allclose(R, [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("phi", [[0.0, 0.0, 0.0], [0.3, -0.2, 0.5], [1e-7, 0, 0]])
+def test_jacobian_inverses_by_finite_differences(phi):
+    phi = np.array(phi)
+    h = 1e-6
+    Jl = np.empty((3, 3))
+    Jr = np.empty((3, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        Jl[:, k] = (so3_log(so3_exp(d) @ so3_exp(phi)) - so3_log(so3_exp(-d) @ so3_exp(phi))) / (2 * h)
+        Jr[:, k] = (so3_log(so3_exp(phi) @ so3_exp(d)) - so3_log(so3_exp(phi) @ so3_exp(-d))) / (2 * h)
+    assert np.allclose(left_jacobian_inverse(phi), Jl, atol=1e-7)
+    assert np.allclose(right_jacobian_inverse(phi), Jr, atol=1e-7)
+
+
+def test_tilted_direction_derivative_and_first_order_rotation():
+    u0 = np.array([0.0, 0.0, 1.0])
+    t = np.array([2e-3, -1e-3])
+    u, du = tilted_direction(u0, (0, 1), t)
+    assert np.isclose(np.linalg.norm(u), 1.0)
+    h = 1e-7
+    for k in range(2):
+        e = np.zeros(2)
+        e[k] = h
+        fd = (tilted_direction(u0, (0, 1), t + e)[0] - tilted_direction(u0, (0, 1), t - e)[0]) / (2 * h)
+        assert np.allclose(du[:, k], fd, atol=1e-8)
+    # to first order, tilt about x by a rotates z towards -y
+    u_small, _ = tilted_direction(u0, (0, 1), [1e-6, 0])
+    assert np.allclose(u_small, so3_exp([1e-6, 0, 0]) @ u0, atol=1e-11)
+
+
+@given(arrays(np.float64, 3, elements=st.floats(-1, 1)).filter(lambda v: np.linalg.norm(v) > 0.1))
+@settings(max_examples=30, deadline=None)
+def test_tangent_basis_is_orthonormal(v):
+    n = v / np.linalg.norm(v)
+    t = tangent_basis(n)
+    M = np.vstack([t, n])
+    assert np.allclose(M @ M.T, np.eye(3), atol=1e-12)
+
+
+@given(st.floats(-3, 3), st.floats(0.01, 1.4), st.floats(-3, 3))
+@settings(max_examples=50, deadline=None)
+def test_tilt_torsion_round_trip(phi, theta, psi):
+    R = rotation_from_tilt_torsion(phi, theta, psi)
+    a = tilt_torsion_angles(R)
+    assert np.allclose(rotation_from_tilt_torsion(*a), R, atol=1e-10)
+    assert np.isclose(a[1], theta)
+    # the tilt is the angle of the platform normal from base z
+    assert np.isclose(np.arccos(R[2, 2]), theta)

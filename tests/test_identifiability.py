@@ -1,0 +1,37 @@
+import numpy as np
+import pytest
+
+from bayescal.identifiability import analyse_identifiability
+from bayescal.measurement import MeasurementModel
+from bayescal.params import ParamLayout, ParamSpec
+
+
+def _jac(prs3, dof, n=36, seed=0):
+    q = prs3.sample_q(n, np.random.default_rng(seed))
+    model = MeasurementModel(prs3, q, dof)
+    pred = model.predict(None)
+    return (model.jacobian(None, pred) / model.sigma[None, :, None]).reshape(-1, prs3.n_params)
+
+
+@pytest.mark.parametrize("dof,rank", [(6, 33), (5, 32), (3, 30)])
+def test_prs3_identifiable_counts(prs3, dof, rank):
+    """6-DOF: the seed's 33 (11 per chain); the tool point is the platform-frame gauge.
+    5-DOF loses the torsion gauge, position-only loses the two tilt gauges as well."""
+    ida = analyse_identifiability(_jac(prs3, dof), prs3.layout)
+    assert ida.rank == rank
+    assert len(ida.kept) == rank
+    if dof == 6:
+        assert set(ida.fixed) == {"tool.point.x", "tool.point.y", "tool.point.z"}
+        assert all(f"chain{i}.sphere_center.x" in c for c in ida.combinations[:1] for i in (1, 2, 3))
+
+
+def test_known_dependency_named():
+    """Two columns that enter only as their sum: the second is fixed and named."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(20, 1))
+    J = np.hstack([a, a, rng.normal(size=(20, 2))])
+    layout = ParamLayout(tuple(ParamSpec(n, "mm", "g") for n in ("rail_z", "offset", "p3", "p4")))
+    ida = analyse_identifiability(J, layout)
+    assert ida.rank == 3
+    assert ida.fixed == ("offset",)
+    assert "rail_z by +1 mm" in ida.combinations[0]

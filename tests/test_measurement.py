@@ -1,0 +1,50 @@
+import numpy as np
+import pytest
+
+from bayescal.errors import InputError
+from bayescal.measurement import MeasurementModel
+from bayescal.simulate import simulate_recording
+
+
+@pytest.mark.parametrize("dof", [6, 5, 3])
+def test_jacobian_against_central_differences_every_parameter(prs3, rng, dof):
+    q = prs3.sample_q(10, rng)
+    model = MeasurementModel(prs3, q, dof)
+    theta = rng.normal(size=prs3.n_params) * prs3.tolerance * 10
+    pred = model.predict(theta)
+    J = model.jacobian(theta, pred)
+    assert J.shape == (10, dof, prs3.n_params)
+    for k, unit in enumerate(prs3.layout.units):
+        h = 1e-5 if unit == "mm" else 1e-7
+        e = np.zeros(prs3.n_params)
+        e[k] = h
+        fd = (model.predict(theta + e, guess=pred.poses).y - model.predict(theta - e, guess=pred.poses).y) / (2 * h)
+        assert np.allclose(J[:, :, k], fd, rtol=1e-6, atol=1e-7 * np.abs(J).max()), prs3.layout.names[k]
+
+
+def test_residual_is_zero_on_noise_free_truth(prs3):
+    for dof in (6, 5, 3):
+        sim = simulate_recording(prs3, 12, seed=4, dof=dof)
+        clean = simulate_recording(prs3, 12, seed=4, dof=dof, theta_true=sim.theta_true)
+        assert clean.recording.n_poses == 12
+        from bayescal.simulate import measure
+
+        rec = measure(prs3, sim.recording.q, sim.theta_true, dof, None)
+        model = MeasurementModel.from_recording(prs3, rec)
+        r = model.residual(model.predict(sim.theta_true))
+        assert np.abs(r).max() < 1e-10
+
+
+def test_stacked_parameter_sets_equal_separate_calls(prs3, rng):
+    q = prs3.sample_q(5, rng)
+    model = MeasurementModel(prs3, q, 6)
+    thetas = rng.normal(size=(3, prs3.n_params)) * prs3.tolerance
+    stacked = model.predict(np.repeat(thetas, 5, axis=0)).y
+    for i in range(3):
+        assert np.allclose(stacked[5 * i : 5 * i + 5], model.predict(thetas[i]).y, atol=1e-12)
+
+
+def test_dof_beyond_recording_is_an_error(prs3):
+    sim = simulate_recording(prs3, 5, seed=1, dof=3)
+    with pytest.raises(InputError, match="3-DOF"):
+        MeasurementModel.from_recording(prs3, sim.recording, dof=6)
