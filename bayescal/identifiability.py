@@ -106,7 +106,8 @@ def analyse_identifiability(
     order = np.arange(P) if candidates is None else np.asarray(candidates, dtype=int)
     norms = np.linalg.norm(J, axis=0)
     safe = np.where(norms > 0, norms, 1.0)
-    Js = J / safe
+    # columns at round-off level are zero: normalised, their noise would count in the rank
+    Js = np.where(norms > 1e-12 * max(norms.max(initial=0.0), 1e-300), J / safe, 0.0)
     s_all = np.linalg.svd(Js[:, order], compute_uv=False)
     rank = int(np.sum(s_all > rtol * s_all[0])) if s_all.size and s_all[0] > 0 else 0
     kept: list[int] = []
