@@ -35,3 +35,15 @@ def test_known_dependency_named():
     assert ida.rank == 3
     assert ida.fixed == ("offset",)
     assert "rail_z by +1 mm" in ida.combinations[0]
+
+
+def test_round_off_columns_do_not_count_in_the_rank():
+    """Columns at round-off level (1e-14 of the others) are zero, not unit columns of noise."""
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(40, 5))
+    J = np.column_stack([J, 1e-15 * rng.normal(size=(40, 2))])
+    layout = ParamLayout(tuple(ParamSpec(f"p{i}", "mm", "g") for i in range(7)))
+    ida = analyse_identifiability(J, layout)
+    assert ida.rank == 5 and len(ida.kept) == 5
+    assert set(ida.fixed) == {"p5", "p6"}
+    assert ida.singular_values[5:].max() == 0.0

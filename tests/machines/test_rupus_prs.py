@@ -296,3 +296,19 @@ def test_second_order_errors_leave_a_tiny_residual(tracker):
     assert res.success
     # far below the instrument noise, far above round-off: r * tilt * beta ~ 800 mm * 2e-4 * 2e-4
     assert 1e-7 < res.rms_after["position"] < 0.05 * tracker.noise.sigma_position
+
+
+def test_5dof_ls_on_the_6dof_parameter_set_is_ill_posed(tracker):
+    """The seed's finding: LS fails with 5-DOF on a set that 6-DOF identifies (the torsion gauge)."""
+    rng = np.random.default_rng(2)
+    theta = rng.normal(size=tracker.n_params) * tracker.tolerance
+    q = tracker.sample_q(40, rng)
+    six = identify(MeasurementModel.from_recording(tracker, measure(tracker, q, theta, 6, None)), method="ls")
+    kept6 = [n for n, f in zip(tracker.layout.names, six.free) if f]
+    model5 = MeasurementModel.from_recording(tracker, measure(tracker, q, theta, 5, None))
+    from bayescal.errors import ConvergenceWarning
+
+    with pytest.warns(ConvergenceWarning, match="ill-posed"):
+        res = identify(model5, method="ls", free=kept6)
+    assert not res.success and "ill-posed" in res.message
+    assert identify(model5, method="ls").success  # the automatic 5-DOF set drops the gauge
