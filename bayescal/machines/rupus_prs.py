@@ -67,6 +67,7 @@ from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
+from .construct import circle_intersections, kabsch, rotate_vectors, trilaterate
 
 __all__ = ["RupusPrs", "RUPUS_TOLERANCE_DEFAULTS", "rotate_about"]
 
@@ -408,19 +409,19 @@ class RupusPrs(Machine):
         h = np.einsum("ni,ni->n", N - C2, r2)
         Np = N - h[:, None] * r2
         rad = np.sqrt(np.maximum(rho[:, 1] ** 2 - h**2, 0.0))
-        A2 = _circle_intersections(C2, g.l[:, 1], Np, rad, r2)  # (n, 2, 3)
+        A2 = circle_intersections(C2, g.l[:, 1], Np, rad, r2)  # (n, 2, 3)
         along = np.einsum("nci,ni->nc", A2 - C2[:, None], g.u[:, 1])
         A2 = A2[np.arange(nq), np.argmax(s * along, axis=1)]
         # --- A1: three spheres about N, A2 and C1
         c12 = np.linalg.norm(g.a[:, 0] - g.a[:, 1], axis=1)
-        A1c = _trilaterate(N, rho[:, 0], A2, c12, C[:, 0], g.l[:, 0])  # (n, 2, 3)
+        A1c = trilaterate(N, rho[:, 0], A2, c12, C[:, 0], g.l[:, 0])  # (n, 2, 3)
         # --- orientation of each candidate; keep the one nearest the home orientation
         src = np.stack([g.n, g.a[:, 0], g.a[:, 1]], axis=1)
         best_R = np.broadcast_to(np.eye(3), (nq, 3, 3)).copy()
         best_tr = np.full(nq, -np.inf)
         for c in range(2):
             dst = np.stack([N, A1c[:, c], A2], axis=1)
-            Rc = _kabsch(src, dst)
+            Rc = kabsch(src, dst)
             tr = np.trace(Rc, axis1=1, axis2=2)
             better = np.isfinite(tr) & (tr > best_tr)
             best_R[better], best_tr[better] = Rc[better], tr[better]
@@ -544,11 +545,11 @@ class RupusPrs(Machine):
                 return None
             arm_dir = np.asarray(position, dtype=float) - g.O - g.rlen[:, None] * g.lhat
             arm_dir /= np.maximum(np.linalg.norm(arm_dir, axis=1, keepdims=True), 1e-300)
-            axis = _rotate_vectors(arm / L, arm_dir)  # where e_z goes if the arm turned minimally
+            axis = rotate_vectors(arm / L, arm_dir)  # where e_z goes if the arm turned minimally
         if rotation is not None:
             R = np.array(rotation, dtype=float)
         else:
-            R = _rotate_vectors(np.array([0.0, 0.0, 1.0]), np.asarray(axis, dtype=float), matrix=True)
+            R = rotate_vectors(np.array([0.0, 0.0, 1.0]), np.asarray(axis, dtype=float), matrix=True)
         gg = self._geometry(np.zeros((n, self.n_params)))
         beta = self._beta_for(gg, R)
         N = gg.O + gg.rlen[:, None] * rotate_about(gg.w, beta, gg.lhat)
@@ -685,59 +686,3 @@ class RupusPrs(Machine):
 def _rotation_matrix(w: NDArray, beta: NDArray) -> NDArray:
     """``Rot(w, beta)`` as matrices (n, 3, 3)."""
     return so3_exp(w * beta[:, None])
-
-
-def _rotate_vectors(a: NDArray, b: NDArray, *, matrix: bool = False) -> NDArray:
-    """The smallest rotation taking unit ``a`` (3,) to unit ``b`` (n, 3): its matrix, or ``R e_z``."""
-    wv = np.cross(a, b)
-    s = np.linalg.norm(wv, axis=1, keepdims=True)
-    ang = np.arctan2(s[:, 0], b @ a)
-    R = so3_exp(np.where(s > 1e-12, wv / np.maximum(s, 1e-300), 0.0) * ang[:, None])
-    return R if matrix else R[:, :, 2]
-
-
-def _circle_intersections(c1: NDArray, r1: NDArray, c2: NDArray, r2: NDArray, normal: NDArray) -> NDArray:
-    """Both intersections of two coplanar circles (plane normal ``normal``); NaN where none. Shape (n, 2, 3)."""
-    dv = c2 - c1
-    D = np.linalg.norm(dv, axis=1)
-    e1 = dv / D[:, None]
-    e2 = np.cross(normal, e1)
-    x = (r1**2 - r2**2 + D**2) / (2 * D)
-    y = np.sqrt(r1**2 - x**2)
-    base = c1 + x[:, None] * e1
-    return np.stack([base + y[:, None] * e2, base - y[:, None] * e2], axis=1)
-
-
-def _trilaterate(p1, r1, p2, r2, p3, r3) -> NDArray:
-    """Both points at distances r1, r2, r3 from p1, p2, p3; NaN where none. Shape (n, 2, 3)."""
-    ex = p2 - p1
-    d = np.linalg.norm(ex, axis=1)
-    ex = ex / d[:, None]
-    i = np.einsum("ni,ni->n", ex, p3 - p1)
-    ey = p3 - p1 - i[:, None] * ex
-    j = np.linalg.norm(ey, axis=1)
-    ey = ey / j[:, None]
-    ez = np.cross(ex, ey)
-    x = (r1**2 - r2**2 + d**2) / (2 * d)
-    y = (r1**2 - r3**2 + i**2 + j**2 - 2 * i * x) / (2 * j)
-    z = np.sqrt(r1**2 - x**2 - y**2)
-    base = p1 + x[:, None] * ex + y[:, None] * ey
-    return np.stack([base + z[:, None] * ez, base - z[:, None] * ez], axis=1)
-
-
-def _kabsch(src: NDArray, dst: NDArray) -> NDArray:
-    """Rotations taking point sets ``src`` (n, k, 3) onto ``dst`` (n, k, 3) in least squares."""
-    bad = ~np.isfinite(dst).all(axis=(1, 2))
-    dst = np.where(bad[:, None, None], src, dst)
-    a = src - src.mean(axis=1, keepdims=True)
-    b = dst - dst.mean(axis=1, keepdims=True)
-    H = np.einsum("nki,nkj->nij", a, b)
-    U, _, Vt = np.linalg.svd(H)
-    dsign = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    D = np.zeros_like(H)
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = np.where(dsign == 0, 1.0, dsign)
-    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
-    R[bad] = np.nan
-    return R
-
