@@ -312,3 +312,20 @@ def test_5dof_ls_on_the_6dof_parameter_set_is_ill_posed(tracker):
         res = identify(model5, method="ls", free=kept6)
     assert not res.success and "ill-posed" in res.message
     assert identify(model5, method="ls").success  # the automatic 5-DOF set drops the gauge
+
+
+def test_cli_simulate_identify_write_machine(tmp_path, capsys):
+    """End to end through the CLI with 5-DOF data: the calibrated file alone predicts the true tracker."""
+    from bayescal.cli import main
+
+    rec, cal = tmp_path / "rec.csv", tmp_path / "cal.toml"
+    assert main(["simulate", "--machine", str(EXAMPLE), "--poses", "30", "--seed", "4", "--dof", "5", "--out", str(rec)]) == 0
+    assert main(["identify", str(rec), "--machine", str(EXAMPLE), "--method", "tsvd", "--k", "20",
+                 "--write-machine", str(cal)]) == 0
+    assert "RU-PUS-PRS" in capsys.readouterr().out
+    nominal, calibrated, true = load_machine(EXAMPLE), load_machine(cal), load_machine(tmp_path / "rec.truth.toml")
+    q = nominal.sample_q(100, np.random.default_rng(0))
+    axis_err = lambda m: np.degrees(np.arccos(np.clip(np.einsum("ni,ni->n", m.forward(q).axis, true.forward(q).axis), -1, 1)))  # noqa: E731
+    pos_err = lambda m: np.sqrt(np.mean(np.sum((m.forward(q).position - true.forward(q).position) ** 2, axis=1)))  # noqa: E731
+    assert pos_err(calibrated) < 0.25 * pos_err(nominal)
+    assert np.sqrt(np.mean(axis_err(calibrated) ** 2)) < 0.5 * np.sqrt(np.mean(axis_err(nominal) ** 2))
