@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..geometry import skew, so3_exp, tilt_axes, tilt_torsion_angles, tilted_direction
+from ..geometry import rotation_from_tilt_torsion, skew, so3_exp, tilt_axes, tilt_torsion_angles, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
@@ -523,6 +523,68 @@ class RupusPrs(Machine):
         out = tilt_torsion_angles(poses.rotation)
         out[~poses.success] = np.nan
         return out
+
+    def inverse_tilt(
+        self, phi: ArrayLike, tilt: ArrayLike, theta: ArrayLike | None = None
+    ) -> tuple[NDArray, NDArray, NDArray]:
+        """Slider positions that point the platform normal along T&T angles ``(phi, tilt)``.
+
+        The tracker's output is the normal direction; the torsion ``psi`` and
+        the R-joint angle follow from the mechanism.  Newton on
+        ``(psi, beta, q1, q2)`` solves the four constraint equations with
+        ``R = Rz(phi) Ry(tilt) Rz(psi - phi)``; a change of ``psi`` turns the
+        platform about its normal ``R e_z``.
+
+        Parameters
+        ----------
+        phi, tilt : array_like, shape (n_poses,)
+            Azimuth and tilt of the platform normal, rad.
+        theta : array_like, optional
+            Geometric errors.
+
+        Returns
+        -------
+        q : ndarray, shape (n_poses, 2)
+            mm, on the machine's assembly branch (NaN where not solved).
+        psi : ndarray, shape (n_poses,)
+            The torsion that goes with it, rad.
+        success : ndarray of bool, shape (n_poses,)
+        """
+        phi, tilt = np.atleast_1d(np.asarray(phi, dtype=float)), np.atleast_1d(np.asarray(tilt, dtype=float))
+        n = phi.shape[0]
+        g = self._geometry(self._theta_rows(theta, n))
+        psi, beta = np.zeros(n), np.zeros(n)
+        q = self.inverse(rotation_from_tilt_torsion(phi, tilt, psi), theta)
+        q = np.where(np.isfinite(q), q, self.home_q() if self.q_limits is not None else 0.0)
+        for _ in range(_NEWTON_MAXIT):
+            R = rotation_from_tilt_torsion(phi, tilt, psi)
+            F, Fx, k = self._constraints(q, g, R, beta)
+            A = np.zeros((n, 4, 4))
+            A[:, :, 0] = np.einsum("nij,nj->ni", Fx[:, :, :3], R[:, :, 2])
+            A[:, :, 1] = Fx[:, :, 3]
+            A[:, 0, 2] = -np.einsum("ni,ni->n", k.d[:, 0], g.u[:, 0])
+            A[:, 1, 3] = -np.einsum("ni,ni->n", k.d[:, 1], g.u[:, 1])
+            A[:, 2, 3] = -np.einsum("ni,ni->n", g.r2, g.u[:, 1])
+            try:
+                dx = -np.linalg.solve(A, F[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                dx = -np.einsum("nij,nj->ni", np.linalg.pinv(A), F)
+            # cap angle steps at 0.2 rad and slider steps at 50 mm
+            fac = np.minimum(1.0, np.minimum(0.2 / np.maximum(np.abs(dx[:, :2]).max(1), 1e-300),
+                                             50.0 / np.maximum(np.abs(dx[:, 2:]).max(1), 1e-300)))
+            dx *= fac[:, None]
+            psi, beta, q = psi + dx[:, 0], beta + dx[:, 1], q + dx[:, 2:]
+            if np.abs(dx).max() < 1e-13 * max(1.0, np.abs(q).max()):
+                break
+        R = rotation_from_tilt_torsion(phi, tilt, psi)
+        F, _, k = self._constraints(q, g, R, beta)
+        scale = np.maximum(g.l, 1.0)
+        ok = (np.abs(F[:, :3]) / scale[:, [0, 1, 1]]).max(axis=1) < _NEWTON_TOL
+        ok &= np.abs(F[:, 3]) < _NEWTON_TOL
+        along = np.einsum("nki,nki->nk", k.d, g.u)
+        ok &= (along > 0).all(axis=1) if self.links_along_rail else (along < 0).all(axis=1)
+        q[~ok] = np.nan
+        return q, (psi + np.pi) % (2 * np.pi) - np.pi, ok
 
     def guess_from_measurement(
         self, q: NDArray, position: NDArray, rotation: NDArray | None = None, axis: NDArray | None = None

@@ -334,3 +334,18 @@ def test_cli_simulate_identify_write_machine(tmp_path, capsys):
     pos_err = lambda m: np.sqrt(np.mean(np.sum((m.forward(q).position - true.forward(q).position) ** 2, axis=1)))  # noqa: E731
     assert pos_err(calibrated) < 0.25 * pos_err(nominal)
     assert np.sqrt(np.mean(axis_err(calibrated) ** 2)) < 0.5 * np.sqrt(np.mean(axis_err(nominal) ** 2))
+
+
+def test_inverse_tilt_round_trip(tracker):
+    """q -> T&T angles of the normal -> q, with errors; the torsion comes back too."""
+    rng = np.random.default_rng(12)
+    theta = rng.normal(size=tracker.n_params) * tracker.tolerance * 5
+    q = tracker.sample_q(30, rng)
+    tt = tracker.tilt_torsion(q, theta)
+    q_back, psi, ok = tracker.inverse_tilt(tt[:, 0], tt[:, 1], theta)
+    assert ok.all()
+    assert np.allclose(q_back, q, atol=1e-9)
+    assert np.allclose(np.angle(np.exp(1j * (psi - tt[:, 2]))), 0.0, atol=1e-12)
+    # a normal 80 degrees off the vertical is out of reach: reported, not invented
+    q_far, _, ok_far = tracker.inverse_tilt([0.3], [np.radians(80.0)])
+    assert not ok_far[0] and np.isnan(q_far).all()
