@@ -265,8 +265,16 @@ def run_situation(machine, dof, q, q_eval, theta_true, noise, seed_set, *, n_lam
 
     # the linearised curves the repetitions use, against these Gauss-Newton curves
     lin = linear_curves(model, machine, seed_set, lams, ks)
-    lin_lam, lin_k = ev(lin[0])[0], ev(lin[1])[0]
-    out["linearisation_gap"] = float(max(np.max(np.abs(lin_lam / err_lam[0] - 1)), np.max(np.abs(lin_k / err_k[0] - 1))))
+    gap_lam = np.abs(ev(lin[0])[0] / err_lam[0] - 1)
+    gap_k = np.abs(ev(lin[1])[0] / err_k[0] - 1)
+    ok_l, ok_kk = out["ok_lam"], out["ok_k"]
+    near = [gap_lam[int(np.argmin(err_lam[0]))], gap_k[int(np.argmin(err_k[0]))],
+            gap_lam[int(np.argmin(np.abs(lams - ch_r.choices[DEFAULT_RULE["ridge"]])))],
+            gap_k[int(np.flatnonzero(ks == ch_k.choices[DEFAULT_RULE["tsvd"]])[0])]]
+    out["linearisation_gap"] = {
+        "best_and_default": float(np.max(near)),
+        "all_converged": float(max(np.max(gap_lam[ok_l]), np.max(gap_k[ok_kk]))),
+    }
 
     # iteration histories, from nominal (Figures 7, 9); the seed's increment variant beside them
     lam_d, k_d = float(ch_r.choices[DEFAULT_RULE["ridge"]]), int(ch_k.choices[DEFAULT_RULE["tsvd"]])
@@ -293,18 +301,28 @@ def run_situation(machine, dof, q, q_eval, theta_true, noise, seed_set, *, n_lam
 
 
 def linear_curves(model, machine, free, lams, ks):
-    """Identified thetas from one linearisation: ridge at the lambda = 1 fixed point, TSVD at nominal.
+    """Identified thetas from one linearisation at the lambda = 1 ridge solution (TSVD: subspace from nominal).
 
     This is what the repetitions use instead of a Gauss-Newton run per grid
     value; the main run reports how far it is from the Gauss-Newton curves.
     """
     P, tol = machine.n_params, machine.tolerance
     pilot = _quiet_identify(model, method="ridge", lam=1.0, free=free)
-    out = []
-    for theta_lin, method, values in ((pilot.theta, "ridge", lams), (np.zeros(P), "tsvd", ks)):
-        A, z, _ = linearised_problem(model, theta_lin, free, tol)
-        out.append(linear_curves_at(A, z, theta_lin, free, tol, method, values))
-    return out
+    A, z, _ = linearised_problem(model, pilot.theta, free, tol)
+    A0, _, _ = linearised_problem(model, np.zeros(P), free, tol)
+    return linear_curves_at(A, z, pilot.theta, free, tol, "ridge", lams), linear_tsvd_at(A0, A, z, P, free, tol, ks)
+
+
+def linear_tsvd_at(A0, A, z, P, free, tol, ks):
+    """TSVD thetas ``phi = V_k c``: subspace ``V_k`` of ``A0`` (start geometry, as bayescal's TSVD),
+    coordinates ``c`` by least squares on the problem ``A phi ~ z`` linearised near the solution."""
+    V = np.linalg.svd(A0, full_matrices=False)[2].T
+    B = A @ V
+    th = np.zeros((len(ks), P))
+    for j, k in enumerate(ks):
+        c = np.linalg.lstsq(B[:, :k], z, rcond=None)[0]
+        th[j, free] = (V[:, :k] @ c) * tol[free]
+    return th
 
 
 # ------------------------------------------------------------- repetitions
@@ -326,7 +344,7 @@ def run_repetition(machine, dof, q, q_eval, seed_set, seed, lam_grid):
     lams = np.concatenate([lam_grid, [ch_r.choices[r] for r in RULES], [1.0]])
     ks = np.arange(1, seed_set.size + 1)
     th_r = linear_curves_at(A, z, pilot.theta, seed_set, tol, "ridge", lams)
-    th_k = linear_curves_at(A0, z0, np.zeros(P), seed_set, tol, "tsvd", ks)
+    th_k = linear_tsvd_at(A0, A, z, P, seed_set, tol, ks)
     err = ev(np.vstack([th_r, th_k]))[0]
     e_r, e_k = err[: lams.size], err[lams.size:]
     best_r, best_k = float(np.min(e_r)), float(np.min(e_k))
@@ -492,7 +510,7 @@ def main(argv=None) -> int:
                 "best_k_on_curve": int(s["ks"][np.argmin(s["err_k"][0])]),
                 "ls_seed_set_message": ls.message, "n_seed_set": int(seed_set.size),
                 "n_reduced_set": int(s["ls_auto"].free.sum()),
-                "linearised_vs_gauss_newton_max_rel_gap": s["linearisation_gap"],
+                "linearised_vs_gauss_newton_rel_gap": s["linearisation_gap"],
             }
             # (d) repetitions
             lam_grid = np.logspace(np.log10(s["lams"][0]), np.log10(s["lams"][-1]), 2 * n_lam + 1)
@@ -557,6 +575,15 @@ def main(argv=None) -> int:
         "| situation | " + " | ".join(keys_m) + " | TSVD best < RE best | TSVD auto < RE auto |",
         "|" + "---|" * (len(keys_m) + 3), *sec_c2, "",
         f"## (d) rule / best-on-curve output-error ratio over {reps} repetitions", "",
+        "Each repetition draws a fresh true machine and fresh uniform noise (the Appendix 1 distribution) at the same "
+        "36 poses. Curves are computed from one linearisation at the lambda = 1 ridge solution (TSVD subspace from "
+        "nominal); against full Gauss-Newton on the main run the relative gap is "
+        + ", ".join(f"{k}: {100 * v['linearised_vs_gauss_newton_rel_gap']['best_and_default']:.2f}% at the best value "
+                    f"and the default picks, {100 * v['linearised_vs_gauss_newton_rel_gap']['all_converged']:.0f}% "
+                    f"over all grid points" for k, v in summary["situations"].items())
+        + " (the large gaps lie in the weakly regularised region, where estimates reach tens of tolerances). "
+        "'prior (lambda=1)' is not a rule but the yardstick: the MAP estimate under the tolerance prior the true "
+        "machines are drawn from, Bayes-optimal in expectation.", "",
         f"Target: the default rule within {100 * (TARGET_RATIO - 1):.0f}% of the best in at least "
         f"{100 * TARGET_FRACTION:.0f}% of repetitions in every situation: **{'met' if target_ok else 'NOT met'}**.", "",
         "| situation | method | rule | median | p10 - p90 | max | within 10% |", "|---|---|---|---|---|---|---|", *sec_d, "",

@@ -99,11 +99,15 @@ def test_evidence_with_unknown_noise_profiles_the_scale(rng):
     z = 3.0 * (A @ rng.normal(size=p) + rng.normal(size=N))  # noise sigma 3, not 1
     grid = np.logspace(-3, 3, 61)
     ch = choose_linear(A, z, "ridge", grid=grid, noise_known=False)
-    sig2 = np.logspace(-1, 2, 3001)
-    brute = [max(multivariate_normal(np.zeros(N), s2 * (np.eye(N) + A @ A.T / lam)).logpdf(z) for s2 in sig2[::10])
-             for lam in grid]
+    sig2 = np.logspace(-1, 2, 2001)
+    brute = []
+    for lam in grid:
+        # dense Gaussian log density of z ~ N(0, s2 (I + A A^T / lam)), maximised over an s2 grid
+        C = np.eye(N) + A @ A.T / lam
+        quad, logdet = z @ np.linalg.solve(C, z), np.linalg.slogdet(C)[1]
+        brute.append(np.max(-0.5 * (quad / sig2 + N * np.log(sig2) + logdet + N * np.log(2 * np.pi))))
     assert ch.choices["evidence"] == grid[np.argmax(brute)]
-    np.testing.assert_allclose(ch.curves["log_evidence"], brute, atol=0.05)  # brute force is on a sigma^2 grid
+    np.testing.assert_allclose(ch.curves["log_evidence"], brute, atol=1e-3)  # brute force is on a sigma^2 grid
 
 
 def test_ridge_lcurve_curvature_matches_finite_differences(rng):
@@ -143,13 +147,13 @@ def test_tsvd_rules_against_brute_force(rng):
         res2.append(np.sum((z - A @ x) ** 2))
         Ak = A @ Vt[:k].T
         ev.append(max(multivariate_normal(np.zeros(N), np.eye(N) + Ak @ Ak.T / lam).logpdf(z)
-                      for lam in np.logspace(-4, 4, 401)))
+                      for lam in np.logspace(-4, 4, 161)))
     res2 = np.array(res2)
     ks = np.arange(1, p + 1)
     assert ch.choices["gcv"] == ks[np.argmin(res2 / (N - ks) ** 2)]
     ok = np.flatnonzero(res2 <= N - ks)
     assert ch.choices["discrepancy"] == (ks[ok[0]] if ok.size else ks[np.argmin(res2 - (N - ks))])
-    np.testing.assert_allclose(ch.curves["log_evidence"], ev, atol=0.05)  # brute force maximises on a coarser grid
+    np.testing.assert_allclose(ch.curves["log_evidence"], ev, atol=0.1)  # brute force maximises on a coarser grid
     assert ch.choices["evidence"] == ks[np.argmax(ev)]
 
 
