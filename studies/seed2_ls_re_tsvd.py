@@ -450,7 +450,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     reps = args.reps if args.reps is not None else (2 if args.quick else 50)
-    n_lam = 9 if args.quick else 29
+    n_lam = 7 if args.quick else 29
     t_start = time.perf_counter()
     notes, summary, md = [], {"quick": args.quick, "reps": reps, "situations": {}}, []
     machines = []
@@ -472,7 +472,7 @@ def main(argv=None) -> int:
         sits = []
         for dof in (6, 5):
             s = run_situation(machine, dof, q, q_eval, theta_true, noise_table[:N_POSES], seed_set, n_lam=n_lam,
-                              k_stride=4 if args.quick else 1, inc_iter=12 if args.quick else 40)
+                              k_stride=6 if args.quick else 1, inc_iter=8 if args.quick else 40)
             sits.append(s)
             key = f"{kind} {dof}-DOF"
             plots.plot_output_error(
