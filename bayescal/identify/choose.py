@@ -40,7 +40,7 @@ D. J. C. MacKay, "Bayesian interpolation", Neural Computation 4 (1992).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -56,7 +56,6 @@ __all__ = [
     "RegularisationChoice",
     "choose_linear",
     "choose_regularisation",
-    "identify_auto",
     "linearised_problem",
     "lambda_grid",
 ]
@@ -117,7 +116,6 @@ class RegularisationChoice:
     linearisation: str = ""
     rounds: int = 1
     folds: int = 0
-    extras: dict = field(default_factory=dict)
 
     @property
     def symbol(self) -> str:
@@ -467,7 +465,8 @@ def choose_regularisation(
         res = identify(model, method="ridge", lam=1.0, free=free_arg, theta0=theta, scale=scale, max_iter=max_iter)
         choice, rounds, lam_prev = None, 0, 1.0
         for rounds in range(1, max_rounds + 1):
-            A, z, groups = linearised_problem(model, res.theta, idx, S_all)
+            # a failed fit is no place to linearise: fall back to the start
+            A, z, groups = linearised_problem(model, res.theta if res.success else theta, idx, S_all)
             choice = choose_linear(
                 A, z, "ridge", groups=groups,
                 linearisation=f"linearised at the converged ridge solution (round {rounds})", **kw,
@@ -482,8 +481,3 @@ def choose_regularisation(
         raise InputError(f"method: automatic choice is for 'ridge' or 'tsvd', got {method!r}")
     res = replace(res, extras={**res.extras, "regularisation": choice.to_dict()})
     return choice, res
-
-
-def identify_auto(model: MeasurementModel, method: str, **kwargs) -> IdentificationResult:
-    """:func:`choose_regularisation`, returning only the identification result."""
-    return choose_regularisation(model, method, **kwargs)[1]
