@@ -25,6 +25,10 @@ Set-up (docs/regularisation.md explains the choices):
   looks uniform on +-0.01 mm and +-1.75e-4 rad, so the instrument sigma is
   ``half-width / sqrt(3)`` and repetitions draw fresh uniform noise.
 * The true machine: errors ``N(0, tolerance^2)`` (machine file tolerances).
+* The 3-PRS keeps the example file's geometry but uses a 200 mm actuator
+  stroke (400-600 mm, ``STUDY_Q_LIMITS``) for measurement and evaluation:
+  with the file's 100 mm stroke, link length and actuator offset are nearly
+  confounded and even 6-DOF LS diverges.
 * Evaluation range: a full factorial grid over ``q_limits`` (5 levels per
   actuator for three actuators, 11 for two); output error = RMS distance of
   the calibrated model's tool point from the true machine's (mm), with the
