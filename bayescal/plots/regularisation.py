@@ -59,6 +59,7 @@ def plot_choice(choice, path, *, title: str = "") -> Path:
 
     a = ax[0, 0]
     a.loglog(c["residual_norm"], c["solution_norm"], ".-", ms=3, color="0.3")
+    a.tick_params(axis="x", which="minor", labelbottom=False)  # minor log labels collide on a short decade
     mark(a, "lcurve", c["residual_norm"], c["solution_norm"])
     mark(a, choice.rule, c["residual_norm"], c["solution_norm"])
     a.set(xlabel="residual norm |Ax - z| (whitened)", ylabel="solution norm |x| (tolerances)", title="L-curve")
