@@ -11,7 +11,7 @@ from tests.conftest import ROOT
 def test_seed2_quick(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "studies" / "seed2_ls_re_tsvd.py"), "--quick", "--reps", "2", "--out", str(tmp_path)],
+        [sys.executable, str(ROOT / "studies" / "seed2_ls_re_tsvd.py"), "--quick", "--reps", "1", "--out", str(tmp_path)],
         env=env, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
