@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from ..errors import InputError
 from ..identify import identify
+from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from ..io import read_recording, write_json_atomic, write_text_atomic
 from ..machines import load_machine
 from ..measurement import MeasurementModel
@@ -21,6 +23,13 @@ names the combinations the measurement cannot separate.
 Methods: ls (Gauss-Newton least squares), ridge (Tikhonov towards nominal;
 --lam 1 is the MAP estimate under the machine file's tolerance prior), tsvd
 (least squares on the k best-determined directions).
+
+--lam auto / --k auto choose the regularisation from the data by a rule
+(--rule): cv (K-fold cross-validation over held-out poses), lcurve (L-curve
+corner), gcv (generalised cross-validation), discrepancy (residual matches
+the instrument sigma), evidence (marginal likelihood, empirical Bayes; the
+default, see docs/regularisation.md).  The report prints the chosen value
+and what every other rule picks; --figures DIR draws the rule curves.
 """
 
 EXAMPLES = """\
@@ -28,6 +37,8 @@ examples:
   bayescal identify examples/prs3/recording.csv --machine examples/prs3/machine.toml
   bayescal identify rec.csv --machine m.toml --method ridge --lam 1 --json answer.json
   bayescal identify rec.csv --machine m.toml --method tsvd --k 25 --dof 5 --write-machine calibrated.toml
+  bayescal identify rec.csv --machine m.toml --method ridge --lam auto --figures figs/
+  bayescal identify rec.csv --machine m.toml --method tsvd --k auto --rule gcv --json answer.json
 """
 
 
@@ -39,8 +50,16 @@ def register(sub) -> None:
     p.add_argument("recording", help="recording CSV (FORMATS.md section 2)")
     p.add_argument("--machine", required=True, help="machine file TOML (FORMATS.md section 1)")
     p.add_argument("--method", choices=("ls", "ridge", "tsvd"), default="ls", help="solver (default: ls)")
-    p.add_argument("--lam", type=float, help="ridge parameter, dimensionless (1 = MAP under the tolerance prior)")
-    p.add_argument("--k", type=int, help="number of singular values tsvd keeps")
+    p.add_argument(
+        "--lam", type=_lam_arg, metavar="LAM|auto",
+        help="ridge parameter, dimensionless (1 = MAP under the tolerance prior), or 'auto'",
+    )
+    p.add_argument("--k", type=_k_arg, metavar="K|auto", help="number of singular values tsvd keeps, or 'auto'")
+    p.add_argument(
+        "--rule", choices=RULES, help="rule for --lam auto / --k auto (default: " + ", ".join(
+            f"{m} {r}" for m, r in DEFAULT_RULE.items()) + ")",
+    )
+    p.add_argument("--figures", metavar="DIR", help="with auto: write the rule curves (PNG) into DIR")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), help="use only this much of the measurement (default: all)")
     p.add_argument(
         "--free", default="auto",
@@ -53,6 +72,24 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _lam_arg(text: str):
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0 or 'auto', got {text!r}") from None
+
+
+def _k_arg(text: str):
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {text!r}") from None
+
+
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
 
@@ -61,16 +98,27 @@ def run(args) -> int:
     model = MeasurementModel.from_recording(machine, rec, dof=args.dof)
     free = args.free if args.free in ("auto", "all") else [s.strip() for s in args.free.split(",") if s.strip()]
     if args.method == "ridge" and args.lam is None:
-        from ..errors import InputError
-
-        raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior)")
+        raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
     if args.method == "tsvd" and args.k is None:
-        from ..errors import InputError
-
-        raise InputError("--k is required with --method tsvd")
-    res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
+        raise InputError("--k is required with --method tsvd (a number, or --k auto)")
+    auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
+    if not auto and (args.rule or args.figures):
+        raise InputError("--rule and --figures go with --method ridge --lam auto or --method tsvd --k auto")
+    choice = None
+    if auto:
+        choice, res = choose_regularisation(model, args.method, rule=args.rule, free=free, max_iter=args.max_iter)
+    else:
+        res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
     if not args.quiet:
         print(res.report())
+        if choice is not None:
+            print("\n" + choice.report())
+    if choice is not None and args.figures:
+        from ..plots.regularisation import plot_choice
+
+        path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
+        if not args.quiet:
+            print(f"\nwrote {path}")
     if args.json:
         write_json_atomic(args.json, res.to_dict())
     if args.write_machine and res.success:

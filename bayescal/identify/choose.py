@@ -1,0 +1,483 @@
+"""Choosing the ridge parameter ``lam`` and the TSVD truncation ``k`` without a human.
+
+All rules work on the *linear* problem ``A x ~ z`` of one Gauss-Newton step
+on the total deviation from nominal (rows whitened by the instrument sigma,
+columns scaled by the tolerances, see :mod:`bayescal.identify.gauss_newton`),
+through the SVD ``A = U diag(s) V^T``, ``beta = U^T z``:
+
+* ``cv``: K-fold cross-validation over *poses* (all rows of a pose are held
+  out together): the seed's V/U curve of the output error, computed on
+  held-out measured poses because a real user does not know the true machine.
+* ``lcurve``: the corner of the L-curve ``(log |A x - z|, log |x|)``, the
+  point of maximum curvature (analytic for ridge, Menger curvature of the
+  discrete points for TSVD).
+* ``gcv``: generalised cross-validation ``|A x - z|^2 / (N - sum f)^2``.
+* ``discrepancy``: the residual matches the noise: ``|A x - z|^2 = N - sum f``
+  (whitened rows, so the expected residual of a fit with ``sum f`` effective
+  parameters).  The most regularised solution with ``|A x - z|^2 <= N - sum f``
+  is taken; if none, the one closest to equality.
+* ``evidence``: the marginal likelihood of the linear-Gaussian model
+  ``z = A x + e``, ``e ~ N(0, I)``, ``x ~ N(0, I / lam)`` (``lam`` is the
+  noise-to-prior variance ratio; ``lam = 1`` is the tolerance prior),
+  maximised over ``lam``.  For TSVD, the evidence of the truncated model
+  ``x = V_k c`` with ``c ~ N(0, I / lam)``, maximised over ``lam`` for each
+  ``k``.  When the machine file gives no instrument sigma the noise scale is
+  profiled out.
+
+Where the problem is linearised (see :func:`choose_regularisation`): ridge
+iterates rule and Gauss-Newton to a fixed point (linearise at the converged
+ridge solution, apply the rule, re-solve, at most ``max_rounds`` times);
+TSVD applies the rule once at the start geometry, where bayescal's TSVD
+fixes its subspace.
+
+References
+----------
+P. C. Hansen, *Rank-Deficient and Discrete Ill-Posed Problems*, SIAM 1998, ch. 7.
+G. H. Golub, M. Heath, G. Wahba, "Generalized cross-validation as a method for
+choosing a good ridge parameter", Technometrics 21 (1979).
+D. J. C. MacKay, "Bayesian interpolation", Neural Computation 4 (1992).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import InputError
+from ..measurement import MeasurementModel
+from .gauss_newton import identify, resolve_free, whitened_system
+from .result import IdentificationResult
+
+__all__ = [
+    "RULES",
+    "DEFAULT_RULE",
+    "RegularisationChoice",
+    "choose_linear",
+    "choose_regularisation",
+    "linearised_problem",
+    "lambda_grid",
+]
+
+#: Rule names, in the order reports list them.
+RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence")
+
+#: Default rule per method, chosen by the repetition study of
+#: ``studies/seed2_ls_re_tsvd.py`` (docs/regularisation.md, "Which rule").
+DEFAULT_RULE: dict[str, str] = {"ridge": "evidence", "tsvd": "evidence"}
+
+_LOG2PI = float(np.log(2.0 * np.pi))
+
+
+# --------------------------------------------------------------------- result
+@dataclass(frozen=True)
+class RegularisationChoice:
+    """The regularisation a rule chose, with what every other rule would choose.
+
+    Attributes
+    ----------
+    method : {"ridge", "tsvd"}
+    rule : str
+        The rule that decided ``value``.
+    value : float or int
+        ``lam`` (dimensionless, relative to the whitened tolerance-scaled
+        matrix) or ``k``.
+    choices : dict of str to float or int
+        The value every rule picks.
+    grid : ndarray
+        ``lam`` values (ridge, ascending) or ``k = 1..p`` (TSVD).
+    curves : dict of str to ndarray
+        Over ``grid``: ``residual_norm``, ``solution_norm`` (whitened, scaled),
+        ``effective_parameters`` (sum of filter factors), ``gcv``, ``cv``
+        (mean squared held-out whitened error), ``discrepancy``
+        (``|r|^2 - (N - sum f)``), ``log_evidence``, ``curvature`` (L-curve).
+    singular_values : ndarray
+    n_rows, n_params : int
+        Rows (whitened residuals) and identified parameters of the linear problem.
+    noise_known : bool
+        Whether the instrument sigma came from the machine file.
+    linearisation : str
+        Where the linear problem was taken.
+    rounds : int
+        Rule + Gauss-Newton rounds (ridge fixed point).
+    """
+
+    method: str
+    rule: str
+    value: float | int
+    choices: dict
+    grid: NDArray
+    curves: dict
+    singular_values: NDArray
+    n_rows: int
+    n_params: int
+    noise_known: bool = True
+    linearisation: str = ""
+    rounds: int = 1
+    folds: int = 0
+
+    @property
+    def symbol(self) -> str:
+        return "lambda" if self.method == "ridge" else "k"
+
+    def _fmt(self, v) -> str:
+        return f"{v:.4g}" if self.method == "ridge" else f"{int(v)}"
+
+    def report(self) -> str:
+        """The chosen value and, beside it, what the other rules pick."""
+        lines = [
+            f"regularisation: {self.method} {self.symbol} = {self._fmt(self.value)} chosen by '{self.rule}' "
+            f"({self.n_rows} rows, {self.n_params} parameters; {self.linearisation})",
+        ]
+        for r in RULES:
+            if r in self.choices:
+                mark = "  <- used" if r == self.rule else ""
+                lines.append(f"    {r:<12} {self.symbol} = {self._fmt(self.choices[r])}{mark}")
+        if not self.noise_known:
+            lines.append("    (no instrument sigma in the machine file: the discrepancy rule used the default sigma)")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {
+            "method": self.method,
+            "rule": self.rule,
+            "value": self.value,
+            "choices": dict(self.choices),
+            "grid": self.grid,
+            "curves": dict(self.curves),
+            "singular_values": self.singular_values,
+            "n_rows": self.n_rows,
+            "n_params": self.n_params,
+            "noise_known": self.noise_known,
+            "linearisation": self.linearisation,
+            "rounds": self.rounds,
+            "folds": self.folds,
+        }
+
+
+# ------------------------------------------------------------ linear algebra
+@dataclass(frozen=True)
+class _Svd:
+    s: NDArray
+    V: NDArray
+    beta: NDArray
+    c_perp: float  # |z|^2 - |U^T z|^2: residual no solution can remove
+    n_rows: int
+
+
+def _svd(A: NDArray, z: NDArray) -> _Svd:
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    beta = U.T @ z
+    return _Svd(s=s, V=Vt.T, beta=beta, c_perp=max(float(z @ z - beta @ beta), 0.0), n_rows=A.shape[0])
+
+
+def _safe_inv(s: NDArray) -> NDArray:
+    return np.where(s > 0, 1.0 / np.where(s > 0, s, 1.0), 0.0)
+
+
+def lambda_grid(s: NDArray, n: int = 241) -> NDArray:
+    """Log-spaced ``lam`` from ``1e-3 s_min^2`` to ``1e2 s_max^2`` (``s_min`` at most 1e-12 ``s_max``)."""
+    s = np.asarray(s, dtype=float)
+    smax = float(s[0]) if s.size and s[0] > 0 else 1.0
+    smin = max(float(s[s > 0][-1]) if np.any(s > 0) else smax, 1e-6 * smax)
+    return np.logspace(np.log10(1e-3 * smin**2), np.log10(1e2 * smax**2), n)
+
+
+def _filters(method: str, s: NDArray, grid: NDArray) -> NDArray:
+    """Filter factors, shape (n_grid, p)."""
+    if method == "ridge":
+        s2 = s**2
+        return s2[None, :] / (s2[None, :] + grid[:, None])
+    return (np.arange(s.size)[None, :] < grid[:, None]).astype(float)
+
+
+def _solutions(d: _Svd, F: NDArray) -> NDArray:
+    """Solutions for every filter row, shape (p, n_grid)."""
+    return d.V @ (F * (d.beta * _safe_inv(d.s))[None, :]).T
+
+
+def _log_evidence_ridge(d: _Svd, lams: NDArray, noise_known: bool) -> NDArray:
+    # z ~ N(0, I + A A^T / lam): eigenvalues 1 + s^2/lam along U, 1 elsewhere
+    g = 1.0 + d.s[None, :] ** 2 / lams[:, None]
+    quad = np.sum(d.beta[None, :] ** 2 / g, axis=1) + d.c_perp
+    logdet = np.sum(np.log(g), axis=1)
+    N = d.n_rows
+    if noise_known:
+        return -0.5 * (quad + logdet + N * _LOG2PI)
+    # noise scale profiled out: sigma^2 = quad / N
+    return -0.5 * (N * np.log(np.maximum(quad, 1e-300) / N) + logdet + N * (1.0 + _LOG2PI))
+
+
+def _log_evidence_tsvd(d: _Svd, lams: NDArray, noise_known: bool) -> tuple[NDArray, NDArray]:
+    """Evidence of the truncated models k = 1..p, each maximised over the prior ratio ``lam``."""
+    b2 = d.beta**2
+    g = 1.0 + d.s[None, :] ** 2 / lams[:, None]  # (n_lam, p)
+    kept_quad = np.cumsum(b2[None, :] / g, axis=1)  # sum_{i<=k} beta^2 / g
+    rest = np.sum(b2) - np.cumsum(b2)  # sum_{i>k} beta^2
+    quad = kept_quad + rest[None, :] + d.c_perp
+    logdet = np.cumsum(np.log(g), axis=1)
+    N = d.n_rows
+    if noise_known:
+        ev = -0.5 * (quad + logdet + N * _LOG2PI)
+    else:
+        ev = -0.5 * (N * np.log(np.maximum(quad, 1e-300) / N) + logdet + N * (1.0 + _LOG2PI))
+    best = np.argmax(ev, axis=0)
+    return ev[best, np.arange(ev.shape[1])], lams[best]
+
+
+def _ridge_curvature(d: _Svd, lams: NDArray) -> NDArray:
+    """Signed curvature of ``(log |r|, log |x|)`` against ``t = log lam``, analytic.
+
+    With ``f = s^2 / (s^2 + lam)``: ``df/dt = -f (1 - f)``.  Positive at the
+    L corner (the curve turns counter-clockwise when lam grows).
+    """
+    F = _filters("ridge", d.s, lams)
+    b2 = d.beta[None, :] ** 2
+    is2 = _safe_inv(d.s)[None, :] ** 2
+    rho2 = np.sum((1 - F) ** 2 * b2, axis=1) + d.c_perp
+    eta2 = np.sum(F**2 * b2 * is2, axis=1)
+    drho2 = np.sum(2 * F * (1 - F) ** 2 * b2, axis=1)
+    ddrho2 = np.sum(-2 * F * (1 - F) ** 2 * (1 - 3 * F) * b2, axis=1)
+    deta2 = np.sum(-2 * F**2 * (1 - F) * b2 * is2, axis=1)
+    ddeta2 = np.sum(2 * F**2 * (1 - F) * (2 - 3 * F) * b2 * is2, axis=1)
+    rho2 = np.maximum(rho2, 1e-300)
+    eta2 = np.maximum(eta2, 1e-300)
+    R1, H1 = drho2 / (2 * rho2), deta2 / (2 * eta2)
+    R2 = ddrho2 / (2 * rho2) - drho2**2 / (2 * rho2**2)
+    H2 = ddeta2 / (2 * eta2) - deta2**2 / (2 * eta2**2)
+    den = np.maximum((R1**2 + H1**2) ** 1.5, 1e-300)
+    return (R1 * H2 - R2 * H1) / den
+
+
+def _menger_curvature(x: NDArray, y: NDArray) -> NDArray:
+    """Signed curvature of the circle through consecutive points (ends: -inf)."""
+    kappa = np.full(x.size, -np.inf)
+    if x.size < 3:
+        return kappa
+    ax, ay = x[1:-1] - x[:-2], y[1:-1] - y[:-2]
+    bx, by = x[2:] - x[1:-1], y[2:] - y[1:-1]
+    cx, cy = x[2:] - x[:-2], y[2:] - y[:-2]
+    cross = ax * by - ay * bx
+    den = np.hypot(ax, ay) * np.hypot(bx, by) * np.hypot(cx, cy)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kappa[1:-1] = np.where(den > 0, 2 * cross / np.where(den > 0, den, 1.0), -np.inf)
+    return kappa
+
+
+def _cv_curve(A: NDArray, z: NDArray, groups: NDArray, method: str, grid: NDArray, folds: int, seed: int) -> tuple[NDArray, int]:
+    """Mean squared held-out (whitened) prediction error, K-fold over groups (poses)."""
+    labels = np.unique(groups)
+    K = int(min(folds, labels.size))
+    if K < 2:
+        return np.full(grid.size, np.nan), 0
+    perm = np.random.default_rng(seed).permutation(labels)
+    fold_of = {g: i % K for i, g in enumerate(perm)}
+    fold = np.array([fold_of[g] for g in groups])
+    sse = np.zeros(grid.size)
+    for i in range(K):
+        te = fold == i
+        d = _svd(A[~te], z[~te])
+        if method == "tsvd":
+            # a training fold may have fewer rows than parameters
+            g = np.minimum(grid, d.s.size)
+            F = (np.arange(d.s.size)[None, :] < g[:, None]).astype(float)
+        else:
+            F = _filters(method, d.s, grid)
+        X = _solutions(d, F)
+        err = z[te][:, None] - A[te] @ X
+        sse += np.sum(err**2, axis=0)
+    return sse / A.shape[0], K
+
+
+def choose_linear(
+    A: ArrayLike,
+    z: ArrayLike,
+    method: str,
+    *,
+    rule: str | None = None,
+    groups: ArrayLike | None = None,
+    noise_known: bool = True,
+    grid: ArrayLike | None = None,
+    folds: int = 6,
+    seed: int = 0,
+    linearisation: str = "given linear problem",
+) -> RegularisationChoice:
+    """Apply every rule to the linear problem ``A x ~ z`` (rows whitened).
+
+    Parameters
+    ----------
+    A : array_like, shape (N, p)
+        Whitened, column-scaled identification matrix.
+    z : array_like, shape (N,)
+        Whitened right-hand side (for the total deviation from nominal).
+    method : {"ridge", "tsvd"}
+    rule : str, optional
+        One of :data:`RULES`; :data:`DEFAULT_RULE` by default.
+    groups : array_like of int, shape (N,), optional
+        Which pose each row belongs to (cross-validation holds out whole
+        poses).  Default: every row its own group.
+    noise_known : bool
+        Whether the rows are whitened by a known sigma (else the evidence
+        profiles out a noise scale).
+    grid : array_like, optional
+        ``lam`` values (ridge) or ``k`` values (TSVD); default
+        :func:`lambda_grid` or ``1..p``.
+    folds : int
+        Cross-validation folds.
+    seed : int
+        Seeds the assignment of poses to folds.
+
+    Returns
+    -------
+    RegularisationChoice
+    """
+    if method not in ("ridge", "tsvd"):
+        raise InputError(f"method: automatic choice is for 'ridge' or 'tsvd', got {method!r}")
+    rule = DEFAULT_RULE[method] if rule is None else rule
+    if rule not in RULES:
+        raise InputError(f"rule: expected one of {', '.join(RULES)}, got {rule!r}")
+    A = np.asarray(A, dtype=float)
+    z = np.asarray(z, dtype=float).reshape(-1)
+    if A.ndim != 2 or A.shape[0] != z.size:
+        raise InputError(f"A, z: expected shapes (N, p) and (N,), got {A.shape} and {z.shape}")
+    N, p = A.shape
+    groups = np.arange(N) if groups is None else np.asarray(groups).reshape(-1)
+    d = _svd(A, z)
+    if method == "ridge":
+        grid = lambda_grid(d.s) if grid is None else np.sort(np.asarray(grid, dtype=float))
+        if np.any(grid <= 0):
+            raise InputError("grid: ridge parameters must be positive")
+    else:
+        grid = np.arange(1, d.s.size + 1) if grid is None else np.asarray(grid, dtype=int)
+        if np.any(grid < 1) or np.any(grid > d.s.size):
+            raise InputError(f"grid: k must be from 1 to {d.s.size}")
+    F = _filters(method, d.s, grid)
+    b2 = d.beta[None, :] ** 2
+    res2 = np.sum((1 - F) ** 2 * b2, axis=1) + d.c_perp
+    xnorm2 = np.sum(F**2 * b2 * _safe_inv(d.s)[None, :] ** 2, axis=1)
+    peff = F.sum(axis=1)
+    with np.errstate(divide="ignore"):
+        gcv = res2 / np.maximum(N - peff, 1e-12) ** 2
+    disc = res2 - (N - peff)
+    cv, K = _cv_curve(A, z, groups, method, grid, folds, seed)
+    rho, eta = 0.5 * np.log(np.maximum(res2, 1e-300)), 0.5 * np.log(np.maximum(xnorm2, 1e-300))
+    extras: dict = {}
+    if method == "ridge":
+        curvature = _ridge_curvature(d, grid)
+        log_ev = _log_evidence_ridge(d, grid, noise_known)
+        # the discrepancy principle: most regularised lam with |r|^2 <= N - sum f
+        ok = np.flatnonzero(disc <= 0)
+        i_disc = int(ok[-1]) if ok.size else int(np.argmin(disc))
+    else:
+        # order by increasing regularisation (decreasing k) so the corner turns the same way as ridge's
+        curvature = _menger_curvature(rho[::-1], eta[::-1])[::-1]
+        log_ev, lam_k = _log_evidence_tsvd(d, lambda_grid(d.s, 121), noise_known)
+        log_ev = log_ev[grid - 1]
+        extras["evidence_prior_ratio"] = lam_k[grid - 1]
+        ok = np.flatnonzero(disc <= 0)
+        i_disc = int(ok[0]) if ok.size else int(np.argmin(disc))
+    picks = {
+        "cv": int(np.nanargmin(cv)) if np.isfinite(cv).any() else None,
+        "lcurve": int(np.argmax(np.where(np.isfinite(curvature), curvature, -np.inf))),
+        "gcv": int(np.argmin(gcv)),
+        "discrepancy": i_disc,
+        "evidence": int(np.argmax(log_ev)),
+    }
+    cast = float if method == "ridge" else int
+    choices = {r: cast(grid[i]) for r, i in picks.items() if i is not None}
+    if rule not in choices:
+        raise InputError(f"rule {rule!r}: needs at least two poses for cross-validation")
+    curves = {
+        "residual_norm": np.sqrt(res2),
+        "solution_norm": np.sqrt(xnorm2),
+        "effective_parameters": peff,
+        "gcv": gcv,
+        "cv": cv,
+        "discrepancy": disc,
+        "log_evidence": log_ev,
+        "curvature": curvature,
+        **extras,
+    }
+    return RegularisationChoice(
+        method=method, rule=rule, value=choices[rule], choices=choices, grid=np.asarray(grid), curves=curves,
+        singular_values=d.s, n_rows=N, n_params=p, noise_known=noise_known, linearisation=linearisation, folds=K,
+    )
+
+
+# ------------------------------------------------------- nonlinear problems
+def linearised_problem(model: MeasurementModel, theta: NDArray, idx: NDArray, scale: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """``A = W J S`` (free columns), ``z = W (y - h) + A theta/S`` and the pose of each row, at ``theta``."""
+    pred = model.predict(theta)
+    if not pred.success.all():
+        i = int(np.flatnonzero(~pred.success)[0])
+        raise InputError(f"pose {i + 1}: {pred.poses.message[i]} at the linearisation point")
+    r, J = whitened_system(model, theta, pred)
+    S = scale[idx]
+    A = J[:, idx] * S
+    z = r + A @ (theta[idx] / S)
+    groups = np.repeat(np.arange(model.n_poses), model.dof)
+    return A, z, groups
+
+
+def choose_regularisation(
+    model: MeasurementModel,
+    method: str,
+    *,
+    rule: str | None = None,
+    free: ArrayLike | str | None = None,
+    theta0: ArrayLike | None = None,
+    scale: ArrayLike | None = None,
+    folds: int = 6,
+    seed: int = 0,
+    max_rounds: int = 3,
+    max_iter: int = 50,
+) -> tuple[RegularisationChoice, IdentificationResult]:
+    """Choose ``lam`` (ridge) or ``k`` (TSVD) for a measurement model, and identify with it.
+
+    Ridge: a pilot fit with ``lam = 1`` (MAP under the tolerance prior); then
+    up to ``max_rounds`` times: linearise at the converged solution, apply the
+    rules, re-solve with the chosen ``lam`` (warm start).  Stops when ``lam``
+    changes by less than 10 %.  TSVD: the rules are applied once, at the
+    start geometry, where TSVD fixes its subspace; then TSVD runs with the
+    chosen ``k``.
+
+    Returns
+    -------
+    (RegularisationChoice, IdentificationResult)
+        The result carries the choice in ``extras["regularisation"]``.
+    """
+    machine = model.machine
+    P = machine.n_params
+    if model.y_measured is None:
+        raise InputError("identify: the measurement model has no measured values")
+    theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float).reshape(P)
+    S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
+    idx, _ = resolve_free(model, free, theta)
+    free_arg = free if free is not None else idx
+    known = bool(machine.noise.given)
+    kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed)
+    if method == "tsvd":
+        A, z, groups = linearised_problem(model, theta, idx, S_all)
+        choice = choose_linear(A, z, "tsvd", groups=groups, linearisation="linearised at the start geometry", **kw)
+        res = identify(model, method="tsvd", k=int(choice.value), free=free_arg, theta0=theta, scale=scale, max_iter=max_iter)
+    elif method == "ridge":
+        res = identify(model, method="ridge", lam=1.0, free=free_arg, theta0=theta, scale=scale, max_iter=max_iter)
+        choice, rounds, lam_prev = None, 0, 1.0
+        for rounds in range(1, max_rounds + 1):
+            # a failed fit is no place to linearise: fall back to the start
+            A, z, groups = linearised_problem(model, res.theta if res.success else theta, idx, S_all)
+            choice = choose_linear(
+                A, z, "ridge", groups=groups,
+                linearisation=f"linearised at the converged ridge solution (round {rounds})", **kw,
+            )
+            lam = float(choice.value)
+            res = identify(model, method="ridge", lam=lam, free=free_arg, theta0=res.theta, scale=scale, max_iter=max_iter)
+            if abs(np.log(lam / lam_prev)) < np.log(1.1) or not res.success:
+                break
+            lam_prev = lam
+        choice = replace(choice, rounds=rounds)
+    else:
+        raise InputError(f"method: automatic choice is for 'ridge' or 'tsvd', got {method!r}")
+    res = replace(res, extras={**res.extras, "regularisation": choice.to_dict()})
+    return choice, res

@@ -1,0 +1,1 @@
+"""Figures: matplotlib imported lazily (Agg) inside each function; modules take result objects."""
