@@ -217,14 +217,15 @@ class PoseModel:
         pos, _ = self.machine.tool_from_planar(x, th)
         return np.column_stack([pos[:, 0], pos[:, 2], x[:, 2]])
 
-    def tool_jacobian(self, q: ArrayLike, theta: ArrayLike, *, h: float = 1e-6) -> NDArray:
+    def tool_jacobian(self, q: ArrayLike, theta: ArrayLike, *, h: float = 1e-3) -> NDArray:
         """``d tool / d theta`` (n, 3, P), by central differences in one vectorised solve.
 
         Finite differences because the weighted fit's exact derivative needs
         second derivatives of the inverse kinematics; the pose solve is
         closed-form per actuator and converged to 1e-11 mm, so a step of
-        1e-6 (mm or rad, scaled by the parameter's unit) gives about 8
-        correct digits, far below the instruments' noise.  Columns of
+        1e-3 mm (1e-6 rad) on a module of metres gives about 8 correct
+        digits (truncation ~ h^2 / L^2, round-off ~ 1e-11 / h), far below
+        the instruments' noise.  Columns of
         parameters fixed by the zero position are zero (they are functions
         of the others, folded in through :meth:`complete`).
         """

@@ -183,9 +183,10 @@ def anti_disturbance(A: NDArray) -> tuple[NDArray, float]:
     ``A`` is whitened (rows / sigma) and scaled by the tolerances (columns),
     so ``eta_j`` is the tolerance over the noise-induced standard deviation.
     """
-    s = np.linalg.svd(A, compute_uv=False)
-    cov = np.linalg.pinv(A.T @ A)
-    return 1.0 / np.sqrt(np.maximum(np.diag(cov), 1e-300)), float(s[-1])
+    _, s, Vt = np.linalg.svd(A, full_matrices=False)
+    # no truncation: a direction the measurement cannot see must give a huge std (small eta)
+    var = ((Vt.T / np.maximum(s, 1e-300)) ** 2).sum(axis=1)
+    return 1.0 / np.sqrt(var), float(s[-1])
 
 
 @dataclass(frozen=True)
@@ -269,6 +270,7 @@ def identify_step(
     free: ArrayLike | None = None,
     max_iter: int = 20,
     xtol: float = 1e-6,
+    eta_min: float = 3.0,
 ) -> StepResult:
     """Identify from relative measurements and return the updated model parameters.
 
@@ -289,6 +291,10 @@ def identify_step(
     free : array_like of int, optional
         Candidate parameters; default the model's free set.  Of them, the
         identifiable ones (SVD of the step's Jacobian) are identified.
+    eta_min : float
+        Parameters are dropped, worst first, until every identified one has
+        an anti-disturbance index of at least this (the step must shrink its
+        a-priori spread this many times, or it leaves it to another step).
     """
     machine = model.machine
     if isinstance(recs, RelativeRecording):
@@ -312,8 +318,15 @@ def identify_step(
     tol = machine.tolerance
     cand = model.free_index if free is None else np.intersect1d(np.asarray(free, dtype=int), model.free_index)
     r, J = system(theta)
+    norms = np.linalg.norm(J * tol, axis=0)
+    cand = np.array([j for j in cand if norms[j] > 1e-6 * norms.max()], dtype=int)  # columns of round-off only
     ida = analyse_identifiability(J * tol, machine.layout, candidates=cand, rtol=1e-6)
     idx = ida.kept_index
+    while idx.size:
+        eta, _ = anti_disturbance(J[:, idx] * tol[idx])
+        if eta.min() >= eta_min:
+            break
+        idx = np.delete(idx, int(np.argmin(eta)))
     if idx.size == 0:
         raise IdentificationError(f"{step}: the measurement identifies no parameter")
     if r.size < idx.size:
@@ -323,10 +336,23 @@ def identify_step(
     for it in range(1, max_iter + 1):
         A = J[:, idx] * tol[idx]
         step_phi, *_ = np.linalg.lstsq(A, r, rcond=None)
-        theta = theta.copy()
-        theta[idx] += step_phi * tol[idx]
-        theta = model.complete(theta)
-        r, J = system(theta)
+        cost = float(r @ r)
+        for _ in range(8):  # backtrack: far from the solution a full Gauss-Newton step may overshoot
+            trial = theta.copy()
+            trial[idx] += step_phi * tol[idx]
+            try:
+                trial = model.complete(trial)
+                r_t, J_t = system(trial)
+            except InputError:
+                step_phi = step_phi / 2
+                continue
+            if float(r_t @ r_t) <= cost * (1 + 1e-9) or np.max(np.abs(step_phi)) < xtol:
+                break
+            step_phi = step_phi / 2
+        else:
+            message = "no step lowered the residual"
+            break
+        theta, r, J = trial, r_t, J_t
         if np.max(np.abs(step_phi)) < xtol:
             success = True
             break
