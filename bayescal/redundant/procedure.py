@@ -198,16 +198,13 @@ def run_procedure(
 
     grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n)
     after_bic = evaluate(truth, ctrl, theta, grid=grid)
-    # each later step identifies only what the earlier ones left, from its own measurement
-    free = ctrl.free_index
-    done = set(m.layout.indices(s1.identified))
+    # each later step adds its own measurement to the latest of the earlier ones, so it cannot undo them
     rm2 = _rm("RM2", truth, ctrl, theta, rng, zero_x)
-    s2 = identify_step(ctrl, [rm2], theta, step="SI2", free=[j for j in free if j not in done])
-    done |= set(m.layout.indices(s2.identified))
+    s2 = identify_step(ctrl, [rm1, rm2], theta, step="SI2")
     theta = s2.theta_after
     after2 = evaluate(truth, ctrl, theta, grid=grid)
     rm3 = _rm("RM3", truth, ctrl, theta, rng, zero_x)
-    s3 = identify_step(ctrl, [rm3], theta, step="SI3", free=[j for j in free if j not in done])
+    s3 = identify_step(ctrl, [rm2, rm3], theta, step="SI3")
     theta = s3.theta_after
     # SI2 and SI3 changed the model under the grid of step (4): measure the grid again for the final state
     state["th"] = ctrl.complete(theta)

@@ -226,10 +226,12 @@ class StepResult:
     success: bool
     message: str = ""
     units: tuple[str, ...] = field(default=())
+    n_directions: int = 0
 
     def report(self) -> str:
         lines = [
-            f"{self.step} ({self.method} model): {len(self.identified)} parameters identified, "
+            f"{self.step} ({self.method} model): {self.n_directions} parameter directions identified "
+            f"({len(self.identified)} parameters mostly inside them), "
             f"{self.iterations} iterations, whitened residual RMS {self.rms_before:.3g} -> {self.rms_after:.3g}, "
             f"step anti-disturbance index {self.step_index:.3g}" + ("" if self.success else f"  NOT CONVERGED: {self.message}")
         ]
@@ -243,7 +245,7 @@ class StepResult:
             "step": self.step, "method": self.method, "identified": list(self.identified),
             "anti_disturbance": dict(zip(self.identified, self.anti_disturbance.tolist())),
             "step_index": self.step_index, "rms_before": self.rms_before, "rms_after": self.rms_after,
-            "iterations": self.iterations, "success": self.success, "message": self.message,
+            "n_directions": self.n_directions, "iterations": self.iterations, "success": self.success, "message": self.message,
             "theta_after": self.theta_after.tolist(),
         }
 
@@ -292,9 +294,11 @@ def identify_step(
         Candidate parameters; default the model's free set.  Of them, the
         identifiable ones (SVD of the step's Jacobian) are identified.
     eta_min : float
-        Parameters are dropped, worst first, until every identified one has
-        an anti-disturbance index of at least this (the step must shrink its
-        a-priori spread this many times, or it leaves it to another step).
+        Directions of parameter space (tolerance-scaled) are identified when
+        their singular value is at least this: the step must shrink their
+        a-priori spread this many times, or it leaves them to another step.
+        Parameters with more than half their weight in those directions are
+        reported as identified, with their anti-disturbance index.
     """
     machine = model.machine
     if isinstance(recs, RelativeRecording):
@@ -320,48 +324,58 @@ def identify_step(
     r, J = system(theta)
     norms = np.linalg.norm(J * tol, axis=0)
     cand = np.array([j for j in cand if norms[j] > 1e-6 * norms.max()], dtype=int)  # columns of round-off only
-    ida = analyse_identifiability(J * tol, machine.layout, candidates=cand, rtol=1e-6)
-    idx = ida.kept_index
-    while idx.size:
-        eta, _ = anti_disturbance(J[:, idx] * tol[idx])
-        if eta.min() >= eta_min:
-            break
-        idx = np.delete(idx, int(np.argmin(eta)))
-    if idx.size == 0:
+    if cand.size == 0:
         raise IdentificationError(f"{step}: the measurement identifies no parameter")
-    if r.size < idx.size:
-        raise IdentificationError(f"{step}: {r.size} measured components for {idx.size} parameters")
+    # Truncated SVD in tolerance-scaled coordinates: keep the directions the step determines at
+    # least eta_min times better than the a-priori spread.  Directions it cannot see (for a
+    # redundant module: geometry that only changes what the actuators fight about) stay at the
+    # current model: the minimum-norm update, which splits an unseen combination evenly.
+    _, sv, Vt = np.linalg.svd(J[:, cand] * tol[cand], full_matrices=False)
+    k = int(np.sum(sv >= eta_min))
+    if k == 0:
+        raise IdentificationError(
+            f"{step}: no direction is determined better than {eta_min} times its tolerance (largest singular value {sv[0]:.3g})"
+        )
+    basis = Vt[:k].T
     rms0 = float(np.sqrt(np.mean(r**2)))
     success, message, it = False, "", 0
     for it in range(1, max_iter + 1):
-        A = J[:, idx] * tol[idx]
-        step_phi, *_ = np.linalg.lstsq(A, r, rcond=None)
+        A = (J[:, cand] * tol[cand]) @ basis
+        c, *_ = np.linalg.lstsq(A, r, rcond=None)
         cost = float(r @ r)
         for _ in range(8):  # backtrack: far from the solution a full Gauss-Newton step may overshoot
             trial = theta.copy()
-            trial[idx] += step_phi * tol[idx]
+            trial[cand] += tol[cand] * (basis @ c)
             try:
                 trial = model.complete(trial)
                 r_t, J_t = system(trial)
             except InputError:
-                step_phi = step_phi / 2
+                c = c / 2
                 continue
-            if float(r_t @ r_t) <= cost * (1 + 1e-9) or np.max(np.abs(step_phi)) < xtol:
+            if float(r_t @ r_t) <= cost * (1 + 1e-9) or np.max(np.abs(c)) < xtol:
                 break
-            step_phi = step_phi / 2
+            c = c / 2
         else:
             message = "no step lowered the residual"
             break
         theta, r, J = trial, r_t, J_t
-        if np.max(np.abs(step_phi)) < xtol:
+        if np.max(np.abs(c)) < xtol:
             success = True
             break
     else:
         message = f"did not converge in {max_iter} iterations"
-    eta, s_min = anti_disturbance(J[:, idx] * tol[idx])
+    _, sv, _ = np.linalg.svd(((J[:, cand] * tol[cand]) @ basis), full_matrices=False)
+    loading = (basis**2).sum(axis=1)
+    sel = loading > 0.5
+    idx = cand[sel]
+    # std of each parameter (tolerance units) from the kept directions only
+    _, s2, Vt2 = np.linalg.svd((J[:, cand] * tol[cand]) @ basis, full_matrices=False)
+    W = basis @ Vt2.T / s2
+    eta = 1.0 / np.sqrt((W[sel] ** 2).sum(axis=1))
+    s_min = float(sv[-1])
     return StepResult(
         step=step, method=model.method, theta_before=np.asarray(theta0, dtype=float), theta_after=theta,
         identified=tuple(machine.layout.names[j] for j in idx), anti_disturbance=eta, step_index=s_min,
         rms_before=rms0, rms_after=float(np.sqrt(np.mean(r**2))), iterations=it, success=success, message=message,
-        units=tuple(machine.layout.units[j] for j in idx),
+        units=tuple(machine.layout.units[j] for j in idx), n_directions=k,
     )
