@@ -59,7 +59,7 @@ def main(argv=None) -> int:
     machine = load_machine(ROOT / "examples" / "raspm" / "machine.toml")
     truth = make_truth(machine, args.seed)
     res = run_procedure(truth, np.random.default_rng(args.seed + 1))
-    comp = compare_methods(truth, args.seed + 2, n_steps=2 if args.quick else 4)
+    comp = compare_methods(truth, args.seed + 2, n_steps=3 if args.quick else 5)
     print(res.report())
     print(comp.report())
     p = {k: getattr(res, k).peaks for k in ("before", "after_si1", "after_bic", "after_si2", "after_si3")}
