@@ -89,22 +89,6 @@ def test_noise_free_identification_recovers_parameters_and_ignores_stiffness_sca
     assert np.abs(pred - fresh.values).max() < 1e-3 * np.abs((y0[6:] - y0[:6])[:, :2] - fresh.values).max() + 1e-6
 
 
-def test_nonredundant_jacobian_against_finite_differences(raspm):
-    rng = np.random.default_rng(8)
-    th = rng.normal(size=raspm.n_params) * raspm.tolerance * 3
-    q = raspm.inverse_planar(raspm.sample_planar(5, rng), th)
-    poses = raspm.forward(q, th)
-    J = raspm.tool_jacobian(q, th, poses)
-    for k, unit in enumerate(raspm.layout.units):
-        h = 1e-4 if unit == "mm" else 1e-7
-        e = np.zeros(raspm.n_params); e[k] = h
-        pp, pm = raspm.forward(q, th + e), raspm.forward(q, th - e)
-        fd = (pp.position - pm.position) / (2 * h)
-        fphi = (pp.state.x[:, 2] - pm.state.x[:, 2]) / (2 * h)
-        assert np.allclose(J[:, :3, k], fd, atol=1e-6 * max(1, np.abs(J).max())), raspm.layout.names[k]
-        assert np.allclose(J[:, 4, k], fphi, atol=1e-8), raspm.layout.names[k]
-
-
 def test_compatibility_zero_only_for_exact_geometry(raspm):
     rng = np.random.default_rng(9)
     x = raspm.sample_planar(4, rng)
