@@ -199,12 +199,15 @@ def run_procedure(
     grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n)
     after_bic = evaluate(truth, ctrl, theta, grid=grid)
     # each later step adds its own measurement to the latest of the earlier ones, so it cannot undo them
+    # (their noise inflated by the misfit the earlier step left: unmodelled errors count as noise)
+    rm1w = (rm1[0], rm1[1] * max(1.0, s1.rms_after))
     rm2 = _rm("RM2", truth, ctrl, theta, rng, zero_x)
-    s2 = identify_step(ctrl, [rm1, rm2], theta, step="SI2")
+    s2 = identify_step(ctrl, [rm1w, rm2], theta, step="SI2")
     theta = s2.theta_after
     after2 = evaluate(truth, ctrl, theta, grid=grid)
     rm3 = _rm("RM3", truth, ctrl, theta, rng, zero_x)
-    s3 = identify_step(ctrl, [rm2, rm3], theta, step="SI3")
+    rm2w = (rm2[0], rm2[1] * max(1.0, s2.rms_after))
+    s3 = identify_step(ctrl, [rm1w, rm2w, rm3], theta, step="SI3")
     theta = s3.theta_after
     # SI2 and SI3 changed the model under the grid of step (4): measure the grid again for the final state
     state["th"] = ctrl.complete(theta)
