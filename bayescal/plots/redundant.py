@@ -62,7 +62,7 @@ def plot_comparison(comp, out_dir) -> Path:
         axes[0].plot(comp.position[meth] * 1e3, style, label=meth)
         axes[1].plot(comp.orientation[meth], style, label=meth)
     axes[0].set_ylabel("max position error (um)")
-    axes[1].set_ylabel("max orientation error over the rotation range (deg)")
+    axes[1].set_ylabel("max rotation-range error (deg)")
     for ax, what in zip(axes, ("RM1/SI1", "RM3/SI3")):
         ax.set_xlabel(f"{what} steps (0 = before)")
         ax.grid(alpha=0.3)

@@ -94,3 +94,15 @@ def test_bad_machine_files_name_the_key():
         with pytest.raises(MachineFileError) as ei:
             machine_from_text(bad, "bad.toml")
         assert "bad.toml" in str(ei.value) and key in str(ei.value), str(ei.value)
+
+
+def test_core_identification_works_on_the_nonredundant_model(raspm):
+    """The generic consumers (simulate, MeasurementModel, identify) run on the kind unchanged."""
+    from bayescal.identify import identify
+    from bayescal.measurement import MeasurementModel
+    from bayescal.simulate import simulate_recording
+
+    sim = simulate_recording(raspm, 30, seed=3, dof=6)
+    res = identify(MeasurementModel.from_recording(raspm, sim.recording), method="ls")
+    assert res.success
+    assert res.rms_after["position"] < 3 * raspm.noise.sigma_position < res.rms_before["position"]
