@@ -17,7 +17,7 @@ from ..compensation import CompensationGrid, build_grid
 from ..machines.raspm import Raspm
 from .models import PoseModel, ZeroPosition
 from .physics import PitchCompensation, TrueModule
-from .steps import INSTRUMENTS, STEP_INSTRUMENT, StepResult, design_rm1, design_rm2, design_rm3, identify_step, measure_relative
+from .steps import INSTRUMENTS, STEP_INSTRUMENT, design_rm1, design_rm2, design_rm3, identify_step, measure_relative
 
 __all__ = [
     "measure_pitch_compensation", "calibrate_zero", "Evaluation", "evaluate", "ProcedureResult", "run_procedure",

@@ -12,9 +12,10 @@ Three forms, after the seed (the rotation is decoupled from the planar translati
   bar).
 
 Each step identifies, by Gauss-Newton least squares on the relative
-measurements, the parameters its measurement can separate (chosen by the
-SVD of the step's whitened, tolerance-scaled Jacobian) and updates the
-model.
+measurements, the directions of parameter space its measurement
+determines (truncated SVD of the step's whitened, tolerance-scaled
+Jacobian: singular values of at least ``eta_min``), leaves the others at
+the current model (minimum-norm update) and updates the model.
 
 **Anti-disturbance index.**  For the whitened (rows divided by the
 instrument's sigma), tolerance-scaled identification matrix ``A`` of a
@@ -35,7 +36,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import IdentificationError, InputError
-from ..identifiability import analyse_identifiability
 from .models import PoseModel
 from .physics import TrueModule
 from .relative_io import RelativeRecording

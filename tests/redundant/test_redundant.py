@@ -118,3 +118,18 @@ def test_relative_recording_round_trip_and_errors(tmp_path):
             read_relative_recording("bad.csv", text=text)
         msg = str(ei.value)
         assert "bad.csv" in msg and line in msg and col in msg and word in msg, msg
+
+
+def test_anti_disturbance_closed_form_and_instrument_rounding():
+    from bayescal.redundant.steps import Instrument, anti_disturbance
+
+    rng = np.random.default_rng(12)
+    A = rng.normal(size=(30, 5))
+    eta, smin = anti_disturbance(A)
+    assert np.allclose(eta, 1 / np.sqrt(np.diag(np.linalg.inv(A.T @ A))), rtol=1e-10)
+    assert np.isclose(smin, np.linalg.svd(A, compute_uv=False)[-1])
+    inst = Instrument("gauge", 1e-3, "mm")
+    r = inst.read(np.full(2000, 0.01234), rng)
+    assert np.allclose(r / 1e-3, np.round(r / 1e-3))  # whole resolution steps
+    assert abs(r.mean() - 0.01234) < 3 * inst.sigma / np.sqrt(2000) + 1e-4
+    assert inst.read(np.array([0.01234]), None)[0] == 0.01234
