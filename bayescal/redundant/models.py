@@ -1,7 +1,7 @@
 """The three error models of a redundantly actuated module, generic in m actuators and n DOF.
 
-Linearised at a pose, with ``J_a = dq/dx`` (m x n), ``G = dIK/dtheta``
-(m x P), geometric errors ``dtheta``, AJ following errors ``dq_f`` and
+Linearised at a pose, with ``J_a = dq/dx`` (m x n), ``G = -dIK/dtheta``
+(m x P: the joint-space error a geometric error causes at a fixed pose), geometric errors ``dtheta``, AJ following errors ``dq_f`` and
 restrained deformations ``delta`` (all m-vectors in joint space):
 
 1. **Geometric error model** (deformation as an error source)::
@@ -52,6 +52,7 @@ __all__ = [
     "geometric_error_model",
     "projector_complement",
     "applicable_error_model",
+    "practical_error_model",
     "ZeroPosition",
     "PoseModel",
 ]
@@ -119,6 +120,50 @@ def applicable_error_model(Ja: NDArray, e: NDArray, weights: ArrayLike | None = 
     PJ = P @ Ja
     dx = np.einsum("nij,nj->ni", np.linalg.pinv(PJ), np.einsum("nij,nj->ni", P, e))
     return dx, P
+
+
+def practical_error_model(
+    Ja: NDArray, G: NDArray, G0: NDArray, offsets: ArrayLike, weights: ArrayLike | None = None
+) -> NDArray:
+    """Coefficient matrix of the practical (reduced) model: ``dx = H dtheta_r``.
+
+    After pitch compensation (``dq_f = 0``) and the calibrating zero position
+    (``IK(x0; theta) = q0``, the controller commanding with the offsets that
+    this fixes), the zero offsets ``dtheta_o = -G0_o^-1 G0_r dtheta_r``
+    follow from the rest, and the applicable model becomes
+
+        P J_a dx = P (G_r - G_o G0_o^-1 G0_r) dtheta_r
+
+    (``G0 = dIK/dtheta`` at the zero pose; ``_o`` / ``_r`` the offset / other
+    columns): no stiffness, no following error, no sensor on the AJs; the
+    pose error vanishes at the zero pose.
+
+    Parameters
+    ----------
+    Ja : ndarray, shape (n_poses, m, n)
+    G : ndarray, shape (n_poses, m, P)
+    G0 : ndarray, shape (m, P)
+        At the zero pose.
+    offsets : array_like of int, shape (m,)
+        Parameter index of each AJ's zero offset.
+    weights : array_like, shape (m,), optional
+        Nominal AJ stiffness ratios.
+
+    Returns
+    -------
+    ndarray, shape (n_poses, n, P - m)
+        Columns in the order of the non-offset parameters.
+    """
+    offsets = np.asarray(offsets, dtype=int)
+    P = G.shape[2]
+    rest = np.setdiff1d(np.arange(P), offsets)
+    G0 = np.asarray(G0, dtype=float)
+    reduced = G[:, :, rest] - G[:, :, offsets] @ np.linalg.solve(G0[:, offsets], G0[:, rest])
+    n = Ja.shape[2]
+    H = np.empty((G.shape[0], n, rest.size))
+    for j in range(rest.size):
+        H[:, :, j], _ = applicable_error_model(Ja, reduced[:, :, j], weights)
+    return H
 
 
 @dataclass(frozen=True)

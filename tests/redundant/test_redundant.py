@@ -133,3 +133,27 @@ def test_anti_disturbance_closed_form_and_instrument_rounding():
     assert np.allclose(r / 1e-3, np.round(r / 1e-3))  # whole resolution steps
     assert abs(r.mean() - 0.01234) < 3 * inst.sigma / np.sqrt(2000) + 1e-4
     assert inst.read(np.array([0.01234]), None)[0] == 0.01234
+
+
+def test_practical_model_matches_the_zero_calibrated_physics(raspm):
+    """Pitch-free truth with stiffnesses in the model's ratios, commanded through the zero-calibrated nominal model."""
+    from bayescal.redundant.models import ZeroPosition, practical_error_model
+
+    rng = np.random.default_rng(13)
+    th = rng.normal(size=raspm.n_params) * raspm.tolerance * 1e-3  # tiny: first order exact to ~1e-3 relative
+    truth = TrueModule(raspm, th, stiffness=np.full(4, 3e4))
+    x0 = raspm._home_x()
+    zp = ZeroPosition(x0=x0, q0=truth.command_for(x0[None])[0])
+    ctrl = PoseModel(raspm, zero=zp)
+    x = raspm.sample_planar(6, rng)
+    st = truth.settle(raspm.inverse_planar(x, ctrl.complete(np.zeros(raspm.n_params))))
+    _, Ja = raspm.ik_jacobian(x)
+    G = raspm.ik_parameter_jacobian(x)
+    G0 = raspm.ik_parameter_jacobian(x0[None])[0]
+    off = raspm.offset_index()
+    H = practical_error_model(Ja, -G, -G0, off)
+    rest = np.setdiff1d(np.arange(raspm.n_params), off)
+    pred = np.einsum("nij,j->ni", H, th[rest])
+    actual = st.x - x
+    assert np.abs(actual).max() > 1e-6
+    assert np.allclose(pred, actual, atol=2e-3 * np.abs(actual).max())
