@@ -307,7 +307,7 @@ def identify_step(
         recs = [(recs, sigma)]
     blocks = []
     for rec, sg in recs:
-        rec.check_machine(machine.n_actuators, None)
+        rec.check_machine(machine.n_actuators, machine.q_limits)
         cols = component_columns(rec.components)
         blocks.append((rec, cols, np.asarray(sg, dtype=float).reshape(len(cols))))
 
