@@ -6,7 +6,7 @@ its analytic Jacobian; every solver, filter, sampler and study consumes it.
 
 from .errors import BayescalError, InputError, KinematicsError, MachineFileError, RecordingError
 from .io import Recording, read_recording, write_recording
-from .machines import KINDS, Machine, Prs3, load_machine
+from .machines import KINDS, Machine, Prs3, Raspm, load_machine
 from .measurement import MeasurementModel
 
 __version__ = "0.1.0"
@@ -23,6 +23,7 @@ __all__ = [
     "KINDS",
     "Machine",
     "Prs3",
+    "Raspm",
     "load_machine",
     "MeasurementModel",
 ]

@@ -8,12 +8,16 @@ from ..errors import MachineFileError
 from ..io.machine_file import read_toml
 from .base import Machine, MeasurementNoise, ToolPoses
 from .prs3 import Prs3
+from .raspm import Raspm
 from .rupus_prs import RupusPrs
 
-__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "KINDS", "load_machine", "machine_from_text"]
+__all__ = [
+    "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "KINDS", "load_machine",
+    "machine_from_text",
+]
 
 #: Machine kinds by the ``kind`` string of the machine file.
-KINDS: dict[str, type[Machine]] = {Prs3.kind: Prs3, RupusPrs.kind: RupusPrs}
+KINDS: dict[str, type[Machine]] = {Prs3.kind: Prs3, RupusPrs.kind: RupusPrs, Raspm.kind: Raspm}
 
 
 def _build(doc, path: str) -> Machine:

@@ -1,0 +1,109 @@
+"""``bayescal compensate``: write and evaluate a bilinear interpolation compensation (BIC) grid."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from ..compensation import build_grid, read_grid, write_grid
+from ..errors import InputError
+from ..io import write_json_atomic
+
+HELP = """\
+Build a bilinear interpolation compensation (BIC) grid from a table of
+measured residual position errors, write it as the NC-loadable CSV
+(i,j,x,z,ex,ez,std_ex,std_ez; docs/redundant.md), and evaluate a grid on
+fresh measured points (errors before and after compensation).
+
+The error table is a CSV with columns x,z,ex,ez (mm): the residual error at
+points of the planar translation range. Node values are interpolated from it
+by scipy's linear interpolation (exact where the points are the nodes).
+"""
+
+EXAMPLES = """\
+examples:
+  bayescal compensate --errors node_errors.csv --x-range -300 300 --z-range -200 200 --n 5 --out bic_grid.csv
+  bayescal compensate --grid bic_grid.csv --evaluate fresh_errors.csv --json eval.json
+"""
+
+
+def register(sub) -> None:
+    p = sub.add_parser("compensate", help="write and evaluate BIC grids", description=HELP, epilog=EXAMPLES,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--errors", help="CSV x,z,ex,ez (mm) of measured residual errors to build a grid from")
+    p.add_argument("--x-range", nargs=2, type=float, metavar=("MIN", "MAX"), help="translation range along x, mm")
+    p.add_argument("--z-range", nargs=2, type=float, metavar=("MIN", "MAX"), help="translation range along z, mm")
+    p.add_argument("--n", type=int, default=5, help="nodes per axis (default 5)")
+    p.add_argument("--out", help="write the grid CSV here")
+    p.add_argument("--grid", help="an existing grid CSV to evaluate")
+    p.add_argument("--evaluate", help="CSV x,z,ex,ez of fresh measured errors: report them before/after compensation")
+    p.add_argument("--json", help="write the evaluation as JSON")
+    p.set_defaults(func=run)
+
+
+def _table(path):
+    from ..errors import RecordingError
+
+    try:
+        import csv
+
+        with open(path, encoding="utf-8-sig", newline="") as fh:
+            rows = list(csv.reader(fh))
+    except (FileNotFoundError, IsADirectoryError):
+        raise RecordingError(path, None, None, "file not found; expected a CSV x,z,ex,ez") from None
+    if not rows or [h.strip() for h in rows[0]] != ["x", "z", "ex", "ez"]:
+        raise RecordingError(path, 1, None, "expected the header x,z,ex,ez")
+    out = []
+    for i, r in enumerate(rows[1:], start=2):
+        if len(r) != 4:
+            raise RecordingError(path, i, None, f"{len(r)} cells, expected 4")
+        vals = []
+        for c, cell in zip(("x", "z", "ex", "ez"), r):
+            try:
+                v = float(cell)
+            except ValueError:
+                raise RecordingError(path, i, c, f"expected a number, got {cell.strip()!r}") from None
+            if not np.isfinite(v):
+                raise RecordingError(path, i, c, f"expected a finite number, got {cell.strip()!r}")
+            vals.append(v)
+        out.append(vals)
+    if not out:
+        raise RecordingError(path, 2, None, "no data rows")
+    return np.array(out)
+
+
+def run(args) -> int:
+    from scipy.interpolate import griddata
+
+    from . import EXIT_OK
+
+    if args.errors:
+        if not args.x_range or not args.z_range:
+            raise InputError("--x-range and --z-range are required with --errors")
+        t = _table(args.errors)
+
+        def at(x, z):
+            pts = np.column_stack([x, z])
+            e = np.column_stack([griddata(t[:, :2], t[:, k], pts, method="linear") for k in (2, 3)])
+            if not np.isfinite(e).all():
+                raise InputError(f"{args.errors}: the measured points do not cover every grid node of the ranges given")
+            return e
+
+        grid = build_grid(args.x_range, args.z_range, at, n=args.n)
+        print(grid.report())
+        if args.out:
+            write_grid(args.out, grid)
+    elif args.grid:
+        grid = read_grid(args.grid)
+    else:
+        raise InputError("give --errors (build a grid) or --grid (evaluate one)")
+    if args.evaluate:
+        t = _table(args.evaluate)
+        after = t[:, 2:] - grid.interpolate(t[:, 0], t[:, 1])
+        ans = {"max_before_mm": float(np.abs(t[:, 2:]).max()), "max_after_mm": float(np.abs(after).max()),
+               "rms_before_mm": float(np.sqrt(np.mean(t[:, 2:] ** 2))), "rms_after_mm": float(np.sqrt(np.mean(after**2)))}
+        print(f"fresh points: max |error| {ans['max_before_mm']:.4f} mm -> {ans['max_after_mm']:.4f} mm after BIC")
+        if args.json:
+            write_json_atomic(args.json, ans)
+    return EXIT_OK

@@ -1,0 +1,74 @@
+"""Figures of the redundant-module study (the seed's Figures 8 to 12)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["plot_procedure", "plot_comparison"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_procedure(result, out_dir) -> list[Path]:
+    """Position errors before/after RM1-SI1 and after BIC; orientation errors after RM2-SI2 and RM3-SI3."""
+    plt = _plt()
+    out = Path(out_dir)
+    paths = []
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    for ax, k, lab in zip(axes, (0, 1), ("x", "z")):
+        for ev, name in ((result.before, "initial"), (result.after_si1, "after RM1/SI1"), (result.after_bic, "after BIC")):
+            ax.plot(ev.position[:, k] * 1e3, ".-", lw=0.7, label=name)
+        ax.set_xlabel("evaluation pose (translation grid, rotation 0)")
+        ax.set_ylabel(f"position error e{lab} (um)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    paths.append(out / "position_errors.png")
+    fig.savefig(paths[-1], dpi=90)
+    plt.close(fig)
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    for ev, name in ((result.before, "initial"), (result.after_si2, "after RM2/SI2")):
+        axes[0].plot(np.degrees(ev.orientation_translation), ".-", label=name)
+    axes[0].set_xlabel("evaluation pose (translation grid, rotation 0)")
+    axes[0].set_ylabel("orientation error (deg)")
+    for ev, name in ((result.before, "initial"), (result.after_si3, "after RM3/SI3")):
+        axes[1].plot(np.degrees(ev.phi_eval), np.degrees(ev.orientation_rotation), "o-", label=name)
+    axes[1].set_xlabel("rotation (deg), translation at zero")
+    axes[1].set_ylabel("orientation error (deg)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    paths.append(out / "orientation_errors.png")
+    fig.savefig(paths[-1], dpi=90)
+    plt.close(fig)
+    return paths
+
+
+def plot_comparison(comp, out_dir) -> Path:
+    """Error peaks per step, previous (non-redundant) method vs proposed."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    for meth, style in (("previous", "s--"), ("proposed", "o-")):
+        axes[0].plot(comp.position[meth] * 1e3, style, label=meth)
+        axes[1].plot(comp.orientation[meth], style, label=meth)
+    axes[0].set_ylabel("max position error (um)")
+    axes[1].set_ylabel("max rotation-range error (deg)")
+    for ax, what in zip(axes, ("RM1/SI1", "RM3/SI3")):
+        ax.set_xlabel(f"{what} steps (0 = before)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(out_dir) / "comparison.png"
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

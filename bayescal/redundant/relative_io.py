@@ -1,0 +1,179 @@
+"""Relative recordings (CSV): measured differences between pairs of poses, read strictly.
+
+Layout (docs/redundant.md, "Relative recording"): one header row, then one
+row per relative measurement, in measurement order.
+
+| column | meaning |
+|---|---|
+| ``q1_from`` ... ``qN_from`` | commanded actuator positions of the first pose, mm |
+| ``q1_to`` ... ``qN_to`` | commanded actuator positions of the second pose, mm |
+| ``dx``, ``dy``, ``dz`` | measured tool displacement from the first to the second pose, base frame, mm |
+| ``drx``, ``dry``, ``drz`` | measured change of orientation (small rotation about the base axes), rad |
+| anything else | an auxiliary channel (for example ``line``, ``xd_to``), numbers only |
+
+At least one of the six measured columns must be present; the columns that
+are present are the components the instrument read.  Empty cells,
+non-numbers, duplicate or unpaired actuator columns are errors naming the
+file, line and column.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import RecordingError
+from ..io.answers import write_text_atomic
+
+__all__ = ["RelativeRecording", "COMPONENTS", "read_relative_recording", "write_relative_recording", "relative_to_csv"]
+
+#: Measured components a relative recording may hold, in this order.
+COMPONENTS = ("dx", "dy", "dz", "drx", "dry", "drz")
+_Q = re.compile(r"^q([1-9][0-9]*)_(from|to)$")
+
+
+@dataclass(frozen=True)
+class RelativeRecording:
+    """Relative measurements between pose pairs.
+
+    Attributes
+    ----------
+    q_from, q_to : ndarray, shape (n_pairs, m)
+        Commanded actuator positions, mm.
+    components : tuple of str
+        Measured components (a subset of :data:`COMPONENTS`, in that order).
+    values : ndarray, shape (n_pairs, n_components)
+        mm or rad.
+    aux : dict of str to ndarray
+    path : str
+    """
+
+    q_from: NDArray
+    q_to: NDArray
+    components: tuple[str, ...]
+    values: NDArray
+    aux: dict[str, NDArray] = field(default_factory=dict)
+    path: str = "<memory>"
+
+    @property
+    def n_pairs(self) -> int:
+        return self.q_from.shape[0]
+
+    @property
+    def n_actuators(self) -> int:
+        return self.q_from.shape[1]
+
+    def check_machine(self, n_actuators: int, q_limits: NDArray | None) -> None:
+        """Raise RecordingError if the actuator count or ``q_limits`` do not fit the machine."""
+        if self.n_actuators != n_actuators:
+            raise RecordingError(self.path, 1, None, f"{self.n_actuators} actuators per pose but the machine has {n_actuators}")
+        if q_limits is None:
+            return
+        for tag, q in (("from", self.q_from), ("to", self.q_to)):
+            bad = (q < q_limits[:, 0]) | (q > q_limits[:, 1])
+            if bad.any():
+                r, c = map(int, np.argwhere(bad)[0])
+                raise RecordingError(self.path, r + 2, f"q{c + 1}_{tag}", f"value {q[r, c]!r} outside q_limits {q_limits[c].tolist()} of the machine")
+
+
+def _number(text: str, path: str, line: int, col: str) -> float:
+    s = text.strip()
+    if s == "":
+        raise RecordingError(path, line, col, "empty cell; expected a number")
+    try:
+        v = float(s)
+    except ValueError:
+        raise RecordingError(path, line, col, f"expected a number, got {s!r}") from None
+    if not math.isfinite(v):
+        raise RecordingError(path, line, col, f"expected a finite number, got {s!r}")
+    return v
+
+
+def read_relative_recording(path: str | os.PathLike, *, text: str | None = None) -> RelativeRecording:
+    """Read a relative recording CSV strictly (see the module docstring).
+
+    Raises
+    ------
+    RecordingError
+        Naming the file, the line (header = line 1) and the column.
+    """
+    path = str(path)
+    if text is None:
+        try:
+            with open(path, encoding="utf-8-sig", newline="") as fh:
+                text = fh.read()
+        except FileNotFoundError:
+            raise RecordingError(path, None, None, "file not found") from None
+        except IsADirectoryError:
+            raise RecordingError(path, None, None, "is a folder, expected a relative recording (CSV)") from None
+        except UnicodeDecodeError as exc:
+            raise RecordingError(path, None, None, f"not a UTF-8 text file ({exc})") from None
+    rows = list(csv.reader(io.StringIO(text)))
+    while rows and all(c.strip() == "" for c in rows[-1]):
+        rows.pop()
+    if not rows:
+        raise RecordingError(path, 1, None, "empty file; expected a header row")
+    header = [h.strip() for h in rows[0]]
+    seen: dict[str, int] = {}
+    for j, h in enumerate(header):
+        if h == "":
+            raise RecordingError(path, 1, None, f"column {j + 1} has an empty name")
+        if h in seen:
+            raise RecordingError(path, 1, h, f"duplicate column (columns {seen[h] + 1} and {j + 1})")
+        seen[h] = j
+    nums = {"from": set(), "to": set()}
+    for h in header:
+        if mt := _Q.match(h):
+            nums[mt.group(2)].add(int(mt.group(1)))
+    if not nums["from"] and not nums["to"]:
+        raise RecordingError(path, 1, None, "no actuator columns; expected q1_from, ..., qN_from and q1_to, ..., qN_to")
+    m = max(nums["from"] | nums["to"])
+    for tag in ("from", "to"):
+        missing = sorted(set(range(1, m + 1)) - nums[tag])
+        if missing:
+            raise RecordingError(path, 1, f"q{missing[0]}_{tag}", f"missing actuator column; expected q1_{tag} .. q{m}_{tag}")
+    comps = tuple(c for c in COMPONENTS if c in seen)
+    if not comps:
+        raise RecordingError(path, 1, None, f"no measured column; expected at least one of {', '.join(COMPONENTS)}")
+    if len(rows) < 2:
+        raise RecordingError(path, 2, None, "no data rows; expected one row per relative measurement")
+    data = np.empty((len(rows) - 1, len(header)))
+    for i, row in enumerate(rows[1:]):
+        line = i + 2
+        if len(row) != len(header):
+            raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
+        for j, cell in enumerate(row):
+            data[i, j] = _number(cell, path, line, header[j])
+    col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
+    qf = col([f"q{k}_from" for k in range(1, m + 1)])
+    qt = col([f"q{k}_to" for k in range(1, m + 1)])
+    known = set(comps) | {f"q{k}_{t}" for k in range(1, m + 1) for t in ("from", "to")}
+    aux = {h: data[:, seen[h]].copy() for h in header if h not in known}
+    return RelativeRecording(q_from=qf, q_to=qt, components=comps, values=col(comps), aux=aux, path=path)
+
+
+def relative_to_csv(rec: RelativeRecording, *, precision: int = 12) -> str:
+    """CSV text of a relative recording."""
+    m = rec.n_actuators
+    cols = [(f"q{k + 1}_from", rec.q_from[:, k]) for k in range(m)] + [(f"q{k + 1}_to", rec.q_to[:, k]) for k in range(m)]
+    cols += [(c, rec.values[:, j]) for j, c in enumerate(rec.components)] + list(rec.aux.items())
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow([c for c, _ in cols])
+    fmt = f"{{:.{precision}g}}"
+    for i in range(rec.n_pairs):
+        w.writerow([fmt.format(float(v[i])) for _, v in cols])
+    return out.getvalue()
+
+
+def write_relative_recording(path: str | os.PathLike, rec: RelativeRecording, *, precision: int = 12) -> Path:
+    """Write a relative recording CSV atomically."""
+    return write_text_atomic(path, relative_to_csv(rec, precision=precision))
