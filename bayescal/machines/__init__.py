@@ -7,9 +7,13 @@ import os
 from ..errors import MachineFileError
 from ..io.machine_file import read_toml
 from .base import Machine, MeasurementNoise, ToolPoses
+from .check import MachineCheckError, check_machine
 from .prs3 import Prs3
 
-__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "Prs3", "KINDS", "load_machine", "machine_from_text"]
+__all__ = [
+    "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "KINDS", "load_machine", "machine_from_text",
+    "check_machine", "MachineCheckError",
+]
 
 #: Machine kinds by the ``kind`` string of the machine file.
 KINDS: dict[str, type[Machine]] = {Prs3.kind: Prs3}
