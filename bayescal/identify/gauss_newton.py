@@ -191,9 +191,7 @@ def identify(
         final = filtered_solve(A, r + A @ (theta[idx] / S), method, lam=lam, k=k)
     else:
         sub = filtered_solve(A @ basis, r, "ls")
-        full_s = np.linalg.svd(A, compute_uv=False)
         final = type(sub)(x=sub.x, s=sub.s, f=sub.f, V=basis @ sub.V, Utz=sub.Utz)
-        object.__setattr__(final, "s", sub.s)
     noise_given = machine.noise.given
     dof_fit = max(n_rows - float(final.f.sum()), 1.0)
     chi2 = float(r @ r)

@@ -55,3 +55,14 @@ def test_help_teaches_with_examples(capsys):
     assert e.value.code == 0
     out = capsys.readouterr().out
     assert "examples:" in out and "--write-machine" in out
+
+
+def test_unwritable_output_is_one_line_and_exit_2(tmp_path, capsys):
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    code = main([
+        "simulate", "--machine", str(PRS3_FILE), "--poses", "3", "--seed", "1", "--out", str(blocker / "rec.csv"), "--quiet",
+    ])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "afile" in err[0] and "Traceback" not in err[0]
