@@ -98,7 +98,8 @@ class Recording:
             r, c = map(int, np.argwhere(bad)[0])
             raise RecordingError(
                 self.path, r + 2, f"q{c + 1}",
-                f"value {self.q[r, c]!r} outside q_limits [{lo[c]!r}, {hi[c]!r}] of the machine file",
+                f"value {float(self.q[r, c])!r} outside q_limits [{float(lo[c])!r}, {float(hi[c])!r}] "
+                f"of the machine file{' ' + machine_path if machine_path else ''}",
             )
 
 

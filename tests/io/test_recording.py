@@ -59,6 +59,7 @@ def test_actuator_count_and_limits_checked_against_machine(prs3):
     with pytest.raises(RecordingError, match="outside q_limits") as err:
         rec.check_machine(prs3.n_actuators, prs3.q_limits)
     assert err.value.row == 3 and err.value.column == "q2"
+    assert "value 600.0 outside q_limits [450.0, 550.0]" in str(err.value)
 
 
 def test_missing_file():
