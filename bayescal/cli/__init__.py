@@ -63,6 +63,12 @@ def main(argv: list[str] | None = None) -> int:
     except BayescalError as exc:
         print(f"bayescal {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_INPUT
+    except BrokenPipeError:
+        # the reader of our output went away (`bayescal ... | head`): stop quietly
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_FAILED
     except OSError as exc:
         # a file that cannot be read or written (permissions, a folder in the way, a full
         # disk): one line naming the file, like any other bad input, not a traceback
