@@ -83,8 +83,9 @@ def make_scipy_fit(model: MeasurementModel, idx: np.ndarray, jac: str):
         counter["nfev"] += 1
         pred = model.predict(theta_of(phi))
         if not pred.success.all():
-            # an unsolvable pose: a large finite residual keeps the trust region shrinking
-            return np.full(model.n_poses * model.dof, 1e6)
+            # an unsolvable pose: least_squares rejects a step with non-finite residuals
+            # and shrinks its trust region (a large finite value would end it by ftol)
+            return np.full(model.n_poses * model.dof, np.nan)
         return (model.residual(pred) / sig).reshape(-1)
 
     def analytic(phi):

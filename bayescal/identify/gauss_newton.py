@@ -33,9 +33,6 @@ from .solvers import LS_RCOND, filtered_solve
 
 __all__ = ["identify", "resolve_free", "whitened_system"]
 
-#: Step halvings tried before the iteration is declared diverged.
-_MAX_HALVINGS = 30
-
 
 def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tuple[NDArray, NDArray]:
     """Whitened residual ``W (y - h)`` (N,) and Jacobian ``W J`` (N, P) at ``theta``."""
@@ -169,27 +166,12 @@ def identify(
         if not np.all(np.isfinite(step)) or np.max(np.abs(sol.x)) > 1e6:
             message = "diverged: the estimate grew beyond a million tolerances"
             break
-        # Backtracking: take the full Gauss-Newton step when it lowers the objective (then the
-        # iteration is plain Gauss-Newton); otherwise halve it.  Far from the solution of an
-        # ill-conditioned problem the full step can leave the workspace (poses unsolvable).
-        obj = costs[-1] + (lam * float(phi @ phi) if method == "ridge" else 0.0)
-        for _halving in range(_MAX_HALVINGS + 1):
-            theta_new = theta.copy()
-            theta_new[idx] = S * (phi + step)
-            pred_new = model.predict(theta_new, guess=pred.poses)
-            if pred_new.success.all():
-                r_new = (model.residual(pred_new) / model.sigma).reshape(-1)
-                phi_new = phi + step
-                obj_new = float(r_new @ r_new) + (lam * float(phi_new @ phi_new) if method == "ridge" else 0.0)
-                if obj_new <= obj * (1.0 + 1e-12) + 1e-12:
-                    break
-            step = 0.5 * step
-        else:
-            if not pred_new.success.all():
-                i = int(np.flatnonzero(~pred_new.success)[0])
-                message = f"diverged: pose {i + 1} cannot be solved at the updated geometry ({pred_new.poses.message[i]})"
-            else:
-                message = "diverged: no step along the Gauss-Newton direction lowers the cost"
+        theta_new = theta.copy()
+        theta_new[idx] = S * sol.x
+        pred_new = model.predict(theta_new, guess=pred.poses)
+        if not pred_new.success.all():
+            i = int(np.flatnonzero(~pred_new.success)[0])
+            message = f"diverged: pose {i + 1} cannot be solved at the updated geometry ({pred_new.poses.message[i]})"
             break
         theta, pred = theta_new, pred_new
         r, J = whitened_system(model, theta, pred)
