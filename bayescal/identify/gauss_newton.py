@@ -115,7 +115,11 @@ def identify(
         raise InputError(f"method: expected 'ls', 'ridge' or 'tsvd', got {method!r}")
     if method == "ridge" and (lam is None or not np.isfinite(lam) or lam < 0):
         raise InputError(f"lam: ridge needs a number >= 0, got {lam!r}")
-    theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float).reshape(P)
+    if int(max_iter) != max_iter or max_iter < 1:
+        raise InputError(f"max_iter: expected a whole number >= 1, got {max_iter!r}")
+    theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float)
+    if theta.shape != (P,):
+        raise InputError(f"theta0: expected shape ({P},), got {theta.shape}")
     S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
     if np.any(S_all <= 0):
         raise InputError("scale: expected positive values")
