@@ -67,8 +67,11 @@ def main(argv: list[str] | None = None) -> int:
         # the reader of our output went away (`bayescal ... | head`): stop quietly
         import os
 
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return EXIT_FAILED
+        try:  # and let the interpreter's final flush of stdout go nowhere
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+        return 141  # 128 + SIGPIPE, what the shell reports for a program killed by a closed pipe
     except OSError as exc:
         # a file that cannot be read or written (permissions, a folder in the way, a full
         # disk): one line naming the file, like any other bad input, not a traceback
