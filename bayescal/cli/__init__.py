@@ -63,6 +63,21 @@ def main(argv: list[str] | None = None) -> int:
     except BayescalError as exc:
         print(f"bayescal {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_INPUT
+    except BrokenPipeError:
+        # the reader of our output went away (`bayescal ... | head`): stop quietly
+        import os
+
+        try:  # and let the interpreter's final flush of stdout go nowhere
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+        return 141  # 128 + SIGPIPE, what the shell reports for a program killed by a closed pipe
+    except OSError as exc:
+        # a file that cannot be read or written (permissions, a folder in the way, a full
+        # disk): one line naming the file, like any other bad input, not a traceback
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"bayescal {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_INPUT
     except KeyboardInterrupt:
         print(f"bayescal {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -115,7 +115,11 @@ def identify(
         raise InputError(f"method: expected 'ls', 'ridge' or 'tsvd', got {method!r}")
     if method == "ridge" and (lam is None or not np.isfinite(lam) or lam < 0):
         raise InputError(f"lam: ridge needs a number >= 0, got {lam!r}")
-    theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float).reshape(P)
+    if int(max_iter) != max_iter or max_iter < 1:
+        raise InputError(f"max_iter: expected a whole number >= 1, got {max_iter!r}")
+    theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float)
+    if theta.shape != (P,):
+        raise InputError(f"theta0: expected shape ({P},), got {theta.shape}")
     S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
     if np.any(S_all <= 0):
         raise InputError("scale: expected positive values")
@@ -191,9 +195,7 @@ def identify(
         final = filtered_solve(A, r + A @ (theta[idx] / S), method, lam=lam, k=k)
     else:
         sub = filtered_solve(A @ basis, r, "ls")
-        full_s = np.linalg.svd(A, compute_uv=False)
         final = type(sub)(x=sub.x, s=sub.s, f=sub.f, V=basis @ sub.V, Utz=sub.Utz)
-        object.__setattr__(final, "s", sub.s)
     noise_given = machine.noise.given
     dof_fit = max(n_rows - float(final.f.sum()), 1.0)
     chi2 = float(r @ r)

@@ -76,8 +76,8 @@ class SvdSolve:
     def covariance(self) -> NDArray:
         """``V diag(f^2 / s^2) V^T``: noise covariance of ``x`` for unit-variance data.
 
-        (For ridge the Bayesian posterior covariance ``(A^T A + lam I)^-1``
-        is returned by :func:`ridge_posterior_covariance` instead.)
+        (For ridge, :func:`bayescal.identify.identify` reports the Bayesian
+        posterior covariance ``(A^T A + lam I)^-1`` instead.)
         """
         w = np.where(self.s > 0, self.f**2 / np.where(self.s > 0, self.s, 1.0) ** 2, 0.0)
         return (self.V * w) @ self.V.T

@@ -101,7 +101,9 @@ class TomlTable:
         return arr
 
     def matrix(self, key: str, rows: int, cols: int) -> np.ndarray:
-        v = self.data.get(key)
+        if key not in self.data:
+            raise self.error(key, f"missing; expected {rows} lists of {cols} numbers")
+        v = self.data[key]
         ok = isinstance(v, list) and len(v) == rows and all(
             isinstance(r, list)
             and len(r) == cols
@@ -131,10 +133,26 @@ class TomlTable:
         return [TomlTable(t, self.path, f"{self._key(key)}[{i + 1}]") for i, t in enumerate(v)]
 
 
+_TOML_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
+def _toml_string(s: str) -> str:
+    """A TOML basic string: quotes, backslashes and control characters escaped (TOML 1.0)."""
+    out = []
+    for ch in s:
+        if ch in _TOML_ESCAPES:
+            out.append(_TOML_ESCAPES[ch])
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04X}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
 def format_toml_value(v: Any) -> str:
     """Format a number, string, vector or matrix as TOML with full float precision."""
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return _toml_string(v)
     if isinstance(v, (bool, np.bool_)):
         return "true" if v else "false"
     if isinstance(v, (int, np.integer)):

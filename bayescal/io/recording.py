@@ -98,7 +98,8 @@ class Recording:
             r, c = map(int, np.argwhere(bad)[0])
             raise RecordingError(
                 self.path, r + 2, f"q{c + 1}",
-                f"value {self.q[r, c]!r} outside q_limits [{lo[c]!r}, {hi[c]!r}] of the machine file",
+                f"value {float(self.q[r, c])!r} outside q_limits [{float(lo[c])!r}, {float(hi[c])!r}] "
+                f"of the machine file{' ' + machine_path if machine_path else ''}",
             )
 
 
@@ -205,8 +206,13 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
     return Recording(q=q, position=col(_POS), rotvec=rotvec, axis=axis, aux=aux, path=path)
 
 
-def recording_to_csv(rec: Recording, *, precision: int = 12) -> str:
-    """The CSV text of a recording (FORMATS.md column names, measurement order)."""
+def recording_to_csv(rec: Recording, *, precision: int | None = None) -> str:
+    """The CSV text of a recording (FORMATS.md column names, measurement order).
+
+    ``precision=None`` (default) writes each number as the shortest text that
+    reads back to the same float, so a written recording is read back
+    exactly; an integer writes that many significant digits.
+    """
     cols: list[tuple[str, NDArray]] = [(f"q{k + 1}", rec.q[:, k]) for k in range(rec.n_actuators)]
     cols += [(c, rec.position[:, k]) for k, c in enumerate(_POS)]
     if rec.rotvec is not None:
@@ -217,12 +223,12 @@ def recording_to_csv(rec: Recording, *, precision: int = 12) -> str:
     out = io.StringIO()
     w = csv.writer(out, lineterminator="\n")
     w.writerow([c for c, _ in cols])
-    fmt = f"{{:.{precision}g}}"
+    fmt = repr if precision is None else f"{{:.{precision}g}}".format
     for i in range(rec.n_poses):
-        w.writerow([fmt.format(float(v[i])) for _, v in cols])
+        w.writerow([fmt(float(v[i])) for _, v in cols])
     return out.getvalue()
 
 
-def write_recording(path: str | os.PathLike, rec: Recording, *, precision: int = 12) -> Path:
+def write_recording(path: str | os.PathLike, rec: Recording, *, precision: int | None = None) -> Path:
     """Write a recording CSV atomically."""
     return write_text_atomic(path, recording_to_csv(rec, precision=precision))

@@ -7,13 +7,14 @@ import os
 from ..errors import MachineFileError
 from ..io.machine_file import read_toml
 from .base import Machine, MeasurementNoise, ToolPoses
+from .check import MachineCheckError, check_machine
 from .prs3 import Prs3
 from .raspm import Raspm
 from .rupus_prs import RupusPrs
 
 __all__ = [
     "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "KINDS", "load_machine",
-    "machine_from_text",
+    "machine_from_text", "check_machine", "MachineCheckError",
 ]
 
 #: Machine kinds by the ``kind`` string of the machine file.

@@ -104,7 +104,7 @@ class Machine(ABC):
         if theta is None:
             return np.zeros(self.n_params)
         theta = np.asarray(theta, dtype=float)
-        if theta.shape[-1] != self.n_params or theta.ndim not in (1, 2):
+        if theta.ndim not in (1, 2) or theta.shape[-1] != self.n_params:
             raise InputError(f"theta: expected shape ({self.n_params},) or (n_poses, {self.n_params}), got {theta.shape}")
         if theta.ndim == 2 and n_poses is not None and theta.shape[0] != n_poses:
             raise InputError(f"theta: {theta.shape[0]} rows for {n_poses} poses")

@@ -55,3 +55,41 @@ def test_help_teaches_with_examples(capsys):
     assert e.value.code == 0
     out = capsys.readouterr().out
     assert "examples:" in out and "--write-machine" in out
+
+
+def test_unwritable_output_is_one_line_and_exit_2(tmp_path, capsys):
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    code = main([
+        "simulate", "--machine", str(PRS3_FILE), "--poses", "3", "--seed", "1", "--out", str(blocker / "rec.csv"), "--quiet",
+    ])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "afile" in err[0] and "Traceback" not in err[0]
+
+
+
+def test_closed_pipe_ends_quietly(monkeypatch, capsys):
+    """`bayescal identify ... | head`: the reader went away; no traceback, no error line, exit 141."""
+    import os
+    import sys
+
+    class ClosedPipe:
+        def __init__(self):
+            self.fd = os.open(os.devnull, os.O_WRONLY)
+
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            pass
+
+        def fileno(self):
+            return self.fd
+
+    from tests.conftest import ROOT
+
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    code = main(["identify", str(ROOT / "examples" / "prs3" / "recording.csv"), "--machine", str(PRS3_FILE)])
+    assert code == 141
+    assert capsys.readouterr().err == ""

@@ -75,6 +75,10 @@ def test_bad_arguments(prs3, sim6):
         identify(model, free=["chain9.link_length"])
     with pytest.raises(InputError, match="poses"):
         identify(model.subset(np.arange(3)), method="ls", free="all")
+    with pytest.raises(InputError, match="max_iter"):
+        identify(model, max_iter=0)
+    with pytest.raises(InputError, match="theta0"):
+        identify(model, theta0=np.zeros(5))
 
 
 def test_report_and_dict(prs3, sim6):
@@ -87,3 +91,4 @@ def test_report_and_dict(prs3, sim6):
     assert d["rms_after"]["position"] < d["rms_before"]["position"]
     text = res.report()
     assert "chain1.link_length" in text and "tool.point.x" in text
+

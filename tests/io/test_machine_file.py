@@ -44,3 +44,21 @@ def test_tolerance_table_overrides_defaults():
     i = m.layout.index("chain2.link_length")
     assert m.tolerance[i] == 0.01
     assert m.tolerance[m.layout.index("chain2.rail_origin.x")] == 0.05
+
+
+def test_missing_q_limits_is_named(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_text(GOOD.replace("q_limits = ", "limits = "))
+    with pytest.raises(MachineFileError, match="unknown key"):
+        load_machine(p)
+    p.write_text(GOOD.split("[workspace]")[0] + "[workspace]\n")
+    with pytest.raises(MachineFileError, match="missing; expected 3 lists of 2 numbers") as err:
+        load_machine(p)
+    assert err.value.key == "workspace.q_limits"
+
+
+def test_machine_name_with_quotes_and_control_characters_round_trips(prs3):
+    from dataclasses import replace
+
+    m = replace(prs3, name='head "A"\\\n\tline\x01')
+    assert machine_from_text(m.to_toml()).name == m.name

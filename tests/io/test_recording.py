@@ -59,6 +59,7 @@ def test_actuator_count_and_limits_checked_against_machine(prs3):
     with pytest.raises(RecordingError, match="outside q_limits") as err:
         rec.check_machine(prs3.n_actuators, prs3.q_limits)
     assert err.value.row == 3 and err.value.column == "q2"
+    assert "value 600.0 outside q_limits [450.0, 550.0]" in str(err.value)
 
 
 def test_missing_file():
@@ -69,3 +70,23 @@ def test_missing_file():
 def test_csv_text_is_formats_md_columns(sim6):
     header = recording_to_csv(sim6.recording).splitlines()[0]
     assert header == "q1,q2,q3,x,y,z,rx,ry,rz"
+
+
+def test_written_files_are_readable_like_plain_files(tmp_path, sim6):
+    import os
+    import stat
+
+    from bayescal.io import write_json_atomic
+
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    mode = stat.S_IMODE(os.stat(plain).st_mode)
+    for p in (write_recording(tmp_path / "r.csv", sim6.recording), write_json_atomic(tmp_path / "a.json", {"a": 1})):
+        assert stat.S_IMODE(os.stat(p).st_mode) == mode
+    assert not [f for f in os.listdir(tmp_path) if f.endswith(".tmp")]
+
+
+def test_written_recording_reads_back_exactly(tmp_path, sim6):
+    back = read_recording(write_recording(tmp_path / "r.csv", sim6.recording))
+    assert np.array_equal(back.q, sim6.recording.q) and np.array_equal(back.position, sim6.recording.position)
+    assert np.array_equal(back.rotvec, sim6.recording.rotvec)

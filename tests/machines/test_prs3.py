@@ -75,3 +75,11 @@ def test_written_machine_reproduces_the_model(prs3, rng):
     assert np.allclose(a.rotation, b.rotation, atol=1e-12)
     assert again.q_limits.tolist() == prs3.q_limits.tolist()
     assert again.noise == prs3.noise
+
+
+def test_theta_of_wrong_shape_is_an_input_error(prs3):
+    from bayescal.errors import InputError
+
+    for bad in (1.0, np.zeros(5), np.zeros((2, 2, prs3.n_params))):
+        with pytest.raises(InputError, match="theta"):
+            prs3.forward([[500.0, 500.0, 500.0]], bad)
