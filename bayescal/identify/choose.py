@@ -463,6 +463,7 @@ def choose_regularisation(
         res = identify(model, method="tsvd", k=int(choice.value), free=free_arg, theta0=theta, scale=scale, max_iter=max_iter)
     elif method == "ridge":
         res = identify(model, method="ridge", lam=1.0, free=free_arg, theta0=theta, scale=scale, max_iter=max_iter)
+        first = res
         choice, rounds, lam_prev = None, 0, 1.0
         for rounds in range(1, max_rounds + 1):
             # a failed fit is no place to linearise: fall back to the start
@@ -477,6 +478,8 @@ def choose_regularisation(
                 break
             lam_prev = lam
         choice = replace(choice, rounds=rounds)
+        # the later rounds start from the earlier solution: report "before" against the start
+        res = replace(res, rms_before=first.rms_before, residuals_before=first.residuals_before)
     else:
         raise InputError(f"method: automatic choice is for 'ridge' or 'tsvd', got {method!r}")
     res = replace(res, extras={**res.extras, "regularisation": choice.to_dict()})

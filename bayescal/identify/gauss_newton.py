@@ -168,15 +168,28 @@ def identify(
             break
         step = sol.x - phi
         if not np.all(np.isfinite(step)) or np.max(np.abs(sol.x)) > 1e6:
-            message = "diverged: the estimate grew beyond a million tolerances"
+            message = (
+                "diverged: the estimate grew beyond a million tolerances; the problem is too ill-conditioned "
+                f"for {method} (condition number {sol.s[0] / max(sol.s[-1], 1e-300):.1e}). Use ridge or tsvd"
+            )
             break
         theta_new = theta.copy()
         theta_new[idx] = S * sol.x
         pred_new = model.predict(theta_new, guess=pred.poses)
+        # A full Gauss-Newton step of an ill-conditioned problem can leave the assembly
+        # (a pose with no solution).  Only then is the step halved: steps that can be
+        # solved are taken in full, so the iteration and its fixed point are unchanged.
+        halvings = 0
+        while not pred_new.success.all() and halvings < 12:
+            halvings += 1
+            theta_new[idx] = theta[idx] + 0.5**halvings * S * (sol.x - phi)
+            pred_new = model.predict(theta_new, guess=pred.poses)
         if not pred_new.success.all():
             i = int(np.flatnonzero(~pred_new.success)[0])
             message = f"diverged: pose {i + 1} cannot be solved at the updated geometry ({pred_new.poses.message[i]})"
             break
+        if halvings:
+            step = step * 0.5**halvings
         theta, pred = theta_new, pred_new
         r, J = whitened_system(model, theta, pred)
         history.append(theta.copy())
@@ -246,4 +259,5 @@ def identify(
         n_poses=model.n_poses,
         chi2=chi2,
         noise_given=noise_given,
+        tolerance=machine.tolerance.copy(),
     )

@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 __all__ = ["IdentificationResult", "ParameterEstimate"]
 
 STRONG_CORRELATION = 0.95
+POORLY_DETERMINED = 10.0  # std above this many tolerances: the value is not a physical error
 
 
 @dataclass(frozen=True)
@@ -103,6 +104,18 @@ class IdentificationResult:
     chi2: float = float("nan")
     noise_given: bool = True
     extras: dict = field(default_factory=dict)
+    tolerance: NDArray | None = None
+
+    def poorly_determined(self, factor: float = POORLY_DETERMINED) -> tuple[str, ...]:
+        """Identified parameters whose std exceeds ``factor`` times their tolerance.
+
+        Their values are not physical errors but whatever the ill-conditioned
+        directions absorbed; ridge, MAP or TSVD keep them near nominal.
+        """
+        if self.tolerance is None:
+            return ()
+        std = self.std
+        return tuple(n for n, s, t, f in zip(self.names, std, self.tolerance, self.free) if f and np.isfinite(s) and s > factor * t)
 
     # ------------------------------------------------------------------ access
     @property
@@ -193,12 +206,21 @@ class IdentificationResult:
             s = self.singular_values
             lines.append(f"  identification matrix: rank {self.rank}, condition number {s[0] / s[-1]:.3g}")
         lines.append(f"  covariance      {self.covariance_kind}")
+        poor = set(self.poorly_determined())
         lines += ["", f"  {'parameter':<36}{'value':>14}{'std':>12}  unit"]
         for p in self.parameters:
             if not p.identified:
                 continue
             std = f"{p.std:12.3e}" if p.std is not None else f"{'-':>12}"
-            lines.append(f"  {p.name:<36}{p.value:14.6g}{std}  {p.unit}")
+            flag = " !" if p.name in poor else ""
+            lines.append(f"  {p.name:<36}{p.value:14.6g}{std}  {p.unit}{flag}")
+        if poor:
+            lines += [
+                "",
+                f"  ! {len(poor)} parameters have a std above {POORLY_DETERMINED:g} times their tolerance: the data do not "
+                "determine them, and their values are not physical errors. Consider --method ridge --lam auto "
+                "or --method tsvd --k auto.",
+            ]
         corr = self.correlations()
         if corr:
             lines += ["", f"  strongly correlated pairs (|r| >= {STRONG_CORRELATION}):"]

@@ -54,3 +54,19 @@ def test_rule_without_auto_and_bad_values_are_usage_errors(capsys):
         main(["identify", str(REC), "--machine", str(PRS3_FILE), "--method", "tsvd", "--k", "many"])
     assert e.value.code == 2
     assert "'auto'" in capsys.readouterr().err
+
+
+def test_auto_lambda_reports_rms_before_against_the_start():
+    from bayescal.identify import identify
+    from bayescal.identify.choose import choose_regularisation
+    from bayescal.io import read_recording
+    from bayescal.machines import load_machine
+    from bayescal.measurement import MeasurementModel
+    from tests.conftest import PRS3_FILE, ROOT
+
+    m = load_machine(PRS3_FILE)
+    model = MeasurementModel.from_recording(m, read_recording(ROOT / "examples/prs3/recording.csv"))
+    _, res = choose_regularisation(model, "ridge")
+    plain = identify(model, method="ridge", lam=1.0)
+    assert res.rms_before == plain.rms_before
+    assert res.rms_after["position"] < 0.2 * res.rms_before["position"]

@@ -92,3 +92,18 @@ def test_report_and_dict(prs3, sim6):
     text = res.report()
     assert "chain1.link_length" in text and "tool.point.x" in text
 
+
+
+def test_poorly_determined_parameters_are_flagged(prs3):
+    from bayescal.io import read_recording
+    from tests.conftest import ROOT
+
+    model = MeasurementModel.from_recording(prs3, read_recording(ROOT / "examples/prs3/recording.csv"))
+    ls = identify(model, method="ls")
+    ridge = identify(model, method="ridge", lam=1.0)
+    poor = ls.poorly_determined()
+    assert poor and all(ls.std[prs3.layout.index(n)] > 10 * prs3.tolerance[prs3.layout.index(n)] for n in poor)
+    assert "not physical errors" in ls.report()
+    # the prior keeps every std below its tolerance (posterior never wider than prior)
+    assert ridge.poorly_determined() == ()
+    assert np.all(ridge.std[ridge.free] <= prs3.tolerance[ridge.free] * (1 + 1e-9))

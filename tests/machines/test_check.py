@@ -5,7 +5,8 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 import pytest
 
-from bayescal.machines import MachineCheckError, Prs3, check_machine
+from bayescal.machines import MachineCheckError, Prs3, check_machine, load_machine
+from tests.conftest import ROOT
 from bayescal.params import ParamLayout, ParamSpec
 
 
@@ -93,3 +94,8 @@ def test_bad_names_units_and_missing_limits_are_reported(prs3):
     assert any("'sphere1_x' is not chain<i>" in p for p in problems)
     assert any("unit 'inch'" in p for p in problems)
     assert any(p.startswith("q_limits:") for p in problems)
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "examples").glob("*/machine.toml")), ids=lambda p: p.parent.name)
+def test_every_shipped_machine_passes_the_conformance_check(path):
+    assert check_machine(load_machine(path)) == []
