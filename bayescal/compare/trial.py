@@ -91,6 +91,20 @@ def _output_errors(machine, q_eval, true_poses, theta) -> dict[str, float]:
 
 
 def run_trial(config: dict, t: int) -> dict:
+    """Run trial ``t`` with one BLAS thread (see :func:`_run_trial`).
+
+    Multithreaded BLAS sums in a different order than single-threaded BLAS
+    (dask workers run with one thread), which changes the last bits of
+    every result; pinning one thread everywhere makes the records identical
+    in-process, on local processes and on dask.
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _run_trial(config, t)
+
+
+def _run_trial(config: dict, t: int) -> dict:
     """Run trial ``t`` of a comparison; returns a JSON-able record.
 
     Parameters

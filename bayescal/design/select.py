@@ -16,8 +16,9 @@ which keeps round-off from accumulating over the Woodbury updates.
 Spectral criteria (E, O2..O5) depend on extreme eigenvalues, which have no
 closed-form rank-k update; they are evaluated exactly (``eigvalsh`` of
 ``M + B^T B``) on a shortlist of the candidates with the largest D-gain,
-and until the selected rows make ``M`` full rank (where every spectral
-index of the data is zero) the greedy pass uses the D utility.
+and, for these and for A, until the selected rows make the data part of
+``M`` full rank (where every spectral index is zero and ``trace(M^-1)`` is
+dominated by ``1/delta``) the greedy pass uses the D utility.
 
 Exchange: Mitchell's DETMAX with excursions of length one.  Add the best
 candidate, then remove the pose whose removal costs least; accept the swap
@@ -142,11 +143,13 @@ def greedy_select(
         raise InputError(f"n: expected 1 to {N} poses (the number of usable candidates), got {n}")
     M = np.array(M0, dtype=float)
     selected: list[int] = []
-    spectral = utility_kind(criterion) == "spectral"
+    rank_first = utility_kind(criterion) in ("spectral", "trace_inv")
     for _ in range(n):
         use = criterion
-        if spectral and not (selected and _data_full_rank(M, M0)):
-            use = "D"  # spectral indices of rank-deficient data are all zero: build rank first
+        if rank_first and not (selected and _data_full_rank(M, M0)):
+            # spectral indices of rank-deficient data are all zero and trace(M^-1) is dominated by
+            # 1/delta of the unobserved directions: build rank with the D utility first
+            use = "D"
         gains = candidate_gains(blocks, M, use, shortlist=shortlist, exclude=np.array(selected, dtype=int))
         j = int(np.argmax(gains))
         selected.append(j)
@@ -197,10 +200,10 @@ def brute_force_greedy(blocks: NDArray, n: int, criterion: str, *, M0: NDArray) 
     criterion = check_criterion(criterion)
     M = np.array(M0, dtype=float)
     selected: list[int] = []
-    spectral = utility_kind(criterion) == "spectral"
+    rank_first = utility_kind(criterion) in ("spectral", "trace_inv")
     for _ in range(n):
         use = criterion
-        if spectral and not (selected and _data_full_rank(M, M0)):
+        if rank_first and not (selected and _data_full_rank(M, M0)):
             use = "D"
         best, best_u = -1, -np.inf
         for i in range(blocks.shape[0]):
