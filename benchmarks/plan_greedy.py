@@ -137,7 +137,7 @@ def main(argv=None) -> int:
         p2 = part2(machine, [2, 4], True)
     else:
         p1 = part1(machine, 20000, 40, 400)
-        p2 = part2(machine, [8, 16, 32], False)
+        p2 = part2(machine, [4, 8, 16], False)
     print("greedy selection, D criterion, 3-PRS 6-DOF:")
     for k, v in p1.items():
         print(f"  {k:<40} {v:.4g}" if isinstance(v, float) else f"  {k:<40} {v}")

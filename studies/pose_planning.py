@@ -160,7 +160,7 @@ def main(argv=None) -> int:
         }
     keys = list(rows[0])
     write_text_atomic(out / "pose_planning.csv",
-                      ",".join(keys) + "\n" + "\n".join(",".join(repr(r[k]) for k in keys) for r in rows) + "\n")
+                      ",".join(keys) + "\n" + "\n".join(",".join(repr(r[k]) if isinstance(r[k], float) else str(r[k]) for k in keys) for r in rows) + "\n")
     ukeys = list(units[0])
     write_text_atomic(out / "units_ranking.csv",
                       ",".join(ukeys) + "\n" + "\n".join(",".join(str(u[k]) for k in ukeys) for u in units) + "\n")

@@ -20,8 +20,9 @@ differences with bootstrap confidence intervals, Wilcoxon signed-rank tests
 between every pair with Holm's correction, win rates, and failures counted
 separately (docs/compare.md explains how to read it).
 
-Methods are registry names with options after a colon, separated by ';':
-  {methods}
+Methods: registry names, comma separated, options after a colon
+(ridge:lam=0.1, tsvd:k=20; several options separated by ';').  Registered:
+{methods}
 
 Trials are seeded by their index: the answer is the same in-process, on
 --workers N local processes, or on dask (--dask-workers N for a local
@@ -41,7 +42,7 @@ examples:
 
 
 def register(sub) -> None:
-    known = "; ".join(f"{m.name}: {m.help}" for m in METHODS.values())
+    known = "\n".join(f"  {m.name:<8}{m.help}" for m in METHODS.values())
     p = sub.add_parser(
         "compare", help="compare identification methods statistically", description=HELP.format(methods=known),
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -97,6 +97,9 @@ class Comparison:
                 f"  {'a':<16}{'b':<16}{'n':>5}{'median d':>11}{'mean d':>11}{'CI':>24}{'a wins':>8}{'p':>10}{'p Holm':>10}",
             ]
             for p in self.pairs:
+                if p.n == 0:
+                    lines.append(f"  {p.a:<16}{p.b:<16}{0:>5}  no trial where both succeeded")
+                    continue
                 ci = f"[{f * p.ci_low:.3g}, {f * p.ci_high:.3g}]"
                 sig = " *" if p.significant else ""
                 lines.append(f"  {p.a:<16}{p.b:<16}{p.n:>5}{f * p.median_diff:>11.3g}{f * p.mean_diff:>11.3g}{ci:>24}"

@@ -15,11 +15,13 @@ def test_quick_study_writes_tables_figure_and_invariant_rankings(tmp_path):
     assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
     for name in ("pose_planning.csv", "units_ranking.csv", "summary.json", "pose_planning.md", "pose_planning.png"):
         assert (tmp_path / name).exists(), name
-    rows = list(csv.DictReader((tmp_path / "units_ranking.csv").open()))
+    with (tmp_path / "units_ranking.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
     scaled = [r for r in rows if r["scaling"] in ("tolerance", "candidates")]
-    assert scaled and all(float(r["kendall_tau"]) == 1.0 for r in scaled)
+    assert scaled and all(float(r["kendall_tau"]) > 1 - 1e-12 for r in scaled)
     assert all(float(r["max_rel_change"]) < 1e-8 for r in scaled)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert set(summary["findings"]) == {"6dof", "5dof"}
-    table = list(csv.DictReader((tmp_path / "pose_planning.csv").open()))
+    with (tmp_path / "pose_planning.csv").open() as fh:
+        table = list(csv.DictReader(fh))
     assert {r["design"] for r in table} == {"planned", "random"}
