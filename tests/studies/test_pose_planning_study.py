@@ -21,7 +21,7 @@ def test_quick_study_writes_tables_figure_and_invariant_rankings(tmp_path):
     assert scaled and all(float(r["kendall_tau"]) > 1 - 1e-12 for r in scaled)
     assert all(float(r["max_rel_change"]) < 1e-8 for r in scaled)
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert set(summary["findings"]) == {"6dof", "5dof"}
+    assert set(summary["findings"]) == {"6dof_ridge", "6dof_ls", "5dof_ridge", "5dof_ls"}
     with (tmp_path / "pose_planning.csv").open() as fh:
         table = list(csv.DictReader(fh))
     assert {r["design"] for r in table} == {"planned", "random"}
