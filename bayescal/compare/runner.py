@@ -28,6 +28,7 @@ import json
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -129,7 +130,12 @@ def _dask(cfg: dict, todo: list[int], *, dask_workers: int, scheduler: str | Non
         except OSError as exc:
             raise InputError(f"--scheduler: cannot reach a dask scheduler at {scheduler} ({exc})") from exc
     else:
-        cluster = LocalCluster(n_workers=dask_workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        with warnings.catch_warnings():
+            # with no dashboard the scheduler still serves /health on a default port, and warns when
+            # another cluster on this host holds it; it then takes a free port, which is all we need
+            warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
+            cluster = LocalCluster(n_workers=dask_workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None)
         client = Client(cluster)
     try:
         futs = [client.submit(run_trial, cfg, t, retries=retries, pure=False) for t in todo]

@@ -46,3 +46,12 @@ def test_exchange_improves_a_random_start_for_d():
     start = np.arange(6)
     sel = exchange_refine(blocks, start, "D", M0=M0)
     assert sel.swaps > 0 and sel.utility > sel.greedy_utility
+
+
+@pytest.mark.parametrize("criterion", ["D", "EIG", "E"])
+def test_lazy_greedy_selects_what_full_reevaluation_selects(criterion):
+    blocks, M0 = problem(seed=11, N=400, k=5, L=10)
+    M0 = np.eye(10) if criterion == "EIG" else M0
+    lazy, _ = greedy_select(blocks, 25, criterion, M0=M0, lazy=True, chunk=16)
+    full, _ = greedy_select(blocks, 25, criterion, M0=M0, lazy=False)
+    np.testing.assert_array_equal(lazy, full)
