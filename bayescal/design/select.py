@@ -190,17 +190,22 @@ def greedy_select(
             Minv = _inverse(M)
             fresh = np.zeros(N, dtype=bool)
             fresh[selected] = True
+            # candidates by decreasing bound, sorted once per step: re-evaluated gains only shrink,
+            # so the order of the not yet re-evaluated ones stays valid
+            order = np.argsort(-bound, kind="stable")
+            order = order[~fresh[order]]
+            pos, size = 0, chunk
             while True:
-                stale = np.flatnonzero(~fresh)
-                todo = stale[np.argsort(-bound[stale], kind="stable")[:chunk]]
+                todo = order[pos:pos + size]
+                pos += todo.size
+                size *= 2  # geometric chunks: at most about twice the work of evaluating everything
                 if todo.size:
                     bound[todo] = candidate_gains(blocks[todo], M, use, Minv=Minv)
                     fresh[todo] = True
                 best_fresh = np.where(fresh, bound, -np.inf)
                 best_fresh[selected] = -np.inf
                 j = int(np.argmax(best_fresh))
-                rest = np.flatnonzero(~fresh)
-                if rest.size == 0 or best_fresh[j] >= bound[rest].max():
+                if pos >= order.size or best_fresh[j] >= bound[order[pos]]:
                     break
         bound_sel = bound
         if bound_sel is not None:
