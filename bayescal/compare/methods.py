@@ -83,6 +83,14 @@ def _tsvd(model, *, free, k="snr"):
 
 register_method("ls", _ls, help="Gauss-Newton least squares")
 register_method("ridge", _ridge, lam=1.0, help="ridge towards nominal (lam=1: MAP under the tolerance prior)")
+def _map(model, *, free):
+    # the identify core scales columns by the tolerances, so ridge with lam = 1 is exactly the MAP
+    # estimate under the tolerance prior (bayescal.identify.gauss_newton); point this entry at a
+    # dedicated MAP solver when bayescal.identify has one
+    return identify(model, method="ridge", lam=1.0, free=free)
+
+
+register_method("map", _map, help="MAP under the tolerance prior (ridge with lam=1)")
 register_method("tsvd", _tsvd, k="snr",
                 help="truncated SVD; k=snr keeps singular values > 1 of the tolerance-scaled matrix")
 
