@@ -21,7 +21,6 @@ studies/out/pose_planning).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 import warnings
