@@ -110,3 +110,18 @@ def test_cli_compare_writes_table_json_and_figures(tmp_path, capsys):
         assert (out / name).exists(), name
     rc = main(["compare", "--machine", "examples/prs3/machine.toml", "--methods", "nope", "--trials", "2"])
     assert rc == 2 and "known methods" in capsys.readouterr().err
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+@pytest.mark.filterwarnings("ignore::ResourceWarning")
+@pytest.mark.filterwarnings("ignore:Port .* is already in use:UserWarning")
+def test_same_table_through_a_running_scheduler_address(prs3, reference):
+    from distributed import LocalCluster
+
+    # an in-process cluster keeps the test cheap; the scheduler is reached by its tcp address
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        via = compare_methods(prs3, **TINY, scheduler=cluster.scheduler_address)
+    assert via.info["backend"] == f"dask ({cluster.scheduler_address})"
+    assert json.dumps(via.table(), default=str) == json.dumps(reference.table(), default=str)
+    with pytest.raises(InputError, match="not both"):
+        compare_methods(prs3, **TINY, scheduler="tcp://127.0.0.1:1", dask_workers=2)
