@@ -1,0 +1,130 @@
+"""The registry of identification methods a comparison can run.
+
+A method is a named callable ``fn(model, *, free, **options) ->
+IdentificationResult``.  Adding a method is one call of
+:func:`register_method` (or one entry in :data:`METHODS`); ``--methods``
+names them, with options after a colon: ``ridge:lam=0.1``, ``tsvd:k=20``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ..errors import InputError
+from ..identify import identify, whitened_system
+from ..measurement import MeasurementModel
+
+__all__ = ["Method", "METHODS", "MethodSpec", "register_method", "parse_methods", "tsvd_snr_rank"]
+
+
+@dataclass(frozen=True)
+class Method:
+    """A registered method: its callable, default options and a one-line description."""
+
+    name: str
+    fn: Callable
+    defaults: dict = field(default_factory=dict)
+    help: str = ""
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A method as asked for: ``label`` (as typed), registry ``name``, and options."""
+
+    label: str
+    name: str
+    options: tuple[tuple[str, object], ...] = ()
+
+    def run(self, model: MeasurementModel, *, free):
+        m = METHODS[self.name]
+        return m.fn(model, free=free, **{**m.defaults, **dict(self.options)})
+
+
+#: Registered methods by name.
+METHODS: dict[str, Method] = {}
+
+
+def register_method(name: str, fn: Callable, *, help: str = "", **defaults) -> None:
+    """Register ``fn(model, *, free, **options) -> IdentificationResult`` under ``name``."""
+    if not name or not name.replace("_", "").isalnum():
+        raise InputError(f"method name: expected letters, digits and underscores, got {name!r}")
+    METHODS[name] = Method(name, fn, dict(defaults), help)
+
+
+def tsvd_snr_rank(model: MeasurementModel, free) -> int:
+    """TSVD ``k``: singular values of the whitened, tolerance-scaled matrix above 1.
+
+    A direction with ``s_i > 1`` is determined better by the data than by
+    the tolerance prior; below 1 the noise dominates what the data say.
+    """
+    theta = np.zeros(model.n_params)
+    pred = model.predict(theta)
+    _, J = whitened_system(model, theta, pred)
+    s = np.linalg.svd(J[:, free] * model.machine.tolerance[free], compute_uv=False)
+    return int(max(1, np.sum(s > 1.0)))
+
+
+def _ls(model, *, free):
+    return identify(model, method="ls", free=free)
+
+
+def _ridge(model, *, free, lam=1.0):
+    return identify(model, method="ridge", lam=lam, free=free)
+
+
+def _tsvd(model, *, free, k="snr"):
+    if k == "snr":
+        k = tsvd_snr_rank(model, free)
+    return identify(model, method="tsvd", k=int(k), free=free)
+
+
+register_method("ls", _ls, help="Gauss-Newton least squares")
+register_method("ridge", _ridge, lam=1.0, help="ridge towards nominal (lam=1: MAP under the tolerance prior)")
+def _map(model, *, free):
+    # the identify core scales columns by the tolerances, so ridge with lam = 1 is exactly the MAP
+    # estimate under the tolerance prior (bayescal.identify.gauss_newton); point this entry at a
+    # dedicated MAP solver when bayescal.identify has one
+    return identify(model, method="ridge", lam=1.0, free=free)
+
+
+register_method("map", _map, help="MAP under the tolerance prior (ridge with lam=1)")
+register_method("tsvd", _tsvd, k="snr",
+                help="truncated SVD; k=snr keeps singular values > 1 of the tolerance-scaled matrix")
+
+
+def _value(text: str):
+    for conv in (int, float):
+        try:
+            return conv(text)
+        except ValueError:
+            pass
+    return text
+
+
+def parse_methods(text: str) -> tuple[MethodSpec, ...]:
+    """``"ls,ridge:lam=0.1,tsvd:k=20"`` -> method specs; unknown names are an InputError listing the known ones."""
+    specs = []
+    for item in [s.strip() for s in str(text).split(",") if s.strip()]:
+        name, _, opts = item.partition(":")
+        name = name.strip()
+        if name not in METHODS:
+            raise InputError(
+                f"--methods: unknown method {name!r}; known methods: "
+                + "; ".join(f"{m.name} ({m.help})" if m.help else m.name for m in METHODS.values())
+            )
+        options = []
+        for kv in [o for o in opts.split(";") if o.strip()] if opts else []:
+            k, eq, v = kv.partition("=")
+            if not eq or not k.strip():
+                raise InputError(f"--methods: option {kv!r} of {name!r}: expected key=value (e.g. ridge:lam=0.1)")
+            options.append((k.strip(), _value(v.strip())))
+        specs.append(MethodSpec(label=item, name=name, options=tuple(options)))
+    if not specs:
+        raise InputError("--methods: expected at least one method, e.g. ls,ridge,tsvd")
+    labels = [s.label for s in specs]
+    if len(set(labels)) != len(labels):
+        raise InputError(f"--methods: a method is listed twice in {text!r}")
+    return tuple(specs)

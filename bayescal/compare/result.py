@@ -1,0 +1,216 @@
+"""``compare_methods`` and its answer, :class:`Comparison`."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+from ..machines.base import Machine
+from ..stats import PairedComparison, compare_pairs, summarise
+from .runner import run_trials
+from .trial import METRICS, CompareConfig
+
+__all__ = ["Comparison", "compare_methods", "comparison_from_records"]
+
+_UNITS = {"rms_position": ("um", 1e3), "max_position": ("um", 1e3), "rms_angle": ("urad", 1e6)}
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A Monte Carlo comparison of identification methods.
+
+    Attributes
+    ----------
+    config : dict
+        The :class:`~bayescal.compare.trial.CompareConfig` (without the machine text) and the machine name.
+    labels : tuple of str
+        Methods, in the order asked for.
+    metric : str
+        The output error the statistics are about (``rms_position`` mm by default).
+    errors : dict of str to ndarray, shape (trials,)
+        Per method and trial, the metric; NaN where the method failed.
+    nominal : ndarray, shape (trials,)
+        The metric of the uncalibrated (nominal) model, for scale.
+    summary : dict of str to dict
+        :func:`bayescal.stats.summarise` per method.
+    pairs : tuple of PairedComparison
+        Every pair, Holm-corrected.
+    failure_messages : dict of str to list of str
+        Up to three distinct failure messages per method.
+    alpha : float
+    info : dict
+        Backend, trials resumed and run, wall time (not part of the statistics).
+    """
+
+    config: dict
+    labels: tuple[str, ...]
+    metric: str
+    errors: dict
+    nominal: NDArray
+    summary: dict
+    pairs: tuple[PairedComparison, ...]
+    failure_messages: dict
+    alpha: float = 0.05
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n_trials(self) -> int:
+        return int(self.nominal.size)
+
+    def table(self) -> dict:
+        """The statistics only (what must not depend on backend, workers or resumption)."""
+        return {
+            "metric": self.metric,
+            "summary": self.summary,
+            "nominal": summarise(self.nominal),
+            "pairs": [p.to_dict() for p in self.pairs],
+            "errors": {k: v for k, v in self.errors.items()},
+        }
+
+    def to_dict(self) -> dict:
+        return {"config": self.config, "labels": list(self.labels), "alpha": self.alpha, "n_trials": self.n_trials,
+                "failure_messages": self.failure_messages, "info": self.info, **self.table()}
+
+    def report(self) -> str:
+        unit, f = _UNITS.get(self.metric, ("", 1.0))
+        c = self.config
+        lines = [
+            f"bayescal comparison on '{c.get('machine', '')}': {self.n_trials} trials, {c['dof']}-DOF, "
+            f"{c['n_poses']} poses per trial, error on {c['n_eval']} fresh poses, seed {c['seed']}",
+            f"  metric {self.metric} ({unit}); nominal (uncalibrated) median {f * np.nanmedian(self.nominal):.4g}",
+            "",
+            f"  {'method':<22}{'ok':>5}{'failed':>8}{'median':>11}{'mean':>11}{'q05':>10}{'q95':>10}",
+        ]
+        for lab in self.labels:
+            s = self.summary[lab]
+            lines.append(f"  {lab:<22}{s['n']:>5}{s['failures']:>8}{f * s['median']:>11.4g}{f * s['mean']:>11.4g}"
+                         f"{f * s['q05']:>10.4g}{f * s['q95']:>10.4g}")
+        if self.pairs:
+            lines += [
+                "",
+                f"  paired differences a - b ({unit}; negative: a better), {100 * self.pairs[0].confidence:.0f}% "
+                f"bootstrap CI of the mean, Wilcoxon signed-rank, Holm-corrected over {len(self.pairs)} pairs:",
+                f"  {'a':<16}{'b':<16}{'n':>5}{'median d':>11}{'mean d':>11}{'CI':>24}{'a wins':>8}{'p':>10}{'p Holm':>10}",
+            ]
+            for p in self.pairs:
+                if p.n == 0:
+                    lines.append(f"  {p.a:<16}{p.b:<16}{0:>5}  no trial where both succeeded")
+                    continue
+                ci = f"[{f * p.ci_low:.3g}, {f * p.ci_high:.3g}]"
+                sig = " *" if p.significant else ""
+                lines.append(f"  {p.a:<16}{p.b:<16}{p.n:>5}{f * p.median_diff:>11.3g}{f * p.mean_diff:>11.3g}{ci:>24}"
+                             f"{100 * p.win_rate:>7.0f}%{p.p_value:>10.2g}{p.p_holm:>10.2g}{sig}")
+            lines.append(f"  * significant at alpha = {self.alpha} after Holm's correction; failures excluded pairwise")
+        fails = {k: v for k, v in self.failure_messages.items() if v}
+        if fails:
+            lines += ["", "  failures (counted separately, not in the error statistics):"]
+            for k, msgs in fails.items():
+                lines.append(f"    {k}: {self.summary[k]['failures']} trials, e.g. {msgs[0][:160]}")
+        if self.info:
+            lines += ["", f"  ran {self.info.get('ran', 0)} trials ({self.info.get('resumed', 0)} resumed from saved "
+                          f"results) on {self.info.get('backend', '?')} in {self.info.get('seconds', 0):.1f} s"]
+        return "\n".join(lines)
+
+
+def comparison_from_records(
+    records: list[dict], config: CompareConfig, *, metric: str = "rms_position", alpha: float = 0.05,
+    machine_name: str = "", info: dict | None = None, n_resamples: int = 2000,
+) -> Comparison:
+    """Statistics of saved trial records (see :func:`bayescal.compare.trial.run_trial`)."""
+    if metric not in METRICS:
+        raise InputError(f"metric: expected one of {', '.join(METRICS)}, got {metric!r}")
+    labels = tuple(s.label for s in config.specs)
+    errors, messages = {}, {}
+    for lab in labels:
+        e = np.array([r["methods"][lab].get(metric, np.nan) if r["methods"][lab]["success"] else np.nan
+                      for r in records], dtype=float)
+        errors[lab] = e
+        msgs = []
+        for r in records:
+            m = r["methods"][lab]
+            if not m["success"] and m["message"] not in msgs:
+                msgs.append(m["message"])
+        messages[lab] = msgs[:3]
+    nominal = np.array([r["nominal"].get(metric, np.nan) for r in records], dtype=float)
+    cfg = {k: v for k, v in config.to_dict().items() if k != "machine_text"}
+    cfg["machine"] = machine_name
+    return Comparison(
+        config=cfg, labels=labels, metric=metric, errors=errors, nominal=nominal,
+        summary={lab: summarise(errors[lab]) for lab in labels},
+        pairs=compare_pairs(errors, alpha=alpha, seed=config.seed, n_resamples=n_resamples),
+        failure_messages=messages, alpha=alpha, info=dict(info or {}),
+    )
+
+
+def compare_methods(
+    machine: Machine,
+    *,
+    methods: str = "ls,ridge,tsvd",
+    trials: int = 500,
+    dof: int = 6,
+    n_poses: int = 36,
+    n_eval: int = 100,
+    seed: int = 0,
+    free: str = "auto",
+    tolerance_scale: float = 1.0,
+    metric: str = "rms_position",
+    alpha: float = 0.05,
+    out: str | os.PathLike | None = None,
+    workers: int = 0,
+    dask_workers: int = 0,
+    scheduler: str | None = None,
+    retries: int = 3,
+    progress: bool = True,
+) -> Comparison:
+    """Compare identification methods by Monte Carlo on simulated machines.
+
+    Per trial: a true machine drawn from the tolerances, ``n_poses`` poses
+    within ``q_limits``, instrument noise; every method identifies on the
+    same data; the output error is evaluated on ``n_eval`` fresh poses.
+
+    Parameters
+    ----------
+    machine : Machine
+        Nominal machine, any kind (with ``q_limits``).
+    methods : str
+        Comma-separated registry names with options (``ls,ridge:lam=0.1,tsvd:k=20``).
+    trials : int
+    dof : {6, 5, 3}
+    n_poses, n_eval : int
+    seed : int
+        Trial ``t`` uses child ``t`` of ``SeedSequence(seed)``.
+    free : {"auto", "all"}
+        Identified parameters: the identifiable set of each trial's poses
+        (the same for all methods) or all (least squares then fails on a
+        rank-deficient set, counted as failures).
+    tolerance_scale : float
+    metric : {"rms_position", "max_position", "rms_angle"}
+    alpha : float
+        Family-wise significance level (Holm).
+    out : path, optional
+        Save and resume trials there (see :mod:`bayescal.compare.runner`).
+    workers, dask_workers, scheduler, retries, progress
+        Backend (see :func:`bayescal.compare.runner.run_trials`).
+
+    Returns
+    -------
+    Comparison
+    """
+    if int(trials) != trials or trials < 1:
+        raise InputError(f"trials: expected a positive integer, got {trials!r}")
+    if free not in ("auto", "all"):
+        raise InputError(f"free: expected 'auto' or 'all', got {free!r}")
+    if n_poses < 1 or n_eval < 1:
+        raise InputError("n_poses and n_eval: expected positive integers")
+    if machine.q_limits is None:
+        raise InputError(f"{machine.source}: the machine file has no [workspace] q_limits; a comparison draws poses there")
+    config = CompareConfig(machine_text=machine.to_toml(), methods=methods, trials=int(trials), dof=int(dof),
+                           n_poses=int(n_poses), n_eval=int(n_eval), seed=int(seed), free=free,
+                           tolerance_scale=float(tolerance_scale))
+    records, info = run_trials(config, out=out, workers=workers, dask_workers=dask_workers, scheduler=scheduler,
+                               retries=retries, progress=progress)
+    return comparison_from_records(records, config, metric=metric, alpha=alpha, machine_name=machine.name, info=info)

@@ -1,0 +1,228 @@
+"""Running trials in-process, on local processes, or on dask.distributed; saving and resuming.
+
+Backends
+--------
+* in-process (default);
+* ``workers=N``: a :class:`concurrent.futures.ProcessPoolExecutor` with
+  ``N`` spawned processes;
+* ``dask_workers=N``: a ``distributed.LocalCluster(n_workers=N,
+  threads_per_worker=1, processes=True, dashboard_address=None)``;
+  ``scheduler="tcp://host:port"``: an existing dask scheduler (its workers
+  must be able to import bayescal).  Tasks are submitted with
+  ``retries=``: a trial whose worker died is run again elsewhere.
+
+Every trial is seeded by its index (:func:`bayescal.compare.trial.trial_rng`),
+so the records are identical whatever the backend and the number of workers.
+
+Resume: with ``out``, each finished trial is appended to ``out/trials.jsonl``
+as one JSON line (write, flush, fsync), and ``out/config.json`` holds the
+configuration.  A rerun with the same ``out`` and configuration reads the
+finished trials and runs only the missing ones; a torn last line (a run
+killed mid-write) is discarded.  A different configuration in the same
+``out`` is an error, never a silent mix.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Iterator
+
+from ..errors import InputError
+from ..io import write_json_atomic
+from ..io.answers import to_jsonable
+from .trial import CompareConfig, run_trial
+
+__all__ = ["run_trials", "load_trials", "TRIALS_FILE", "CONFIG_FILE"]
+
+TRIALS_FILE = "trials.jsonl"
+CONFIG_FILE = "config.json"
+
+
+def _normalise(record: dict) -> dict:
+    # the JSON round trip makes in-memory and resumed records bit-identical (repr of floats is exact)
+    return json.loads(json.dumps(to_jsonable(record)))
+
+
+def load_trials(out: str | os.PathLike, config: CompareConfig) -> dict[int, dict]:
+    """Finished trials saved in ``out`` for this configuration (empty if none).
+
+    Raises
+    ------
+    InputError
+        If ``out`` holds a different configuration.
+    """
+    out = Path(out)
+    cfg_path = out / CONFIG_FILE
+    if cfg_path.exists():
+        try:
+            saved = json.loads(cfg_path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"{cfg_path}: not valid JSON ({exc}); remove the folder or choose another --out") from exc
+        mine = _normalise(config.to_dict())
+        diff = sorted(k for k in set(saved) | set(mine) if k != "trials" and saved.get(k) != mine.get(k))
+        if diff:
+            raise InputError(
+                f"{cfg_path}: this folder holds a comparison with a different configuration ({', '.join(diff)} "
+                f"differ); choose another --out or remove it"
+            )
+    path = out / TRIALS_FILE
+    done: dict[int, dict] = {}
+    if not path.exists():
+        return done
+    raw = path.read_bytes()
+    end = raw.rfind(b"\n") + 1
+    if end < len(raw):
+        # a torn last line from an interrupted write: drop it so appends start on a fresh line
+        with open(path, "r+b") as fh:
+            fh.truncate(end)
+            fh.flush()
+            os.fsync(fh.fileno())
+    for line in raw[:end].decode("utf-8").splitlines():
+        if not line.strip():
+            continue
+        rec = json.loads(line)
+        t = int(rec["trial"])
+        if 0 <= t < config.trials:
+            done[t] = rec
+    return done
+
+
+def _append(path: Path, record: dict) -> None:
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(json.dumps(record) + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _in_process(cfg: dict, todo: list[int]) -> Iterator[dict]:
+    for t in todo:
+        yield run_trial(cfg, t)
+
+
+def _processes(cfg: dict, todo: list[int], workers: int) -> Iterator[dict]:
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as ex:
+        futs = [ex.submit(run_trial, cfg, t) for t in todo]
+        for f in as_completed(futs):
+            yield f.result()
+
+
+def _dask(cfg: dict, todo: list[int], *, dask_workers: int, scheduler: str | None, retries: int) -> Iterator[dict]:
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError as exc:  # pragma: no cover - dask is a declared dependency of the extra
+        raise InputError("dask.distributed is not installed: pip install 'bayescal[dask]'") from exc
+    import logging
+
+    # shutting a LocalCluster down logs harmless heartbeat errors (LIBRARIES.md); keep stderr for progress
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
+    if scheduler:
+        cluster = None
+        try:
+            client = Client(scheduler, timeout="20s")
+        except OSError as exc:
+            raise InputError(f"--scheduler: cannot reach a dask scheduler at {scheduler} ({exc})") from exc
+    else:
+        with warnings.catch_warnings():
+            # with no dashboard the scheduler still serves /health on a default port, and warns when
+            # another cluster on this host holds it; it then takes a free port, which is all we need
+            warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
+            cluster = LocalCluster(n_workers=dask_workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None)
+        client = Client(cluster)
+    try:
+        futs = [client.submit(run_trial, cfg, t, retries=retries, pure=False) for t in todo]
+        for f in as_completed(futs):
+            yield f.result()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def run_trials(
+    config: CompareConfig,
+    *,
+    out: str | os.PathLike | None = None,
+    workers: int = 0,
+    dask_workers: int = 0,
+    scheduler: str | None = None,
+    retries: int = 3,
+    progress: bool = True,
+) -> tuple[list[dict], dict]:
+    """Run (or resume) every trial of a comparison.
+
+    Parameters
+    ----------
+    config : CompareConfig
+    out : path, optional
+        Folder for ``config.json`` and ``trials.jsonl`` (resume).
+    workers : int
+        Local processes (0 or 1: in-process).
+    dask_workers : int
+        Workers of a dask LocalCluster (0: no dask).
+    scheduler : str, optional
+        Address of a running dask scheduler (``tcp://host:port``).
+    retries : int
+        dask retries per task (a dead worker's trials run again).
+    progress : bool
+        tqdm progress bar on stderr.
+
+    Returns
+    -------
+    records : list of dict
+        One per trial, sorted by trial index.
+    info : dict
+        ``backend``, ``resumed`` (trials read from ``out``), ``ran``, ``seconds``.
+    """
+    if workers < 0 or dask_workers < 0:
+        raise InputError("workers: expected a number >= 0")
+    if scheduler and dask_workers:
+        raise InputError("give either --scheduler (an existing dask cluster) or --dask-workers (a local one), not both")
+    config.specs  # validate the method names before starting anything
+    cfg = config.to_dict()
+    done: dict[int, dict] = {}
+    path = None
+    if out is not None:
+        out = Path(out)
+        done = load_trials(out, config)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / CONFIG_FILE, cfg)
+        path = out / TRIALS_FILE
+    todo = [t for t in range(config.trials) if t not in done]
+    if scheduler or dask_workers:
+        backend = f"dask ({scheduler})" if scheduler else f"dask LocalCluster ({dask_workers} workers)"
+        it = _dask(cfg, todo, dask_workers=dask_workers, scheduler=scheduler, retries=retries)
+    elif workers > 1:
+        backend = f"local processes ({workers})"
+        it = _processes(cfg, todo, workers)
+    else:
+        backend = "in-process"
+        it = _in_process(cfg, todo)
+    t0 = time.perf_counter()
+    bar = None
+    if progress and todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=config.trials, initial=len(done), desc="trials", unit="trial", file=sys.stderr)
+    try:
+        for rec in it if todo else ():
+            rec = _normalise(rec)
+            done[int(rec["trial"])] = rec
+            if path is not None:
+                _append(path, rec)
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    records = [done[t] for t in range(config.trials)]
+    return records, {"backend": backend, "resumed": config.trials - len(todo), "ran": len(todo),
+                     "seconds": time.perf_counter() - t0}

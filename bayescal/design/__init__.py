@@ -1,0 +1,38 @@
+"""Measurement-pose planning by information (docs/planning.md).
+
+Candidate poses within ``q_limits``, their whitened and column-scaled
+identification Jacobian blocks, the criteria D, A, E, O1..O5 and the
+Bayesian expected information gain, greedy selection with rank-k updates
+and DETMAX-style exchange.  Works for any machine kind through
+:class:`bayescal.measurement.MeasurementModel`.
+"""
+
+from .candidates import SCALINGS, CandidateSet, candidate_set_from_jacobian, column_scale, draw_candidates
+from .criteria import CRITERIA, SPECTRAL, check_criterion, criteria_from_singular_values, criterion_value, utility
+from .plan import PosePlan, evaluate_selection, plan_poses, plan_to_csv, select_from_candidates, write_plan
+from .select import Selection, brute_force_greedy, candidate_gains, exchange_refine, greedy_select
+
+__all__ = [
+    "CRITERIA",
+    "SPECTRAL",
+    "SCALINGS",
+    "CandidateSet",
+    "PosePlan",
+    "Selection",
+    "brute_force_greedy",
+    "candidate_gains",
+    "candidate_set_from_jacobian",
+    "check_criterion",
+    "column_scale",
+    "criteria_from_singular_values",
+    "criterion_value",
+    "draw_candidates",
+    "evaluate_selection",
+    "exchange_refine",
+    "greedy_select",
+    "plan_poses",
+    "plan_to_csv",
+    "select_from_candidates",
+    "utility",
+    "write_plan",
+]

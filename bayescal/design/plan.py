@@ -1,0 +1,259 @@
+"""``plan_poses``: choose measurement poses by information, and the :class:`PosePlan` answer."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+from ..io import write_text_atomic
+from ..machines.base import Machine
+from ..measurement import rows_per_pose
+from .candidates import CandidateSet, draw_candidates
+from .criteria import CRITERIA, check_criterion, criteria_from_singular_values, eig_value, utility_kind
+from .select import exchange_refine, greedy_select
+
+__all__ = ["PosePlan", "plan_poses", "select_from_candidates", "evaluate_selection", "plan_to_csv", "write_plan"]
+
+#: delta of the regularised information matrix delta I + A^T A, relative to the mean
+#: per-pose information per parameter (only matters while the selection is rank deficient).
+DELTA_REL = 1e-9
+
+
+@dataclass(frozen=True)
+class PosePlan:
+    """A planned measurement session.
+
+    Attributes
+    ----------
+    machine_name, kind : str
+    criterion : str
+        What was optimised (see :mod:`bayescal.design.criteria`).
+    dof : int
+    scaling : str
+        Column scaling (``tolerance`` or ``candidates``).
+    q : ndarray, shape (n_poses, n_actuators)
+        Commanded actuator positions, in measurement order (selection order).
+    candidate_index : ndarray of int
+        Rows of the usable candidate set.
+    values : dict
+        Every criterion of the plan (larger is better).
+    random_median : dict
+        Median of every criterion over ``n_random`` random selections of the
+        same size from the same candidates.
+    random_beaten : dict
+        Fraction of those random selections the plan beats, per criterion.
+    kept, fixed : tuple of str
+        Parameters the criteria are computed for / not identifiable from any candidate.
+    n_candidates, n_rejected : int
+    seed : int
+    greedy_utility, utility : float
+        Selection utility after the greedy pass and after exchange.
+    swaps : int
+    seconds : float
+    """
+
+    machine_name: str
+    kind: str
+    criterion: str
+    dof: int
+    scaling: str
+    q: NDArray
+    candidate_index: NDArray
+    values: dict
+    random_median: dict
+    random_beaten: dict
+    kept: tuple[str, ...]
+    fixed: tuple[str, ...]
+    n_candidates: int
+    n_rejected: int
+    seed: int
+    greedy_utility: float
+    utility: float
+    swaps: int
+    n_random: int
+    seconds: float
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def n_poses(self) -> int:
+        return self.q.shape[0]
+
+    def to_dict(self) -> dict:
+        return {
+            "machine": self.machine_name,
+            "kind": self.kind,
+            "criterion": self.criterion,
+            "dof": self.dof,
+            "scaling": self.scaling,
+            "n_poses": self.n_poses,
+            "seed": self.seed,
+            "q": self.q,
+            "candidate_index": self.candidate_index,
+            "values": self.values,
+            "random_median": self.random_median,
+            "random_beaten": self.random_beaten,
+            "n_random": self.n_random,
+            "kept": list(self.kept),
+            "fixed": list(self.fixed),
+            "n_candidates": self.n_candidates,
+            "n_rejected": self.n_rejected,
+            "greedy_utility": self.greedy_utility,
+            "utility": self.utility,
+            "swaps": self.swaps,
+            "seconds": self.seconds,
+            **self.extras,
+        }
+
+    def report(self) -> str:
+        lines = [
+            f"bayescal pose plan for '{self.machine_name}' ({self.kind})",
+            f"  {self.n_poses} poses, {self.dof}-DOF measurement, criterion {self.criterion}, "
+            f"column scaling '{self.scaling}', seed {self.seed}",
+            f"  candidates      {self.n_candidates} usable ({self.n_rejected} rejected: no forward solution)",
+            f"  parameters      {len(self.kept)} identifiable from the candidates"
+            + (f"; not identifiable from any pose: {', '.join(self.fixed)}" if self.fixed else ""),
+            f"  selection       greedy then {self.swaps} exchange swaps ({self.seconds:.2f} s)",
+            "",
+            f"  {'criterion':<10}{'plan':>14}{'random median':>16}{'beats random':>14}",
+        ]
+        for c in CRITERIA:
+            mark = " *" if c == self.criterion else ""
+            lines.append(
+                f"  {c + mark:<10}{self.values[c]:14.5g}{self.random_median[c]:16.5g}"
+                f"{100 * self.random_beaten[c]:13.0f}%"
+            )
+        lines.append(f"  (larger is better; random: median of {self.n_random} random sets of {self.n_poses} candidates)")
+        return "\n".join(lines)
+
+
+def evaluate_selection(cands: CandidateSet, index: NDArray) -> dict[str, float]:
+    """All criteria of the poses ``index`` of a candidate set (exact, no regularisation)."""
+    index = np.asarray(index, dtype=int)
+    A = cands.blocks[index].reshape(-1, cands.blocks.shape[2])
+    vals = criteria_from_singular_values(np.linalg.svd(A, compute_uv=False), A.shape[0])
+    vals["EIG"] = eig_value(cands.blocks_prior[index].reshape(-1, cands.blocks_prior.shape[2]))
+    return {c: vals[c] for c in CRITERIA}
+
+
+def _M0(cands: CandidateSet, criterion: str) -> tuple[NDArray, NDArray]:
+    if criterion == "EIG":
+        return cands.blocks_prior, np.eye(cands.blocks_prior.shape[2])
+    B = cands.blocks
+    L = B.shape[2]
+    mean_info = float(np.mean(np.sum(B**2, axis=(1, 2)))) / L
+    return B, DELTA_REL * max(mean_info, 1e-300) * np.eye(L)
+
+
+def select_from_candidates(
+    cands: CandidateSet, n: int, criterion: str, *, exchange: bool = True, shortlist: int = 512,
+    max_swaps: int | None = None,
+):
+    """Greedy selection then exchange on a candidate set; returns a :class:`~bayescal.design.select.Selection`."""
+    criterion = check_criterion(criterion)
+    blocks, M0 = _M0(cands, criterion)
+    idx, _ = greedy_select(blocks, n, criterion, M0=M0, shortlist=shortlist)
+    return exchange_refine(blocks, idx, criterion, M0=M0, max_iter=max_swaps if exchange else 0, shortlist=shortlist)
+
+
+def plan_poses(
+    machine: Machine,
+    n_poses: int,
+    *,
+    criterion: str = "D",
+    dof: int = 6,
+    n_candidates: int = 20000,
+    seed: int = 0,
+    scaling: str = "tolerance",
+    n_random: int = 20,
+    exchange: bool = True,
+    candidates: CandidateSet | None = None,
+) -> PosePlan:
+    """Plan ``n_poses`` measurement poses that maximise an information criterion.
+
+    Parameters
+    ----------
+    machine : Machine
+        Any kind with ``q_limits``.
+    n_poses : int
+    criterion : {"D", "A", "E", "O1", "O2", "O3", "O4", "O5", "EIG"}
+    dof : {6, 5, 3}
+        What the instrument will measure.
+    n_candidates : int
+        Candidate poses drawn uniformly within ``q_limits``.
+    seed : int
+        Seeds the candidates and the random selections: same seed, same plan.
+    scaling : {"tolerance", "candidates"}
+        Column scaling (see :mod:`bayescal.design.candidates`).
+    n_random : int
+        Random selections the plan is compared against.
+    exchange : bool
+        Run the exchange refinement after the greedy pass.
+    candidates : CandidateSet, optional
+        Use these instead of drawing (``n_candidates`` is then ignored).
+
+    Returns
+    -------
+    PosePlan
+    """
+    t0 = time.perf_counter()
+    criterion = check_criterion(criterion)
+    rows_per_pose(dof)
+    if int(n_poses) != n_poses or n_poses < 1:
+        raise InputError(f"n_poses: expected a positive integer, got {n_poses!r}")
+    rng = np.random.default_rng(seed)
+    cands = candidates if candidates is not None else draw_candidates(machine, n_candidates, dof=dof, rng=rng, scaling=scaling)
+    if n_poses > cands.n:
+        raise InputError(f"n_poses: {n_poses} asked for, but only {cands.n} usable candidates; draw more candidates")
+    L = cands.blocks.shape[2]
+    if n_poses * dof < L and criterion != "EIG":
+        raise InputError(
+            f"n_poses: {n_poses} poses x {dof} components < {L} identifiable parameters; criterion {criterion} "
+            f"needs at least {-(-L // dof)} poses (or use EIG, which includes the tolerance prior)"
+        )
+    sel = select_from_candidates(cands, int(n_poses), criterion, exchange=exchange)
+    values = evaluate_selection(cands, sel.index)
+    rand = np.array([list(evaluate_selection(cands, rng.choice(cands.n, int(n_poses), replace=False)).values())
+                     for _ in range(int(n_random))]) if n_random > 0 else np.full((1, len(CRITERIA)), np.nan)
+    med = {c: float(np.median(rand[:, i])) for i, c in enumerate(CRITERIA)}
+    beaten = {c: float(np.mean(values[c] > rand[:, i])) for i, c in enumerate(CRITERIA)}
+    return PosePlan(
+        machine_name=machine.name,
+        kind=machine.kind,
+        criterion=criterion,
+        dof=dof,
+        scaling=cands.scaling,
+        q=cands.q[sel.index],
+        candidate_index=sel.index,
+        values=values,
+        random_median=med,
+        random_beaten=beaten,
+        kept=cands.kept,
+        fixed=cands.fixed,
+        n_candidates=cands.n,
+        n_rejected=cands.n_rejected,
+        seed=int(seed),
+        greedy_utility=sel.greedy_utility,
+        utility=sel.utility,
+        swaps=sel.swaps,
+        n_random=int(n_random),
+        seconds=time.perf_counter() - t0,
+        extras={"utility_kind": utility_kind(criterion)},
+    )
+
+
+def plan_to_csv(plan: PosePlan) -> str:
+    """The plan as CSV: ``q1..qN`` (commanded, machine units) and ``pose_id`` (1-based, measurement order)."""
+    m = plan.q.shape[1]
+    lines = [",".join([f"q{j + 1}" for j in range(m)] + ["pose_id"])]
+    for i, row in enumerate(plan.q):
+        lines.append(",".join([repr(float(v)) for v in row] + [str(i + 1)]))
+    return "\n".join(lines) + "\n"
+
+
+def write_plan(path, plan: PosePlan):
+    """Write :func:`plan_to_csv` atomically."""
+    return write_text_atomic(path, plan_to_csv(plan))

@@ -1,0 +1,55 @@
+"""Figures of pose planning: output error against the number of poses, planned and random."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["plot_error_vs_poses"]
+
+
+def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: str = "rms") -> Path:
+    """Median (and quartiles) of the post-calibration error against the number of poses.
+
+    Parameters
+    ----------
+    rows : list of dict
+        One per (dof, design, n_poses) with keys ``dof``, ``design``
+        (``planned``/``random``), ``n_poses``, ``{metric}_median``,
+        ``{metric}_q25``, ``{metric}_q75`` (mm).
+    path : path
+        PNG to write.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dofs = sorted({r["dof"] for r in rows}, reverse=True)
+    fig, axes = plt.subplots(1, len(dofs), figsize=(4.2 * len(dofs), 3.6), squeeze=False)
+    for ax, dof in zip(axes[0], dofs):
+        for design, color in (("planned", "C3"), ("random", "C0")):
+            rr = sorted((r for r in rows if r["dof"] == dof and r["design"] == design), key=lambda r: r["n_poses"])
+            if not rr:
+                continue
+            n = np.array([r["n_poses"] for r in rr])
+            med = 1e3 * np.array([r[f"{metric}_median"] for r in rr])
+            lo = 1e3 * np.array([r[f"{metric}_q25"] for r in rr])
+            hi = 1e3 * np.array([r[f"{metric}_q75"] for r in rr])
+            ax.plot(n, med, "o-", color=color, label=f"{design} (median)")
+            ax.fill_between(n, lo, hi, color=color, alpha=0.2, lw=0)
+            if design == "random" and 36 in n:
+                ax.axhline(med[list(n).index(36)], color=color, ls=":", lw=1, label="random, 36 poses")
+        ax.set_yscale("log")
+        ax.set_xlabel("number of measured poses")
+        ax.set_ylabel(f"{metric} position error after calibration [um]")
+        ax.set_title(f"{dof}-DOF measurement", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

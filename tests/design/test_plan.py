@@ -1,0 +1,89 @@
+"""plan_poses on the 3-PRS: reproducible, better than random, invariant to parameter units; the CSV."""
+
+import numpy as np
+import pytest
+
+from bayescal.cli import main
+from bayescal.design import candidate_set_from_jacobian, draw_candidates, evaluate_selection, plan_poses, plan_to_csv
+from bayescal.design.plan import select_from_candidates
+from bayescal.errors import InputError
+from bayescal.measurement import MeasurementModel
+
+
+@pytest.fixture(scope="module")
+def plan_a(prs3):
+    return plan_poses(prs3, 12, criterion="D", dof=6, n_candidates=300, seed=5, n_random=10)
+
+
+def test_plan_is_reproducible_from_the_seed(prs3, plan_a):
+    again = plan_poses(prs3, 12, criterion="D", dof=6, n_candidates=300, seed=5, n_random=10)
+    np.testing.assert_array_equal(again.q, plan_a.q)
+    assert again.values == plan_a.values
+    other = plan_poses(prs3, 12, criterion="D", dof=6, n_candidates=300, seed=6, n_random=10)
+    assert not np.array_equal(other.q, plan_a.q)
+
+
+def test_plan_beats_random_selections_and_reports(plan_a, prs3):
+    assert plan_a.values["D"] > plan_a.random_median["D"]
+    assert plan_a.random_beaten["D"] == 1.0
+    assert plan_a.fixed == ("tool.point.x", "tool.point.y", "tool.point.z")
+    assert len(plan_a.kept) == 33
+    lo, hi = prs3.q_limits[:, 0], prs3.q_limits[:, 1]
+    assert np.all((plan_a.q >= lo) & (plan_a.q <= hi))
+    d = plan_a.to_dict()
+    assert d["criterion"] == "D" and d["n_poses"] == 12 and len(d["q"]) == 12
+    assert "random median" in plan_a.report()
+
+
+def test_plan_csv_round_trips_the_commanded_positions(plan_a):
+    text = plan_to_csv(plan_a)
+    lines = text.strip().split("\n")
+    assert lines[0] == "q1,q2,q3,pose_id"
+    rows = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]])
+    np.testing.assert_array_equal(rows[:, :3], plan_a.q)
+    np.testing.assert_array_equal(rows[:, 3], np.arange(1, 13))
+
+
+@pytest.mark.parametrize("scaling", ["tolerance", "candidates"])
+def test_ranking_does_not_change_when_parameters_are_rescaled(prs3, scaling):
+    rng = np.random.default_rng(0)
+    q = prs3.sample_q(120, rng)
+    model = MeasurementModel(prs3, q, dof=5)
+    J = model.jacobian(None, model.predict()) / model.sigma[None, :, None]
+    # new units: parameter j measured in units 1/c_j as large (mm -> um is c = 1000)
+    c = np.exp(rng.uniform(-7, 7, size=prs3.n_params))
+    a = candidate_set_from_jacobian(q, J, prs3.tolerance, prs3.layout, scaling=scaling)
+    b = candidate_set_from_jacobian(q, J / c, prs3.tolerance * c, prs3.layout, scaling=scaling)
+    sa = select_from_candidates(a, 10, "D")
+    sb = select_from_candidates(b, 10, "D")
+    np.testing.assert_array_equal(sa.index, sb.index)
+    sets = [rng.choice(120, 10, replace=False) for _ in range(8)]
+    va = [evaluate_selection(a, s)["O4"] for s in sets]
+    vb = [evaluate_selection(b, s)["O4"] for s in sets]
+    np.testing.assert_array_equal(np.argsort(va), np.argsort(vb))
+    np.testing.assert_allclose(va, vb, rtol=1e-6)
+
+
+def test_too_few_poses_for_the_parameters_is_an_input_error(prs3):
+    with pytest.raises(InputError, match="at least 6 poses"):
+        plan_poses(prs3, 3, criterion="D", n_candidates=50, seed=0)
+    # EIG has the prior: any number of poses is fine
+    p = plan_poses(prs3, 3, criterion="EIG", n_candidates=50, seed=0, n_random=3)
+    assert p.n_poses == 3 and p.values["EIG"] > p.random_median["EIG"]
+
+
+def test_draw_candidates_rejects_nothing_inside_a_good_workspace(prs3):
+    c = draw_candidates(prs3, 40, dof=3, rng=np.random.default_rng(1))
+    assert c.n + c.n_rejected == 40 and c.blocks.shape == (c.n, 3, len(c.kept))
+
+
+def test_cli_plan_writes_the_csv_and_json(tmp_path, capsys):
+    out, js = tmp_path / "poses.csv", tmp_path / "plan.json"
+    rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "8", "--criterion", "a", "--candidates", "200",
+               "--dof", "5", "--seed", "2", "--random-sets", "4", "--out", str(out), "--json", str(js)])
+    assert rc == 0
+    assert out.read_text().startswith("q1,q2,q3,pose_id\n") and len(out.read_text().splitlines()) == 9
+    assert '"criterion": "A"' in js.read_text()
+    assert "criterion A" in capsys.readouterr().out
+    rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "2", "--candidates", "50", "--out", str(out)])
+    assert rc == 2

@@ -1,0 +1,27 @@
+"""The pose-planning study's --quick mode runs end to end and its units check holds."""
+
+import csv
+import importlib.util
+import json
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_quick_study_writes_tables_figure_and_invariant_rankings(tmp_path):
+    spec = importlib.util.spec_from_file_location("pose_planning", ROOT / "studies" / "pose_planning.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
+    for name in ("pose_planning.csv", "units_ranking.csv", "summary.json", "pose_planning.md", "pose_planning.png"):
+        assert (tmp_path / name).exists(), name
+    with (tmp_path / "units_ranking.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    scaled = [r for r in rows if r["scaling"] in ("tolerance", "candidates")]
+    assert scaled and all(float(r["kendall_tau"]) > 1 - 1e-12 for r in scaled)
+    assert all(float(r["max_rel_change"]) < 1e-8 for r in scaled)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert set(summary["findings"]) == {"6dof_ridge", "6dof_ls", "5dof_ridge", "5dof_ls"}
+    with (tmp_path / "pose_planning.csv").open() as fh:
+        table = list(csv.DictReader(fh))
+    assert {r["design"] for r in table} == {"planned", "random"}
