@@ -8,6 +8,7 @@ from ..identify import identify
 from ..io import read_recording, write_json_atomic, write_text_atomic
 from ..machines import load_machine
 from ..measurement import MeasurementModel
+from .bayes_identify import METHODS, add_arguments, run_bayes
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -20,7 +21,10 @@ names the combinations the measurement cannot separate.
 
 Methods: ls (Gauss-Newton least squares), ridge (Tikhonov towards nominal;
 --lam 1 is the MAP estimate under the machine file's tolerance prior), tsvd
-(least squares on the k best-determined directions).
+(least squares on the k best-determined directions), map (the MAP estimate
+under the [tolerance] prior, with its Laplace covariance), kalman (a
+recursive EKF/UKF, one update per pose, with the uncertainty after each
+pose), mcmc (emcee posterior, refused unless converged). See docs/bayes.md.
 """
 
 EXAMPLES = """\
@@ -28,6 +32,9 @@ examples:
   bayescal identify examples/prs3/recording.csv --machine examples/prs3/machine.toml
   bayescal identify rec.csv --machine m.toml --method ridge --lam 1 --json answer.json
   bayescal identify rec.csv --machine m.toml --method tsvd --k 25 --dof 5 --write-machine calibrated.toml
+  bayescal identify rec.csv --machine m.toml --method map --json map.json
+  bayescal identify rec.csv --machine m.toml --method kalman --variant ukf --figures figs/
+  bayescal identify rec.csv --machine m.toml --method mcmc --steps 8000 --progress --posterior post.nc --figures figs/
 """
 
 
@@ -38,7 +45,7 @@ def register(sub) -> None:
     )
     p.add_argument("recording", help="recording CSV (FORMATS.md section 2)")
     p.add_argument("--machine", required=True, help="machine file TOML (FORMATS.md section 1)")
-    p.add_argument("--method", choices=("ls", "ridge", "tsvd"), default="ls", help="solver (default: ls)")
+    p.add_argument("--method", choices=("ls", "ridge", "tsvd", "map") + METHODS, default="ls", help="solver (default: ls)")
     p.add_argument("--lam", type=float, help="ridge parameter, dimensionless (1 = MAP under the tolerance prior)")
     p.add_argument("--k", type=int, help="number of singular values tsvd keeps")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), help="use only this much of the measurement (default: all)")
@@ -50,6 +57,7 @@ def register(sub) -> None:
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -68,6 +76,8 @@ def run(args) -> int:
         from ..errors import InputError
 
         raise InputError("--k is required with --method tsvd")
+    if args.method in METHODS:
+        return run_bayes(args, machine, model, free)
     res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
     if not args.quiet:
         print(res.report())

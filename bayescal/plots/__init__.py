@@ -1,0 +1,1 @@
+"""Figures from result objects (matplotlib imported lazily, Agg backend)."""
