@@ -12,9 +12,10 @@ with one likelihood term per pose ``i``.  It is sampled with
   the measurement model's ``predict`` (``n_walkers * n_poses`` rows);
 * started from the MAP estimate and its Laplace covariance (so burn-in is
   short);
-* with differential-evolution moves (``DEMove`` 0.8 + ``DESnookerMove``
-  0.2), which mix about five times faster than the default stretch move
-  in 30+ dimensions (see ``benchmarks/mcmc_ess.py``).
+* with differential-evolution moves (``DEMove`` 0.8 + DE snooker 0.2,
+  the snooker move corrected, see :mod:`bayescal.bayes.moves`), which mix
+  about five times faster than the default stretch move in 30+ dimensions
+  (see ``benchmarks/mcmc_ess.py``).
 
 Convergence is judged on the chain after burn-in with arviz's rank-normalised
 R-hat and bulk/tail effective sample sizes (walkers as chains), and emcee's
@@ -50,6 +51,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
 from .linear import linearisation_error, linearise
+from .moves import default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
 from .summary import parameter_list, parameter_table, strong_correlations
 
@@ -193,7 +195,7 @@ class PosteriorResult:
         status = "converged" if self.success else "NOT CONVERGED: posterior not reported"
         lines = [
             f"bayescal posterior of '{self.machine_name}' ({self.kind})",
-            f"  method          mcmc (emcee, DE + DE-snooker moves): {status}",
+            f"  method          mcmc (emcee, DE + snooker moves): {status}",
             f"  sampler         {self.n_walkers} walkers x {self.n_steps} steps ({self.burn} burn-in), "
             f"acceptance {self.acceptance:.2f}, {self.seconds:.1f} s",
             f"  convergence     max R-hat {np.max(self.rhat):.4f} (<= {MAX_RHAT}), min ESS bulk "
@@ -313,7 +315,8 @@ def sample_posterior(
     max_rhat, min_ess, tau_factor : float
         Convergence thresholds (see the module docstring).
     moves : emcee moves, optional
-        Default ``[(DEMove(), 0.8), (DESnookerMove(), 0.2)]``.
+        Default :func:`bayescal.bayes.moves.default_moves`: ``DEMove`` 0.8 and
+        the corrected snooker move 0.2.
     surrogate : {"none", "linear"}
         ``"linear"`` samples the model linearised at the MAP (much faster);
         the largest linearisation error over 200 posterior draws, in units
@@ -348,7 +351,7 @@ def sample_posterior(
     map_pred = model.predict(start.theta)
     log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses)
     p0 = rng.multivariate_normal(start.theta[idx], start.covariance, size=n_walkers)
-    moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)] if moves is None else moves
+    moves = default_moves() if moves is None else moves
     sampler = emcee.EnsembleSampler(n_walkers, n, log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(seed).get_state()  # emcee seeds from numpy's legacy state
     t0 = time.perf_counter()
