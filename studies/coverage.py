@@ -167,7 +167,7 @@ def markdown(table: dict, args, seconds: float) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="12 machines, no MCMC (for the test suite)")
+    ap.add_argument("--quick", action="store_true", help="10 machines, 30 poses, no MCMC (for the test suite)")
     ap.add_argument("--n-machines", type=int, default=200)
     ap.add_argument("--n-mcmc", type=int, default=10, help="machines also sampled with MCMC (slow)")
     ap.add_argument("--mcmc-steps", type=int, default=7000)
@@ -178,7 +178,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "coverage"))
     args = ap.parse_args(argv)
     if args.quick:
-        args.n_machines, args.n_mcmc = 12, 0
+        args.n_machines, args.n_mcmc, args.poses = 10, 0, 30
     machine = load_machine(args.machine)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
