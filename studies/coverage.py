@@ -170,7 +170,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="10 machines, 30 poses, no MCMC (for the test suite)")
     ap.add_argument("--n-machines", type=int, default=200)
     ap.add_argument("--n-mcmc", type=int, default=10, help="machines also sampled with MCMC (slow)")
-    ap.add_argument("--mcmc-steps", type=int, default=7000)
+    ap.add_argument("--mcmc-steps", type=int, default=10000)
     ap.add_argument("--poses", type=int, default=36)
     ap.add_argument("--dof", type=int, default=6)
     ap.add_argument("--seed", type=int, default=1000)

@@ -283,7 +283,7 @@ def sample_posterior(
     prior: GaussianPrior | None = None,
     free: ArrayLike | str | None = None,
     n_walkers: int | None = None,
-    n_steps: int = 6000,
+    n_steps: int = 10000,
     burn: int | None = None,
     seed: int = 0,
     progress: bool = False,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import sys
 from pathlib import Path
 
 from ..errors import InputError
@@ -19,7 +21,7 @@ def add_arguments(p) -> None:
         "--process-noise", type=float, default=0.0,
         help="kalman: random-walk std per pose, as a fraction of each prior std (default 0: static parameters)",
     )
-    g.add_argument("--steps", type=int, default=8000, help="mcmc: steps per walker incl. burn-in (default 8000)")
+    g.add_argument("--steps", type=int, default=10000, help="mcmc: steps per walker incl. burn-in (default 10000)")
     g.add_argument("--walkers", type=int, help="mcmc: number of walkers (default 2 x parameters + 2)")
     g.add_argument("--seed", type=int, default=0, help="mcmc: random seed (default 0)")
     g.add_argument(
@@ -28,7 +30,10 @@ def add_arguments(p) -> None:
     )
     g.add_argument("--posterior", metavar="PATH", help="mcmc: write the posterior (arviz DataTree) as NetCDF")
     g.add_argument("--figures", metavar="DIR", help="kalman: history figure; mcmc: trace and pair plots, into DIR")
-    g.add_argument("--progress", action="store_true", help="mcmc: show a progress bar")
+    g.add_argument(
+        "--progress", action=argparse.BooleanOptionalAction, default=None,
+        help="mcmc: show a progress bar (default: when stderr is a terminal)",
+    )
 
 
 def run_bayes(args, machine, model, free) -> int:
@@ -43,7 +48,7 @@ def run_bayes(args, machine, model, free) -> int:
             raise InputError(f"--steps: expected at least 100, got {args.steps}")
         res = sample_posterior(
             model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
-            progress=args.progress, surrogate=args.surrogate,
+            progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,
         )
     if not args.quiet:
         print(res.report())

@@ -25,7 +25,7 @@ EXAMPLES = """\
 examples:
   bayescal grid examples/prs3/recording.csv --machine examples/prs3/machine.toml --out grid.csv --figure grid.png
   bayescal grid rec.csv --machine m.toml --nodes 15 --method kalman --json grid.json
-  bayescal grid rec.csv --machine m.toml --method mcmc --steps 8000 --surrogate linear --out grid.csv
+  bayescal grid rec.csv --machine m.toml --method mcmc --surrogate linear --out grid.csv
 """
 
 
@@ -40,7 +40,7 @@ def register(sub) -> None:
     p.add_argument("--free", default="all", help="'all' (default), 'auto' or comma-separated names")
     p.add_argument("--nodes", type=int, default=9, help="nodes per actuator within q_limits (default 9)")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), help="use only this much of the measurement")
-    p.add_argument("--steps", type=int, default=8000, help="mcmc: steps per walker (default 8000)")
+    p.add_argument("--steps", type=int, default=10000, help="mcmc: steps per walker (default 10000)")
     p.add_argument("--surrogate", choices=("none", "linear"), default="none", help="mcmc: sample the linearised model")
     p.add_argument("--seed", type=int, default=0, help="mcmc: random seed")
     p.add_argument("--out", metavar="CSV", help="write the grid as CSV")

@@ -34,7 +34,7 @@ examples:
   bayescal identify rec.csv --machine m.toml --method tsvd --k 25 --dof 5 --write-machine calibrated.toml
   bayescal identify rec.csv --machine m.toml --method map --json map.json
   bayescal identify rec.csv --machine m.toml --method kalman --variant ukf --figures figs/
-  bayescal identify rec.csv --machine m.toml --method mcmc --steps 8000 --progress --posterior post.nc --figures figs/
+  bayescal identify rec.csv --machine m.toml --method mcmc --surrogate linear --progress --posterior post.nc --figures figs/
 """
 
 
