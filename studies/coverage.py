@@ -31,7 +31,6 @@ Run: ``python studies/coverage.py [--quick] [--n-machines 200] [--n-mcmc 10] [--
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 import warnings
@@ -42,7 +41,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bayescal.bayes import kalman_filter, map_estimate, prior_from_machine  # noqa: E402
+from bayescal.bayes import kalman_filter, map_estimate  # noqa: E402
 from bayescal.bayes.accuracy import tool_point_jacobian, tool_point_std  # noqa: E402
 from bayescal.bayes.mcmc import sample_posterior  # noqa: E402
 from bayescal.identify import identify  # noqa: E402

@@ -3,6 +3,11 @@
 Everything here works on the measurement-model interface
 (:class:`bayescal.measurement.MeasurementModel` or the
 :class:`~bayescal.bayes.linear.LinearisedModel`), never on a machine kind.
+
+Submodules not imported here (they pull in arviz/emcee or are rarely needed):
+:mod:`~bayescal.bayes.mcmc` (``sample_posterior``, ``PosteriorResult``,
+``write_posterior``), :mod:`~bayescal.bayes.grid` (``compensation_grid``),
+:mod:`~bayescal.bayes.moves`, :mod:`~bayescal.bayes.accuracy`.  See docs/bayes.md.
 """
 
 from .kalman import FilterResult, kalman_filter
