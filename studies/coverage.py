@@ -83,7 +83,7 @@ def one_machine(machine, seed: int, n_poses: int, dof: int, q_fresh: np.ndarray,
             fits["mcmc"] = sample_posterior(model, n_steps=mcmc_steps, surrogate="linear", seed=seed)
     for name, res in fits.items():
         if not res.success:
-            out[name] = None
+            out[name] = {"failed": res.message}
             continue
         free = res.free
         idx = np.flatnonzero(free)
@@ -123,8 +123,9 @@ def one_machine(machine, seed: int, n_poses: int, dof: int, q_fresh: np.ndarray,
 def summarise(rows: list[dict]) -> dict:
     table = {}
     for m in METHODS:
-        got = [r[m] for r in rows if r.get(m) is not None]
+        got = [r[m] for r in rows if m in r and "failed" not in r[m]]
         tried = sum(1 for r in rows if m in r)
+        reasons = sorted({r[m]["failed"].split(":")[0] for r in rows if m in r and "failed" in r[m]})
         if not got:
             continue
         pi = np.concatenate([g["param_inside"] for g in got])
@@ -137,6 +138,7 @@ def summarise(rows: list[dict]) -> dict:
         table[m] = {
             "machines": len(got),
             "failed": tried - len(got),
+            "failure_kinds": reasons,
             "parameters": float(pi.mean()),
             "parameters_se": float(per_p.std(ddof=1) / np.sqrt(len(got))) if len(got) > 1 else float("nan"),
             "tool_points": float(ti.mean()),
