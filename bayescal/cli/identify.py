@@ -10,6 +10,7 @@ from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from ..io import read_recording, write_json_atomic, write_text_atomic
 from ..machines import load_machine
 from ..measurement import MeasurementModel
+from .bayes_identify import METHODS, add_arguments, run_bayes
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -22,7 +23,10 @@ names the combinations the measurement cannot separate.
 
 Methods: ls (Gauss-Newton least squares), ridge (Tikhonov towards nominal;
 --lam 1 is the MAP estimate under the machine file's tolerance prior), tsvd
-(least squares on the k best-determined directions).
+(least squares on the k best-determined directions), map (the MAP estimate
+under the [tolerance] prior, with its Laplace covariance), kalman (a
+recursive EKF/UKF, one update per pose, with the uncertainty after each
+pose), mcmc (emcee posterior, refused unless converged). See docs/bayes.md.
 
 --lam auto / --k auto choose the regularisation from the data by a rule
 (--rule): cv (K-fold cross-validation over held-out poses), lcurve (L-curve
@@ -39,6 +43,9 @@ examples:
   bayescal identify rec.csv --machine m.toml --method tsvd --k 25 --dof 5 --write-machine calibrated.toml
   bayescal identify rec.csv --machine m.toml --method ridge --lam auto --figures figs/
   bayescal identify rec.csv --machine m.toml --method tsvd --k auto --rule gcv --json answer.json
+  bayescal identify rec.csv --machine m.toml --method map --json map.json
+  bayescal identify rec.csv --machine m.toml --method kalman --variant ukf --figures figs/
+  bayescal identify rec.csv --machine m.toml --method mcmc --surrogate linear --progress --posterior post.nc --figures figs/
 """
 
 
@@ -49,7 +56,7 @@ def register(sub) -> None:
     )
     p.add_argument("recording", help="recording CSV (FORMATS.md section 2)")
     p.add_argument("--machine", required=True, help="machine file TOML (FORMATS.md section 1)")
-    p.add_argument("--method", choices=("ls", "ridge", "tsvd"), default="ls", help="solver (default: ls)")
+    p.add_argument("--method", choices=("ls", "ridge", "tsvd", "map") + METHODS, default="ls", help="solver (default: ls)")
     p.add_argument(
         "--lam", type=_lam_arg, metavar="LAM|auto",
         help="ridge parameter, dimensionless (1 = MAP under the tolerance prior), or 'auto'",
@@ -59,7 +66,7 @@ def register(sub) -> None:
         "--rule", choices=RULES, help="rule for --lam auto / --k auto (default: " + ", ".join(
             f"{m} {r}" for m, r in DEFAULT_RULE.items()) + ")",
     )
-    p.add_argument("--figures", metavar="DIR", help="with auto: write the rule curves (PNG) into DIR")
+    p.add_argument("--figures", metavar="DIR", help="write figures into DIR: the rule curves (with auto), the kalman history, the mcmc trace and pair plots")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), help="use only this much of the measurement (default: all)")
     p.add_argument(
         "--free", default="auto",
@@ -69,6 +76,7 @@ def register(sub) -> None:
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -101,9 +109,13 @@ def run(args) -> int:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
     if args.method == "tsvd" and args.k is None:
         raise InputError("--k is required with --method tsvd (a number, or --k auto)")
+    if args.method in METHODS:
+        if args.rule:
+            raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
+        return run_bayes(args, machine, model, free)
     auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
     if not auto and (args.rule or args.figures):
-        raise InputError("--rule and --figures go with --method ridge --lam auto or --method tsvd --k auto")
+        raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
     choice = None
     if auto:
         choice, res = choose_regularisation(model, args.method, rule=args.rule, free=free, max_iter=args.max_iter)

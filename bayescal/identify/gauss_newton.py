@@ -71,6 +71,7 @@ def identify(
     free: ArrayLike | str | None = None,
     theta0: ArrayLike | None = None,
     scale: ArrayLike | None = None,
+    prior_mean: ArrayLike | None = None,
     max_iter: int = 50,
     xtol: float = 1e-8,
 ) -> IdentificationResult:
@@ -80,8 +81,12 @@ def identify(
     ----------
     model : MeasurementModel
         With ``y_measured`` (e.g. from :meth:`MeasurementModel.from_recording`).
-    method : {"ls", "ridge", "tsvd"}
-        Least squares, ridge estimation or truncated SVD (see the module docstring).
+    method : {"ls", "ridge", "tsvd", "map"}
+        Least squares, ridge estimation or truncated SVD (see the module
+        docstring); ``"map"`` is ridge with ``lam = 1`` (and the columns
+        scaled by the prior standard deviations ``scale``): the maximum a
+        posteriori estimate under the Gaussian prior ``N(prior_mean,
+        diag(scale^2))``, see :mod:`bayescal.bayes.priors`.
     lam : float, optional
         Ridge parameter, dimensionless (relative to the whitened,
         tolerance-scaled matrix); ``lam = 1`` is the MAP estimate under the
@@ -96,6 +101,9 @@ def identify(
         Start (and value of fixed parameters); zeros (nominal) by default.
     scale : array_like, shape (P,), optional
         Column scaling, in parameter units; defaults to the machine's tolerances.
+        For ridge and MAP this is the prior standard deviation.
+    prior_mean : array_like, shape (P,), optional
+        Where ridge and MAP shrink to (the prior mean); nominal (zeros) by default.
     max_iter : int
         Gauss-Newton iterations at most.
     xtol : float
@@ -111,8 +119,13 @@ def identify(
     P = machine.n_params
     if model.y_measured is None:
         raise InputError("identify: the measurement model has no measured values")
-    if method not in ("ls", "ridge", "tsvd"):
-        raise InputError(f"method: expected 'ls', 'ridge' or 'tsvd', got {method!r}")
+    if method not in ("ls", "ridge", "tsvd", "map"):
+        raise InputError(f"method: expected 'ls', 'ridge', 'tsvd' or 'map', got {method!r}")
+    if method == "map":
+        if lam is not None and lam != 1:
+            raise InputError(f"lam: map is ridge with lam = 1 (the prior fixes the weight), got {lam!r}")
+        lam = 1.0
+    solver = "ridge" if method == "map" else method
     if method == "ridge" and (lam is None or not np.isfinite(lam) or lam < 0):
         raise InputError(f"lam: ridge needs a number >= 0, got {lam!r}")
     if int(max_iter) != max_iter or max_iter < 1:
@@ -133,6 +146,8 @@ def identify(
     if method == "tsvd" and (k is None or int(k) != k or not 1 <= k <= idx.size):
         raise InputError(f"k: tsvd needs an integer from 1 to {idx.size} (identified parameters), got {k!r}")
     S = S_all[idx]
+    # ridge/MAP solve for the deviation from the prior mean c (phi = c + x)
+    c = np.zeros(idx.size) if prior_mean is None else np.asarray(prior_mean, dtype=float).reshape(P)[idx] / S
 
     pred = model.predict(theta)
     if not pred.success.all():
@@ -152,7 +167,8 @@ def identify(
         A = J[:, idx] * S
         phi = theta[idx] / S
         if basis is None:
-            sol = filtered_solve(A, r + A @ phi, method, lam=lam, k=k)
+            sol = filtered_solve(A, r + A @ (phi - c), solver, lam=lam, k=k)
+            sol = type(sol)(x=c + sol.x, s=sol.s, f=sol.f, V=sol.V, Utz=sol.Utz)
         else:
             # least squares for the coordinates c of phi = phi0 + V_k c
             sub = filtered_solve(A @ basis, r + A @ (phi - phi0), "ls")
@@ -205,14 +221,17 @@ def identify(
     # final linearisation at the solution, for singular values and covariance
     A = J[:, idx] * S
     if basis is None:
-        final = filtered_solve(A, r + A @ (theta[idx] / S), method, lam=lam, k=k)
+        final = filtered_solve(A, r + A @ (theta[idx] / S - c), solver, lam=lam, k=k)
     else:
         sub = filtered_solve(A @ basis, r, "ls")
         final = type(sub)(x=sub.x, s=sub.s, f=sub.f, V=basis @ sub.V, Utz=sub.Utz)
     noise_given = machine.noise.given
     dof_fit = max(n_rows - float(final.f.sum()), 1.0)
     chi2 = float(r @ r)
-    if method == "ridge":
+    if method == "map":
+        cov_phi = (final.V / (final.s**2 + 1.0)) @ final.V.T
+        kind = "Laplace posterior (A^T A + I)^-1 under the tolerance prior"
+    elif method == "ridge":
         cov_phi = (final.V / (final.s**2 + lam)) @ final.V.T
         kind = "Laplace (ridge as MAP: (A^T A + lam I)^-1)"
     else:
@@ -233,7 +252,7 @@ def identify(
         machine_name=machine.name,
         kind=machine.kind,
         method=method,
-        lam=None if method != "ridge" else float(lam),
+        lam=None if method not in ("ridge", "map") else float(lam),
         k=None if method != "tsvd" else int(k),
         names=machine.layout.names,
         units=machine.layout.units,

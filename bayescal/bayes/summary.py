@@ -1,0 +1,48 @@
+"""Shared output of the probabilistic methods: the FORMATS.md parameter list and correlation flags."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..identify.result import STRONG_CORRELATION
+
+__all__ = ["parameter_list", "strong_correlations", "parameter_table", "STRONG_CORRELATION"]
+
+
+def parameter_list(names, units, theta: NDArray, std: NDArray, free: NDArray) -> list[dict]:
+    """``[{"name", "value", "std", "unit", "identified"}]`` with ``std`` None where undefined."""
+    return [
+        {"name": n, "value": float(v), "std": float(s) if np.isfinite(s) else None, "unit": u, "identified": bool(f)}
+        for n, v, s, u, f in zip(names, theta, std, units, free)
+    ]
+
+
+def strong_correlations(cov: NDArray, names, threshold: float = STRONG_CORRELATION) -> list[tuple[str, str, float]]:
+    """Pairs with ``|correlation| >= threshold``, strongest first."""
+    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    C = cov / np.outer(d, d)
+    iu = np.triu_indices(len(names), 1)
+    pairs = [(names[i], names[j], float(C[i, j])) for i, j in zip(*iu) if abs(C[i, j]) >= threshold]
+    return sorted(pairs, key=lambda p: -abs(p[2]))
+
+
+def parameter_table(rows: list[dict], pairs: list[tuple[str, str, float]], extra_cols: dict | None = None) -> list[str]:
+    """Report lines: identified parameters with value, std, unit (and extra columns), then correlated pairs."""
+    extra_cols = extra_cols or {}
+    head = f"  {'parameter':<36}{'value':>14}{'std':>12}" + "".join(f"{k:>12}" for k in extra_cols) + "  unit"
+    lines = ["", head]
+    j = 0
+    for r in rows:
+        if not r["identified"]:
+            continue
+        std = f"{r['std']:12.3e}" if r["std"] is not None else f"{'-':>12}"
+        extra = "".join(f"{v[j]:12.4g}" for v in extra_cols.values())
+        lines.append(f"  {r['name']:<36}{r['value']:14.6g}{std}{extra}  {r['unit']}")
+        j += 1
+    if pairs:
+        lines += ["", f"  strongly correlated pairs (|r| >= {STRONG_CORRELATION}):"]
+        lines += [f"    {a} ~ {b}: {c:+.3f}" for a, b, c in pairs[:15]]
+        if len(pairs) > 15:
+            lines.append(f"    ... and {len(pairs) - 15} more")
+    return lines

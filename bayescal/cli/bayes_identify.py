@@ -1,0 +1,75 @@
+"""The probabilistic methods of ``bayescal identify``: --method kalman | mcmc (options and run)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..errors import InputError
+from ..io import write_json_atomic, write_text_atomic
+
+__all__ = ["add_arguments", "run_bayes", "METHODS"]
+
+METHODS = ("kalman", "mcmc")
+
+
+def add_arguments(p) -> None:
+    g = p.add_argument_group("kalman and mcmc")
+    g.add_argument("--variant", choices=("ekf", "ukf"), default="ekf", help="kalman: extended or unscented filter (default ekf)")
+    g.add_argument(
+        "--process-noise", type=float, default=0.0,
+        help="kalman: random-walk std per pose, as a fraction of each prior std (default 0: static parameters)",
+    )
+    g.add_argument("--steps", type=int, default=10000, help="mcmc: steps per walker incl. burn-in (default 10000)")
+    g.add_argument("--walkers", type=int, help="mcmc: number of walkers (default 2 x parameters + 2)")
+    g.add_argument("--seed", type=int, default=0, help="mcmc: random seed (default 0)")
+    g.add_argument(
+        "--surrogate", choices=("none", "linear"), default="none",
+        help="mcmc: 'linear' samples the model linearised at the MAP (fast; checked and reported)",
+    )
+    g.add_argument("--posterior", metavar="PATH", help="mcmc: write the posterior (arviz DataTree) as NetCDF")
+    g.add_argument(
+        "--progress", action=argparse.BooleanOptionalAction, default=None,
+        help="mcmc: show a progress bar (default: when stderr is a terminal)",
+    )
+
+
+def run_bayes(args, machine, model, free) -> int:
+    from . import EXIT_FAILED, EXIT_OK
+    from ..bayes.kalman import kalman_filter
+    from ..bayes.mcmc import sample_posterior, write_posterior
+
+    if args.method == "kalman":
+        res = kalman_filter(model, variant=args.variant, free=free, process_noise=args.process_noise)
+    else:
+        if args.steps < 100:
+            raise InputError(f"--steps: expected at least 100, got {args.steps}")
+        res = sample_posterior(
+            model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
+            progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,
+        )
+    if not args.quiet:
+        print(res.report())
+    if args.json:
+        write_json_atomic(args.json, res.to_dict())
+    if args.figures:
+        from ..plots.bayes import plot_filter_history, plot_pair, plot_trace
+
+        out = Path(args.figures)
+        out.mkdir(parents=True, exist_ok=True)
+        if args.method == "kalman":
+            made = [plot_filter_history(res, out / "kalman_history.png")]
+        elif res.success:
+            made = [plot_trace(res, out / "mcmc_trace.png"), plot_pair(res, out / "mcmc_pair.png")]
+        else:
+            made = []
+        if made and not args.quiet:
+            print("\nfigures: " + ", ".join(str(m) for m in made))
+    if args.method == "mcmc" and args.posterior and res.success:
+        write_posterior(res, args.posterior)
+    if args.write_machine and res.success:
+        write_text_atomic(args.write_machine, machine.to_toml(res.theta))
+    elif (args.write_machine or getattr(args, "posterior", None)) and not res.success and not args.quiet:
+        print("\nnot writing outputs: the identification did not succeed")
+    return EXIT_OK if res.success else EXIT_FAILED

@@ -1,0 +1,78 @@
+"""bayescal identify --method map | kalman | mcmc end to end, and the coverage study in quick mode."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bayescal.cli import main
+from bayescal.io import write_recording
+from bayescal.simulate import simulate_recording
+from tests.conftest import PRS3_FILE, ROOT
+
+
+@pytest.fixture(scope="module")
+def rec_file(tmp_path_factory, prs3):
+    path = tmp_path_factory.mktemp("rec") / "rec.csv"
+    write_recording(path, simulate_recording(prs3, 14, seed=3, dof=3).recording)
+    return path
+
+
+def test_identify_map_and_kalman(tmp_path, rec_file, capsys):
+    for method in ("map", "kalman"):
+        out = tmp_path / f"{method}.json"
+        rc = main(["identify", str(rec_file), "--machine", str(PRS3_FILE), "--method", method, "--json", str(out),
+                   "--figures", str(tmp_path)])
+        assert rc == 0
+        d = json.loads(out.read_text())
+        assert d["method"] == method
+        stds = [p["std"] for p in d["parameters"] if p["identified"]]
+        assert stds and all(s is not None and s > 0 for s in stds)
+        assert "strong_correlations" in d
+    assert (tmp_path / "kalman_history.png").stat().st_size > 1000
+    assert "predicted workspace accuracy" in capsys.readouterr().out
+
+
+def test_strong_correlations_flagged():
+    from bayescal.bayes.summary import strong_correlations
+
+    C = np.array([[1.0, 0.99, 0.0], [0.99, 1.0, -0.96], [0.0, -0.96, 1.0]]) * 4e-6
+    pairs = strong_correlations(C, ("a", "b", "c"))
+    assert [(a, b) for a, b, _ in pairs] == [("a", "b"), ("b", "c")]
+    assert pairs[1][2] == pytest.approx(-0.96)
+
+
+def test_identify_mcmc_refuses_then_writes(tmp_path, rec_file):
+    out = tmp_path / "m.json"
+    args = ["identify", str(rec_file), "--machine", str(PRS3_FILE), "--method", "mcmc", "--surrogate", "linear",
+            "--free", "chain1.link_length,chain2.link_length,chain3.link_length", "--json", str(out), "--quiet"]
+    assert main(args + ["--steps", "100", "--posterior", str(tmp_path / "no.nc")]) == 1
+    d = json.loads(out.read_text())
+    assert not d["success"] and "more steps" in d["message"]
+    assert all(p["std"] is None for p in d["parameters"])
+    assert not (tmp_path / "no.nc").exists()
+    rc = main(args + ["--steps", "1200", "--walkers", "10", "--posterior", str(tmp_path / "p.nc"), "--figures", str(tmp_path)])
+    assert rc == 0
+    d = json.loads(out.read_text())
+    assert d["success"] and len(d["interval_90"]) == 3
+    assert (tmp_path / "p.nc").exists() and (tmp_path / "mcmc_trace.png").exists() and (tmp_path / "mcmc_pair.png").exists()
+
+
+def test_coverage_study_quick(tmp_path):
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "studies" / "coverage.py"), "--quick", "--out", str(tmp_path)],
+        capture_output=True, text=True, cwd=ROOT, timeout=600,
+    )
+    assert r.returncode == 0, r.stderr
+    table = json.loads((tmp_path / "coverage.json").read_text())["table"]
+    assert set(table) == {"ls", "map", "map_all", "kalman"}
+    for m, t in table.items():
+        # 10 machines: the 90% intervals must cover at roughly their nominal rate
+        assert 0.8 < t["parameters"] < 0.97, (m, t)
+        assert 0.8 < t["tool_points"] < 0.97, (m, t)
+    assert (tmp_path / "coverage.png").exists() and (tmp_path / "coverage.md").exists()
+    assert np.isfinite(table["map_all"]["param_z_rms"])

@@ -1,0 +1,59 @@
+"""Compensation grid: standardised node errors on simulated machines; CSV; samples vs linearised std; CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bayescal.bayes import map_estimate
+from bayescal.bayes.grid import compensation_grid
+from bayescal.cli import main
+from bayescal.errors import InputError
+from bayescal.measurement import MeasurementModel
+from bayescal.simulate import simulate_recording
+from tests.conftest import PRS3_FILE
+
+
+def test_standardised_node_errors_mean_0_spread_1(prs3):
+    z = []
+    for seed in range(12):
+        sim = simulate_recording(prs3, 20, seed=100 + seed, dof=6)
+        model = MeasurementModel.from_recording(prs3, sim.recording)
+        res = map_estimate(model, free="all")
+        grid = compensation_grid(prs3, res.theta, covariance=res.covariance, free=res.free, n=4)
+        q = grid.q
+        true_err = prs3.forward(q, sim.theta_true).position - prs3.forward(q, None).position
+        z.append((true_err - (-grid.correction.reshape(-1, 3))) / grid.std.reshape(-1, 3))
+    z = np.concatenate(z)
+    assert abs(z.mean()) < 0.2
+    assert 0.8 < z.std() < 1.2
+
+
+def test_sample_std_matches_linearised(prs3, sim6):
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    res = map_estimate(model)
+    rng = np.random.default_rng(0)
+    draws = rng.multivariate_normal(res.theta[res.free], res.covariance, size=400)
+    lin = compensation_grid(prs3, res.theta, covariance=res.covariance, free=res.free, n=3)
+    smp = compensation_grid(prs3, res.theta, samples=draws, free=res.free, n=3)
+    np.testing.assert_allclose(smp.std, lin.std, rtol=0.15)
+    np.testing.assert_array_equal(smp.correction, lin.correction)
+    csv = lin.to_csv().splitlines()
+    assert csv[0] == "q1,q2,q3,dx,dy,dz,sx,sy,sz" and len(csv) == 1 + 27
+    row = np.array(csv[5].split(","), dtype=float)
+    np.testing.assert_allclose(row[3:6], lin.correction.reshape(-1, 3)[4], rtol=1e-8)
+    with pytest.raises(InputError, match="covariance"):
+        compensation_grid(prs3, res.theta, covariance=np.eye(2), free=res.free)
+
+
+def test_grid_cli(tmp_path, prs3, sim6):
+    from bayescal.io import write_recording
+
+    rec = tmp_path / "rec.csv"
+    write_recording(rec, sim6.recording)
+    out = tmp_path / "grid.csv"
+    rc = main(["grid", str(rec), "--machine", str(PRS3_FILE), "--nodes", "3", "--out", str(out),
+               "--figure", str(tmp_path / "g.png"), "--json", str(tmp_path / "g.json"), "--quiet"])
+    assert rc == 0 and out.exists() and (tmp_path / "g.png").stat().st_size > 1000
+    assert len(out.read_text().splitlines()) == 28
+    assert main(["grid", str(rec), "--machine", str(PRS3_FILE), "--nodes", "1", "--quiet"]) == 2

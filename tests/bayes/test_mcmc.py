@@ -1,0 +1,126 @@
+"""MCMC on a linear-Gaussian problem vs the closed-form posterior; the arviz tree; refusal when not converged."""
+
+from __future__ import annotations
+
+import warnings
+
+import arviz as az
+import numpy as np
+import pytest
+from scipy import stats
+
+from bayescal.bayes import linearise, prior_from_machine
+from bayescal.bayes.mcmc import log_posterior_function, sample_posterior, write_posterior
+from bayescal.errors import InputError
+from bayescal.measurement import MeasurementModel
+
+FREE = ["chain1.link_length", "chain2.link_length", "chain3.link_length", "chain1.sphere_center.x"]
+
+
+@pytest.fixture(scope="module")
+def problem(prs3, sim6):
+    """Linear model over 6 poses, position only, 4 free parameters: posterior N(m, C) in closed form."""
+    model = MeasurementModel.from_recording(prs3, sim6.recording, dof=3).subset(np.arange(6))
+    lin = linearise(model)
+    rng = np.random.default_rng(17)
+    prior = prior_from_machine(prs3)
+    idx = np.sort(prs3.layout.indices(FREE))  # the sampler keeps the layout order
+    theta = np.zeros(prs3.n_params)
+    theta[idx] = prior.std[idx] * rng.normal(size=idx.size)
+    lin = lin.with_measured(lin.predict(theta).y + rng.normal(size=lin.y0.shape) * lin.sigma)
+    # closed form: x ~ N(m, C), C = (P0^-1 + A^T A)^-1, m = C (P0^-1 mu + A^T z)
+    A = (lin.J[:, :, idx] / lin.sigma[None, :, None]).reshape(-1, idx.size)
+    z = ((lin.y_measured - lin.y0) / lin.sigma).reshape(-1)
+    P0inv = np.diag(1 / prior.std[idx] ** 2)
+    C = np.linalg.inv(P0inv + A.T @ A)
+    return lin, idx, C @ (A.T @ z), C
+
+
+@pytest.fixture(scope="module")
+def posterior(problem):
+    lin, *_ = problem
+    return sample_posterior(lin, free=FREE, n_walkers=16, n_steps=2000, seed=4)
+
+
+def test_posterior_matches_closed_form(problem, posterior):
+    lin, idx, m, C = problem
+    res = posterior
+    assert res.success, res.message
+    sd = np.sqrt(np.diag(C))
+    # Monte Carlo error of the mean: sd / sqrt(ESS); 4 of them is a seeded, generous bound
+    assert np.all(np.abs(res.mean - m) < 4 * sd / np.sqrt(res.ess_bulk))
+    np.testing.assert_allclose(np.sqrt(np.diag(res.covariance)), sd, rtol=0.1)
+    corr = res.covariance / np.outer(np.sqrt(np.diag(res.covariance)), np.sqrt(np.diag(res.covariance)))
+    np.testing.assert_allclose(corr, C / np.outer(sd, sd), atol=0.08)
+    # a KS test on a thinned marginal (about independent draws)
+    thin = int(np.ceil(np.max(res.tau)))
+    x = res.tree["posterior"]["theta"].values[:, ::thin, 0].ravel()
+    assert stats.kstest(x, stats.norm(m[0], sd[0]).cdf).pvalue > 1e-3
+    # the 90% interval of the draws matches the Gaussian one
+    np.testing.assert_allclose(res.quantiles[[0, 2]], m + np.outer([-1.6449, 1.6449], sd), atol=0.15 * sd.max())
+    np.testing.assert_array_equal(np.flatnonzero(res.free), np.sort(idx))
+
+
+def test_tree_groups_dims_and_loo(tmp_path, posterior, problem):
+    lin, idx, *_ = problem
+    dt = posterior.tree
+    for g in ("posterior", "log_likelihood", "sample_stats", "observed_data", "constant_data"):
+        assert g in dt.children
+    th = dt["posterior"]["theta"]
+    assert th.dims == ("chain", "draw", "param")
+    assert list(th["param"].values) == [lin.machine.layout.names[i] for i in idx]
+    assert dt["log_likelihood"]["y"].dims == ("chain", "draw", "pose")
+    assert dt["log_likelihood"]["y"].shape[2] == lin.n_poses
+    # the pointwise log-likelihood is the Gaussian density of each pose at each draw
+    draw = th.values[0, -1]
+    theta = np.zeros(lin.n_params)
+    theta[idx] = draw
+    r = (lin.y_measured - lin.predict(theta).y) / lin.sigma
+    ll = stats.norm.logpdf(r).sum(axis=1) - np.log(lin.sigma).sum()
+    np.testing.assert_allclose(dt["log_likelihood"]["y"].values[0, -1], ll, rtol=1e-10)
+    with warnings.catch_warnings():
+        # 6 poses for 4 parameters: single poses are influential (Pareto k > 0.7 is a true finding here)
+        warnings.simplefilter("ignore", UserWarning)
+        loo = az.loo(dt)
+    assert np.isfinite(loo.elpd)
+    path = write_posterior(posterior, tmp_path / "post.nc", thin=1)
+    back = az.from_netcdf(path)
+    np.testing.assert_array_equal(back["posterior"]["theta"].values, th.values)
+    thin = max(1, int(np.max(posterior.tau) // 4))
+    back = az.from_netcdf(write_posterior(posterior, tmp_path / "thin.nc"))
+    np.testing.assert_array_equal(back["posterior"]["theta"].values, th.values[:, ::thin])
+    assert back["log_likelihood"]["y"].shape[1] == th.shape[1] // thin + (th.shape[1] % thin > 0)
+    assert not list(tmp_path.glob(".*tmp"))
+    d = posterior.to_dict()
+    assert d["method"] == "mcmc" and len(d["interval_90"]) == len(FREE)
+    assert "R-hat" in posterior.report()
+
+
+def test_refuses_unconverged(problem, tmp_path):
+    lin, *_ = problem
+    res = sample_posterior(lin, free=FREE, n_walkers=16, n_steps=120, seed=1)
+    assert not res.success
+    assert "more steps" in res.message and res.more_steps > 0
+    assert np.all(np.isnan(res.std))
+    assert "NOT CONVERGED" in res.report()
+    with pytest.raises(InputError, match="not converged"):
+        write_posterior(res, tmp_path / "p.nc")
+
+
+def test_vectorised_log_prob_matches_one_by_one(prs3, sim6):
+    model = MeasurementModel.from_recording(prs3, sim6.recording).subset(np.arange(5))
+    prior = prior_from_machine(prs3)
+    idx = prs3.layout.indices(FREE)
+    f = log_posterior_function(model, prior, idx)
+    X = prior.sample(3, np.random.default_rng(0))[:, idx] * 0.3
+    both = f(X)
+    one = np.vstack([f(x[None]) for x in X])
+    np.testing.assert_allclose(both, one, rtol=1e-10)
+    assert both.shape == (3, 1 + model.n_poses)
+
+
+def test_linear_surrogate_on_the_machine(prs3, sim6):
+    model = MeasurementModel.from_recording(prs3, sim6.recording, dof=3).subset(np.arange(8))
+    res = sample_posterior(model, free=FREE, n_walkers=10, n_steps=1500, seed=2, surrogate="linear")
+    assert "linearisation error" in res.message
+    assert res.success, res.message
