@@ -15,8 +15,9 @@ Decision rule (docs/diagnose.md):
 4. Verdict: the first selected effect when the final model explains the data
    (chi-square p > 0.001) or most (>= 80 %) of the excess chi-square of the
    geometric model; ``"unexplained"`` when effects were found but a large
-   structured excess remains, or none was found and the geometric model
-   fails the chi-square test (p < 0.001); ``"none"`` otherwise.
+   structured excess remains, or none was found and either the geometric
+   model fails the chi-square test (p < 0.001) or the location tests find
+   a significant dependence (Holm, family-wise 1 %); ``"none"`` otherwise.
 """
 
 from __future__ import annotations
@@ -217,7 +218,8 @@ def diagnose(
                 f"chi-square; a structured mismatch remains (final chi-square p = {p_f:.2g})"
             )
     else:
-        verdict = "unexplained" if p0 < P_MISMATCH else "none"
+        loc = location.strongest
+        verdict = "unexplained" if p0 < P_MISMATCH or (loc is not None and loc.significant) else "none"
 
     sel_names = [c.effect.name for c in selected]
     trials = []
