@@ -50,7 +50,8 @@ def random_machine_text(rng: np.random.Generator) -> str:
     ang = np.deg2rad(np.array([0.0, 120.0, 240.0]) + rng.uniform(-8, 8, 3) + rng.uniform(0, 360))
     tool = [rng.uniform(-30, 30), rng.uniform(-30, 30), -rng.uniform(40, 220)]
     lo = rng.uniform(300, 500)
-    stroke = rng.uniform(60, 160)
+    # stroke relative to the platform radius keeps the platform tilt below about 25 degrees (no near-singular poses)
+    stroke = rng.uniform(0.3, 0.7) * ra
     sp = rng.uniform(0.002, 0.01)
     lines = ['kind = "3-PRS"', 'name = "random 3-PRS"', ""]
     for a in ang:
@@ -143,7 +144,14 @@ def run_case(case: dict) -> dict:
     sim = simulate_with_effects(machine, case["n"], seed=case["seed"], dof=case["dof"], effects=effects,
                                 record=case["aux"], extra=extra)
     t0 = time.perf_counter()
-    d = diagnose(machine, sim.recording, seed=case["seed"] % 1000)
+    try:
+        d = diagnose(machine, sim.recording, seed=case["seed"] % 1000)
+    except Exception as exc:  # a failure is a result of the study, not its end
+        return {"cls": cls, "i": case["i"], "n_poses": case["n"], "dof": case["dof"], "magnitude": case["mag"],
+                "aux": "+".join(case["aux"]), "sigma_position": machine.noise.sigma_position,
+                "verdict": f"error: {type(exc).__name__}", "selected": "", "located": "", "located_significant": False,
+                "rms_cv_geometric": float("nan"), "rms_cv_final": float("nan"), "contribution": float("nan"),
+                "p_geometric": float("nan"), "seconds": time.perf_counter() - t0}
     secs = time.perf_counter() - t0
     trial = {e.name: e for e in d.effects}
     true_after = trial[cls].rms_after if cls in trial else float("nan")

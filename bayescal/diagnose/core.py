@@ -31,7 +31,7 @@ from scipy.stats import chi2 as chi2_dist
 from ..effects import EFFECTS, get_effect
 from ..effects.base import Effect, Features
 from ..effects.model import EffectFit, actuator_residual, effect_residual, fit_map
-from ..errors import InputError
+from ..errors import InputError, KinematicsError
 from ..io.recording import Recording
 from ..machines.base import Machine
 from ..measurement import MeasurementModel
@@ -166,10 +166,18 @@ def diagnose(
     cv0 = _cv_rms(model, [], folds, fit0.theta, None)
 
     single: dict[str, tuple[EffectFit, float, float]] = {}
-    for c in cands:
-        fit = fit_map(model, [(c.effect, c.features)], theta0=fit0.theta)
-        ev = _evidence(fit, fit0, c.penalty)
-        cv = _cv_rms(model, [c], folds, fit.theta, fit.eta)
+    failed: dict[str, str] = {}
+    for c in list(cands):
+        try:
+            fit = fit_map(model, [(c.effect, c.features)], theta0=fit0.theta)
+            ev = _evidence(fit, fit0, c.penalty)
+            cv = _cv_rms(model, [c], folds, fit.theta, fit.eta)
+        except KinematicsError as exc:
+            # the fitted effect moved a pose out of the workspace: it cannot be the explanation
+            failed[c.effect.name] = f"fit failed: {exc}"
+            skipped.append((c.effect.name, failed[c.effect.name]))
+            cands.remove(c)
+            continue
         single[c.effect.name] = (fit, ev, cv)
 
     # greedy forward selection
@@ -185,8 +193,11 @@ def diagnose(
                 if single[c.effect.name][1] < DECISIVE:
                     continue  # not decisive alone: not worth a combined fit
                 combo = selected + [c]
-                fit = fit_map(model, [(x.effect, x.features) for x in combo], theta0=cur_fit.theta,
-                              eta0=np.concatenate([cur_fit.eta, [p.prior_mean for p in c.effect.params(machine, c.features)]]))
+                try:
+                    fit = fit_map(model, [(x.effect, x.features) for x in combo], theta0=cur_fit.theta,
+                                  eta0=np.concatenate([cur_fit.eta, [p.prior_mean for p in c.effect.params(machine, c.features)]]))
+                except KinematicsError:
+                    continue
                 ev = _evidence(fit, cur_fit, c.penalty)
                 cv = None
             if ev > DECISIVE and (best is None or ev > best[2]):
@@ -196,7 +207,10 @@ def diagnose(
         c, fit, ev, cv = best
         if cv is None:
             combo = selected + [c]
-            cv = _cv_rms(model, combo, folds, fit.theta, fit.eta)
+            try:
+                cv = _cv_rms(model, combo, folds, fit.theta, fit.eta)
+            except KinematicsError:
+                cv = np.inf
         if not cv < cur_cv:
             break
         selected.append(c)

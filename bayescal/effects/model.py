@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import KinematicsError
+from ..machines.base import ToolPoses
 from ..measurement import MeasurementModel, Prediction
 from .base import Effect, EffectParam, Features
 
@@ -105,9 +106,35 @@ def _dq(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, shape)
     return dq
 
 
+def _merge(pred: Prediction, other: Prediction) -> Prediction:
+    """Per pose, ``pred`` where it converged, else ``other`` where that did."""
+    take = ~pred.success & other.success
+    if not take.any():
+        return pred
+    st, ost = pred.poses.state, other.poses.state
+
+    def pick(a, b):
+        return np.where(take.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+
+    state = type(st)(**{k: pick(getattr(st, k), getattr(ost, k)) for k in st.__dataclass_fields__})
+    poses = ToolPoses(
+        pick(pred.poses.position, other.poses.position), pick(pred.poses.rotation, other.poses.rotation),
+        pred.success | take, tuple(o if t else m for m, o, t in zip(pred.poses.message, other.poses.message, take)), state,
+    )
+    return Prediction(y=pick(pred.y, other.y), poses=poses)
+
+
 def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess) -> tuple[MeasurementModel, Prediction]:
     sub = replace(model, q=q_eff)
     pred = sub.predict(theta, guess=guess)
+    if not pred.success.all():
+        # Newton from a given start can miss a pose that a nearby start solves: retry from the
+        # solution at the commanded q (effects move q by microns), then from the assembly-branch start
+        base = model.predict(theta)
+        if base.success.any():
+            pred = _merge(pred, sub.predict(theta, guess=base.poses))
+        if not pred.success.all():
+            pred = _merge(pred, replace(sub, guess=None).predict(theta, guess=None))
     if not pred.success.all():
         i = int(np.flatnonzero(~pred.success)[0])
         raise KinematicsError(f"pose {i + 1}: {pred.poses.message[i]} (with the effect applied)")
