@@ -106,9 +106,9 @@ class SuddenStep:
         return q, th
 
 
-def make_case(cls: str, i: int, seed0: int) -> dict:
+def make_case(cls: str, i: int, seed0: int, n_range=(60, 200)) -> dict:
     rng = np.random.default_rng([seed0, CLASSES.index(cls), i])
-    n = int(rng.integers(60, 201))
+    n = int(rng.integers(n_range[0], n_range[1] + 1))
     dof = int(rng.choice([6, 5, 3]))
     mag = None
     if cls in MAGNITUDES:
@@ -252,14 +252,15 @@ def plot_confusion(rows: list[dict], path: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="2 recordings per class (a smoke test)")
+    ap.add_argument("--quick", action="store_true", help="1 recording of 60-70 poses per class (a smoke test)")
     ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "diagnose_concealed"))
     ap.add_argument("--per-class", type=int, default=None, help="recordings per class (default 30; 2 with --quick)")
     ap.add_argument("--workers", type=int, default=1, help="dask worker processes (default 1: run in this process)")
     ap.add_argument("--seed", type=int, default=2026)
     args = ap.parse_args(argv)
-    per = args.per_class or (2 if args.quick else 30)
-    cases = [make_case(c, i, args.seed) for c in CLASSES for i in range(per)]
+    per = args.per_class or (1 if args.quick else 30)
+    n_range = (60, 70) if args.quick else (60, 200)
+    cases = [make_case(c, i, args.seed, n_range) for c in CLASSES for i in range(per)]
     if args.workers > 1:
         from dask.distributed import Client, LocalCluster
 
