@@ -83,10 +83,13 @@ class Location:
     channels : tuple of ChannelDependence
     residual : ndarray, shape (n_poses, dof)
         Whitened residuals of the geometric fit that were tested.
+    dq_residual : ndarray, shape (n_poses, n_actuators), optional
+        The residuals mapped to actuator space, mm.
     """
 
     channels: tuple[ChannelDependence, ...]
     residual: NDArray
+    dq_residual: NDArray | None = None
 
     @property
     def strongest(self) -> ChannelDependence | None:
@@ -223,5 +226,6 @@ def locate(
         out.append([f"periodic_q{i + 1}", "periodic", P, p, f"pitch {1 / freqs[k]:.3g} mm", q[:, i]])
     adj = holm(np.array([o[3] for o in out]))
     deps = [ChannelDependence(o[0], o[1], float(o[2]), float(o[3]), float(a), o[4], o[5]) for o, a in zip(out, adj)]
-    deps.sort(key=lambda d: (not d.significant, d.p_adjusted if d.significant else 0.0, -d.strength))
-    return Location(tuple(deps), residual_whitened)
+    # significant dependences first, strongest first; then the rest by strength
+    deps.sort(key=lambda d: (not d.significant, -d.strength))
+    return Location(tuple(deps), residual_whitened, dq_residual)

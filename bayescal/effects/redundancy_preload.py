@@ -12,8 +12,12 @@ __all__ = ["RedundancyPreload", "machine_dof"]
 
 
 def machine_dof(machine: Machine) -> int:
-    """Degrees of freedom of the platform: the machine's ``n_dof`` if it declares one, else its actuator count."""
-    return int(getattr(machine, "n_dof", machine.n_actuators))
+    """Degrees of freedom of the platform: the machine's ``n_dof`` (or ``dof``) if it declares one, else its actuator count."""
+    for attr in ("n_dof", "dof"):
+        value = getattr(machine, attr, None)
+        if isinstance(value, (int, np.integer)) and value > 0:
+            return int(value)
+    return machine.n_actuators
 
 
 class RedundancyPreload(Effect):

@@ -61,14 +61,23 @@ def plot_diagnosis(diagnosis, out_dir: str | os.PathLike, *, top: int = 6) -> li
             pitch = float(c.detail.split()[1])
             x = np.mod(x, pitch)
             label = f"{c.channel[9:]} modulo {pitch:.3g} mm"
-        for k, col in enumerate("xyz"):
-            ax.plot(x, res[:, k], ".", ms=3, label=col)
+        act = c.channel.rsplit("q", 1)[-1] if c.kind in ("actuator", "direction", "periodic") else ""
+        dq = diagnosis.location.dq_residual
+        if act.isdigit() and dq is not None:
+            # the actuator's own residual (mm -> um): backlash and periodic errors show directly
+            if c.kind == "direction":
+                x = x + np.random.default_rng(0).uniform(-0.15, 0.15, len(x))  # jitter the three levels apart
+            ax.plot(x, 1e3 * dq[:, int(act) - 1], ".", ms=3, color="C3")
+            ax.set_ylabel(f"actuator-space residual q{act} (um)")
+        else:
+            for k, col in enumerate("xyz"):
+                ax.plot(x, res[:, k], ".", ms=3, label=col)
+            ax.set_ylabel("whitened residual")
+            ax.legend(fontsize=7)
         ax.set_xlabel(label)
-        ax.set_ylabel("whitened residual")
         ax.set_title(f"{c.channel}: {c.strength:.2f} (p={c.p_adjusted:.1g})", fontsize=9)
     for ax in list(axes.flat)[len(chans):]:
         ax.axis("off")
-    axes.flat[0].legend(fontsize=7)
     fig.suptitle(f"residuals of the geometric fit - verdict: {diagnosis.verdict}", fontsize=10)
     fig.tight_layout()
     paths = [_save(fig, out / "residuals_vs_channels.png")]
