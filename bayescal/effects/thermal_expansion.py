@@ -21,25 +21,27 @@ def warmup_temperature(time_s: NDArray, *, rise_K: float = 5.0, tau_s: float = 1
 
 
 class ThermalExpansion(Effect):
-    """Lengths grow with temperature: the screws (or scales) of the actuators.
+    """Lengths grow with temperature: actuator screws/scales, rails, links and frame.
 
-    Physics: a screw fixed at its bearing (the actuator zero) expands by
-    ``alpha dT`` per unit length, so the slider at commanded ``q_i`` is at
+    Physics: a screw fixed at its bearing expands by ``alpha dT`` per unit
+    length, so the slider at commanded ``q_i`` is displaced by
+    ``alpha dT q_i``; growth of the rail supports, links and frame adds a
+    displacement along the actuator that does not depend on ``q_i``.  With
+    ``q0`` the middle of ``q_limits`` (which decorrelates the two terms):
 
-        dq_i = alpha_i (T - 20 degC) q_i          (temperature channel ``temp_C``)
+        dq_i = (T - 20 degC) (g_i + alpha_i (q_i - q0_i))      (channel ``temp_C``)
 
-    Parameters ``alpha.q<i>`` in um/m/K (steel: 11-12; cast iron 10;
-    aluminium 23; a screw warmed by its own nut heats more than the air, so
-    an apparent 5-30 um/m/K per degree of *air* temperature is usual).
-    When only ``time_s`` is recorded, the temperature follows a warm-up
-    curve from a cold start at the reference temperature,
+    Parameters ``drift.q<i>`` (um/K: the whole chain's growth at mid-stroke,
+    e.g. 11.5 um/m/K x 0.5 m = 6 um/K for steel) and ``alpha.q<i>`` (um/m/K:
+    steel 11-12, cast iron 10, aluminium 23; a screw warmed by its own nut
+    shows an apparent 5-30 per degree of *air* temperature).  When only
+    ``time_s`` is recorded, the temperature follows a warm-up curve from a
+    cold start at the reference temperature,
 
-        dq_i = e_i (1 - exp(-t / tau)) q_i
+        dq_i = (1 - exp(-t / tau)) (s_i + e_i (q_i - q0_i))
 
-    with parameters ``strain.q<i>`` (um/m, the strain reached when warm) and
-    ``tau`` (s, the warm-up time constant, 10-60 minutes on machine tools).
-    Link and frame growth act on the geometry instead; to first order they
-    look like a drift of the actuator offsets and are partly absorbed here.
+    with ``shift.q<i>`` (um), ``strain.q<i>`` (um/m) and ``tau`` (s, the
+    warm-up time constant, 10-60 minutes on machine tools).
     """
 
     name = "thermal_expansion"
@@ -53,23 +55,28 @@ class ThermalExpansion(Effect):
         return None
 
     def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:
+        q0 = machine.home_q() if machine.q_limits is not None else q.mean(axis=0)
         if "temp_C" in aux:
             dT = np.asarray(aux["temp_C"], float) - REFERENCE_TEMPERATURE_C
-            return Features({"x": dT, "q": q}, {"mode": "temperature"})
+            return Features({"x": dT, "q": q}, {"mode": "temperature", "q0": q0})
         if "time_s" in aux:
             t = np.asarray(aux["time_s"], float)
             t0 = t[measurement_sequence(order, len(t))[0]] if len(t) else 0.0
             span = float(np.ptp(t)) if len(t) else 1.0
-            return Features({"t": t - t0, "q": q}, {"mode": "time", "span": max(span, 1.0)})
+            return Features({"t": t - t0, "q": q}, {"mode": "time", "span": max(span, 1.0), "q0": q0})
         raise InputError("thermal_expansion: the recording has neither a temp_C nor a time_s channel")
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
         m = machine.n_actuators
         if features.const["mode"] == "temperature":
-            return tuple(EffectParam(f"alpha.q{i + 1}", "um/m/K", 20.0) for i in range(m))
+            return tuple(EffectParam(f"drift.q{i + 1}", "um/K", 10.0) for i in range(m)) + tuple(
+                EffectParam(f"alpha.q{i + 1}", "um/m/K", 20.0) for i in range(m)
+            )
         span = features.const["span"]
-        return tuple(EffectParam(f"strain.q{i + 1}", "um/m", 100.0) for i in range(m)) + (
-            EffectParam("tau", "s", span, prior_mean=span / 2),
+        return (
+            tuple(EffectParam(f"shift.q{i + 1}", "um", 50.0) for i in range(m))
+            + tuple(EffectParam(f"strain.q{i + 1}", "um/m", 100.0) for i in range(m))
+            + (EffectParam("tau", "s", span, prior_mean=span / 2),)
         )
 
     def _shape(self, features: Features, eta: NDArray):
@@ -81,12 +88,17 @@ class ThermalExpansion(Effect):
         e = np.exp(-t / tau)
         return 1.0 - e, -e * t / tau**2
 
+    @staticmethod
+    def _growth(features: Features, eta: NDArray) -> NDArray:
+        """Per unit of the driving term: ``g + alpha (q - q0)`` in mm (per K or per warm-up)."""
+        q = features.per_pose["q"]
+        m = q.shape[1]
+        return 1e-3 * eta[None, :m] + 1e-6 * eta[None, m : 2 * m] * (q - features.const["q0"][None, :])
+
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
         eta = np.asarray(eta, float)
         x, _ = self._shape(features, eta)
-        q = features.per_pose["q"]
-        m = q.shape[1]
-        return 1e-6 * eta[None, :m] * x[:, None] * q
+        return x[:, None] * self._growth(features, eta)
 
     def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
         eta = np.asarray(eta, float)
@@ -94,14 +106,17 @@ class ThermalExpansion(Effect):
         q = features.per_pose["q"]
         n, m = q.shape
         J = np.zeros((n, m, len(eta)))
-        J[:, np.arange(m), np.arange(m)] = 1e-6 * x[:, None] * q
+        J[:, np.arange(m), np.arange(m)] = 1e-3 * x[:, None]
+        J[:, np.arange(m), m + np.arange(m)] = 1e-6 * x[:, None] * (q - features.const["q0"][None, :])
         if dx is not None:
-            J[:, :, m] = 1e-6 * eta[None, :m] * dx[:, None] * q
+            J[:, :, 2 * m] = dx[:, None] * self._growth(features, eta)
         return J
 
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
-        vals = magnitude * rng.uniform(0.7, 1.3, machine.n_actuators)
+        """Screws of expansion ``magnitude`` (um/m/K, +-30 %) fixed at ``q = 0``: drift ``alpha q0``."""
+        alpha = magnitude * rng.uniform(0.7, 1.3, machine.n_actuators)
+        drift = 1e-3 * alpha * features.const["q0"]  # um/m/K x mm -> um/K
         if features.const["mode"] == "time":
-            # the strain reached when warm for a 5 K rise; a 25-minute time constant
-            return np.append(vals * 5.0, 1500.0)
-        return vals
+            # what a 5 K rise gives when warm; a 25-minute time constant
+            return np.concatenate([5.0 * drift, 5.0 * alpha, [1500.0]])
+        return np.concatenate([drift, alpha])
