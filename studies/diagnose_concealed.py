@@ -145,7 +145,7 @@ def run_case(case: dict) -> dict:
                                 record=case["aux"], extra=extra)
     t0 = time.perf_counter()
     try:
-        d = diagnose(machine, sim.recording, seed=case["seed"] % 1000)
+        d = diagnose(machine, sim.recording, seed=case["seed"] % 1000, n_perm=case.get("n_perm", 199))
     except Exception as exc:  # a failure is a result of the study, not its end
         return {"cls": cls, "i": case["i"], "n_poses": case["n"], "dof": case["dof"], "magnitude": case["mag"],
                 "aux": "+".join(case["aux"]), "sigma_position": machine.noise.sigma_position,
@@ -257,10 +257,17 @@ def main(argv=None) -> int:
     ap.add_argument("--per-class", type=int, default=None, help="recordings per class (default 30; 2 with --quick)")
     ap.add_argument("--workers", type=int, default=1, help="dask worker processes (default 1: run in this process)")
     ap.add_argument("--seed", type=int, default=2026)
+    ap.add_argument("--classes", default=",".join(CLASSES), help="comma-separated subset of: " + ", ".join(CLASSES))
     args = ap.parse_args(argv)
     per = args.per_class or (1 if args.quick else 30)
     n_range = (60, 70) if args.quick else (60, 200)
-    cases = [make_case(c, i, args.seed, n_range) for c in CLASSES for i in range(per)]
+    classes = [c.strip() for c in args.classes.split(",") if c.strip()]
+    bad = [c for c in classes if c not in CLASSES]
+    if bad:
+        ap.error(f"--classes: unknown {', '.join(bad)}")
+    cases = [make_case(c, i, args.seed, n_range) for c in classes for i in range(per)]
+    for c in cases:
+        c["n_perm"] = 49 if args.quick else 199
     if args.workers > 1:
         from dask.distributed import Client, LocalCluster
 

@@ -20,7 +20,7 @@ CLEAR = [
 
 @pytest.mark.parametrize("name,magnitude,aux", CLEAR)
 def test_effect_named_and_parameters_recovered(prs3, name, magnitude, aux):
-    sim = simulate_with_effects(prs3, 100, seed=7, dof=6, effects=[(name, magnitude)], record=aux)
+    sim = simulate_with_effects(prs3, 80, seed=7, dof=6, effects=[(name, magnitude)], record=aux)
     d = diagnose(prs3, sim.recording, seed=1, n_perm=49)
     assert d.verdict == name
     assert d.selected[0] == name
@@ -34,7 +34,7 @@ def test_effect_named_and_parameters_recovered(prs3, name, magnitude, aux):
 
 
 def test_clean_data_gives_none(prs3):
-    sim = simulate_with_effects(prs3, 100, seed=8, dof=6, record=("time_s", "temp_C", "payload_kg"))
+    sim = simulate_with_effects(prs3, 80, seed=8, dof=6, record=("time_s", "temp_C", "payload_kg"))
     d = diagnose(prs3, sim.recording, seed=1, n_perm=49)
     assert d.verdict == "none"
     assert not any(e.detected for e in d.effects)
