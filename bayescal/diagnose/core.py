@@ -243,7 +243,7 @@ def diagnose(
         params = _params(cur_fit if name in sel_names else fit, name)
         note = "look-elsewhere penalty %.1f nats" % c.penalty if c.penalty else ""
         trials.append(EffectTrial(name, name in sel_names, float(ev), params, cv0, cv, note))
-    trials.sort(key=lambda t: (not t.detected, -t.evidence))
+    trials.sort(key=lambda t: -t.evidence)  # FORMATS.md: most evident first
     return Diagnosis(
         verdict=verdict,
         effects=tuple(trials),
