@@ -100,3 +100,32 @@ def test_parse_effect_spec():
         parse_effect_spec("wobble:3")
     with pytest.raises(InputError, match="magnitude"):
         parse_effect_spec("backlash:lots")
+
+
+@pytest.mark.parametrize("name", ["joint_compliance", "screw_periodic_error", "thermal_expansion"])
+def test_measurement_rows_jacobian_of_effect_parameters(prs3, sim6, name):
+    # d h / d eta = (d h / d q) (d dq / d eta), against finite differences of the full model (6-DOF rows)
+    from bayescal.effects.model import effect_residual
+
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    n = model.n_poses
+    aux = {"temp_C": np.linspace(20, 26, n), "payload_kg": np.linspace(0, 20, n)}
+    eff = get_effect(name)
+    theta = np.zeros(prs3.n_params)
+    feats = eff.features(prs3, model.q, theta, aux, None, prs3.forward(model.q))
+    params = eff.params(prs3, feats)
+    eta = np.array([p.prior_mean + 0.5 * p.prior_sd for p in params])
+    q_eff = model.q + eff.delta_q(feats, eta)
+    from dataclasses import replace
+
+    sub = replace(model, q=q_eff)
+    pred = sub.predict(theta)
+    J = np.einsum("ndm,nmk->ndk", sub.rows_jacobian(prs3.actuator_jacobian(q_eff, theta, pred.poses), pred),
+                  eff.delta_q_jacobian(feats, eta))
+    for k, p in enumerate(params):
+        h = 1e-3 * p.prior_sd
+        e = np.zeros(len(eta))
+        e[k] = h
+        # residual = y - h, so its derivative is -J
+        fd = -(effect_residual(model, [(eff, feats)], theta, eta + e) - effect_residual(model, [(eff, feats)], theta, eta - e)) / (2 * h)
+        np.testing.assert_allclose(J[:, :, k], fd, atol=1e-6 * max(np.abs(fd).max(), 1e-9) + 1e-10)
