@@ -224,7 +224,24 @@ class MeasurementModel:
         platform's small-rotation Jacobian.
         """
         Jt = self.machine.tool_jacobian(self.q, theta, prediction.poses)
-        n = self.n_poses
+        return self.rows_jacobian(Jt, prediction)
+
+    def rows_jacobian(self, Jt: NDArray, prediction: Prediction) -> NDArray:
+        """Measurement-row derivative from a tool-pose derivative.
+
+        Parameters
+        ----------
+        Jt : ndarray, shape (n_poses, 6, k)
+            Tool point (rows 0-2) and small platform rotation (rows 3-5) per
+            unit of ``k`` variables (geometric errors, actuator positions, ...).
+        prediction : Prediction
+            At which the rows are linearised.
+
+        Returns
+        -------
+        ndarray, shape (n_poses, dof, k)
+        """
+        n = Jt.shape[0]
         J = np.empty((n, self.dof, Jt.shape[2]))
         J[:, :3] = Jt[:, :3]
         if self.dof == 6:

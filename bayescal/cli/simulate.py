@@ -18,6 +18,13 @@ Simulate a measurement session: draw a true machine from the tolerances
 poses uniformly within [workspace] q_limits, and record what the instrument
 reads with its noise ([measurement] sigma_position, sigma_angle).
 
+Physics beyond the geometric model can be concealed in the recording with
+--effect NAME[:magnitude] (several allowed; magnitudes in the effect's unit:
+joint_compliance um/N, thermal_expansion um/m/K, backlash um,
+screw_periodic_error um), and auxiliary channels recorded with --aux
+(time_s; temp_C, a warm-up of 5 K; payload_kg, 0-25 kg changed between poses).
+Temperature drives thermal_expansion even when it is not recorded.
+
 Writes the recording (FORMATS.md CSV) and, beside it, the truth as JSON
 (OUT with suffix .truth.json) and the true machine file (.truth.toml).
 """
@@ -26,6 +33,9 @@ EXAMPLES = """\
 examples:
   bayescal simulate --machine examples/prs3/machine.toml --poses 36 --seed 1 --out rec.csv
   bayescal simulate --machine m.toml --poses 60 --seed 7 --dof 5 --tolerance-scale 2 --out rec5.csv
+  bayescal simulate --machine m.toml --poses 160 --seed 3 --effect backlash:30 --out rec.csv
+  bayescal simulate --machine m.toml --poses 160 --seed 3 --effect joint_compliance:0.5 --aux payload_kg --out rec.csv
+  bayescal simulate --machine m.toml --poses 120 --seed 4 --effect thermal_expansion --aux time_s,temp_C --out rec.csv
 """
 
 
@@ -40,6 +50,11 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="recording CSV to write")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), default=6, help="measurement type (default 6)")
     p.add_argument("--tolerance-scale", type=float, default=1.0, help="multiply the tolerances by this (default 1)")
+    p.add_argument(
+        "--effect", action="append", default=[], metavar="NAME[:MAGNITUDE]",
+        help="conceal a physical effect (repeatable): joint_compliance, thermal_expansion, backlash, screw_periodic_error",
+    )
+    p.add_argument("--aux", default="", help="auxiliary channels to record, comma-separated: time_s,temp_C,payload_kg")
     p.add_argument("--truth", help="where to write the truth JSON (default: OUT with .truth.json)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
@@ -53,9 +68,19 @@ def run(args) -> int:
         raise InputError(f"--poses: expected a positive number, got {args.poses}")
     if not args.tolerance_scale > 0:
         raise InputError(f"--tolerance-scale: expected a positive number, got {args.tolerance_scale}")
-    sim = simulate_recording(
-        machine, args.poses, seed=args.seed, dof=args.dof, tolerance=machine.tolerance * args.tolerance_scale
-    )
+    aux = [c.strip() for c in args.aux.split(",") if c.strip()]
+    if args.effect or aux:
+        from ..effects.simulate import parse_effect_spec, simulate_with_effects
+
+        specs = [parse_effect_spec(s) for s in args.effect]
+        sim = simulate_with_effects(
+            machine, args.poses, seed=args.seed, dof=args.dof, effects=specs, record=aux,
+            tolerance=machine.tolerance * args.tolerance_scale,
+        )
+    else:
+        sim = simulate_recording(
+            machine, args.poses, seed=args.seed, dof=args.dof, tolerance=machine.tolerance * args.tolerance_scale
+        )
     out = Path(args.out)
     truth = Path(args.truth) if args.truth else out.with_suffix(".truth.json")
     write_recording(out, sim.recording)

@@ -132,6 +132,35 @@ class Machine(ABC):
             ``R(theta + d) = exp([J_rot d]x) R(theta)``.
         """
 
+    def actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
+        """Derivative of the tool pose with respect to the actuator positions ``q``.
+
+        The default is central finite differences of :meth:`forward` (step
+        ``1e-4`` of the actuator's unit, warm-started at ``poses``), so that
+        every kind has one; kinds override it with an analytic version.
+
+        Returns
+        -------
+        ndarray, shape (n_poses, 6, n_actuators)
+            Rows 0-2: tool point (mm per mm or per rad); rows 3-5: small
+            rotation of the platform in the base frame, as in
+            :meth:`tool_jacobian`.
+        """
+        from ..geometry import so3_log
+
+        q = self.check_q(q)
+        n, m = q.shape
+        h = 1e-4
+        J = np.empty((n, 6, m))
+        for i in range(m):
+            dq = np.zeros(m)
+            dq[i] = h
+            plus = self.forward(q + dq, theta, guess=poses)
+            minus = self.forward(q - dq, theta, guess=poses)
+            J[:, :3, i] = (plus.position - minus.position) / (2 * h)
+            J[:, 3:, i] = so3_log(plus.rotation @ np.swapaxes(minus.rotation, -1, -2)) / (2 * h)
+        return J
+
     @abstractmethod
     def to_toml(self, theta: ArrayLike | None = None) -> str:
         """Machine file text of the geometry ``nominal + theta`` (errors folded in)."""

@@ -381,6 +381,30 @@ class Prs3(Machine):
         J[:, 3:] = dx[:, 3:]
         return J
 
+    def actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
+        """Tool-pose derivative with respect to the slider positions, analytic.
+
+        Implicit function theorem on ``F(x, q) = 0``: ``dx/dq = -F_x^{-1} F_q``
+        with ``dF1_i/dq_i = -d_i . u_i`` and ``dF2_i/dq_i = -r_i . u_i``
+        (``d_i = A_i - C_i``); the tool point adds ``-[R t]x dw/dq``.
+        Returns shape (n_poses, 6, 3); see :meth:`Machine.actuator_jacobian`.
+        """
+        q = self.check_q(q)
+        n = q.shape[0]
+        g = self._geometry(self._theta_rows(theta, n))
+        st = poses.state
+        _, Fx, d, _ = self._constraints(q, g, st)
+        Fq = np.zeros((n, 6, 3))
+        for i in range(3):
+            Fq[:, 2 * i, i] = -np.einsum("nj,nj->n", d[:, i], g.u[:, i])
+            Fq[:, 2 * i + 1, i] = -np.einsum("nj,nj->n", g.r[:, i], g.u[:, i])
+        dx = -np.linalg.solve(Fx, Fq)
+        Rt = np.einsum("nij,nj->ni", st.R, g.t)
+        J = np.empty((n, 6, 3))
+        J[:, :3] = dx[:, :3] - skew(Rt) @ dx[:, 3:]
+        J[:, 3:] = dx[:, 3:]
+        return J
+
     # ------------------------------------------------------------------ output
     def to_toml(self, theta: ArrayLike | None = None) -> str:
         """Machine file of the geometry ``nominal + theta``, same kind and keys."""

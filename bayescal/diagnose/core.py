@@ -1,0 +1,268 @@
+"""Name, model and verify: fit each effect with the geometry, keep what the evidence and cross-validation support.
+
+Decision rule (docs/diagnose.md):
+
+1. The geometric model is fitted as the MAP estimate under the tolerance
+   prior (ridge, lam = 1, every parameter free).
+2. Each applicable effect is fitted jointly with the geometry.  Evidence =
+   log Bayes factor by the Laplace approximation, with the noise variance
+   scaled by ``max(1, chi2 / (N - edf))`` of the richer model (so that an
+   understated instrument noise does not turn into false detections), minus
+   a look-elsewhere penalty for parameters chosen by a search (the pitch).
+   Out of sample: K-fold leave-poses-out position RMS.
+3. Greedy forward selection: add the effect with the largest evidence while
+   it is decisive (> ln 100, Jeffreys) AND the cross-validated RMS improves.
+4. Verdict: the first selected effect when the final model explains the data
+   (chi-square p > 0.001) or most (>= 80 %) of the excess chi-square of the
+   geometric model; ``"unexplained"`` when effects were found but a large
+   structured excess remains, or none was found and either the geometric
+   model fails the chi-square test (p < 0.001) or the location tests find
+   a significant dependence (Holm, family-wise 1 %); ``"none"`` otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2 as chi2_dist
+
+from ..effects import EFFECTS, get_effect
+from ..effects.base import Effect, Features
+from ..effects.model import EffectFit, actuator_residual, effect_residual, fit_map
+from ..errors import InputError, KinematicsError
+from ..io.recording import Recording
+from ..machines.base import Machine
+from ..measurement import MeasurementModel
+from .locate import locate
+from .result import Diagnosis, EffectTrial, ParameterValue
+
+__all__ = ["diagnose", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION"]
+
+#: Decisive evidence, nats (Jeffreys: a Bayes factor above 100).
+DECISIVE = float(np.log(100.0))
+#: Chi-square p-value below which the model does not explain the data to within the noise.
+P_MISMATCH = 1e-3
+#: Share of the geometric model's excess chi-square an effect must explain to be named while misfit remains.
+EXPLAINED_FRACTION = 0.8
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    effect: Effect
+    features: Features
+    penalty: float
+
+
+def _cv_rms(model: MeasurementModel, cands: list[_Candidate], folds: list[NDArray], theta0, eta0) -> float:
+    """K-fold leave-poses-out position RMS (mm): fit on the other folds, predict the held-out poses."""
+    sq, count = 0.0, 0
+    n = model.n_poses
+    for test in folds:
+        train = np.setdiff1d(np.arange(n), test)
+        tr = model.subset(train)
+        fit = fit_map(tr, [(c.effect, c.features.subset(train)) for c in cands], theta0=theta0, eta0=eta0)
+        r = effect_residual(model.subset(test), [(c.effect, c.features.subset(test)) for c in cands], fit.theta, fit.eta)
+        sq += float(np.sum(r[:, :3] ** 2))
+        count += len(test)
+    return float(np.sqrt(sq / count))
+
+
+def _scale2(fit: EffectFit) -> float:
+    return max(1.0, fit.chi2 / max(fit.n_rows - fit.edf, 1.0))
+
+
+def _evidence(rich: EffectFit, poor: EffectFit, penalty: float) -> float:
+    s2 = _scale2(rich)
+    return rich.log_evidence(s2) - poor.log_evidence(s2) - penalty
+
+
+def _params(fit: EffectFit, name: str) -> tuple[ParameterValue, ...]:
+    s2 = _scale2(fit)
+    std = fit.std_eta(s2)
+    sl = dict(fit.effect_slices)[name]
+    return tuple(
+        ParameterValue(p.name, float(v), float(s), p.unit)
+        for p, v, s in zip(fit.params[sl], fit.eta[sl], std[sl])
+    )
+
+
+def _chi2_test(fit: EffectFit) -> tuple[float, float]:
+    dof = max(fit.n_rows - fit.edf, 1.0)
+    return dof, float(chi2_dist.sf(fit.chi2, dof))
+
+
+def diagnose(
+    machine: Machine,
+    recording: Recording,
+    *,
+    effects: list[str] | None = None,
+    seed: int = 0,
+    n_folds: int = 5,
+    n_perm: int = 199,
+) -> Diagnosis:
+    """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
+
+    Parameters
+    ----------
+    machine : Machine
+        Nominal machine (its ``[measurement]`` noise is the yardstick).
+    recording : Recording
+        Rows in measurement order.
+    effects : list of str, optional
+        Effects to try (forced: an effect that cannot be modelled is an
+        error).  Default: every effect of the library that applies.
+    seed : int
+        Seeds the permutation tests and the cross-validation folds.
+    n_folds : int
+        Folds of the leave-poses-out cross-validation.
+    n_perm : int
+        Permutations per location test.
+
+    Returns
+    -------
+    Diagnosis
+
+    Raises
+    ------
+    InputError
+        Unknown effect names, a forced effect that needs a missing channel,
+        too few poses for a forced effect or for cross-validation.
+    """
+    forced = effects is not None
+    names = list(EFFECTS) if effects is None else list(dict.fromkeys(effects))
+    lib = [get_effect(n) for n in names]  # raises on unknown names
+    model = MeasurementModel.from_recording(machine, recording)
+    n = model.n_poses
+    if n < 2 * n_folds:
+        raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
+    aux = dict(recording.aux)
+
+    fit0 = fit_map(model)
+    pred0 = model.predict(fit0.theta)
+    dq_res = actuator_residual(model, fit0.theta, fit0.residual, pred0)
+    location = locate(model.q, fit0.residual / model.sigma[None, :], dq_res, aux, recording.position, seed=seed, n_perm=n_perm)
+
+    cands: list[_Candidate] = []
+    skipped: list[tuple[str, str]] = []
+    for eff in lib:
+        why = eff.not_applicable(machine, aux)
+        if why is None:
+            f = eff.features(machine, model.q, fit0.theta, aux, None, pred0.poses)
+            f = eff.refine(f, model.q, dq_res)
+            k = len(eff.params(machine, f))
+            if n < eff.min_poses(k):
+                why = f"too few poses: {n} for {k} parameters (at least {eff.min_poses(k)} needed)"
+        if why is not None:
+            if forced:
+                raise InputError(f"{recording.path}: effect {eff.name} was asked for (--effects) but cannot be modelled: {why}")
+            skipped.append((eff.name, why))
+            continue
+        cands.append(_Candidate(eff, f, eff.occam_penalty(f, model.q)))
+
+    perm = np.random.default_rng(seed).permutation(n)
+    folds = [np.sort(perm[i::n_folds]) for i in range(n_folds)]
+    cv0 = _cv_rms(model, [], folds, fit0.theta, None)
+
+    single: dict[str, tuple[EffectFit, float, float]] = {}
+    failed: dict[str, str] = {}
+    for c in list(cands):
+        try:
+            fit = fit_map(model, [(c.effect, c.features)], theta0=fit0.theta)
+            ev = _evidence(fit, fit0, c.penalty)
+            cv = _cv_rms(model, [c], folds, fit.theta, fit.eta)
+        except KinematicsError as exc:
+            # the fitted effect moved a pose out of the workspace: it cannot be the explanation
+            failed[c.effect.name] = f"fit failed: {exc}"
+            skipped.append((c.effect.name, failed[c.effect.name]))
+            cands.remove(c)
+            continue
+        single[c.effect.name] = (fit, ev, cv)
+
+    # greedy forward selection
+    selected: list[_Candidate] = []
+    cur_fit, cur_cv = fit0, cv0
+    remaining = [c for c in cands]
+    while remaining:
+        best = None
+        for c in remaining:
+            if not selected:
+                fit, ev, cv = single[c.effect.name]
+            else:
+                if single[c.effect.name][1] < DECISIVE:
+                    continue  # not decisive alone: not worth a combined fit
+                combo = selected + [c]
+                try:
+                    fit = fit_map(model, [(x.effect, x.features) for x in combo], theta0=cur_fit.theta,
+                                  eta0=np.concatenate([cur_fit.eta, [p.prior_mean for p in c.effect.params(machine, c.features)]]))
+                except KinematicsError:
+                    continue
+                ev = _evidence(fit, cur_fit, c.penalty)
+                cv = None
+            if ev > DECISIVE and (best is None or ev > best[2]):
+                best = (c, fit, ev, cv)
+        if best is None:
+            break
+        c, fit, ev, cv = best
+        if cv is None:
+            combo = selected + [c]
+            try:
+                cv = _cv_rms(model, combo, folds, fit.theta, fit.eta)
+            except KinematicsError:
+                cv = np.inf
+        if not cv < cur_cv:
+            break
+        selected.append(c)
+        remaining.remove(c)
+        cur_fit, cur_cv = fit, cv
+
+    dof0, p0 = _chi2_test(fit0)
+    dof_f, p_f = _chi2_test(cur_fit)
+    excess = fit0.chi2 - dof0
+    explained = (fit0.chi2 - cur_fit.chi2) / excess if excess > 0 else 1.0
+    message = ""
+    if selected:
+        if p_f > P_MISMATCH or explained >= EXPLAINED_FRACTION:
+            verdict = selected[0].effect.name
+        else:
+            verdict = "unexplained"
+            message = (
+                f"{', '.join(c.effect.name for c in selected)} explain(s) only {100 * explained:.0f}% of the excess "
+                f"chi-square; a structured mismatch remains (final chi-square p = {p_f:.2g})"
+            )
+    else:
+        loc = location.strongest
+        verdict = "unexplained" if p0 < P_MISMATCH or (loc is not None and loc.significant) else "none"
+
+    sel_names = [c.effect.name for c in selected]
+    trials = []
+    for c in cands:
+        name = c.effect.name
+        fit, ev, cv = single[name]
+        params = _params(cur_fit if name in sel_names else fit, name)
+        note = "look-elsewhere penalty %.1f nats" % c.penalty if c.penalty else ""
+        trials.append(EffectTrial(name, name in sel_names, float(ev), params, cv0, cv, note))
+    trials.sort(key=lambda t: -t.evidence)  # FORMATS.md: most evident first
+    return Diagnosis(
+        verdict=verdict,
+        effects=tuple(trials),
+        selected=tuple(sel_names),
+        location=location,
+        skipped=tuple(skipped),
+        chi2_geometric=fit0.chi2,
+        chi2_final=cur_fit.chi2,
+        dof_geometric=dof0,
+        dof_final=dof_f,
+        p_geometric=p0,
+        p_final=p_f,
+        rms_cv_geometric=cv0,
+        rms_cv_final=cur_cv,
+        rms_noise=float(machine.noise.sigma_position * np.sqrt(3)),
+        n_poses=n,
+        dof=model.dof,
+        machine_name=machine.name,
+        recording=recording.path,
+        seed=seed,
+        message=message,
+    )

@@ -1,0 +1,186 @@
+"""The answer of a diagnosis (FORMATS.md section 3, ``bayescal diagnose``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .locate import ChannelDependence, Location
+
+__all__ = ["EffectTrial", "Diagnosis", "ParameterValue"]
+
+
+@dataclass(frozen=True)
+class ParameterValue:
+    """One fitted effect parameter."""
+
+    name: str
+    value: float
+    std: float | None
+    unit: str
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "value": self.value, "std": self.std, "unit": self.unit}
+
+
+@dataclass(frozen=True)
+class EffectTrial:
+    """One effect fitted jointly with the geometry.
+
+    Attributes
+    ----------
+    name : str
+    detected : bool
+        Kept in the final model (decisive evidence and better out-of-sample fit).
+    evidence : float
+        Log Bayes factor (Laplace) in favour of adding the effect, nats.
+    parameters : tuple of ParameterValue
+    rms_before, rms_after : float
+        Cross-validated position RMS (mm) of the geometric model without and with the effect.
+    note : str
+    """
+
+    name: str
+    detected: bool
+    evidence: float
+    parameters: tuple[ParameterValue, ...]
+    rms_before: float
+    rms_after: float
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name, "detected": self.detected, "evidence": self.evidence,
+            "parameters": [p.to_dict() for p in self.parameters],
+            "rms_before": self.rms_before, "rms_after": self.rms_after, "note": self.note,
+        }
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """What the diagnosis found.
+
+    Attributes
+    ----------
+    verdict : str
+        An effect name, ``"none"`` or ``"unexplained"``.
+    effects : tuple of EffectTrial
+        Every effect tried, most evident first.
+    selected : tuple of str
+        The effects of the final model, in the order they were added.
+    location : Location
+        Every channel's dependence; ``location.strongest`` is ``located``.
+    skipped : tuple of (str, str)
+        Effects not tried, and why.
+    chi2_geometric, chi2_final : float
+        Whitened residual sum of squares of the geometric and the final model.
+    dof_geometric, dof_final : float
+        Their expected values under the noise alone (rows minus effective parameters).
+    p_geometric, p_final : float
+        Chi-square test p-values.
+    rms_cv_geometric, rms_cv_final : float
+        Cross-validated position RMS, mm.
+    rms_noise : float
+        Position RMS of the instrument noise alone, ``sigma sqrt(3)``, mm.
+    n_poses, dof : int
+    machine_name, recording : str
+    seed : int
+    """
+
+    verdict: str
+    effects: tuple[EffectTrial, ...]
+    selected: tuple[str, ...]
+    location: Location
+    skipped: tuple[tuple[str, str], ...]
+    chi2_geometric: float
+    chi2_final: float
+    dof_geometric: float
+    dof_final: float
+    p_geometric: float
+    p_final: float
+    rms_cv_geometric: float
+    rms_cv_final: float
+    rms_noise: float
+    n_poses: int
+    dof: int
+    machine_name: str
+    recording: str
+    seed: int
+    message: str = ""
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def located(self) -> ChannelDependence | None:
+        return self.location.strongest
+
+    def to_dict(self) -> dict:
+        """The JSON answer of FORMATS.md section 3 (plus documented extra keys)."""
+        loc = self.located
+        return {
+            "verdict": self.verdict,
+            "effects": [e.to_dict() for e in self.effects],
+            "located": None if loc is None else {
+                "channel": loc.channel, "strength": loc.strength, "p_value": loc.p_adjusted,
+                "significant": loc.significant, "detail": loc.detail,
+            },
+            "selected": list(self.selected),
+            "skipped": [{"name": n, "reason": r} for n, r in self.skipped],
+            "rms_noise": self.rms_noise,
+            "rms_before": self.rms_cv_geometric,
+            "rms_after": self.rms_cv_final,
+            "chi2": {
+                "geometric": self.chi2_geometric, "geometric_expected": self.dof_geometric, "geometric_p": self.p_geometric,
+                "final": self.chi2_final, "final_expected": self.dof_final, "final_p": self.p_final,
+            },
+            "channels": [c.to_dict() for c in self.location.channels],
+            "machine": self.machine_name,
+            "recording": self.recording,
+            "n_poses": self.n_poses,
+            "dof": self.dof,
+            "seed": self.seed,
+            "evidence_kind": "log Bayes factor, Laplace approximation (nats)",
+            "message": self.message,
+        }
+
+    def report(self) -> str:
+        """A report a calibration engineer can act on."""
+        L = [f"diagnosis of {self.recording} ({self.n_poses} poses, {self.dof}-DOF) on {self.machine_name}"]
+        L.append(
+            f"geometric calibration: chi2 {self.chi2_geometric:.1f} for {self.dof_geometric:.1f} expected "
+            f"(p = {self.p_geometric:.2g}); cross-validated position RMS {1e3 * self.rms_cv_geometric:.1f} um "
+            f"(noise alone {1e3 * self.rms_noise:.1f} um)"
+        )
+        loc = self.located
+        if loc is not None:
+            sig = "significant" if loc.significant else "not significant"
+            L.append(
+                f"located: the residuals depend most on {loc.channel} (strength {loc.strength:.2f}, "
+                f"Holm p = {loc.p_adjusted:.2g}, {sig}){' ' + loc.detail if loc.detail else ''}"
+            )
+        if self.verdict == "none":
+            L.append("VERDICT none: the geometric model explains the recording to within the instrument noise.")
+        elif self.verdict == "unexplained":
+            L.append(
+                "VERDICT unexplained: a structured mismatch remains that no effect of the library explains; "
+                f"look at {loc.channel if loc else 'the residuals'} (residual-against-channel figures: --figures DIR)."
+            )
+        else:
+            L.append(
+                f"VERDICT {self.verdict}: model it. Out-of-sample position RMS {1e3 * self.rms_cv_geometric:.1f} um "
+                f"-> {1e3 * self.rms_cv_final:.1f} um with {', '.join(self.selected)}."
+            )
+        L.append("")
+        L.append("effect                 kept  evidence  CV RMS before -> after (um)")
+        for e in self.effects:
+            L.append(
+                f"{e.name:<22} {'yes' if e.detected else 'no ':<4} {e.evidence:9.1f}  "
+                f"{1e3 * e.rms_before:8.2f} -> {1e3 * e.rms_after:8.2f}  {e.note}"
+            )
+            if e.detected:
+                for p in e.parameters:
+                    std = "n/a" if p.std is None else f"{p.std:.3g}"
+                    L.append(f"    {p.name:<24} {p.value:12.4g} +- {std:<9} {p.unit}")
+        for n, r in self.skipped:
+            L.append(f"{n:<22} skipped: {r}")
+        if self.message:
+            L.append(self.message)
+        return "\n".join(L)

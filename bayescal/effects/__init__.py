@@ -1,0 +1,35 @@
+"""Physical effects beyond the geometric model, as plug-ins to the measurement model.
+
+Adding an effect: one module with an :class:`Effect` subclass, one entry in
+:data:`EFFECTS`, and :func:`check_effect` must pass for it.
+"""
+
+from __future__ import annotations
+
+from ..errors import InputError
+from .backlash import Backlash
+from .base import BoundEffect, Effect, EffectParam, Features, approach_direction
+from .check import check_effect
+from .joint_compliance import JointCompliance, actuator_loads
+from .model import EffectFit, fit_map
+from .redundancy_preload import RedundancyPreload
+from .screw_periodic_error import ScrewPeriodicError
+from .thermal_expansion import ThermalExpansion
+
+__all__ = [
+    "EFFECTS", "get_effect", "Effect", "EffectParam", "Features", "BoundEffect", "approach_direction",
+    "check_effect", "actuator_loads", "EffectFit", "fit_map",
+    "JointCompliance", "ThermalExpansion", "Backlash", "ScrewPeriodicError", "RedundancyPreload",
+]
+
+#: The library, by stable name (FORMATS.md section 3), in the order they are tried.
+EFFECTS: dict[str, type[Effect]] = {
+    cls.name: cls for cls in (JointCompliance, ThermalExpansion, Backlash, ScrewPeriodicError, RedundancyPreload)
+}
+
+
+def get_effect(name: str) -> Effect:
+    """An effect of the library by its name (default settings)."""
+    if name not in EFFECTS:
+        raise InputError(f"unknown effect {name!r}; expected one of: {', '.join(EFFECTS)}")
+    return EFFECTS[name]()

@@ -1,0 +1,197 @@
+"""What every physical effect provides, and the pieces effects share.
+
+An effect is physics the geometric model leaves out.  Every effect in this
+library acts on the actuator positions before the forward kinematics:
+
+    q_actual = q_commanded + dq(features, eta)
+
+where ``features`` are per-pose quantities computed once from the recording
+(approach direction, temperature, gravity load on each actuator, ...) and
+``eta`` are the effect's named parameters.  ``dq`` is linear in ``eta`` for
+most effects; its Jacobian ``d dq / d eta`` is analytic and checked against
+finite differences by :func:`bayescal.effects.check_effect`.  The measurement
+model then sees ``h(q + dq, theta)``, so ``d h / d eta =
+(d h / d q) (d dq / d eta)`` with ``d h / d q`` from
+:meth:`bayescal.machines.Machine.actuator_jacobian`.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..machines.base import Machine, ToolPoses
+
+__all__ = ["Effect", "EffectParam", "Features", "BoundEffect", "approach_direction", "measurement_sequence"]
+
+
+@dataclass(frozen=True)
+class EffectParam:
+    """One named effect parameter with its Gaussian prior.
+
+    Attributes
+    ----------
+    name : str
+        Stable name, e.g. ``compliance.q1``.
+    unit : str
+        Unit of ``value`` (``um/N``, ``um``, ``mm``, ...).
+    prior_sd : float
+        One-sigma width of the prior, in ``unit``; also the column scale of the fit.
+    prior_mean : float
+        Centre of the prior, in ``unit`` (zero: no effect).
+    """
+
+    name: str
+    unit: str
+    prior_sd: float
+    prior_mean: float = 0.0
+
+
+@dataclass(frozen=True)
+class Features:
+    """What an effect needs from the recording, computed once.
+
+    Attributes
+    ----------
+    per_pose : dict of str to ndarray
+        Arrays with the poses on the leading axis (subset with the poses).
+    const : dict
+        Settings and recording-wide values (the mode, a reference, ...).
+    """
+
+    per_pose: dict = field(default_factory=dict)
+    const: dict = field(default_factory=dict)
+
+    def subset(self, idx) -> "Features":
+        """The features of poses ``idx`` only (cross-validation)."""
+        return Features({k: v[idx] for k, v in self.per_pose.items()}, dict(self.const))
+
+
+def measurement_sequence(order: NDArray | None, n: int) -> NDArray:
+    """Row indices in measurement order (``order[i]`` is the time rank of row ``i``)."""
+    if order is None:
+        return np.arange(n)
+    return np.argsort(np.asarray(order), kind="stable")
+
+
+def approach_direction(q: NDArray, order: NDArray | None = None) -> NDArray:
+    """Sign of each actuator's last move, ``sign(q_i[t] - q_i[t-1])`` in measurement order.
+
+    Parameters
+    ----------
+    q : ndarray, shape (n_poses, n_actuators)
+    order : ndarray of int, shape (n_poses,), optional
+        Time rank of each row; rows are in measurement order if omitted.
+
+    Returns
+    -------
+    ndarray, shape (n_poses, n_actuators)
+        +1, -1, or 0 for the first pose (the approach is unknown) and for no move.
+    """
+    seq = measurement_sequence(order, q.shape[0])
+    qs = q[seq]
+    s = np.zeros_like(qs)
+    s[1:] = np.sign(np.diff(qs, axis=0))
+    out = np.empty_like(s)
+    out[seq] = s
+    return out
+
+
+class Effect(ABC):
+    """A physical effect: a named, parametrised change of the actuator positions.
+
+    Subclasses set :attr:`name`, :attr:`summary`, :attr:`magnitude_unit` and
+    :attr:`default_magnitude`, and implement :meth:`features`,
+    :meth:`params`, :meth:`delta_q`, :meth:`delta_q_jacobian` and
+    :meth:`simulated_values`.  The class docstring states the physics and
+    its usual size on machine tools.
+    """
+
+    name: ClassVar[str] = ""
+    summary: ClassVar[str] = ""
+    #: Unit of the ``NAME:magnitude`` given to ``bayescal simulate --effect``.
+    magnitude_unit: ClassVar[str] = ""
+    default_magnitude: ClassVar[float] = 0.0
+    #: Whether :meth:`features` needs the solved poses (then :class:`BoundEffect` solves them).
+    needs_poses: ClassVar[bool] = False
+
+    def not_applicable(self, machine: Machine, aux: dict) -> str | None:
+        """Why the effect cannot be modelled for this machine and recording, or None."""
+        return None
+
+    def min_poses(self, n_params: int) -> int:
+        """Fewest poses with which the effect's ``n_params`` parameters are worth fitting."""
+        return max(12, 4 * n_params)
+
+    @abstractmethod
+    def features(
+        self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order: NDArray | None, poses: ToolPoses | None
+    ) -> Features:
+        """Per-pose quantities the effect depends on (see :class:`Features`)."""
+
+    @abstractmethod
+    def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
+        """The named parameters (their number may depend on the features' mode)."""
+
+    @abstractmethod
+    def delta_q(self, features: Features, eta: NDArray) -> NDArray:
+        """Actuator position change ``dq``, shape (n_poses, n_actuators), mm (or rad)."""
+
+    @abstractmethod
+    def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
+        """``d dq / d eta``, shape (n_poses, n_actuators, n_params)."""
+
+    @abstractmethod
+    def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng: np.random.Generator) -> NDArray:
+        """Parameter values of a simulated machine whose effect has size ``magnitude``."""
+
+    def refine(self, features: Features, q: NDArray, dq_residual: NDArray) -> Features:
+        """Features with data-driven settings (e.g. a start pitch from a periodogram); unchanged by default.
+
+        Parameters
+        ----------
+        q : ndarray, shape (n_poses, n_actuators)
+        dq_residual : ndarray, shape (n_poses, n_actuators)
+            The geometric fit's residual mapped to actuator space (mm).
+        """
+        return features
+
+    def occam_penalty(self, features: Features, q: NDArray) -> float:
+        """Extra log-evidence penalty (nats) for parameters chosen by a search (look-elsewhere)."""
+        return 0.0
+
+    def bind(self, machine: Machine, values, *, hidden_aux: dict | None = None) -> "BoundEffect":
+        """This effect with parameter values: a :class:`bayescal.simulate.PoseTransform`."""
+        return BoundEffect(self, machine, np.asarray(values, dtype=float), dict(hidden_aux or {}))
+
+
+@dataclass(frozen=True, eq=False)
+class BoundEffect:
+    """An effect with fixed parameter values, usable by :func:`bayescal.simulate.simulate_recording`.
+
+    ``hidden_aux`` holds channels that drive the physics but are not
+    recorded (the true temperature of a recording that only logs time).
+    """
+
+    effect: Effect
+    machine: Machine
+    values: NDArray
+    hidden_aux: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.effect.name
+
+    def features(self, q: NDArray, theta: NDArray, aux: dict, order: NDArray | None) -> Features:
+        aux_all = {**self.hidden_aux, **(aux or {})}
+        poses = self.machine.forward(q, theta) if self.effect.needs_poses else None
+        return self.effect.features(self.machine, q, theta, aux_all, order, poses)
+
+    def transform(self, q: NDArray, theta: NDArray, aux: dict, order: NDArray) -> tuple[NDArray, NDArray]:
+        """``(q + dq, theta)``: the :class:`bayescal.simulate.PoseTransform` protocol."""
+        f = self.features(q, theta, aux, order)
+        return q + self.effect.delta_q(f, self.values), theta

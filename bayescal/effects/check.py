@@ -1,0 +1,106 @@
+"""Conformance check for effects (the ``check_machine`` of effects)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from ..errors import BayescalError
+from ..machines.base import Machine
+from .base import Effect, Features
+
+__all__ = ["check_effect", "EffectCheckError"]
+
+_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+_PARAM = re.compile(r"^[a-z][a-z0-9_]*(\.q[1-9][0-9]*)?$")
+
+
+class EffectCheckError(BayescalError, AssertionError):
+    """An effect does not satisfy the effect interface."""
+
+
+def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n_poses: int = 12, seed: int = 0, rtol: float = 1e-5) -> None:
+    """Check that an effect satisfies the interface; raise :class:`EffectCheckError` if not.
+
+    Checks: a stable snake_case name, a docstring stating the physics, named
+    parameters with units and positive prior widths, ``delta_q`` of the right
+    shape and zero at zero parameters (where the prior mean is zero),
+    ``delta_q_jacobian`` against central finite differences, the
+    :class:`~bayescal.simulate.PoseTransform` behaviour of the bound effect
+    (``theta`` unchanged, ``q`` moved by ``delta_q``), and feature subsetting.
+
+    Parameters
+    ----------
+    effect : Effect
+    machine : Machine
+        With ``q_limits``.
+    aux : dict, optional
+        Channels the effect needs (e.g. ``temp_C``), one value per pose.
+    n_poses : int
+    seed : int
+    rtol : float
+        Tolerance of the Jacobian check, relative to the largest entry.
+    """
+    def fail(msg):
+        raise EffectCheckError(f"effect {effect.name or type(effect).__name__}: {msg}")
+
+    if not _NAME.match(effect.name or ""):
+        fail("name: expected a snake_case stable name")
+    if not (type(effect).__doc__ or "").strip() or "Physics" not in type(effect).__doc__:
+        fail("the class docstring must state the physics ('Physics: ...') and its usual magnitude")
+    if not effect.magnitude_unit:
+        fail("magnitude_unit is empty")
+    rng = np.random.default_rng(seed)
+    aux = {} if aux is None else aux
+    why = effect.not_applicable(machine, aux)
+    if why:
+        fail(f"not applicable to the machine and channels given: {why}")
+    q = machine.sample_q(n_poses, rng)
+    theta = np.zeros(machine.n_params)
+    poses = machine.forward(q, theta) if effect.needs_poses else None
+    feats = effect.features(machine, q, theta, aux, np.arange(n_poses), poses)
+    if not isinstance(feats, Features):
+        fail("features() must return a Features")
+    params = effect.params(machine, feats)
+    if not params:
+        fail("no parameters")
+    names = [p.name for p in params]
+    if len(set(names)) != len(names):
+        fail(f"duplicate parameter names {names}")
+    for p in params:
+        if not _PARAM.match(p.name) or not p.unit or not (p.prior_sd > 0 and np.isfinite(p.prior_sd)):
+            fail(f"parameter {p.name!r}: expected a dotted snake_case name, a unit and a positive prior_sd")
+    K = len(params)
+    mean = np.array([p.prior_mean for p in params])
+    sd = np.array([p.prior_sd for p in params])
+    zero = np.where(mean == 0, 0.0, mean)
+    dq0 = effect.delta_q(feats, zero)
+    if dq0.shape != q.shape:
+        fail(f"delta_q: expected shape {q.shape}, got {dq0.shape}")
+    lin = mean == 0
+    if lin.all() and np.max(np.abs(dq0)) > 0:
+        fail("delta_q must vanish when every parameter is zero")
+    eta = mean + sd * rng.uniform(0.2, 1.0, K)
+    J = effect.delta_q_jacobian(feats, eta)
+    if J.shape != q.shape + (K,):
+        fail(f"delta_q_jacobian: expected shape {q.shape + (K,)}, got {J.shape}")
+    Jfd = np.empty_like(J)
+    for k in range(K):
+        h = 1e-4 * sd[k]
+        e = np.zeros(K)
+        e[k] = h
+        Jfd[..., k] = (effect.delta_q(feats, eta + e) - effect.delta_q(feats, eta - e)) / (2 * h)
+    scale = max(np.max(np.abs(Jfd)), 1e-300)
+    if np.max(np.abs(J - Jfd)) > rtol * scale:
+        fail(f"delta_q_jacobian differs from finite differences by {np.max(np.abs(J - Jfd)) / scale:.1e} (relative)")
+    idx = np.arange(0, n_poses, 2)
+    sub = feats.subset(idx)
+    if not np.allclose(effect.delta_q(sub, eta), effect.delta_q(feats, eta)[idx]):
+        fail("Features.subset does not give the subset's delta_q")
+    bound = effect.bind(machine, eta)
+    q2, th2 = bound.transform(q, np.broadcast_to(theta, (n_poses, machine.n_params)).copy(), aux, np.arange(n_poses))
+    if not np.allclose(q2, q + effect.delta_q(feats, eta), rtol=0, atol=1e-12):
+        fail("the bound effect's transform does not move q by delta_q")
+    if not np.array_equal(th2, np.broadcast_to(theta, th2.shape)):
+        fail("the bound effect's transform changed theta")

@@ -1,0 +1,271 @@
+"""The augmented measurement model ``h(q + dq(eta), theta)`` and its joint MAP fit.
+
+Unknowns are the geometric errors ``theta`` (prior ``N(0, tolerance^2)``)
+and the effect parameters ``eta`` (prior ``N(mean, sd^2)`` per
+:class:`~bayescal.effects.EffectParam`).  In the scaled coordinates
+``phi = (theta / tolerance, (eta - 0) / sd)`` the fit minimises
+
+    |W (y - h)|^2 + |phi - phi_prior|^2
+
+by Gauss-Newton with step halving: with no effect this is exactly
+``identify(model, method="ridge", lam=1, free="all")`` (the MAP estimate
+under the tolerance prior); a thin reimplementation here because the
+effect parameters need their own prior means and their Jacobian columns
+``(d h / d q) (d dq / d eta)``.  The Laplace approximation at the MAP gives
+the posterior covariance ``(A^T A + I)^-1`` and the log marginal likelihood
+
+    log Z = -(chi2 + |phi - phi_prior|^2) / 2 - log det(A^T A + I) / 2 + const.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import KinematicsError
+from ..machines.base import ToolPoses
+from ..measurement import MeasurementModel, Prediction
+from .base import Effect, EffectParam, Features
+
+__all__ = ["EffectFit", "fit_map", "effect_residual", "actuator_residual"]
+
+
+@dataclass(frozen=True)
+class EffectFit:
+    """A joint MAP fit of geometry and effects.
+
+    Attributes
+    ----------
+    theta : ndarray, shape (P,)
+        Geometric errors (mm, rad).
+    eta : ndarray, shape (K,)
+        Effect parameters, in their units.
+    params : tuple of EffectParam
+        Names, units and priors of ``eta``.
+    effect_slices : tuple of (str, slice)
+        Which entries of ``eta`` belong to which effect.
+    cov_eta : ndarray, shape (K, K)
+        Laplace posterior covariance of ``eta`` (unit noise scale).
+    residual : ndarray, shape (n_poses, dof)
+        ``y - h`` at the fit, mm and rad.
+    chi2 : float
+        Whitened sum of squared residuals.
+    prior_term : float
+        ``|phi - phi_prior|^2``.
+    singular_values : ndarray
+        Of the whitened, scaled Jacobian ``A`` at the fit.
+    n_rows : int
+    success : bool
+    message : str
+    iterations : int
+    """
+
+    theta: NDArray
+    eta: NDArray
+    params: tuple[EffectParam, ...]
+    effect_slices: tuple[tuple[str, slice], ...]
+    cov_eta: NDArray
+    residual: NDArray
+    chi2: float
+    prior_term: float
+    singular_values: NDArray
+    n_rows: int
+    success: bool
+    message: str
+    iterations: int
+
+    @property
+    def edf(self) -> float:
+        """Effective number of fitted parameters, ``sum s^2 / (s^2 + 1)``."""
+        s2 = self.singular_values**2
+        return float(np.sum(s2 / (s2 + 1.0)))
+
+    def log_evidence(self, noise_scale2: float = 1.0) -> float:
+        """Laplace log marginal likelihood (up to a constant shared by all models of the same data).
+
+        Parameters
+        ----------
+        noise_scale2 : float
+            Factor on the instrument variance (1: as stated in the machine file).
+        """
+        s2 = self.singular_values**2 / noise_scale2
+        return float(-0.5 * (self.chi2 / noise_scale2 + self.prior_term) - 0.5 * np.sum(np.log1p(s2)))
+
+    def std_eta(self, noise_scale2: float = 1.0) -> NDArray:
+        """One-sigma of ``eta`` in its units."""
+        return np.sqrt(np.clip(np.diag(self.cov_eta), 0, None) * noise_scale2)
+
+
+def _dq(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, shape) -> NDArray:
+    dq = np.zeros(shape)
+    for (eff, f), sl in zip(effects, slices):
+        dq += eff.delta_q(f, eta[sl])
+    return dq
+
+
+def _merge(pred: Prediction, other: Prediction) -> Prediction:
+    """Per pose, ``pred`` where it converged, else ``other`` where that did."""
+    take = ~pred.success & other.success
+    if not take.any():
+        return pred
+    st, ost = pred.poses.state, other.poses.state
+
+    def pick(a, b):
+        return np.where(take.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+
+    state = type(st)(**{k: pick(getattr(st, k), getattr(ost, k)) for k in st.__dataclass_fields__})
+    poses = ToolPoses(
+        pick(pred.poses.position, other.poses.position), pick(pred.poses.rotation, other.poses.rotation),
+        pred.success | take, tuple(o if t else m for m, o, t in zip(pred.poses.message, other.poses.message, take)), state,
+    )
+    return Prediction(y=pick(pred.y, other.y), poses=poses)
+
+
+def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess) -> tuple[MeasurementModel, Prediction]:
+    sub = replace(model, q=q_eff)
+    pred = sub.predict(theta, guess=guess)
+    if not pred.success.all():
+        # Newton from a given start can miss a pose that a nearby start solves: retry from the
+        # solution at the commanded q (effects move q by microns), then from the assembly-branch start
+        base = model.predict(theta)
+        if base.success.any():
+            pred = _merge(pred, sub.predict(theta, guess=base.poses))
+        if not pred.success.all():
+            pred = _merge(pred, replace(sub, guess=None).predict(theta, guess=None))
+    if not pred.success.all():
+        i = int(np.flatnonzero(~pred.success)[0])
+        raise KinematicsError(f"pose {i + 1}: {pred.poses.message[i]} (with the effect applied)")
+    return sub, pred
+
+
+def effect_residual(
+    model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray, eta: NDArray
+) -> NDArray:
+    """``y - h(q + dq(eta), theta)``, shape (n_poses, dof): prediction on (held-out) poses."""
+    slices = _slices(effects, model)
+    q_eff = model.q + _dq(effects, slices, np.asarray(eta, float), model.q.shape)
+    _, pred = _predict(model, q_eff, theta, None)
+    return model.residual(pred)
+
+
+def actuator_residual(model: MeasurementModel, theta: NDArray, residual: NDArray, prediction: Prediction) -> NDArray:
+    """Residuals mapped to actuator space: per pose the ``dq`` (mm) that best explains them (whitened LS)."""
+    Jq = model.rows_jacobian(model.machine.actuator_jacobian(model.q, theta, prediction.poses), prediction)
+    Jw = Jq / model.sigma[None, :, None]
+    rw = residual / model.sigma[None, :]
+    return np.stack([np.linalg.lstsq(Jw[i], rw[i], rcond=None)[0] for i in range(model.n_poses)])
+
+
+def _slices(effects, model) -> list[slice]:
+    out, k = [], 0
+    for eff, f in effects:
+        n = len(eff.params(model.machine, f))
+        out.append(slice(k, k + n))
+        k += n
+    return out
+
+
+def fit_map(
+    model: MeasurementModel,
+    effects: Sequence[tuple[Effect, Features]] = (),
+    *,
+    theta0: NDArray | None = None,
+    eta0: NDArray | None = None,
+    max_iter: int = 40,
+    xtol: float = 1e-4,
+) -> EffectFit:
+    """Joint MAP fit of geometric errors and effect parameters (see the module docstring).
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        With measured values.
+    effects : sequence of (Effect, Features)
+        The effects switched on, with their features for the model's poses.
+    theta0, eta0 : ndarray, optional
+        Start; zeros and the prior means by default.
+    max_iter : int
+    xtol : float
+        Convergence when the largest step is below this many prior sigmas.
+
+    Returns
+    -------
+    EffectFit
+    """
+    machine = model.machine
+    P = machine.n_params
+    params: list[EffectParam] = []
+    slices = _slices(effects, model)
+    for eff, f in effects:
+        params += list(eff.params(machine, f))
+    K = len(params)
+    scale = np.concatenate([machine.tolerance, [p.prior_sd for p in params]])
+    mu = np.concatenate([np.zeros(P), [p.prior_mean for p in params]]) / scale
+    theta = np.zeros(P) if theta0 is None else np.asarray(theta0, float).copy()
+    eta = np.array([p.prior_mean for p in params]) if eta0 is None else np.asarray(eta0, float).copy()
+    sig = model.sigma
+
+    def evaluate(theta, eta, guess):
+        q_eff = model.q + _dq(effects, slices, eta, model.q.shape)
+        sub, pred = _predict(model, q_eff, theta, guess)
+        r = model.residual(pred)
+        rw = (r / sig).reshape(-1)
+        phi = np.concatenate([theta, eta]) / scale
+        return sub, pred, r, rw, float(rw @ rw), float(np.sum((phi - mu) ** 2))
+
+    def system(sub, pred, theta, eta):
+        Jg = sub.jacobian(theta, pred)
+        cols = [Jg]
+        if K:
+            Jq = sub.rows_jacobian(machine.actuator_jacobian(sub.q, theta, pred.poses), pred)
+            for (eff, f), sl in zip(effects, slices):
+                cols.append(np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian(f, eta[sl])))
+        J = np.concatenate(cols, axis=2) / sig[None, :, None]
+        return J.reshape(-1, P + K) * scale
+
+    sub, pred, r, rw, chi2, pri = evaluate(theta, eta, None)
+    success, message, it = False, "", 0
+    A = system(sub, pred, theta, eta)
+    for it in range(1, max_iter + 1):
+        phi = np.concatenate([theta, eta]) / scale
+        # normal equations of [A; I] step ~ [r; mu - phi]: H is well conditioned (>= I)
+        # (einsum, not BLAS: a threaded BLAS spin-waits on a shared machine for matrices this small)
+        H = np.einsum("ij,ik->jk", A, A) + np.eye(P + K)
+        step = np.linalg.solve(H, np.einsum("ij,i->j", A, rw) + (mu - phi))
+        cost = chi2 + pri
+        for _ in range(8):
+            new = (phi + step) * scale
+            try:
+                trial = evaluate(new[:P], new[P:], pred.poses)
+            except KinematicsError:
+                trial = None
+            if trial is not None and trial[4] + trial[5] <= cost * (1 + 1e-12):
+                break
+            step = step / 2
+        else:
+            message = "no step lowers the cost (stopped)"
+            success = bool(np.max(np.abs(step)) < 1e3 * xtol)
+            break
+        theta, eta = new[:P], new[P:]
+        sub, pred, r, rw, chi2, pri = trial
+        A = system(sub, pred, theta, eta)
+        if np.max(np.abs(step)) < xtol or (cost - chi2 - pri) < 1e-7 * max(cost, 1.0):
+            success = True
+            break
+    else:
+        message = f"did not converge in {max_iter} iterations"
+    AtA = np.einsum("ij,ik->jk", A, A)
+    s = np.sqrt(np.clip(np.linalg.eigvalsh(AtA), 0, None))[::-1]
+    if K:
+        cov = np.linalg.inv(AtA + np.eye(P + K))[P:, P:] * np.outer(scale[P:], scale[P:])
+    else:
+        cov = np.zeros((0, 0))
+    names = tuple((eff.name, sl) for (eff, _), sl in zip(effects, slices))
+    return EffectFit(
+        theta=theta, eta=eta, params=tuple(params), effect_slices=names, cov_eta=cov, residual=r,
+        chi2=chi2, prior_term=pri, singular_values=s, n_rows=rw.size, success=success, message=message,
+        iterations=it,
+    )

@@ -1,0 +1,36 @@
+"""Lomb-Scargle periodograms over actuator position (unevenly sampled, so no FFT)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.signal import lombscargle
+
+__all__ = ["PITCH_RANGE_MM", "pitch_grid", "periodogram", "n_independent_frequencies"]
+
+#: Pitches searched for a periodic actuator error, mm (lead screws 2-40 mm; encoders' sub-periods).
+PITCH_RANGE_MM = (1.0, 50.0)
+
+
+def pitch_grid(q_span: float, pitch_range=PITCH_RANGE_MM, oversample: float = 5.0) -> NDArray:
+    """Spatial frequencies (cycles/mm) from ``1/pmax`` to ``1/pmin``, ``oversample`` per peak width ``1/q_span``."""
+    fmin, fmax = 1.0 / pitch_range[1], 1.0 / pitch_range[0]
+    step = 1.0 / (oversample * max(q_span, 1e-9))
+    return np.arange(fmin, fmax + step, step)
+
+
+def n_independent_frequencies(q_span: float, pitch_range=PITCH_RANGE_MM) -> float:
+    """About how many independent peaks the searched band holds: ``span (fmax - fmin)``."""
+    return max(q_span * (1.0 / pitch_range[0] - 1.0 / pitch_range[1]), 1.0)
+
+
+def periodogram(q: NDArray, y: NDArray, freqs: NDArray) -> NDArray:
+    """Normalised generalised Lomb-Scargle power (0..1) of ``y`` sampled at ``q``, per frequency (cycles/unit of q).
+
+    The floating-mean form (Zechmeister and Kuerster 2009), so an offset
+    left in ``y`` does not leak into the low frequencies.
+    """
+    y = np.asarray(y, float)
+    if np.ptp(y) == 0:
+        return np.zeros(len(freqs))
+    return lombscargle(np.asarray(q, float), y, 2 * np.pi * np.asarray(freqs), normalize=True, floating_mean=True)

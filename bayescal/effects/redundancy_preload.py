@@ -1,0 +1,84 @@
+"""Restrained deformation of a redundantly actuated module: actuators fight through the closed loops."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..machines.base import Machine, ToolPoses
+from .base import Effect, EffectParam, Features
+
+__all__ = ["RedundancyPreload", "machine_dof"]
+
+
+def machine_dof(machine: Machine) -> int:
+    """Degrees of freedom of the platform: the machine's ``n_dof`` (or ``dof``) if it declares one, else its actuator count."""
+    for attr in ("n_dof", "dof"):
+        value = getattr(machine, attr, None)
+        if isinstance(value, (int, np.integer)) and value > 0:
+            return int(value)
+    return machine.n_actuators
+
+
+class RedundancyPreload(Effect):
+    """Internal preload of a redundantly actuated machine (more actuators than DOF).
+
+    Physics: with ``m`` actuators for ``n < m`` degrees of freedom, the
+    actuators can push against each other without moving the platform: the
+    internal force lies in the ``m - n`` dimensional space of actuator
+    motions that do not move the tool (the null space ``N`` of the
+    actuator Jacobian ``d x / d q``).  A preload ``P`` along the unit
+    direction ``nu(q)`` of that space deflects compliant drives by
+    ``c_i P nu_i``; unequal compliances leave a deflection outside the null
+    space, which moves the tool:
+
+        dq_i = d_i nu_i(q)            (one redundant direction; nu_1 >= 0)
+
+    Parameters ``preload_deflection.q<i>`` (um, ``c_i P``).  Usual size:
+    preloads of 100-1000 N on drives of 50-500 N/um give 1-20 um.  Not
+    applicable to machines with as many actuators as degrees of freedom
+    (the 3-PRS): there is no internal force to carry.
+    """
+
+    name = "redundancy_preload"
+    summary = "actuators preloaded against each other through the closed loops (redundant machines only)"
+    magnitude_unit = "um"
+    default_magnitude = 20.0
+    needs_poses = True
+
+    def not_applicable(self, machine: Machine, aux: dict) -> str | None:
+        if machine.n_actuators <= machine_dof(machine):
+            return (
+                f"not applicable: the {machine.kind} has {machine.n_actuators} actuators for "
+                f"{machine_dof(machine)} degrees of freedom (no redundant actuation, no internal preload)"
+            )
+        return None
+
+    def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:
+        if poses is None:
+            poses = machine.forward(q, theta)
+        J = machine.actuator_jacobian(q, theta, poses)  # (n, 6, m)
+        n, _, m = J.shape
+        k = m - machine_dof(machine)
+        nu = np.zeros((n, m))
+        for j in range(n):
+            # the direction of actuator motion that moves the tool least: the internal-force direction
+            v = np.linalg.svd(J[j])[2][-max(k, 1):][0]
+            nu[j] = v if v[0] >= 0 else -v
+        return Features({"nu": nu}, {})
+
+    def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
+        return tuple(EffectParam(f"preload_deflection.q{i + 1}", "um", 20.0) for i in range(machine.n_actuators))
+
+    def delta_q(self, features: Features, eta: NDArray) -> NDArray:
+        return 1e-3 * features.per_pose["nu"] * np.asarray(eta)[None, :]
+
+    def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
+        nu = features.per_pose["nu"]
+        n, m = nu.shape
+        J = np.zeros((n, m, m))
+        J[:, np.arange(m), np.arange(m)] = 1e-3 * nu
+        return J
+
+    def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
+        return magnitude * rng.uniform(-1.4, 1.4, machine.n_actuators)

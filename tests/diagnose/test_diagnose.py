@@ -1,0 +1,109 @@
+import json
+
+import numpy as np
+import pytest
+
+from bayescal.cli import main
+from bayescal.diagnose import diagnose, distance_correlation, holm
+from bayescal.effects.simulate import simulate_with_effects
+from bayescal.errors import InputError
+from bayescal.io import write_recording
+from tests.conftest import PRS3_FILE
+
+CLEAR = [
+    ("backlash", 30.0, ()),
+    ("joint_compliance", 0.5, ("payload_kg",)),
+    ("thermal_expansion", 15.0, ("temp_C",)),
+    ("screw_periodic_error", 20.0, ()),
+]
+
+
+@pytest.mark.parametrize("name,magnitude,aux", CLEAR)
+def test_effect_named_and_parameters_recovered(prs3, name, magnitude, aux):
+    sim = simulate_with_effects(prs3, 80, seed=7, dof=6, effects=[(name, magnitude)], record=aux)
+    d = diagnose(prs3, sim.recording, seed=1, n_perm=49)
+    assert d.verdict == name
+    assert d.selected[0] == name
+    trial = next(e for e in d.effects if e.name == name)
+    assert trial.detected and trial.evidence > np.log(100)
+    assert trial.rms_after < trial.rms_before
+    truth = {p["name"]: p["value"] for p in sim.info["effects"][name]["parameters"]}
+    for p in trial.parameters:
+        # within 4 of its reported standard deviations (a loose bound across 3-7 parameters)
+        assert abs(p.value - truth[p.name]) < 4 * p.std, (p, truth[p.name])
+
+
+def test_clean_data_gives_none(prs3):
+    sim = simulate_with_effects(prs3, 80, seed=8, dof=6, record=("time_s", "temp_C", "payload_kg"))
+    d = diagnose(prs3, sim.recording, seed=1, n_perm=49)
+    assert d.verdict == "none"
+    assert not any(e.detected for e in d.effects)
+    assert d.p_geometric > 1e-3
+
+
+def test_cli_json_matches_formats(tmp_path, capsys):
+    rec = tmp_path / "rec.csv"
+    assert main([
+        "simulate", "--machine", str(PRS3_FILE), "--poses", "70", "--seed", "3", "--dof", "3",
+        "--effect", "backlash:40", "--aux", "time_s", "--out", str(rec), "--quiet",
+    ]) == 0
+    assert "time_s" in rec.read_text().splitlines()[0]
+    out = tmp_path / "d.json"
+    figs = tmp_path / "figs"
+    assert main(["diagnose", str(rec), "--machine", str(PRS3_FILE), "--json", str(out), "--figures", str(figs)]) == 0
+    report = capsys.readouterr().out
+    assert "VERDICT backlash" in report and "backlash.q1" in report
+    ans = json.loads(out.read_text())
+    names = {"joint_compliance", "thermal_expansion", "backlash", "screw_periodic_error", "redundancy_preload"}
+    assert ans["verdict"] in names | {"none", "unexplained"}
+    assert ans["verdict"] == "backlash"
+    evid = [e["evidence"] for e in ans["effects"]]
+    assert ans["effects"][0]["name"] == "backlash" and evid[0] == max(evid)
+    for e in ans["effects"]:
+        assert e["name"] in names and isinstance(e["detected"], bool)
+        assert isinstance(e["evidence"], float) and e["rms_before"] > 0 and e["rms_after"] > 0
+        for p in e["parameters"]:
+            assert set(p) == {"name", "value", "std", "unit"} and isinstance(p["value"], float)
+    assert set(ans["located"]) >= {"channel", "strength"} and 0 <= ans["located"]["strength"] <= 1
+    assert (figs / "residuals_vs_channels.png").stat().st_size > 1000
+
+
+def test_forced_effect_without_its_channel_is_an_error(tmp_path, capsys):
+    rec = tmp_path / "rec.csv"
+    assert main(["simulate", "--machine", str(PRS3_FILE), "--poses", "30", "--seed", "3", "--out", str(rec), "--quiet"]) == 0
+    code = main(["diagnose", str(rec), "--machine", str(PRS3_FILE), "--effects", "thermal_expansion"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "thermal_expansion" in err and "temp_C" in err and "rec.csv" in err
+    assert main(["diagnose", str(rec), "--machine", str(PRS3_FILE), "--effects", "wobble"]) == 2
+    assert "unknown effect" in capsys.readouterr().err
+
+
+def test_too_few_poses_are_errors(prs3):
+    sim = simulate_with_effects(prs3, 20, seed=2, dof=6)
+    with pytest.raises(InputError, match="too few poses"):
+        diagnose(prs3, sim.recording, effects=["screw_periodic_error"], n_perm=19)
+    tiny = simulate_with_effects(prs3, 6, seed=2, dof=6)
+    with pytest.raises(InputError, match="at least 10"):
+        diagnose(prs3, tiny.recording, n_perm=19)
+
+
+def test_simulate_rejects_unknown_aux(tmp_path, capsys):
+    code = main(["simulate", "--machine", str(PRS3_FILE), "--poses", "10", "--seed", "1", "--aux", "humidity",
+                 "--out", str(tmp_path / "r.csv")])
+    assert code == 2 and "humidity" in capsys.readouterr().err
+
+
+def test_distance_correlation_closed_forms(rng):
+    x = rng.normal(size=80)
+    assert distance_correlation(x, x) == pytest.approx(1.0)
+    assert distance_correlation(x, 3 * x - 2) == pytest.approx(1.0)
+    # non-monotone: y = x^2 has zero Pearson correlation with symmetric x, but dcor sees it
+    xs = np.linspace(-1, 1, 81)
+    assert abs(np.corrcoef(xs, xs**2)[0, 1]) < 1e-12
+    assert distance_correlation(xs, xs**2) > 0.4
+    assert distance_correlation(rng.normal(size=400), rng.normal(size=400)) < 0.15
+
+
+def test_holm_by_hand():
+    np.testing.assert_allclose(holm([0.01, 0.04, 0.03, 0.5]), [0.04, 0.09, 0.09, 0.5])

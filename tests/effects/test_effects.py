@@ -1,0 +1,131 @@
+import numpy as np
+import pytest
+
+from bayescal.effects import EFFECTS, Backlash, actuator_loads, approach_direction, check_effect, fit_map, get_effect
+from bayescal.effects.check import EffectCheckError
+from bayescal.effects.simulate import parse_effect_spec, simulate_with_effects
+from bayescal.errors import InputError
+from bayescal.identify import identify
+from bayescal.measurement import MeasurementModel
+
+AUX = {"temp_C": np.linspace(20, 25, 12), "time_s": np.linspace(0, 3000, 12), "payload_kg": np.linspace(0, 20, 12)}
+
+
+@pytest.mark.parametrize("name", [n for n in EFFECTS if n != "redundancy_preload"])
+def test_effect_conformance_and_jacobian(prs3, name):
+    # check_effect compares delta_q_jacobian with central finite differences, among other things
+    check_effect(get_effect(name), prs3, aux=AUX)
+
+
+def test_thermal_time_mode_conformance(prs3):
+    check_effect(get_effect("thermal_expansion"), prs3, aux={"time_s": AUX["time_s"]})
+
+
+def test_check_effect_catches_a_wrong_jacobian(prs3):
+    class Broken(Backlash):
+        """Physics: backlash with a Jacobian off by a factor of two."""
+
+        name = "broken_backlash"
+
+        def delta_q_jacobian(self, features, eta):
+            return 2 * super().delta_q_jacobian(features, eta)
+
+    with pytest.raises(EffectCheckError, match="finite differences"):
+        check_effect(Broken(), prs3)
+
+
+def test_redundancy_preload_not_applicable_on_3prs(prs3):
+    why = get_effect("redundancy_preload").not_applicable(prs3, {})
+    assert why and "not applicable" in why and "3 actuators" in why
+
+
+def test_thermal_needs_a_channel(prs3):
+    assert "temp_C" in get_effect("thermal_expansion").not_applicable(prs3, {"payload_kg": np.zeros(3)})
+
+
+def test_approach_direction_closed_form():
+    q = np.array([[1.0, 5.0], [2.0, 4.0], [2.0, 6.0], [0.5, 6.5]])
+    expected = np.array([[0, 0], [1, -1], [0, 1], [-1, 1]])
+    np.testing.assert_array_equal(approach_direction(q), expected)
+    # rows out of time order: the order argument restores the sequence
+    perm = np.array([2, 0, 3, 1])
+    np.testing.assert_array_equal(approach_direction(q[perm], order=perm), expected[perm])
+
+
+def test_actuator_loads_equal_virtual_work_by_finite_differences(prs3, rng):
+    # f_i = F . d p_com / d q_i: an independent path through the forward kinematics only
+    q = prs3.sample_q(5, rng)
+    poses = prs3.forward(q)
+    mass = np.full(5, 30.0)
+    f = actuator_loads(prs3, q, None, poses, mass)
+    F = np.array([0.0, 0.0, -30.0 * 9.80665])
+    h = 1e-4
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = h
+        dp = (prs3.forward(q + e, guess=poses).state.p - prs3.forward(q - e, guess=poses).state.p) / (2 * h)
+        np.testing.assert_allclose(f[:, i], dp @ F, rtol=1e-6)
+
+
+def test_fit_without_effects_equals_ridge_map(prs3, sim6):
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    fit = fit_map(model)
+    ref = identify(model, method="ridge", lam=1.0, free="all")
+    np.testing.assert_allclose(fit.theta / prs3.tolerance, ref.theta / prs3.tolerance, atol=1e-6)
+    assert fit.chi2 == pytest.approx(ref.chi2, rel=1e-8)
+
+
+def test_bound_effect_in_the_simulator(prs3, rng):
+    from bayescal.simulate import measure
+
+    q = prs3.sample_q(30, rng)
+    theta = np.zeros(prs3.n_params)
+    bound = get_effect("backlash").bind(prs3, [40.0, 40.0, 40.0])
+    clean = measure(prs3, q, theta, 3, None)
+    bl = measure(prs3, q, theta, 3, None, effects=[bound])
+    diff = bl.position - clean.position
+    assert np.linalg.norm(diff[0]) == pytest.approx(0.0, abs=1e-12)  # first pose: approach unknown
+    # the rest: exactly the kinematics at q + 20 um * approach sign
+    s = approach_direction(q)
+    expected = prs3.forward(q + 0.02 * s).position - clean.position
+    np.testing.assert_allclose(diff, expected, atol=1e-9)
+    sim = simulate_with_effects(prs3, 30, seed=4, dof=3, effects=[("backlash", 40.0)])
+    assert sim.info["effects"]["backlash"]["parameters"][0]["name"] == "backlash.q1"
+
+
+def test_parse_effect_spec():
+    assert parse_effect_spec("backlash:12.5") == ("backlash", 12.5)
+    assert parse_effect_spec("joint_compliance") == ("joint_compliance", get_effect("joint_compliance").default_magnitude)
+    with pytest.raises(InputError, match="unknown effect"):
+        parse_effect_spec("wobble:3")
+    with pytest.raises(InputError, match="magnitude"):
+        parse_effect_spec("backlash:lots")
+
+
+@pytest.mark.parametrize("name", ["joint_compliance", "screw_periodic_error", "thermal_expansion"])
+def test_measurement_rows_jacobian_of_effect_parameters(prs3, sim6, name):
+    # d h / d eta = (d h / d q) (d dq / d eta), against finite differences of the full model (6-DOF rows)
+    from bayescal.effects.model import effect_residual
+
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    n = model.n_poses
+    aux = {"temp_C": np.linspace(20, 26, n), "payload_kg": np.linspace(0, 20, n)}
+    eff = get_effect(name)
+    theta = np.zeros(prs3.n_params)
+    feats = eff.features(prs3, model.q, theta, aux, None, prs3.forward(model.q))
+    params = eff.params(prs3, feats)
+    eta = np.array([p.prior_mean + 0.5 * p.prior_sd for p in params])
+    q_eff = model.q + eff.delta_q(feats, eta)
+    from dataclasses import replace
+
+    sub = replace(model, q=q_eff)
+    pred = sub.predict(theta)
+    J = np.einsum("ndm,nmk->ndk", sub.rows_jacobian(prs3.actuator_jacobian(q_eff, theta, pred.poses), pred),
+                  eff.delta_q_jacobian(feats, eta))
+    for k, p in enumerate(params):
+        h = 1e-3 * p.prior_sd
+        e = np.zeros(len(eta))
+        e[k] = h
+        # residual = y - h, so its derivative is -J
+        fd = -(effect_residual(model, [(eff, feats)], theta, eta + e) - effect_residual(model, [(eff, feats)], theta, eta - e)) / (2 * h)
+        np.testing.assert_allclose(J[:, :, k], fd, atol=1e-6 * max(np.abs(fd).max(), 1e-9) + 1e-10)

@@ -1,0 +1,35 @@
+import csv
+import importlib.util
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _study():
+    spec = importlib.util.spec_from_file_location("diagnose_concealed", ROOT / "studies" / "diagnose_concealed.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_random_machines_are_valid_and_varied():
+    from bayescal.machines import machine_from_text
+
+    study = _study()
+    cases = [study.make_case("none", i, 1) for i in range(4)]
+    machines = [machine_from_text(c["machine"]) for c in cases]
+    assert len({float(m.link_length[0]) for m in machines}) == 4
+    assert len({float(m.tool_point[2]) for m in machines}) == 4
+    assert all(60 <= c["n"] <= 200 and c["dof"] in (3, 5, 6) for c in cases)
+
+
+def test_quick_mode_runs_and_writes_its_tables(tmp_path):
+    study = _study()
+    assert study.main(["--quick", "--classes", "none,backlash", "--out", str(tmp_path)]) == 0
+    with (tmp_path / "results.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["cls"] for r in rows] == ["none", "backlash"]
+    assert not any(r["verdict"].startswith("error") for r in rows)
+    text = (tmp_path / "summary.md").read_text()
+    assert "Confusion matrix" in text and "False detections on clean data" in text
+    assert (tmp_path / "confusion.png").stat().st_size > 1000
