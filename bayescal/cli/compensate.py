@@ -44,30 +44,17 @@ def register(sub) -> None:
 
 def _table(path):
     from ..errors import RecordingError
+    from ..io.recording import parse_number, read_csv_rows
 
-    try:
-        import csv
-
-        with open(path, encoding="utf-8-sig", newline="") as fh:
-            rows = list(csv.reader(fh))
-    except (FileNotFoundError, IsADirectoryError):
-        raise RecordingError(path, None, None, "file not found; expected a CSV x,z,ex,ez") from None
-    if not rows or [h.strip() for h in rows[0]] != ["x", "z", "ex", "ez"]:
+    cols = ["x", "z", "ex", "ez"]
+    header, _, rows = read_csv_rows(str(path), None, "a CSV x,z,ex,ez")
+    if header != cols:
         raise RecordingError(path, 1, None, "expected the header x,z,ex,ez")
     out = []
-    for i, r in enumerate(rows[1:], start=2):
+    for i, r in enumerate(rows, start=2):
         if len(r) != 4:
             raise RecordingError(path, i, None, f"{len(r)} cells, expected 4")
-        vals = []
-        for c, cell in zip(("x", "z", "ex", "ez"), r):
-            try:
-                v = float(cell)
-            except ValueError:
-                raise RecordingError(path, i, c, f"expected a number, got {cell.strip()!r}") from None
-            if not np.isfinite(v):
-                raise RecordingError(path, i, c, f"expected a finite number, got {cell.strip()!r}")
-            vals.append(v)
-        out.append(vals)
+        out.append([parse_number(cell, str(path), i, c) for c, cell in zip(cols, r)])
     if not out:
         raise RecordingError(path, 2, None, "no data rows")
     return np.array(out)

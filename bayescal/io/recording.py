@@ -103,7 +103,8 @@ class Recording:
             )
 
 
-def _number(text: str, path: str, line: int, col: str) -> float:
+def parse_number(text: str, path: str, line: int, col: str) -> float:
+    """One CSV cell as a finite float; RecordingError naming line and column otherwise."""
     s = text.strip()
     if s == "":
         raise RecordingError(path, line, col, "empty cell; expected a number")
@@ -114,6 +115,39 @@ def _number(text: str, path: str, line: int, col: str) -> float:
     if not math.isfinite(v):
         raise RecordingError(path, line, col, f"expected a finite number, got {s!r}")
     return v
+
+
+def read_csv_rows(path: str, text: str | None, what: str) -> tuple[list[str], dict[str, int], list[list[str]]]:
+    """Read a CSV strictly up to the header: every reader of bayescal's CSV files shares this.
+
+    Returns the stripped header, the column index by name, and the data rows
+    (trailing blank lines dropped).  Raises RecordingError for a missing or
+    unreadable file, an empty file, empty or duplicate column names.
+    """
+    if text is None:
+        try:
+            with open(path, encoding="utf-8-sig", newline="") as fh:
+                text = fh.read()
+        except FileNotFoundError:
+            raise RecordingError(path, None, None, f"file not found; expected {what}") from None
+        except IsADirectoryError:
+            raise RecordingError(path, None, None, f"is a folder, expected {what}") from None
+        except UnicodeDecodeError as exc:
+            raise RecordingError(path, None, None, f"not a UTF-8 text file ({exc})") from None
+    rows = list(csv.reader(io.StringIO(text)))
+    while rows and all(c.strip() == "" for c in rows[-1]):
+        rows.pop()
+    if not rows:
+        raise RecordingError(path, 1, None, "empty file; expected a header row")
+    header = [h.strip() for h in rows[0]]
+    seen: dict[str, int] = {}
+    for j, h in enumerate(header):
+        if h == "":
+            raise RecordingError(path, 1, None, f"column {j + 1} has an empty name")
+        if h in seen:
+            raise RecordingError(path, 1, h, f"duplicate column (columns {seen[h] + 1} and {j + 1})")
+        seen[h] = j
+    return header, seen, rows[1:]
 
 
 def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recording:
@@ -137,29 +171,8 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         incomplete columns, and ragged rows, naming line and column.
     """
     path = str(path)
-    if text is None:
-        try:
-            with open(path, encoding="utf-8-sig", newline="") as fh:
-                text = fh.read()
-        except FileNotFoundError:
-            raise RecordingError(path, None, None, "file not found") from None
-        except IsADirectoryError:
-            raise RecordingError(path, None, None, "is a folder, expected a recording (CSV)") from None
-        except UnicodeDecodeError as exc:
-            raise RecordingError(path, None, None, f"not a UTF-8 text file ({exc})") from None
-    rows = list(csv.reader(io.StringIO(text)))
-    while rows and all(c.strip() == "" for c in rows[-1]):
-        rows.pop()
-    if not rows:
-        raise RecordingError(path, 1, None, "empty file; expected a header row")
-    header = [h.strip() for h in rows[0]]
-    seen: dict[str, int] = {}
-    for j, h in enumerate(header):
-        if h == "":
-            raise RecordingError(path, 1, None, f"column {j + 1} has an empty name")
-        if h in seen:
-            raise RecordingError(path, 1, h, f"duplicate column (columns {seen[h] + 1} and {j + 1})")
-        seen[h] = j
+    header, seen, data_rows = read_csv_rows(path, text, "a recording (CSV)")
+    rows = [header] + data_rows
     qnums = sorted(int(m.group(1)) for h in header if (m := _Q.match(h)))
     if not qnums:
         raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ...")
@@ -186,7 +199,7 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         if len(row) != len(header):
             raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
         for j, cell in enumerate(row):
-            data[i, j] = _number(cell, path, line, header[j])
+            data[i, j] = parse_number(cell, path, line, header[j])
     col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
     q = col([f"q{k}" for k in qnums])
     rotvec = col(_ROT) if _ROT[0] in seen else None

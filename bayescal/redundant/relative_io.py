@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import RecordingError
+from ..io.recording import parse_number, read_csv_rows
 from ..io.answers import write_text_atomic
 
 __all__ = ["RelativeRecording", "COMPONENTS", "read_relative_recording", "write_relative_recording", "relative_to_csv"]
@@ -84,19 +84,6 @@ class RelativeRecording:
                 raise RecordingError(self.path, r + 2, f"q{c + 1}_{tag}", f"value {q[r, c]!r} outside q_limits {q_limits[c].tolist()} of the machine")
 
 
-def _number(text: str, path: str, line: int, col: str) -> float:
-    s = text.strip()
-    if s == "":
-        raise RecordingError(path, line, col, "empty cell; expected a number")
-    try:
-        v = float(s)
-    except ValueError:
-        raise RecordingError(path, line, col, f"expected a number, got {s!r}") from None
-    if not math.isfinite(v):
-        raise RecordingError(path, line, col, f"expected a finite number, got {s!r}")
-    return v
-
-
 def read_relative_recording(path: str | os.PathLike, *, text: str | None = None) -> RelativeRecording:
     """Read a relative recording CSV strictly (see the module docstring).
 
@@ -106,29 +93,8 @@ def read_relative_recording(path: str | os.PathLike, *, text: str | None = None)
         Naming the file, the line (header = line 1) and the column.
     """
     path = str(path)
-    if text is None:
-        try:
-            with open(path, encoding="utf-8-sig", newline="") as fh:
-                text = fh.read()
-        except FileNotFoundError:
-            raise RecordingError(path, None, None, "file not found") from None
-        except IsADirectoryError:
-            raise RecordingError(path, None, None, "is a folder, expected a relative recording (CSV)") from None
-        except UnicodeDecodeError as exc:
-            raise RecordingError(path, None, None, f"not a UTF-8 text file ({exc})") from None
-    rows = list(csv.reader(io.StringIO(text)))
-    while rows and all(c.strip() == "" for c in rows[-1]):
-        rows.pop()
-    if not rows:
-        raise RecordingError(path, 1, None, "empty file; expected a header row")
-    header = [h.strip() for h in rows[0]]
-    seen: dict[str, int] = {}
-    for j, h in enumerate(header):
-        if h == "":
-            raise RecordingError(path, 1, None, f"column {j + 1} has an empty name")
-        if h in seen:
-            raise RecordingError(path, 1, h, f"duplicate column (columns {seen[h] + 1} and {j + 1})")
-        seen[h] = j
+    header, seen, data_rows = read_csv_rows(path, text, "a relative recording (CSV)")
+    rows = [header] + data_rows
     nums = {"from": set(), "to": set()}
     for h in header:
         if mt := _Q.match(h):
@@ -151,7 +117,7 @@ def read_relative_recording(path: str | os.PathLike, *, text: str | None = None)
         if len(row) != len(header):
             raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
         for j, cell in enumerate(row):
-            data[i, j] = _number(cell, path, line, header[j])
+            data[i, j] = parse_number(cell, path, line, header[j])
     col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
     qf = col([f"q{k}_from" for k in range(1, m + 1)])
     qt = col([f"q{k}_to" for k in range(1, m + 1)])
