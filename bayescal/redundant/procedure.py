@@ -185,7 +185,8 @@ def run_procedure(
     theta = s1.theta_after
     after1 = evaluate(truth, ctrl, theta)
 
-    # BIC: measure the residual position error at the grid nodes (dial gauge), relative to the zero pose
+    # BIC: measure the residual position error at the grid nodes (dial gauge), relative to the zero pose;
+    # a measured node is the true residual error there plus one gauge reading, so its std is the gauge's
     inst = INSTRUMENTS["dial_gauge"]
     th = ctrl.complete(theta)
     state = {"th": th, "y0": truth.tool(m.inverse_planar(zero_x[None], th))[0]}
@@ -196,7 +197,7 @@ def run_procedure(
         y, _, _ = truth.tool(m.inverse_planar(xn, th))
         return inst.read((y - y0) - (xn[:, :2] - zero_x[:2]), rng)
 
-    grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n)
+    grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n, std=inst.sigma)
     after_bic = evaluate(truth, ctrl, theta, grid=grid)
     # each later step adds its own measurement to the latest of the earlier ones, so it cannot undo them
     # (their noise inflated by the misfit the earlier step left: unmodelled errors count as noise)
@@ -212,7 +213,7 @@ def run_procedure(
     # SI2 and SI3 changed the model under the grid of step (4): measure the grid again for the final state
     state["th"] = ctrl.complete(theta)
     state["y0"] = truth.tool(m.inverse_planar(zero_x[None], state["th"]))[0]
-    grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n)
+    grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n, std=inst.sigma)
     after3 = evaluate(truth, ctrl, theta, grid=grid)
     recs = {"RM1": rm1[0], "RM2": rm2[0], "RM3": rm3[0]}
     steps = (s1, s2, s3)

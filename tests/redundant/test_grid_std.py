@@ -60,7 +60,7 @@ def test_standardised_node_errors_are_standard_normal(raspm):
     assert np.concatenate(z_small).std() > 1.5
 
 
-def test_grid_with_the_identified_controller_predicts_zero(raspm):
+def test_grid_with_the_identified_controller_predicts_zero(raspm, tmp_path):
     rng = np.random.default_rng(2)
     truth, ctrl, th0, step = _machine_run(raspm, rng)
     g = predicted_grid(ctrl, step.theta_after, step.covariance)
@@ -71,6 +71,12 @@ def test_grid_with_the_identified_controller_predicts_zero(raspm):
     assert np.allclose(g.std, g0.std, rtol=0.05, atol=1e-6)
     with pytest.raises(InputError, match="covariance"):
         predicted_grid(ctrl, step.theta_after, np.eye(3))
+    from bayescal.compensation import read_grid, write_grid
+    from bayescal.plots.redundant import plot_grid_std
+
+    back = read_grid(write_grid(tmp_path / "g.csv", g0))
+    assert np.allclose(back.std, g0.std, rtol=1e-15) and np.allclose(back.error, g0.error, rtol=1e-15)
+    assert plot_grid_std(g0, tmp_path / "std.png").stat().st_size > 1000
 
 
 def test_step_covariance_is_noise_in_kept_and_prior_elsewhere(raspm):
