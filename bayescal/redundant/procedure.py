@@ -137,6 +137,9 @@ class ProcedureResult:
     grid : CompensationGrid
     theta_true, theta_final : ndarray
     recordings : dict of str to RelativeRecording
+    controller : PoseModel
+        The controller's model (with its zero position), e.g. for
+        :func:`bayescal.redundant.grid_std.predicted_grid`.
     """
 
     before: Evaluation
@@ -149,6 +152,7 @@ class ProcedureResult:
     theta_true: NDArray
     theta_final: NDArray
     recordings: dict = field(default_factory=dict)
+    controller: PoseModel | None = None
 
     def report(self) -> str:
         rows = [("initial", self.before), ("after RM1/SI1", self.after_si1), ("after BIC", self.after_bic),
@@ -217,7 +221,7 @@ def run_procedure(
     after3 = evaluate(truth, ctrl, theta, grid=grid)
     recs = {"RM1": rm1[0], "RM2": rm2[0], "RM3": rm3[0]}
     steps = (s1, s2, s3)
-    return ProcedureResult(before, after1, after_bic, after2, after3, steps, grid, truth.theta, theta, recs)
+    return ProcedureResult(before, after1, after_bic, after2, after3, steps, grid, truth.theta, theta, recs, ctrl)
 
 
 def previous_subsets(machine: Raspm) -> list[tuple[int, ...]]:
