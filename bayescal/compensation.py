@@ -5,8 +5,11 @@ default); each node holds the residual position error ``(ex, ez)`` (actual
 minus commanded, mm) measured there.  At a commanded point inside a cell
 the error is interpolated linearly in ``x`` on the cell's two edges, then
 linearly in ``z`` between them, and the command is revised by subtracting
-it.  Each node also has room for the standard deviation of its value
-(``std_ex``, ``std_ez``; NaN when unknown).
+it.  Each node also carries the standard deviation of its value
+(``std_ex``, ``std_ez``; NaN when unknown): for a measured node the
+instrument's one-sigma (``build_grid(..., std=)``), for a node predicted from
+an identified model the propagated model uncertainty
+(:func:`bayescal.redundant.grid_std.predicted_grid`).
 
 Grid CSV (what an NC system loads), one row per node, ``i`` fastest::
 
