@@ -5,8 +5,11 @@ default); each node holds the residual position error ``(ex, ez)`` (actual
 minus commanded, mm) measured there.  At a commanded point inside a cell
 the error is interpolated linearly in ``x`` on the cell's two edges, then
 linearly in ``z`` between them, and the command is revised by subtracting
-it.  Each node also has room for the standard deviation of its value
-(``std_ex``, ``std_ez``; NaN when unknown).
+it.  Each node also carries the standard deviation of its value
+(``std_ex``, ``std_ez``; NaN when unknown): for a measured node the
+instrument's one-sigma (``build_grid(..., std=)``), for a node predicted from
+an identified model the propagated model uncertainty
+(:func:`bayescal.redundant.grid_std.predicted_grid`).
 
 Grid CSV (what an NC system loads), one row per node, ``i`` fastest::
 
@@ -114,7 +117,9 @@ class CompensationGrid:
         return {"xs": self.xs.tolist(), "zs": self.zs.tolist(), "error": self.error.tolist(), "std": self.std.tolist()}
 
 
-def build_grid(x_range: ArrayLike, z_range: ArrayLike, error_at, *, n: int = 5, n_z: int | None = None) -> CompensationGrid:
+def build_grid(
+    x_range: ArrayLike, z_range: ArrayLike, error_at, *, n: int = 5, n_z: int | None = None, std: float | None = None
+) -> CompensationGrid:
     """Mesh a translation range and evaluate ``error_at(x, z) -> (k, 2)`` at the nodes.
 
     Parameters
@@ -124,14 +129,20 @@ def build_grid(x_range: ArrayLike, z_range: ArrayLike, error_at, *, n: int = 5, 
         Measures (or models) the residual position error at node coordinates.
     n : int
         Nodes along x (and along z unless ``n_z``); 5 by default.
+    std : float, optional
+        One-sigma of every node value (mm) when the nodes are measured: the
+        instrument's reading error (NaN, i.e. unknown, by default).
     """
+    if std is not None and not (np.isfinite(std) and std >= 0):
+        raise InputError(f"std: expected a finite non-negative number (mm), got {std!r}")
     if int(n) != n or n < 2 or (n_z is not None and (int(n_z) != n_z or n_z < 2)):
         raise InputError(f"grid size: expected integers >= 2, got n={n!r}, n_z={n_z!r}")
     xs = np.linspace(*x_range, int(n))
     zs = np.linspace(*z_range, int(n if n_z is None else n_z))
     X, Z = np.meshgrid(xs, zs)
     err = np.asarray(error_at(X.ravel(), Z.ravel()), float).reshape(zs.size, xs.size, 2)
-    return CompensationGrid(xs=xs, zs=zs, error=err)
+    sd = None if std is None else np.full(err.shape, float(std))
+    return CompensationGrid(xs=xs, zs=zs, error=err, std=sd)
 
 
 def write_grid(path: str | os.PathLike, grid: CompensationGrid) -> Path:

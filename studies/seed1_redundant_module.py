@@ -25,6 +25,7 @@ from bayescal.compensation import write_grid  # noqa: E402
 from bayescal.io import write_json_atomic  # noqa: E402
 from bayescal.machines import load_machine  # noqa: E402
 from bayescal.redundant.physics import TrueModule  # noqa: E402
+from bayescal.redundant.grid_std import predicted_grid  # noqa: E402
 from bayescal.redundant.procedure import compare_methods, run_procedure  # noqa: E402
 from bayescal.redundant.relative_io import write_relative_recording  # noqa: E402
 
@@ -76,9 +77,16 @@ def main(argv=None) -> int:
         print(f"target {k}: {'met' if ok else 'MISSED'}" + (f" ({got[k]:.4f} <= {TARGETS[k]})" if k in got else ""))
     write_json_atomic(out / "results.json", {"procedure": res.to_dict(), "comparison": comp.to_dict(), "targets": TARGETS, "achieved": got, "met": met})
     write_grid(out / "bic_grid.csv", res.grid)
+    # the grid SI1's model predicts for the nominal controller, with each node's std (docs/redundant.md section 5)
+    s1 = res.steps[0]
+    pgrid = predicted_grid(res.controller, s1.theta_after, s1.covariance, theta_cmd=s1.theta_before)
+    write_grid(out / "bic_grid_predicted.csv", pgrid)
+    print(pgrid.report() + f"; node std max {np.nanmax(pgrid.std) * 1e3:.2f} um")
     for name, rec in res.recordings.items():
         write_relative_recording(out / f"{name.lower()}.csv", rec)
-    from bayescal.plots.redundant import plot_comparison, plot_procedure
+    from bayescal.plots.redundant import plot_comparison, plot_grid_std, plot_procedure
+
+    plot_grid_std(pgrid, out / "bic_grid_std.png", title="BIC grid predicted from SI1: node std (linearised covariance)")
 
     plot_procedure(res, out)
     plot_comparison(comp, out)

@@ -24,6 +24,7 @@ by scipy's linear interpolation (exact where the points are the nodes).
 EXAMPLES = """\
 examples:
   bayescal compensate --errors node_errors.csv --x-range -300 300 --z-range -200 200 --n 5 --out bic_grid.csv
+  bayescal compensate --errors node_errors.csv --x-range -300 300 --z-range -200 200 --node-std 0.00065 --out bic_grid.csv
   bayescal compensate --grid bic_grid.csv --evaluate fresh_errors.csv --json eval.json
 """
 
@@ -35,6 +36,8 @@ def register(sub) -> None:
     p.add_argument("--x-range", nargs=2, type=float, metavar=("MIN", "MAX"), help="translation range along x, mm")
     p.add_argument("--z-range", nargs=2, type=float, metavar=("MIN", "MAX"), help="translation range along z, mm")
     p.add_argument("--n", type=int, default=5, help="nodes per axis (default 5)")
+    p.add_argument("--node-std", type=float, metavar="MM",
+                   help="one-sigma of each measured node value (the instrument's reading error, mm): written to std_ex, std_ez")
     p.add_argument("--out", help="write the grid CSV here")
     p.add_argument("--grid", help="an existing grid CSV to evaluate")
     p.add_argument("--evaluate", help="CSV x,z,ex,ez of fresh measured errors: report them before/after compensation")
@@ -77,7 +80,7 @@ def run(args) -> int:
                 raise InputError(f"{args.errors}: the measured points do not cover every grid node of the ranges given")
             return e
 
-        grid = build_grid(args.x_range, args.z_range, at, n=args.n)
+        grid = build_grid(args.x_range, args.z_range, at, n=args.n, std=args.node_std)
         print(grid.report())
         if args.out:
             write_grid(args.out, grid)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_procedure", "plot_comparison"]
+__all__ = ["plot_procedure", "plot_comparison", "plot_grid_std"]
 
 
 def _plt():
@@ -69,6 +69,36 @@ def plot_comparison(comp, out_dir) -> Path:
         ax.legend(fontsize=8)
     fig.tight_layout()
     path = Path(out_dir) / "comparison.png"
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_grid_std(grid, path, *, title: str = "") -> Path:
+    """Heat maps of a BIC grid's node std (``std_ex``, ``std_ez``, um) over the translation range.
+
+    Parameters
+    ----------
+    grid : bayescal.compensation.CompensationGrid
+    path : str or Path
+        PNG to write.
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    dx = np.diff(grid.xs).mean() / 2
+    dz = np.diff(grid.zs).mean() / 2
+    ext = (grid.xs[0] - dx, grid.xs[-1] + dx, grid.zs[0] - dz, grid.zs[-1] + dz)
+    for ax, k, lab in zip(axes, (0, 1), ("ex", "ez")):
+        im = ax.imshow(grid.std[..., k] * 1e3, origin="lower", extent=ext, aspect="auto", cmap="viridis")
+        ax.plot(*np.meshgrid(grid.xs, grid.zs), "w.", ms=3)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("z (mm)")
+        ax.set_title(f"std of {lab} at the nodes")
+        fig.colorbar(im, ax=ax, label="um")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path

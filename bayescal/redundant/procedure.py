@@ -137,6 +137,9 @@ class ProcedureResult:
     grid : CompensationGrid
     theta_true, theta_final : ndarray
     recordings : dict of str to RelativeRecording
+    controller : PoseModel
+        The controller's model (with its zero position), e.g. for
+        :func:`bayescal.redundant.grid_std.predicted_grid`.
     """
 
     before: Evaluation
@@ -149,6 +152,7 @@ class ProcedureResult:
     theta_true: NDArray
     theta_final: NDArray
     recordings: dict = field(default_factory=dict)
+    controller: PoseModel | None = None
 
     def report(self) -> str:
         rows = [("initial", self.before), ("after RM1/SI1", self.after_si1), ("after BIC", self.after_bic),
@@ -185,7 +189,8 @@ def run_procedure(
     theta = s1.theta_after
     after1 = evaluate(truth, ctrl, theta)
 
-    # BIC: measure the residual position error at the grid nodes (dial gauge), relative to the zero pose
+    # BIC: measure the residual position error at the grid nodes (dial gauge), relative to the zero pose;
+    # a measured node is the true residual error there plus one gauge reading, so its std is the gauge's
     inst = INSTRUMENTS["dial_gauge"]
     th = ctrl.complete(theta)
     state = {"th": th, "y0": truth.tool(m.inverse_planar(zero_x[None], th))[0]}
@@ -196,7 +201,7 @@ def run_procedure(
         y, _, _ = truth.tool(m.inverse_planar(xn, th))
         return inst.read((y - y0) - (xn[:, :2] - zero_x[:2]), rng)
 
-    grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n)
+    grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n, std=inst.sigma)
     after_bic = evaluate(truth, ctrl, theta, grid=grid)
     # each later step adds its own measurement to the latest of the earlier ones, so it cannot undo them
     # (their noise inflated by the misfit the earlier step left: unmodelled errors count as noise)
@@ -212,11 +217,11 @@ def run_procedure(
     # SI2 and SI3 changed the model under the grid of step (4): measure the grid again for the final state
     state["th"] = ctrl.complete(theta)
     state["y0"] = truth.tool(m.inverse_planar(zero_x[None], state["th"]))[0]
-    grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n)
+    grid = build_grid(m.pose_range[0], m.pose_range[1], node_error, n=grid_n, std=inst.sigma)
     after3 = evaluate(truth, ctrl, theta, grid=grid)
     recs = {"RM1": rm1[0], "RM2": rm2[0], "RM3": rm3[0]}
     steps = (s1, s2, s3)
-    return ProcedureResult(before, after1, after_bic, after2, after3, steps, grid, truth.theta, theta, recs)
+    return ProcedureResult(before, after1, after_bic, after2, after3, steps, grid, truth.theta, theta, recs, ctrl)
 
 
 def previous_subsets(machine: Raspm) -> list[tuple[int, ...]]:

@@ -208,6 +208,14 @@ class StepResult:
         Smallest singular value of the whitened, scaled identification matrix.
     rms_before, rms_after : float
         Whitened residual RMS (1 = at the noise).
+    covariance : ndarray, shape (P, P), optional
+        Linearised covariance of ``theta_after - theta_true`` (mm, rad) for
+        a step started from the nominal model with the truth drawn from the
+        tolerance prior ``N(0, diag(tolerance^2))``: in the identified
+        directions the instrument noise propagated through the step's
+        least squares, in the directions it leaves (unseen, or with no
+        leverage) the prior spread; zero rows/columns for the offsets the
+        zero position fixes (functions of the others, see ``PoseModel.complete``).
     iterations : int
     success : bool
     message : str
@@ -227,6 +235,7 @@ class StepResult:
     message: str = ""
     units: tuple[str, ...] = field(default=())
     n_directions: int = 0
+    covariance: NDArray | None = None
 
     def report(self) -> str:
         lines = [
@@ -373,9 +382,17 @@ def identify_step(
     W = basis @ Vt2.T / s2
     eta = 1.0 / np.sqrt((W[sel] ** 2).sum(axis=1))
     s_min = float(sv[-1])
+    # Linearised covariance (tolerance-scaled): noise in the kept directions (W W^T; no leakage from
+    # the others, whose data-space columns are orthogonal to the kept ones at the SVD point), the
+    # prior spread (identity) in the directions left unseen and for free parameters with no leverage.
+    free = model.free_index
+    Cs = np.zeros((machine.n_params, machine.n_params))
+    Cs[np.ix_(free, free)] = np.eye(free.size)
+    Cs[np.ix_(cand, cand)] = W @ W.T + np.eye(cand.size) - basis @ basis.T
+    cov = Cs * tol[:, None] * tol[None, :]
     return StepResult(
         step=step, method=model.method, theta_before=np.asarray(theta0, dtype=float), theta_after=theta,
         identified=tuple(machine.layout.names[j] for j in idx), anti_disturbance=eta, step_index=s_min,
         rms_before=rms0, rms_after=float(np.sqrt(np.mean(r**2))), iterations=it, success=success, message=message,
-        units=tuple(machine.layout.units[j] for j in idx), n_directions=k,
+        units=tuple(machine.layout.units[j] for j in idx), n_directions=k, covariance=cov,
     )

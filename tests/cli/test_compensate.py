@@ -22,3 +22,13 @@ def test_compensate_writes_and_evaluates(tmp_path):
     assert ans["max_after_mm"] < 1e-9 < ans["max_before_mm"]
     (tmp_path / "bad.csv").write_text("x,z,ex,ez\n1,2,oops,4\n")
     assert main(["compensate", "--grid", str(tmp_path / "g.csv"), "--evaluate", str(tmp_path / "bad.csv")]) == 2
+
+
+def test_compensate_node_std_is_written(tmp_path):
+    X, Z = np.meshgrid(np.linspace(-300, 300, 5), np.linspace(-200, 200, 5))
+    (tmp_path / "e.csv").write_text("\n".join(["x,z,ex,ez"] + [f"{x},{z},0.001,0.002" for x, z in zip(X.ravel(), Z.ravel())]) + "\n")
+    assert main(["compensate", "--errors", str(tmp_path / "e.csv"), "--x-range", "-300", "300", "--z-range", "-200", "200",
+                 "--node-std", "0.00065", "--out", str(tmp_path / "g.csv")]) == 0
+    assert np.all(read_grid(tmp_path / "g.csv").std == 0.00065)
+    assert main(["compensate", "--errors", str(tmp_path / "e.csv"), "--x-range", "-300", "300", "--z-range", "-200", "200",
+                 "--node-std", "-1"]) == 2

@@ -12,5 +12,5 @@ def test_study_quick_mode_meets_targets(tmp_path):
     assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
     res = json.loads((tmp_path / "results.json").read_text())
     assert all(res["met"].values())
-    for name in ("position_errors.png", "orientation_errors.png", "comparison.png", "bic_grid.csv", "rm1.csv"):
+    for name in ("position_errors.png", "orientation_errors.png", "comparison.png", "bic_grid.csv", "rm1.csv", "bic_grid_predicted.csv", "bic_grid_std.png"):
         assert (tmp_path / name).stat().st_size > 0
