@@ -107,3 +107,25 @@ def test_distance_correlation_closed_forms(rng):
 
 def test_holm_by_hand():
     np.testing.assert_allclose(holm([0.01, 0.04, 0.03, 0.5]), [0.04, 0.09, 0.09, 0.5])
+
+
+
+def test_quadratic_straightness_is_not_a_screw_error():
+    # a rail bowing quadratically along the stroke (outside the library): a sine with a pitch of about the
+    # stroke imitates it.  Case 25 of the concealed study (seed 2026) was named screw_periodic_error before
+    # the pitch was restricted to at least two full periods in the recorded stroke.
+    from studies.diagnose_concealed import make_case, run_case
+
+    case = make_case("outside_straightness", 25, 2026)
+    case["n_perm"] = 49
+    row = run_case(case)
+    assert row["verdict"] != "screw_periodic_error"
+    assert "screw_periodic_error" not in row["selected"].split("+")
+
+
+def test_fitted_pitch_fits_twice_in_the_stroke(prs3):
+    sim = simulate_with_effects(prs3, 80, seed=7, dof=6, effects=[("screw_periodic_error", 20.0)])
+    d = diagnose(prs3, sim.recording, effects=["screw_periodic_error"], seed=1, n_perm=19)
+    span = float(np.ptp(sim.recording.q, axis=0).max())
+    pitch = next(e for e in d.effects if e.name == "screw_periodic_error").parameters[0].value
+    assert pitch <= span / 2
