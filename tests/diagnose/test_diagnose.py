@@ -129,3 +129,33 @@ def test_fitted_pitch_fits_twice_in_the_stroke(prs3):
     span = float(np.ptp(sim.recording.q, axis=0).max())
     pitch = next(e for e in d.effects if e.name == "screw_periodic_error").parameters[0].value
     assert pitch <= span / 2
+
+
+RASPM_FILE = PRS3_FILE.parent.parent / "raspm" / "machine.toml"
+
+
+def test_redundancy_preload_direction_is_an_internal_force_on_the_raspm():
+    from bayescal.effects import get_effect
+    from bayescal.machines import load_machine
+
+    m = load_machine(RASPM_FILE)
+    sim = simulate_with_effects(m, 12, seed=4, dof=6)
+    theta = np.zeros(m.n_params)
+    nu = get_effect("redundancy_preload").features(m, sim.recording.q, theta, {}, None, None).per_pose["nu"]
+    x = m.forward(sim.recording.q, theta).state.x
+    _, Ja = m.ik_jacobian(x, theta)
+    # self-equilibrated: J_a^T nu = 0, unit length, and not the trivial direction of the ignored actuator alone
+    np.testing.assert_allclose(np.einsum("nmk,nm->nk", Ja, nu), 0.0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(nu, axis=1), 1.0)
+    assert np.all(np.abs(nu[:, list(m.nonredundant)]).max(axis=1) > 0.1)
+
+
+def test_clean_raspm_names_no_effect():
+    from bayescal.machines import load_machine
+
+    m = load_machine(RASPM_FILE)
+    sim = simulate_with_effects(m, 40, seed=5, dof=6)
+    d = diagnose(m, sim.recording, seed=1, n_perm=19)
+    assert d.verdict == "none"
+    assert "redundancy_preload" in [e.name for e in d.effects]
+    assert not d.selected
