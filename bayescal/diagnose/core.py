@@ -151,6 +151,8 @@ def diagnose(
         if why is None:
             f = eff.features(machine, model.q, fit0.theta, aux, None, pred0.poses)
             f = eff.refine(f, model.q, dq_res)
+            why = eff.inadmissible(f)
+        if why is None:
             k = len(eff.params(machine, f))
             if n < eff.min_poses(k):
                 why = f"too few poses: {n} for {k} parameters (at least {eff.min_poses(k)} needed)"
@@ -170,11 +172,15 @@ def diagnose(
     for c in list(cands):
         try:
             fit = fit_map(model, [(c.effect, c.features)], theta0=fit0.theta)
-            ev = _evidence(fit, fit0, c.penalty)
-            cv = _cv_rms(model, [c], folds, fit.theta, fit.eta)
+            why = c.effect.inadmissible(c.features, fit.eta)
+            if why is None:
+                ev = _evidence(fit, fit0, c.penalty)
+                cv = _cv_rms(model, [c], folds, fit.theta, fit.eta)
         except KinematicsError as exc:
             # the fitted effect moved a pose out of the workspace: it cannot be the explanation
-            failed[c.effect.name] = f"fit failed: {exc}"
+            why = f"fit failed: {exc}"
+        if why is not None:
+            failed[c.effect.name] = why
             skipped.append((c.effect.name, failed[c.effect.name]))
             cands.remove(c)
             continue
@@ -197,6 +203,9 @@ def diagnose(
                     fit = fit_map(model, [(x.effect, x.features) for x in combo], theta0=cur_fit.theta,
                                   eta0=np.concatenate([cur_fit.eta, [p.prior_mean for p in c.effect.params(machine, c.features)]]))
                 except KinematicsError:
+                    continue
+                sl = dict(fit.effect_slices)[c.effect.name]
+                if c.effect.inadmissible(c.features, fit.eta[sl]) is not None:
                     continue
                 ev = _evidence(fit, cur_fit, c.penalty)
                 cv = None

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from scipy.stats import gamma as gamma_dist
 
 from ..effects.base import approach_direction
-from ..effects.periodogram import n_independent_frequencies, periodogram, pitch_grid
+from ..effects.periodogram import PITCH_RANGE_MM, admissible_pitch_range, n_independent_frequencies, periodogram, pitch_grid
 
 __all__ = ["ChannelDependence", "Location", "locate", "distance_correlation", "holm"]
 
@@ -216,8 +216,10 @@ def locate(
         stat, p = _perm_test(v, B, rng, n_perm)
         out.append([name, kind, stat, p, detail, v])
     span = float(np.ptp(q, axis=0).max())
-    freqs = pitch_grid(span)
-    M = n_independent_frequencies(span)
+    # only pitches that repeat at least twice in the stroke (as for the screw_periodic_error effect)
+    prange = admissible_pitch_range(span) or (PITCH_RANGE_MM[0], PITCH_RANGE_MM[0])
+    freqs = pitch_grid(span, prange)
+    M = n_independent_frequencies(span, prange)
     for i in range(m):
         power = periodogram(q[:, i], dq_residual[:, i], freqs)
         k = int(np.argmax(power))

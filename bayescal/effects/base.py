@@ -160,6 +160,15 @@ class Effect(ABC):
         """
         return features
 
+    def inadmissible(self, features: Features, eta: NDArray | None = None) -> str | None:
+        """Why the effect (with fitted parameters ``eta``, if given) cannot be the explanation, or None.
+
+        Checked by the diagnosis after :meth:`refine` (``eta`` None) and after
+        each fit; e.g. a periodic error whose pitch does not fit twice in the
+        recorded stroke.
+        """
+        return None
+
     def occam_penalty(self, features: Features, q: NDArray) -> float:
         """Extra log-evidence penalty (nats) for parameters chosen by a search (look-elsewhere)."""
         return 0.0

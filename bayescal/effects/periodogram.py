@@ -6,10 +6,25 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lombscargle
 
-__all__ = ["PITCH_RANGE_MM", "pitch_grid", "periodogram", "n_independent_frequencies"]
+__all__ = ["PITCH_RANGE_MM", "MIN_PERIODS", "admissible_pitch_range", "pitch_grid", "periodogram", "n_independent_frequencies"]
 
 #: Pitches searched for a periodic actuator error, mm (lead screws 2-40 mm; encoders' sub-periods).
 PITCH_RANGE_MM = (1.0, 50.0)
+#: Fewest full periods a pitch must fit within the recorded stroke to be admissible: with fewer, a
+#: long-pitch sine is indistinguishable from a smooth (e.g. quadratic) error over the stroke.
+MIN_PERIODS = 2.0
+
+
+def admissible_pitch_range(q_span: float, pitch_range=PITCH_RANGE_MM) -> tuple[float, float] | None:
+    """Pitches (mm) that fit at least :data:`MIN_PERIODS` full periods in the recorded stroke ``q_span`` (mm).
+
+    Returns ``(pmin, min(pmax, q_span / MIN_PERIODS))``, or None when no pitch of
+    ``pitch_range`` fits (a stroke shorter than ``MIN_PERIODS * pmin``).
+    """
+    pmax = min(float(pitch_range[1]), float(q_span) / MIN_PERIODS)
+    if pmax <= pitch_range[0]:
+        return None
+    return (float(pitch_range[0]), pmax)
 
 
 def pitch_grid(q_span: float, pitch_range=PITCH_RANGE_MM, oversample: float = 5.0) -> NDArray:

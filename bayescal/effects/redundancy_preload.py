@@ -26,8 +26,9 @@ class RedundancyPreload(Effect):
     Physics: with ``m`` actuators for ``n < m`` degrees of freedom, the
     actuators can push against each other without moving the platform: the
     internal force lies in the ``m - n`` dimensional space of actuator
-    motions that do not move the tool (the null space ``N`` of the
-    actuator Jacobian ``d x / d q``).  A preload ``P`` along the unit
+    motions that do not move the tool: ``null(J_a^T)``, ``J_a = dq/dx`` the
+    inverse-kinematics Jacobian when the machine has one (``ik_jacobian``,
+    the RASPM), else the null space of the actuator Jacobian ``d x / d q``).  A preload ``P`` along the unit
     direction ``nu(q)`` of that space deflects compliant drives by
     ``c_i P nu_i``; unequal compliances leave a deflection outside the null
     space, which moves the tool:
@@ -57,6 +58,16 @@ class RedundancyPreload(Effect):
     def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:
         if poses is None:
             poses = machine.forward(q, theta)
+        x = getattr(poses.state, "x", None)
+        if hasattr(machine, "ik_jacobian") and x is not None:
+            # the internal forces are null(J_a^T), J_a = dq/dx of the full (redundant) inverse kinematics.
+            # The forward kinematics of a redundant machine reads only a non-redundant subset of q, so
+            # the null space of its dh/dq is just the ignored actuator, which would never move the tool.
+            from ..redundant.physics import internal_force_basis
+
+            _, Ja = machine.ik_jacobian(x, theta)
+            nu = internal_force_basis(Ja)[:, :, 0]
+            return Features({"nu": np.where(nu[:, :1] >= 0, nu, -nu)}, {})
         J = machine.actuator_jacobian(q, theta, poses)  # (n, 6, m)
         n, _, m = J.shape
         k = m - machine_dof(machine)

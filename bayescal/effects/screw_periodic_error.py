@@ -7,7 +7,7 @@ from numpy.typing import NDArray
 
 from ..machines.base import Machine, ToolPoses
 from .base import Effect, EffectParam, Features
-from .periodogram import PITCH_RANGE_MM, n_independent_frequencies, periodogram, pitch_grid
+from .periodogram import MIN_PERIODS, PITCH_RANGE_MM, admissible_pitch_range, n_independent_frequencies, periodogram, pitch_grid
 
 __all__ = ["ScrewPeriodicError"]
 
@@ -27,8 +27,14 @@ class ScrewPeriodicError(Effect):
     ``pitch`` (mm) and ``sin.q<i>``, ``cos.q<i>`` (um; amplitude
     ``sqrt(a^2 + b^2)``).  The pitch is found first by a Lomb-Scargle
     periodogram over ``q`` of the geometric fit's actuator-space residuals
-    (summed over actuators), searched in 1-50 mm; amplitudes and phases then
-    enter linearly and the pitch is refined with them.  Because the pitch is
+    (summed over actuators), searched in 1-50 mm but only up to half the
+    recorded stroke (the largest range of ``q`` over the actuators);
+    amplitudes and phases then enter linearly and the pitch is refined with
+    them.  A fitted pitch longer than half the recorded stroke makes the
+    effect inadmissible: with fewer than two full periods in the stroke a
+    sine is indistinguishable from a smooth error (a quadratic rail
+    straightness error was named a screw error with pitches of about the
+    stroke), so a periodic error is only claimed when it repeats.  Because the pitch is
     chosen by a search, the evidence pays a look-elsewhere penalty of
     ``ln(number of independent frequencies)``.  Usual size on machine
     tools: 1-5 um for ground ball screws, 10-30 um for rolled screws or
@@ -48,7 +54,10 @@ class ScrewPeriodicError(Effect):
     def refine(self, features: Features, q: NDArray, dq_residual: NDArray) -> Features:
         """Start pitch from the summed periodogram of the actuator-space residuals."""
         span = float(np.ptp(q, axis=0).max())
-        freqs = pitch_grid(span)
+        prange = admissible_pitch_range(span)
+        if prange is None:
+            return Features(features.per_pose, {**features.const, "span": span})
+        freqs = pitch_grid(span, prange)
         power = sum(periodogram(q[:, i], dq_residual[:, i], freqs) for i in range(q.shape[1]))
         f0 = freqs[int(np.argmax(power))]
         pitch0 = 1.0 / f0
@@ -56,8 +65,19 @@ class ScrewPeriodicError(Effect):
         const = {**features.const, "pitch0": pitch0, "pitch_sd": pitch0**2 / max(span, 1e-9), "span": span}
         return Features(features.per_pose, const)
 
+    def inadmissible(self, features: Features, eta: NDArray | None = None) -> str | None:
+        span = features.const["span"]
+        prange = admissible_pitch_range(span)
+        if prange is None:
+            return f"recorded stroke {span:.3g} mm is shorter than {MIN_PERIODS:g} periods of the shortest pitch ({PITCH_RANGE_MM[0]:g} mm)"
+        if eta is not None and not float(eta[0]) <= prange[1] * (1 + 1e-9):
+            return (f"fitted pitch {float(eta[0]):.3g} mm does not fit {MIN_PERIODS:g} full periods in the recorded stroke "
+                    f"{span:.3g} mm (a smooth error over the stroke, not a periodic one)")
+        return None
+
     def occam_penalty(self, features: Features, q: NDArray) -> float:
-        return float(np.log(n_independent_frequencies(features.const["span"], PITCH_RANGE_MM)))
+        prange = admissible_pitch_range(features.const["span"]) or PITCH_RANGE_MM
+        return float(np.log(n_independent_frequencies(features.const["span"], prange)))
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
         out = [EffectParam("pitch", "mm", features.const["pitch_sd"], prior_mean=features.const["pitch0"])]
