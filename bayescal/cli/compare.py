@@ -62,7 +62,9 @@ def register(sub) -> None:
     p.add_argument("--workers", type=int, default=0, help="local processes (default: in-process)")
     p.add_argument("--dask-workers", type=int, default=0, help="start a dask LocalCluster with N workers")
     p.add_argument("--scheduler", help="address of a running dask scheduler, tcp://host:port")
-    p.add_argument("--retries", type=int, default=3, help="dask retries of a trial whose worker died (default 3)")
+    p.add_argument("--retries", type=int, default=3, help="dask retries of a trial that raised an exception (default 3); "
+                   "a trial whose worker died is rescheduled by dask itself "
+                   "(distributed.scheduler.allowed-failures, default 3)")
     p.add_argument("--out", metavar="DIR", help="save trials (resumable), table, JSON and figures here")
     p.add_argument("--json", metavar="PATH", help="write the comparison as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

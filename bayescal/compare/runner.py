@@ -8,8 +8,10 @@ Backends
 * ``dask_workers=N``: a ``distributed.LocalCluster(n_workers=N,
   threads_per_worker=1, processes=True, dashboard_address=None)``;
   ``scheduler="tcp://host:port"``: an existing dask scheduler (its workers
-  must be able to import bayescal).  Tasks are submitted with
-  ``retries=``: a trial whose worker died is run again elsewhere.
+  must be able to import bayescal).  A trial whose worker died is
+  rescheduled by the dask scheduler (``distributed.scheduler.allowed-failures``,
+  default 3); tasks are also submitted with ``retries=``, which reruns a
+  trial that raised an exception.
 
 Every trial is seeded by its index (:func:`bayescal.compare.trial.trial_rng`),
 so the records are identical whatever the backend and the number of workers.
@@ -171,7 +173,8 @@ def run_trials(
     scheduler : str, optional
         Address of a running dask scheduler (``tcp://host:port``).
     retries : int
-        dask retries per task (a dead worker's trials run again).
+        dask retries per task of a trial that raised (a dead worker's trials are
+        rescheduled by dask itself, up to ``distributed.scheduler.allowed-failures``).
     progress : bool
         tqdm progress bar on stderr.
 

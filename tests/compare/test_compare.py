@@ -125,3 +125,67 @@ def test_same_table_through_a_running_scheduler_address(prs3, reference):
     assert json.dumps(via.table(), default=str) == json.dumps(reference.table(), default=str)
     with pytest.raises(InputError, match="not both"):
         compare_methods(prs3, **TINY, scheduler="tcp://127.0.0.1:1", dask_workers=2)
+
+
+def test_same_table_in_process_and_on_two_local_processes(prs3, reference):
+    on_procs = compare_methods(prs3, **TINY, workers=2)
+    assert on_procs.info["backend"] == "local processes (2)"
+    assert json.dumps(on_procs.table(), default=str) == json.dumps(reference.table(), default=str)
+
+
+class _KillFirstExecutingWorker:
+    """dask worker plugin: the first task to start executing anywhere kills its worker process.
+
+    A marker file created with O_EXCL makes it exactly one death across all workers (and across the
+    worker the nanny restarts, which gets the plugin again).
+    """
+
+    name = "bayescal-test-kill-first-worker"
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def setup(self, worker):
+        pass
+
+    def teardown(self, worker):
+        pass
+
+    def transition(self, key, start, finish, **kwargs):
+        import os
+
+        if finish == "executing":
+            try:
+                fd = os.open(self.marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            except FileExistsError:
+                return
+            os.write(fd, str(os.getpid()).encode())
+            os.close(fd)
+            os._exit(1)  # the process dies mid-task, as a crashed or killed worker would
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+@pytest.mark.filterwarnings("ignore::ResourceWarning")
+@pytest.mark.filterwarnings("ignore:Port .* is already in use:UserWarning")
+def test_a_worker_dying_mid_trial_does_not_stop_the_comparison(prs3, reference, tmp_path):
+    import logging
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    from distributed import Client, LocalCluster
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)  # the death is logged loudly; it is the test
+    marker = tmp_path / "killed_pid"
+    plugin = type("KillFirst", (_KillFirstExecutingWorker, WorkerPlugin), {})(marker)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster, timeout="30s") as client:
+        client.register_plugin(plugin)
+        pids_before = set(client.run(os.getpid).values())
+        with ThreadPoolExecutor(1) as ex:
+            # bounded: a hang (e.g. the task never rescheduled) fails the test instead of blocking the suite
+            survived = ex.submit(compare_methods, prs3, **TINY, scheduler=cluster.scheduler_address).result(timeout=180)
+        killed = int(marker.read_text())
+    assert killed in pids_before  # one of the two original workers died mid-task ...
+    assert survived.info["ran"] == TINY["trials"]  # ... and every trial still finished, with the same table
+    assert json.dumps(survived.table(), default=str) == json.dumps(reference.table(), default=str)
