@@ -91,16 +91,25 @@ class Recording:
             )
         if q_limits is None:
             return
-        lo, hi = q_limits[:, 0], q_limits[:, 1]
-        span = np.maximum(hi - lo, 1.0)
-        bad = (self.q < lo - 1e-9 * span) | (self.q > hi + 1e-9 * span)
-        if bad.any():
-            r, c = map(int, np.argwhere(bad)[0])
-            raise RecordingError(
-                self.path, r + 2, f"q{c + 1}",
-                f"value {float(self.q[r, c])!r} outside q_limits [{float(lo[c])!r}, {float(hi[c])!r}] "
-                f"of the machine file{' ' + machine_path if machine_path else ''}",
-            )
+        check_q_limits(self.path, self.q, q_limits, machine_path=machine_path)
+
+
+def check_q_limits(path: str, q: NDArray, q_limits: NDArray, *, suffix: str = "", machine_path: str = "") -> None:
+    """Raise RecordingError naming line and column ``q<i><suffix>`` for the first value outside ``q_limits``.
+
+    A relative tolerance of 1e-9 of the stroke lets values written at the
+    limits with rounding pass.
+    """
+    lo, hi = q_limits[:, 0], q_limits[:, 1]
+    span = np.maximum(hi - lo, 1.0)
+    bad = (q < lo - 1e-9 * span) | (q > hi + 1e-9 * span)
+    if bad.any():
+        r, c = map(int, np.argwhere(bad)[0])
+        raise RecordingError(
+            path, r + 2, f"q{c + 1}{suffix}",
+            f"value {float(q[r, c])!r} outside q_limits [{float(lo[c])!r}, {float(hi[c])!r}] "
+            f"of the machine file{' ' + machine_path if machine_path else ''}",
+        )
 
 
 def parse_number(text: str, path: str, line: int, col: str) -> float:

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import RecordingError
-from ..io.recording import parse_number, read_csv_rows
+from ..io.recording import check_q_limits, parse_number, read_csv_rows
 from ..io.answers import write_text_atomic
 
 __all__ = ["RelativeRecording", "COMPONENTS", "read_relative_recording", "write_relative_recording", "relative_to_csv"]
@@ -78,10 +78,7 @@ class RelativeRecording:
         if q_limits is None:
             return
         for tag, q in (("from", self.q_from), ("to", self.q_to)):
-            bad = (q < q_limits[:, 0]) | (q > q_limits[:, 1])
-            if bad.any():
-                r, c = map(int, np.argwhere(bad)[0])
-                raise RecordingError(self.path, r + 2, f"q{c + 1}_{tag}", f"value {q[r, c]!r} outside q_limits {q_limits[c].tolist()} of the machine")
+            check_q_limits(self.path, q, q_limits, suffix=f"_{tag}")
 
 
 def read_relative_recording(path: str | os.PathLike, *, text: str | None = None) -> RelativeRecording:

@@ -157,3 +157,20 @@ def test_practical_model_matches_the_zero_calibrated_physics(raspm):
     actual = st.x - x
     assert np.abs(actual).max() > 1e-6
     assert np.allclose(pred, actual, atol=2e-3 * np.abs(actual).max())
+
+
+def test_relative_recording_limits_name_line_and_column():
+    import numpy as np
+    import pytest
+
+    from bayescal.errors import RecordingError
+    from bayescal.redundant.relative_io import RelativeRecording
+
+    rec = RelativeRecording(
+        q_from=np.array([[1.0, 2.0], [1.0, 2.0]]), q_to=np.array([[1.0, 2.0], [1.0, 9.0]]),
+        components=("dx",), values=np.zeros((2, 1)), path="rel.csv",
+    )
+    limits = np.array([[0.0, 5.0], [0.0, 5.0]])
+    with pytest.raises(RecordingError, match="outside q_limits") as err:
+        rec.check_machine(2, limits)
+    assert (err.value.row, err.value.column, err.value.path) == (3, "q2_to", "rel.csv")
