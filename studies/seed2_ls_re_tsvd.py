@@ -582,7 +582,7 @@ def main(argv=None) -> int:
             attainable_ok &= a["ceiling"] >= TARGET_FRACTION
             (fixed_label, fixed_rate), = a["fixed_rates"].items()
             default_rate = v[f"ratios_{method}"][DEFAULT_RULE[method]]["within_10pct"]
-            sec_ceil.append(f"| {key} | {method} | {100 * a['ceiling']:.0f}% (+- {100 * a['ceiling_se']:.0f}) | "
+            sec_ceil.append(f"| {key} | {method} | {100 * a['ceiling']:.0f}% (+- {100 * a['ceiling_se']:.1f}) | "
                             f"{100 * a['bayes_rule_rate']:.0f}% | {100 * fixed_rate:.0f}% | "
                             f"{100 * default_rate:.0f}% |")
             st = v[f"ratios_{method}"]

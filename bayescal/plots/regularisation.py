@@ -82,6 +82,9 @@ def plot_choice(choice, path, *, title: str = "") -> Path:
             a.set_xscale("log")
         if key in ("gcv", "cv", "posterior_risk"):
             a.set_yscale("log")
+        if key == "posterior_risk" and np.isfinite(y).any():
+            low = np.nanmin(y)
+            a.set_ylim(0.7 * low, min(np.nanmax(y), 1e3 * low) * 1.5)  # a rank-deficient k would swamp the scale
         if key == "discrepancy":
             a.set_yscale("symlog")
             a.axhline(0.0, color="0.6", lw=0.8)
