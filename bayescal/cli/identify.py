@@ -32,8 +32,10 @@ pose), mcmc (emcee posterior, refused unless converged). See docs/bayes.md.
 (--rule): cv (K-fold cross-validation over held-out poses), lcurve (L-curve
 corner), gcv (generalised cross-validation), discrepancy (residual matches
 the instrument sigma), evidence (marginal likelihood, empirical Bayes; the
-default, see docs/regularisation.md).  The report prints the chosen value
-and what every other rule picks; --figures DIR draws the rule curves.
+default for lambda), risk (Bayes decision under the evidence prior: for k,
+keep the singular directions with s^2 > lambda_evidence; the default for k).
+See docs/regularisation.md.  The report prints the chosen value and what
+every other rule picks; --figures DIR draws the rule curves.
 """
 
 EXAMPLES = """\

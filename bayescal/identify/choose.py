@@ -23,6 +23,17 @@ through the SVD ``A = U diag(s) V^T``, ``beta = U^T z``:
   ``x = V_k c`` with ``c ~ N(0, I / lam)``, maximised over ``lam`` for each
   ``k``.  When the machine file gives no instrument sigma the noise scale is
   profiled out.
+* ``risk``: the Bayes decision for the empirical-Bayes prior.  With
+  ``lam_ev`` the evidence choice of ridge, the posterior of ``x`` is
+  ``N(m, Sigma)``, ``m`` the ridge solution at ``lam_ev``; the rule picks the
+  value whose solution ``x_v`` minimises the posterior expected squared
+  error ``E|x_v - x|^2 = |x_v - m|^2 + tr Sigma``.  For ridge that is
+  ``lam_ev`` itself (the posterior mean), so ``risk`` and ``evidence``
+  coincide.  For TSVD the posterior is diagonal in the right singular
+  vectors, so keeping direction ``i`` costs ``(beta_i / s_i - m_i)^2`` and
+  dropping it ``m_i^2``: keep it iff ``s_i^2 > lam_ev``, i.e.
+  ``k = #{s_i^2 > lam_ev}`` (the directions the data determine better than
+  the prior does).  The default for TSVD (docs/regularisation.md).
 
 Where the problem is linearised (see :func:`choose_regularisation`): ridge
 iterates rule and Gauss-Newton to a fixed point (linearise at the converged
@@ -61,11 +72,11 @@ __all__ = [
 ]
 
 #: Rule names, in the order reports list them.
-RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence")
+RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence", "risk")
 
 #: Default rule per method, chosen by the repetition study of
 #: ``studies/seed2_ls_re_tsvd.py`` (docs/regularisation.md, "Which rule").
-DEFAULT_RULE: dict[str, str] = {"ridge": "evidence", "tsvd": "evidence"}
+DEFAULT_RULE: dict[str, str] = {"ridge": "evidence", "tsvd": "risk"}
 
 _LOG2PI = float(np.log(2.0 * np.pi))
 
@@ -91,7 +102,9 @@ class RegularisationChoice:
         Over ``grid``: ``residual_norm``, ``solution_norm`` (whitened, scaled),
         ``effective_parameters`` (sum of filter factors), ``gcv``, ``cv``
         (mean squared held-out whitened error), ``discrepancy``
-        (``|r|^2 - (N - sum f)``), ``log_evidence``, ``curvature`` (L-curve).
+        (``|r|^2 - (N - sum f)``), ``log_evidence``, ``curvature`` (L-curve),
+        ``posterior_risk`` (posterior expected squared error of the scaled
+        solution under the empirical-Bayes prior, see ``risk``).
     singular_values : ndarray
     n_rows, n_params : int
         Rows (whitened residuals) and identified parameters of the linear problem.
@@ -224,6 +237,32 @@ def _log_evidence_tsvd(d: _Svd, lams: NDArray, noise_known: bool) -> tuple[NDArr
         ev = -0.5 * (N * np.log(np.maximum(quad, 1e-300) / N) + logdet + N * (1.0 + _LOG2PI))
     best = np.argmax(ev, axis=0)
     return ev[best, np.arange(ev.shape[1])], lams[best]
+
+
+def _posterior_risk(d: _Svd, F: NDArray, noise_known: bool) -> tuple[float, NDArray]:
+    """Posterior expected ``|x_v - x|^2`` of each filtered solution under the empirical-Bayes prior.
+
+    The prior ``x ~ N(0, I / lam_ev)`` with ``lam_ev`` maximising the ridge
+    evidence over a fine grid.  In the right singular vectors the posterior
+    is independent per direction: mean ``m_i = s_i beta_i / (s_i^2 + lam_ev)``,
+    variance ``sigma2 / (s_i^2 + lam_ev)`` (``sigma2 = 1`` for whitened rows,
+    else the profiled noise scale), plus ``1 / lam_ev`` per unseen dimension
+    (``p > rank``).  Returns ``lam_ev`` and the risk over the filter rows.
+    """
+    grid = lambda_grid(d.s)
+    ev = _log_evidence_ridge(d, grid, noise_known)
+    lam_ev = float(grid[int(np.argmax(ev))])
+    g = d.s**2 + lam_ev
+    m = d.s * d.beta / g
+    if noise_known:
+        sigma2 = 1.0
+    else:
+        quad = float(np.sum(d.beta**2 / (1.0 + d.s**2 / lam_ev)) + d.c_perp)
+        sigma2 = quad / d.n_rows
+    unseen = d.V.shape[0] - d.s.size
+    trace = sigma2 * float(np.sum(1.0 / g)) + unseen * sigma2 / lam_ev
+    est = F * (d.beta * _safe_inv(d.s))[None, :]
+    return lam_ev, np.sum((est - m[None, :]) ** 2, axis=1) + trace
 
 
 def _ridge_curvature(d: _Svd, lams: NDArray) -> NDArray:
@@ -377,12 +416,16 @@ def choose_linear(
         extras["evidence_prior_ratio"] = lam_k[grid - 1]
         ok = np.flatnonzero(disc <= 0)
         i_disc = int(ok[0]) if ok.size else int(np.argmin(disc))
+    lam_ev, risk = _posterior_risk(d, F, noise_known)
+    extras["risk_prior_ratio"] = lam_ev
     picks = {
         "cv": int(np.nanargmin(cv)) if np.isfinite(cv).any() else None,
         "lcurve": int(np.argmax(np.where(np.isfinite(curvature), curvature, -np.inf))),
         "gcv": int(np.argmin(gcv)),
         "discrepancy": i_disc,
         "evidence": int(np.argmax(log_ev)),
+        # ties (TSVD: directions with beta_i = 0) go to the most regularised value
+        "risk": int(np.flatnonzero(risk <= risk.min() * (1 + 1e-12))[0 if method == "tsvd" else -1]),
     }
     cast = float if method == "ridge" else int
     choices = {r: cast(grid[i]) for r, i in picks.items() if i is not None}
@@ -397,6 +440,7 @@ def choose_linear(
         "discrepancy": disc,
         "log_evidence": log_ev,
         "curvature": curvature,
+        "posterior_risk": risk,
         **extras,
     }
     return RegularisationChoice(

@@ -13,7 +13,8 @@ from numpy.typing import NDArray
 
 __all__ = ["plot_choice", "plot_output_error", "plot_histories", "plot_ratio_spread", "RULE_COLOURS"]
 
-RULE_COLOURS = {"cv": "tab:blue", "lcurve": "tab:orange", "gcv": "tab:green", "discrepancy": "tab:red", "evidence": "tab:purple"}
+RULE_COLOURS = {"cv": "tab:blue", "lcurve": "tab:orange", "gcv": "tab:green", "discrepancy": "tab:red", "evidence": "tab:purple",
+                "risk": "tab:brown"}
 
 
 def _plt():
@@ -36,16 +37,17 @@ def _save(fig, path) -> Path:
 
 
 def plot_choice(choice, path, *, title: str = "") -> Path:
-    """The four rule curves of a :class:`~bayescal.identify.choose.RegularisationChoice`.
+    """The rule curves of a :class:`~bayescal.identify.choose.RegularisationChoice`.
 
-    Panels: L-curve (with the corner), GCV, log evidence, cross-validation
-    error; each marks the value its rule picks and the value used.
+    Panels: L-curve (with the corner), GCV, discrepancy, log evidence,
+    posterior risk, cross-validation error; each marks the value its rule
+    picks and the value used.
     """
     plt = _plt()
     c, g = choice.curves, np.asarray(choice.grid, dtype=float)
     ridge = choice.method == "ridge"
     sym = "lambda" if ridge else "k"
-    fig, ax = plt.subplots(2, 2, figsize=(9, 6.5))
+    fig, ax = plt.subplots(2, 3, figsize=(13, 6.5))
 
     def mark(a, rule, x, y=None):
         v = choice.choices.get(rule)
@@ -66,19 +68,30 @@ def plot_choice(choice, path, *, title: str = "") -> Path:
     a.legend(fontsize=7)
     for a, key, rule, lab in (
         (ax[0, 1], "gcv", "gcv", "GCV |r|^2 / (N - sum f)^2"),
+        (ax[0, 2], "discrepancy", "discrepancy", "|r|^2 - (N - sum f)"),
         (ax[1, 0], "log_evidence", "evidence", "log evidence"),
-        (ax[1, 1], "cv", "cv", "held-out mean squared error (whitened)"),
+        (ax[1, 1], "posterior_risk", "risk", "posterior expected |x - x_true|^2"),
+        (ax[1, 2], "cv", "cv", "held-out mean squared error (whitened)"),
     ):
+        if key not in c:  # choices saved before the rule existed
+            a.set_axis_off()
+            continue
         y = np.asarray(c[key], dtype=float)
         a.plot(g, y, ".-", ms=3, color="0.3")
         if ridge:
             a.set_xscale("log")
-        if key in ("gcv", "cv"):
+        if key in ("gcv", "cv", "posterior_risk"):
             a.set_yscale("log")
+        if key == "posterior_risk" and np.isfinite(y).any():
+            low = np.nanmin(y)
+            a.set_ylim(0.7 * low, min(np.nanmax(y), 1e3 * low) * 1.5)  # a rank-deficient k would swamp the scale
+        if key == "discrepancy":
+            a.set_yscale("symlog")
+            a.axhline(0.0, color="0.6", lw=0.8)
         if key == "log_evidence" and np.isfinite(y).any():
             top = np.nanmax(y)
             a.set_ylim(top - max(50.0, 0.05 * abs(top)), top + 5)
-        for r in {rule, choice.rule, "discrepancy"} if key == "gcv" else {rule, choice.rule}:
+        for r in {rule, choice.rule}:
             mark(a, r, None)
         a.set(xlabel=sym, ylabel=lab)
         a.legend(fontsize=7)

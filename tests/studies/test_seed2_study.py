@@ -28,7 +28,11 @@ def test_seed2_quick(tmp_path):
         assert s["linearised_vs_gauss_newton_rel_gap"]["best_and_default"] < 0.02
         for method in ("ridge", "tsvd"):
             assert all(st["median"] >= 1.0 - 1e-12 for st in s[f"ratios_{method}"].values())
+            a = s["attainable"][method]
+            assert 0.0 < a["ceiling"] <= 1.0 and set(a["fixed_rates"]) <= set(s[f"ratios_{method}"])
     for name in ("3prs_6dof_output_error.png", "3prs_5dof_history.png", "3prs_6dof_rules_ridge.png",
                  "repetitions_ratio.png", "findings.md", "3prs_table_chain.csv", "3prs_table_output.md"):
         assert (tmp_path / name).stat().st_size > 500, name
+    assert isinstance(summary["target_attainable_by_any_rule"], bool)
+    assert "What any rule can attain" in (tmp_path / "findings.md").read_text()
     assert "RU-PUS-PRS" in (tmp_path / "findings.md").read_text()  # runs it, or says why not
