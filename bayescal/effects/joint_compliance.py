@@ -84,7 +84,7 @@ class JointCompliance(Effect):
         return Features({"f": f}, {"platform_mass_kg": self.platform_mass_kg})
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
-        return tuple(EffectParam(f"compliance.q{i + 1}", "um/N", 1.0) for i in range(machine.n_actuators))
+        return tuple(EffectParam(f"compliance.q{i + 1}", "um/N", 1.0, lower=0.0) for i in range(machine.n_actuators))
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
         return 1e-3 * features.per_pose["f"] * np.asarray(eta)[None, :]

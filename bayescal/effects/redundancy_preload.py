@@ -6,9 +6,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..machines.base import Machine, ToolPoses
-from .base import Effect, EffectParam, Features
+from .base import NONPHYSICAL_Z, Effect, EffectParam, Features
 
-__all__ = ["RedundancyPreload", "machine_dof"]
+__all__ = ["RedundancyPreload", "machine_dof", "PRELOAD_PRIOR_UM"]
+
+#: Prior one-sigma of a preload deflection, um.  Wide on purpose: the geometric parameters absorb about
+#: 99 % of a preload's signature on the RASPM (docs/diagnose.md), so only deflections of a few hundred um
+#: (kN preloads on apparent compliances of 0.1 um/N) are visible at all, and a narrow prior would rule
+#: exactly those out.
+PRELOAD_PRIOR_UM = 200.0
 
 
 def machine_dof(machine: Machine) -> int:
@@ -79,7 +85,7 @@ class RedundancyPreload(Effect):
         return Features({"nu": nu}, {})
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
-        return tuple(EffectParam(f"preload_deflection.q{i + 1}", "um", 20.0) for i in range(machine.n_actuators))
+        return tuple(EffectParam(f"preload_deflection.q{i + 1}", "um", PRELOAD_PRIOR_UM) for i in range(machine.n_actuators))
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
         return 1e-3 * features.per_pose["nu"] * np.asarray(eta)[None, :]
@@ -91,5 +97,19 @@ class RedundancyPreload(Effect):
         J[:, np.arange(m), np.arange(m)] = 1e-3 * nu
         return J
 
+    def nonphysical(self, params, eta: NDArray, std: NDArray) -> str | None:
+        """Deflections of significantly opposite signs: ``d_i = c_i P`` with every compliance ``c_i > 0``."""
+        eta, std = np.asarray(eta, float), np.asarray(std, float)
+        z = eta / np.maximum(std, 1e-300)
+        pos, neg = np.flatnonzero(z > NONPHYSICAL_Z), np.flatnonzero(z < -NONPHYSICAL_Z)
+        if pos.size and neg.size:
+            i, j = pos[0], neg[0]
+            return (
+                f"non-physical fit: {params[i].name} = {eta[i]:.3g} and {params[j].name} = {eta[j]:.3g} um have opposite "
+                "signs (each is a positive compliance times the one preload force)"
+            )
+        return None
+
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
-        return magnitude * rng.uniform(-1.4, 1.4, machine.n_actuators)
+        """Deflections ``c_i P``: compliances within +-40 % of each other, one preload of either sign."""
+        return rng.choice([-1.0, 1.0]) * magnitude * rng.uniform(0.6, 1.4, machine.n_actuators)
