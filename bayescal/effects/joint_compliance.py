@@ -83,6 +83,14 @@ class JointCompliance(Effect):
         f = actuator_loads(machine, q, theta, poses, mass, down=self.down)
         return Features({"f": f}, {"platform_mass_kg": self.platform_mass_kg})
 
+    def inadmissible(self, features: Features, eta: NDArray | None = None) -> str | None:
+        # e.g. the RU-PUS-PRS: the platform origin is the centre of the passive post's universal joint,
+        # so the post carries all the weight and a drive compliance cannot show (evidence exactly 0)
+        f = features.per_pose["f"]
+        if f.size and np.max(np.abs(f)) <= 1e-6 * features.const["platform_mass_kg"] * GRAVITY:  # round-off of J
+            return "the actuators carry no gravity load at any pose (the weight acts at a passive joint)"
+        return None
+
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
         return tuple(EffectParam(f"compliance.q{i + 1}", "um/N", 1.0, lower=0.0) for i in range(machine.n_actuators))
 

@@ -160,3 +160,15 @@ def test_preload_deflections_must_share_one_sign():
     assert p.nonphysical(params, np.array([-100.0, 3.0, -80.0, -60.0]), std) is None
     why = p.nonphysical(params, np.array([100.0, 0.0, -80.0, 60.0]), std)
     assert why and "opposite" in why
+
+
+def test_joint_compliance_inadmissible_when_no_drive_carries_the_weight():
+    # RU-PUS-PRS: the weight acts at the centre of the passive post's universal joint
+    from bayescal.machines import load_machine
+    from tests.conftest import PRS3_FILE
+
+    m = load_machine(PRS3_FILE.parent.parent / "rupus_prs" / "machine.toml")
+    sim = simulate_with_effects(m, 15, seed=1, dof=6, record=("payload_kg",))
+    eff = get_effect("joint_compliance")
+    f = eff.features(m, sim.recording.q, np.zeros(m.n_params), dict(sim.recording.aux), None, None)
+    assert "no gravity load" in eff.inadmissible(f)
