@@ -230,3 +230,23 @@ def test_raspm_preload_named_when_visible_and_none_when_absorbed():
     for p in pre.parameters:
         if p.name.endswith(tuple(f"q{k + 1}" for k in m.nonredundant)):
             assert abs(p.value - truth[p.name]) < 4 * p.std, (p, truth[p.name])
+
+
+def test_raspm_preload_unabsorbed_part_is_second_order_in_the_workspace_size():
+    # why 99 % is absorbed: d_i nu_i(x) = constant (an actuator zero offset) + linear in the pose
+    # (spanned by each chain's rail, tilt, link and platform-joint parameters) + O(|x - x0|^2);
+    # only the quadratic remainder is left, so halving the workspace quarters it
+    from bayescal.machines import machine_from_text
+
+    text = RASPM_FILE.read_text()
+    rng_lines = {"x = [-300.0, 300.0]": (300.0, "x"), "z = [-200.0, 200.0]": (200.0, "z"),
+                 "rotation = [-0.4363323129985824, 0.4363323129985824]": (0.4363323129985824, "rotation")}
+    fr = []
+    for k in (1.0, 0.5):
+        t = text
+        for line, (half, key) in rng_lines.items():
+            assert line in t
+            t = t.replace(line, f"{key} = [{-half * k!r}, {half * k!r}]")
+        fr.append(_raspm_signature_fractions(machine_from_text(t, "half.toml"), 6))
+    ratio = fr[1] / fr[0]
+    assert np.all((ratio > 0.1) & (ratio < 0.4)), ratio  # ~1/4, not ~1/2 (first order) or ~1 (exactly absorbed: 0)
