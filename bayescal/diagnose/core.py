@@ -156,7 +156,13 @@ def diagnose(
         raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
     aux = dict(recording.aux)
 
-    fit0 = fit_map(model)
+    try:
+        fit0 = fit_map(model)
+    except KinematicsError as exc:
+        raise InputError(
+            f"{recording.path}: the machine {machine.source} cannot solve this recording at its nominal geometry "
+            f"({exc}); expected a recording taken on this machine (check the machine file)"
+        ) from exc
     pred0 = model.predict(fit0.theta)
     dq_res = actuator_residual(model, fit0.theta, fit0.residual, pred0)
     location = locate(model.q, fit0.residual / model.sigma[None, :], dq_res, aux, recording.position, seed=seed, n_perm=n_perm)

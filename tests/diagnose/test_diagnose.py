@@ -250,3 +250,12 @@ def test_raspm_preload_unabsorbed_part_is_second_order_in_the_workspace_size():
         fr.append(_raspm_signature_fractions(machine_from_text(t, "half.toml"), 6))
     ratio = fr[1] / fr[0]
     assert np.all((ratio > 0.1) & (ratio < 0.4)), ratio  # ~1/4, not ~1/2 (first order) or ~1 (exactly absorbed: 0)
+
+
+def test_recording_of_another_machine_is_a_clear_error(prs3):
+    from bayescal.machines import machine_from_text
+
+    sim = simulate_with_effects(prs3, 20, seed=3, dof=3)
+    short = machine_from_text(PRS3_FILE.read_text().replace("link_length    = 400.0", "link_length    = 120.0"), "short.toml")
+    with pytest.raises(InputError, match=r"short\.toml cannot solve this recording.*pose 1.*check the machine file"):
+        diagnose(short, sim.recording, n_perm=9)
