@@ -51,11 +51,11 @@ def run(offset_mm: float, seed: int, n: int, n_perm: int) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="one case of 40 poses")
+    ap.add_argument("--quick", action="store_true", help="one case of 30 poses")
     ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "diagnose_raspm_restrained"))
     args = ap.parse_args(argv)
     cases = [(0.05, 11)] if args.quick else [(0.05, 11), (0.5, 11)]
-    rows = [run(o, s, 40 if args.quick else 100, 19 if args.quick else 49) for o, s in cases]
+    rows = [run(o, s, 30 if args.quick else 100, 9 if args.quick else 49) for o, s in cases]
     lines = ["| offset (mm) | seed | max internal force (kN) | verdict | selected | preload evidence (nats) | geometric chi2 p |",
              "|---|---|---|---|---|---|---|"]
     lines += [f"| {r['offset_mm']} | {r['seed']} | {r['max_force_kN']:.1f} | {r['verdict']} | {r['selected']} | "
