@@ -41,8 +41,14 @@ class RedundancyPreload(Effect):
 
         dq_i = d_i nu_i(q)            (one redundant direction; nu_1 >= 0)
 
-    Parameters ``preload_deflection.q<i>`` (um, ``c_i P``).  Usual size:
-    preloads of 100-1000 N on drives of 50-500 N/um give 1-20 um.  Not
+    Parameters ``preload_deflection.q<i>`` (um, ``c_i P``; they share the
+    sign of ``P``, so a fit with significantly opposite signs is rejected as
+    non-physical).  Usual size: preloads of 100-1000 N on drives of 50-500
+    N/um give 1-20 um; with links and frame, apparent compliances of 0.1-1
+    um/N and kN preloads give hundreds of um.  On the RASPM about 99 % of
+    the signature is absorbed by the geometric parameters (the constant and
+    pose-linear parts of ``d_i nu_i(x)``; docs/diagnose.md), so only
+    deflections of some hundred um are visible.  Not
     applicable to machines with as many actuators as degrees of freedom
     (the 3-PRS): there is no internal force to carry.
     """
