@@ -85,10 +85,11 @@ class JointCompliance(Effect):
 
     def inadmissible(self, features: Features, eta: NDArray | None = None) -> str | None:
         # e.g. the RU-PUS-PRS: the platform origin is the centre of the passive post's universal joint,
-        # so the post carries all the weight and a drive compliance cannot show (evidence exactly 0)
+        # so the post carries the weight and a drive compliance cannot show (evidence 0); the drives'
+        # share is then round-off plus what geometric errors of a few 0.01 mm give (1e-4 of the weight)
         f = features.per_pose["f"]
-        if f.size and np.max(np.abs(f)) <= 1e-6 * features.const["platform_mass_kg"] * GRAVITY:  # round-off of J
-            return "the actuators carry no gravity load at any pose (the weight acts at a passive joint)"
+        if f.size and np.max(np.abs(f)) <= 1e-3 * features.const["platform_mass_kg"] * GRAVITY:
+            return "the actuators carry no gravity load at any pose (under 0.1 % of the weight: it acts at a passive joint)"
         return None
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:

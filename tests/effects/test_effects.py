@@ -172,3 +172,12 @@ def test_joint_compliance_inadmissible_when_no_drive_carries_the_weight():
     eff = get_effect("joint_compliance")
     f = eff.features(m, sim.recording.q, np.zeros(m.n_params), dict(sim.recording.aux), None, None)
     assert "no gravity load" in eff.inadmissible(f)
+
+
+def test_simulating_an_effect_that_cannot_act_is_an_error():
+    from bayescal.machines import load_machine
+    from tests.conftest import PRS3_FILE
+
+    m = load_machine(PRS3_FILE.parent.parent / "rupus_prs" / "machine.toml")
+    with pytest.raises(InputError, match=r"--effect joint_compliance:0.5: has no effect on the RU-PUS-PRS.*no gravity load"):
+        simulate_with_effects(m, 10, seed=1, effects=[("joint_compliance", 0.5)], record=("payload_kg",))
