@@ -215,13 +215,13 @@ def test_raspm_preload_named_when_visible_and_none_when_absorbed():
     from bayescal.machines import load_machine
 
     m = load_machine(RASPM_FILE)
-    small = simulate_with_effects(m, 100, seed=2, dof=6, effects=[("redundancy_preload", 20.0)])
+    small = simulate_with_effects(m, 70, seed=2, dof=6, effects=[("redundancy_preload", 20.0)])
     d = diagnose(m, small.recording, seed=1, n_perm=19)
     pre = next(e for e in d.effects if e.name == "redundancy_preload")
     # 20 um is absorbed: honest "none", and the effect does not improve the out-of-sample RMS by a noise sigma
     assert d.verdict == "none"
     assert np.sqrt(max(pre.rms_before**2 - pre.rms_after**2, 0.0)) < m.noise.sigma_position
-    large = simulate_with_effects(m, 100, seed=2, dof=6, effects=[("redundancy_preload", 800.0)])
+    large = simulate_with_effects(m, 70, seed=2, dof=6, effects=[("redundancy_preload", 800.0)])
     d = diagnose(m, large.recording, seed=1, n_perm=19)
     assert d.verdict == "redundancy_preload"
     pre = next(e for e in d.effects if e.name == "redundancy_preload")
