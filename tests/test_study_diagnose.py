@@ -33,3 +33,33 @@ def test_quick_mode_runs_and_writes_its_tables(tmp_path):
     text = (tmp_path / "summary.md").read_text()
     assert "Confusion matrix" in text and "False detections on clean data" in text
     assert (tmp_path / "confusion.png").stat().st_size > 1000
+
+
+def test_random_raspms_are_reachable_varied_and_within_their_limits():
+    import numpy as np
+
+    from bayescal.machines import machine_from_text
+
+    study = _study()
+    cases = [study.make_case("raspm_redundancy_preload", i, 1) for i in range(3)]
+    machines = [machine_from_text(c["machine"]) for c in cases]
+    assert all(m.kind == "RASPM-2T1R" and m.n_actuators == 4 for m in machines)
+    assert len({float(m.link_length[0]) for m in machines}) == 3
+    assert all(20.0 <= c["mag"] <= 1500.0 for c in cases)
+    rng = np.random.default_rng(0)
+    for m in machines:
+        q = m.sample_q(50, rng)
+        assert np.isfinite(q).all()
+        assert (q >= m.q_limits[:, 0]).all() and (q <= m.q_limits[:, 1]).all()
+        assert m.forward(q).success.all()
+
+
+def test_restrained_raspm_cross_check_quick(tmp_path):
+    spec = importlib.util.spec_from_file_location("diagnose_raspm_restrained", ROOT / "studies" / "diagnose_raspm_restrained.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
+    text = (tmp_path / "summary.md").read_text()
+    row = text.splitlines()[2].split("|")
+    assert float(row[3]) > 1.0  # kN: the drawn geometric errors alone make the drives fight
+    assert row[4].strip() in {"none", "redundancy_preload", "unexplained"}

@@ -21,7 +21,10 @@ reads with its noise ([measurement] sigma_position, sigma_angle).
 Physics beyond the geometric model can be concealed in the recording with
 --effect NAME[:magnitude] (several allowed; magnitudes in the effect's unit:
 joint_compliance um/N, thermal_expansion um/m/K, backlash um,
-screw_periodic_error um), and auxiliary channels recorded with --aux
+screw_periodic_error um, redundancy_preload um of actuator deflection, only
+on redundantly actuated machines such as the RASPM-2T1R; about 99 % of a
+preload is absorbed by the geometry there, so use some hundred um to see it),
+and auxiliary channels recorded with --aux
 (time_s; temp_C, a warm-up of 5 K; payload_kg, 0-25 kg changed between poses).
 Temperature drives thermal_expansion even when it is not recorded.
 
@@ -36,6 +39,7 @@ examples:
   bayescal simulate --machine m.toml --poses 160 --seed 3 --effect backlash:30 --out rec.csv
   bayescal simulate --machine m.toml --poses 160 --seed 3 --effect joint_compliance:0.5 --aux payload_kg --out rec.csv
   bayescal simulate --machine m.toml --poses 120 --seed 4 --effect thermal_expansion --aux time_s,temp_C --out rec.csv
+  bayescal simulate --machine examples/raspm/machine.toml --poses 120 --seed 2 --effect redundancy_preload:800 --out rec.csv
 """
 
 
@@ -52,7 +56,8 @@ def register(sub) -> None:
     p.add_argument("--tolerance-scale", type=float, default=1.0, help="multiply the tolerances by this (default 1)")
     p.add_argument(
         "--effect", action="append", default=[], metavar="NAME[:MAGNITUDE]",
-        help="conceal a physical effect (repeatable): joint_compliance, thermal_expansion, backlash, screw_periodic_error",
+        help="conceal a physical effect (repeatable): joint_compliance, thermal_expansion, backlash, screw_periodic_error, "
+        "redundancy_preload",
     )
     p.add_argument("--aux", default="", help="auxiliary channels to record, comma-separated: time_s,temp_C,payload_kg")
     p.add_argument("--truth", help="where to write the truth JSON (default: OUT with .truth.json)")

@@ -12,6 +12,11 @@ Decision rule (docs/diagnose.md):
    Out of sample: K-fold leave-poses-out position RMS.
 3. Greedy forward selection: add the effect with the largest evidence while
    it is decisive (> ln 100, Jeffreys) AND the cross-validated RMS improves.
+   A fit whose parameters are physically impossible (a compliance, dead
+   band or screw expansion more than 3 sigma below zero:
+   :meth:`bayescal.effects.Effect.nonphysical`) is never a detection: the
+   effect is skipped with the reason, and a combination that needs it is
+   not formed.
 4. Verdict: the first selected effect when the final model explains the data
    (chi-square p > 0.001) or most (>= 80 %) of the excess chi-square of the
    geometric model; ``"unexplained"`` when effects were found but a large
@@ -88,6 +93,18 @@ def _params(fit: EffectFit, name: str) -> tuple[ParameterValue, ...]:
     )
 
 
+def _nonphysical(fit: EffectFit, cands: list["_Candidate"]) -> str | None:
+    """Why a (joint) fit puts some effect's parameters outside their physical range, or None."""
+    std = fit.std_eta(_scale2(fit))
+    sl = dict(fit.effect_slices)
+    for c in cands:
+        k = sl[c.effect.name]
+        why = c.effect.nonphysical(fit.params[k], fit.eta[k], std[k])
+        if why is not None:
+            return f"{c.effect.name}: {why}" if len(cands) > 1 else why
+    return None
+
+
 def _chi2_test(fit: EffectFit) -> tuple[float, float]:
     dof = max(fit.n_rows - fit.edf, 1.0)
     return dof, float(chi2_dist.sf(fit.chi2, dof))
@@ -139,7 +156,13 @@ def diagnose(
         raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
     aux = dict(recording.aux)
 
-    fit0 = fit_map(model)
+    try:
+        fit0 = fit_map(model)
+    except KinematicsError as exc:
+        raise InputError(
+            f"{recording.path}: the machine {machine.source} cannot solve this recording at its nominal geometry "
+            f"({exc}); expected a recording taken on this machine (check the machine file)"
+        ) from exc
     pred0 = model.predict(fit0.theta)
     dq_res = actuator_residual(model, fit0.theta, fit0.residual, pred0)
     location = locate(model.q, fit0.residual / model.sigma[None, :], dq_res, aux, recording.position, seed=seed, n_perm=n_perm)
@@ -172,7 +195,7 @@ def diagnose(
     for c in list(cands):
         try:
             fit = fit_map(model, [(c.effect, c.features)], theta0=fit0.theta)
-            why = c.effect.inadmissible(c.features, fit.eta)
+            why = c.effect.inadmissible(c.features, fit.eta) or _nonphysical(fit, [c])
             if why is None:
                 ev = _evidence(fit, fit0, c.penalty)
                 cv = _cv_rms(model, [c], folds, fit.theta, fit.eta)
@@ -205,8 +228,8 @@ def diagnose(
                 except KinematicsError:
                     continue
                 sl = dict(fit.effect_slices)[c.effect.name]
-                if c.effect.inadmissible(c.features, fit.eta[sl]) is not None:
-                    continue
+                if c.effect.inadmissible(c.features, fit.eta[sl]) is not None or _nonphysical(fit, combo) is not None:
+                    continue  # a combination that needs non-physical values of any member is no explanation
                 ev = _evidence(fit, cur_fit, c.penalty)
                 cv = None
             if ev > DECISIVE and (best is None or ev > best[2]):

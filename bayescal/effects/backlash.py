@@ -35,7 +35,7 @@ class Backlash(Effect):
         return Features({"s": approach_direction(q, order)}, {"m": q.shape[1]})
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
-        return tuple(EffectParam(f"backlash.q{i + 1}", "um", 30.0) for i in range(machine.n_actuators))
+        return tuple(EffectParam(f"backlash.q{i + 1}", "um", 30.0, lower=0.0) for i in range(machine.n_actuators))
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
         return features.per_pose["s"] * (0.5e-3 * np.asarray(eta))[None, :]

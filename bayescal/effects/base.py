@@ -26,7 +26,11 @@ from numpy.typing import NDArray
 
 from ..machines.base import Machine, ToolPoses
 
-__all__ = ["Effect", "EffectParam", "Features", "BoundEffect", "approach_direction", "measurement_sequence"]
+__all__ = ["Effect", "EffectParam", "Features", "BoundEffect", "approach_direction", "measurement_sequence", "NONPHYSICAL_Z"]
+
+#: How many standard deviations beyond its physical bound a fitted parameter may lie before the
+#: fit is rejected as non-physical (noise alone crosses 3 sigma in 0.1 % of the parameters).
+NONPHYSICAL_Z = 3.0
 
 
 @dataclass(frozen=True)
@@ -43,12 +47,18 @@ class EffectParam:
         One-sigma width of the prior, in ``unit``; also the column scale of the fit.
     prior_mean : float
         Centre of the prior, in ``unit`` (zero: no effect).
+    lower : float or None
+        Physical lower bound, in ``unit`` (a compliance, a dead band, the
+        expansion of a screw cannot be negative); None when either sign is
+        physical.  A fit that puts the parameter significantly below it is
+        not reported as a detection (:meth:`Effect.nonphysical`).
     """
 
     name: str
     unit: str
     prior_sd: float
     prior_mean: float = 0.0
+    lower: float | None = None
 
 
 @dataclass(frozen=True)
@@ -167,6 +177,24 @@ class Effect(ABC):
         each fit; e.g. a periodic error whose pitch does not fit twice in the
         recorded stroke.
         """
+        return None
+
+    def nonphysical(self, params: tuple[EffectParam, ...], eta: NDArray, std: NDArray) -> str | None:
+        """Why the fitted parameters ``eta`` (one-sigma ``std``, as named by ``params``) are physically impossible, or None.
+
+        Default: a parameter with a :attr:`EffectParam.lower` bound lies more
+        than :data:`NONPHYSICAL_Z` sigma below it (a negative compliance, a
+        negative dead band).  Such a fit explains the residuals with physics
+        that cannot exist, so it is not a detection (the diagnosis skips it
+        with this reason).  Checked on every single and combined fit.
+        """
+        eta, std = np.asarray(eta, float), np.asarray(std, float)
+        bad = []
+        for p, v, s in zip(params, eta, std):
+            if p.lower is not None and v < p.lower - NONPHYSICAL_Z * s:
+                bad.append(f"{p.name} = {v:.3g} +- {s:.2g} {p.unit} < {p.lower:g}")
+        if bad:
+            return "non-physical fit: " + "; ".join(bad)
         return None
 
     def occam_penalty(self, features: Features, q: NDArray) -> float:

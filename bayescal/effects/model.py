@@ -124,7 +124,7 @@ def _merge(pred: Prediction, other: Prediction) -> Prediction:
     return Prediction(y=pick(pred.y, other.y), poses=poses)
 
 
-def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess) -> tuple[MeasurementModel, Prediction]:
+def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, note: str = " (with the effect applied)") -> tuple[MeasurementModel, Prediction]:
     sub = replace(model, q=q_eff)
     pred = sub.predict(theta, guess=guess)
     if not pred.success.all():
@@ -137,7 +137,7 @@ def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess) -> 
             pred = _merge(pred, replace(sub, guess=None).predict(theta, guess=None))
     if not pred.success.all():
         i = int(np.flatnonzero(~pred.success)[0])
-        raise KinematicsError(f"pose {i + 1}: {pred.poses.message[i]} (with the effect applied)")
+        raise KinematicsError(f"pose {i + 1}: {pred.poses.message[i]}{note}")
     return sub, pred
 
 
@@ -210,7 +210,7 @@ def fit_map(
 
     def evaluate(theta, eta, guess):
         q_eff = model.q + _dq(effects, slices, eta, model.q.shape)
-        sub, pred = _predict(model, q_eff, theta, guess)
+        sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if K else "")
         r = model.residual(pred)
         rw = (r / sig).reshape(-1)
         phi = np.concatenate([theta, eta]) / scale

@@ -6,9 +6,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..machines.base import Machine, ToolPoses
-from .base import Effect, EffectParam, Features
+from .base import NONPHYSICAL_Z, Effect, EffectParam, Features
 
-__all__ = ["RedundancyPreload", "machine_dof"]
+__all__ = ["RedundancyPreload", "machine_dof", "PRELOAD_PRIOR_UM"]
+
+#: Prior one-sigma of a preload deflection, um.  Wide on purpose: the geometric parameters absorb about
+#: 99 % of a preload's signature on the RASPM (docs/diagnose.md), so only deflections of a few hundred um
+#: (kN preloads on apparent compliances of 0.1 um/N) are visible at all, and a narrow prior would rule
+#: exactly those out.
+PRELOAD_PRIOR_UM = 200.0
 
 
 def machine_dof(machine: Machine) -> int:
@@ -35,8 +41,14 @@ class RedundancyPreload(Effect):
 
         dq_i = d_i nu_i(q)            (one redundant direction; nu_1 >= 0)
 
-    Parameters ``preload_deflection.q<i>`` (um, ``c_i P``).  Usual size:
-    preloads of 100-1000 N on drives of 50-500 N/um give 1-20 um.  Not
+    Parameters ``preload_deflection.q<i>`` (um, ``c_i P``; they share the
+    sign of ``P``, so a fit with significantly opposite signs is rejected as
+    non-physical).  Usual size: preloads of 100-1000 N on drives of 50-500
+    N/um give 1-20 um; with links and frame, apparent compliances of 0.1-1
+    um/N and kN preloads give hundreds of um.  On the RASPM about 99 % of
+    the signature is absorbed by the geometric parameters (the constant and
+    pose-linear parts of ``d_i nu_i(x)``; docs/diagnose.md), so only
+    deflections of some hundred um are visible.  Not
     applicable to machines with as many actuators as degrees of freedom
     (the 3-PRS): there is no internal force to carry.
     """
@@ -79,7 +91,7 @@ class RedundancyPreload(Effect):
         return Features({"nu": nu}, {})
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
-        return tuple(EffectParam(f"preload_deflection.q{i + 1}", "um", 20.0) for i in range(machine.n_actuators))
+        return tuple(EffectParam(f"preload_deflection.q{i + 1}", "um", PRELOAD_PRIOR_UM) for i in range(machine.n_actuators))
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
         return 1e-3 * features.per_pose["nu"] * np.asarray(eta)[None, :]
@@ -91,5 +103,19 @@ class RedundancyPreload(Effect):
         J[:, np.arange(m), np.arange(m)] = 1e-3 * nu
         return J
 
+    def nonphysical(self, params, eta: NDArray, std: NDArray) -> str | None:
+        """Deflections of significantly opposite signs: ``d_i = c_i P`` with every compliance ``c_i > 0``."""
+        eta, std = np.asarray(eta, float), np.asarray(std, float)
+        z = eta / np.maximum(std, 1e-300)
+        pos, neg = np.flatnonzero(z > NONPHYSICAL_Z), np.flatnonzero(z < -NONPHYSICAL_Z)
+        if pos.size and neg.size:
+            i, j = pos[0], neg[0]
+            return (
+                f"non-physical fit: {params[i].name} = {eta[i]:.3g} and {params[j].name} = {eta[j]:.3g} um have opposite "
+                "signs (each is a positive compliance times the one preload force)"
+            )
+        return None
+
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
-        return magnitude * rng.uniform(-1.4, 1.4, machine.n_actuators)
+        """Deflections ``c_i P``: compliances within +-40 % of each other, one preload of either sign."""
+        return rng.choice([-1.0, 1.0]) * magnitude * rng.uniform(0.6, 1.4, machine.n_actuators)

@@ -108,6 +108,11 @@ def simulate_with_effects(
         poses = machine.forward(q, th_rows) if eff.needs_poses else None
         feats = eff.features(machine, q, th_rows, aux_f, np.arange(n_poses), poses)
         values = eff.simulated_values(machine, feats, mag, rng)
+        # a compliance on drives that carry no load would silently simulate nothing; other effects'
+        # admissibility (the screw pitch against the stroke) is about diagnosing, not simulating
+        why = eff.inadmissible(feats) if name == "joint_compliance" else None
+        if mag > 0 and why is not None:
+            raise InputError(f"--effect {name}:{mag:g}: has no effect on the {machine.kind} {machine.name!r}: {why}")
         bound.append(eff.bind(machine, values, hidden_aux={"temp_C": full["temp_C"]} if name == "thermal_expansion" else hidden))
         info[name] = {
             "magnitude": mag,

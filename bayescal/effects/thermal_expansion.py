@@ -70,13 +70,13 @@ class ThermalExpansion(Effect):
         m = machine.n_actuators
         if features.const["mode"] == "temperature":
             return tuple(EffectParam(f"drift.q{i + 1}", "um/K", 10.0) for i in range(m)) + tuple(
-                EffectParam(f"alpha.q{i + 1}", "um/m/K", 20.0) for i in range(m)
+                EffectParam(f"alpha.q{i + 1}", "um/m/K", 20.0, lower=0.0) for i in range(m)
             )
         span = features.const["span"]
         return (
             tuple(EffectParam(f"shift.q{i + 1}", "um", 50.0) for i in range(m))
-            + tuple(EffectParam(f"strain.q{i + 1}", "um/m", 100.0) for i in range(m))
-            + (EffectParam("tau", "s", span, prior_mean=span / 2),)
+            + tuple(EffectParam(f"strain.q{i + 1}", "um/m", 100.0, lower=0.0) for i in range(m))
+            + (EffectParam("tau", "s", span, prior_mean=span / 2, lower=0.0),)
         )
 
     def _shape(self, features: Features, eta: NDArray):

@@ -159,3 +159,103 @@ def test_clean_raspm_names_no_effect():
     assert d.verdict == "none"
     assert "redundancy_preload" in [e.name for e in d.effects]
     assert not d.selected
+
+
+def test_negative_compliance_is_not_reported_as_a_detection(prs3):
+    # a machine that "yields upwards" under gravity: the compliance fit explains it only with c < 0
+    from bayescal.effects import get_effect
+
+    bound = get_effect("joint_compliance").bind(prs3, np.array([0.6, -0.6, 0.6]))
+    sim = simulate_with_effects(prs3, 80, seed=7, dof=6, record=("payload_kg",), extra=[bound])
+    d = diagnose(prs3, sim.recording, seed=1, n_perm=19)
+    assert d.verdict != "joint_compliance" and "joint_compliance" not in d.selected
+    why = dict(d.skipped)["joint_compliance"]
+    assert "non-physical" in why and "compliance.q2" in why
+    assert "joint_compliance" not in [e.name for e in d.effects]  # not listed as a tried-and-scored explanation
+
+
+def _raspm_signature_fractions(m, dof):
+    """Per actuator: share of a preload's whitened signature that the geometric parameters cannot absorb."""
+    from bayescal.effects import get_effect
+    from bayescal.measurement import MeasurementModel
+
+    sim = simulate_with_effects(m, 150, seed=3, dof=dof)
+    model = MeasurementModel.from_recording(m, sim.recording)
+    theta = np.zeros(m.n_params)
+    pred = model.predict(theta)
+    A = (model.jacobian(theta, pred) / model.sigma[None, :, None]).reshape(-1, m.n_params)
+    Jq = model.rows_jacobian(m.actuator_jacobian(model.q, theta, pred.poses), pred) / model.sigma[None, :, None]
+    eff = get_effect("redundancy_preload")
+    f = eff.features(m, model.q, theta, {}, None, pred.poses)
+    B = np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian(f, np.zeros(4))).reshape(-1, 4)
+    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    U = U[:, s > 1e-9 * s[0]]
+    out = []
+    for k in m.nonredundant:
+        b = B[:, k]
+        out.append(np.linalg.norm(b - U @ (U.T @ b)) / np.linalg.norm(b))
+    # the ignored (redundant) actuator's column moves nothing
+    assert np.allclose(B[:, m.redundant[0]], 0.0)
+    return np.array(out)
+
+
+@pytest.mark.parametrize("dof", [6, 3])
+def test_raspm_preload_signature_is_nearly_but_not_exactly_geometric(dof):
+    # docs/diagnose.md: about 99 % of the preload's signature lies in the span of the geometric
+    # parameters, so a preload is visible only from deflections of some hundred um; but it is not
+    # exactly absorbed (the joint system has full column rank), so it is identifiable in principle
+    from bayescal.machines import load_machine
+
+    frac = _raspm_signature_fractions(load_machine(RASPM_FILE), dof)
+    assert np.all(frac < 0.05), frac
+    assert np.all(frac > 1e-3), frac
+
+
+def test_raspm_preload_named_when_visible_and_none_when_absorbed():
+    from bayescal.machines import load_machine
+
+    m = load_machine(RASPM_FILE)
+    small = simulate_with_effects(m, 70, seed=2, dof=6, effects=[("redundancy_preload", 20.0)])
+    d = diagnose(m, small.recording, seed=1, n_perm=19)
+    pre = next(e for e in d.effects if e.name == "redundancy_preload")
+    # 20 um is absorbed: honest "none", and the effect does not improve the out-of-sample RMS by a noise sigma
+    assert d.verdict == "none"
+    assert np.sqrt(max(pre.rms_before**2 - pre.rms_after**2, 0.0)) < m.noise.sigma_position
+    large = simulate_with_effects(m, 70, seed=2, dof=6, effects=[("redundancy_preload", 800.0)])
+    d = diagnose(m, large.recording, seed=1, n_perm=19)
+    assert d.verdict == "redundancy_preload"
+    pre = next(e for e in d.effects if e.name == "redundancy_preload")
+    assert pre.rms_after < pre.rms_before - 2 * m.noise.sigma_position
+    truth = {p["name"]: p["value"] for p in large.info["effects"]["redundancy_preload"]["parameters"]}
+    for p in pre.parameters:
+        if p.name.endswith(tuple(f"q{k + 1}" for k in m.nonredundant)):
+            assert abs(p.value - truth[p.name]) < 4 * p.std, (p, truth[p.name])
+
+
+def test_raspm_preload_unabsorbed_part_is_second_order_in_the_workspace_size():
+    # why 99 % is absorbed: d_i nu_i(x) = constant (an actuator zero offset) + linear in the pose
+    # (spanned by each chain's rail, tilt, link and platform-joint parameters) + O(|x - x0|^2);
+    # only the quadratic remainder is left, so halving the workspace quarters it
+    from bayescal.machines import machine_from_text
+
+    text = RASPM_FILE.read_text()
+    rng_lines = {"x = [-300.0, 300.0]": (300.0, "x"), "z = [-200.0, 200.0]": (200.0, "z"),
+                 "rotation = [-0.4363323129985824, 0.4363323129985824]": (0.4363323129985824, "rotation")}
+    fr = []
+    for k in (1.0, 0.5):
+        t = text
+        for line, (half, key) in rng_lines.items():
+            assert line in t
+            t = t.replace(line, f"{key} = [{-half * k!r}, {half * k!r}]")
+        fr.append(_raspm_signature_fractions(machine_from_text(t, "half.toml"), 6))
+    ratio = fr[1] / fr[0]
+    assert np.all((ratio > 0.1) & (ratio < 0.4)), ratio  # ~1/4, not ~1/2 (first order) or ~1 (exactly absorbed: 0)
+
+
+def test_recording_of_another_machine_is_a_clear_error(prs3):
+    from bayescal.machines import machine_from_text
+
+    sim = simulate_with_effects(prs3, 20, seed=3, dof=3)
+    short = machine_from_text(PRS3_FILE.read_text().replace("link_length    = 400.0", "link_length    = 120.0"), "short.toml")
+    with pytest.raises(InputError, match=r"short\.toml cannot solve this recording.*pose 1.*check the machine file"):
+        diagnose(short, sim.recording, n_perm=9)

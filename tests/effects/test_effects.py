@@ -129,3 +129,55 @@ def test_measurement_rows_jacobian_of_effect_parameters(prs3, sim6, name):
         # residual = y - h, so its derivative is -J
         fd = -(effect_residual(model, [(eff, feats)], theta, eta + e) - effect_residual(model, [(eff, feats)], theta, eta - e)) / (2 * h)
         np.testing.assert_allclose(J[:, :, k], fd, atol=1e-6 * max(np.abs(fd).max(), 1e-9) + 1e-10)
+
+
+def test_nonphysical_flags_only_parameters_significantly_below_their_bound(prs3):
+    f = get_effect("joint_compliance")
+    params = f.params(prs3, None)
+    assert all(p.lower == 0.0 for p in params)
+    std = np.full(3, 0.1)
+    assert f.nonphysical(params, np.array([0.5, -0.05, -0.29]), std) is None  # within 3 sigma of zero: noise
+    why = f.nonphysical(params, np.array([0.5, -0.05, -1.0]), std)
+    assert why and "compliance.q3" in why and "compliance.q2" not in why
+    b = get_effect("backlash")
+    assert "backlash.q1" in b.nonphysical(b.params(prs3, None), np.array([-40.0, 10.0, 10.0]), np.full(3, 5.0))
+    t = get_effect("thermal_expansion")
+    tf = t.features(prs3, np.zeros((4, 3)) + 400.0, None, {"temp_C": np.full(4, 21.0)}, None, None)
+    tp = t.params(prs3, tf)
+    eta = np.zeros(6)
+    eta[4] = -30.0  # alpha.q2: a screw that shrinks when warmed
+    assert "alpha.q2" in t.nonphysical(tp, eta, np.full(6, 2.0))
+    assert t.nonphysical(tp, -eta, np.full(6, 2.0)) is None  # drifts may take either sign; alpha > 0 is fine
+
+
+def test_preload_deflections_must_share_one_sign():
+    from bayescal.effects import get_effect as ge
+
+    p = ge("redundancy_preload")
+    params = tuple(p.params(type("M", (), {"n_actuators": 4})(), None))
+    std = np.full(4, 5.0)
+    assert p.nonphysical(params, np.array([100.0, 0.0, 80.0, 60.0]), std) is None
+    assert p.nonphysical(params, np.array([-100.0, 3.0, -80.0, -60.0]), std) is None
+    why = p.nonphysical(params, np.array([100.0, 0.0, -80.0, 60.0]), std)
+    assert why and "opposite" in why
+
+
+def test_joint_compliance_inadmissible_when_no_drive_carries_the_weight():
+    # RU-PUS-PRS: the weight acts at the centre of the passive post's universal joint
+    from bayescal.machines import load_machine
+    from tests.conftest import PRS3_FILE
+
+    m = load_machine(PRS3_FILE.parent.parent / "rupus_prs" / "machine.toml")
+    sim = simulate_with_effects(m, 15, seed=1, dof=6, record=("payload_kg",))
+    eff = get_effect("joint_compliance")
+    f = eff.features(m, sim.recording.q, np.zeros(m.n_params), dict(sim.recording.aux), None, None)
+    assert "no gravity load" in eff.inadmissible(f)
+
+
+def test_simulating_an_effect_that_cannot_act_is_an_error():
+    from bayescal.machines import load_machine
+    from tests.conftest import PRS3_FILE
+
+    m = load_machine(PRS3_FILE.parent.parent / "rupus_prs" / "machine.toml")
+    with pytest.raises(InputError, match=r"--effect joint_compliance:0.5: has no effect on the RU-PUS-PRS.*no gravity load"):
+        simulate_with_effects(m, 10, seed=1, effects=[("joint_compliance", 0.5)], record=("payload_kg",))
