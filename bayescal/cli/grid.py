@@ -79,8 +79,7 @@ def run(args) -> int:
     if args.nodes < 2:
         raise InputError(f"--nodes: expected at least 2, got {args.nodes}")
     grid = compensation_grid(machine, res.theta, free=res.free, n=args.nodes, **kw)
-    if not args.quiet:
-        print(grid.report())
+    # outputs first: a closed stdout (`| head`) must not cost them
     if args.out:
         grid.write_csv(args.out)
     if args.figure:
@@ -89,4 +88,6 @@ def run(args) -> int:
         plot_grid(grid, args.figure)
     if args.json:
         write_json_atomic(args.json, {**grid.to_dict(), "method": args.method})
+    if not args.quiet:
+        print(grid.report())
     return EXIT_OK

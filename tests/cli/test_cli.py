@@ -93,3 +93,32 @@ def test_closed_pipe_ends_quietly(monkeypatch, capsys):
     code = main(["identify", str(ROOT / "examples" / "prs3" / "recording.csv"), "--machine", str(PRS3_FILE)])
     assert code == 141
     assert capsys.readouterr().err == ""
+
+
+def test_closed_pipe_does_not_cost_the_answers(monkeypatch, tmp_path):
+    """`bayescal identify ... --json a.json --write-machine m.toml | head`: the files are still written."""
+    import os
+    import sys
+
+    from bayescal.machines import load_machine
+    from tests.conftest import ROOT
+
+    class ClosedPipe:
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            pass
+
+        def fileno(self):
+            return os.open(os.devnull, os.O_WRONLY)
+
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    ans, cal = tmp_path / "a.json", tmp_path / "cal.toml"
+    code = main([
+        "identify", str(ROOT / "examples" / "prs3" / "recording.csv"), "--machine", str(PRS3_FILE),
+        "--method", "ridge", "--lam", "1", "--json", str(ans), "--write-machine", str(cal),
+    ])
+    assert code == 141
+    assert json.loads(ans.read_text())["method"] == "ridge"
+    assert load_machine(cal).name == "spindle head A"
