@@ -23,12 +23,15 @@ def read_toml(path: str | os.PathLike) -> "TomlTable":
     """Parse a TOML file; a missing file or a syntax error raises MachineFileError."""
     path = Path(path)
     try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
+        # utf-8-sig: a byte-order mark (some Windows editors write one) is not part of the TOML
+        text = path.read_bytes().decode("utf-8-sig")
+        doc = tomllib.loads(text)
     except FileNotFoundError:
         raise MachineFileError(str(path), "", "file not found") from None
     except IsADirectoryError:
         raise MachineFileError(str(path), "", "is a folder, expected a machine file (TOML)") from None
+    except UnicodeDecodeError as exc:
+        raise MachineFileError(str(path), "", f"not a UTF-8 text file ({exc}); TOML files are UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise MachineFileError(str(path), "", f"not valid TOML ({exc})") from exc
     return TomlTable(doc, str(path), "")

@@ -112,6 +112,11 @@ def check_q_limits(path: str, q: NDArray, q_limits: NDArray, *, suffix: str = ""
         )
 
 
+# A decimal number as CSV files write it (ASCII digits, optional sign, point and exponent).
+# Python's float() also takes "1_000" and non-ASCII digits; a typo "1_5" must not read as 15.
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
 def parse_number(text: str, path: str, line: int, col: str) -> float:
     """One CSV cell as a finite float; RecordingError naming line and column otherwise."""
     s = text.strip()
@@ -123,6 +128,8 @@ def parse_number(text: str, path: str, line: int, col: str) -> float:
         raise RecordingError(path, line, col, f"expected a number, got {s!r}") from None
     if not math.isfinite(v):
         raise RecordingError(path, line, col, f"expected a finite number, got {s!r}")
+    if not _NUMBER.fullmatch(s):
+        raise RecordingError(path, line, col, f"expected a decimal number such as 12.5 or -1.25e-3, got {s!r}")
     return v
 
 
@@ -143,12 +150,37 @@ def read_csv_rows(path: str, text: str | None, what: str) -> tuple[list[str], di
             raise RecordingError(path, None, None, f"is a folder, expected {what}") from None
         except UnicodeDecodeError as exc:
             raise RecordingError(path, None, None, f"not a UTF-8 text file ({exc})") from None
-    rows = list(csv.reader(io.StringIO(text)))
-    while rows and all(c.strip() == "" for c in rows[-1]):
+    if text.startswith("\ufeff"):  # a byte-order mark, as some spreadsheet programs write
+        text = text[1:]
+    # newline="": line ends \n, \r\n and a lone \r all end a row
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows: list[list[str]] = []
+    try:
+        for row in reader:
+            rows.append(row)
+            if reader.line_num != len(rows):
+                # a quoted cell holding a line break: line numbers in messages would go wrong
+                raise RecordingError(path, len(rows), None, "a quoted cell spans more than one line; expected one row per line")
+    except csv.Error as exc:
+        raise RecordingError(path, reader.line_num, None, f"not readable as CSV ({exc})") from None
+    blank = lambda r: all(c.strip() == "" for c in r)  # noqa: E731
+    while rows and blank(rows[-1]):
         rows.pop()
     if not rows:
         raise RecordingError(path, 1, None, "empty file; expected a header row")
+    for i, row in enumerate(rows):
+        # FORMATS.md: one header row, then one row per pose; nothing else between them
+        first = row[0].strip() if row else ""
+        what = "the header row" if i == 0 else "one row per measured pose"
+        if first.startswith("#"):
+            raise RecordingError(path, i + 1, None, f"a comment line; comments are not part of the CSV format (FORMATS.md), expected {what}")
+        if blank(row):
+            raise RecordingError(path, i + 1, None, f"a blank line; expected {what} (blank lines only at the end)")
     header = [h.strip() for h in rows[0]]
+    if len(header) == 1 and (sep := next((c for c in ";\t|" if c in header[0]), None)):
+        raise RecordingError(
+            path, 1, None, f"one column named {header[0]!r}: separated by {sep!r}; expected comma-separated columns"
+        )
     seen: dict[str, int] = {}
     for j, h in enumerate(header):
         if h == "":

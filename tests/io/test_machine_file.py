@@ -62,3 +62,13 @@ def test_machine_name_with_quotes_and_control_characters_round_trips(prs3):
 
     m = replace(prs3, name='head "A"\\\n\tline\x01')
     assert machine_from_text(m.to_toml()).name == m.name
+
+
+def test_byte_order_mark_is_read_and_other_encodings_are_named(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_bytes(b"\xef\xbb\xbf" + GOOD.encode())
+    assert load_machine(p).name == "spindle head A"
+    assert machine_from_text("\ufeff" + GOOD).name == "spindle head A"
+    p.write_bytes(GOOD.replace("spindle head A", "Spindelkopf M\u00fcller").encode("latin-1"))
+    with pytest.raises(MachineFileError, match="not a UTF-8 text file"):
+        load_machine(p)

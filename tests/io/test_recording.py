@@ -90,3 +90,44 @@ def test_written_recording_reads_back_exactly(tmp_path, sim6):
     back = read_recording(write_recording(tmp_path / "r.csv", sim6.recording))
     assert np.array_equal(back.q, sim6.recording.q) and np.array_equal(back.position, sim6.recording.position)
     assert np.array_equal(back.rotvec, sim6.recording.rotvec)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "q1,q2,q3,x,y,z\r\n500,501,502,1,2,3\r\n",  # Windows line ends
+        "q1,q2,q3,x,y,z\r500,501,502,1,2,3\r",  # old Mac line ends
+        "\ufeffq1,q2,q3,x,y,z\n500,501,502,1,2,3\n",  # byte-order mark
+        "q1,q2,q3,x,y,z\n500,501,502,1,2,3",  # no final line end
+        "z,q3,x,q1,y,q2\n3,502,1,500,2,501\n",  # any column order
+        "q1,q2,q3,x,y,z\n5.0E2,+501,5.02e+2,1.,2.0e0,.3e1\n",  # number spellings
+    ],
+)
+def test_spellings_formats_md_allows_read_the_same(text):
+    rec = read_recording("r.csv", text=text)
+    assert rec.q.tolist() == [[500.0, 501.0, 502.0]] and rec.position.tolist() == [[1.0, 2.0, 3.0]]
+
+
+@pytest.mark.parametrize(
+    "text,line,column,match",
+    [
+        ("q1,q2,q3,x,y,z\n1_5,2,3,0,0,0\n", 2, "q1", "decimal number"),  # float() would read 15
+        ("q1,q2,q3,x,y,z\n\u0661,2,3,0,0,0\n", 2, "q1", "decimal number"),  # an Arabic-Indic one
+        ("# recorded 2026-11-22\nq1,q2,q3,x,y,z\n1,2,3,0,0,0\n", 1, None, "comment"),
+        ("q1,q2,q3,x,y,z\n1,2,3,0,0,0\n# pause\n1,2,3,0,0,0\n", 3, None, "comment"),
+        ("q1,q2,q3,x,y,z\n1,2,3,0,0,0\n\n1,2,3,0,0,0\n", 3, None, "blank line"),
+        ('q1,q2,q3,x,y,z\n1,2,"3\n",0,0,0\n1,2,3,0,0,x\n', 2, None, "spans more than one line"),
+        ("q1;q2;q3;x;y;z\n1;2;3;0;0;0\n", 1, None, "comma-separated"),
+        ("q1,q2,q3,x,y,z\n1,2,3,0,0," + "0" * 200_000 + "\n", 2, None, "not readable as CSV"),  # csv.Error
+    ],
+)
+def test_what_formats_md_does_not_allow_is_named(text, line, column, match):
+    with pytest.raises(RecordingError, match=match) as err:
+        read_recording("bad.csv", text=text)
+    assert (err.value.row, err.value.column) == (line, column)
+
+
+def test_lone_cr_file_reads_from_disk(tmp_path):
+    p = tmp_path / "r.csv"
+    p.write_bytes(b"q1,q2,q3,x,y,z\r500,501,502,1,2,3\r")
+    assert read_recording(p).q.tolist() == [[500.0, 501.0, 502.0]]
