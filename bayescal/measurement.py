@@ -120,7 +120,7 @@ class MeasurementModel:
             6, 5 or 3; at most what the recording holds (a 6-DOF recording
             can be used as 5-DOF or position-only).  Default: the recording's.
         """
-        rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
+        rec.check_machine(machine.n_actuators, machine.q_limits, machine.source, machine.actuator_units)
         have = rec.dof
         dof = have if dof is None else dof
         rows_per_pose(dof)

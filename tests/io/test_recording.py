@@ -131,3 +131,47 @@ def test_lone_cr_file_reads_from_disk(tmp_path):
     p = tmp_path / "r.csv"
     p.write_bytes(b"q1,q2,q3,x,y,z\r500,501,502,1,2,3\r")
     assert read_recording(p).q.tolist() == [[500.0, 501.0, 502.0]]
+
+
+def test_unit_suffixes_are_converted_to_mm_and_rad():
+    """FORMATS.md: mm and rad 'unless a column name says otherwise (_deg, _um)'."""
+    text = "q1_um,q2,q3_mm,x_um,y,z,rx_deg,ry_rad,rz,temp_C\n500000,501,502,1500,2,3,90,0.5,0.25,21\n"
+    rec = read_recording("r.csv", text=text)
+    assert rec.dof == 6 and list(rec.aux) == ["temp_C"]  # not silently three more aux channels
+    assert rec.q.tolist() == [[500.0, 501.0, 502.0]] and rec.position.tolist() == [[1.5, 2.0, 3.0]]
+    assert np.allclose(rec.rotvec, [[np.pi / 2, 0.5, 0.25]])
+    assert rec.q_columns == ("q1_um", "q2", "q3_mm") and rec.q_units == ("mm", "", "mm")
+    again = read_recording("r.csv", text=recording_to_csv(rec))  # written in mm and rad, plain names
+    assert np.array_equal(again.q, rec.q) and np.array_equal(again.rotvec, rec.rotvec)
+
+
+@pytest.mark.parametrize(
+    "header,column,match",
+    [
+        ("q1,q2,q3,x,y,z,x_um", "x_um", "same quantity as column 'x'"),
+        ("q1,q2,q3,x_deg,y,z,w", "x_deg", "is a length"),
+        ("q1,q2,q3,x,y,z,rx_um,ry,rz", "rx_um", "is an angle"),
+        ("q1,q2,q3,x,y,z,nx_rad,ny,nz", "nx_rad", "unit vector"),
+    ],
+)
+def test_unit_suffixes_that_make_no_sense_are_named(header, column, match):
+    text = header + "\n" + ",".join(["0"] * len(header.split(","))) + "\n"
+    with pytest.raises(RecordingError, match=match) as err:
+        read_recording("bad.csv", text=text)
+    assert (err.value.row, err.value.column) == (1, column)
+
+
+def test_angle_column_for_a_prismatic_actuator_and_limits_name_the_file_column(prs3):
+    rec = read_recording("r.csv", text="q1_deg,q2,q3,x,y,z\n500,500,500,0,0,0\n")
+    with pytest.raises(RecordingError, match="prismatic") as err:
+        rec.check_machine(3, prs3.q_limits, actuator_units=prs3.actuator_units)
+    assert err.value.column == "q1_deg"
+    rec = read_recording("r.csv", text="q1,q2_um,q3,x,y,z\n500,600000,500,0,0,0\n")
+    with pytest.raises(RecordingError, match="600.0 outside") as err:
+        rec.check_machine(3, prs3.q_limits, actuator_units=prs3.actuator_units)
+    assert err.value.column == "q2_um"
+    from bayescal.measurement import MeasurementModel
+
+    rec = read_recording("r.csv", text="q1_rad,q2,q3,x,y,z\n500,500,500,0,0,0\n")
+    with pytest.raises(RecordingError, match="revolute|prismatic"):
+        MeasurementModel.from_recording(prs3, rec)
