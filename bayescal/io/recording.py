@@ -258,7 +258,7 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
     rows = [header] + data_rows
     qnums = sorted(int(m.group(1)) for h in seen if (m := _Q.match(h)))
     if not qnums:
-        raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ...")
+        raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ..." + _case_hint(seen, "q1"))
     if qnums != list(range(1, len(qnums) + 1)):
         missing = sorted(set(range(1, max(qnums) + 1)) - set(qnums))
         raise RecordingError(path, 1, None, f"actuator columns must be q1..qN without gaps; missing q{missing[0]}")
@@ -266,7 +266,9 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         present = [c for c in group if c in seen]
         if group is _POS and len(present) != 3:
             missing = [c for c in group if c not in seen]
-            raise RecordingError(path, 1, missing[0], "missing measured position column; expected x, y, z")
+            raise RecordingError(
+                path, 1, missing[0], "missing measured position column; expected x, y, z" + _case_hint(seen, missing[0])
+            )
         if 0 < len(present) < 3:
             missing = [c for c in group if c not in seen]
             raise RecordingError(path, 1, missing[0], f"incomplete {label}: expected all of {', '.join(group)}")
@@ -304,6 +306,12 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         q=q, position=col(_POS), rotvec=rotvec, axis=axis, aux=aux, path=path,
         q_columns=tuple(header[seen[f"q{k}"]] for k in qnums), q_units=tuple(q_unit.get(f"q{k}", "") for k in qnums),
     )
+
+
+def _case_hint(seen: dict[str, int], name: str) -> str:
+    """`` (column names are case-sensitive: found 'X')`` when a column differs from ``name`` only in case."""
+    found = [h for h in seen if h.lower() == name and h != name]
+    return f" (column names are case-sensitive: found {found[0]!r})" if found else ""
 
 
 def _unit_columns(path: str, header: list[str], seen: dict[str, int]) -> tuple[dict[str, int], NDArray, dict[str, str]]:

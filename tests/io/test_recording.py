@@ -175,3 +175,13 @@ def test_angle_column_for_a_prismatic_actuator_and_limits_name_the_file_column(p
     rec = read_recording("r.csv", text="q1_rad,q2,q3,x,y,z\n500,500,500,0,0,0\n")
     with pytest.raises(RecordingError, match="revolute|prismatic"):
         MeasurementModel.from_recording(prs3, rec)
+
+
+@pytest.mark.parametrize(
+    "text,column,found",
+    [("Q1,Q2,Q3,x,y,z\n1,2,3,0,0,0\n", None, "'Q1'"), ("q1,q2,q3,X,Y,Z\n1,2,3,0,0,0\n", "x", "'X'")],
+)
+def test_upper_case_names_get_a_hint(text, column, found):
+    with pytest.raises(RecordingError, match="case-sensitive: found " + found) as err:
+        read_recording("bad.csv", text=text)
+    assert err.value.column == column
