@@ -272,6 +272,26 @@ class MeasurementModel:
         }
 
 
+def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:
+    """Raise RecordingError naming the recording's line of the first pose the nominal machine cannot solve.
+
+    Every identification and diagnosis starts at the nominal geometry, so a
+    pose it cannot solve (a recording of another machine, actuator positions
+    in other units, a pose outside the reachable workspace) stops it; this
+    says so in terms of the files (FORMATS.md: name the file and the line).
+    """
+    from .errors import RecordingError
+
+    pred = model.predict(None)
+    if not pred.success.all():
+        i = int(np.flatnonzero(~pred.success)[0])
+        raise RecordingError(
+            rec.path, i + 2, None,
+            f"the machine {model.machine.source} cannot assemble this pose (q = {model.q[i].tolist()}): "
+            f"{pred.poses.message[i]}; expected a pose of this machine, in its units",
+        )
+
+
 def _frame_with_z(axis: NDArray) -> NDArray:
     t = tangent_basis(axis)
     return np.stack([t[:, 0], t[:, 1], axis], axis=-1)

@@ -9,7 +9,7 @@ from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from ..io import read_recording, write_json_atomic, write_text_atomic
 from ..machines import load_machine
-from ..measurement import MeasurementModel
+from ..measurement import MeasurementModel, check_recording_solves
 from .bayes_identify import METHODS, add_arguments, run_bayes
 
 HELP = """\
@@ -106,6 +106,7 @@ def run(args) -> int:
     machine = load_machine(args.machine)
     rec = read_recording(args.recording)
     model = MeasurementModel.from_recording(machine, rec, dof=args.dof)
+    check_recording_solves(model, rec)
     free = args.free if args.free in ("auto", "all") else [s.strip() for s in args.free.split(",") if s.strip()]
     if args.method == "ridge" and args.lam is None:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")

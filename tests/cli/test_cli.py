@@ -122,3 +122,16 @@ def test_closed_pipe_does_not_cost_the_answers(monkeypatch, tmp_path):
     assert code == 141
     assert json.loads(ans.read_text())["method"] == "ridge"
     assert load_machine(cal).name == "spindle head A"
+
+
+@pytest.mark.parametrize("command", ["identify", "diagnose"])
+def test_pose_the_machine_cannot_assemble_names_file_and_line(tmp_path, capsys, command):
+    machine = tmp_path / "m.toml"
+    machine.write_text(PRS3_FILE.read_text().split("[workspace]")[0])  # no q_limits: any q passes the reader
+    lines = ["q1,q2,q3,x,y,z"] + [f"{500 + i},500,500,0,0,30" for i in range(11)]
+    lines[3] = "500,500,2500,0,0,30"  # line 4: links 400 mm long cannot span this
+    rec = tmp_path / "rec.csv"
+    rec.write_text("\n".join(lines) + "\n")
+    assert main([command, str(rec), "--machine", str(machine)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{rec}: line 4:" in err[0] and "cannot assemble" in err[0]
