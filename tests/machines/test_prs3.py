@@ -111,3 +111,25 @@ def test_platform_frame_turned_against_the_base_frame(prs3, rng, turn_deg):
         model = MeasurementModel.from_recording(turned, rec)
         pred = model.predict(np.zeros(turned.n_params))
         assert pred.poses.success.all() and np.abs(model.residual(pred)).max() < 1e-8
+
+
+def test_recording_of_the_other_assembly_branch_without_the_assembly_key(prs3, rng):
+    """A FORMATS.md-only file has no ``assembly`` key: the measurement decides the branch.
+
+    The example machine with its rails pointing the other way (q -> -q) has its
+    links along the rails, while the file (no ``assembly``) says the default,
+    against the rails; a recording of the real machine must still fit exactly.
+    """
+    from dataclasses import replace
+
+    from bayescal.io import Recording
+    from bayescal.measurement import MeasurementModel
+
+    flipped = replace(prs3, rail_direction=-prs3.rail_direction, q_limits=-prs3.q_limits[:, ::-1])
+    assert flipped.links_against_rail  # the default the file implies
+    q = prs3.sample_q(15, rng)
+    truth = prs3.forward(q)
+    for rotvec in (None, so3_log(truth.rotation)):
+        model = MeasurementModel.from_recording(flipped, Recording(q=-q, position=truth.position, rotvec=rotvec))
+        pred = model.predict(None)
+        assert pred.poses.success.all() and np.abs(model.residual(pred)).max() < 1e-8
