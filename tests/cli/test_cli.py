@@ -135,3 +135,16 @@ def test_pose_the_machine_cannot_assemble_names_file_and_line(tmp_path, capsys, 
     assert main([command, str(rec), "--machine", str(machine)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{rec}: line 4:" in err[0] and "cannot assemble" in err[0]
+
+
+def test_every_computing_command_takes_json(tmp_path, capsys):
+    """FORMATS.md section 3: every command that computes something can write its answer with --json PATH."""
+    from bayescal.cli import COMMANDS, build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    for name in COMMANDS:
+        assert "--json" in sub.choices[name]._option_string_actions, name
+    ans = tmp_path / "truth.json"
+    assert main(["simulate", "--machine", str(PRS3_FILE), "--poses", "3", "--seed", "1",
+                 "--out", str(tmp_path / "r.csv"), "--json", str(ans), "--quiet"]) == 0
+    assert len(json.loads(ans.read_text())["parameters"]) == 36 and (tmp_path / "truth.toml").exists()
