@@ -16,7 +16,10 @@ import numpy as np
 
 from ..errors import MachineFileError
 
-__all__ = ["read_toml", "TomlTable", "format_toml_value"]
+__all__ = ["read_toml", "TomlTable", "format_toml_value", "UNIT_NORM_TOL"]
+
+#: How far from 1 the norm of a unit vector in a machine file may be (it is then normalised).
+UNIT_NORM_TOL = 1e-4
 
 
 def read_toml(path: str | os.PathLike) -> "TomlTable":
@@ -98,8 +101,10 @@ class TomlTable:
         arr = np.asarray(v, dtype=float)
         if unit:
             norm = float(np.linalg.norm(arr))
-            if abs(norm - 1.0) > 1e-6:
-                raise self.error(key, f"expected a unit vector (norm 1 within 1e-6), got norm {norm:.9g}")
+            # hand-written direction cosines carry 5 or 6 significant digits (0.34202, 0.93969:
+            # norm 0.9999975); they are normalised.  A norm off by more is a typo, not rounding.
+            if abs(norm - 1.0) > UNIT_NORM_TOL:
+                raise self.error(key, f"expected a unit vector (norm 1 within {UNIT_NORM_TOL:g}), got norm {norm:.9g}")
             arr = arr / norm
         return arr
 
