@@ -40,6 +40,10 @@ def read_toml(path: str | os.PathLike) -> "TomlTable":
     return TomlTable(doc, str(path), "")
 
 
+#: Keys that belong at the top of a machine file, before any table.
+_TOP_LEVEL = frozenset({"kind", "name", "assembly"})
+
+
 class TomlTable:
     """A view of one TOML table that validates values and names them in errors."""
 
@@ -62,7 +66,11 @@ class TomlTable:
         """Raise for keys not in ``allowed`` (typos must not pass silently)."""
         for key in self.data:
             if key not in allowed:
-                raise self.error(key, f"unknown key; expected one of: {', '.join(sorted(allowed))}")
+                hint = ""
+                if self.prefix and key in _TOP_LEVEL:
+                    # TOML puts every key after a [table] header into that table
+                    hint = f" ('{key}' is a top-level key: write it before the first [table] header)"
+                raise self.error(key, f"unknown key; expected one of: {', '.join(sorted(allowed))}{hint}")
 
     def string(self, key: str, default: str | None = None) -> str:
         if key not in self.data:

@@ -84,3 +84,9 @@ def test_hand_rounded_direction_cosines_are_accepted_and_normalised():
     assert np.allclose(m.rail_direction[0], [0.0, -np.sin(np.radians(20)), np.cos(np.radians(20))], atol=1e-5)
     with pytest.raises(MachineFileError, match="unit vector"):
         machine_from_text(GOOD.replace("rail_direction = [0.0, 0.0, 1.0]", "rail_direction = [0.0, 0.05, 1.0]", 1))
+
+
+def test_top_level_key_written_after_a_table_gets_a_hint():
+    with pytest.raises(MachineFileError, match="top-level key: write it before the first") as err:
+        machine_from_text(GOOD.replace('name = "spindle head A"\n', "") + '\nname = "head A"\n')
+    assert err.value.key.endswith(".name")
