@@ -120,7 +120,7 @@ class MeasurementModel:
             6, 5 or 3; at most what the recording holds (a 6-DOF recording
             can be used as 5-DOF or position-only).  Default: the recording's.
         """
-        rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
+        rec.check_machine(machine.n_actuators, machine.q_limits, machine.source, machine.actuator_units)
         have = rec.dof
         dof = have if dof is None else dof
         rows_per_pose(dof)
@@ -270,6 +270,26 @@ class MeasurementModel:
             "position": float(np.sqrt(np.mean(pos**2))),
             "angle": None if ang is None else float(np.sqrt(np.mean(ang**2))),
         }
+
+
+def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:
+    """Raise RecordingError naming the recording's line of the first pose the nominal machine cannot solve.
+
+    Every identification and diagnosis starts at the nominal geometry, so a
+    pose it cannot solve (a recording of another machine, actuator positions
+    in other units, a pose outside the reachable workspace) stops it; this
+    says so in terms of the files (FORMATS.md: name the file and the line).
+    """
+    from .errors import RecordingError
+
+    pred = model.predict(None)
+    if not pred.success.all():
+        i = int(np.flatnonzero(~pred.success)[0])
+        raise RecordingError(
+            rec.path, i + 2, None,
+            f"the machine {model.machine.source} cannot assemble this pose (q = {model.q[i].tolist()}): "
+            f"{pred.poses.message[i]}; expected a pose of this machine, in its units",
+        )
 
 
 def _frame_with_z(axis: NDArray) -> NDArray:

@@ -49,10 +49,13 @@ def run_bayes(args, machine, model, free) -> int:
             model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
             progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,
         )
-    if not args.quiet:
-        print(res.report())
-    if args.json:
+    if args.json:  # before printing: a closed stdout (`| head`) must not cost the answer
         write_json_atomic(args.json, res.to_dict())
+    if args.method == "mcmc" and args.posterior and res.success:
+        write_posterior(res, args.posterior)
+    if args.write_machine and res.success:
+        write_text_atomic(args.write_machine, machine.to_toml(res.theta))
+    made = []
     if args.figures:
         from ..plots.bayes import plot_filter_history, plot_pair, plot_trace
 
@@ -62,14 +65,10 @@ def run_bayes(args, machine, model, free) -> int:
             made = [plot_filter_history(res, out / "kalman_history.png")]
         elif res.success:
             made = [plot_trace(res, out / "mcmc_trace.png"), plot_pair(res, out / "mcmc_pair.png")]
-        else:
-            made = []
-        if made and not args.quiet:
+    if not args.quiet:
+        print(res.report())
+        if made:
             print("\nfigures: " + ", ".join(str(m) for m in made))
-    if args.method == "mcmc" and args.posterior and res.success:
-        write_posterior(res, args.posterior)
-    if args.write_machine and res.success:
-        write_text_atomic(args.write_machine, machine.to_toml(res.theta))
-    elif (args.write_machine or getattr(args, "posterior", None)) and not res.success and not args.quiet:
+    if (args.write_machine or getattr(args, "posterior", None)) and not res.success and not args.quiet:
         print("\nnot writing outputs: the identification did not succeed")
     return EXIT_OK if res.success else EXIT_FAILED

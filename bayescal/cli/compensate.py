@@ -81,9 +81,9 @@ def run(args) -> int:
             return e
 
         grid = build_grid(args.x_range, args.z_range, at, n=args.n, std=args.node_std)
-        print(grid.report())
-        if args.out:
+        if args.out:  # before printing: a closed stdout (`| head`) must not cost the grid
             write_grid(args.out, grid)
+        print(grid.report())
     elif args.grid:
         grid = read_grid(args.grid)
     else:
@@ -93,7 +93,7 @@ def run(args) -> int:
         after = t[:, 2:] - grid.interpolate(t[:, 0], t[:, 1])
         ans = {"max_before_mm": float(np.abs(t[:, 2:]).max()), "max_after_mm": float(np.abs(after).max()),
                "rms_before_mm": float(np.sqrt(np.mean(t[:, 2:] ** 2))), "rms_after_mm": float(np.sqrt(np.mean(after**2)))}
-        print(f"fresh points: max |error| {ans['max_before_mm']:.4f} mm -> {ans['max_after_mm']:.4f} mm after BIC")
         if args.json:
             write_json_atomic(args.json, ans)
+        print(f"fresh points: max |error| {ans['max_before_mm']:.4f} mm -> {ans['max_after_mm']:.4f} mm after BIC")
     return EXIT_OK

@@ -8,6 +8,7 @@ from ..effects import EFFECTS
 from ..errors import InputError
 from ..io import read_recording, write_json_atomic
 from ..machines import load_machine
+from ..measurement import MeasurementModel, check_recording_solves
 
 HELP = f"""\
 Diagnose what the geometric model leaves out.
@@ -59,6 +60,7 @@ def run(args) -> int:
 
     machine = load_machine(args.machine)
     rec = read_recording(args.recording)
+    check_recording_solves(MeasurementModel.from_recording(machine, rec), rec)
     effects = None
     if args.effects is not None:
         effects = [s.strip() for s in args.effects.split(",") if s.strip()]

@@ -7,7 +7,7 @@ import argparse
 from ..errors import InputError
 from ..io import read_recording, write_json_atomic
 from ..machines import load_machine
-from ..measurement import MeasurementModel
+from ..measurement import MeasurementModel, check_recording_solves
 
 HELP = """\
 Identify the geometric errors (MAP under the tolerance prior, or the Kalman
@@ -58,7 +58,9 @@ def run(args) -> int:
     from ..bayes.priors import map_estimate
 
     machine = load_machine(args.machine)
-    model = MeasurementModel.from_recording(machine, read_recording(args.recording), dof=args.dof)
+    rec = read_recording(args.recording)
+    model = MeasurementModel.from_recording(machine, rec, dof=args.dof)
+    check_recording_solves(model, rec)
     free = args.free if args.free in ("auto", "all") else [s.strip() for s in args.free.split(",") if s.strip()]
     if args.method == "mcmc" and free == "all":
         free = "auto"  # sampling the unidentifiable directions only explores the prior
@@ -79,8 +81,7 @@ def run(args) -> int:
     if args.nodes < 2:
         raise InputError(f"--nodes: expected at least 2, got {args.nodes}")
     grid = compensation_grid(machine, res.theta, free=res.free, n=args.nodes, **kw)
-    if not args.quiet:
-        print(grid.report())
+    # outputs first: a closed stdout (`| head`) must not cost them
     if args.out:
         grid.write_csv(args.out)
     if args.figure:
@@ -89,4 +90,6 @@ def run(args) -> int:
         plot_grid(grid, args.figure)
     if args.json:
         write_json_atomic(args.json, {**grid.to_dict(), "method": args.method})
+    if not args.quiet:
+        print(grid.report())
     return EXIT_OK

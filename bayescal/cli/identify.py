@@ -9,7 +9,7 @@ from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from ..io import read_recording, write_json_atomic, write_text_atomic
 from ..machines import load_machine
-from ..measurement import MeasurementModel
+from ..measurement import MeasurementModel, check_recording_solves
 from .bayes_identify import METHODS, add_arguments, run_bayes
 
 HELP = """\
@@ -106,6 +106,7 @@ def run(args) -> int:
     machine = load_machine(args.machine)
     rec = read_recording(args.recording)
     model = MeasurementModel.from_recording(machine, rec, dof=args.dof)
+    check_recording_solves(model, rec)
     free = args.free if args.free in ("auto", "all") else [s.strip() for s in args.free.split(",") if s.strip()]
     if args.method == "ridge" and args.lam is None:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
@@ -123,20 +124,23 @@ def run(args) -> int:
         choice, res = choose_regularisation(model, args.method, rule=args.rule, free=free, max_iter=args.max_iter)
     else:
         res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
-    if not args.quiet:
-        print(res.report())
-        if choice is not None:
-            print("\n" + choice.report())
-    if choice is not None and args.figures:
-        from ..plots.regularisation import plot_choice
-
-        path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
-        if not args.quiet:
-            print(f"\nwrote {path}")
+    # the answers are written before anything is printed, so that a reader of stdout that
+    # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
     if args.json:
         write_json_atomic(args.json, res.to_dict())
     if args.write_machine and res.success:
         write_text_atomic(args.write_machine, machine.to_toml(res.theta))
-    elif args.write_machine and not args.quiet:
-        print(f"\nnot writing {args.write_machine}: the identification did not succeed")
+    path = None
+    if choice is not None and args.figures:
+        from ..plots.regularisation import plot_choice
+
+        path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
+    if not args.quiet:
+        print(res.report())
+        if choice is not None:
+            print("\n" + choice.report())
+        if path is not None:
+            print(f"\nwrote {path}")
+        if args.write_machine and not res.success:
+            print(f"\nnot writing {args.write_machine}: the identification did not succeed")
     return EXIT_OK if res.success else EXIT_FAILED

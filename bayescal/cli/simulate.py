@@ -60,7 +60,11 @@ def register(sub) -> None:
         "redundancy_preload",
     )
     p.add_argument("--aux", default="", help="auxiliary channels to record, comma-separated: time_s,temp_C,payload_kg")
-    p.add_argument("--truth", help="where to write the truth JSON (default: OUT with .truth.json)")
+    p.add_argument(
+        "--truth", "--json", dest="truth", metavar="PATH",
+        help="where to write the truth JSON, the answer of this command (default: OUT with .truth.json); "
+        "the true machine file goes beside it with suffix .toml",
+    )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
 

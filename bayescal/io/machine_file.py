@@ -16,22 +16,32 @@ import numpy as np
 
 from ..errors import MachineFileError
 
-__all__ = ["read_toml", "TomlTable", "format_toml_value"]
+__all__ = ["read_toml", "TomlTable", "format_toml_value", "UNIT_NORM_TOL"]
+
+#: How far from 1 the norm of a unit vector in a machine file may be (it is then normalised).
+UNIT_NORM_TOL = 1e-4
 
 
 def read_toml(path: str | os.PathLike) -> "TomlTable":
     """Parse a TOML file; a missing file or a syntax error raises MachineFileError."""
     path = Path(path)
     try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
+        # utf-8-sig: a byte-order mark (some Windows editors write one) is not part of the TOML
+        text = path.read_bytes().decode("utf-8-sig")
+        doc = tomllib.loads(text)
     except FileNotFoundError:
         raise MachineFileError(str(path), "", "file not found") from None
     except IsADirectoryError:
         raise MachineFileError(str(path), "", "is a folder, expected a machine file (TOML)") from None
+    except UnicodeDecodeError as exc:
+        raise MachineFileError(str(path), "", f"not a UTF-8 text file ({exc}); TOML files are UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise MachineFileError(str(path), "", f"not valid TOML ({exc})") from exc
     return TomlTable(doc, str(path), "")
+
+
+#: Keys that belong at the top of a machine file, before any table.
+_TOP_LEVEL = frozenset({"kind", "name", "assembly"})
 
 
 class TomlTable:
@@ -56,7 +66,11 @@ class TomlTable:
         """Raise for keys not in ``allowed`` (typos must not pass silently)."""
         for key in self.data:
             if key not in allowed:
-                raise self.error(key, f"unknown key; expected one of: {', '.join(sorted(allowed))}")
+                hint = ""
+                if self.prefix and key in _TOP_LEVEL:
+                    # TOML puts every key after a [table] header into that table
+                    hint = f" ('{key}' is a top-level key: write it before the first [table] header)"
+                raise self.error(key, f"unknown key; expected one of: {', '.join(sorted(allowed))}{hint}")
 
     def string(self, key: str, default: str | None = None) -> str:
         if key not in self.data:
@@ -95,8 +109,10 @@ class TomlTable:
         arr = np.asarray(v, dtype=float)
         if unit:
             norm = float(np.linalg.norm(arr))
-            if abs(norm - 1.0) > 1e-6:
-                raise self.error(key, f"expected a unit vector (norm 1 within 1e-6), got norm {norm:.9g}")
+            # hand-written direction cosines carry 5 or 6 significant digits (0.34202, 0.93969:
+            # norm 0.9999975); they are normalised.  A norm off by more is a typo, not rounding.
+            if abs(norm - 1.0) > UNIT_NORM_TOL:
+                raise self.error(key, f"expected a unit vector (norm 1 within {UNIT_NORM_TOL:g}), got norm {norm:.9g}")
             arr = arr / norm
         return arr
 

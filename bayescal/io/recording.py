@@ -19,6 +19,12 @@ from .answers import write_text_atomic
 __all__ = ["Recording", "read_recording", "write_recording", "recording_to_csv"]
 
 _Q = re.compile(r"^q([1-9][0-9]*)$")
+# FORMATS.md: "millimetres for lengths, radians for angles, unless a column name says
+# otherwise (_deg, _um)".  A measured quantity's column may carry its unit as a suffix;
+# it is converted on reading.  Other names stay auxiliary channels, read as they are.
+_UNIT_COLUMN = re.compile(r"^(q[1-9][0-9]*|x|y|z|rx|ry|rz|nx|ny|nz)_(um|mm|deg|rad)$")
+_LENGTH_UNITS = {"mm": 1.0, "um": 1e-3}
+_ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 _POS = ("x", "y", "z")
 _ROT = ("rx", "ry", "rz")
 _AXIS = ("nx", "ny", "nz")
@@ -43,6 +49,14 @@ class Recording:
         Auxiliary channels in file order.
     path : str
         Where it was read from (for messages), or ``"<memory>"``.
+    q_columns : tuple of str
+        The actuator columns' names as in the file (``q1``, ``q2_um``, ...),
+        for messages; empty for recordings made in memory.
+    q_units : tuple of str
+        Per actuator, the unit a suffixed column declared (``"mm"`` for
+        ``_mm``/``_um``, ``"rad"`` for ``_rad``/``_deg``; ``q`` holds the
+        converted values) or ``""`` for a plain ``q<i>``; empty for
+        recordings made in memory.
     """
 
     q: NDArray
@@ -51,6 +65,8 @@ class Recording:
     axis: NDArray | None = None
     aux: dict[str, NDArray] = field(default_factory=dict)
     path: str = "<memory>"
+    q_columns: tuple[str, ...] = ()
+    q_units: tuple[str, ...] = ()
 
     @property
     def n_poses(self) -> int:
@@ -79,26 +95,51 @@ class Recording:
             axis=None if self.axis is None else self.axis[idx],
             aux={k: v[idx] for k, v in self.aux.items()},
             path=self.path,
+            q_columns=self.q_columns,
+            q_units=self.q_units,
         )
 
-    def check_machine(self, n_actuators: int, q_limits: NDArray | None, machine_path: str = "") -> None:
-        """Raise RecordingError if the actuator count or ``q_limits`` do not fit."""
+    def check_machine(
+        self,
+        n_actuators: int,
+        q_limits: NDArray | None,
+        machine_path: str = "",
+        actuator_units: tuple[str, ...] | None = None,
+    ) -> None:
+        """Raise RecordingError if the actuator count, units or ``q_limits`` do not fit.
+
+        ``actuator_units`` (``"mm"`` prismatic, ``"rad"`` revolute, per
+        actuator) is checked against the units suffixed columns declared.
+        """
         if self.n_actuators != n_actuators:
             raise RecordingError(
                 self.path, 1, None,
                 f"{self.n_actuators} actuator columns (q1..q{self.n_actuators}) but the machine "
                 f"{machine_path} has {n_actuators} actuators; expected q1..q{n_actuators}",
             )
+        if actuator_units is not None:
+            for i, (have, want) in enumerate(zip(self.q_units, actuator_units)):
+                if have and have != want:
+                    kind = {"mm": "a length (mm, um)", "rad": "an angle (rad, deg)"}
+                    raise RecordingError(
+                        self.path, 1, self.q_columns[i],
+                        f"{kind[have]}, but actuator q{i + 1} of the machine {machine_path} is "
+                        f"{'prismatic' if want == 'mm' else 'revolute'}; expected {kind[want]}",
+                    )
         if q_limits is None:
             return
-        check_q_limits(self.path, self.q, q_limits, machine_path=machine_path)
+        check_q_limits(self.path, self.q, q_limits, machine_path=machine_path, names=self.q_columns or None)
 
 
-def check_q_limits(path: str, q: NDArray, q_limits: NDArray, *, suffix: str = "", machine_path: str = "") -> None:
+def check_q_limits(
+    path: str, q: NDArray, q_limits: NDArray, *, suffix: str = "", machine_path: str = "",
+    names: tuple[str, ...] | None = None,
+) -> None:
     """Raise RecordingError naming line and column ``q<i><suffix>`` for the first value outside ``q_limits``.
 
     A relative tolerance of 1e-9 of the stroke lets values written at the
-    limits with rounding pass.
+    limits with rounding pass.  ``names`` are the columns as the file names
+    them (default ``q<i><suffix>``); values are in the machine's units.
     """
     lo, hi = q_limits[:, 0], q_limits[:, 1]
     span = np.maximum(hi - lo, 1.0)
@@ -106,10 +147,15 @@ def check_q_limits(path: str, q: NDArray, q_limits: NDArray, *, suffix: str = ""
     if bad.any():
         r, c = map(int, np.argwhere(bad)[0])
         raise RecordingError(
-            path, r + 2, f"q{c + 1}{suffix}",
+            path, r + 2, names[c] if names else f"q{c + 1}{suffix}",
             f"value {float(q[r, c])!r} outside q_limits [{float(lo[c])!r}, {float(hi[c])!r}] "
             f"of the machine file{' ' + machine_path if machine_path else ''}",
         )
+
+
+# A decimal number as CSV files write it (ASCII digits, optional sign, point and exponent).
+# Python's float() also takes "1_000" and non-ASCII digits; a typo "1_5" must not read as 15.
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
 
 def parse_number(text: str, path: str, line: int, col: str) -> float:
@@ -123,6 +169,8 @@ def parse_number(text: str, path: str, line: int, col: str) -> float:
         raise RecordingError(path, line, col, f"expected a number, got {s!r}") from None
     if not math.isfinite(v):
         raise RecordingError(path, line, col, f"expected a finite number, got {s!r}")
+    if not _NUMBER.fullmatch(s):
+        raise RecordingError(path, line, col, f"expected a decimal number such as 12.5 or -1.25e-3, got {s!r}")
     return v
 
 
@@ -143,12 +191,37 @@ def read_csv_rows(path: str, text: str | None, what: str) -> tuple[list[str], di
             raise RecordingError(path, None, None, f"is a folder, expected {what}") from None
         except UnicodeDecodeError as exc:
             raise RecordingError(path, None, None, f"not a UTF-8 text file ({exc})") from None
-    rows = list(csv.reader(io.StringIO(text)))
-    while rows and all(c.strip() == "" for c in rows[-1]):
+    if text.startswith("\ufeff"):  # a byte-order mark, as some spreadsheet programs write
+        text = text[1:]
+    # newline="": line ends \n, \r\n and a lone \r all end a row
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows: list[list[str]] = []
+    try:
+        for row in reader:
+            rows.append(row)
+            if reader.line_num != len(rows):
+                # a quoted cell holding a line break: line numbers in messages would go wrong
+                raise RecordingError(path, len(rows), None, "a quoted cell spans more than one line; expected one row per line")
+    except csv.Error as exc:
+        raise RecordingError(path, reader.line_num, None, f"not readable as CSV ({exc})") from None
+    blank = lambda r: all(c.strip() == "" for c in r)  # noqa: E731
+    while rows and blank(rows[-1]):
         rows.pop()
     if not rows:
         raise RecordingError(path, 1, None, "empty file; expected a header row")
+    for i, row in enumerate(rows):
+        # FORMATS.md: one header row, then one row per pose; nothing else between them
+        first = row[0].strip() if row else ""
+        what = "the header row" if i == 0 else "one row per measured pose"
+        if first.startswith("#"):
+            raise RecordingError(path, i + 1, None, f"a comment line; comments are not part of the CSV format (FORMATS.md), expected {what}")
+        if blank(row):
+            raise RecordingError(path, i + 1, None, f"a blank line; expected {what} (blank lines only at the end)")
     header = [h.strip() for h in rows[0]]
+    if len(header) == 1 and (sep := next((c for c in ";\t|" if c in header[0]), None)):
+        raise RecordingError(
+            path, 1, None, f"one column named {header[0]!r}: separated by {sep!r}; expected comma-separated columns"
+        )
     seen: dict[str, int] = {}
     for j, h in enumerate(header):
         if h == "":
@@ -181,10 +254,11 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
     """
     path = str(path)
     header, seen, data_rows = read_csv_rows(path, text, "a recording (CSV)")
+    seen, scale, q_unit = _unit_columns(path, header, seen)
     rows = [header] + data_rows
-    qnums = sorted(int(m.group(1)) for h in header if (m := _Q.match(h)))
+    qnums = sorted(int(m.group(1)) for h in seen if (m := _Q.match(h)))
     if not qnums:
-        raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ...")
+        raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ..." + _case_hint(seen, "q1"))
     if qnums != list(range(1, len(qnums) + 1)):
         missing = sorted(set(range(1, max(qnums) + 1)) - set(qnums))
         raise RecordingError(path, 1, None, f"actuator columns must be q1..qN without gaps; missing q{missing[0]}")
@@ -192,7 +266,9 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         present = [c for c in group if c in seen]
         if group is _POS and len(present) != 3:
             missing = [c for c in group if c not in seen]
-            raise RecordingError(path, 1, missing[0], "missing measured position column; expected x, y, z")
+            raise RecordingError(
+                path, 1, missing[0], "missing measured position column; expected x, y, z" + _case_hint(seen, missing[0])
+            )
         if 0 < len(present) < 3:
             missing = [c for c in group if c not in seen]
             raise RecordingError(path, 1, missing[0], f"incomplete {label}: expected all of {', '.join(group)}")
@@ -209,6 +285,7 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
             raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
         for j, cell in enumerate(row):
             data[i, j] = parse_number(cell, path, line, header[j])
+    data *= scale[None, :]
     col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
     q = col([f"q{k}" for k in qnums])
     rotvec = col(_ROT) if _ROT[0] in seen else None
@@ -224,8 +301,48 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
             )
         axis = axis / norms[:, None]
     known = set(_POS + _ROT + _AXIS) | {f"q{k}" for k in qnums}
-    aux = {h: data[:, seen[h]].copy() for h in header if h not in known}
-    return Recording(q=q, position=col(_POS), rotvec=rotvec, axis=axis, aux=aux, path=path)
+    aux = {h: data[:, seen[h]].copy() for h in seen if h not in known}
+    return Recording(
+        q=q, position=col(_POS), rotvec=rotvec, axis=axis, aux=aux, path=path,
+        q_columns=tuple(header[seen[f"q{k}"]] for k in qnums), q_units=tuple(q_unit.get(f"q{k}", "") for k in qnums),
+    )
+
+
+def _case_hint(seen: dict[str, int], name: str) -> str:
+    """`` (column names are case-sensitive: found 'X')`` when a column differs from ``name`` only in case."""
+    found = [h for h in seen if h.lower() == name and h != name]
+    return f" (column names are case-sensitive: found {found[0]!r})" if found else ""
+
+
+def _unit_columns(path: str, header: list[str], seen: dict[str, int]) -> tuple[dict[str, int], NDArray, dict[str, str]]:
+    """Resolve unit-suffixed columns (``x_um``, ``rx_deg``, ``q1_um``) to their quantity.
+
+    Returns the column index by quantity name (``x_um`` -> ``x``; other names
+    unchanged), the factor converting each file column to mm or rad, and the
+    unit declared per actuator column.
+    """
+    out: dict[str, int] = {}
+    scale = np.ones(len(header))
+    q_unit: dict[str, str] = {}
+    for h, j in seen.items():
+        name = h
+        if m := _UNIT_COLUMN.match(h):
+            name, unit = m.group(1), m.group(2)
+            if name in _AXIS:
+                raise RecordingError(path, 1, h, f"the tool axis is a unit vector without unit; expected {name}")
+            if name in _POS and unit not in _LENGTH_UNITS:
+                raise RecordingError(path, 1, h, f"{name} is a length; expected {name} (mm), {name}_mm or {name}_um")
+            if name in _ROT and unit not in _ANGLE_UNITS:
+                raise RecordingError(path, 1, h, f"{name} is an angle; expected {name} (rad), {name}_rad or {name}_deg")
+            scale[j] = _LENGTH_UNITS.get(unit) or _ANGLE_UNITS[unit]
+            if name.startswith("q"):
+                q_unit[name] = "mm" if unit in _LENGTH_UNITS else "rad"
+        if name in out:
+            raise RecordingError(
+                path, 1, h, f"the same quantity as column {header[out[name]]!r} (columns {out[name] + 1} and {j + 1}); expected one of them"
+            )
+        out[name] = j
+    return out, scale, q_unit
 
 
 def recording_to_csv(rec: Recording, *, precision: int | None = None) -> str:

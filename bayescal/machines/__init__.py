@@ -46,7 +46,7 @@ def machine_from_text(text: str, path: str = "<memory>") -> Machine:
     from ..io.machine_file import TomlTable
 
     try:
-        doc = tomllib.loads(text)
+        doc = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise MachineFileError(path, "", f"not valid TOML ({exc})") from exc
     return _build(TomlTable(doc, path, ""), path)

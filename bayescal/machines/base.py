@@ -96,6 +96,15 @@ class Machine(ABC):
         """Number of actuated joints (columns q1..qN of a recording)."""
 
     @property
+    def actuator_units(self) -> tuple[str, ...]:
+        """Per actuator ``"mm"`` (prismatic) or ``"rad"`` (revolute): the unit of ``q``.
+
+        Every shipped kind is prismatically actuated; a kind with revolute
+        actuators overrides this, so that recordings are checked against it.
+        """
+        return ("mm",) * self.n_actuators
+
+    @property
     def n_params(self) -> int:
         return len(self.layout)
 

@@ -30,6 +30,7 @@ from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
+from .construct import kabsch
 
 __all__ = ["Prs3", "PRS3_TOLERANCE_DEFAULTS"]
 
@@ -223,8 +224,17 @@ class Prs3(Machine):
         rho = np.linalg.norm(perp(rel_c), axis=2).mean(axis=1) - np.linalg.norm(perp(rel_a), axis=2).mean(axis=1)
         h = np.sqrt(np.maximum(g.l.mean(axis=1) ** 2 - rho**2, 1e-6 * g.l.mean(axis=1) ** 2))
         s = -1.0 if self.links_against_rail else 1.0
-        p = cbar - abar + s * h[:, None] * umean
-        return _PlatformState(p=p, R=np.broadcast_to(np.eye(3), (n, 3, 3)).copy())
+        # The platform frame need not be aligned with the base frame at home (FORMATS.md does
+        # not ask for it): start from the rotation that lays the sphere-centre pattern onto
+        # the slider pattern seen along the rails (Kabsch), so that Newton starts near the
+        # machine's own assembly whatever frame the machine file's author chose.
+        pa, pc = perp(rel_a), perp(rel_c)
+        na, nc = np.linalg.norm(pa, axis=2), np.linalg.norm(pc, axis=2)
+        dst = pc * (na.mean(axis=1) / np.maximum(nc.mean(axis=1), 1e-300))[:, None, None]
+        R = kabsch(rel_a, dst)
+        R = np.where(np.isfinite(R).all(axis=(1, 2))[:, None, None], R, np.eye(3))
+        p = cbar - np.einsum("nij,nj->ni", R, abar) + s * h[:, None] * umean
+        return _PlatformState(p=p, R=R)
 
     def _solve(self, q: NDArray, g: _Geometry, st: _PlatformState):
         p, R = st.p.copy(), st.R.copy()
@@ -301,18 +311,21 @@ class Prs3(Machine):
         self, q: NDArray, position: NDArray, rotation: NDArray | None = None, axis: NDArray | None = None
     ) -> ToolPoses:
         """Platform start ``p = y - R t`` from measured tool points (and orientation if any)."""
-        n = position.shape[0]
         if rotation is not None:
             R = rotation
-        elif axis is not None:
-            # the smallest rotation taking e_z to the measured axis
-            ez = np.array([0.0, 0.0, 1.0])
-            w = np.cross(ez, axis)
-            s = np.linalg.norm(w, axis=1, keepdims=True)
-            ang = np.arctan2(s[:, 0], axis[:, 2])
-            R = so3_exp(np.where(s > 1e-12, w / np.maximum(s, 1e-300), 0.0) * ang[:, None])
         else:
-            R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+            # the nominal machine's start orientation for these q (the platform frame may be
+            # turned against the base frame); with a measured axis, the smallest rotation
+            # taking its tool axis onto the measured one
+            q = self.check_q(q)
+            R = self._initial_state(q, self._geometry(np.zeros((q.shape[0], self.n_params)))).R
+            if axis is not None:
+                ez = R[:, :, 2]
+                w = np.cross(ez, axis)
+                s = np.linalg.norm(w, axis=1, keepdims=True)
+                ang = np.arctan2(s[:, 0], np.einsum("ni,ni->n", ez, axis))
+                R = so3_exp(np.where(s > 1e-12, w / np.maximum(s, 1e-300), 0.0) * ang[:, None]) @ R
+        n = position.shape[0]
         p = position - np.einsum("nij,j->ni", R, self.tool_point)
         st = _PlatformState(p=p, R=np.array(R, dtype=float))
         return ToolPoses(position=position, rotation=st.R, success=np.ones(n, bool), message=("",) * n, state=st)

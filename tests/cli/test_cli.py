@@ -93,3 +93,58 @@ def test_closed_pipe_ends_quietly(monkeypatch, capsys):
     code = main(["identify", str(ROOT / "examples" / "prs3" / "recording.csv"), "--machine", str(PRS3_FILE)])
     assert code == 141
     assert capsys.readouterr().err == ""
+
+
+def test_closed_pipe_does_not_cost_the_answers(monkeypatch, tmp_path):
+    """`bayescal identify ... --json a.json --write-machine m.toml | head`: the files are still written."""
+    import os
+    import sys
+
+    from bayescal.machines import load_machine
+    from tests.conftest import ROOT
+
+    class ClosedPipe:
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            pass
+
+        def fileno(self):
+            return os.open(os.devnull, os.O_WRONLY)
+
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    ans, cal = tmp_path / "a.json", tmp_path / "cal.toml"
+    code = main([
+        "identify", str(ROOT / "examples" / "prs3" / "recording.csv"), "--machine", str(PRS3_FILE),
+        "--method", "ridge", "--lam", "1", "--json", str(ans), "--write-machine", str(cal),
+    ])
+    assert code == 141
+    assert json.loads(ans.read_text())["method"] == "ridge"
+    assert load_machine(cal).name == "spindle head A"
+
+
+@pytest.mark.parametrize("command", ["identify", "diagnose"])
+def test_pose_the_machine_cannot_assemble_names_file_and_line(tmp_path, capsys, command):
+    machine = tmp_path / "m.toml"
+    machine.write_text(PRS3_FILE.read_text().split("[workspace]")[0])  # no q_limits: any q passes the reader
+    lines = ["q1,q2,q3,x,y,z"] + [f"{500 + i},500,500,0,0,30" for i in range(11)]
+    lines[3] = "500,500,2500,0,0,30"  # line 4: links 400 mm long cannot span this
+    rec = tmp_path / "rec.csv"
+    rec.write_text("\n".join(lines) + "\n")
+    assert main([command, str(rec), "--machine", str(machine)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{rec}: line 4:" in err[0] and "cannot assemble" in err[0]
+
+
+def test_every_computing_command_takes_json(tmp_path, capsys):
+    """FORMATS.md section 3: every command that computes something can write its answer with --json PATH."""
+    from bayescal.cli import COMMANDS, build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    for name in COMMANDS:
+        assert "--json" in sub.choices[name]._option_string_actions, name
+    ans = tmp_path / "truth.json"
+    assert main(["simulate", "--machine", str(PRS3_FILE), "--poses", "3", "--seed", "1",
+                 "--out", str(tmp_path / "r.csv"), "--json", str(ans), "--quiet"]) == 0
+    assert len(json.loads(ans.read_text())["parameters"]) == 36 and (tmp_path / "truth.toml").exists()

@@ -62,3 +62,31 @@ def test_machine_name_with_quotes_and_control_characters_round_trips(prs3):
 
     m = replace(prs3, name='head "A"\\\n\tline\x01')
     assert machine_from_text(m.to_toml()).name == m.name
+
+
+def test_byte_order_mark_is_read_and_other_encodings_are_named(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_bytes(b"\xef\xbb\xbf" + GOOD.encode())
+    assert load_machine(p).name == "spindle head A"
+    assert machine_from_text("\ufeff" + GOOD).name == "spindle head A"
+    p.write_bytes(GOOD.replace("spindle head A", "Spindelkopf M\u00fcller").encode("latin-1"))
+    with pytest.raises(MachineFileError, match="not a UTF-8 text file"):
+        load_machine(p)
+
+
+def test_hand_rounded_direction_cosines_are_accepted_and_normalised():
+    """Rails leaning 20 degrees, written with 5 significant digits (norm 0.9999975)."""
+    import numpy as np
+
+    text = GOOD.replace("rail_direction = [0.0, 0.0, 1.0]", "rail_direction = [0.0, -0.34202, 0.93969]", 1)
+    m = machine_from_text(text)
+    assert np.linalg.norm(m.rail_direction[0]) == pytest.approx(1.0, abs=1e-15)
+    assert np.allclose(m.rail_direction[0], [0.0, -np.sin(np.radians(20)), np.cos(np.radians(20))], atol=1e-5)
+    with pytest.raises(MachineFileError, match="unit vector"):
+        machine_from_text(GOOD.replace("rail_direction = [0.0, 0.0, 1.0]", "rail_direction = [0.0, 0.05, 1.0]", 1))
+
+
+def test_top_level_key_written_after_a_table_gets_a_hint():
+    with pytest.raises(MachineFileError, match="top-level key: write it before the first") as err:
+        machine_from_text(GOOD.replace('name = "spindle head A"\n', "") + '\nname = "head A"\n')
+    assert err.value.key.endswith(".name")

@@ -90,3 +90,98 @@ def test_written_recording_reads_back_exactly(tmp_path, sim6):
     back = read_recording(write_recording(tmp_path / "r.csv", sim6.recording))
     assert np.array_equal(back.q, sim6.recording.q) and np.array_equal(back.position, sim6.recording.position)
     assert np.array_equal(back.rotvec, sim6.recording.rotvec)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "q1,q2,q3,x,y,z\r\n500,501,502,1,2,3\r\n",  # Windows line ends
+        "q1,q2,q3,x,y,z\r500,501,502,1,2,3\r",  # old Mac line ends
+        "\ufeffq1,q2,q3,x,y,z\n500,501,502,1,2,3\n",  # byte-order mark
+        "q1,q2,q3,x,y,z\n500,501,502,1,2,3",  # no final line end
+        "z,q3,x,q1,y,q2\n3,502,1,500,2,501\n",  # any column order
+        "q1,q2,q3,x,y,z\n5.0E2,+501,5.02e+2,1.,2.0e0,.3e1\n",  # number spellings
+    ],
+)
+def test_spellings_formats_md_allows_read_the_same(text):
+    rec = read_recording("r.csv", text=text)
+    assert rec.q.tolist() == [[500.0, 501.0, 502.0]] and rec.position.tolist() == [[1.0, 2.0, 3.0]]
+
+
+@pytest.mark.parametrize(
+    "text,line,column,match",
+    [
+        ("q1,q2,q3,x,y,z\n1_5,2,3,0,0,0\n", 2, "q1", "decimal number"),  # float() would read 15
+        ("q1,q2,q3,x,y,z\n\u0661,2,3,0,0,0\n", 2, "q1", "decimal number"),  # an Arabic-Indic one
+        ("# recorded 2026-11-22\nq1,q2,q3,x,y,z\n1,2,3,0,0,0\n", 1, None, "comment"),
+        ("q1,q2,q3,x,y,z\n1,2,3,0,0,0\n# pause\n1,2,3,0,0,0\n", 3, None, "comment"),
+        ("q1,q2,q3,x,y,z\n1,2,3,0,0,0\n\n1,2,3,0,0,0\n", 3, None, "blank line"),
+        ('q1,q2,q3,x,y,z\n1,2,"3\n",0,0,0\n1,2,3,0,0,x\n', 2, None, "spans more than one line"),
+        ("q1;q2;q3;x;y;z\n1;2;3;0;0;0\n", 1, None, "comma-separated"),
+        ("q1,q2,q3,x,y,z\n1,2,3,0,0," + "0" * 200_000 + "\n", 2, None, "not readable as CSV"),  # csv.Error
+    ],
+)
+def test_what_formats_md_does_not_allow_is_named(text, line, column, match):
+    with pytest.raises(RecordingError, match=match) as err:
+        read_recording("bad.csv", text=text)
+    assert (err.value.row, err.value.column) == (line, column)
+
+
+def test_lone_cr_file_reads_from_disk(tmp_path):
+    p = tmp_path / "r.csv"
+    p.write_bytes(b"q1,q2,q3,x,y,z\r500,501,502,1,2,3\r")
+    assert read_recording(p).q.tolist() == [[500.0, 501.0, 502.0]]
+
+
+def test_unit_suffixes_are_converted_to_mm_and_rad():
+    """FORMATS.md: mm and rad 'unless a column name says otherwise (_deg, _um)'."""
+    text = "q1_um,q2,q3_mm,x_um,y,z,rx_deg,ry_rad,rz,temp_C\n500000,501,502,1500,2,3,90,0.5,0.25,21\n"
+    rec = read_recording("r.csv", text=text)
+    assert rec.dof == 6 and list(rec.aux) == ["temp_C"]  # not silently three more aux channels
+    assert rec.q.tolist() == [[500.0, 501.0, 502.0]] and rec.position.tolist() == [[1.5, 2.0, 3.0]]
+    assert np.allclose(rec.rotvec, [[np.pi / 2, 0.5, 0.25]])
+    assert rec.q_columns == ("q1_um", "q2", "q3_mm") and rec.q_units == ("mm", "", "mm")
+    again = read_recording("r.csv", text=recording_to_csv(rec))  # written in mm and rad, plain names
+    assert np.array_equal(again.q, rec.q) and np.array_equal(again.rotvec, rec.rotvec)
+
+
+@pytest.mark.parametrize(
+    "header,column,match",
+    [
+        ("q1,q2,q3,x,y,z,x_um", "x_um", "same quantity as column 'x'"),
+        ("q1,q2,q3,x_deg,y,z,w", "x_deg", "is a length"),
+        ("q1,q2,q3,x,y,z,rx_um,ry,rz", "rx_um", "is an angle"),
+        ("q1,q2,q3,x,y,z,nx_rad,ny,nz", "nx_rad", "unit vector"),
+    ],
+)
+def test_unit_suffixes_that_make_no_sense_are_named(header, column, match):
+    text = header + "\n" + ",".join(["0"] * len(header.split(","))) + "\n"
+    with pytest.raises(RecordingError, match=match) as err:
+        read_recording("bad.csv", text=text)
+    assert (err.value.row, err.value.column) == (1, column)
+
+
+def test_angle_column_for_a_prismatic_actuator_and_limits_name_the_file_column(prs3):
+    rec = read_recording("r.csv", text="q1_deg,q2,q3,x,y,z\n500,500,500,0,0,0\n")
+    with pytest.raises(RecordingError, match="prismatic") as err:
+        rec.check_machine(3, prs3.q_limits, actuator_units=prs3.actuator_units)
+    assert err.value.column == "q1_deg"
+    rec = read_recording("r.csv", text="q1,q2_um,q3,x,y,z\n500,600000,500,0,0,0\n")
+    with pytest.raises(RecordingError, match="600.0 outside") as err:
+        rec.check_machine(3, prs3.q_limits, actuator_units=prs3.actuator_units)
+    assert err.value.column == "q2_um"
+    from bayescal.measurement import MeasurementModel
+
+    rec = read_recording("r.csv", text="q1_rad,q2,q3,x,y,z\n500,500,500,0,0,0\n")
+    with pytest.raises(RecordingError, match="revolute|prismatic"):
+        MeasurementModel.from_recording(prs3, rec)
+
+
+@pytest.mark.parametrize(
+    "text,column,found",
+    [("Q1,Q2,Q3,x,y,z\n1,2,3,0,0,0\n", None, "'Q1'"), ("q1,q2,q3,X,Y,Z\n1,2,3,0,0,0\n", "x", "'X'")],
+)
+def test_upper_case_names_get_a_hint(text, column, found):
+    with pytest.raises(RecordingError, match="case-sensitive: found " + found) as err:
+        read_recording("bad.csv", text=text)
+    assert err.value.column == column

@@ -83,3 +83,53 @@ def test_theta_of_wrong_shape_is_an_input_error(prs3):
     for bad in (1.0, np.zeros(5), np.zeros((2, 2, prs3.n_params))):
         with pytest.raises(InputError, match="theta"):
             prs3.forward([[500.0, 500.0, 500.0]], bad)
+
+
+@pytest.mark.parametrize("turn_deg", [90.0, 180.0, -135.0])
+def test_platform_frame_turned_against_the_base_frame(prs3, rng, turn_deg):
+    """FORMATS.md does not ask for the platform frame to be aligned with the base frame at home.
+
+    The same physical machine described in a platform frame turned about z
+    (sphere centres and tool point rotated back) must solve to the same tool
+    points, with the platform orientation turned by the same rotation, from
+    the default start and from position-only / tool-axis measurements.
+    """
+    from dataclasses import replace
+
+    from bayescal.geometry import so3_exp
+    from bayescal.io import Recording
+    from bayescal.measurement import MeasurementModel
+
+    Rz = so3_exp(np.array([0.0, 0.0, np.radians(turn_deg)]))
+    turned = replace(prs3, sphere_center=prs3.sphere_center @ Rz, tool_point=Rz.T @ prs3.tool_point)
+    q = prs3.sample_q(20, rng)
+    a, b = prs3.forward(q), turned.forward(q)
+    assert b.success.all()
+    assert np.allclose(b.position, a.position, atol=1e-8) and np.allclose(b.rotation, a.rotation @ Rz, atol=1e-10)
+    for axis in (None, a.axis):
+        rec = Recording(q=q, position=a.position, axis=axis)
+        model = MeasurementModel.from_recording(turned, rec)
+        pred = model.predict(np.zeros(turned.n_params))
+        assert pred.poses.success.all() and np.abs(model.residual(pred)).max() < 1e-8
+
+
+def test_recording_of_the_other_assembly_branch_without_the_assembly_key(prs3, rng):
+    """A FORMATS.md-only file has no ``assembly`` key: the measurement decides the branch.
+
+    The example machine with its rails pointing the other way (q -> -q) has its
+    links along the rails, while the file (no ``assembly``) says the default,
+    against the rails; a recording of the real machine must still fit exactly.
+    """
+    from dataclasses import replace
+
+    from bayescal.io import Recording
+    from bayescal.measurement import MeasurementModel
+
+    flipped = replace(prs3, rail_direction=-prs3.rail_direction, q_limits=-prs3.q_limits[:, ::-1])
+    assert flipped.links_against_rail  # the default the file implies
+    q = prs3.sample_q(15, rng)
+    truth = prs3.forward(q)
+    for rotvec in (None, so3_log(truth.rotation)):
+        model = MeasurementModel.from_recording(flipped, Recording(q=-q, position=truth.position, rotvec=rotvec))
+        pred = model.predict(None)
+        assert pred.poses.success.all() and np.abs(model.residual(pred)).max() < 1e-8
