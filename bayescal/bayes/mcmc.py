@@ -351,7 +351,7 @@ def sample_posterior(
     map_pred = model.predict(start.theta)
     log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses)
     p0 = rng.multivariate_normal(start.theta[idx], start.covariance, size=n_walkers)
-    moves = default_moves() if moves is None else moves
+    moves = default_moves(start.theta[idx], start.covariance) if moves is None else moves
     sampler = emcee.EnsembleSampler(n_walkers, n, log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(seed).get_state()  # emcee seeds from numpy's legacy state
     t0 = time.perf_counter()
