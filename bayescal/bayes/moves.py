@@ -39,7 +39,7 @@ __all__ = ["SnookerMove", "IndependenceMove", "default_moves"]
 #: robustness, close enough to Gaussian for high acceptance in 30+ dimensions.
 T_DOF = 25.0
 #: Weights of the default mixture (with a Laplace approximation).
-IMH_WEIGHT, DE_WEIGHT, SNOOKER_WEIGHT = 0.8, 0.15, 0.05
+IMH_WEIGHT, DE_WEIGHT, SNOOKER_WEIGHT = 0.9, 0.07, 0.03
 
 
 class SnookerMove(DESnookerMove):
