@@ -223,8 +223,8 @@ def main(argv=None) -> int:
                     help="10 machines, 30 poses, MCMC (linear surrogate) on 2 of them (for the test suite)")
     ap.add_argument("--n-machines", type=int, default=200)
     ap.add_argument("--n-mcmc", type=int, default=None, help="machines also sampled with MCMC (default: all)")
-    ap.add_argument("--mcmc-steps", type=int, default=180,
-                    help="steps per walker (default 180: about 75 autocorrelation times with the default moves)")
+    ap.add_argument("--mcmc-steps", type=int, default=240,
+                    help="steps per walker (default 240: about 70 autocorrelation times with the default moves)")
     ap.add_argument("--surrogate", choices=("none", "linear"), default="none",
                     help="MCMC model: exact kinematics (default) or linearised at the MAP")
     ap.add_argument("--poses", type=int, default=36)

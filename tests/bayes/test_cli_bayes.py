@@ -51,12 +51,12 @@ def test_identify_mcmc_refuses_then_writes(tmp_path, rec_file):
     out = tmp_path / "m.json"
     args = ["identify", str(rec_file), "--machine", str(PRS3_FILE), "--method", "mcmc", "--surrogate", "linear",
             "--free", "chain1.link_length,chain2.link_length,chain3.link_length", "--json", str(out), "--quiet"]
-    assert main(args + ["--steps", "100", "--posterior", str(tmp_path / "no.nc")]) == 1
+    assert main(args + ["--steps", "30", "--posterior", str(tmp_path / "no.nc")]) == 1
     d = json.loads(out.read_text())
     assert not d["success"] and "more steps" in d["message"]
     assert all(p["std"] is None for p in d["parameters"])
     assert not (tmp_path / "no.nc").exists()
-    rc = main(args + ["--steps", "1200", "--walkers", "10", "--posterior", str(tmp_path / "p.nc"), "--figures", str(tmp_path)])
+    rc = main(args + ["--steps", "600", "--walkers", "10", "--posterior", str(tmp_path / "p.nc"), "--figures", str(tmp_path)])
     assert rc == 0
     d = json.loads(out.read_text())
     assert d["success"] and len(d["interval_90"]) == 3
@@ -70,8 +70,12 @@ def test_coverage_study_quick(tmp_path):
     )
     assert r.returncode == 0, r.stderr
     table = json.loads((tmp_path / "coverage.json").read_text())["table"]
-    assert set(table) == {"ls", "map", "map_all", "kalman"}
+    assert set(table) == {"ls", "map", "map_all", "kalman", "mcmc"}
+    assert table["mcmc"]["machines"] + table["mcmc"]["failed"] == 2  # quick: 2 machines sampled
+    assert np.isfinite(table["mcmc"]["param_z_rms"])
     for m, t in table.items():
+        if m == "mcmc":
+            continue
         # 10 machines: the 90% intervals must cover at roughly their nominal rate
         assert 0.8 < t["parameters"] < 0.97, (m, t)
         assert 0.8 < t["tool_points"] < 0.97, (m, t)

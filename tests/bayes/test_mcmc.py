@@ -98,7 +98,7 @@ def test_tree_groups_dims_and_loo(tmp_path, posterior, problem):
 
 def test_refuses_unconverged(problem, tmp_path):
     lin, *_ = problem
-    res = sample_posterior(lin, free=FREE, n_walkers=16, n_steps=120, seed=1)
+    res = sample_posterior(lin, free=FREE, n_walkers=16, n_steps=30, seed=1)
     assert not res.success
     assert "more steps" in res.message and res.more_steps > 0
     assert np.all(np.isnan(res.std))
