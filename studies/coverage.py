@@ -164,7 +164,8 @@ def markdown(table: dict, args, seconds: float) -> str:
     lines = [
         f"Coverage of nominal 90% intervals ({args.n_machines} machines drawn from the prior, "
         f"{args.poses} poses, {args.dof}-DOF, seed {args.seed}; mcmc on {args.n_mcmc} ({mc}, "
-        f"{args.mcmc_steps} steps); {seconds:.0f} s with {args.workers} worker(s))",
+        f"{args.mcmc_steps} steps); "
+        + (f"{seconds:.0f} s with {args.workers} worker(s))" if np.isfinite(seconds) else "rebuilt from the rows of a run)"),
         "",
         "| method | machines | parameters | tool points (fresh poses) | RMS z params | RMS z tool |",
         "|---|---|---|---|---|---|",
@@ -233,6 +234,10 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=1, help="worker processes (the answer does not depend on it)")
     ap.add_argument("--machine", default=str(ROOT / "examples" / "prs3" / "machine.toml"))
     ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "coverage"))
+    ap.add_argument("--from-rows", metavar="ROWS.jsonl",
+                    help="only rebuild the tables and figure from the per-machine rows of a run (for example an "
+                         "interrupted one: its rows are the first machines, in order); the other options must be "
+                         "those of that run")
     args = ap.parse_args(argv)
     if args.quick:
         args.n_machines, args.n_mcmc, args.poses, args.surrogate = 10, 2, 30, "linear"
@@ -243,8 +248,15 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     q_fresh = draw_poses(machine, 20, np.random.default_rng(args.seed - 1))
     t0 = time.perf_counter()
-    rows = run_machines(args, q_fresh, out / "rows.jsonl")
-    seconds = time.perf_counter() - t0
+    if args.from_rows:
+        rows = [json.loads(line) for line in Path(args.from_rows).read_text().splitlines() if line.strip()]
+        if [r["seed"] for r in rows] != [args.seed + i for i in range(len(rows))]:
+            raise SystemExit(f"{args.from_rows}: rows are not machines seed {args.seed}, {args.seed + 1}, ... in order")
+        args.n_machines, args.n_mcmc = len(rows), min(args.n_mcmc, len(rows))
+        seconds = float("nan")
+    else:
+        rows = run_machines(args, q_fresh, out / "rows.jsonl")
+        seconds = time.perf_counter() - t0
     table = summarise(rows)
     write_json_atomic(out / "coverage.json", {"table": table, "args": vars(args), "seconds": seconds})
     md = markdown(table, args, seconds)
