@@ -18,7 +18,7 @@ with one likelihood term per pose ``i``.  It is sampled with
   draws when the posterior is close to Gaussian, in any dimension) and the
   differential-evolution moves ``DEMove`` (0.07) and the corrected DE
   snooker move (0.03), which keep the chain moving where the Laplace
-  approximation is poor.  The integrated autocorrelation time is about 2
+  approximation is poor.  The integrated autocorrelation time is about 2.6
   steps on the 3-PRS example, against about 125 with DE + snooker alone and
   several hundred with emcee's default stretch move (see
   ``benchmarks/mcmc_ess.py``).
