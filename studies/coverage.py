@@ -9,8 +9,9 @@ identified with
 * ``map``: MAP on the identifiable set (= ridge lam = 1), Laplace covariance;
 * ``map_all``: MAP on all parameters (the prior decides the null space);
 * ``kalman``: the EKF over the poses (identifiable set), final covariance;
-* ``mcmc``: the emcee posterior (identifiable set, linear surrogate at the
-  MAP, checked), 5-95% quantiles; on fewer machines (it is slow).
+* ``mcmc``: the emcee posterior (identifiable set, exact kinematics by
+  default, ``--surrogate linear`` for the model linearised at the MAP),
+  5-95% quantiles.  A refused (unconverged) posterior counts as a failure.
 
 Quantities whose coverage is counted:
 
@@ -25,12 +26,16 @@ Quantities whose coverage is counted:
    ``p(q, theta)`` against ``p(q, theta_hat) +- 1.645 sqrt(diag(G C G^T))``,
    per axis.
 
-Run: ``python studies/coverage.py [--quick] [--n-machines 200] [--n-mcmc 10] [--out DIR]``.
+Every machine is seeded by its index (``seed + i``), so the tables are the
+same for any number of worker processes (``--workers``).
+
+Run: ``python studies/coverage.py [--quick] [--n-machines 200] [--n-mcmc N] [--workers 2] [--out DIR]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 import warnings
@@ -64,13 +69,16 @@ def projected_truth(model: MeasurementModel, theta: np.ndarray, free: np.ndarray
     return theta[idx] + K @ theta[fix]
 
 
-def one_machine(machine, seed: int, n_poses: int, dof: int, q_fresh: np.ndarray, do_mcmc: bool, mcmc_steps: int) -> dict:
+def one_machine(
+    machine, seed: int, n_poses: int, dof: int, q_fresh: np.ndarray, do_mcmc: bool, mcmc_steps: int,
+    surrogate: str = "none",
+) -> dict:
     """Inside-the-interval indicators (and z scores) per method and quantity for one simulated machine."""
     sim = simulate_recording(machine, n_poses, seed=seed, dof=dof)
     model = MeasurementModel.from_recording(machine, sim.recording)
     truth = sim.theta_true
     p_true = machine.forward(q_fresh, truth).position
-    out: dict = {}
+    out: dict = {"seed": seed}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fits = {
@@ -80,11 +88,13 @@ def one_machine(machine, seed: int, n_poses: int, dof: int, q_fresh: np.ndarray,
             "kalman": kalman_filter(model, eval_q=q_fresh[:2]),
         }
         if do_mcmc:
-            fits["mcmc"] = sample_posterior(model, n_steps=mcmc_steps, surrogate="linear", seed=seed)
+            fits["mcmc"] = sample_posterior(model, n_steps=mcmc_steps, surrogate=surrogate, seed=seed)
     for name, res in fits.items():
         if not res.success:
             out[name] = {"failed": res.message}
             continue
+        if name == "mcmc":
+            out["mcmc_seconds"] = res.seconds
         free = res.free
         idx = np.flatnonzero(free)
         target = truth[idx] if name == "map_all" else projected_truth(model, truth, free)
@@ -150,9 +160,12 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def markdown(table: dict, args, seconds: float) -> str:
+    mc = "exact kinematics" if args.surrogate == "none" else f"{args.surrogate} surrogate"
     lines = [
         f"Coverage of nominal 90% intervals ({args.n_machines} machines drawn from the prior, "
-        f"{args.poses} poses, {args.dof}-DOF; mcmc on {args.n_mcmc}; {seconds:.0f} s)",
+        f"{args.poses} poses, {args.dof}-DOF, seed {args.seed}; mcmc on {args.n_mcmc} ({mc}, "
+        f"{args.mcmc_steps} steps); "
+        + (f"{seconds:.0f} s with {args.workers} worker(s))" if np.isfinite(seconds) else "rebuilt from the rows of a run)"),
         "",
         "| method | machines | parameters | tool points (fresh poses) | RMS z params | RMS z tool |",
         "|---|---|---|---|---|---|",
@@ -166,31 +179,84 @@ def markdown(table: dict, args, seconds: float) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _run_one(job: tuple) -> dict:
+    """One machine in a worker process (top level, so a spawned process can import it)."""
+    machine_path, *rest = job
+    return one_machine(load_machine(machine_path), *rest)
+
+
+def run_machines(args, q_fresh: np.ndarray, log_path: Path | None = None) -> list[dict]:
+    """All machines, in index order, in this process or ``args.workers`` processes (same rows either way)."""
+    jobs = [
+        (args.machine, args.seed + i, args.poses, args.dof, q_fresh, i < args.n_mcmc, args.mcmc_steps, args.surrogate)
+        for i in range(args.n_machines)
+    ]
+    t0 = time.perf_counter()
+    log = open(log_path, "w") if log_path is not None else None  # progress log, one JSON row per machine
+    rows = []
+    try:
+        if args.workers > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            ex = ProcessPoolExecutor(max_workers=args.workers, mp_context=multiprocessing.get_context("spawn"))
+            results = ex.map(_run_one, jobs)
+        else:
+            ex, results = None, map(_run_one, jobs)
+        for row in results:
+            rows.append(row)
+            if log is not None:
+                log.write(json.dumps(row) + "\n")
+                log.flush()
+            if len(rows) % 10 == 0:
+                print(f"  {len(rows)}/{args.n_machines} machines, {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        if ex is not None:
+            ex.shutdown()
+    finally:
+        if log is not None:
+            log.close()
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="10 machines, 30 poses, no MCMC (for the test suite)")
+    ap.add_argument("--quick", action="store_true",
+                    help="10 machines, 30 poses, MCMC (linear surrogate) on 2 of them (for the test suite)")
     ap.add_argument("--n-machines", type=int, default=200)
-    ap.add_argument("--n-mcmc", type=int, default=10, help="machines also sampled with MCMC (slow)")
-    ap.add_argument("--mcmc-steps", type=int, default=10000)
+    ap.add_argument("--n-mcmc", type=int, default=None, help="machines also sampled with MCMC (default: all)")
+    ap.add_argument("--mcmc-steps", type=int, default=240,
+                    help="steps per walker (default 240: about 70 autocorrelation times with the default moves)")
+    ap.add_argument("--surrogate", choices=("none", "linear"), default="none",
+                    help="MCMC model: exact kinematics (default) or linearised at the MAP")
     ap.add_argument("--poses", type=int, default=36)
     ap.add_argument("--dof", type=int, default=6)
     ap.add_argument("--seed", type=int, default=1000)
+    ap.add_argument("--workers", type=int, default=1, help="worker processes (the answer does not depend on it)")
     ap.add_argument("--machine", default=str(ROOT / "examples" / "prs3" / "machine.toml"))
     ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "coverage"))
+    ap.add_argument("--from-rows", metavar="ROWS.jsonl",
+                    help="only rebuild the tables and figure from the per-machine rows of a run (for example an "
+                         "interrupted one: its rows are the first machines, in order); the other options must be "
+                         "those of that run")
     args = ap.parse_args(argv)
     if args.quick:
-        args.n_machines, args.n_mcmc, args.poses = 10, 0, 30
+        args.n_machines, args.n_mcmc, args.poses, args.surrogate = 10, 2, 30, "linear"
+    if args.n_mcmc is None:
+        args.n_mcmc = args.n_machines
     machine = load_machine(args.machine)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     q_fresh = draw_poses(machine, 20, np.random.default_rng(args.seed - 1))
     t0 = time.perf_counter()
-    rows = []
-    for i in range(args.n_machines):
-        rows.append(one_machine(machine, args.seed + i, args.poses, args.dof, q_fresh, i < args.n_mcmc, args.mcmc_steps))
-        if (i + 1) % 20 == 0:
-            print(f"  {i + 1}/{args.n_machines} machines, {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-    seconds = time.perf_counter() - t0
+    if args.from_rows:
+        rows = [json.loads(line) for line in Path(args.from_rows).read_text().splitlines() if line.strip()]
+        if [r["seed"] for r in rows] != [args.seed + i for i in range(len(rows))]:
+            raise SystemExit(f"{args.from_rows}: rows are not machines seed {args.seed}, {args.seed + 1}, ... in order")
+        args.n_machines, args.n_mcmc = len(rows), min(args.n_mcmc, len(rows))
+        seconds = float("nan")
+    else:
+        rows = run_machines(args, q_fresh, out / "rows.jsonl")
+        seconds = time.perf_counter() - t0
     table = summarise(rows)
     write_json_atomic(out / "coverage.json", {"table": table, "args": vars(args), "seconds": seconds})
     md = markdown(table, args, seconds)

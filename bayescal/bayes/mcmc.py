@@ -12,10 +12,16 @@ with one likelihood term per pose ``i``.  It is sampled with
   the measurement model's ``predict`` (``n_walkers * n_poses`` rows);
 * started from the MAP estimate and its Laplace covariance (so burn-in is
   short);
-* with differential-evolution moves (``DEMove`` 0.8 + DE snooker 0.2,
-  the snooker move corrected, see :mod:`bayescal.bayes.moves`), which mix
-  about five times faster than the default stretch move in 30+ dimensions
-  (see ``benchmarks/mcmc_ess.py``).
+* with a mixture of moves (see :mod:`bayescal.bayes.moves`): an
+  independence Metropolis-Hastings move proposing from a multivariate t
+  around the MAP with the Laplace covariance (0.9; nearly independent
+  draws when the posterior is close to Gaussian, in any dimension) and the
+  differential-evolution moves ``DEMove`` (0.07) and the corrected DE
+  snooker move (0.03), which keep the chain moving where the Laplace
+  approximation is poor.  The integrated autocorrelation time is about 2.6
+  steps on the 3-PRS example, against about 125 with DE + snooker alone and
+  several hundred with emcee's default stretch move (see
+  ``benchmarks/mcmc_ess.py``).
 
 Convergence is judged on the chain after burn-in with arviz's rank-normalised
 R-hat and bulk/tail effective sample sizes (walkers as chains), and emcee's
@@ -195,7 +201,7 @@ class PosteriorResult:
         status = "converged" if self.success else "NOT CONVERGED: posterior not reported"
         lines = [
             f"bayescal posterior of '{self.machine_name}' ({self.kind})",
-            f"  method          mcmc (emcee, DE + snooker moves): {status}",
+            f"  method          mcmc (emcee, Laplace-t independence + DE + snooker moves): {status}",
             f"  sampler         {self.n_walkers} walkers x {self.n_steps} steps ({self.burn} burn-in), "
             f"acceptance {self.acceptance:.2f}, {self.seconds:.1f} s",
             f"  convergence     max R-hat {np.max(self.rhat):.4f} (<= {MAX_RHAT}), min ESS bulk "
@@ -283,7 +289,7 @@ def sample_posterior(
     prior: GaussianPrior | None = None,
     free: ArrayLike | str | None = None,
     n_walkers: int | None = None,
-    n_steps: int = 10000,
+    n_steps: int = 1000,
     burn: int | None = None,
     seed: int = 0,
     progress: bool = False,
@@ -315,8 +321,9 @@ def sample_posterior(
     max_rhat, min_ess, tau_factor : float
         Convergence thresholds (see the module docstring).
     moves : emcee moves, optional
-        Default :func:`bayescal.bayes.moves.default_moves`: ``DEMove`` 0.8 and
-        the corrected snooker move 0.2.
+        Default :func:`bayescal.bayes.moves.default_moves` with the MAP and its
+        Laplace covariance: independence MH 0.9, ``DEMove`` 0.07, corrected
+        snooker 0.03.
     surrogate : {"none", "linear"}
         ``"linear"`` samples the model linearised at the MAP (much faster);
         the largest linearisation error over 200 posterior draws, in units
@@ -351,7 +358,7 @@ def sample_posterior(
     map_pred = model.predict(start.theta)
     log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses)
     p0 = rng.multivariate_normal(start.theta[idx], start.covariance, size=n_walkers)
-    moves = default_moves() if moves is None else moves
+    moves = default_moves(start.theta[idx], start.covariance) if moves is None else moves
     sampler = emcee.EnsembleSampler(n_walkers, n, log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(seed).get_state()  # emcee seeds from numpy's legacy state
     t0 = time.perf_counter()

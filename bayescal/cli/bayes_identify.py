@@ -21,7 +21,7 @@ def add_arguments(p) -> None:
         "--process-noise", type=float, default=0.0,
         help="kalman: random-walk std per pose, as a fraction of each prior std (default 0: static parameters)",
     )
-    g.add_argument("--steps", type=int, default=10000, help="mcmc: steps per walker incl. burn-in (default 10000)")
+    g.add_argument("--steps", type=int, default=1000, help="mcmc: steps per walker incl. burn-in (default 1000)")
     g.add_argument("--walkers", type=int, help="mcmc: number of walkers (default 2 x parameters + 2)")
     g.add_argument("--seed", type=int, default=0, help="mcmc: random seed (default 0)")
     g.add_argument(
@@ -43,8 +43,9 @@ def run_bayes(args, machine, model, free) -> int:
     if args.method == "kalman":
         res = kalman_filter(model, variant=args.variant, free=free, process_noise=args.process_noise)
     else:
-        if args.steps < 100:
-            raise InputError(f"--steps: expected at least 100, got {args.steps}")
+        if args.steps < 20:
+            # fewer steps cannot even estimate an autocorrelation time
+            raise InputError(f"--steps: expected at least 20, got {args.steps}")
         res = sample_posterior(
             model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
             progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,

@@ -40,7 +40,7 @@ def register(sub) -> None:
     p.add_argument("--free", default="all", help="'all' (default), 'auto' or comma-separated names")
     p.add_argument("--nodes", type=int, default=9, help="nodes per actuator within q_limits (default 9)")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), help="use only this much of the measurement")
-    p.add_argument("--steps", type=int, default=10000, help="mcmc: steps per walker (default 10000)")
+    p.add_argument("--steps", type=int, default=1000, help="mcmc: steps per walker (default 1000)")
     p.add_argument("--surrogate", choices=("none", "linear"), default="none", help="mcmc: sample the linearised model")
     p.add_argument("--seed", type=int, default=0, help="mcmc: random seed")
     p.add_argument("--out", metavar="CSV", help="write the grid as CSV")

@@ -50,6 +50,37 @@ _NEWTON_TOL = 1e-9  # mm; constraint residual at which a pose counts as solved (
 _NEWTON_MAXIT = 60
 
 
+_SINGULAR_COND = 1e10  # constraint-Jacobian condition number above which a pose counts as singular
+
+
+def _condition_numbers(M: NDArray, limit: float) -> NDArray:
+    """Condition numbers of the square matrices ``M`` (n, k, k), exact (2-norm, SVD) wherever they may exceed ``limit``.
+
+    ``cond_1 = |M|_1 |M^-1|_1`` satisfies ``cond_2 / k <= cond_1 <= k cond_2``,
+    so a matrix with ``cond_1 < limit / k`` is below ``limit`` in the 2-norm
+    too; for those ``cond_1`` is returned (a batched inverse is several times
+    cheaper than a batched SVD, which dominated the forward kinematics of
+    samplers), for all others, and for non-finite matrices, ``np.linalg.cond``.
+    """
+    k = M.shape[-1]
+    cond = np.full(M.shape[0], np.nan)
+    finite = np.isfinite(M).all(axis=(1, 2))
+    sure = np.zeros(M.shape[0], dtype=bool)
+    try:
+        inv = np.linalg.inv(M[finite])
+    except np.linalg.LinAlgError:
+        inv = None  # an exactly singular matrix: take the SVD of all
+    if inv is not None:
+        with np.errstate(invalid="ignore", over="ignore"):
+            c1 = np.abs(M[finite]).sum(axis=1).max(axis=1) * np.abs(inv).sum(axis=1).max(axis=1)
+        ok = c1 < limit / k
+        sure[np.flatnonzero(finite)[ok]] = True
+        cond[sure] = c1[ok]
+    if not sure.all():
+        cond[~sure] = np.linalg.cond(M[~sure])
+    return cond
+
+
 @dataclass(frozen=True)
 class _Geometry:
     """Geometry arrays broadcast over poses (leading axis n)."""
@@ -245,13 +276,14 @@ class Prs3(Machine):
         below = np.zeros(q.shape[0], dtype=bool)
         finished = np.zeros(q.shape[0], dtype=bool)
         for _ in range(_NEWTON_MAXIT):
-            F, Fx, _, _ = self._constraints(q, g, _PlatformState(p, R))
+            F, Fx, d, _ = self._constraints(q, g, _PlatformState(p, R))
             err = np.maximum(np.abs(F[:, 0::2]) / scale, np.abs(F[:, 1::2])).max(axis=1)
             now = err < _NEWTON_TOL
             finished |= now & below
             below = now
             if finished.all():
-                break
+                # F, Fx, d are those of the final (p, R): no need to evaluate them again
+                return _PlatformState(p, R), err < _NEWTON_TOL, Fx, d
             active = ~finished
             try:
                 dx = -np.linalg.solve(Fx[active], F[active][..., None])[..., 0]
@@ -293,8 +325,8 @@ class Prs3(Machine):
         st0 = guess.state if warm else self._initial_state(q, g)
         st, ok, Fx, d = self._solve(q, g, st0)
         msgs = ["" if o else "forward kinematics did not converge (pose unreachable?)" for o in ok]
-        cond = np.linalg.cond(Fx)
-        singular = ~np.isfinite(cond) | (cond > 1e10)
+        cond = _condition_numbers(Fx, _SINGULAR_COND)
+        singular = ~np.isfinite(cond) | (cond > _SINGULAR_COND)
         for i in np.flatnonzero(singular & ok):
             msgs[i] = f"singular pose (constraint Jacobian condition number {cond[i]:.2e})"
         along = np.einsum("nki,nki->nk", d, g.u)

@@ -51,12 +51,12 @@ def test_identify_mcmc_refuses_then_writes(tmp_path, rec_file):
     out = tmp_path / "m.json"
     args = ["identify", str(rec_file), "--machine", str(PRS3_FILE), "--method", "mcmc", "--surrogate", "linear",
             "--free", "chain1.link_length,chain2.link_length,chain3.link_length", "--json", str(out), "--quiet"]
-    assert main(args + ["--steps", "100", "--posterior", str(tmp_path / "no.nc")]) == 1
+    assert main(args + ["--steps", "30", "--posterior", str(tmp_path / "no.nc")]) == 1
     d = json.loads(out.read_text())
     assert not d["success"] and "more steps" in d["message"]
     assert all(p["std"] is None for p in d["parameters"])
     assert not (tmp_path / "no.nc").exists()
-    rc = main(args + ["--steps", "1200", "--walkers", "10", "--posterior", str(tmp_path / "p.nc"), "--figures", str(tmp_path)])
+    rc = main(args + ["--steps", "600", "--walkers", "10", "--posterior", str(tmp_path / "p.nc"), "--figures", str(tmp_path)])
     assert rc == 0
     d = json.loads(out.read_text())
     assert d["success"] and len(d["interval_90"]) == 3
@@ -70,10 +70,34 @@ def test_coverage_study_quick(tmp_path):
     )
     assert r.returncode == 0, r.stderr
     table = json.loads((tmp_path / "coverage.json").read_text())["table"]
-    assert set(table) == {"ls", "map", "map_all", "kalman"}
+    assert set(table) == {"ls", "map", "map_all", "kalman", "mcmc"}
+    assert table["mcmc"]["machines"] + table["mcmc"]["failed"] == 2  # quick: 2 machines sampled
+    assert np.isfinite(table["mcmc"]["param_z_rms"])
     for m, t in table.items():
+        if m == "mcmc":
+            continue
         # 10 machines: the 90% intervals must cover at roughly their nominal rate
         assert 0.8 < t["parameters"] < 0.97, (m, t)
         assert 0.8 < t["tool_points"] < 0.97, (m, t)
     assert (tmp_path / "coverage.png").exists() and (tmp_path / "coverage.md").exists()
     assert np.isfinite(table["map_all"]["param_z_rms"])
+
+
+def test_coverage_rows_do_not_depend_on_the_number_of_workers():
+    import argparse
+
+    sys.path.insert(0, str(ROOT / "studies"))
+    import coverage as cov
+
+    args = argparse.Namespace(machine=str(PRS3_FILE), seed=1234, poses=36, dof=6, n_machines=2, n_mcmc=0,
+                              mcmc_steps=60, surrogate="linear", workers=1)
+    from bayescal.machines import load_machine
+    from bayescal.simulate import draw_poses
+
+    q = draw_poses(load_machine(PRS3_FILE), 3, np.random.default_rng(0))
+    one = cov.run_machines(args, q)
+    args.workers = 2
+    two = cov.run_machines(args, q)
+    for r in one + two:
+        r.pop("mcmc_seconds", None)  # wall time, the one thing that differs
+    assert one == two and [r["seed"] for r in one] == [1234, 1235]

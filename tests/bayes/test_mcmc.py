@@ -39,7 +39,7 @@ def problem(prs3, sim6):
 @pytest.fixture(scope="module")
 def posterior(problem):
     lin, *_ = problem
-    return sample_posterior(lin, free=FREE, n_walkers=16, n_steps=2000, seed=4)
+    return sample_posterior(lin, free=FREE, n_walkers=16, n_steps=1000, seed=4)
 
 
 def test_posterior_matches_closed_form(problem, posterior):
@@ -98,7 +98,7 @@ def test_tree_groups_dims_and_loo(tmp_path, posterior, problem):
 
 def test_refuses_unconverged(problem, tmp_path):
     lin, *_ = problem
-    res = sample_posterior(lin, free=FREE, n_walkers=16, n_steps=120, seed=1)
+    res = sample_posterior(lin, free=FREE, n_walkers=16, n_steps=30, seed=1)
     assert not res.success
     assert "more steps" in res.message and res.more_steps > 0
     assert np.all(np.isnan(res.std))
@@ -121,6 +121,6 @@ def test_vectorised_log_prob_matches_one_by_one(prs3, sim6):
 
 def test_linear_surrogate_on_the_machine(prs3, sim6):
     model = MeasurementModel.from_recording(prs3, sim6.recording, dof=3).subset(np.arange(8))
-    res = sample_posterior(model, free=FREE, n_walkers=10, n_steps=1500, seed=2, surrogate="linear")
+    res = sample_posterior(model, free=FREE, n_walkers=10, n_steps=500, seed=2, surrogate="linear")
     assert "linearisation error" in res.message
     assert res.success, res.message
