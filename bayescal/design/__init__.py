@@ -7,6 +7,7 @@ error), greedy selection with rank-k updates and DETMAX-style exchange.  Works f
 :class:`bayescal.measurement.MeasurementModel`.
 """
 
+from .bound import OutputErrorBound, output_error_bound
 from .candidates import SCALINGS, CandidateSet, candidate_set_from_jacobian, column_scale, draw_candidates
 from .criteria import CRITERIA, PRIOR_BASED, SPECTRAL, check_criterion, criteria_from_singular_values, criterion_value
 from .criteria import i_value, output_weight, utility
@@ -20,6 +21,7 @@ __all__ = [
     "SPECTRAL",
     "SCALINGS",
     "CandidateSet",
+    "OutputErrorBound",
     "PosePlan",
     "Selection",
     "brute_force_greedy",
@@ -35,6 +37,7 @@ __all__ = [
     "expected_output_rms",
     "greedy_select",
     "i_value",
+    "output_error_bound",
     "output_weight",
     "plan_poses",
     "plan_to_csv",
