@@ -29,7 +29,7 @@ def test_quick_study_writes_tables_figure_and_invariant_rankings(tmp_path):
     # (dof, trial, n, design), and the paired table pairs every trial
     with (tmp_path / "trials.csv").open() as fh:
         trials = list(csv.DictReader(fh))
-    assert len(trials) == 2 * 3 * 3 * 3
+    assert len(trials) == 2 * 3 * (2 * 3 + 1)  # dof x trials x (2 planned x 3 pose counts + random at 36)
     assert all(p["pairs"] + p["dropped"] == 3 for p in summary["paired"])
     assert [b["dof"] for b in summary["linear_bound"]] == [6, 5]
     assert all(b["any_plan_lower_rms"] <= b["i_plan_predicted_rms"] for b in summary["linear_bound"])
