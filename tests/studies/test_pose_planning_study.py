@@ -29,7 +29,10 @@ def test_quick_study_writes_tables_figure_and_invariant_rankings(tmp_path):
     # (dof, trial, n, design), and the paired table pairs every trial
     with (tmp_path / "trials.csv").open() as fh:
         trials = list(csv.DictReader(fh))
-    assert len(trials) == 2 * 3 * (2 * 3 + 1)  # dof x trials x (2 planned x 3 pose counts + random at 36)
+    assert len(trials) == 2 * 3 * (2 * 3 + 2)  # dof x trials x (2 planned x 3 pose counts + random at 18, 36)
+    # least squares on random sets only at 36 poses: not run (None) at 18, which is not a failure
+    r18 = [r for r in table if r["design"] == "random" and r["n_poses"] == "18"]
+    assert len(r18) == 2 and all(r["ls_failures"] == "-1" and r["failures"] != "-1" for r in r18)
     assert all(p["pairs"] + p["dropped"] == 3 for p in summary["paired"])
     assert [b["dof"] for b in summary["linear_bound"]] == [6, 5]
     assert all(b["any_plan_lower_rms"] <= b["i_plan_predicted_rms"] for b in summary["linear_bound"])
