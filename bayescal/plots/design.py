@@ -34,9 +34,10 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
         colors = {d: f"C{3 + i}" for i, d in enumerate(designs[:-1])} | {"random": "C0"}
         for design in designs:
             color = colors[design]
-            rr = sorted((r for r in rows if r["dof"] == dof and r["design"] == design), key=lambda r: r["n_poses"])
+            rr = sorted((r for r in rows if r["dof"] == dof and r["design"] == design
+                         and np.isfinite(r[f"{metric}_median"])), key=lambda r: r["n_poses"])
             if not rr:
-                continue
+                continue  # not run (e.g. a study with least squares only): nothing to draw
             n = np.array([r["n_poses"] for r in rr])
             med = 1e3 * np.array([r[f"{metric}_median"] for r in rr])
             lo = 1e3 * np.array([r[f"{metric}_q25"] for r in rr])
@@ -45,7 +46,8 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
             ax.fill_between(n, lo, hi, color=color, alpha=0.12, lw=0)
             if design == "random" and 36 in n:
                 ax.axhline(med[list(n).index(36)], color=color, ls=":", lw=1, label="random, 36 poses")
-        ax.set_yscale("log")
+        if ax.has_data():
+            ax.set_yscale("log")
         ax.set_xlabel("number of measured poses")
         ax.set_ylabel(f"{metric} position error after calibration [um]")
         ax.set_title(f"{dof}-DOF measurement", fontsize=9)
