@@ -18,7 +18,8 @@ whitened, column-scaled identification Jacobian (docs/planning.md):
   D    det(J^T J)^(1/L)                    A    L / trace((J^T J)^-1)
   E    smallest eigenvalue of J^T J        O1   (s1...sL)^(1/L)/sqrt(m)  (Borm & Menq)
   O2   sL/s1 (Driels & Pathre)             O3   sL (Nahvi et al.)
-  O4   sL^2/s1 (Nahvi & Hollerbach)        O5   1/(1/s1+...+1/sL) (Sun & Hollerbach)
+  O4   sL^2/s1 (Nahvi & Hollerbach)        O5   1/(1/s1+...+1/sL) (after Sun &
+                                                Hollerbach 2008; formula unverified, see docs)
   EIG  0.5 log det(I + S J^T J S): expected information gain under the tolerance prior
   I    sqrt(trace(Q) / trace(Sigma Q)): expected RMS tool-point error over the
        workspace before / after MAP calibration (I-optimality), with

@@ -21,7 +21,10 @@ name        value                                       source
 ``I``       ``sqrt(trace(Q) / trace(Sigma Q))``         I-optimality (output error)
 ==========  ==========================================  =============================
 
-``m`` in O1 is the number of measured components (rows of ``A``).  The O
+``m`` in O1 is the number of measured components (rows of ``A``).  O1..O4
+follow Nahvi & Hollerbach (1996); the O5 formula (after Sun & Hollerbach,
+ICRA 2008) could not be checked against the paper's text: see
+docs/planning.md, "Checking O1..O5 against the literature".  The O
 indices use singular values of the Jacobian itself, not of ``J^T J``.  EIG
 is the mutual information (nats) between the parameters and a linear-Gaussian
 measurement under the tolerance prior ``theta ~ N(0, diag(tol^2))``; it is
