@@ -18,8 +18,14 @@ whitened, column-scaled identification Jacobian (docs/planning.md):
   D    det(J^T J)^(1/L)                    A    L / trace((J^T J)^-1)
   E    smallest eigenvalue of J^T J        O1   (s1...sL)^(1/L)/sqrt(m)  (Borm & Menq)
   O2   sL/s1 (Driels & Pathre)             O3   sL (Nahvi et al.)
-  O4   sL^2/s1 (Nahvi & Hollerbach)        O5   1/(1/s1+...+1/sL) (Sun & Hollerbach)
+  O4   sL^2/s1 (Nahvi & Hollerbach)        O5   1/(1/s1+...+1/sL) (after Sun &
+                                                Hollerbach 2008; formula unverified, see docs)
   EIG  0.5 log det(I + S J^T J S): expected information gain under the tolerance prior
+  I    sqrt(trace(Q) / trace(Sigma Q)): expected RMS tool-point error over the
+       workspace before / after MAP calibration (I-optimality), with
+       Sigma = (I + S J^T J S)^-1 and Q = mean over workspace poses of G^T G
+       (G: tool-point Jacobian, mm per tolerance); the one matched to
+       'identify --method ridge --lam 1' (MAP) and to the output error
 
 Selection: greedy addition with rank-k updates, then DETMAX exchange.  The
 output CSV holds the commanded actuator positions q1..qN and a pose_id
@@ -32,6 +38,7 @@ EXAMPLES = """\
 examples:
   bayescal plan --machine examples/prs3/machine.toml --n 36 --out poses.csv
   bayescal plan --machine m.toml --n 24 --criterion EIG --dof 5 --seed 3 --out poses.csv --json plan.json
+  bayescal plan --machine m.toml --n 18 --criterion I --out poses.csv
   bayescal plan --machine m.toml --n 40 --criterion O4 --candidates 5000 --scaling candidates --out p.csv
 """
 

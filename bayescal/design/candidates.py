@@ -54,6 +54,13 @@ class CandidateSet:
     n_drawn, n_rejected : int
         Candidates drawn within ``q_limits`` and rejected (no forward
         solution, or a non-finite Jacobian).
+    kept_index : ndarray of int, shape (L,)
+        Columns of the parameter vector in ``blocks`` (the ``kept`` names).
+    output_jacobian : ndarray, shape (n_e, 3, P), optional
+        Tool-point Jacobian (mm per parameter unit, unscaled) at workspace
+        poses, for criterion I.
+    output_blocks : ndarray, shape (n_e, 3, L), optional
+        The same, identifiable columns, tolerance-scaled (mm per tolerance).
     """
 
     q: NDArray
@@ -66,10 +73,27 @@ class CandidateSet:
     dof: int
     n_drawn: int
     n_rejected: int
+    kept_index: NDArray | None = None
+    output_jacobian: NDArray | None = None
+    output_blocks: NDArray | None = None
 
     @property
     def n(self) -> int:
         return self.q.shape[0]
+
+    @property
+    def prior_blocks_kept(self) -> NDArray:
+        """Whitened, tolerance-scaled Jacobian blocks of the identifiable parameters (N, dof, L)."""
+        return self.blocks_prior[:, :, self.kept_index]
+
+    @property
+    def output_weight(self) -> NDArray | None:
+        """``Q = mean_e G_e^T G_e`` (L, L) of ``output_blocks`` (criterion I), or None."""
+        if self.output_blocks is None:
+            return None
+        from .criteria import output_weight
+
+        return output_weight(self.output_blocks)
 
 
 def column_scale(J_white: NDArray, tolerance: NDArray, scaling: str) -> NDArray:
@@ -85,13 +109,15 @@ def column_scale(J_white: NDArray, tolerance: NDArray, scaling: str) -> NDArray:
 
 def candidate_set_from_jacobian(
     q: NDArray, J_white: NDArray, tolerance: NDArray, layout, *, scaling: str = "tolerance",
-    n_drawn: int | None = None,
+    n_drawn: int | None = None, output_jacobian: NDArray | None = None,
 ) -> CandidateSet:
     """Build a :class:`CandidateSet` from whitened per-pose Jacobians (N, dof, P).
 
     The identifiable set is the one of the whole candidate set
     (:func:`bayescal.identifiability.analyse_identifiability`): no pose
-    selection can identify more.
+    selection can identify more.  ``output_jacobian`` (n_e, 3, P): the
+    tool-point Jacobian (mm per parameter unit) at workspace poses, which
+    criterion I needs.
     """
     J_white = np.asarray(J_white, dtype=float)
     N, dof, P = J_white.shape
@@ -104,7 +130,10 @@ def candidate_set_from_jacobian(
     # identifiability is a property of the column space; any positive scaling gives the same set
     sub = J_white[: min(J_white.shape[0], 4000)].reshape(-1, P) * tol
     ida = analyse_identifiability(sub, layout)
-    kept = ida.kept_index
+    kept = np.asarray(ida.kept_index, dtype=int)
+    G = None if output_jacobian is None else np.asarray(output_jacobian, dtype=float)
+    if G is not None and (G.ndim != 3 or G.shape[1:] != (3, P) or not np.all(np.isfinite(G))):
+        raise InputError(f"output_jacobian: expected finite (n_poses, 3, {P}), got shape {G.shape}")
     return CandidateSet(
         q=q,
         blocks=J_white[:, :, kept] * scale[kept],
@@ -116,12 +145,19 @@ def candidate_set_from_jacobian(
         dof=dof,
         n_drawn=N if n_drawn is None else int(n_drawn),
         n_rejected=(N - int(ok.sum())) if n_drawn is None else int(n_drawn) - int(ok.sum()),
+        kept_index=kept,
+        output_jacobian=G,
+        output_blocks=None if G is None else G[:, :, kept] * tol[kept],
     )
+
+
+#: Workspace poses (at most) at which the tool-point Jacobian for criterion I is evaluated.
+N_OUTPUT = 2000
 
 
 def draw_candidates(
     machine: Machine, n: int, *, dof: int, rng: np.random.Generator, scaling: str = "tolerance",
-    theta: NDArray | None = None,
+    theta: NDArray | None = None, n_output: int = N_OUTPUT,
 ) -> CandidateSet:
     """Draw ``n`` candidate poses uniformly within ``q_limits`` and linearise there.
 
@@ -137,6 +173,11 @@ def draw_candidates(
     scaling : {"tolerance", "candidates"}
     theta : ndarray, shape (P,), optional
         Geometry to linearise at (nominal by default).
+    n_output : int
+        Workspace poses for criterion I's output weight: the first
+        ``n_output`` usable candidates (uniform within ``q_limits`` and
+        solvable, the distribution the study's fresh evaluation poses come
+        from), so no extra random numbers are drawn.
     """
     if n < 1:
         raise InputError(f"candidates: expected a positive number, got {n}")
@@ -149,4 +190,9 @@ def draw_candidates(
     good = np.asarray(pred.success, dtype=bool)
     J = model.jacobian(theta, pred) / model.sigma[None, :, None]
     J[~good] = np.nan
-    return candidate_set_from_jacobian(q[ok], J, machine.tolerance, machine.layout, scaling=scaling, n_drawn=n)
+    usable = np.flatnonzero(good & np.all(np.isfinite(J), axis=(1, 2)))[: max(1, int(n_output))]
+    q_out = q[ok][usable]
+    G = machine.tool_jacobian(q_out, theta, machine.forward(q_out, theta))[:, :3, :]
+    G = G[np.all(np.isfinite(G), axis=(1, 2))]
+    return candidate_set_from_jacobian(q[ok], J, machine.tolerance, machine.layout, scaling=scaling, n_drawn=n,
+                                       output_jacobian=G if G.shape[0] else None)

@@ -18,19 +18,35 @@ name        value                                       source
 ``O4``      ``s_L^2 / s_1``                             Nahvi & Hollerbach 1996
 ``O5``      ``1 / (1/s_1 + ... + 1/s_L)``               Sun & Hollerbach 2008
 ``EIG``     ``0.5 log det(I + A_tol^T A_tol)``          Bayesian expected information gain
+``I``       ``sqrt(trace(Q) / trace(Sigma Q))``         I-optimality (output error)
 ==========  ==========================================  =============================
 
-``m`` in O1 is the number of measured components (rows of ``A``).  The O
+``m`` in O1 is the number of measured components (rows of ``A``).  O1..O4
+follow Nahvi & Hollerbach (1996); the O5 formula (after Sun & Hollerbach,
+ICRA 2008) could not be checked against the paper's text: see
+docs/planning.md, "Checking O1..O5 against the literature".  The O
 indices use singular values of the Jacobian itself, not of ``J^T J``.  EIG
 is the mutual information (nats) between the parameters and a linear-Gaussian
 measurement under the tolerance prior ``theta ~ N(0, diag(tol^2))``; it is
 computed on the tolerance-scaled Jacobian ``A_tol`` of all parameters
 (the prior keeps it finite where ``A_tol`` is rank deficient).
 
+``I`` is I-optimality (integrated prediction variance) of the tool point
+under the tolerance prior, on the tolerance-scaled Jacobian ``A_k`` of the
+identifiable parameters (the columns MAP identification estimates):
+``Sigma = (I + A_k^T A_k)^-1`` is the posterior covariance (scaled units),
+``G_e`` (3 x L, mm per scaled unit) the tool-point Jacobian at workspace pose
+``e``, and ``Q = mean_e G_e^T G_e`` over workspace poses drawn within
+``q_limits``.  ``trace(Sigma Q) = mean_e trace(G_e Sigma G_e^T)`` is the
+expected mean squared tool-point error (mm^2) after calibration, and
+``trace(Q)`` the same before (``Sigma = I``, the prior); ``I`` is the ratio of
+the RMS errors, before over after (dimensionless, larger is better).
+
 For selection, each criterion has a *utility* evaluated on a (slightly
 regularised) information matrix ``M_delta = delta I + A^T A``:
 ``log det`` for D and O1 (O1 ranks pose sets of equal size as D does),
 ``-trace(M^-1)`` for A, ``log det`` with ``delta = 1`` (the prior) for EIG,
+``-trace(M^-1 Q)`` with ``M = I + A_k^T A_k`` for I,
 and the index itself computed from ``eigvalsh(M_delta)`` for the spectral
 criteria E and O2..O5.
 """
@@ -42,10 +58,15 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 
-__all__ = ["CRITERIA", "SPECTRAL", "check_criterion", "criterion_value", "criteria_from_singular_values", "utility"]
+__all__ = [
+    "CRITERIA", "SPECTRAL", "check_criterion", "criterion_value", "criteria_from_singular_values", "i_value",
+    "output_weight", "utility",
+]
 
 #: All criteria, in the order reports list them.
-CRITERIA = ("D", "A", "E", "O1", "O2", "O3", "O4", "O5", "EIG")
+CRITERIA = ("D", "A", "E", "O1", "O2", "O3", "O4", "O5", "EIG", "I")
+#: Criteria computed with the tolerance prior (defined for any number of poses).
+PRIOR_BASED = ("EIG", "I")
 #: Criteria that are functions of extreme singular values (no rank-k update formula).
 SPECTRAL = ("E", "O2", "O3", "O4", "O5")
 
@@ -100,9 +121,44 @@ def eig_value(A_tol: NDArray) -> float:
     return float(0.5 * np.sum(np.log1p(s**2)))
 
 
-def criterion_value(name: str, A: NDArray, *, A_tol: NDArray | None = None) -> float:
-    """One criterion of a stacked Jacobian ``A`` (n_rows, L); EIG needs ``A_tol`` (n_rows, P)."""
+def output_weight(G: NDArray) -> NDArray:
+    """``Q = mean_e G_e^T G_e`` (L, L) of tool-point Jacobians ``G`` (n_e, 3, L), mm^2 per scaled unit^2."""
+    G = np.asarray(G, dtype=float)
+    return np.einsum("eri,erj->ij", G, G, optimize=True) / G.shape[0]
+
+
+def i_value(A_k: NDArray, Q: NDArray) -> float:
+    """I-optimality value ``sqrt(trace(Q) / trace(Sigma Q))``, ``Sigma = (I + A_k^T A_k)^-1``.
+
+    Parameters
+    ----------
+    A_k : ndarray, shape (n_rows, L)
+        Whitened, tolerance-scaled Jacobian of the identifiable parameters.
+    Q : ndarray, shape (L, L)
+        Output weight (:func:`output_weight`), mm^2 per scaled unit^2.
+
+    Returns
+    -------
+    float
+        Expected RMS tool-point error before calibration over that after
+        (linearised, Gaussian prior from the tolerances); 1 without data.
+    """
+    A_k = np.asarray(A_k, dtype=float)
+    M = np.eye(A_k.shape[1]) + A_k.T @ A_k
+    return float(np.sqrt(np.trace(Q) / np.trace(np.linalg.solve(M, Q))))
+
+
+def criterion_value(name: str, A: NDArray, *, A_tol: NDArray | None = None, Q: NDArray | None = None) -> float:
+    """One criterion of a stacked Jacobian ``A`` (n_rows, L).
+
+    EIG needs ``A_tol`` (n_rows, P), the tolerance-scaled Jacobian of all
+    parameters; I needs ``Q`` (L, L) and takes ``A`` tolerance-scaled.
+    """
     name = check_criterion(name)
+    if name == "I":
+        if Q is None:
+            raise InputError("criterion I: needs the output weight Q of the tool-point Jacobian over the workspace")
+        return i_value(A, Q)
     if name == "EIG":
         if A_tol is None:
             raise InputError("criterion EIG: needs the tolerance-scaled Jacobian of all parameters (A_tol)")
@@ -131,25 +187,37 @@ def _spectral_utility(name: str, lam: NDArray) -> NDArray:
 
 
 def utility_kind(name: str) -> str:
-    """How a criterion is optimised: ``logdet``, ``trace_inv`` or ``spectral``."""
+    """How a criterion is optimised: ``logdet``, ``trace_inv``, ``weighted_trace`` or ``spectral``."""
     name = check_criterion(name)
     if name in ("D", "O1", "EIG"):
         return "logdet"
     if name == "A":
         return "trace_inv"
+    if name == "I":
+        return "weighted_trace"
     return "spectral"
 
 
-def utility(name: str, M: NDArray) -> NDArray:
+def utility(name: str, M: NDArray, *, Q: NDArray | None = None) -> NDArray:
     """Selection utility of information matrices ``M`` (..., L, L), larger is better.
 
-    ``log det M`` (D, O1, EIG), ``-trace(M^-1)`` (A), or the spectral index
-    computed from ``eigvalsh(M)`` (E, O2..O5).  Non-positive-definite
-    matrices get ``-inf``.
+    ``log det M`` (D, O1, EIG), ``-trace(M^-1)`` (A), ``-trace(M^-1 Q)``
+    (I; ``Q`` required), or the spectral index computed from
+    ``eigvalsh(M)`` (E, O2..O5).  Non-positive-definite matrices get
+    ``-inf``.
     """
     name = check_criterion(name)
     kind = utility_kind(name)
     M = np.asarray(M, dtype=float)
+    if kind == "weighted_trace":
+        if Q is None:
+            raise InputError("criterion I: needs the output weight Q")
+        lam = np.linalg.eigvalsh(M)
+        ok = lam.min(axis=-1) > 0
+        # solve on the positive-definite ones only; the others get -inf
+        Ms = np.where(ok[..., None, None], M, np.eye(M.shape[-1]))
+        tr = np.trace(np.linalg.solve(Ms, np.broadcast_to(Q, Ms.shape)), axis1=-2, axis2=-1)
+        return np.where(ok, -tr, -np.inf)
     if kind == "logdet":
         sign, ld = np.linalg.slogdet(M)
         return np.where(sign > 0, ld, -np.inf)

@@ -13,10 +13,11 @@ from ..io import write_text_atomic
 from ..machines.base import Machine
 from ..measurement import rows_per_pose
 from .candidates import CandidateSet, draw_candidates
-from .criteria import CRITERIA, check_criterion, criteria_from_singular_values, eig_value, utility_kind
+from .criteria import PRIOR_BASED, CRITERIA, check_criterion, criteria_from_singular_values, eig_value, i_value, utility_kind
 from .select import exchange_refine, greedy_select
 
-__all__ = ["PosePlan", "plan_poses", "select_from_candidates", "evaluate_selection", "plan_to_csv", "write_plan"]
+__all__ = ["PosePlan", "plan_poses", "select_from_candidates", "evaluate_selection", "expected_output_rms", "plan_to_csv",
+           "write_plan"]
 
 #: delta of the regularised information matrix delta I + A^T A, relative to the mean
 #: per-pose information per parameter (only matters while the selection is rank deficient).
@@ -127,21 +128,47 @@ class PosePlan:
                 f"{100 * self.random_beaten[c]:13.0f}%"
             )
         lines.append(f"  (larger is better; random: median of {self.n_random} random sets of {self.n_poses} candidates)")
+        if "expected_output_rms_mm" in self.extras:
+            lines.append(f"  expected RMS tool-point error after MAP calibration (linearised): "
+                         f"{1e3 * self.extras['expected_output_rms_mm']:.3g} um")
         return "\n".join(lines)
 
 
 def evaluate_selection(cands: CandidateSet, index: NDArray) -> dict[str, float]:
-    """All criteria of the poses ``index`` of a candidate set (exact, no regularisation)."""
+    """All criteria of the poses ``index`` of a candidate set (exact, no regularisation).
+
+    I is NaN when the candidate set has no workspace tool-point Jacobian.
+    """
     index = np.asarray(index, dtype=int)
     A = cands.blocks[index].reshape(-1, cands.blocks.shape[2])
     vals = criteria_from_singular_values(np.linalg.svd(A, compute_uv=False), A.shape[0])
     vals["EIG"] = eig_value(cands.blocks_prior[index].reshape(-1, cands.blocks_prior.shape[2]))
+    Q = cands.output_weight
+    Ak = cands.prior_blocks_kept[index]
+    vals["I"] = i_value(Ak.reshape(-1, Ak.shape[2]), Q) if Q is not None else float("nan")
     return {c: vals[c] for c in CRITERIA}
+
+
+def expected_output_rms(cands: CandidateSet, index: NDArray) -> float:
+    """Expected RMS tool-point error (mm) after MAP calibration on poses ``index``, linearised.
+
+    ``sqrt(trace(Sigma Q))`` with ``Sigma = (I + A_k^T A_k)^-1`` (criterion I);
+    the error of the parameters no pose identifies is not included.
+    """
+    Q = cands.output_weight
+    if Q is None:
+        raise InputError("expected output error: the candidate set has no workspace tool-point Jacobian")
+    Ak = cands.prior_blocks_kept[np.asarray(index, dtype=int)]
+    Ak = Ak.reshape(-1, Ak.shape[2])
+    return float(np.sqrt(np.trace(np.linalg.solve(np.eye(Ak.shape[1]) + Ak.T @ Ak, Q))))
 
 
 def _M0(cands: CandidateSet, criterion: str) -> tuple[NDArray, NDArray]:
     if criterion == "EIG":
         return cands.blocks_prior, np.eye(cands.blocks_prior.shape[2])
+    if criterion == "I":
+        # MAP identifies the identifiable set under the tolerance prior: tolerance-scaled columns, prior I
+        return cands.prior_blocks_kept, np.eye(len(cands.kept_index))
     B = cands.blocks
     L = B.shape[2]
     mean_info = float(np.mean(np.sum(B**2, axis=(1, 2)))) / L
@@ -155,8 +182,15 @@ def select_from_candidates(
     """Greedy selection then exchange on a candidate set; returns a :class:`~bayescal.design.select.Selection`."""
     criterion = check_criterion(criterion)
     blocks, M0 = _M0(cands, criterion)
-    idx, _ = greedy_select(blocks, n, criterion, M0=M0, shortlist=shortlist)
-    return exchange_refine(blocks, idx, criterion, M0=M0, max_iter=max_swaps if exchange else 0, shortlist=shortlist)
+    Q = None
+    if criterion == "I":
+        Q = cands.output_weight
+        if Q is None:
+            raise InputError("criterion I: the candidate set has no workspace tool-point Jacobian "
+                             "(build it with draw_candidates, or pass output_jacobian)")
+    idx, _ = greedy_select(blocks, n, criterion, M0=M0, shortlist=shortlist, Q=Q)
+    return exchange_refine(blocks, idx, criterion, M0=M0, max_iter=max_swaps if exchange else 0, shortlist=shortlist,
+                           Q=Q)
 
 
 def plan_poses(
@@ -179,7 +213,7 @@ def plan_poses(
     machine : Machine
         Any kind with ``q_limits``.
     n_poses : int
-    criterion : {"D", "A", "E", "O1", "O2", "O3", "O4", "O5", "EIG"}
+    criterion : {"D", "A", "E", "O1", "O2", "O3", "O4", "O5", "EIG", "I"}
     dof : {6, 5, 3}
         What the instrument will measure.
     n_candidates : int
@@ -209,10 +243,10 @@ def plan_poses(
     if n_poses > cands.n:
         raise InputError(f"n_poses: {n_poses} asked for, but only {cands.n} usable candidates; draw more candidates")
     L = cands.blocks.shape[2]
-    if n_poses * dof < L and criterion != "EIG":
+    if n_poses * dof < L and criterion not in PRIOR_BASED:
         raise InputError(
             f"n_poses: {n_poses} poses x {dof} components < {L} identifiable parameters; criterion {criterion} "
-            f"needs at least {-(-L // dof)} poses (or use EIG, which includes the tolerance prior)"
+            f"needs at least {-(-L // dof)} poses (or use EIG or I, which include the tolerance prior)"
         )
     sel = select_from_candidates(cands, int(n_poses), criterion, exchange=exchange)
     values = evaluate_selection(cands, sel.index)
@@ -241,7 +275,9 @@ def plan_poses(
         swaps=sel.swaps,
         n_random=int(n_random),
         seconds=time.perf_counter() - t0,
-        extras={"utility_kind": utility_kind(criterion)},
+        extras={"utility_kind": utility_kind(criterion),
+                **({"expected_output_rms_mm": expected_output_rms(cands, sel.index)}
+                   if cands.output_blocks is not None else {})},
     )
 
 

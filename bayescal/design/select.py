@@ -6,7 +6,9 @@ matrix by a rank-k term: ``M + B^T B``.  With ``G = B M^-1`` (k x L) and
 ``H = I_k + G B^T`` (k x k),
 
 * matrix determinant lemma: ``log det(M + B^T B) - log det M = log det H``;
-* Woodbury: ``trace((M + B^T B)^-1) = trace(M^-1) - trace(H^-1 G G^T)``;
+* Woodbury: ``trace((M + B^T B)^-1) = trace(M^-1) - trace(H^-1 G G^T)``,
+  and with a weight ``Q`` (I-optimality)
+  ``trace((M + B^T B)^-1 Q) = trace(M^-1 Q) - trace(H^-1 G Q G^T)``;
 
 so the gain of every candidate costs ``O(k L^2)`` (one product with
 ``M^-1``) instead of a fresh ``O(L^3)`` factorisation.  ``M^-1`` is
@@ -19,6 +21,8 @@ closed-form rank-k update; they are evaluated exactly (``eigvalsh`` of
 and, for these and for A, until the selected rows make the data part of
 ``M`` full rank (where every spectral index is zero and ``trace(M^-1)`` is
 dominated by ``1/delta``) the greedy pass uses the D utility.
+I (``-trace(M^-1 Q)``) starts from the prior ``M0 = I``, where it is finite
+from the first pose, and needs no such phase.
 
 Exchange: Mitchell's DETMAX with excursions of length one.  Add the best
 candidate, then remove the pose whose removal costs least; accept the swap
@@ -78,7 +82,7 @@ def _inverse(M: NDArray) -> NDArray:
 
 def candidate_gains(
     blocks: NDArray, M: NDArray, criterion: str, *, Minv: NDArray | None = None, shortlist: int = 512,
-    exclude: NDArray | None = None,
+    exclude: NDArray | None = None, Q: NDArray | None = None,
 ) -> NDArray:
     """Utility of ``M + B_i^T B_i`` minus utility of ``M`` for every candidate block.
 
@@ -95,6 +99,8 @@ def candidate_gains(
         Spectral criteria: candidates (largest D-gain first) evaluated exactly.
     exclude : ndarray of int, optional
         Candidates to give ``-inf`` (already selected).
+    Q : ndarray, shape (L, L), optional
+        Output weight of criterion I (required for it).
 
     Returns
     -------
@@ -108,8 +114,14 @@ def candidate_gains(
     # G = B M^-1 as one (N k x L) @ (L x L) GEMM: O(k L^2) per candidate, faster than N small products
     G = (blocks.reshape(-1, L) @ Minv).reshape(N, k, L)
     H = np.eye(k) + np.einsum("nkl,njl->nkj", G, blocks, optimize=True)  # (N, k, k)
-    if kind == "trace_inv":
-        GG = np.einsum("nkl,njl->nkj", G, G, optimize=True)
+    if kind in ("trace_inv", "weighted_trace"):
+        if kind == "weighted_trace":
+            if Q is None:
+                raise InputError("criterion I: needs the output weight Q")
+            GQ = (G.reshape(-1, L) @ Q).reshape(N, k, L)  # one more GEMM: O(k L^2) per candidate
+        else:
+            GQ = G
+        GG = np.einsum("nkl,njl->nkj", GQ, G, optimize=True)
         gains = np.trace(np.linalg.solve(H, GG), axis1=1, axis2=2)
     else:
         sign, gains = np.linalg.slogdet(H)
@@ -133,7 +145,7 @@ def _data_full_rank(M: NDArray, M0: NDArray) -> bool:
 
 def greedy_select(
     blocks: NDArray, n: int, criterion: str, *, M0: NDArray, shortlist: int = 512, lazy: bool = True,
-    chunk: int = 256,
+    chunk: int = 256, Q: NDArray | None = None,
 ) -> tuple[NDArray, NDArray]:
     """Greedy addition of ``n`` candidate blocks maximising the criterion's utility.
 
@@ -156,6 +168,8 @@ def greedy_select(
         selection is the same as re-evaluating every candidate.
     chunk : int
         Candidates re-evaluated at a time in the lazy pass.
+    Q : ndarray, shape (L, L), optional
+        Output weight of criterion I (required for it).
 
     Returns
     -------
@@ -180,7 +194,7 @@ def greedy_select(
             use = "D"
         if utility_kind(use) != "logdet" or not lazy:
             bound = None
-            gains = candidate_gains(blocks, M, use, shortlist=shortlist, exclude=np.array(selected, dtype=int))
+            gains = candidate_gains(blocks, M, use, shortlist=shortlist, exclude=np.array(selected, dtype=int), Q=Q)
             j = int(np.argmax(gains))
         elif bound is None:
             gains = candidate_gains(blocks, M, use, exclude=np.array(selected, dtype=int))
@@ -217,25 +231,25 @@ def greedy_select(
 
 def exchange_refine(
     blocks: NDArray, selected: NDArray, criterion: str, *, M0: NDArray, max_iter: int | None = None,
-    shortlist: int = 512,
+    shortlist: int = 512, Q: NDArray | None = None,
 ) -> Selection:
     """DETMAX exchange (excursion length one) from a starting selection; never lowers the utility."""
     criterion = check_criterion(criterion)
     S = [int(i) for i in selected]
     M = M0 + np.einsum("nki,nkj->ij", blocks[S], blocks[S])
-    cur = float(utility(criterion, M))
+    cur = float(utility(criterion, M, Q=Q))
     history = [cur]
     max_iter = 2 * len(S) if max_iter is None else int(max_iter)
     swaps = 0
     for _ in range(max_iter):
-        gains = candidate_gains(blocks, M, criterion, shortlist=shortlist, exclude=np.array(S, dtype=int))
+        gains = candidate_gains(blocks, M, criterion, shortlist=shortlist, exclude=np.array(S, dtype=int), Q=Q)
         c = int(np.argmax(gains))
         if not np.isfinite(gains[c]):
             break
         M_plus = M + blocks[c].T @ blocks[c]
         members = S + [c]
         BB = np.swapaxes(blocks[members], 1, 2) @ blocks[members]
-        u = utility(criterion, M_plus[None] - BB)
+        u = utility(criterion, M_plus[None] - BB, Q=Q)
         i = int(np.argmax(u))
         if members[i] == c or not u[i] > cur + 1e-12 * abs(cur):
             break
@@ -248,7 +262,7 @@ def exchange_refine(
                      history=np.array(history))
 
 
-def brute_force_greedy(blocks: NDArray, n: int, criterion: str, *, M0: NDArray) -> NDArray:
+def brute_force_greedy(blocks: NDArray, n: int, criterion: str, *, M0: NDArray, Q: NDArray | None = None) -> NDArray:
     """Greedy selection recomputing the utility of every candidate from scratch (reference, slow).
 
     The independent path the rank-k updates are tested and benchmarked
@@ -267,7 +281,7 @@ def brute_force_greedy(blocks: NDArray, n: int, criterion: str, *, M0: NDArray) 
         for i in range(blocks.shape[0]):
             if i in selected:
                 continue
-            u = float(utility(use, M + blocks[i].T @ blocks[i]))
+            u = float(utility(use, M + blocks[i].T @ blocks[i], Q=Q))
             if u > best_u:
                 best, best_u = i, u
         selected.append(best)

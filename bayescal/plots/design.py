@@ -17,7 +17,7 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
     ----------
     rows : list of dict
         One per (dof, design, n_poses) with keys ``dof``, ``design``
-        (``planned``/``random``), ``n_poses``, ``{metric}_median``,
+        (``random``, or ``planned``/``planned-<criterion>``), ``n_poses``, ``{metric}_median``,
         ``{metric}_q25``, ``{metric}_q75`` (mm).
     path : path
         PNG to write.
@@ -30,19 +30,24 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
     dofs = sorted({r["dof"] for r in rows}, reverse=True)
     fig, axes = plt.subplots(1, len(dofs), figsize=(4.2 * len(dofs), 3.6), squeeze=False)
     for ax, dof in zip(axes[0], dofs):
-        for design, color in (("planned", "C3"), ("random", "C0")):
-            rr = sorted((r for r in rows if r["dof"] == dof and r["design"] == design), key=lambda r: r["n_poses"])
+        designs = sorted({r["design"] for r in rows if r["dof"] == dof and r["design"] != "random"}) + ["random"]
+        colors = {d: f"C{3 + i}" for i, d in enumerate(designs[:-1])} | {"random": "C0"}
+        for design in designs:
+            color = colors[design]
+            rr = sorted((r for r in rows if r["dof"] == dof and r["design"] == design
+                         and np.isfinite(r[f"{metric}_median"])), key=lambda r: r["n_poses"])
             if not rr:
-                continue
+                continue  # not run (e.g. a study with least squares only): nothing to draw
             n = np.array([r["n_poses"] for r in rr])
             med = 1e3 * np.array([r[f"{metric}_median"] for r in rr])
             lo = 1e3 * np.array([r[f"{metric}_q25"] for r in rr])
             hi = 1e3 * np.array([r[f"{metric}_q75"] for r in rr])
             ax.plot(n, med, "o-", color=color, label=f"{design} (median)")
-            ax.fill_between(n, lo, hi, color=color, alpha=0.2, lw=0)
+            ax.fill_between(n, lo, hi, color=color, alpha=0.12, lw=0)
             if design == "random" and 36 in n:
                 ax.axhline(med[list(n).index(36)], color=color, ls=":", lw=1, label="random, 36 poses")
-        ax.set_yscale("log")
+        if ax.has_data():
+            ax.set_yscale("log")
         ax.set_xlabel("number of measured poses")
         ax.set_ylabel(f"{metric} position error after calibration [um]")
         ax.set_title(f"{dof}-DOF measurement", fontsize=9)

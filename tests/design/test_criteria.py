@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from bayescal.design import CRITERIA, candidate_gains, check_criterion, criteria_from_singular_values, criterion_value, utility
+from bayescal.design import i_value, output_weight
 from bayescal.design.criteria import eig_value
 from bayescal.errors import InputError
 
@@ -71,14 +72,37 @@ def test_utilities_agree_with_the_reported_criteria():
         assert utility(k, M) == pytest.approx(vals[k], rel=1e-9), k
 
 
-@pytest.mark.parametrize("criterion", ["D", "A", "EIG", "E", "O4"])
+@pytest.mark.parametrize("criterion", ["D", "A", "EIG", "E", "O4", "I"])
 def test_rank_k_gains_equal_direct_recomputation(criterion):
     rng = np.random.default_rng(2)
     L, k, N = 5, 3, 40
     blocks = rng.normal(size=(N, k, L))
     A0 = rng.normal(size=(7, L))
     M = A0.T @ A0 + 0.1 * np.eye(L)
-    gains = candidate_gains(blocks, M, criterion, shortlist=N)
-    direct = np.array([utility(criterion, M + b.T @ b) - utility(criterion, M) for b in blocks])
+    Q = output_weight(rng.normal(size=(30, 3, L))) if criterion == "I" else None
+    gains = candidate_gains(blocks, M, criterion, shortlist=N, Q=Q)
+    direct = np.array([utility(criterion, M + b.T @ b, Q=Q) - utility(criterion, M, Q=Q) for b in blocks])
     np.testing.assert_allclose(gains, direct, rtol=1e-9, atol=1e-12)
     assert set(CRITERIA) >= {criterion}
+
+
+def test_i_criterion_of_a_diagonal_problem():
+    # A_k = diag(a) (tolerance-scaled), tool-point Jacobians G_e with G^T G averaging to diag(q):
+    # Sigma = diag(1 / (1 + a^2)), I = sqrt(sum q / sum q / (1 + a^2))
+    a = np.array([3.0, 1.0, 0.0])
+    q = np.array([2.0, 8.0, 5.0])
+    G = np.zeros((2, 3, 3))
+    G[0, 0, 0], G[0, 1, 1], G[1, 2, 2] = np.sqrt(2 * q[0]), np.sqrt(2 * q[1]), np.sqrt(2 * q[2])
+    Q = output_weight(G)
+    np.testing.assert_allclose(Q, np.diag(q), rtol=1e-14)
+    A = diag_jacobian(a)
+    expected = np.sqrt(q.sum() / np.sum(q / (1 + a**2)))  # 15 / (0.2 + 4 + 5)
+    assert i_value(A, Q) == pytest.approx(expected, rel=1e-12)
+    assert criterion_value("I", A, Q=Q) == pytest.approx(expected, rel=1e-12)
+    # the selection utility is -trace(Sigma Q) on M = I + A^T A
+    assert float(utility("I", np.eye(3) + A.T @ A, Q=Q)) == pytest.approx(-np.sum(q / (1 + a**2)))
+    assert i_value(np.zeros((0, 3)), Q) == pytest.approx(1.0)  # no data: the prior, ratio 1
+    with pytest.raises(InputError, match="output weight"):
+        criterion_value("I", A)
+    with pytest.raises(InputError, match="output weight"):
+        utility("I", np.eye(3))

@@ -52,24 +52,47 @@ def test_ranking_does_not_change_when_parameters_are_rescaled(prs3, scaling):
     J = model.jacobian(None, model.predict()) / model.sigma[None, :, None]
     # new units: parameter j measured in units 1/c_j as large (mm -> um is c = 1000)
     c = np.exp(rng.uniform(-7, 7, size=prs3.n_params))
-    a = candidate_set_from_jacobian(q, J, prs3.tolerance, prs3.layout, scaling=scaling)
-    b = candidate_set_from_jacobian(q, J / c, prs3.tolerance * c, prs3.layout, scaling=scaling)
-    sa = select_from_candidates(a, 10, "D")
-    sb = select_from_candidates(b, 10, "D")
-    np.testing.assert_array_equal(sa.index, sb.index)
+    G = prs3.tool_jacobian(q, None, prs3.forward(q))[:, :3, :]  # mm per parameter unit
+    a = candidate_set_from_jacobian(q, J, prs3.tolerance, prs3.layout, scaling=scaling, output_jacobian=G)
+    b = candidate_set_from_jacobian(q, J / c, prs3.tolerance * c, prs3.layout, scaling=scaling,
+                                    output_jacobian=G / c)
+    for crit in ("D", "I"):
+        sa = select_from_candidates(a, 10, crit)
+        sb = select_from_candidates(b, 10, crit)
+        np.testing.assert_array_equal(sa.index, sb.index)
     sets = [rng.choice(120, 10, replace=False) for _ in range(8)]
-    va = [evaluate_selection(a, s)["O4"] for s in sets]
-    vb = [evaluate_selection(b, s)["O4"] for s in sets]
-    np.testing.assert_array_equal(np.argsort(va), np.argsort(vb))
-    np.testing.assert_allclose(va, vb, rtol=1e-6)
+    for crit in ("O4", "I"):
+        va = [evaluate_selection(a, s)[crit] for s in sets]
+        vb = [evaluate_selection(b, s)[crit] for s in sets]
+        np.testing.assert_array_equal(np.argsort(va), np.argsort(vb))
+        np.testing.assert_allclose(va, vb, rtol=1e-6)
 
 
 def test_too_few_poses_for_the_parameters_is_an_input_error(prs3):
     with pytest.raises(InputError, match="at least 6 poses"):
         plan_poses(prs3, 3, criterion="D", n_candidates=50, seed=0)
-    # EIG has the prior: any number of poses is fine
+    # EIG and I have the prior: any number of poses is fine
     p = plan_poses(prs3, 3, criterion="EIG", n_candidates=50, seed=0, n_random=3)
     assert p.n_poses == 3 and p.values["EIG"] > p.random_median["EIG"]
+    p = plan_poses(prs3, 3, criterion="I", n_candidates=50, seed=0, n_random=3)
+    assert p.n_poses == 3 and p.values["I"] > p.random_median["I"]
+
+
+def test_i_plan_predicts_the_map_output_error_it_minimises(prs3):
+    p = plan_poses(prs3, 10, criterion="I", dof=5, n_candidates=300, seed=2, n_random=10)
+    assert p.values["I"] > p.random_median["I"] and "expected RMS tool-point error" in p.report()
+    # sqrt(trace(Sigma Q)) against a Monte Carlo of the linear-Gaussian model it assumes:
+    # theta ~ N(0, I) (tolerance units), y = A theta + e, MAP theta_hat = Sigma A^T y, error G (theta_hat - theta)
+    cands = draw_candidates(prs3, 300, dof=5, rng=np.random.default_rng(2))
+    A = cands.prior_blocks_kept[p.candidate_index].reshape(-1, len(cands.kept))
+    Sigma = np.linalg.inv(np.eye(A.shape[1]) + A.T @ A)
+    rng = np.random.default_rng(0)
+    th = rng.normal(size=(4000, A.shape[1]))
+    y = th @ A.T + rng.normal(size=(4000, A.shape[0]))
+    d = y @ A @ Sigma - th
+    err = np.einsum("sl,erl->ser", d, cands.output_blocks, optimize=True)  # (sample, workspace pose, xyz) mm
+    mc = np.sqrt(np.mean(np.sum(err**2, axis=2)))
+    assert mc == pytest.approx(p.extras["expected_output_rms_mm"], rel=0.03)
 
 
 def test_draw_candidates_rejects_nothing_inside_a_good_workspace(prs3):
@@ -87,3 +110,6 @@ def test_cli_plan_writes_the_csv_and_json(tmp_path, capsys):
     assert "criterion A" in capsys.readouterr().out
     rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "2", "--candidates", "50", "--out", str(out)])
     assert rc == 2
+    rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "4", "--criterion", "I", "--candidates", "100",
+               "--seed", "1", "--random-sets", "3", "--out", str(out), "--json", str(js)])
+    assert rc == 0 and '"criterion": "I"' in js.read_text() and '"expected_output_rms_mm"' in js.read_text()
