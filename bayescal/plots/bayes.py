@@ -11,24 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ._backend import pyplot as _plt
+from ._backend import save
+
 __all__ = ["plot_filter_history", "plot_trace", "plot_pair", "plot_coverage", "plot_grid"]
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _save(fig, path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    _plt().close(fig)
-    return path
+    return save(fig, path, dpi=110)
 
 
 def plot_filter_history(result, path: str | os.PathLike) -> Path:

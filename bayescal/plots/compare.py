@@ -7,18 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ._backend import pyplot as _plt
+from ._backend import save
+
 __all__ = ["plot_comparison", "plot_error_distributions", "plot_paired_differences", "plot_win_rates"]
 
 _SCALE = {"rms_position": ("um", 1e3), "max_position": ("um", 1e3), "rms_angle": ("urad", 1e6)}
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def plot_error_distributions(cmp, ax=None):
@@ -95,7 +91,6 @@ def plot_comparison(cmp, out_dir: str | os.PathLike) -> list[Path]:
         fig = ax.figure
         fig.tight_layout()
         path = out / f"compare_{name}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        save(fig, path, dpi=110)
         paths.append(path)
     return paths

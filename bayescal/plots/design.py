@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._backend import pyplot, save
+
 __all__ = ["plot_error_vs_poses"]
 
 
@@ -22,11 +24,7 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
     path : path
         PNG to write.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     dofs = sorted({r["dof"] for r in rows}, reverse=True)
     fig, axes = plt.subplots(1, len(dofs), figsize=(4.2 * len(dofs), 3.6), squeeze=False)
     for ax, dof in zip(axes[0], dofs):
@@ -55,6 +53,5 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path, dpi=110)
     return path

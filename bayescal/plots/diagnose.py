@@ -7,24 +7,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ._backend import pyplot as _pyplot
+from ._backend import save
+
 __all__ = ["plot_diagnosis"]
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _save(fig, path: Path) -> Path:
-    # atomic: draw to a temporary file in the same folder, then rename
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=90)
-    os.replace(tmp, path)
-    return path
+    return save(fig, path, dpi=90)
 
 
 def plot_diagnosis(diagnosis, out_dir: str | os.PathLike, *, top: int = 6) -> list[Path]:
@@ -81,7 +73,6 @@ def plot_diagnosis(diagnosis, out_dir: str | os.PathLike, *, top: int = 6) -> li
     fig.suptitle(f"residuals of the geometric fit - verdict: {diagnosis.verdict}", fontsize=10)
     fig.tight_layout()
     paths = [_save(fig, out / "residuals_vs_channels.png")]
-    plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(6, 3))
     names = [e.name for e in diagnosis.effects]
@@ -96,5 +87,4 @@ def plot_diagnosis(diagnosis, out_dir: str | os.PathLike, *, top: int = 6) -> li
     ax.legend(fontsize=7)
     fig.tight_layout()
     paths.append(_save(fig, out / "cv_rms.png"))
-    plt.close(fig)
     return paths

@@ -6,16 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ._backend import pyplot as _plt
+from ._backend import save
+
 __all__ = ["plot_procedure", "plot_comparison", "plot_grid_std"]
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def plot_procedure(result, out_dir) -> list[Path]:
@@ -33,8 +29,7 @@ def plot_procedure(result, out_dir) -> list[Path]:
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     paths.append(out / "position_errors.png")
-    fig.savefig(paths[-1], dpi=90)
-    plt.close(fig)
+    save(fig, paths[-1], dpi=90)
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
     for ev, name in ((result.before, "initial"), (result.after_si2, "after RM2/SI2")):
         axes[0].plot(np.degrees(ev.orientation_translation), ".-", label=name)
@@ -49,8 +44,7 @@ def plot_procedure(result, out_dir) -> list[Path]:
         ax.legend(fontsize=8)
     fig.tight_layout()
     paths.append(out / "orientation_errors.png")
-    fig.savefig(paths[-1], dpi=90)
-    plt.close(fig)
+    save(fig, paths[-1], dpi=90)
     return paths
 
 
@@ -69,8 +63,7 @@ def plot_comparison(comp, out_dir) -> Path:
         ax.legend(fontsize=8)
     fig.tight_layout()
     path = Path(out_dir) / "comparison.png"
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path, dpi=90)
     return path
 
 
@@ -99,6 +92,5 @@ def plot_grid_std(grid, path, *, title: str = "") -> Path:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path, dpi=90)
     return path

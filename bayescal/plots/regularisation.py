@@ -11,29 +11,19 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from ._backend import pyplot as _plt
+from ._backend import save
+
 __all__ = ["plot_choice", "plot_output_error", "plot_histories", "plot_ratio_spread", "RULE_COLOURS"]
 
 RULE_COLOURS = {"cv": "tab:blue", "lcurve": "tab:orange", "gcv": "tab:green", "discrepancy": "tab:red", "evidence": "tab:purple",
                 "risk": "tab:brown"}
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _save(fig, path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=90)
-    tmp.replace(path)  # atomic: a reader never sees half a PNG
-    _plt().close(fig)
-    return path
+    return save(fig, path, dpi=90)
 
 
 def plot_choice(choice, path, *, title: str = "") -> Path:
