@@ -6,9 +6,8 @@ import argparse
 
 from ..effects import EFFECTS
 from ..errors import InputError
-from ..io import read_recording, write_json_atomic
-from ..machines import load_machine
-from ..measurement import MeasurementModel, check_recording_solves
+from ..io import write_json_atomic
+from .inputs import name_list, recording_model
 
 HELP = f"""\
 Diagnose what the geometric model leaves out.
@@ -58,12 +57,10 @@ def run(args) -> int:
     from ..diagnose import diagnose
     from . import EXIT_OK
 
-    machine = load_machine(args.machine)
-    rec = read_recording(args.recording)
-    check_recording_solves(MeasurementModel.from_recording(machine, rec), rec)
+    machine, rec, _ = recording_model(args)
     effects = None
     if args.effects is not None:
-        effects = [s.strip() for s in args.effects.split(",") if s.strip()]
+        effects = name_list(args.effects)
         if not effects:
             raise InputError("--effects: expected comma-separated effect names, e.g. backlash,thermal_expansion")
         unknown = [e for e in effects if e not in EFFECTS]

@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 
 from ..errors import InputError
-from ..io import read_recording, write_json_atomic
-from ..machines import load_machine
-from ..measurement import MeasurementModel, check_recording_solves
+from ..io import write_json_atomic
+from .inputs import free_arg, recording_model
 
 HELP = """\
 Identify the geometric errors (MAP under the tolerance prior, or the Kalman
@@ -57,11 +56,8 @@ def run(args) -> int:
     from ..bayes.mcmc import sample_posterior
     from ..bayes.priors import map_estimate
 
-    machine = load_machine(args.machine)
-    rec = read_recording(args.recording)
-    model = MeasurementModel.from_recording(machine, rec, dof=args.dof)
-    check_recording_solves(model, rec)
-    free = args.free if args.free in ("auto", "all") else [s.strip() for s in args.free.split(",") if s.strip()]
+    machine, rec, model = recording_model(args)
+    free = free_arg(args.free)
     if args.method == "mcmc" and free == "all":
         free = "auto"  # sampling the unidentifiable directions only explores the prior
     if args.method == "map":

@@ -7,10 +7,9 @@ import argparse
 from ..errors import InputError
 from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
-from ..io import read_recording, write_json_atomic, write_text_atomic
-from ..machines import load_machine
-from ..measurement import MeasurementModel, check_recording_solves
+from ..io import write_json_atomic, write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
+from .inputs import free_arg, recording_model
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -103,11 +102,8 @@ def _k_arg(text: str):
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
 
-    machine = load_machine(args.machine)
-    rec = read_recording(args.recording)
-    model = MeasurementModel.from_recording(machine, rec, dof=args.dof)
-    check_recording_solves(model, rec)
-    free = args.free if args.free in ("auto", "all") else [s.strip() for s in args.free.split(",") if s.strip()]
+    machine, rec, model = recording_model(args)
+    free = free_arg(args.free)
     if args.method == "ridge" and args.lam is None:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
     if args.method == "tsvd" and args.k is None:

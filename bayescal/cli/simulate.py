@@ -11,6 +11,7 @@ from ..errors import InputError
 from ..io import write_json_atomic, write_recording, write_text_atomic
 from ..machines import load_machine
 from ..simulate import simulate_recording
+from .inputs import name_list
 
 HELP = """\
 Simulate a measurement session: draw a true machine from the tolerances
@@ -77,7 +78,7 @@ def run(args) -> int:
         raise InputError(f"--poses: expected a positive number, got {args.poses}")
     if not args.tolerance_scale > 0:
         raise InputError(f"--tolerance-scale: expected a positive number, got {args.tolerance_scale}")
-    aux = [c.strip() for c in args.aux.split(",") if c.strip()]
+    aux = name_list(args.aux)
     if args.effect or aux:
         from ..effects.simulate import parse_effect_spec, simulate_with_effects
 
