@@ -47,20 +47,15 @@ def register(sub) -> None:
 
 def _table(path):
     from ..errors import RecordingError
-    from ..io.recording import parse_number, read_csv_rows
+    from ..io.recording import parse_table, read_csv_rows
 
     cols = ["x", "z", "ex", "ez"]
     header, _, rows = read_csv_rows(str(path), None, "a CSV x,z,ex,ez")
     if header != cols:
         raise RecordingError(path, 1, None, "expected the header x,z,ex,ez")
-    out = []
-    for i, r in enumerate(rows, start=2):
-        if len(r) != 4:
-            raise RecordingError(path, i, None, f"{len(r)} cells, expected 4")
-        out.append([parse_number(cell, str(path), i, c) for c, cell in zip(cols, r)])
-    if not out:
+    if not rows:
         raise RecordingError(path, 2, None, "no data rows")
-    return np.array(out)
+    return parse_table(str(path), cols, rows)
 
 
 def run(args) -> int:

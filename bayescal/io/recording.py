@@ -174,6 +174,22 @@ def parse_number(text: str, path: str, line: int, col: str) -> float:
     return v
 
 
+def parse_table(path: str, header: list[str], rows: list[list[str]]) -> np.ndarray:
+    """The data rows (file lines 2, 3, ...) as floats, shape (len(rows), len(header)).
+
+    Every row must have one cell per header column and every cell must be a
+    number (:func:`parse_number`); RecordingError naming line and column otherwise.
+    """
+    data = np.empty((len(rows), len(header)))
+    for i, row in enumerate(rows):
+        line = i + 2
+        if len(row) != len(header):
+            raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
+        for j, cell in enumerate(row):
+            data[i, j] = parse_number(cell, path, line, header[j])
+    return data
+
+
 def read_csv_rows(path: str, text: str | None, what: str) -> tuple[list[str], dict[str, int], list[list[str]]]:
     """Read a CSV strictly up to the header: every reader of bayescal's CSV files shares this.
 
@@ -255,7 +271,6 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
     path = str(path)
     header, seen, data_rows = read_csv_rows(path, text, "a recording (CSV)")
     seen, scale, q_unit = _unit_columns(path, header, seen)
-    rows = [header] + data_rows
     qnums = sorted(int(m.group(1)) for h in seen if (m := _Q.match(h)))
     if not qnums:
         raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ..." + _case_hint(seen, "q1"))
@@ -276,15 +291,9 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         raise RecordingError(
             path, 1, "nx", "both a rotation vector (rx, ry, rz) and a tool axis (nx, ny, nz); expected one of them"
         )
-    if len(rows) < 2:
+    if not data_rows:
         raise RecordingError(path, 2, None, "no data rows; expected one row per measured pose")
-    data = np.empty((len(rows) - 1, len(header)))
-    for i, row in enumerate(rows[1:]):
-        line = i + 2
-        if len(row) != len(header):
-            raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
-        for j, cell in enumerate(row):
-            data[i, j] = parse_number(cell, path, line, header[j])
+    data = parse_table(path, header, data_rows)
     data *= scale[None, :]
     col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
     q = col([f"q{k}" for k in qnums])

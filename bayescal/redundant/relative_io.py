@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import RecordingError
-from ..io.recording import check_q_limits, parse_number, read_csv_rows
+from ..io.recording import check_q_limits, parse_table, read_csv_rows
 from ..io.answers import write_text_atomic
 
 __all__ = ["RelativeRecording", "COMPONENTS", "read_relative_recording", "write_relative_recording", "relative_to_csv"]
@@ -91,7 +91,6 @@ def read_relative_recording(path: str | os.PathLike, *, text: str | None = None)
     """
     path = str(path)
     header, seen, data_rows = read_csv_rows(path, text, "a relative recording (CSV)")
-    rows = [header] + data_rows
     nums = {"from": set(), "to": set()}
     for h in header:
         if mt := _Q.match(h):
@@ -106,15 +105,9 @@ def read_relative_recording(path: str | os.PathLike, *, text: str | None = None)
     comps = tuple(c for c in COMPONENTS if c in seen)
     if not comps:
         raise RecordingError(path, 1, None, f"no measured column; expected at least one of {', '.join(COMPONENTS)}")
-    if len(rows) < 2:
+    if not data_rows:
         raise RecordingError(path, 2, None, "no data rows; expected one row per relative measurement")
-    data = np.empty((len(rows) - 1, len(header)))
-    for i, row in enumerate(rows[1:]):
-        line = i + 2
-        if len(row) != len(header):
-            raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
-        for j, cell in enumerate(row):
-            data[i, j] = parse_number(cell, path, line, header[j])
+    data = parse_table(path, header, data_rows)
     col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
     qf = col([f"q{k}_from" for k in range(1, m + 1)])
     qt = col([f"q{k}_to" for k in range(1, m + 1)])
