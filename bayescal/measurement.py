@@ -78,6 +78,11 @@ class MeasurementModel:
         Auxiliary channels, carried for effects and diagnosis.
     guess : ToolPoses, optional
         Start for the forward kinematics (from the measurement).
+    pose_sigma : ndarray, shape (n_poses, dof), optional
+        One-sigma noise of every row of every pose (mm, then rad): the
+        recording's ``sigma_position`` / ``sigma_angle`` columns, or weights
+        of a robust fit.  Default: the machine's ``[measurement]`` noise for
+        every pose (:attr:`sigma`).
     """
 
     machine: Machine
@@ -87,6 +92,7 @@ class MeasurementModel:
     R_ref: NDArray | None = None
     aux: dict | None = None
     guess: ToolPoses | None = None
+    pose_sigma: NDArray | None = None
 
     def __post_init__(self) -> None:
         q = self.machine.check_q(self.q)
@@ -105,6 +111,13 @@ class MeasurementModel:
             if y.shape != (self.n_poses, self.dof):
                 raise InputError(f"y_measured: expected shape ({self.n_poses}, {self.dof}), got {y.shape}")
             object.__setattr__(self, "y_measured", y)
+        if self.pose_sigma is not None:
+            ps = np.asarray(self.pose_sigma, dtype=float)
+            if ps.shape != (self.n_poses, self.dof):
+                raise InputError(f"pose_sigma: expected shape ({self.n_poses}, {self.dof}), got {ps.shape}")
+            if not np.all(np.isfinite(ps)) or np.any(ps <= 0):
+                raise InputError("pose_sigma: expected finite values > 0")
+            object.__setattr__(self, "pose_sigma", ps)
 
     # ----------------------------------------------------------- construction
     @classmethod
@@ -151,9 +164,26 @@ class MeasurementModel:
 
     @property
     def sigma(self) -> NDArray:
-        """One-sigma noise per row of a pose, shape (dof,): mm then rad."""
+        """The instrument's nominal one-sigma noise per row of a pose, shape (dof,): mm then rad."""
         nz = self.machine.noise
         return np.array([nz.sigma_position] * 3 + [nz.sigma_angle] * (self.dof - 3))
+
+    @property
+    def row_sigma(self) -> NDArray:
+        """One-sigma noise of every row of every pose, shape (n_poses, dof): mm then rad.
+
+        Per-pose values where given (:attr:`pose_sigma`), else :attr:`sigma`
+        for every pose.  Everything that whitens residuals divides by this.
+        """
+        if self.pose_sigma is not None:
+            return self.pose_sigma
+        return np.broadcast_to(self.sigma, (self.n_poses, self.dof))
+
+    def with_pose_sigma(self, pose_sigma: NDArray | None) -> "MeasurementModel":
+        """The same model with other per-pose noise (None: the machine's)."""
+        from dataclasses import replace
+
+        return replace(self, pose_sigma=pose_sigma)
 
     def subset(self, idx) -> "MeasurementModel":
         """The model restricted to poses ``idx`` (order kept)."""
@@ -171,6 +201,7 @@ class MeasurementModel:
             R_ref=None if self.R_ref is None else self.R_ref[idx],
             aux=None if self.aux is None else {k: v[idx] for k, v in self.aux.items()},
             guess=g,
+            pose_sigma=None if self.pose_sigma is None else self.pose_sigma[idx],
         )
 
     # ---------------------------------------------------------------- the model

@@ -228,7 +228,8 @@ def kalman_filter(
     if np.any(qn < 0) or not np.all(np.isfinite(qn)):
         raise InputError("process_noise: expected finite values >= 0")
     Q = np.diag(qn**2)
-    R = np.diag(model.sigma**2)
+    row_sigma = model.row_sigma
+    R = np.diag(row_sigma[0] ** 2)
     base = prior.mean.copy()
 
     def full(x: NDArray) -> NDArray:
@@ -251,6 +252,7 @@ def kalman_filter(
     for i in range(model.n_poses):
         sub = model.subset([i])
         z = sub.y_measured[0]
+        f.R = np.diag(row_sigma[i] ** 2)  # per-pose noise (recording columns or robust weights)
         try:
             if variant == "ekf":
                 if i > 0:

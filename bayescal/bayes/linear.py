@@ -49,9 +49,11 @@ class LinearisedModel:
     J: NDArray
     theta_ref: NDArray
     y_measured: NDArray | None = None
+    pose_sigma: NDArray | None = None
 
     # the parts of MeasurementModel that only use rows, sigma and dof
     sigma = MeasurementModel.sigma
+    row_sigma = MeasurementModel.row_sigma
     residual = MeasurementModel.residual
     errors = MeasurementModel.errors
     rms = MeasurementModel.rms
@@ -93,6 +95,7 @@ class LinearisedModel:
         return LinearisedModel(
             self.machine, self.q[idx], self.dof, self.y0[idx], self.J[idx], self.theta_ref,
             None if self.y_measured is None else self.y_measured[idx],
+            None if self.pose_sigma is None else self.pose_sigma[idx],
         )
 
     def with_measured(self, y: ArrayLike) -> "LinearisedModel":
@@ -100,7 +103,7 @@ class LinearisedModel:
         y = np.asarray(y, dtype=float)
         if y.shape != self.y0.shape:
             raise InputError(f"y: expected shape {self.y0.shape}, got {y.shape}")
-        return LinearisedModel(self.machine, self.q, self.dof, self.y0, self.J, self.theta_ref, y)
+        return LinearisedModel(self.machine, self.q, self.dof, self.y0, self.J, self.theta_ref, y, self.pose_sigma)
 
 
 def linearise(model, theta_ref: ArrayLike | None = None) -> LinearisedModel:
@@ -111,7 +114,8 @@ def linearise(model, theta_ref: ArrayLike | None = None) -> LinearisedModel:
         i = int(np.flatnonzero(~pred.success)[0])
         raise InputError(f"pose {i + 1}: cannot be solved at the linearisation point")
     return LinearisedModel(
-        model.machine, np.asarray(model.q), model.dof, pred.y, model.jacobian(ref, pred), ref, model.y_measured
+        model.machine, np.asarray(model.q), model.dof, pred.y, model.jacobian(ref, pred), ref, model.y_measured,
+        getattr(model, "pose_sigma", None),
     )
 
 
@@ -126,4 +130,4 @@ def linearisation_error(model, theta_ref: NDArray, samples: NDArray) -> float:
     stacked = np.repeat(samples, model.n_poses, axis=0)
     exact = model.predict(stacked).y
     approx = lin.predict(stacked).y
-    return float(np.max(np.abs(exact - approx) / model.sigma))
+    return float(np.max(np.abs(exact - approx) / np.tile(model.row_sigma, (samples.shape[0], 1))))

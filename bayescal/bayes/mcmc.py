@@ -233,11 +233,11 @@ def log_posterior_function(model, prior: GaussianPrior, idx: NDArray, *, guess=N
     Poses that cannot be solved give ``-inf``.
     """
     n_poses, dof = model.n_poses, model.dof
-    sig = model.sigma
+    sig = model.row_sigma
     y = model.y_measured
     base = prior.mean.copy()
     pri = prior.subset(idx)
-    const = -np.sum(np.log(sig)) - 0.5 * dof * np.log(2 * np.pi)
+    const = -np.sum(np.log(sig), axis=1) - 0.5 * dof * np.log(2 * np.pi)  # per pose
 
     def log_prob(X: NDArray) -> NDArray:
         X = np.atleast_2d(X)
@@ -246,7 +246,7 @@ def log_posterior_function(model, prior: GaussianPrior, idx: NDArray, *, guess=N
         th[:, idx] = X
         pred = model.predict(np.repeat(th, n_poses, axis=0), guess=guess)
         r = ((pred.y.reshape(W, n_poses, dof) - y[None]) / sig).astype(float)
-        ll = -0.5 * np.sum(r**2, axis=2) + const
+        ll = -0.5 * np.sum(r**2, axis=2) + const[None, :]
         ll[~pred.success.reshape(W, n_poses)] = -np.inf
         lp = ll.sum(axis=1) + pri.logpdf(X)
         lp[~np.isfinite(lp)] = -np.inf
@@ -266,6 +266,7 @@ def _tree(model, prior, idx, names, chain, lp, ll) -> object:
             "constant_data": {
                 "q": np.asarray(model.q),
                 "sigma": model.sigma,
+                "pose_sigma": np.asarray(model.row_sigma),
                 "prior_mean": prior.mean[idx],
                 "prior_std": prior.std[idx],
             },
@@ -276,6 +277,7 @@ def _tree(model, prior, idx, names, chain, lp, ll) -> object:
             "y_measured": ["pose", "component"],
             "q": ["pose", "actuator"],
             "sigma": ["component"],
+            "pose_sigma": ["pose", "component"],
             "prior_mean": ["param"],
             "prior_std": ["param"],
         },

@@ -188,7 +188,7 @@ def draw_candidates(
     model = MeasurementModel(machine=machine, q=q[ok], dof=dof)
     pred = model.predict(theta)
     good = np.asarray(pred.success, dtype=bool)
-    J = model.jacobian(theta, pred) / model.sigma[None, :, None]
+    J = model.jacobian(theta, pred) / model.row_sigma[:, :, None]
     J[~good] = np.nan
     usable = np.flatnonzero(good & np.all(np.isfinite(J), axis=(1, 2)))[: max(1, int(n_output))]
     q_out = q[ok][usable]

@@ -165,7 +165,7 @@ def diagnose(
         ) from exc
     pred0 = model.predict(fit0.theta)
     dq_res = actuator_residual(model, fit0.theta, fit0.residual, pred0)
-    location = locate(model.q, fit0.residual / model.sigma[None, :], dq_res, aux, recording.position, seed=seed, n_perm=n_perm)
+    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, recording.position, seed=seed, n_perm=n_perm)
 
     cands: list[_Candidate] = []
     skipped: list[tuple[str, str]] = []

@@ -154,8 +154,8 @@ def effect_residual(
 def actuator_residual(model: MeasurementModel, theta: NDArray, residual: NDArray, prediction: Prediction) -> NDArray:
     """Residuals mapped to actuator space: per pose the ``dq`` (mm) that best explains them (whitened LS)."""
     Jq = model.rows_jacobian(model.machine.actuator_jacobian(model.q, theta, prediction.poses), prediction)
-    Jw = Jq / model.sigma[None, :, None]
-    rw = residual / model.sigma[None, :]
+    Jw = Jq / model.row_sigma[:, :, None]
+    rw = residual / model.row_sigma
     return np.stack([np.linalg.lstsq(Jw[i], rw[i], rcond=None)[0] for i in range(model.n_poses)])
 
 
@@ -206,7 +206,7 @@ def fit_map(
     mu = np.concatenate([np.zeros(P), [p.prior_mean for p in params]]) / scale
     theta = np.zeros(P) if theta0 is None else np.asarray(theta0, float).copy()
     eta = np.array([p.prior_mean for p in params]) if eta0 is None else np.asarray(eta0, float).copy()
-    sig = model.sigma
+    sig = model.row_sigma
 
     def evaluate(theta, eta, guess):
         q_eff = model.q + _dq(effects, slices, eta, model.q.shape)
@@ -223,7 +223,7 @@ def fit_map(
             Jq = sub.rows_jacobian(machine.actuator_jacobian(sub.q, theta, pred.poses), pred)
             for (eff, f), sl in zip(effects, slices):
                 cols.append(np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian(f, eta[sl])))
-        J = np.concatenate(cols, axis=2) / sig[None, :, None]
+        J = np.concatenate(cols, axis=2) / sig[:, :, None]
         return J.reshape(-1, P + K) * scale
 
     sub, pred, r, rw, chi2, pri = evaluate(theta, eta, None)

@@ -36,9 +36,9 @@ __all__ = ["identify", "resolve_free", "whitened_system"]
 
 def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tuple[NDArray, NDArray]:
     """Whitened residual ``W (y - h)`` (N,) and Jacobian ``W J`` (N, P) at ``theta``."""
-    sig = model.sigma
+    sig = model.row_sigma
     r = (model.residual(prediction) / sig).reshape(-1)
-    J = (model.jacobian(theta, prediction) / sig[None, :, None]).reshape(-1, model.n_params)
+    J = (model.jacobian(theta, prediction) / sig[:, :, None]).reshape(-1, model.n_params)
     return r, J
 
 
@@ -49,7 +49,7 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray):
         pred = model.predict(theta0)
         _, J = whitened_system(model, theta0, pred) if model.y_measured is not None else (None, None)
         if J is None:
-            J = (model.jacobian(theta0, pred) / model.sigma[None, :, None]).reshape(-1, model.n_params)
+            J = (model.jacobian(theta0, pred) / model.row_sigma[:, :, None]).reshape(-1, model.n_params)
         ida = analyse_identifiability(J, layout)
         return ida.kept_index, ida
     if isinstance(free, str) and free == "all":

@@ -107,3 +107,24 @@ def test_poorly_determined_parameters_are_flagged(prs3):
     # the prior keeps every std below its tolerance (posterior never wider than prior)
     assert ridge.poorly_determined() == ()
     assert np.all(ridge.std[ridge.free] <= prs3.tolerance[ridge.free] * (1 + 1e-9))
+
+
+def test_per_pose_sigma_weights_each_pose(prs3, sim6):
+    """A pose given a huge sigma counts as if it were not there; a uniform per-pose sigma changes nothing."""
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    base = identify(model, method="ridge", lam=1.0)
+    same = identify(model.with_pose_sigma(np.tile(model.sigma, (model.n_poses, 1))), method="ridge", lam=1.0)
+    assert np.allclose(same.theta, base.theta, atol=1e-9 * prs3.tolerance.max())
+    # corrupt pose 5 by 0.3 mm and give it a sigma of 1 m: the answer is that of the other 35 poses
+    y = model.y_measured.copy()
+    y[4, 0] += 0.3
+    ps = np.tile(model.sigma, (model.n_poses, 1))
+    ps[4] *= 2e5
+    from dataclasses import replace
+
+    weighted = identify(replace(model, y_measured=y, pose_sigma=ps), method="ridge", lam=1.0)
+    keep = np.delete(np.arange(model.n_poses), 4)
+    dropped = identify(model.subset(keep), method="ridge", lam=1.0, free=np.flatnonzero(weighted.free))
+    assert np.allclose(weighted.theta, dropped.theta, atol=1e-6 * prs3.tolerance.max())
+    with pytest.raises(InputError, match="pose_sigma"):
+        model.with_pose_sigma(np.zeros((model.n_poses, model.dof)))
