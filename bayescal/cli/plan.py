@@ -58,6 +58,12 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same plan (default 0)")
     p.add_argument("--random-sets", type=int, default=20, help="random selections to compare with (default 20)")
     p.add_argument("--no-exchange", action="store_true", help="greedy selection only")
+    p.add_argument("--repeats", action="store_true",
+                   help="allow a pose to be planned more than once (measure it again): optimal designs often "
+                        "repeat a few extreme poses")
+    p.add_argument("--no-box", action="store_true",
+                   help="candidates only drawn uniformly; by default the corners, edge midpoints and face centres "
+                        "of the q_limits box (and points 1 %% and 5 %% inside them) are candidates too")
     p.add_argument("--out", required=True, help="CSV of commanded poses to write (q1..qN, pose_id)")
     p.add_argument("--json", metavar="PATH", help="write the plan and its criterion values as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
@@ -77,6 +83,7 @@ def run(args) -> int:
     plan = plan_poses(
         machine, args.n, criterion=args.criterion, dof=args.dof, n_candidates=args.candidates, seed=args.seed,
         scaling=args.scaling, n_random=args.random_sets, exchange=not args.no_exchange,
+        repeats=args.repeats, box=not args.no_box,
     )
     write_plan(args.out, plan)
     if args.json:

@@ -27,7 +27,7 @@ from ..identifiability import analyse_identifiability
 from ..machines.base import Machine
 from ..measurement import MeasurementModel
 
-__all__ = ["CandidateSet", "SCALINGS", "column_scale", "draw_candidates", "candidate_set_from_jacobian"]
+__all__ = ["CandidateSet", "SCALINGS", "box_points", "column_scale", "draw_candidates", "candidate_set_from_jacobian"]
 
 SCALINGS = ("tolerance", "candidates")
 
@@ -154,12 +154,50 @@ def candidate_set_from_jacobian(
 #: Workspace poses (at most) at which the tool-point Jacobian for criterion I is evaluated.
 N_OUTPUT = 2000
 
+#: Up to this many actuators the full 3^m grid of the box is used; beyond, corners and face centres.
+_FULL_GRID_MAX = 8
+
+
+def box_points(q_limits: NDArray, *, inset: float = 0.0) -> NDArray:
+    """Corners, edge midpoints, face centres and centre of the actuator box.
+
+    Information-optimal designs put their poses at the extremes of the
+    actuator box, where uniformly drawn candidates almost never land (the
+    chance that a uniform draw is within 1 % of a given corner in every one
+    of m coordinates is 0.01^m).  These points are the grid ``{lo, mid,
+    hi}^m`` (3^m points: every corner, edge midpoint and face centre), or,
+    for more than 8 actuators, the 2^m corners and the 2m face centres.
+
+    Parameters
+    ----------
+    q_limits : ndarray, shape (m, 2)
+        ``[min, max]`` per actuator (machine units).
+    inset : float
+        Fraction of each range to move every point towards the centre (a
+        corner the machine cannot assemble often has an assemblable point
+        just inside it).
+
+    Returns
+    -------
+    ndarray, shape (n_points, m)
+    """
+    lim = np.asarray(q_limits, dtype=float)
+    lo, hi = lim[:, 0], lim[:, 1]
+    m = lim.shape[0]
+    if m <= _FULL_GRID_MAX:
+        u = np.stack(np.meshgrid(*([np.array([-1.0, 0.0, 1.0])] * m), indexing="ij"), axis=-1).reshape(-1, m)
+    else:
+        corners = np.stack(np.meshgrid(*([np.array([-1.0, 1.0])] * m), indexing="ij"), axis=-1).reshape(-1, m)
+        faces = np.concatenate([np.eye(m), -np.eye(m)])
+        u = np.concatenate([corners, faces])
+    return 0.5 * (lo + hi) + 0.5 * (hi - lo) * (1.0 - inset) * u
+
 
 def draw_candidates(
     machine: Machine, n: int, *, dof: int, rng: np.random.Generator, scaling: str = "tolerance",
-    theta: NDArray | None = None, n_output: int = N_OUTPUT,
+    theta: NDArray | None = None, n_output: int = N_OUTPUT, box: bool = True,
 ) -> CandidateSet:
-    """Draw ``n`` candidate poses uniformly within ``q_limits`` and linearise there.
+    """Draw ``n`` candidate poses uniformly within ``q_limits``, add the box's extremes, and linearise there.
 
     Parameters
     ----------
@@ -178,10 +216,19 @@ def draw_candidates(
         ``n_output`` usable candidates (uniform within ``q_limits`` and
         solvable, the distribution the study's fresh evaluation poses come
         from), so no extra random numbers are drawn.
+    box : bool
+        Append :func:`box_points` of ``q_limits`` (corners, edges, faces;
+        and the same set inset by 1 % and 5 % of each range), after the
+        random draws, so that the uniform draws and their random numbers are
+        the same with or without them.  Those the machine cannot assemble
+        are rejected like any candidate.
     """
     if n < 1:
         raise InputError(f"candidates: expected a positive number, got {n}")
     q = machine.sample_q(int(n), rng)
+    n_uniform = q.shape[0]
+    if box:
+        q = np.concatenate([q] + [box_points(machine.q_limits, inset=f) for f in (0.0, 0.01, 0.05)])
     ok = np.asarray(machine.forward(q, theta).success, dtype=bool)
     if not ok.any():
         raise InputError(f"{machine.source}: none of {n} candidate poses within q_limits can be solved")
@@ -190,9 +237,10 @@ def draw_candidates(
     good = np.asarray(pred.success, dtype=bool)
     J = model.jacobian(theta, pred) / model.row_sigma[:, :, None]
     J[~good] = np.nan
-    usable = np.flatnonzero(good & np.all(np.isfinite(J), axis=(1, 2)))[: max(1, int(n_output))]
+    uniform = np.flatnonzero(ok) < n_uniform  # criterion I averages over the workspace: uniform draws only
+    usable = np.flatnonzero(good & uniform & np.all(np.isfinite(J), axis=(1, 2)))[: max(1, int(n_output))]
     q_out = q[ok][usable]
     G = machine.tool_jacobian(q_out, theta, machine.forward(q_out, theta))[:, :3, :]
     G = G[np.all(np.isfinite(G), axis=(1, 2))]
-    return candidate_set_from_jacobian(q[ok], J, machine.tolerance, machine.layout, scaling=scaling, n_drawn=n,
+    return candidate_set_from_jacobian(q[ok], J, machine.tolerance, machine.layout, scaling=scaling, n_drawn=q.shape[0],
                                        output_jacobian=G if G.shape[0] else None)

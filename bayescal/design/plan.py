@@ -177,7 +177,7 @@ def _M0(cands: CandidateSet, criterion: str) -> tuple[NDArray, NDArray]:
 
 def select_from_candidates(
     cands: CandidateSet, n: int, criterion: str, *, exchange: bool = True, shortlist: int = 512,
-    max_swaps: int | None = None,
+    max_swaps: int | None = None, repeats: bool = False,
 ):
     """Greedy selection then exchange on a candidate set; returns a :class:`~bayescal.design.select.Selection`."""
     criterion = check_criterion(criterion)
@@ -188,9 +188,9 @@ def select_from_candidates(
         if Q is None:
             raise InputError("criterion I: the candidate set has no workspace tool-point Jacobian "
                              "(build it with draw_candidates, or pass output_jacobian)")
-    idx, _ = greedy_select(blocks, n, criterion, M0=M0, shortlist=shortlist, Q=Q)
+    idx, _ = greedy_select(blocks, n, criterion, M0=M0, shortlist=shortlist, Q=Q, repeats=repeats)
     return exchange_refine(blocks, idx, criterion, M0=M0, max_iter=max_swaps if exchange else 0, shortlist=shortlist,
-                           Q=Q)
+                           Q=Q, repeats=repeats)
 
 
 def plan_poses(
@@ -205,6 +205,8 @@ def plan_poses(
     n_random: int = 20,
     exchange: bool = True,
     candidates: CandidateSet | None = None,
+    repeats: bool = False,
+    box: bool = True,
 ) -> PosePlan:
     """Plan ``n_poses`` measurement poses that maximise an information criterion.
 
@@ -228,6 +230,11 @@ def plan_poses(
         Run the exchange refinement after the greedy pass.
     candidates : CandidateSet, optional
         Use these instead of drawing (``n_candidates`` is then ignored).
+    repeats : bool
+        Allow a pose to be planned more than once (measured again).
+    box : bool
+        Add the corners, edges and faces of the actuator box to the
+        candidates (:func:`bayescal.design.candidates.box_points`).
 
     Returns
     -------
@@ -239,8 +246,9 @@ def plan_poses(
     if int(n_poses) != n_poses or n_poses < 1:
         raise InputError(f"n_poses: expected a positive integer, got {n_poses!r}")
     rng = np.random.default_rng(seed)
-    cands = candidates if candidates is not None else draw_candidates(machine, n_candidates, dof=dof, rng=rng, scaling=scaling)
-    if n_poses > cands.n:
+    cands = candidates if candidates is not None else draw_candidates(machine, n_candidates, dof=dof, rng=rng, scaling=scaling,
+                                                                       box=box)
+    if n_poses > cands.n and not repeats:
         raise InputError(f"n_poses: {n_poses} asked for, but only {cands.n} usable candidates; draw more candidates")
     L = cands.blocks.shape[2]
     if n_poses * dof < L and criterion not in PRIOR_BASED:
@@ -248,7 +256,7 @@ def plan_poses(
             f"n_poses: {n_poses} poses x {dof} components < {L} identifiable parameters; criterion {criterion} "
             f"needs at least {-(-L // dof)} poses (or use EIG or I, which include the tolerance prior)"
         )
-    sel = select_from_candidates(cands, int(n_poses), criterion, exchange=exchange)
+    sel = select_from_candidates(cands, int(n_poses), criterion, exchange=exchange, repeats=repeats)
     values = evaluate_selection(cands, sel.index)
     rand = np.array([list(evaluate_selection(cands, rng.choice(cands.n, int(n_poses), replace=False)).values())
                      for _ in range(int(n_random))]) if n_random > 0 else np.full((1, len(CRITERIA)), np.nan)

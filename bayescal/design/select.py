@@ -145,7 +145,7 @@ def _data_full_rank(M: NDArray, M0: NDArray) -> bool:
 
 def greedy_select(
     blocks: NDArray, n: int, criterion: str, *, M0: NDArray, shortlist: int = 512, lazy: bool = True,
-    chunk: int = 256, Q: NDArray | None = None,
+    chunk: int = 256, Q: NDArray | None = None, repeats: bool = False,
 ) -> tuple[NDArray, NDArray]:
     """Greedy addition of ``n`` candidate blocks maximising the criterion's utility.
 
@@ -170,6 +170,12 @@ def greedy_select(
         Candidates re-evaluated at a time in the lazy pass.
     Q : ndarray, shape (L, L), optional
         Output weight of criterion I (required for it).
+    repeats : bool
+        Allow a candidate to be chosen more than once (measured again).
+        Repeating the most informative poses can beat any set of distinct
+        poses (the optimal design measure puts weight on a few support
+        points); the lazy bounds stay valid, since a repeated block's gain
+        also only shrinks.
 
     Returns
     -------
@@ -180,10 +186,14 @@ def greedy_select(
     """
     criterion = check_criterion(criterion)
     N = blocks.shape[0]
-    if not 1 <= n <= N:
+    if not 1 <= n <= (np.inf if repeats else N):
         raise InputError(f"n: expected 1 to {N} poses (the number of usable candidates), got {n}")
     M = np.array(M0, dtype=float)
     selected: list[int] = []
+
+    def excluded() -> NDArray:
+        return np.array([] if repeats else selected, dtype=int)
+
     rank_first = utility_kind(criterion) in ("spectral", "trace_inv")
     bound: NDArray | None = None  # upper bounds of the log-det gains (lazy greedy)
     for _ in range(n):
@@ -194,16 +204,16 @@ def greedy_select(
             use = "D"
         if utility_kind(use) != "logdet" or not lazy:
             bound = None
-            gains = candidate_gains(blocks, M, use, shortlist=shortlist, exclude=np.array(selected, dtype=int), Q=Q)
+            gains = candidate_gains(blocks, M, use, shortlist=shortlist, exclude=excluded(), Q=Q)
             j = int(np.argmax(gains))
         elif bound is None:
-            gains = candidate_gains(blocks, M, use, exclude=np.array(selected, dtype=int))
+            gains = candidate_gains(blocks, M, use, exclude=excluded())
             bound = gains.copy()
             j = int(np.argmax(gains))
         else:
             Minv = _inverse(M)
             fresh = np.zeros(N, dtype=bool)
-            fresh[selected] = True
+            fresh[excluded()] = True
             # candidates by decreasing bound, sorted once per step: re-evaluated gains only shrink,
             # so the order of the not yet re-evaluated ones stays valid
             order = np.argsort(-bound, kind="stable")
@@ -217,13 +227,12 @@ def greedy_select(
                     bound[todo] = candidate_gains(blocks[todo], M, use, Minv=Minv)
                     fresh[todo] = True
                 best_fresh = np.where(fresh, bound, -np.inf)
-                best_fresh[selected] = -np.inf
+                best_fresh[excluded()] = -np.inf
                 j = int(np.argmax(best_fresh))
                 if pos >= order.size or best_fresh[j] >= bound[order[pos]]:
                     break
-        bound_sel = bound
-        if bound_sel is not None:
-            bound_sel[j] = -np.inf
+        if bound is not None and not repeats:
+            bound[j] = -np.inf
         selected.append(j)
         M = M + blocks[j].T @ blocks[j]
     return np.array(selected, dtype=int), M
@@ -231,9 +240,12 @@ def greedy_select(
 
 def exchange_refine(
     blocks: NDArray, selected: NDArray, criterion: str, *, M0: NDArray, max_iter: int | None = None,
-    shortlist: int = 512, Q: NDArray | None = None,
+    shortlist: int = 512, Q: NDArray | None = None, repeats: bool = False,
 ) -> Selection:
-    """DETMAX exchange (excursion length one) from a starting selection; never lowers the utility."""
+    """DETMAX exchange (excursion length one) from a starting selection; never lowers the utility.
+
+    With ``repeats`` a candidate already in the selection may be added again.
+    """
     criterion = check_criterion(criterion)
     S = [int(i) for i in selected]
     M = M0 + np.einsum("nki,nkj->ij", blocks[S], blocks[S])
@@ -242,7 +254,8 @@ def exchange_refine(
     max_iter = 2 * len(S) if max_iter is None else int(max_iter)
     swaps = 0
     for _ in range(max_iter):
-        gains = candidate_gains(blocks, M, criterion, shortlist=shortlist, exclude=np.array(S, dtype=int), Q=Q)
+        gains = candidate_gains(blocks, M, criterion, shortlist=shortlist,
+                                exclude=np.array([] if repeats else S, dtype=int), Q=Q)
         c = int(np.argmax(gains))
         if not np.isfinite(gains[c]):
             break
@@ -251,7 +264,7 @@ def exchange_refine(
         BB = np.swapaxes(blocks[members], 1, 2) @ blocks[members]
         u = utility(criterion, M_plus[None] - BB, Q=Q)
         i = int(np.argmax(u))
-        if members[i] == c or not u[i] > cur + 1e-12 * abs(cur):
+        if members[i] == c or not u[i] > cur + 1e-12 * abs(cur):  # removing a copy of c changes nothing
             break
         S[i] = c
         M = M_plus - BB[i]
@@ -262,7 +275,9 @@ def exchange_refine(
                      history=np.array(history))
 
 
-def brute_force_greedy(blocks: NDArray, n: int, criterion: str, *, M0: NDArray, Q: NDArray | None = None) -> NDArray:
+def brute_force_greedy(
+    blocks: NDArray, n: int, criterion: str, *, M0: NDArray, Q: NDArray | None = None, repeats: bool = False,
+) -> NDArray:
     """Greedy selection recomputing the utility of every candidate from scratch (reference, slow).
 
     The independent path the rank-k updates are tested and benchmarked
@@ -279,7 +294,7 @@ def brute_force_greedy(blocks: NDArray, n: int, criterion: str, *, M0: NDArray, 
             use = "D"
         best, best_u = -1, -np.inf
         for i in range(blocks.shape[0]):
-            if i in selected:
+            if i in selected and not repeats:
                 continue
             u = float(utility(use, M + blocks[i].T @ blocks[i], Q=Q))
             if u > best_u:

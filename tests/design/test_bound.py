@@ -36,3 +36,23 @@ def test_one_parameter_bound_equals_the_closed_form():
     assert res.relaxed == pytest.approx(exact, rel=1e-3)
     with pytest.raises(InputError, match="positive number"):
         output_error_bound(blocks, Q, 0)
+
+
+def test_bound_is_below_every_exact_design_including_repeats():
+    """Exhaustive enumeration with repeated poses: the relaxation allows repeats, so it bounds them too."""
+    from itertools import combinations_with_replacement
+
+    rng = np.random.default_rng(11)
+    N, k, L, n = 7, 2, 3, 4
+    blocks = rng.normal(size=(N, k, L)) * rng.uniform(0.2, 2.0, size=(N, 1, L))
+    Q = output_weight(rng.normal(size=(20, 3, L)) * np.array([3.0, 1.0, 0.3]))
+
+    def value(s):
+        B = blocks[list(s)]
+        return -float(utility("I", np.eye(L) + np.einsum("nki,nkj->ij", B, B), Q=Q))
+
+    with_repeats = [value(s) for s in combinations_with_replacement(range(N), n)]
+    distinct = [value(s) for s in combinations(range(N), n)]
+    b = output_error_bound(blocks, Q, n, iters=3000, rtol=1e-7)
+    assert b.lower <= min(with_repeats) + 1e-12
+    assert min(with_repeats) <= min(distinct)

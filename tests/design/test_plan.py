@@ -97,7 +97,8 @@ def test_i_plan_predicts_the_map_output_error_it_minimises(prs3):
 
 def test_draw_candidates_rejects_nothing_inside_a_good_workspace(prs3):
     c = draw_candidates(prs3, 40, dof=3, rng=np.random.default_rng(1))
-    assert c.n + c.n_rejected == 40 and c.blocks.shape == (c.n, 3, len(c.kept))
+    # 40 uniform draws + the 27 box points at 3 insets
+    assert c.n + c.n_rejected == 40 + 3 * 27 and c.blocks.shape == (c.n, 3, len(c.kept))
 
 
 def test_cli_plan_writes_the_csv_and_json(tmp_path, capsys):

@@ -80,3 +80,42 @@ def test_i_optimal_selection_on_a_problem_with_a_known_answer():
     assert sorted(sel.index.tolist()) == [1, 3] and sel.utility == pytest.approx(-(100 / 3 + 1))
     idx_d, _ = greedy_select(blocks, 2, "EIG", M0=np.eye(2))
     assert sorted(blocks[idx_d].sum(axis=0).ravel().tolist()) == [1.0, 1.0]
+
+
+def test_greedy_with_repeats_matches_brute_force_and_can_repeat():
+    from bayescal.design.select import brute_force_greedy, greedy_select
+    from bayescal.errors import InputError
+
+    rng = np.random.default_rng(5)
+    N, k, L = 6, 2, 3
+    blocks = rng.normal(size=(N, k, L))
+    blocks[2] *= 4.0  # one pose far more informative than the rest: D-greedy measures it again
+    M0 = 1e-3 * np.eye(L)
+    for crit in ("D", "A"):
+        fast, _ = greedy_select(blocks, 9, crit, M0=M0, repeats=True)
+        slow = brute_force_greedy(blocks, 9, crit, M0=M0, repeats=True)
+        assert np.array_equal(fast, slow)
+        assert np.bincount(fast, minlength=N).max() > 1
+    # 9 poses from 6 candidates only with repeats
+    with pytest.raises(InputError):
+        greedy_select(blocks, 9, "D", M0=M0)
+
+
+def test_enriched_candidates_contain_the_box_corners(prs3):
+    from bayescal.design import draw_candidates
+    from bayescal.design.candidates import box_points
+
+    lim = prs3.q_limits
+    pts = box_points(lim)
+    assert pts.shape == (27, 3)
+    corners = np.array([[a, b, c] for a in lim[0] for b in lim[1] for c in lim[2]])
+    for c in corners:
+        assert np.any(np.all(np.isclose(pts, c), axis=1))
+    cands = draw_candidates(prs3, 200, dof=6, rng=np.random.default_rng(0))
+    assemblable = prs3.forward(corners).success
+    for c in corners[assemblable]:
+        assert np.any(np.all(np.isclose(cands.q, c), axis=1)), c
+    # the uniform draws are unchanged by the enrichment (same random numbers, same first rows)
+    plain = draw_candidates(prs3, 200, dof=6, rng=np.random.default_rng(0), box=False)
+    assert np.array_equal(cands.q[: plain.n], plain.q)
+    assert np.array_equal(cands.output_jacobian, plain.output_jacobian)
