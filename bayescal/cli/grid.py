@@ -76,6 +76,12 @@ def run(args) -> int:
     machine, rec, model = recording_model(args)
     if aux and not machine.effects:
         raise InputError(f"--aux: {args.machine} carries no [effect.*] tables, so the grid depends on no channel")
+    from ..effects.stored import PROBE_CHANNELS
+
+    known = dict.fromkeys([*PROBE_CHANNELS, *rec.aux])
+    typo = [k for k in aux if k not in known]
+    if typo:  # a misspelt channel would silently leave the effect at its default
+        raise InputError(f"--aux {typo[0]}: unknown channel; expected one of: {', '.join(known)}")
     free = free_arg(args.free)
     if args.method == "mcmc" and free == "all":
         free = "auto"  # sampling the unidentifiable directions only explores the prior

@@ -182,3 +182,19 @@ def test_tables_text_is_valid_toml_for_awkward_names():
 
     doc = tomllib.loads(effect_tables_toml((st,)))
     assert doc["effect"]["backlash"] == dict(st.values)
+
+
+def test_tables_work_for_other_kinds_alike():
+    """Generic over machine kinds: the redundant RASPM with its preload, the RU-PUS-PRS with backlash."""
+    from tests.conftest import ROOT
+
+    for kind, name, mag in [("raspm", "redundancy_preload", 300.0), ("rupus_prs", "backlash", 30.0)]:
+        m = load_machine(ROOT / "examples" / kind / "machine.toml")
+        sim = simulate_with_effects(m, 30, seed=1, effects=[(name, mag)])
+        truth = sim.info["effects"][name]["parameters"]
+        st = StoredEffect(name, tuple((p["name"], p["value"]) for p in truth))
+        true_m = machine_from_text(machine_file_text(m, sim.theta_true, (st,)))
+        assert true_m.effects[0].units == tuple(p["unit"] for p in truth)
+        model = MeasurementModel.from_recording(true_m, sim.recording)
+        r = model.residual(model.predict(None))
+        assert float(np.mean((r / model.sigma) ** 2)) < 1.3, kind
