@@ -51,7 +51,7 @@ from .base import Effect, EffectParam
 
 __all__ = [
     "StoredEffect", "PROBE_CHANNELS", "read_effect_tables", "effect_tables_toml", "effect_delta_q",
-    "static_effect_delta_q", "StoredEffectsTransform", "machine_file_text", "parse_aux_values",
+    "static_effect_delta_q", "StoredEffectsTransform", "machine_file_text", "parse_aux_values", "predict_poses",
 ]
 
 #: Auxiliary channels whose presence can change an effect's parameter set (FORMATS.md section 2).
@@ -302,6 +302,32 @@ def effect_delta_q(
         eta = st.vector(tuple(eff.params(machine, f)), _channels(aux))
         dq = dq + eff.delta_q(f, eta)
     return dq
+
+
+def predict_poses(machine: Machine, q: NDArray, aux: dict | None = None, *, theta=None, order: NDArray | None = None) -> ToolPoses:
+    """Tool poses the machine reaches at commanded ``q``, with its stored effects applied.
+
+    The library's prediction of a calibrated machine (geometry plus
+    ``[effect.*]`` tables) for a recording's poses and channels:
+    ``forward(q + sum_e dq_e, theta)``.  Without effects this is
+    ``machine.forward(q, theta)``.
+
+    Parameters
+    ----------
+    machine : Machine
+    q : ndarray, shape (n_poses, n_actuators)
+        Commanded actuator positions (measurement order unless ``order``).
+    aux : dict of str to ndarray, optional
+        Auxiliary channels of the poses.
+    theta : ndarray, optional
+        Geometric errors on top of the machine file's geometry (zeros).
+    order : ndarray of int, optional
+        Time rank of each row.
+    """
+    q = machine.check_q(q)
+    if machine.effects:
+        q = q + effect_delta_q(machine, machine.effects, q, aux, theta=theta, order=order)
+    return machine.forward(q, theta)
 
 
 def static_effect_delta_q(machine: Machine, effects: tuple[StoredEffect, ...], q: NDArray, aux: dict | None = None) -> NDArray:

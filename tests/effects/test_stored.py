@@ -198,3 +198,14 @@ def test_tables_work_for_other_kinds_alike():
         model = MeasurementModel.from_recording(true_m, sim.recording)
         r = model.residual(model.predict(None))
         assert float(np.mean((r / model.sigma) ** 2)) < 1.3, kind
+
+
+def test_predict_poses_is_the_model_of_a_recording(prs3, sim6):
+    st = StoredEffect("backlash", (("backlash.q1", 20.0), ("backlash.q2", 40.0), ("backlash.q3", 30.0)))
+    m = prs3.with_effects((st,))
+    from bayescal.effects.stored import predict_poses
+
+    rec = sim6.recording
+    model = MeasurementModel.from_recording(m, rec)
+    np.testing.assert_allclose(predict_poses(m, rec.q, rec.aux).position, model.predict(None).y[:, :3], atol=1e-9)
+    np.testing.assert_allclose(predict_poses(prs3, rec.q).position, prs3.forward(rec.q).position, atol=0)
