@@ -177,7 +177,11 @@ class Machine(ABC):
 
     @abstractmethod
     def to_toml(self, theta: ArrayLike | None = None) -> str:
-        """Machine file text of the geometry ``nominal + theta`` (errors folded in)."""
+        """Machine file text of the geometry ``nominal + theta`` (errors folded in).
+
+        The geometry only: :func:`bayescal.effects.stored.machine_file_text`
+        adds the ``[effect.*]`` tables of :attr:`effects`.
+        """
 
     @classmethod
     @abstractmethod
