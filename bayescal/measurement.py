@@ -132,6 +132,14 @@ class MeasurementModel:
         dof : int, optional
             6, 5 or 3; at most what the recording holds (a 6-DOF recording
             can be used as 5-DOF or position-only).  Default: the recording's.
+
+        Notes
+        -----
+        A machine that carries effects (``machine.effects``, the machine
+        file's ``[effect.<name>]`` tables) has them applied here at their
+        stored values, driven by the recording's auxiliary channels and
+        measurement order: the model's ``q`` is then the commanded
+        positions plus the effects' ``dq`` (:mod:`bayescal.effects.stored`).
         """
         rec.check_machine(machine.n_actuators, machine.q_limits, machine.source, machine.actuator_units)
         have = rec.dof
@@ -141,6 +149,15 @@ class MeasurementModel:
             raise InputError(f"dof={dof} asked for, but {rec.path} holds a {have}-DOF measurement")
         R_meas = so3_exp(rec.rotvec) if rec.rotvec is not None else None
         guess = machine.guess_from_measurement(rec.q, rec.position, R_meas, rec.axis)
+        q = rec.q
+        if machine.effects:
+            # the machine file's [effect.*] tables at their stored values: the kinematics sees the
+            # actuator positions the effects make of the commanded ones, so every consumer applies them
+            from .effects.stored import effect_delta_q
+
+            poses = machine.forward(q, None, guess=guess) if guess is not None else None
+            q = q + effect_delta_q(machine, machine.effects, q, dict(rec.aux), poses=poses)
+            guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
         n = rec.n_poses
         y = np.zeros((n, dof))
         y[:, :3] = rec.position
@@ -151,7 +168,7 @@ class MeasurementModel:
             axis = rec.axis if rec.axis is not None else R_meas[:, :, 2]
             # any rotation whose third column is the measured axis will do as a reference
             R_ref = _frame_with_z(axis)
-        return cls(machine=machine, q=rec.q, dof=dof, y_measured=y, R_ref=R_ref, aux=dict(rec.aux), guess=guess)
+        return cls(machine=machine, q=q, dof=dof, y_measured=y, R_ref=R_ref, aux=dict(rec.aux), guess=guess)
 
     # ------------------------------------------------------------- properties
     @property

@@ -120,6 +120,7 @@ def compensation_grid(
     samples: ArrayLike | None = None,
     n: int = 9,
     axes: tuple[ArrayLike, ...] | None = None,
+    aux: dict | None = None,
 ) -> CompensationGrid:
     """The grid of corrections and their std for identified errors ``theta``.
 
@@ -138,6 +139,15 @@ def compensation_grid(
         Nodes per actuator within ``q_limits``.
     axes : tuple of array_like, optional
         Node values per actuator instead.
+    aux : dict of str to float, optional
+        Auxiliary channels at which the machine's stored effects
+        (``machine.effects``, ``[effect.*]`` tables) act at every node, e.g.
+        ``{"payload_kg": 5.0, "temp_C": 25.0}``: the correction is then the
+        one under that payload or temperature.  A channel not given is
+        absent, as in a recording without it (no payload; thermal expansion
+        needs ``temp_C``).  Nodes have no approach direction: backlash and
+        elapsed-time effects read none
+        (:func:`bayescal.effects.stored.static_effect_delta_q`).
 
     Returns
     -------
@@ -155,14 +165,20 @@ def compensation_grid(
     axes = tuple(np.asarray(a, dtype=float) for a in axes)
     if len(axes) != machine.n_actuators:
         raise InputError(f"axes: expected {machine.n_actuators} (one per actuator), got {len(axes)}")
-    q = actuator_nodes(axes)
+    q_cmd = actuator_nodes(axes)
     shape = tuple(a.size for a in axes) + (3,)
-    nominal = machine.forward(q, None)
+    nominal = machine.forward(q_cmd, None)
+    q = q_cmd
+    if machine.effects:
+        # where the drives really are at each node under the stated aux (the correction includes the effects)
+        from ..effects.stored import static_effect_delta_q
+
+        q = q_cmd + static_effect_delta_q(machine, machine.effects, q_cmd, aux)
     est = machine.forward(q, theta, guess=nominal)
     bad = ~(nominal.success & est.success)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise InputError(f"grid node {i + 1} (q = {q[i].tolist()}) cannot be solved; narrow the grid")
+        raise InputError(f"grid node {i + 1} (q = {q_cmd[i].tolist()}) cannot be solved; narrow the grid")
     correction = -(est.position - nominal.position)
     if samples is not None:
         S = np.asarray(samples, dtype=float)

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ..effects.stored import machine_file_text
 from ..io import write_json_atomic, write_text_atomic
 
 __all__ = ["add_arguments", "run_bayes", "METHODS"]
@@ -55,7 +56,7 @@ def run_bayes(args, machine, model, free) -> int:
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
     if args.write_machine and res.success:
-        write_text_atomic(args.write_machine, machine.to_toml(res.theta))
+        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta))  # [effect.*] kept
     made = []
     if args.figures:
         from ..plots.bayes import plot_filter_history, plot_pair, plot_trace

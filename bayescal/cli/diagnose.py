@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from ..effects import EFFECTS
 from ..errors import InputError
-from ..io import write_json_atomic
+from ..io import write_json_atomic, write_text_atomic
 from .inputs import name_list, recording_model
 
 HELP = f"""\
@@ -26,6 +27,14 @@ Diagnose what the geometric model leaves out.
 
 Verdict: an effect name, "none" (noise explains the residuals) or
 "unexplained" (structured mismatch that no effect explains; see 'located').
+
+--write-machine PATH writes the calibrated machine: the geometry fitted
+jointly with the selected effects, plus those effects as [effect.<name>]
+tables, which identify, grid and simulate then apply (FORMATS.md section 7).
+Verdict none: the geometry-only calibration. Verdict unexplained: the
+geometry fitted with whatever effects were selected (else geometry only),
+with a warning on stderr. Effect tables in the --machine file are not
+applied: every effect is fitted afresh.
 Effects: {", ".join(EFFECTS)}.
 """
 
@@ -35,6 +44,7 @@ examples:
   bayescal diagnose rec.csv --machine examples/prs3/machine.toml
   bayescal diagnose rec.csv --machine m.toml --json diagnosis.json --figures figs/
   bayescal diagnose rec.csv --machine m.toml --effects thermal_expansion,backlash --seed 2
+  bayescal diagnose rec.csv --machine m.toml --json diagnosis.json --write-machine calibrated.toml
 """
 
 
@@ -49,6 +59,11 @@ def register(sub) -> None:
     p.add_argument("--figures", metavar="DIR", help="write residual-against-channel figures (PNG) here")
     p.add_argument("--effects", help="comma-separated effects to try (default: every applicable one)")
     p.add_argument("--seed", type=int, default=0, help="seed of the permutation tests and CV folds (default 0)")
+    p.add_argument(
+        "--write-machine", metavar="PATH",
+        help="write the calibrated machine: the geometry fitted jointly with the selected effects, and those effects "
+        "as [effect.*] tables (verdict none: the geometry-only calibration; unexplained: written with a warning)",
+    )
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.set_defaults(func=run)
 
@@ -66,9 +81,25 @@ def run(args) -> int:
         unknown = [e for e in effects if e not in EFFECTS]
         if unknown:
             raise InputError(f"--effects: unknown effect(s) {', '.join(unknown)}; expected some of {', '.join(EFFECTS)}")
+    if machine.effects and not args.quiet:
+        print(f"note: the [effect.*] tables of {args.machine} are not applied: the diagnosis fits every effect afresh")
     result = diagnose(machine, rec, effects=effects, seed=args.seed)
+    calibrated = None
+    if args.write_machine:
+        from ..diagnose.calibrated import calibrated_machine
+
+        calibrated = calibrated_machine(machine, result)
     if args.json:
-        write_json_atomic(args.json, result.to_dict())
+        answer = result.to_dict()
+        if calibrated is not None:
+            answer["written_machine"] = {
+                "path": str(args.write_machine), "effects": list(calibrated.effects), "warning": calibrated.warning,
+            }
+        write_json_atomic(args.json, answer)
+    if calibrated is not None:
+        write_text_atomic(args.write_machine, calibrated.text)
+        if calibrated.warning:
+            print(f"bayescal diagnose: warning: {calibrated.warning}", file=sys.stderr)
     written = []
     if args.figures:
         from ..plots.diagnose import plot_diagnosis
@@ -78,4 +109,6 @@ def run(args) -> int:
         print(result.report())
         for path in written:
             print(f"figure: {path}")
+        if calibrated is not None:
+            print(calibrated.summary(args.write_machine))
     return EXIT_OK

@@ -18,6 +18,14 @@ with columns q1..qN, dx, dy, dz, sx, sy, sz, and optionally a heat map.
 With --free all (default) every parameter is estimated under its prior, so
 the std also carries what the measurement cannot separate; with --free auto
 only the identifiable set is, and the others are taken as exactly nominal.
+
+A machine file with [effect.<name>] tables (diagnose --write-machine) has
+them applied: in the identification, driven by the recording's channels,
+and in the grid, under the channels stated with --aux NAME=VALUE (a
+compensation under a payload or temperature). A channel not given is
+absent, as in a recording without it: no payload; thermal expansion needs
+--aux temp_C=... . Grid nodes have no approach direction, so backlash is
+not in the grid (compensate it on reversal).
 """
 
 EXAMPLES = """\
@@ -25,6 +33,7 @@ examples:
   bayescal grid examples/prs3/recording.csv --machine examples/prs3/machine.toml --out grid.csv --figure grid.png
   bayescal grid rec.csv --machine m.toml --nodes 15 --method kalman --json grid.json
   bayescal grid rec.csv --machine m.toml --method mcmc --surrogate linear --out grid.csv
+  bayescal grid rec.csv --machine calibrated.toml --aux payload_kg=5 --aux temp_C=25 --out grid.csv
 """
 
 
@@ -42,6 +51,11 @@ def register(sub) -> None:
     p.add_argument("--steps", type=int, default=1000, help="mcmc: steps per walker (default 1000)")
     p.add_argument("--surrogate", choices=("none", "linear"), default="none", help="mcmc: sample the linearised model")
     p.add_argument("--seed", type=int, default=0, help="mcmc: random seed")
+    p.add_argument(
+        "--aux", action="append", default=[], metavar="NAME=VALUE",
+        help="auxiliary channel at which the machine file's [effect.*] tables act at every node (repeatable), "
+        "e.g. --aux payload_kg=5 --aux temp_C=25; a channel not given is absent (no payload)",
+    )
     p.add_argument("--out", metavar="CSV", help="write the grid as CSV")
     p.add_argument("--figure", metavar="PNG", help="draw correction and std heat maps")
     p.add_argument("--json", metavar="PATH", help="write a summary as JSON")
@@ -56,7 +70,18 @@ def run(args) -> int:
     from ..bayes.mcmc import sample_posterior
     from ..bayes.priors import map_estimate
 
+    from ..effects.stored import parse_aux_values
+
+    aux = parse_aux_values(args.aux)  # bad --aux is bad input before any work
     machine, rec, model = recording_model(args)
+    if aux and not machine.effects:
+        raise InputError(f"--aux: {args.machine} carries no [effect.*] tables, so the grid depends on no channel")
+    from ..effects.stored import PROBE_CHANNELS
+
+    known = dict.fromkeys([*PROBE_CHANNELS, *rec.aux])
+    typo = [k for k in aux if k not in known]
+    if typo:  # a misspelt channel would silently leave the effect at its default
+        raise InputError(f"--aux {typo[0]}: unknown channel; expected one of: {', '.join(known)}")
     free = free_arg(args.free)
     if args.method == "mcmc" and free == "all":
         free = "auto"  # sampling the unidentifiable directions only explores the prior
@@ -76,7 +101,7 @@ def run(args) -> int:
         return EXIT_FAILED
     if args.nodes < 2:
         raise InputError(f"--nodes: expected at least 2, got {args.nodes}")
-    grid = compensation_grid(machine, res.theta, free=res.free, n=args.nodes, **kw)
+    grid = compensation_grid(machine, res.theta, free=res.free, n=args.nodes, aux=aux, **kw)
     # outputs first: a closed stdout (`| head`) must not cost them
     if args.out:
         grid.write_csv(args.out)
@@ -85,7 +110,11 @@ def run(args) -> int:
 
         plot_grid(grid, args.figure)
     if args.json:
-        write_json_atomic(args.json, {**grid.to_dict(), "method": args.method})
+        extra = {"effects": [e.name for e in machine.effects], "aux": aux} if machine.effects else {}
+        write_json_atomic(args.json, {**grid.to_dict(), "method": args.method, **extra})
     if not args.quiet:
         print(grid.report())
+        if machine.effects:
+            at = ", ".join(f"{k} = {v:g}" for k, v in aux.items()) or "no auxiliary channel"
+            print(f"  effects         {', '.join(e.name for e in machine.effects)} applied at {at}")
     return EXIT_OK

@@ -7,6 +7,7 @@ import argparse
 from ..errors import InputError
 from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
+from ..effects.stored import machine_file_text
 from ..io import write_json_atomic, write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .inputs import free_arg, recording_model
@@ -35,6 +36,11 @@ default for lambda), risk (Bayes decision under the evidence prior: for k,
 keep the singular directions with s^2 > lambda_evidence; the default for k).
 See docs/regularisation.md.  The report prints the chosen value and what
 every other rule picks; --figures DIR draws the rule curves.
+
+A machine file with [effect.<name>] tables (written by diagnose
+--write-machine) has those effects applied at their stored values, driven by
+the recording's auxiliary channels and measurement order: only the geometry
+is identified, and --write-machine keeps the tables (FORMATS.md section 7).
 """
 
 EXAMPLES = """\
@@ -125,7 +131,7 @@ def run(args) -> int:
     if args.json:
         write_json_atomic(args.json, res.to_dict())
     if args.write_machine and res.success:
-        write_text_atomic(args.write_machine, machine.to_toml(res.theta))
+        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta))  # [effect.*] kept
     path = None
     if choice is not None and args.figures:
         from ..plots.regularisation import plot_choice
@@ -133,6 +139,8 @@ def run(args) -> int:
         path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
     if not args.quiet:
         print(res.report())
+        if machine.effects:
+            print(f"\neffects applied at their stored values ({args.machine}): {', '.join(e.name for e in machine.effects)}")
         if choice is not None:
             print("\n" + choice.report())
         if path is not None:

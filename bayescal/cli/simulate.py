@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..effects.stored import machine_file_text
 from ..errors import InputError
 from ..io import write_json_atomic, write_recording, write_text_atomic
 from ..machines import load_machine
@@ -29,8 +30,15 @@ and auxiliary channels recorded with --aux
 (time_s; temp_C, a warm-up of 5 K; payload_kg, 0-25 kg changed between poses).
 Temperature drives thermal_expansion even when it is not recorded.
 
+A machine file with [effect.<name>] tables (diagnose --write-machine)
+simulates a machine with those effects at their stored values, driven by the
+channels recorded with --aux (payload_kg absent: no payload; thermal
+expansion needs temp_C or time_s recorded).
+
 Writes the recording (FORMATS.md CSV) and, beside it, the truth as JSON
-(OUT with suffix .truth.json) and the true machine file (.truth.toml).
+(OUT with suffix .truth.json) and the true machine file (.truth.toml, with
+the machine file's [effect.*] tables; concealed --effect values are in the
+JSON).
 """
 
 EXAMPLES = """\
@@ -79,23 +87,30 @@ def run(args) -> int:
     if not args.tolerance_scale > 0:
         raise InputError(f"--tolerance-scale: expected a positive number, got {args.tolerance_scale}")
     aux = name_list(args.aux)
+    # a machine file's [effect.*] tables act on the simulated machine, driven by the recorded channels
+    stored = []
+    if machine.effects:
+        from ..effects.stored import StoredEffectsTransform
+
+        stored = [StoredEffectsTransform(machine, machine.effects)]
     if args.effect or aux:
         from ..effects.simulate import parse_effect_spec, simulate_with_effects
 
         specs = [parse_effect_spec(s) for s in args.effect]
         sim = simulate_with_effects(
             machine, args.poses, seed=args.seed, dof=args.dof, effects=specs, record=aux,
-            tolerance=machine.tolerance * args.tolerance_scale,
+            tolerance=machine.tolerance * args.tolerance_scale, extra=stored,
         )
     else:
         sim = simulate_recording(
-            machine, args.poses, seed=args.seed, dof=args.dof, tolerance=machine.tolerance * args.tolerance_scale
+            machine, args.poses, seed=args.seed, dof=args.dof, tolerance=machine.tolerance * args.tolerance_scale,
+            effects=stored,
         )
     out = Path(args.out)
     truth = Path(args.truth) if args.truth else out.with_suffix(".truth.json")
     write_recording(out, sim.recording)
     write_json_atomic(truth, {"machine": machine.name, "dof": args.dof, **sim.truth_dict()})
-    write_text_atomic(truth.with_suffix(".toml"), machine.to_toml(sim.theta_true))
+    write_text_atomic(truth.with_suffix(".toml"), machine_file_text(machine, sim.theta_true))  # with its [effect.*]
     if not args.quiet:
         err = np.linalg.norm(sim.recording.position - machine.forward(sim.recording.q).position, axis=1)
         print(

@@ -125,6 +125,8 @@ def diagnose(
     ----------
     machine : Machine
         Nominal machine (its ``[measurement]`` noise is the yardstick).
+        Effects it carries (``[effect.*]`` tables) are not applied: every
+        effect is fitted afresh with the geometry.
     recording : Recording
         Rows in measurement order.
     effects : list of str, optional
@@ -147,6 +149,8 @@ def diagnose(
         Unknown effect names, a forced effect that needs a missing channel,
         too few poses for a forced effect or for cross-validation.
     """
+    # the diagnosis starts from the geometry: effects a machine file carries ([effect.*]) are fitted afresh
+    machine = machine.with_effects(())
     forced = effects is not None
     names = list(EFFECTS) if effects is None else list(dict.fromkeys(effects))
     lib = [get_effect(n) for n in names]  # raises on unknown names
@@ -297,4 +301,6 @@ def diagnose(
         recording=recording.path,
         seed=seed,
         message=message,
+        theta_final=cur_fit.theta,
+        theta_geometric=fit0.theta,
     )

@@ -84,6 +84,9 @@ class Diagnosis:
     n_poses, dof : int
     machine_name, recording : str
     seed : int
+    theta_final, theta_geometric : ndarray, shape (P,), or None
+        Geometric errors of the final model (jointly with the selected
+        effects) and of the geometric model alone.
     """
 
     verdict: str
@@ -107,6 +110,10 @@ class Diagnosis:
     seed: int
     message: str = ""
     extra: dict = field(default_factory=dict)
+    #: Geometric errors (mm, rad) of the final model, fitted jointly with the selected effects, and of
+    #: the geometric model alone: what ``--write-machine`` folds into the calibrated machine.
+    theta_final: object = None
+    theta_geometric: object = None
 
     @property
     def located(self) -> ChannelDependence | None:

@@ -25,7 +25,14 @@ def _build(doc, path: str) -> Machine:
     kind = doc.string("kind")
     if kind not in KINDS:
         raise MachineFileError(path, "kind", f"unknown kind {kind!r}; expected one of: {', '.join(KINDS)}")
-    return KINDS[kind].from_toml(doc, path)
+    # [effect.<name>] tables (FORMATS.md section 7) are read for every kind alike, after the geometry
+    geometry = type(doc)({k: v for k, v in doc.data.items() if k != "effect"}, doc.path, doc.prefix)
+    machine = KINDS[kind].from_toml(geometry, path)
+    if "effect" in doc.data:
+        from ..effects.stored import read_effect_tables
+
+        machine = machine.with_effects(read_effect_tables(doc, machine))
+    return machine
 
 
 def load_machine(path: str | os.PathLike) -> Machine:

@@ -83,6 +83,11 @@ class Machine(ABC):
 
     kind: ClassVar[str] = ""
 
+    #: Physical effects at fixed values, from the machine file's ``[effect.<name>]`` tables
+    #: (FORMATS.md section 7; tuple of :class:`bayescal.effects.stored.StoredEffect`).  Not a
+    #: dataclass field of the kinds: :meth:`with_effects` attaches them to a copy.
+    effects: tuple = ()
+
     name: str
     layout: ParamLayout
     tolerance: NDArray
@@ -172,12 +177,28 @@ class Machine(ABC):
 
     @abstractmethod
     def to_toml(self, theta: ArrayLike | None = None) -> str:
-        """Machine file text of the geometry ``nominal + theta`` (errors folded in)."""
+        """Machine file text of the geometry ``nominal + theta`` (errors folded in).
+
+        The geometry only: :func:`bayescal.effects.stored.machine_file_text`
+        adds the ``[effect.*]`` tables of :attr:`effects`.
+        """
 
     @classmethod
     @abstractmethod
     def from_toml(cls, table, path: str) -> "Machine":
         """Build from a parsed machine file (:class:`bayescal.io.TomlTable`)."""
+
+    def with_effects(self, effects) -> "Machine":
+        """A copy of this machine carrying ``effects`` (``()``: the geometry alone).
+
+        Every measurement model built from a recording applies them
+        (:meth:`bayescal.measurement.MeasurementModel.from_recording`).
+        """
+        import copy
+
+        out = copy.copy(self)
+        object.__setattr__(out, "effects", tuple(effects))
+        return out
 
     def guess_from_measurement(
         self, q: NDArray, position: NDArray, rotation: NDArray | None = None, axis: NDArray | None = None

@@ -1,0 +1,118 @@
+"""The calibrated machine a diagnosis writes: its final geometry and the selected effects as ``[effect.*]`` tables.
+
+``bayescal diagnose --write-machine PATH`` (FORMATS.md section 7):
+
+* verdict an effect: the geometry fitted jointly with every selected effect
+  (the verdict's first), and those effects at their fitted values, so that
+  the geometry no longer absorbs them;
+* verdict ``"none"``: the geometry-only calibration (MAP under the
+  tolerance prior), no effect tables;
+* verdict ``"unexplained"``: written all the same, with a warning: the
+  geometry fitted with the effects that were selected (if any), else the
+  geometry-only calibration.  A structured mismatch remains that this
+  machine does not model; refusing would leave the user with no
+  calibration at all, while the best model found still predicts better
+  than the nominal one.  The warning says so and names where the mismatch
+  lives.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..effects.stored import StoredEffect, machine_file_text
+from ..errors import InputError
+from ..machines.base import Machine
+from .result import Diagnosis
+
+__all__ = ["CalibratedMachine", "calibrated_machine"]
+
+
+@dataclass(frozen=True)
+class CalibratedMachine:
+    """Machine-file text of a diagnosis' calibrated machine, checked by reading it back.
+
+    Attributes
+    ----------
+    text : str
+        The machine file (TOML).
+    machine : Machine
+        ``text`` read back (with its effects).
+    effects : tuple of str
+        Names of the ``[effect.*]`` tables written.
+    warning : str
+        Why this machine should be used with care (``""`` when there is none).
+    """
+
+    text: str
+    machine: Machine
+    effects: tuple[str, ...]
+    warning: str = ""
+
+    def summary(self, path: str) -> str:
+        """One line saying what was written to ``path``."""
+        if self.effects:
+            tables = ", ".join(f"[effect.{e}]" for e in self.effects)
+            return f"wrote {path}: the geometry fitted jointly with {', '.join(self.effects)}, and {tables}"
+        return f"wrote {path}: the geometry-only calibration (MAP under the tolerance prior), no effect tables"
+
+
+def calibrated_machine(machine: Machine, diagnosis: Diagnosis) -> CalibratedMachine:
+    """The calibrated machine of a diagnosis (see the module docstring for each verdict).
+
+    Parameters
+    ----------
+    machine : Machine
+        The nominal machine the diagnosis ran on (effects it carries are
+        replaced: the diagnosis fitted them afresh).
+    diagnosis : Diagnosis
+        From :func:`bayescal.diagnose.diagnose`.
+
+    Returns
+    -------
+    CalibratedMachine
+
+    Raises
+    ------
+    InputError
+        A diagnosis without its fitted geometry.
+    """
+    if diagnosis.theta_final is None or diagnosis.theta_geometric is None:
+        raise InputError("this diagnosis carries no fitted geometry (theta_final); run bayescal.diagnose.diagnose")
+    base = machine.with_effects(())
+    selected = tuple(diagnosis.selected)
+    theta = np.asarray(diagnosis.theta_final if selected else diagnosis.theta_geometric, float)
+    trials = {t.name: t for t in diagnosis.effects}
+    stored = tuple(
+        StoredEffect(
+            name,
+            tuple((p.name, float(p.value)) for p in trials[name].parameters),
+            tuple(p.unit for p in trials[name].parameters),
+            source="<diagnosis>",
+        )
+        for name in selected
+    )
+    text = machine_file_text(base, theta, stored)
+    header = _header(diagnosis)
+    text = header + text
+    from ..machines import machine_from_text
+
+    again = machine_from_text(text, path="<calibrated machine of the diagnosis>")  # round trip: refuse to write what cannot be read
+    warning = ""
+    if diagnosis.verdict == "unexplained":
+        where = diagnosis.located.channel if diagnosis.located is not None else "the residuals"
+        modelled = f"the geometry fitted with {', '.join(selected)}" if selected else "the geometry-only calibration"
+        warning = (
+            f"verdict unexplained: a structured mismatch (located: {where}) remains that this machine does not model; "
+            f"written is {modelled}. Use it with care and look at {where}."
+        )
+    return CalibratedMachine(text=text, machine=again, effects=selected, warning=warning)
+
+
+def _header(d: Diagnosis) -> str:
+    """Comment lines naming where the calibration came from (TOML comments: ignored when read)."""
+    what = f"with {', '.join(d.selected)}" if d.selected else "geometry only"
+    line = f"calibrated by bayescal diagnose from {d.recording} ({d.n_poses} poses, {d.dof}-DOF): verdict {d.verdict}, {what}"
+    return "# " + " ".join(line.split()) + "\n"  # one comment line, whatever the path holds

@@ -1,0 +1,375 @@
+"""Effects stored in a machine file: ``[effect.<name>]`` tables (FORMATS.md section 7).
+
+A calibrated machine may carry the physical effects found with it, at fixed
+values, one table per effect, keyed by the effect's parameter names in the
+units of the diagnosis answer::
+
+    [effect.joint_compliance]
+    "compliance.q1" = 0.061        # um/N
+
+Everything here goes through the :class:`~bayescal.effects.Effect`
+interface (``not_applicable``, ``features``, ``params``, ``delta_q``) and the
+registry :data:`bayescal.effects.EFFECTS`: a newly registered effect is read,
+written and applied with no code here.
+
+Rules (documented in docs/formats.md):
+
+* an unknown effect name, a parameter the effect does not have, a value
+  that is not a finite number, or an effect that cannot act on this machine
+  (``redundancy_preload`` on a non-redundant one) is a
+  :class:`~bayescal.errors.MachineFileError` naming the file and the key;
+* **every parameter of a listed effect must be given** (no default): an
+  omitted parameter has no value that means "absent" for every effect (a
+  thermal time constant or a screw pitch of 0 is not "no effect"), so a
+  partial table is refused with the missing names;
+* which parameters an effect has can depend on the recording (thermal
+  expansion is parametrised per kelvin with a ``temp_C`` channel, along a
+  warm-up curve with ``time_s`` only).  On reading, the keys must form one
+  of the parameter sets the effect has for a recording with some of the
+  channels :data:`PROBE_CHANNELS`; when applied to a recording they must be
+  exactly the set its channels call for.
+
+Application: ``q_actual = q + sum_e delta_q_e(features_e(q, aux, order), eta_e)``
+with the features at the machine file's geometry (``theta = 0``).  The
+gravity loads of joint compliance change with the identified geometric
+corrections by about their relative size (1e-4), which is neglected.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import BayescalError, InputError, MachineFileError
+from ..io.machine_file import TomlTable, format_toml_value
+from ..machines.base import Machine, ToolPoses
+from .base import Effect, EffectParam
+
+__all__ = [
+    "StoredEffect", "PROBE_CHANNELS", "read_effect_tables", "effect_tables_toml", "effect_delta_q",
+    "static_effect_delta_q", "StoredEffectsTransform", "machine_file_text", "parse_aux_values", "predict_poses",
+]
+
+#: Auxiliary channels whose presence can change an effect's parameter set (FORMATS.md section 2).
+PROBE_CHANNELS = ("time_s", "temp_C", "payload_kg")
+
+#: The machine-file key of the effect tables.
+TABLE = "effect"
+
+
+@dataclass(frozen=True)
+class StoredEffect:
+    """One ``[effect.<name>]`` table: an effect at fixed parameter values.
+
+    Attributes
+    ----------
+    name : str
+        Registered effect name (:data:`bayescal.effects.EFFECTS`).
+    values : tuple of (str, float)
+        Parameter name and value, in the parameter's unit, in file order.
+    units : tuple of str
+        Unit of each value (``""`` when unknown); written as a comment.
+    source : str
+        The machine file it was read from (named in errors).
+    """
+
+    name: str
+    values: tuple[tuple[str, float], ...]
+    units: tuple[str, ...] = ()
+    source: str = "<memory>"
+
+    def effect(self) -> Effect:
+        """The library effect (default settings)."""
+        from . import get_effect
+
+        return get_effect(self.name)
+
+    def key(self, param: str | None = None) -> str:
+        """The dotted machine-file key of the table or of one of its parameters."""
+        return f"{TABLE}.{self.name}" + (f'."{param}"' if param is not None else "")
+
+    def vector(self, params: tuple[EffectParam, ...], context: str = "") -> NDArray:
+        """The values in the order of ``params``; MachineFileError if the names differ.
+
+        Parameters
+        ----------
+        params : tuple of EffectParam
+            What the effect has for the recording at hand.
+        context : str
+            Why this parameter set (e.g. which channels the recording has), for the message.
+        """
+        have = dict(self.values)
+        want = [p.name for p in params]
+        expected = ", ".join(f"{p.name} ({p.unit})" for p in params)
+        extra = [k for k in have if k not in want]
+        if extra:
+            raise MachineFileError(
+                self.source, self.key(extra[0]),
+                f"not a parameter of {self.name}{context}; expected exactly: {expected}",
+            )
+        missing = [k for k in want if k not in have]
+        if missing:
+            raise MachineFileError(
+                self.source, self.key(),
+                f"missing parameter(s) {', '.join(missing)} of {self.name}{context}; every parameter must be given: {expected}",
+            )
+        return np.array([have[k] for k in want], dtype=float)
+
+
+def _probe_sets(effect: Effect, machine: Machine) -> list[tuple[EffectParam, ...]] | None:
+    """The effect's parameter sets over recordings with every subset of :data:`PROBE_CHANNELS`.
+
+    None when they cannot be probed (no ``q_limits`` to place a pose, or the
+    home pose does not assemble): names are then checked when applied.
+    """
+    if machine.q_limits is None:
+        return None
+    q = np.repeat(machine.home_q()[None, :], 2, axis=0)
+    poses = machine.forward(q, None)
+    if not poses.success.all():
+        return None
+    theta = np.zeros(machine.n_params)
+    sets: list[tuple[EffectParam, ...]] = []
+    for k in range(len(PROBE_CHANNELS) + 1):
+        for chans in itertools.combinations(PROBE_CHANNELS, k):
+            aux = {c: np.array([20.0, 21.0]) for c in chans}
+            why = effect.not_applicable(machine, aux)
+            if why is not None:
+                continue
+            try:
+                f = effect.features(machine, q, theta, aux, None, poses if effect.needs_poses else None)
+                params = tuple(effect.params(machine, f))
+            except BayescalError:  # this combination of channels cannot drive it
+                continue
+            if all(tuple(p.name for p in s) != tuple(p.name for p in params) for s in sets):
+                sets.append(params)
+    return sets
+
+
+def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEffect:
+    from . import EFFECTS, get_effect
+
+    key = f"{TABLE}.{name}"
+    if name not in EFFECTS:
+        raise MachineFileError(path, key, f"unknown effect {name!r}; expected one of: {', '.join(EFFECTS)}")
+    eff = get_effect(name)
+    raw = t.table(name)
+    values: list[tuple[str, float]] = []
+    for k in raw.keys():
+        v = raw.data[k]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number (the parameter's value in its unit), got {v!r}")
+        values.append((k, float(v)))
+    why = eff.not_applicable(machine, {c: np.zeros(1) for c in PROBE_CHANNELS})
+    if why is not None:
+        raise MachineFileError(path, key, f"{name} cannot act on this {machine.kind} machine: {why}")
+    sets = _probe_sets(eff, machine)
+    units = {}
+    if sets is not None:
+        if not sets:
+            raise MachineFileError(path, key, f"{name} cannot be modelled on this {machine.kind} machine")
+        for s in sets:
+            units.update({p.name: p.unit for p in s})
+        have = [k for k, _ in values]
+        for k in have:
+            if k not in units:
+                raise MachineFileError(
+                    path, f'{key}."{k}"',
+                    f"not a parameter of {name}; expected " + " or ".join(
+                        "{" + ", ".join(f"{p.name} ({p.unit})" for p in s) + "}" for s in sets),
+                )
+        if not any(set(have) == {p.name for p in s} for s in sets):
+            fits = [s for s in sets if set(have) <= {p.name for p in s}]
+            if fits:
+                missing = [p.name for p in fits[0] if p.name not in have]
+                expected = ", ".join(f"{p.name} ({p.unit})" for p in fits[0])
+                raise MachineFileError(path, key, f"missing parameter(s) {', '.join(missing)}; every parameter of {name} must be given: {expected}")
+            raise MachineFileError(
+                path, key, f"parameters of different parametrisations of {name} mixed; expected one of " + " or ".join(
+                    "{" + ", ".join(p.name for p in s) + "}" for s in sets),
+            )
+    return StoredEffect(name, tuple(values), tuple(units.get(k, "") for k, _ in values), path)
+
+
+def read_effect_tables(doc: TomlTable, machine: Machine) -> tuple[StoredEffect, ...]:
+    """The ``[effect.<name>]`` tables of a machine file (none: an empty tuple).
+
+    Parameters
+    ----------
+    doc : TomlTable
+        The whole machine file.
+    machine : Machine
+        The machine the file describes (its actuators decide the parameter names).
+
+    Raises
+    ------
+    MachineFileError
+        Naming the file and the key: an unknown effect or parameter, a
+        missing parameter, a value that is not a finite number.
+    """
+    t = doc.table(TABLE, required=False)
+    if t is None:
+        return ()
+    for k in t.keys():
+        if not isinstance(t.data[k], dict):
+            raise MachineFileError(doc.path, f"{TABLE}.{k}", f"expected a table [{TABLE}.{k}] of parameter values, got {t.data[k]!r}")
+    return tuple(_read_one(t, name, machine, doc.path) for name in t.keys())
+
+
+def effect_tables_toml(effects: tuple[StoredEffect, ...]) -> str:
+    """The ``[effect.<name>]`` tables as machine-file text (full float precision, units as comments)."""
+    out = []
+    for e in effects:
+        out.append(f"[{TABLE}.{e.name}]")
+        units = e.units or ("",) * len(e.values)
+        for (k, v), u in zip(e.values, units):
+            line = f"{format_toml_value(k)} = {format_toml_value(float(v))}"
+            out.append(f"{line:<40} # {u}" if u else line)
+        out.append("")
+    return "\n".join(out)
+
+
+def machine_file_text(machine: Machine, theta=None, effects: tuple[StoredEffect, ...] | None = None) -> str:
+    """Machine-file text of ``nominal + theta`` with the effect tables (``machine.effects`` by default).
+
+    What every command that writes a calibrated machine writes, so that a
+    machine read with effects is written with them.
+    """
+    effects = machine.effects if effects is None else effects
+    text = machine.to_toml(theta)
+    if not effects:
+        return text
+    return text.rstrip("\n") + "\n\n" + effect_tables_toml(tuple(effects))
+
+
+def _channels(aux: dict) -> str:
+    return f" for a recording with channels {', '.join(sorted(aux))}" if aux else " for a recording without auxiliary channels"
+
+
+def effect_delta_q(
+    machine: Machine,
+    effects: tuple[StoredEffect, ...],
+    q: NDArray,
+    aux: dict | None = None,
+    *,
+    theta: NDArray | None = None,
+    order: NDArray | None = None,
+    poses: ToolPoses | None = None,
+) -> NDArray:
+    """Actuator position change of the stored effects, ``sum_e delta_q_e``, shape (n_poses, n_actuators).
+
+    Parameters
+    ----------
+    machine : Machine
+    effects : tuple of StoredEffect
+    q : ndarray, shape (n_poses, n_actuators)
+        Commanded actuator positions, mm (or rad), in measurement order unless ``order`` is given.
+    aux : dict of str to ndarray, optional
+        The recording's auxiliary channels.
+    theta : ndarray, optional
+        Geometry at which the features (loads) are evaluated; the machine file's (zeros) by default.
+    order : ndarray of int, optional
+        Time rank of each row (rows in measurement order if omitted).
+    poses : ToolPoses, optional
+        Solved poses at ``q`` and ``theta`` (solved here when an effect needs them and none are given).
+
+    Raises
+    ------
+    InputError
+        The recording lacks a channel an effect needs (naming the machine file's table).
+    MachineFileError
+        The table's parameters are not the set the recording's channels call for.
+    """
+    q = machine.check_q(q)
+    aux = {} if aux is None else dict(aux)
+    theta = np.zeros(machine.n_params) if theta is None else np.asarray(theta, float)
+    dq = np.zeros_like(q)
+    for st in effects:
+        eff = st.effect()
+        why = eff.not_applicable(machine, aux)
+        if why is not None:
+            raise InputError(f"{st.source}: [{st.key()}] cannot be applied{_channels(aux)}: {why}")
+        if eff.needs_poses and poses is None:
+            poses = machine.forward(q, theta)
+        try:
+            f = eff.features(machine, q, theta, aux, order, poses if eff.needs_poses else None)
+        except InputError as exc:
+            raise InputError(f"{st.source}: [{st.key()}] cannot be applied{_channels(aux)}: {exc}") from exc
+        eta = st.vector(tuple(eff.params(machine, f)), _channels(aux))
+        dq = dq + eff.delta_q(f, eta)
+    return dq
+
+
+def predict_poses(machine: Machine, q: NDArray, aux: dict | None = None, *, theta=None, order: NDArray | None = None) -> ToolPoses:
+    """Tool poses the machine reaches at commanded ``q``, with its stored effects applied.
+
+    The library's prediction of a calibrated machine (geometry plus
+    ``[effect.*]`` tables) for a recording's poses and channels:
+    ``forward(q + sum_e dq_e, theta)``.  Without effects this is
+    ``machine.forward(q, theta)``.
+
+    Parameters
+    ----------
+    machine : Machine
+    q : ndarray, shape (n_poses, n_actuators)
+        Commanded actuator positions (measurement order unless ``order``).
+    aux : dict of str to ndarray, optional
+        Auxiliary channels of the poses.
+    theta : ndarray, optional
+        Geometric errors on top of the machine file's geometry (zeros).
+    order : ndarray of int, optional
+        Time rank of each row.
+    """
+    q = machine.check_q(q)
+    if machine.effects:
+        q = q + effect_delta_q(machine, machine.effects, q, aux, theta=theta, order=order)
+    return machine.forward(q, theta)
+
+
+def static_effect_delta_q(machine: Machine, effects: tuple[StoredEffect, ...], q: NDArray, aux: dict | None = None) -> NDArray:
+    """:func:`effect_delta_q` for poses reached without a last move (a compensation grid's nodes).
+
+    A grid node has no measurement order, so effects of the approach
+    direction (backlash) or of elapsed time must not read one from the
+    order of the nodes.  Each node is evaluated as if approached from
+    itself: the features are computed on the nodes each repeated twice in a
+    row, and the second copy is kept (no move, no elapsed time since the
+    first copy).  ``aux`` holds constants or per-node arrays.
+    """
+    q = machine.check_q(q)
+    n = q.shape[0]
+    aux2 = {k: np.repeat(np.broadcast_to(np.asarray(v, float), (n,)), 2) for k, v in (aux or {}).items()}
+    return effect_delta_q(machine, effects, np.repeat(q, 2, axis=0), aux2)[1::2]
+
+
+@dataclass(frozen=True, eq=False)
+class StoredEffectsTransform:
+    """The stored effects as a :class:`bayescal.simulate.PoseTransform` (simulating a machine that carries them)."""
+
+    machine: Machine
+    effects: tuple[StoredEffect, ...]
+
+    def transform(self, q: NDArray, theta: NDArray, aux: dict, order: NDArray) -> tuple[NDArray, NDArray]:
+        return q + effect_delta_q(self.machine, self.effects, q, aux, theta=theta, order=order), theta
+
+
+def parse_aux_values(items: list[str] | None) -> dict[str, float]:
+    """``["payload_kg=5", "temp_C=25"]`` -> ``{"payload_kg": 5.0, "temp_C": 25.0}`` (the ``--aux NAME=VALUE`` options)."""
+    out: dict[str, float] = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        try:
+            v = float(value)
+        except ValueError:
+            v = math.nan
+        if not sep or not name or not math.isfinite(v):
+            raise InputError(f"--aux {item}: expected NAME=VALUE with a finite number, e.g. payload_kg=5 or temp_C=25")
+        if name in out:
+            raise InputError(f"--aux: channel {name} given twice")
+        out[name] = v
+    return out
