@@ -194,7 +194,7 @@ sensor that reports the full 6-DOF pose of a target on the turntable: 205 poses,
   joint i's fixed transform is `Rz(theta_(i-1)) Tx(r_(i-1)) Rx(alpha_(i-1)) Tz(d_i)` (the
   base offset for i = 1), the axis is z, and the tool frame is
   `Rz(theta_2) Tx(r_2) Rx(alpha_2)` times the source's initial guess of the target mount
-  (`target_mount_to_target_guess`; its quaternion, given to 6 digits, has norm 1 - 3e-7 and
+  (`target_mount_to_target_guess`; its quaternion, given to 6 digits, has norm 1 - 1.1e-7 and
   is normalised). `Rz(theta_i)` commutes with the joint rotation, so
   the chain is the same; moving it avoids a gimbal-locked rpy on joint 2.
   `[tolerance]` follows the source's prior on the DH offsets (0.005 m and 0.005 rad); the
