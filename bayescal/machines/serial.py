@@ -230,7 +230,7 @@ class Serial(Machine):
                 if t not in JOINT_TYPES:
                     raise jt.error("type", f"expected \"revolute\" or \"prismatic\", got {t!r}")
                 types.append(t)
-                origin.append(jt.vector("origin"))
+                origin.append(jt.vector("origin", default=np.zeros(3)))  # URDF: a missing origin is the identity
                 rpy.append(jt.vector("rpy", default=np.zeros(3)))
                 axis.append(jt.vector("axis", unit=True))
             tail = None

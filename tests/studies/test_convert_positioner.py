@@ -12,7 +12,7 @@ from scipy.optimize import least_squares
 
 from bayescal.geometry import so3_exp, so3_log
 from bayescal.io.recording import read_recording
-from bayescal.machines import load_machine
+from bayescal.machines import check_machine, load_machine
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "positioner"
@@ -20,8 +20,8 @@ SOURCE = next(
     (p / "shared" / "data" / "real" / "positioner" for p in (ROOT.parent, ROOT.parent.parent) if (p / "shared").is_dir()),
     ROOT.parent / "shared" / "data" / "real" / "positioner",
 )
-yaml = pytest.importorskip("yaml")
-pytestmark = pytest.mark.skipif(not (SOURCE / "measurements.yaml").is_file(), reason="shared positioner data absent")
+# the source is read from ../shared (never copied into the repository except as the converted example)
+needs_source = pytest.mark.skipif(not (SOURCE / "measurements.yaml").is_file(), reason="shared positioner data absent")
 
 
 def _converter():
@@ -33,6 +33,7 @@ def _converter():
 
 @pytest.fixture(scope="module")
 def source():
+    yaml = pytest.importorskip("yaml")
     meas = yaml.safe_load((SOURCE / "measurements.yaml").read_text())
     keys = sorted(meas, key=int)
     return keys, meas, yaml.safe_load((SOURCE / "pose_initial_guesses.yaml").read_text())
@@ -53,7 +54,9 @@ def _dh(d, theta, r, alpha):
     return np.array([[ct, -st * ca, st * sa, r * ct], [st, ct * ca, -ct * sa, r * st], [0, sa, ca, d], [0, 0, 0, 1.0]])
 
 
+@needs_source
 def test_shipped_example_is_the_converters_output(tmp_path):
+    pytest.importorskip("yaml")
     _converter().convert(SOURCE, tmp_path)
     for name in ("machine.toml", "recording.csv", "README.md"):
         assert (tmp_path / name).read_text() == (EXAMPLE / name).read_text(), name
@@ -63,6 +66,7 @@ def test_shipped_example_is_the_converters_output(tmp_path):
     assert "fe62b7c9b7b347ee047a6fee6f417cd8427b2836" in readme and "ros-industrial/industrial_calibration" in readme
 
 
+@needs_source
 def test_recording_round_trips_to_the_source(source):
     keys, meas, _ = source
     rec = read_recording(EXAMPLE / "recording.csv")
@@ -76,6 +80,7 @@ def test_recording_round_trips_to_the_source(source):
     assert np.array_equal(rec.aux["source_key"], [int(k) for k in keys])
 
 
+@needs_source
 def test_machine_is_the_sources_dh_model(source):
     """FK(q) = base_offset DH_1(q1) DH_2(q2) target_mount, in mm, for every recorded q."""
     keys, meas, guesses = source
@@ -109,6 +114,7 @@ def test_nominal_machine_explains_the_recording_after_alignment():
     fitting the frame and the target mount as well leaves the sensor floor nominal.md reports
     (static DH: 0.45 mm mean, 0.81 mrad), with the sensor pose nominal.md found."""
     m = load_machine(EXAMPLE / "machine.toml")
+    assert check_machine(m) == []
     rec = read_recording(EXAMPLE / "recording.csv")
     pred = m.forward(rec.q)
     R, t = _kabsch(pred.position, rec.position)
