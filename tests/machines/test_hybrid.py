@@ -178,3 +178,20 @@ def test_inline_module_errors_name_the_nested_key():
     with pytest.raises(MachineFileError) as err:
         machine_from_text(text, "h.toml")
     assert err.value.key == "module[1].machine.joint[1].axis"
+
+
+def test_example_recording_identifies_the_true_machine(table):
+    """The shipped simulated recording: the calibrated hybrid (written with to_toml and read back)
+    predicts the true machine (recording.truth.toml) on fresh poses to a few micrometres."""
+    from bayescal.identify import identify
+    from bayescal.io.recording import read_recording
+
+    rec = read_recording(TABLE.parent / "recording.csv")
+    res = identify(MeasurementModel.from_recording(table, rec), method="ls")
+    assert res.success
+    calibrated = machine_from_text(table.to_toml(res.theta))
+    truth = load_machine(TABLE.parent / "recording.truth.toml")
+    q = table.sample_q(50, np.random.default_rng(1))
+    a, b, nominal = calibrated.forward(q), truth.forward(q), table.forward(q)
+    assert np.abs(a.position - b.position).max() < 0.01 < np.abs(nominal.position - b.position).max()
+    assert np.abs(so3_log(a.rotation @ np.swapaxes(b.rotation, 1, 2))).max() < 1e-4
