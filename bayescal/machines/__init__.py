@@ -11,12 +11,12 @@ from .check import MachineCheckError, check_machine
 from .prs3 import Prs3
 from .raspm import Raspm
 from .rupus_prs import RupusPrs
-from .hybrid import Hybrid
+from .hybrid import Hybrid, write_machine_files
 from .serial import Serial
 
 __all__ = [
     "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "Serial", "Hybrid", "KINDS", "load_machine",
-    "machine_from_text", "check_machine", "MachineCheckError",
+    "machine_from_text", "write_machine_files", "check_machine", "MachineCheckError",
 ]
 
 #: Machine kinds by the ``kind`` string of the machine file.

@@ -44,7 +44,7 @@ from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
 from .common import common_toml, read_noise, read_q_limits
 
-__all__ = ["Hybrid", "ROLES"]
+__all__ = ["Hybrid", "ROLES", "write_machine_files"]
 
 ROLES = ("tool", "table")
 
@@ -300,6 +300,43 @@ class Hybrid(Machine):
             doc = tomllib.loads(m.to_toml(self.split_theta(theta)[k]))
             out += ["[[module]]", f"role = {f(role)}", ""] + _toml_table(doc, "module.machine", array=False)
         return "\n".join(out) + common_toml(self, {})
+
+
+def write_machine_files(path, machine: Machine, theta: ArrayLike | None = None) -> list[Path]:
+    """Write the machine file of ``nominal + theta`` in FORMATS.md's file-per-module form.
+
+    For a hybrid machine, each module goes to ``<stem>.m<k>.toml`` beside
+    ``path`` (recursively for nested hybrids) and ``path`` lists them with
+    ``file = "..."``, the form FORMATS.md section 5 specifies, which any
+    implementation of that format reads.  Any other kind is written as
+    :meth:`Machine.to_toml`.  Every file is written atomically.
+
+    Parameters
+    ----------
+    path : path
+        The machine file to write.
+    machine : Machine
+    theta : array_like, shape (P,), optional
+        Geometric errors to fold in (e.g. ``IdentificationResult.theta``).
+
+    Returns
+    -------
+    list of Path
+        The files written, the main file first.
+    """
+    from ..io.answers import write_text_atomic
+
+    path = Path(path)
+    if not isinstance(machine, Hybrid):
+        return [write_text_atomic(path, machine.to_toml(theta))]
+    f = format_toml_value
+    out = ['kind = "hybrid"', f"name = {f(machine.name)}", ""]
+    written = []
+    for k, (m, role) in enumerate(zip(machine.modules, machine.roles)):
+        sub = path.with_name(f"{path.stem}.m{k + 1}.toml")
+        written += write_machine_files(sub, m, machine.split_theta(theta)[k])
+        out += ["[[module]]", f"file = {f(sub.name)}", f"role = {f(role)}", ""]
+    return [write_text_atomic(path, "\n".join(out) + common_toml(machine, {}))] + written
 
 
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")

@@ -195,3 +195,21 @@ def test_example_recording_identifies_the_true_machine(table):
     a, b, nominal = calibrated.forward(q), truth.forward(q), table.forward(q)
     assert np.abs(a.position - b.position).max() < 0.01 < np.abs(nominal.position - b.position).max()
     assert np.abs(so3_log(a.rotation @ np.swapaxes(b.rotation, 1, 2))).max() < 1e-4
+
+
+def test_write_machine_files_uses_module_files(table, tmp_path):
+    """The file-per-module form of FORMATS.md section 5: module files beside the hybrid file,
+    each a plain machine file of its kind, read back to the same predictions."""
+    from bayescal.machines import write_machine_files
+
+    theta = np.random.default_rng(6).normal(size=table.n_params) * table.tolerance
+    written = write_machine_files(tmp_path / "cal.toml", table, theta)
+    assert [p.name for p in written] == ["cal.toml", "cal.m1.toml", "cal.m2.toml"]
+    main = (tmp_path / "cal.toml").read_text()
+    assert 'file = "cal.m1.toml"' in main and "[module.machine]" not in main
+    assert load_machine(tmp_path / "cal.m2.toml").kind == "serial"
+    again = load_machine(tmp_path / "cal.toml")
+    q = table.sample_q(5, np.random.default_rng(0))
+    a, b = table.forward(q, theta), again.forward(q)
+    assert np.allclose(a.position, b.position, atol=1e-9) and np.allclose(a.rotation, b.rotation, atol=1e-12)
+    assert again.noise == table.noise and np.array_equal(again.q_limits, table.q_limits)
