@@ -184,7 +184,7 @@ sensor that reports the full 6-DOF pose of a target on the turntable: 205 poses,
   nominal model from `examples/kinematic_calibration.cpp` (`createTwoAxisPositioner()`).
 * License: Apache License 2.0, copied in [LICENSE](LICENSE) from the same commit.
   The files here are derived from the source data by `studies/convert_positioner.py`
-  (units and representation changed as described below; no values changed).
+  (units and representation changed as described below; no measured value changed).
 
 ## Files
 
