@@ -23,6 +23,8 @@ __all__ = [
 ]
 
 _SMALL = 1e-8
+#: Angle (rad) above which so3_log reads the axis from the symmetric part of R.
+_NEAR_PI = 3.0
 
 
 def skew(w: ArrayLike) -> NDArray:
@@ -49,7 +51,7 @@ def so3_exp(w: ArrayLike) -> NDArray:
 
 
 def so3_log(R: ArrayLike) -> NDArray:
-    """Rotation vector (rad) of a rotation matrix; valid for angles below pi."""
+    """Rotation vector (rad) of a rotation matrix, angle in [0, pi], accurate up to a half turn."""
     R = np.asarray(R, dtype=float)
     tr = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     th = np.arccos(tr)
@@ -60,7 +62,21 @@ def so3_log(R: ArrayLike) -> NDArray:
     small = th < 1e-6
     th_safe = np.where(small, 1.0, th)
     fac = np.where(small, 0.5 + th**2 / 12.0, th_safe / (2.0 * np.sin(th_safe)))
-    return fac[..., None] * v
+    out = fac[..., None] * v
+    near_pi = th > _NEAR_PI
+    if np.any(near_pi):
+        # Near pi the antisymmetric part vanishes and arccos loses half the digits: take the
+        # angle from atan2 and the axis from the symmetric part, (R + R^T)/2 - cos(th) I = (1 - cos th) a a^T
+        # (rotary tables and turntables reach half a turn routinely).
+        Rn, vn, cn = R[near_pi], v[near_pi], tr[near_pi]
+        thn = np.arctan2(0.5 * np.linalg.norm(vn, axis=-1), cn)
+        B = 0.5 * (Rn + np.swapaxes(Rn, -1, -2)) - cn[:, None, None] * np.eye(3)
+        j = np.argmax(np.einsum("nii->ni", B), axis=-1)
+        a = B[np.arange(B.shape[0]), :, j]
+        a /= np.linalg.norm(a, axis=-1, keepdims=True)
+        a *= np.where(np.einsum("ni,ni->n", a, vn) < 0, -1.0, 1.0)[:, None]
+        out[near_pi] = thn[:, None] * a
+    return out
 
 
 def left_jacobian_inverse(phi: ArrayLike) -> NDArray:

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import InputError, KinematicsError
 from .geometry import left_jacobian_inverse, skew, so3_exp, so3_log, tangent_basis
 from .io.recording import Recording
-from .machines.base import Machine, ToolPoses
+from .machines.base import Machine, ToolPoses, map_state
 
 __all__ = ["MeasurementModel", "Prediction", "rows_per_pose"]
 
@@ -207,8 +207,7 @@ class MeasurementModel:
         idx = np.asarray(idx)
         g = self.guess
         if g is not None:
-            st = g.state
-            sub_state = type(st)(**{k: getattr(st, k)[idx] for k in st.__dataclass_fields__}) if st is not None else None
+            sub_state = map_state(lambda a: a[idx], g.state)
             g = ToolPoses(g.position[idx], g.rotation[idx], g.success[idx], tuple(np.asarray(g.message, dtype=object)[idx]), sub_state)
         return MeasurementModel(
             machine=self.machine,
@@ -346,10 +345,7 @@ def _frame_with_z(axis: NDArray) -> NDArray:
 
 
 def _tile_poses(p: ToolPoses, reps: int) -> ToolPoses:
-    st = p.state
-    tiled = None
-    if st is not None and hasattr(st, "__dataclass_fields__"):
-        tiled = type(st)(**{k: np.tile(getattr(st, k), (reps,) + (1,) * (getattr(st, k).ndim - 1)) for k in st.__dataclass_fields__})
+    tiled = map_state(lambda a: np.tile(a, (reps,) + (1,) * (a.ndim - 1)), p.state)
     return ToolPoses(
         np.tile(p.position, (reps, 1)), np.tile(p.rotation, (reps, 1, 1)), np.tile(p.success, reps), p.message * reps, tiled
     )

@@ -82,3 +82,15 @@ def test_tilt_torsion_round_trip(phi, theta, psi):
     assert np.isclose(a[1], theta)
     # the tilt is the angle of the platform normal from base z
     assert np.isclose(np.arccos(R[2, 2]), theta)
+
+
+def test_log_accurate_near_a_half_turn():
+    """Rotary tables reach half a turn: the log must stay exact there (arccos and the
+    antisymmetric part alone lose every digit at pi)."""
+    a = np.array([0.6, 0.0, -0.8])
+    th = np.array([2.9, 3.05, np.pi - 1e-4, np.pi - 1e-7, np.pi - 1e-10, np.pi])
+    R = so3_exp(th[:, None] * a)
+    w = so3_log(R)
+    assert np.allclose(so3_exp(w), R, atol=1e-14)
+    assert np.allclose(w[:-1], th[:-1, None] * a, atol=1e-12)
+    assert np.allclose(np.abs(w[-1]), np.pi * np.abs(a), atol=1e-12)  # at pi either sign is the same rotation

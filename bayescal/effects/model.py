@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import KinematicsError
-from ..machines.base import ToolPoses
+from ..machines.base import ToolPoses, map_state
 from ..measurement import MeasurementModel, Prediction
 from .base import Effect, EffectParam, Features
 
@@ -116,7 +116,7 @@ def _merge(pred: Prediction, other: Prediction) -> Prediction:
     def pick(a, b):
         return np.where(take.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
 
-    state = type(st)(**{k: pick(getattr(st, k), getattr(ost, k)) for k in st.__dataclass_fields__})
+    state = map_state(pick, st, ost)
     poses = ToolPoses(
         pick(pred.poses.position, other.poses.position), pick(pred.poses.rotation, other.poses.rotation),
         pred.success | take, tuple(o if t else m for m, o, t in zip(pred.poses.message, other.poses.message, take)), state,

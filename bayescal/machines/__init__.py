@@ -11,14 +11,16 @@ from .check import MachineCheckError, check_machine
 from .prs3 import Prs3
 from .raspm import Raspm
 from .rupus_prs import RupusPrs
+from .hybrid import Hybrid, write_machine_files
+from .serial import Serial
 
 __all__ = [
-    "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "KINDS", "load_machine",
-    "machine_from_text", "check_machine", "MachineCheckError",
+    "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "Serial", "Hybrid", "KINDS", "load_machine",
+    "machine_from_text", "write_machine_files", "check_machine", "MachineCheckError",
 ]
 
 #: Machine kinds by the ``kind`` string of the machine file.
-KINDS: dict[str, type[Machine]] = {Prs3.kind: Prs3, RupusPrs.kind: RupusPrs, Raspm.kind: Raspm}
+KINDS: dict[str, type[Machine]] = {Prs3.kind: Prs3, RupusPrs.kind: RupusPrs, Raspm.kind: Raspm, Serial.kind: Serial, Hybrid.kind: Hybrid}
 
 
 def _build(doc, path: str) -> Machine:

@@ -10,6 +10,7 @@ walker) use the same kinematics.
 
 from __future__ import annotations
 
+import dataclasses
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar
@@ -20,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from ..params import ParamLayout
 
-__all__ = ["Machine", "ToolPoses", "MeasurementNoise"]
+__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "map_state"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +73,43 @@ class ToolPoses:
     def axis(self) -> NDArray:
         """Tool axis ``R e_z``, shape (n_poses, 3)."""
         return self.rotation[..., :, 2]
+
+
+def map_state(fn, state, *others):
+    """Apply ``fn`` to every per-pose array of a ``ToolPoses.state``, keeping its structure.
+
+    A kind's state is a dataclass of arrays with the pose on the leading axis,
+    or None; a hybrid machine's state nests its modules' states in dataclasses
+    and tuples.  Consumers that select, tile or merge poses (measurement
+    subsets, stacked parameter sets, effect fits) go through this function so
+    that they never need to know which kind made the state.
+
+    Parameters
+    ----------
+    fn : callable
+        ``fn(array, *other_arrays) -> array``.
+    state : object
+        Dataclass, tuple, ndarray or None.
+    *others : object
+        States of the same structure whose arrays are passed alongside.
+
+    Returns
+    -------
+    object
+        Of the same structure; None stays None, other leaves are kept as they are.
+    """
+    if state is None:
+        return None
+    if dataclasses.is_dataclass(state) and not isinstance(state, type):
+        return type(state)(**{
+            f.name: map_state(fn, getattr(state, f.name), *(getattr(o, f.name) for o in others))
+            for f in dataclasses.fields(state)
+        })
+    if isinstance(state, tuple):
+        return tuple(map_state(fn, s, *(o[i] for o in others)) for i, s in enumerate(state))
+    if isinstance(state, np.ndarray):
+        return fn(state, *others)
+    return state
 
 
 class Machine(ABC):

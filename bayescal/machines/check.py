@@ -37,10 +37,15 @@ __all__ = ["check_machine", "MachineCheckError", "KNOWN_UNITS", "PARAM_NAME"]
 #: Units a geometric parameter may have (FORMATS.md: millimetres and radians).
 KNOWN_UNITS = frozenset({"mm", "rad"})
 
-#: FORMATS.md parameter names: ``chain<i>.<key>[.<component>]`` or ``tool.point.<component>``.
+#: FORMATS.md parameter names: ``chain<i>.<key>[.<component>]`` or ``tool.point.<component>``;
+#: serial chains (section 5) ``joint<i>.<key>[.<component>]`` and ``tool.rpy.<component>``; a
+#: hybrid machine prefixes its modules' names with ``m<k>.``.
 # chain<i>.<key>[.<component>]; a key may itself be a dotted path into a sub-table of the chain
 # (the redundant module's `chain3.slider2.rail_origin.x`)
-PARAM_NAME = re.compile(r"^(chain[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,3}|tool\.point\.[a-z][a-z0-9_]*)$")
+PARAM_NAME = re.compile(
+    r"^(m[1-9][0-9]*\.)*(chain[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,3}|joint[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,2}"
+    r"|tool\.(point|rpy)\.[a-z][a-z0-9_]*)$"
+)
 
 #: Agreement demanded of two solutions of the same pose (mm for positions, rad for rotations).
 SAME_POSE_TOL = 1e-9

@@ -1,0 +1,405 @@
+"""Serial chains (rotary tables, trunnions, positioners, wrists, arms) with URDF joint semantics.
+
+Kinematics (FORMATS.md section 5), lengths in mm and angles in rad: joint
+``i`` contributes
+
+    T_i = Trans(origin_i) Rot(rpy_i) M_i(q_i + offset_i),
+    Rot(r, p, y) = Rz(y) Ry(p) Rx(r),
+    M = Rot(axis, q) (revolute)  or  Trans(axis q) (prismatic),
+
+and the tool (measured) frame is ``T_1 ... T_n Trans(tool.point) Rot(tool.rpy)``;
+its origin is the tool point and its orientation the measured orientation.
+
+Error parameters, per joint ``i`` in this order (the order is the priority of
+the automatic identifiable subset: earlier parameters are kept in
+preference), then the tool:
+
+* ``joint<i>.offset``: zero offset added to ``q_i`` (rad or mm);
+* ``joint<i>.axis.tilt_<a>``, ``joint<i>.axis.tilt_<b>``: the unit axis tilted
+  by two small rotations about the joint-frame axes ``a``, ``b`` it is most
+  perpendicular to (``z`` axis: ``tilt_x``, ``tilt_y``), see
+  :func:`bayescal.geometry.tilted_direction`; the normalised form is exact, so
+  a calibrated machine file stores the tilted unit axis itself;
+* ``joint<i>.origin.{x,y,z}`` (mm, parent frame), ``joint<i>.rpy.{r,p,y}``
+  (rad, added to the rpy angles);
+* ``tool.point.{x,y,z}`` (mm, last joint frame), ``tool.rpy.{r,p,y}`` (rad).
+
+The Jacobian is analytic (product of exponentials): a perturbation of a
+factor of the chain is a twist of the frame it acts in, carried to the base
+frame by that frame's pose, so every column costs a cross product.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..geometry import skew, so3_exp, tilt_axes, tilted_direction
+from ..io.machine_file import TomlTable, format_toml_value
+from ..params import ParamLayout, ParamSpec
+from .base import Machine, MeasurementNoise, ToolPoses
+from .common import common_toml, read_noise, read_q_limits, read_tolerance
+
+__all__ = ["Serial", "SERIAL_TOLERANCE_DEFAULTS", "JOINT_TYPES", "rpy_matrix", "rpy_from_matrix"]
+
+#: Documented one-sigma defaults of the ``[tolerance]`` table (mm or rad).
+SERIAL_TOLERANCE_DEFAULTS: dict[str, float] = {
+    "origin": 0.05,          # mm, joint frame origins
+    "rpy": 2.0e-4,           # rad, joint frame orientations
+    "axis": 2.0e-4,          # rad, tilt of the joint axes
+    "offset_angle": 2.0e-4,  # rad, zero offsets of revolute joints
+    "offset_length": 0.05,   # mm, zero offsets of prismatic joints
+    "tool_point": 0.05,      # mm
+    "tool_rpy": 2.0e-4,      # rad
+}
+
+JOINT_TYPES = ("revolute", "prismatic")
+_XYZ = "xyz"
+_RPY = "rpy"
+_PER_JOINT = 9  # offset, 2 axis tilts, 3 origin, 3 rpy
+
+
+def rpy_matrix(rpy: ArrayLike) -> NDArray:
+    """``Rz(y) Ry(p) Rx(r)`` for ``rpy = (r, p, y)`` (rad, URDF convention), shape ``(..., 3, 3)``."""
+    rpy = np.asarray(rpy, dtype=float)
+    cr, sr = np.cos(rpy[..., 0]), np.sin(rpy[..., 0])
+    cp, sp = np.cos(rpy[..., 1]), np.sin(rpy[..., 1])
+    cy, sy = np.cos(rpy[..., 2]), np.sin(rpy[..., 2])
+    R = np.empty(rpy.shape[:-1] + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = -sp, cp * sr, cp * cr
+    return R
+
+
+def rpy_rates(rpy: NDArray) -> NDArray:
+    """Angular velocity per unit rate of ``r``, ``p``, ``y``, in the frame the rotation acts in.
+
+    ``d Rot(rpy) Rot(rpy)^T = [w]x`` with ``w = W[..., :, k]`` for a unit change
+    of angle ``k``: ``Rz Ry e_x``, ``Rz e_y``, ``e_z``.  Shape ``(..., 3, 3)``.
+    """
+    cp, sp = np.cos(rpy[..., 1]), np.sin(rpy[..., 1])
+    cy, sy = np.cos(rpy[..., 2]), np.sin(rpy[..., 2])
+    W = np.zeros(rpy.shape[:-1] + (3, 3))
+    W[..., 0, 0], W[..., 1, 0], W[..., 2, 0] = cy * cp, sy * cp, -sp
+    W[..., 0, 1], W[..., 1, 1] = -sy, cy
+    W[..., 2, 2] = 1.0
+    return W
+
+
+def rpy_from_matrix(R: ArrayLike) -> NDArray:
+    """URDF ``(r, p, y)`` of a rotation matrix (one of the two solutions; ``|p| <= pi/2``).
+
+    Written out rather than taken from scipy's ``as_euler``, which warns at
+    gimbal lock (``p = +-pi/2``); there the roll is set to zero and the yaw
+    carries the rotation about the common axis.
+    """
+    R = np.asarray(R, dtype=float)
+    p = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 0, 0], R[..., 1, 0]))
+    locked = np.hypot(R[..., 0, 0], R[..., 1, 0]) < 1e-12
+    r = np.where(locked, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
+    y = np.where(locked, np.arctan2(-R[..., 0, 1], R[..., 1, 1]), np.arctan2(R[..., 1, 0], R[..., 0, 0]))
+    return np.stack([r, p, y], axis=-1)
+
+
+def _left_jacobian(phi: NDArray) -> NDArray:
+    """Left Jacobian of SO(3): ``exp(phi + d) = exp([J_l(phi) d]x) exp(phi) + O(d^2)``."""
+    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = skew(phi)
+    small = th < 1e-5
+    ts = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    b = np.where(small, 1.0 / 6.0 - th**2 / 120.0, (ts - np.sin(ts)) / ts**3)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+@dataclass(frozen=True)
+class _Chain:
+    """Frames of a solved chain, per pose (leading axis n) and joint (axis k)."""
+
+    R_parent: NDArray  # (n, m, 3, 3) frame before joint k (base for k = 0)
+    R_joint: NDArray  # (n, m, 3, 3) joint frame (after origin and rpy, before the motion)
+    p_joint: NDArray  # (n, m, 3) joint frame origin, base frame
+    rpy: NDArray  # (n, m, 3)
+    axis: NDArray  # (n, m, 3) unit axis, joint frame
+    daxis: NDArray  # (n, m, 3, 2) its derivative w.r.t. the two tilts
+    qe: NDArray  # (n, m) q + offset
+    R_end: NDArray  # (n, 3, 3) last joint frame (after the motion)
+    tool_rpy: NDArray  # (n, 3)
+    p_tool: NDArray  # (n, 3)
+    R_tool: NDArray  # (n, 3, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class Serial(Machine):
+    """A serial chain of revolute and prismatic joints with URDF joint semantics.
+
+    Parameters
+    ----------
+    joint_type : tuple of str
+        ``"revolute"`` or ``"prismatic"`` per joint, base outward; joint ``i`` is actuator ``q_i``.
+    origin : ndarray, shape (m, 3)
+        Joint frame origins in the previous frame, mm.
+    rpy : ndarray, shape (m, 3)
+        Fixed rotations of the joint frames, rad, ``Rz(y) Ry(p) Rx(r)``.
+    axis : ndarray, shape (m, 3)
+        Unit joint axes in the joint frames.
+    tool_point : ndarray, shape (3,)
+        Measured point in the last joint frame, mm.
+    tool_rpy : ndarray, shape (3,)
+        Orientation of the measured frame in the last joint frame, rad.
+    name, noise, q_limits, tolerance_groups, source
+        As for the other kinds.
+    """
+
+    kind = "serial"
+
+    joint_type: tuple
+    origin: NDArray
+    rpy: NDArray
+    axis: NDArray
+    tool_point: NDArray
+    tool_rpy: NDArray = field(default_factory=lambda: np.zeros(3))
+    name: str = "serial chain"
+    noise: MeasurementNoise = field(default_factory=MeasurementNoise)
+    q_limits: NDArray | None = None
+    tolerance_groups: dict = field(default_factory=lambda: dict(SERIAL_TOLERANCE_DEFAULTS))
+    source: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        m = len(self.joint_type)
+        for key, arr in (("origin", self.origin), ("rpy", self.rpy), ("axis", self.axis)):
+            object.__setattr__(self, key, np.asarray(arr, dtype=float).reshape(m, 3))
+        object.__setattr__(self, "axis", self.axis / np.linalg.norm(self.axis, axis=1, keepdims=True))
+        object.__setattr__(self, "tool_point", np.asarray(self.tool_point, dtype=float).reshape(3))
+        object.__setattr__(self, "tool_rpy", np.asarray(self.tool_rpy, dtype=float).reshape(3))
+        object.__setattr__(self, "_tilt", tuple(tilt_axes(a) for a in self.axis))
+        specs = []
+        for i, jt in enumerate(self.joint_type):
+            j = f"joint{i + 1}"
+            if jt == "revolute":
+                specs.append(ParamSpec(f"{j}.offset", "rad", "offset_angle"))
+            else:
+                specs.append(ParamSpec(f"{j}.offset", "mm", "offset_length"))
+            specs += [ParamSpec(f"{j}.axis.tilt_{_XYZ[k]}", "rad", "axis") for k in self._tilt[i]]
+            specs += [ParamSpec(f"{j}.origin.{x}", "mm", "origin") for x in _XYZ]
+            specs += [ParamSpec(f"{j}.rpy.{x}", "rad", "rpy") for x in _RPY]
+        specs += [ParamSpec(f"tool.point.{x}", "mm", "tool_point") for x in _XYZ]
+        specs += [ParamSpec(f"tool.rpy.{x}", "rad", "tool_rpy") for x in _RPY]
+        object.__setattr__(self, "layout", ParamLayout(tuple(specs)))
+        object.__setattr__(self, "tolerance", np.array([self.tolerance_groups[s.group] for s in specs]))
+
+    # ----------------------------------------------------------------- set-up
+    @property
+    def n_actuators(self) -> int:
+        return len(self.joint_type)
+
+    @property
+    def actuator_units(self) -> tuple[str, ...]:
+        return tuple("rad" if t == "revolute" else "mm" for t in self.joint_type)
+
+    @classmethod
+    def from_toml(cls, doc: TomlTable, path: str) -> "Serial":
+        """Read ``[[joint]]`` tables, or ``urdf``/``base_link``/``tip_link`` standing in for them."""
+        doc.reject_unknown(
+            {"kind", "name", "joint", "urdf", "base_link", "tip_link", "tool", "measurement", "workspace", "tolerance"}
+        )
+        limits = None
+        if doc.has("urdf"):
+            if doc.has("joint"):
+                raise doc.error("joint", "[[joint]] tables and urdf are both given; expected one of them")
+            from .urdf import chain_from_urdf
+
+            urdf = doc.string("urdf")
+            urdf_path = Path(urdf) if Path(urdf).is_absolute() else Path(path).parent / urdf
+            chain = chain_from_urdf(urdf_path, doc.string("base_link"), doc.string("tip_link"), path=path)
+            types, origin, rpy, axis = chain.joint_type, chain.origin, chain.rpy, chain.axis
+            tail, limits = chain.tail, chain.q_limits
+        else:
+            for k in ("base_link", "tip_link"):
+                if doc.has(k):
+                    raise doc.error(k, "only allowed together with urdf = \"...\"")
+            joints = doc.array_of_tables("joint")
+            types, origin, rpy, axis = [], [], [], []
+            for jt in joints:
+                jt.reject_unknown({"type", "origin", "rpy", "axis"})
+                t = jt.string("type")
+                if t not in JOINT_TYPES:
+                    raise jt.error("type", f"expected \"revolute\" or \"prismatic\", got {t!r}")
+                types.append(t)
+                origin.append(jt.vector("origin", default=np.zeros(3)))  # URDF: a missing origin is the identity
+                rpy.append(jt.vector("rpy", default=np.zeros(3)))
+                axis.append(jt.vector("axis", unit=True))
+            tail = None
+        tool = doc.table("tool")
+        tool.reject_unknown({"point", "rpy"})
+        tp, tr = tool.vector("point"), tool.vector("rpy", default=np.zeros(3))
+        if tail is not None:
+            # fixed joints between the last moving joint and tip_link: the tool given in
+            # tip_link's frame is carried into the last moving joint's frame
+            R_tail, p_tail = tail
+            tp, tr = p_tail + R_tail @ tp, rpy_from_matrix(R_tail @ rpy_matrix(tr))
+        q_limits = read_q_limits(doc, len(types))
+        if q_limits is None and limits is not None:
+            q_limits = limits
+        return cls(
+            joint_type=tuple(types), origin=np.array(origin), rpy=np.array(rpy), axis=np.array(axis),
+            tool_point=tp, tool_rpy=tr, name=doc.string("name", "serial chain"), noise=read_noise(doc),
+            q_limits=q_limits, tolerance_groups=read_tolerance(doc, SERIAL_TOLERANCE_DEFAULTS), source=path,
+        )
+
+    def _theta_rows(self, theta: ArrayLike | None, n: int) -> NDArray:
+        theta = self.check_theta(theta, n)
+        return np.broadcast_to(theta, (n, self.n_params)) if theta.ndim == 1 else theta
+
+    def geometry_arrays(self, theta: ArrayLike | None = None) -> dict[str, NDArray]:
+        """The machine-file arrays of ``nominal + theta`` with the zero offsets folded in (theta of shape (P,))."""
+        th = self.check_theta(theta)
+        m = self.n_actuators
+        tj = th[: _PER_JOINT * m].reshape(m, _PER_JOINT)
+        origin = self.origin + tj[:, 3:6]
+        rpy = self.rpy + tj[:, 6:9]
+        axis = np.array([tilted_direction(self.axis[i], self._tilt[i], tj[i, 1:3])[0] for i in range(m)])
+        for i in range(m):
+            # M(q + d) = M(d) M(q): a zero offset becomes part of the fixed transform
+            if self.joint_type[i] == "revolute":
+                rpy[i] = rpy_from_matrix(rpy_matrix(rpy[i]) @ so3_exp(axis[i] * tj[i, 0]))
+            else:
+                origin[i] = origin[i] + rpy_matrix(rpy[i]) @ axis[i] * tj[i, 0]
+        return {
+            "origin": origin, "rpy": rpy, "axis": axis,
+            "tool_point": self.tool_point + th[_PER_JOINT * m : _PER_JOINT * m + 3],
+            "tool_rpy": self.tool_rpy + th[_PER_JOINT * m + 3 :],
+        }
+
+    # ------------------------------------------------------------ kinematics
+    def _chain(self, q: NDArray, theta: NDArray) -> _Chain:
+        n, m = q.shape
+        tj = theta[:, : _PER_JOINT * m].reshape(n, m, _PER_JOINT)
+        ttool = theta[:, _PER_JOINT * m :]
+        origin = self.origin[None] + tj[:, :, 3:6]
+        rpy = self.rpy[None] + tj[:, :, 6:9]
+        axis = np.empty((n, m, 3))
+        daxis = np.empty((n, m, 3, 2))
+        for k in range(m):
+            axis[:, k], daxis[:, k] = tilted_direction(self.axis[k], self._tilt[k], tj[:, k, 1:3])
+        qe = q + tj[:, :, 0]
+        R_fix = rpy_matrix(rpy)
+        R_parent = np.empty((n, m, 3, 3))
+        R_joint = np.empty((n, m, 3, 3))
+        p_joint = np.empty((n, m, 3))
+        R = np.broadcast_to(np.eye(3), (n, 3, 3))
+        p = np.zeros((n, 3))
+        for k in range(m):
+            R_parent[:, k] = R
+            p = p + np.einsum("nij,nj->ni", R, origin[:, k])
+            R = R @ R_fix[:, k]
+            R_joint[:, k], p_joint[:, k] = R, p
+            if self.joint_type[k] == "revolute":
+                R = R @ so3_exp(axis[:, k] * qe[:, k, None])
+            else:
+                p = p + np.einsum("nij,nj->ni", R, axis[:, k] * qe[:, k, None])
+        tool_rpy = self.tool_rpy[None] + ttool[:, 3:]
+        p_tool = p + np.einsum("nij,nj->ni", R, self.tool_point[None] + ttool[:, :3])
+        return _Chain(
+            R_parent=R_parent, R_joint=R_joint, p_joint=p_joint, rpy=rpy, axis=axis, daxis=daxis, qe=qe,
+            R_end=R, tool_rpy=tool_rpy, p_tool=p_tool, R_tool=R @ rpy_matrix(tool_rpy),
+        )
+
+    def forward(self, q: ArrayLike, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> ToolPoses:
+        """Tool poses by the product of the joint transforms (closed form; ``guess`` is not needed).
+
+        Parameters
+        ----------
+        q : array_like, shape (n_poses, n_joints)
+            Joint positions, rad (revolute) or mm (prismatic).
+        theta : array_like, shape (P,) or (n_poses, P), optional
+            Geometric errors; zeros if omitted.
+
+        Returns
+        -------
+        ToolPoses
+            ``position`` the tool point (mm, base frame), ``rotation`` the tool
+            frame's orientation; every pose succeeds.
+        """
+        q = self.check_q(q)
+        n = q.shape[0]
+        c = self._chain(q, self._theta_rows(theta, n))
+        ok = np.isfinite(c.p_tool).all(axis=1) & np.isfinite(c.R_tool).all(axis=(1, 2))
+        msgs = tuple("" if o else "non-finite joint positions or geometry" for o in ok)
+        return ToolPoses(position=c.p_tool, rotation=c.R_tool, success=ok, message=msgs, state=None)
+
+    def _motion_columns(self, c: _Chain, k: int) -> tuple[NDArray, NDArray]:
+        """Tool-point and rotation rates per unit of joint ``k``'s motion (its offset or q)."""
+        a_base = np.einsum("nij,nj->ni", c.R_joint[:, k], c.axis[:, k])
+        if self.joint_type[k] == "revolute":
+            return np.cross(a_base, c.p_tool - c.p_joint[:, k]), a_base
+        return a_base, np.zeros_like(a_base)
+
+    def tool_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
+        """Identification Jacobian, analytic (frame twists carried to the base frame).
+
+        A perturbation of a factor of ``T_1 ... T_n T_tool`` is a twist of the
+        frame it acts in: an origin change a translation along the parent
+        frame's axes, an rpy change a rotation about ``Rz Ry e_x``, ``Rz e_y``,
+        ``e_z`` of the parent frame through the joint origin, an offset the
+        joint's own motion, an axis tilt ``J_l(q a) q da`` (revolute; ``J_l``
+        the left Jacobian of SO(3)) or ``q da`` (prismatic).  A rotation ``w``
+        about a point ``c`` moves the tool point by ``w x (p - c)``.
+        Returns shape (n_poses, 6, P); see :meth:`Machine.tool_jacobian`.
+        """
+        q = self.check_q(q)
+        n, m = q.shape
+        c = self._chain(q, self._theta_rows(theta, n))
+        J = np.zeros((n, 6, self.n_params))
+        W = rpy_rates(c.rpy)  # (n, m, 3, 3), columns in the parent frame
+        for k in range(m):
+            o = _PER_JOINT * k
+            J[:, :3, o], J[:, 3:, o] = self._motion_columns(c, k)
+            arm = c.p_tool - c.p_joint[:, k]
+            if self.joint_type[k] == "revolute":
+                Jl = _left_jacobian(c.axis[:, k] * c.qe[:, k, None])
+                w = c.R_joint[:, k] @ Jl @ (c.daxis[:, k] * c.qe[:, k, None, None])  # (n, 3, 2)
+                J[:, 3:, o + 1 : o + 3] = w
+                J[:, :3, o + 1 : o + 3] = np.cross(w, arm[:, :, None], axis=1)
+            else:
+                J[:, :3, o + 1 : o + 3] = c.R_joint[:, k] @ (c.daxis[:, k] * c.qe[:, k, None, None])
+            J[:, :3, o + 3 : o + 6] = c.R_parent[:, k]
+            w = c.R_parent[:, k] @ W[:, k]
+            J[:, 3:, o + 6 : o + 9] = w
+            J[:, :3, o + 6 : o + 9] = np.cross(w, arm[:, :, None], axis=1)
+        t = _PER_JOINT * m
+        J[:, :3, t : t + 3] = c.R_end
+        J[:, 3:, t + 3 : t + 6] = c.R_end @ rpy_rates(c.tool_rpy)
+        return J
+
+    def actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
+        """Tool-pose derivative with respect to the joint positions, analytic (the joint twists)."""
+        q = self.check_q(q)
+        n, m = q.shape
+        c = self._chain(q, self._theta_rows(theta, n))
+        J = np.empty((n, 6, m))
+        for k in range(m):
+            J[:, :3, k], J[:, 3:, k] = self._motion_columns(c, k)
+        return J
+
+    # ------------------------------------------------------------------ output
+    def to_toml(self, theta: ArrayLike | None = None) -> str:
+        """Machine file of ``nominal + theta`` as ``[[joint]]`` tables (zero offsets folded into rpy/origin).
+
+        A chain read from a URDF file is written out as ``[[joint]]`` tables
+        (fixed joints already folded in), so the file stands alone.
+        """
+        g = self.geometry_arrays(theta)
+        f = format_toml_value
+        out = ['kind = "serial"', f"name = {f(self.name)}", ""]
+        for i, t in enumerate(self.joint_type):
+            out += [
+                "[[joint]]", f'type = "{t}"', f"origin = {f(g['origin'][i])}", f"rpy = {f(g['rpy'][i])}",
+                f"axis = {f(g['axis'][i])}", "",
+            ]
+        out += ["[tool]", f"point = {f(g['tool_point'])}", f"rpy = {f(g['tool_rpy'])}", ""]
+        return "\n".join(out) + common_toml(self, self.tolerance_groups)

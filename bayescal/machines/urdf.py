@@ -1,0 +1,145 @@
+"""A serial chain from a URDF file (``urdf``, ``base_link``, ``tip_link`` in a serial machine file).
+
+The file is parsed by ``yourdfpy`` (a maintained URDF parser); this module only
+walks the joints between two links and converts them to bayescal's units.
+
+Supported: ``revolute``, ``continuous`` (both revolute actuators, q in rad),
+``prismatic`` (q in mm; URDF's metres are converted) and ``fixed`` joints (folded
+into the next moving joint's origin and rpy, or into the tool after the last
+one).  Refused with a message naming the joint: ``floating`` and ``planar``
+joints (not one actuator each) and ``mimic`` joints (one actuator driving two
+joints is not a serial chain of independent actuators).  Ignored: visual,
+collision and inertial elements, ``dynamics``, ``safety_controller``,
+``calibration`` (the URDF ``calibration`` reference positions are not zero
+offsets), transmissions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import MachineFileError
+
+__all__ = ["UrdfChain", "chain_from_urdf"]
+
+_M_TO_MM = 1000.0
+_REVOLUTE = ("revolute", "continuous")
+
+
+@dataclass(frozen=True)
+class UrdfChain:
+    """The moving joints between two links, in mm and rad.
+
+    Attributes
+    ----------
+    joint_type : tuple of str
+        ``"revolute"`` (also for URDF ``continuous``) or ``"prismatic"``.
+    origin, rpy, axis : ndarray, shape (m, 3)
+        As the ``[[joint]]`` keys; fixed joints before a moving joint are folded in.
+    tail : (ndarray (3, 3), ndarray (3,))
+        Rotation and translation (mm) of ``tip_link`` in the last moving joint's frame.
+    q_limits : ndarray, shape (m, 2) or None
+        From the URDF ``<limit>`` elements (rad or mm) when every moving joint has
+        one (``continuous`` joints have none).
+    names : tuple of str
+        The URDF joint names, base outward.
+    """
+
+    joint_type: tuple
+    origin: NDArray
+    rpy: NDArray
+    axis: NDArray
+    tail: tuple
+    q_limits: NDArray | None
+    names: tuple
+
+
+def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, path: str = "") -> UrdfChain:
+    """Read the joints from ``base_link`` to ``tip_link`` of a URDF file.
+
+    Parameters
+    ----------
+    urdf_path : path
+        The URDF file (relative paths are resolved by the caller against the machine file).
+    base_link, tip_link : str
+        Link names; ``base_link`` must be an ancestor of ``tip_link``.
+    path : str
+        The machine file, for error messages.
+
+    Raises
+    ------
+    MachineFileError
+        Naming the machine file, the key (``urdf``, ``base_link``, ``tip_link``)
+        and, for an unsupported joint, its URDF name and type.
+    """
+    import yourdfpy
+
+    from .serial import rpy_from_matrix
+
+    urdf_path = Path(urdf_path)
+    if not urdf_path.is_file():
+        raise MachineFileError(path, "urdf", f"file not found: {urdf_path}")
+    try:
+        # yourdfpy recovers from malformed XML (and only logs it); a machine description must be
+        # well-formed, so the file is first parsed strictly by lxml (which yourdfpy builds on)
+        from lxml import etree
+
+        etree.parse(str(urdf_path), etree.XMLParser(recover=False))
+        robot = yourdfpy.URDF.load(
+            str(urdf_path), build_scene_graph=False, load_meshes=False,
+            build_collision_scene_graph=False, load_collision_meshes=False,
+        )
+    except Exception as exc:  # yourdfpy raises lxml, ValueError, KeyError... for malformed files
+        raise MachineFileError(path, "urdf", f"{urdf_path} is not a readable URDF file ({type(exc).__name__}: {exc})") from exc
+    links = set(robot.link_map)
+    for key, link in (("base_link", base_link), ("tip_link", tip_link)):
+        if link not in links:
+            raise MachineFileError(path, key, f"link {link!r} not in {urdf_path.name}; links: {', '.join(sorted(links))}")
+    by_child = {j.child: j for j in robot.joint_map.values()}
+    chain = []
+    link = tip_link
+    while link != base_link:
+        if link not in by_child:
+            raise MachineFileError(path, "base_link", f"{base_link!r} is not an ancestor of tip_link {tip_link!r} in {urdf_path.name}")
+        j = by_child[link]
+        chain.append(j)
+        link = j.parent
+    chain.reverse()
+    types, origin, rpy, axis, lim, names = [], [], [], [], [], []
+    pending = np.eye(4)  # fixed transforms not yet folded into a moving joint (mm)
+    for j in chain:
+        T = np.array(j.origin if j.origin is not None else np.eye(4), dtype=float)
+        T[:3, 3] *= _M_TO_MM
+        if j.type == "fixed":
+            pending = pending @ T
+            continue
+        if j.type not in _REVOLUTE + ("prismatic",):
+            raise MachineFileError(path, "urdf", f"joint {j.name!r} is of type {j.type!r}; supported: revolute, continuous, prismatic, fixed")
+        if j.mimic is not None:
+            raise MachineFileError(path, "urdf", f"joint {j.name!r} mimics {j.mimic.joint!r}; mimic joints are not supported")
+        T = pending @ T
+        pending = np.eye(4)
+        a = np.array(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=float)  # URDF default axis is x
+        if not np.linalg.norm(a) > 0:
+            raise MachineFileError(path, "urdf", f"joint {j.name!r} has a zero axis")
+        types.append("revolute" if j.type in _REVOLUTE else "prismatic")
+        origin.append(T[:3, 3])
+        rpy.append(rpy_from_matrix(T[:3, :3]))
+        axis.append(a / np.linalg.norm(a))
+        names.append(j.name)
+        scale = _M_TO_MM if j.type == "prismatic" else 1.0
+        if j.type == "continuous" or j.limit is None or j.limit.lower is None or j.limit.upper is None:
+            lim.append(None)
+        else:
+            lim.append((scale * float(j.limit.lower), scale * float(j.limit.upper)))
+    if not types:
+        raise MachineFileError(path, "tip_link", f"no revolute, continuous or prismatic joint between {base_link!r} and {tip_link!r}")
+    ok = all(li is not None and li[0] < li[1] for li in lim)
+    return UrdfChain(
+        joint_type=tuple(types), origin=np.array(origin), rpy=np.array(rpy), axis=np.array(axis),
+        tail=(pending[:3, :3], pending[:3, 3]), q_limits=np.array(lim, dtype=float) if ok else None, names=tuple(names),
+    )
