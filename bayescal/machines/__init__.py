@@ -8,17 +8,19 @@ from ..errors import MachineFileError
 from ..io.machine_file import read_toml
 from .base import Machine, MeasurementNoise, ToolPoses
 from .check import MachineCheckError, check_machine
+from .linear_delta import LinearDelta
 from .prs3 import Prs3
 from .raspm import Raspm
 from .rupus_prs import RupusPrs
 
 __all__ = [
-    "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "KINDS", "load_machine",
+    "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "LinearDelta", "KINDS", "load_machine",
     "machine_from_text", "check_machine", "MachineCheckError",
 ]
 
 #: Machine kinds by the ``kind`` string of the machine file.
 KINDS: dict[str, type[Machine]] = {Prs3.kind: Prs3, RupusPrs.kind: RupusPrs, Raspm.kind: Raspm}
+KINDS[LinearDelta.kind] = LinearDelta
 
 
 def _build(doc, path: str) -> Machine:

@@ -40,7 +40,8 @@ KNOWN_UNITS = frozenset({"mm", "rad"})
 #: FORMATS.md parameter names: ``chain<i>.<key>[.<component>]`` or ``tool.point.<component>``.
 # chain<i>.<key>[.<component>]; a key may itself be a dotted path into a sub-table of the chain
 # (the redundant module's `chain3.slider2.rail_origin.x`)
-PARAM_NAME = re.compile(r"^(chain[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,3}|tool\.point\.[a-z][a-z0-9_]*)$")
+# (a linear delta names its chains `tower<i>`, as its machine file does)
+PARAM_NAME = re.compile(r"^((chain|tower)[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,3}|tool\.point\.[a-z][a-z0-9_]*)$")
 
 #: Agreement demanded of two solutions of the same pose (mm for positions, rad for rotations).
 SAME_POSE_TOL = 1e-9
