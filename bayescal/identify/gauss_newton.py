@@ -39,6 +39,9 @@ def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tupl
     sig = model.sigma
     r = (model.residual(prediction) / sig).reshape(-1)
     J = (model.jacobian(theta, prediction) / sig[None, :, None]).reshape(-1, model.n_params)
+    w = getattr(model, "weights", None)  # per-row weights (a constraint recording's sigma_position column)
+    if w is not None:
+        r, J = r * w.reshape(-1), J * w.reshape(-1, 1)
     return r, J
 
 
