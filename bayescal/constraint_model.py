@@ -78,6 +78,18 @@ class PivotAugmented:
             raise InputError(f"theta: expected shape ({self.n_params},) or (n, {self.n_params}), got {theta.shape}")
         return theta
 
+    def _machine_theta(self, theta):
+        return None if theta is None else np.asarray(theta, dtype=float)[..., : self.base.n_params]
+
+    def forward(self, q, theta=None, *, guess=None) -> ToolPoses:
+        """The machine's tool poses (pivots do not move the tool)."""
+        return self.base.forward(q, self._machine_theta(theta), guess=guess)
+
+    def tool_jacobian(self, q, theta, poses) -> NDArray:
+        """The machine's tool Jacobian with zero columns for the pivots, shape (n, 6, P + 3K)."""
+        J = self.base.tool_jacobian(q, self._machine_theta(theta), poses)
+        return np.concatenate([J, np.zeros(J.shape[:2] + (self.n_params - self.base.n_params,))], axis=2)
+
     def to_toml(self, theta: ArrayLike | None = None) -> str:
         """The calibrated machine file (pivots are not part of the machine)."""
         theta = self.check_theta(theta)
