@@ -174,8 +174,6 @@ class ConstraintModel:
         if dof not in (None, 1):
             raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
         rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
-        if getattr(machine, "actuator_units", None) and any(u != "mm" for u in machine.actuator_units):
-            pass  # revolute actuators: q in rad as in pose recordings
         model = cls(
             base=machine, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot,
             y_measured=rec.value[:, None], row_sigma=rec.sigma, aux=dict(rec.aux),

@@ -85,7 +85,9 @@ def test_residuals_and_klipper_objective_of_the_final_config(post):
 
 
 def test_cli_writes_machine_and_recording(tmp_path, capsys):
-    assert main(["klipper", str(POST), "--out", str(tmp_path / "k")]) == 0
+    assert main(["klipper", str(POST), "--out", str(tmp_path / "k"), "--json", str(tmp_path / "k.json")]) == 0
+    summary = json.loads((tmp_path / "k.json").read_text())
+    assert summary["step_dist"] == [0.0125] * 3 and summary["n_distances"] == 12
     m = load_machine(tmp_path / "k" / "machine.toml")
     rec = read_constraints(tmp_path / "k" / "recording.csv")
     assert m.kind == "linear-delta" and rec.n_rows == 19

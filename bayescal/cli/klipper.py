@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..io import write_text_atomic
+from ..io import write_json_atomic, write_text_atomic
 from ..io.constraints import constraints_to_csv
 
 HELP = """\
@@ -43,6 +43,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="folder for machine.toml and recording.csv")
     p.add_argument("--sigma-height", type=float, default=None, help="one-sigma noise of a probe height, mm (default 0.02)")
     p.add_argument("--sigma-distance", type=float, default=None, help="one-sigma noise of a caliper distance, mm (default 0.05)")
+    p.add_argument("--json", metavar="PATH", help="write a summary (geometry read, step distances, counts, files) as JSON")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
 
@@ -68,8 +69,15 @@ def run(args) -> int:
     out = Path(args.out)
     write_text_atomic(out / "machine.toml", machine.to_toml())
     write_text_atomic(out / "recording.csv", constraints_to_csv(rec))
+    n_h = sum(m == "height" for m in rec.measure)
+    if args.json:
+        write_json_atomic(args.json, {
+            "machine": machine.name, "config": str(args.config), "delta_radius": kd.delta_radius,
+            "angle_deg": kd.angle_deg, "arm_length": kd.arm_length, "position_endstop": kd.position_endstop,
+            "step_dist": kd.step_dist, "n_heights": n_h, "n_distances": rec.n_rows - n_h,
+            "files": {"machine": str(out / "machine.toml"), "recording": str(out / "recording.csv")},
+        })
     if not args.quiet:
-        n_h = sum(m == "height" for m in rec.measure)
         print(
             f"wrote {out / 'machine.toml'} (linear-delta, delta_radius {kd.delta_radius:g} mm, step_dist "
             f"{', '.join(f'{s:g}' for s in kd.step_dist)} mm) and {out / 'recording.csv'} "
