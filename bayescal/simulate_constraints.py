@@ -90,7 +90,11 @@ def solve_q_for_points(
         poses = machine.forward(q, theta, guess=poses)
     bad = np.flatnonzero(~poses.success | (np.abs(pts - poses.position).max(axis=1) >= tol))
     i = int(bad[0]) if bad.size else 0
-    raise KinematicsError(f"tool point {pts[i].tolist()} cannot be reached by {machine.source} (Newton on q did not converge)")
+    raise KinematicsError(
+        f"tool point {pts[i].tolist()} cannot be reached by {machine.source} (Newton on q did not converge): "
+        "outside the workspace, or in a direction the machine cannot move (a 2T1R or 2-DOF machine moves its tool "
+        "point on a surface; for a ballbar circle choose a plane it moves in, e.g. --planes xz, or a smaller radius)"
+    )
 
 
 def circle_points(centre: ArrayLike, radius: float, plane: str, n: int, *, phase: float = 0.0) -> NDArray:
