@@ -145,3 +145,17 @@ def test_subset_keeps_the_parameter_layout():
     assert sub.machine.layout == model.machine.layout
     theta = np.random.default_rng(0).normal(size=model.n_params) * model.machine.tolerance
     np.testing.assert_allclose(sub.predict(theta).y, model.predict(theta).y[:6])
+
+
+def test_ballbar_on_a_2t1r_machine_in_the_plane_it_moves_in():
+    # the RASPM-2T1R moves its tool point in x and z: a circle in xz, the pivot's x and z recovered
+    m = load_machine(ROOT / "examples" / "raspm" / "machine.toml")
+    pivot = m.forward(m.home_q()[None]).position[0] + [0.5, 0.0, -0.3]
+    sim = simulate_ballbar(m, 3.0, n_points=10, pivot=pivot, planes=("xz",), sigma=0.0, theta=np.zeros(m.n_params))
+    model = ConstraintModel.from_recording(m, sim.recording)
+    res = identify(model, method="ls", free=["pivot.1.x", "pivot.1.z"])
+    assert res.success
+    got = model.pivot_positions(res.theta)["1"]
+    np.testing.assert_allclose([got[0], got[2]], pivot[[0, 2]], atol=1e-9)
+    with pytest.raises(Exception, match="plane it moves in"):
+        simulate_ballbar(m, 3.0, n_points=4, planes=("xy",), sigma=0.0)
