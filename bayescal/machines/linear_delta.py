@@ -42,6 +42,7 @@ from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
+from .prs3 import _condition_numbers
 
 __all__ = ["LinearDelta", "DELTA_TOLERANCE_DEFAULTS"]
 
@@ -59,6 +60,7 @@ _XYZ = "xyz"
 _PER_TOWER = 6
 _NEWTON_TOL = 1e-10  # relative step (of the arm length) below which a pose counts as converged
 _NEWTON_MAXIT = 60
+_SINGULAR_COND = 1e12  # condition number of d^T d above which a pose counts as singular
 _OVERCONSTRAINED_TOL = 1e-2  # relative arm-length mismatch a >3-tower compromise may leave (assembly strain)
 
 
@@ -290,18 +292,18 @@ class LinearDelta(Machine):
         p, conv, mismatch, d, _ = self._solve(q, g, p0)
         tol = 1e-9 if self.n_actuators == 3 else _OVERCONSTRAINED_TOL
         msgs = [""] * n
-        along = -np.einsum("nki,nki->nk", d, g.u)  # (C - p) . u
-        H = np.einsum("nki,nkj->nij", d, d)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cond = np.linalg.cond(H)
-        for i in range(n):
-            if not conv[i] or mismatch[i].max() > tol:
-                msgs[i] = f"the arms cannot reach a common point (arm-length mismatch {mismatch[i].max() * g.L[i].mean():.3g} mm)"
-            elif (along[i] <= 0).any():
-                msgs[i] = "effector not below all carriages (other assembly branch or arm horizontal)"
-            elif not np.isfinite(cond[i]) or cond[i] > 1e12:
-                msgs[i] = f"singular pose (arm-direction matrix condition number {cond[i]:.2e})"
-        success = np.array([m == "" for m in msgs])
+        unreached = ~conv | (mismatch.max(axis=1) > tol)
+        below = ~unreached & (np.einsum("nki,nki->nk", d, g.u) >= 0).any(axis=1)  # (C - p) . u <= 0
+        # cond(d^T d) = cond(d)^2 for three towers; the cheap 1-norm bound where it is clearly fine
+        cond = _condition_numbers(np.einsum("nki,nkj->nij", d, d), _SINGULAR_COND)
+        singular = ~unreached & ~below & (~np.isfinite(cond) | (cond > _SINGULAR_COND))
+        for i in np.flatnonzero(unreached):
+            msgs[i] = f"the arms cannot reach a common point (arm-length mismatch {mismatch[i].max() * g.L[i].mean():.3g} mm)"
+        for i in np.flatnonzero(below):
+            msgs[i] = "effector not below all carriages (other assembly branch or arm horizontal)"
+        for i in np.flatnonzero(singular):
+            msgs[i] = f"singular pose (arm-direction matrix condition number {cond[i]:.2e})"
+        success = ~(unreached | below | singular)
         R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
         return ToolPoses(position=p + g.t, rotation=R, success=success, message=tuple(msgs), state=_EffectorState(p=p))
 

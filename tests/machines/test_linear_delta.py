@@ -155,3 +155,11 @@ def test_two_towers_refused():
     text = FOUR.split("[[tower]]\nangle_deg = 90.0")[0] + "[workspace]\nq_limits = [[-250.0, -30.0]]\n"
     with pytest.raises(MachineFileError, match="at least 3"):
         machine_from_text(text, path="m.toml")
+
+
+def test_unreachable_pose_is_reported_not_raised(delta):
+    q = np.array([[-150.0, -150.0, -150.0], [0.0, -600.0, -600.0]])
+    poses = delta.forward(q)
+    assert poses.success.tolist() == [True, False]
+    assert poses.message[0] == "" and "cannot reach" in poses.message[1]
+    assert np.isnan(delta.inverse([[500.0, 0.0, 0.0]])).any()  # farther from a tower than its arm
