@@ -49,9 +49,13 @@ class LinearisedModel:
     J: NDArray
     theta_ref: NDArray
     y_measured: NDArray | None = None
+    noise_sigma: NDArray | None = None  # the linearised model's sigma when it is not MeasurementModel's (constraint rows)
 
     # the parts of MeasurementModel that only use rows, sigma and dof
-    sigma = MeasurementModel.sigma
+    @property
+    def sigma(self) -> NDArray:
+        return self.noise_sigma if self.noise_sigma is not None else MeasurementModel.sigma.fget(self)
+
     residual = MeasurementModel.residual
     errors = MeasurementModel.errors
     rms = MeasurementModel.rms
@@ -92,7 +96,7 @@ class LinearisedModel:
         idx = np.asarray(idx)
         return LinearisedModel(
             self.machine, self.q[idx], self.dof, self.y0[idx], self.J[idx], self.theta_ref,
-            None if self.y_measured is None else self.y_measured[idx],
+            None if self.y_measured is None else self.y_measured[idx], self.noise_sigma,
         )
 
     def with_measured(self, y: ArrayLike) -> "LinearisedModel":
@@ -100,7 +104,7 @@ class LinearisedModel:
         y = np.asarray(y, dtype=float)
         if y.shape != self.y0.shape:
             raise InputError(f"y: expected shape {self.y0.shape}, got {y.shape}")
-        return LinearisedModel(self.machine, self.q, self.dof, self.y0, self.J, self.theta_ref, y)
+        return LinearisedModel(self.machine, self.q, self.dof, self.y0, self.J, self.theta_ref, y, self.noise_sigma)
 
 
 def linearise(model, theta_ref: ArrayLike | None = None) -> LinearisedModel:
@@ -111,7 +115,8 @@ def linearise(model, theta_ref: ArrayLike | None = None) -> LinearisedModel:
         i = int(np.flatnonzero(~pred.success)[0])
         raise InputError(f"pose {i + 1}: cannot be solved at the linearisation point")
     return LinearisedModel(
-        model.machine, np.asarray(model.q), model.dof, pred.y, model.jacobian(ref, pred), ref, model.y_measured
+        model.machine, np.asarray(model.q), model.dof, pred.y, model.jacobian(ref, pred), ref, model.y_measured,
+        None if isinstance(model, MeasurementModel) else np.asarray(model.sigma),
     )
 
 
