@@ -77,3 +77,10 @@ def test_bad_constraint_recording_exit_2(tmp_path, capsys):
     assert main(["identify", str(bad), "--machine", str(DELTA)]) == 2
     err = capsys.readouterr().err
     assert "bad.csv" in err and "line 2" in err and "measure" in err
+
+
+def test_kalman_takes_constraint_recordings(ballbar, tmp_path):
+    out = tmp_path / "k.json"
+    assert main(["identify", str(ballbar), "--machine", str(DELTA), "--method", "kalman", "--json", str(out), "--quiet"]) == 0
+    ans = json.loads(out.read_text())
+    assert ans["rms_after"]["position"] < ans["rms_before"]["position"]
