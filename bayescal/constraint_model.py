@@ -63,7 +63,9 @@ class PivotAugmented:
         object.__setattr__(self, "tolerance", tol)
 
     def __getattr__(self, name):
-        # everything else (name, kind, noise, q_limits, source, forward, ...) is the machine's
+        # everything else (name, kind, noise, q_limits, source, ...) is the machine's
+        if name == "base" or name.startswith("__"):
+            raise AttributeError(name)  # not set yet (copy, pickle): no recursion
         return getattr(self.base, name)
 
     @property
@@ -359,7 +361,7 @@ class ConstraintModel:
         c = self._codes
         if nd:
             d = xa[:, self._dist] - pos[:, n:]
-            u = d / np.linalg.norm(d, axis=2, keepdims=True)
+            u = d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-300)
             J[:, self._dist, :P] = np.einsum("bri,brip->brp", u, Ja[:, self._dist] - Jt[:, n:])
         h = c == 1
         J[:, h, :P] = Ja[:, h, 2]
@@ -367,7 +369,7 @@ class ConstraintModel:
         if b.size:
             cp = self._row_pivots(piv, blocks)
             d = xa[:, b] - cp[:, b]
-            u = d / np.linalg.norm(d, axis=2, keepdims=True)
+            u = d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-300)
             J[:, b, :P] = np.einsum("bri,brip->brp", u, Ja[:, b])
             for r, i in enumerate(b):
                 k = self._pivot_index[i]
