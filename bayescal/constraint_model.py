@@ -129,8 +129,9 @@ class ConstraintModel:
         Start estimates of the pivots (mm, base frame), in the order of
         first appearance; estimated from the nominal machine if omitted.
     y_measured : ndarray, shape (n, 1), optional
-    row_sigma : ndarray, shape (n,), optional
-        Per-row noise (``sigma_position`` column), mm.
+    pose_sigma : ndarray, shape (n, 1) or (n,), optional
+        Per-row one-sigma noise (the ``sigma_position`` column), mm; the
+        machine's ``[measurement] sigma_position`` for every row by default.
     aux : dict, optional
     pivot_order : tuple of str, optional
         The pivots' order in the parameter vector (default: first appearance);
@@ -144,7 +145,7 @@ class ConstraintModel:
     pivot: tuple[str, ...]
     pivot_start: NDArray | None = None
     y_measured: NDArray | None = None
-    row_sigma: NDArray | None = None
+    pose_sigma: NDArray | None = None
     aux: dict = field(default_factory=dict)
     pivot_order: tuple[str, ...] = ()
     dof: int = 1
@@ -168,6 +169,11 @@ class ConstraintModel:
         if self.y_measured is not None:
             y = np.asarray(self.y_measured, dtype=float).reshape(self.n_poses, 1)
             object.__setattr__(self, "y_measured", y)
+        if self.pose_sigma is not None:
+            ps = np.asarray(self.pose_sigma, dtype=float).reshape(self.n_poses, 1)
+            if not np.all(np.isfinite(ps)) or np.any(ps <= 0):
+                raise InputError("pose_sigma: expected finite values > 0")
+            object.__setattr__(self, "pose_sigma", ps)
 
     # ----------------------------------------------------------- construction
     @classmethod
@@ -178,7 +184,7 @@ class ConstraintModel:
         rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
         model = cls(
             base=machine, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot,
-            y_measured=rec.value[:, None], row_sigma=rec.sigma, aux=dict(rec.aux),
+            y_measured=rec.value[:, None], pose_sigma=rec.sigma, aux=dict(rec.aux),
         )
         pred = model.predict(None)
         if not pred.success.all():
@@ -239,19 +245,25 @@ class ConstraintModel:
 
     @property
     def sigma(self) -> NDArray:
-        """One-sigma noise of a row, shape (1,), mm: the machine's ``sigma_position``
-        or, with a ``sigma_position`` column, the root-mean-square of the column
-        (per-row weights are in :attr:`weights`)."""
-        if self.row_sigma is not None:
-            return np.array([float(np.sqrt(np.mean(self.row_sigma**2)))])
+        """The instrument's nominal one-sigma noise of a row, shape (1,), mm (``[measurement] sigma_position``)."""
         return np.array([self.base.noise.sigma_position])
 
     @property
-    def weights(self) -> NDArray:
-        """Per-row factor ``sigma / row_sigma`` (ones without a ``sigma_position`` column), shape (n, 1)."""
-        if self.row_sigma is None:
-            return np.ones((self.n_poses, 1))
-        return (self.sigma[0] / self.row_sigma)[:, None]
+    def row_sigma(self) -> NDArray:
+        """One-sigma noise of every row, shape (n_rows, 1), mm: :attr:`pose_sigma` where given, else :attr:`sigma`.
+
+        Everything that whitens residuals divides by this (as for
+        :attr:`bayescal.measurement.MeasurementModel.row_sigma`).
+        """
+        if self.pose_sigma is not None:
+            return self.pose_sigma
+        return np.broadcast_to(self.sigma, (self.n_poses, 1))
+
+    def with_pose_sigma(self, pose_sigma: NDArray | None) -> "ConstraintModel":
+        """The same model with other per-row noise (None: the machine's)."""
+        from dataclasses import replace
+
+        return replace(self, pose_sigma=pose_sigma)
 
     @property
     def measure_codes(self) -> NDArray:
@@ -265,7 +277,7 @@ class ConstraintModel:
             base=self.base, measure=tuple(self.measure[i] for i in rows), qa=self.qa[idx], qb=self.qb[idx],
             pivot=tuple(self.pivot[i] for i in rows), pivot_start=self.pivot_start, pivot_order=self.pivot_ids,
             y_measured=None if self.y_measured is None else self.y_measured[idx],
-            row_sigma=None if self.row_sigma is None else self.row_sigma[idx],
+            pose_sigma=None if self.pose_sigma is None else self.pose_sigma[idx],
             aux={k: v[idx] for k, v in self.aux.items()},
         )
 

@@ -136,7 +136,7 @@ def run(args) -> int:
     if args.json:
         write_json_atomic(args.json, res.to_dict())
     if args.write_machine and res.success:
-        write_text_atomic(args.write_machine, model.machine.to_toml(res.theta))
+        write_text_atomic(args.write_machine, machine.to_toml(res.theta[: machine.n_params]))  # without ballbar pivots
     if args.write_klipper and res.success:
         from ..klipper import klipper_text
 

@@ -36,12 +36,10 @@ __all__ = ["identify", "resolve_free", "whitened_system"]
 
 def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tuple[NDArray, NDArray]:
     """Whitened residual ``W (y - h)`` (N,) and Jacobian ``W J`` (N, P) at ``theta``."""
-    sig = model.sigma
+    # per-row noise (n_rows, dof) where the model has it (a constraint recording's sigma_position column)
+    sig = model.row_sigma if hasattr(model, "row_sigma") else np.broadcast_to(model.sigma, (model.n_poses, model.dof))
     r = (model.residual(prediction) / sig).reshape(-1)
-    J = (model.jacobian(theta, prediction) / sig[None, :, None]).reshape(-1, model.n_params)
-    w = getattr(model, "weights", None)  # per-row weights (a constraint recording's sigma_position column)
-    if w is not None:
-        r, J = r * w.reshape(-1), J * w.reshape(-1, 1)
+    J = (model.jacobian(theta, prediction) / sig[:, :, None]).reshape(-1, model.n_params)
     return r, J
 
 
