@@ -13,7 +13,7 @@ from bayescal.constraint_model import ConstraintModel
 from bayescal.io.constraints import read_constraints
 from bayescal.io.klipper_cfg import KlipperConfigError, parse_klipper_text, read_klipper_config
 from bayescal.klipper import klipper_machine, klipper_recording, klipper_text, klipper_values, read_klipper_delta
-from bayescal.machines import load_machine
+from bayescal.machines import check_machine, load_machine
 
 # the checkout sits beside shared/ (<clone>/../shared); BAYESCAL_SHARED points elsewhere (a git worktree)
 SHARED = Path(os.environ.get("BAYESCAL_SHARED", Path(__file__).resolve().parents[1] / ".." / "shared"))
@@ -52,6 +52,7 @@ def test_step_distance_and_nominal_geometry(post):
     E = kd.position_endstop + np.sqrt(kd.arm_length**2 - kd.delta_radius**2)
     np.testing.assert_allclose(m.zero, E)
     np.testing.assert_allclose(np.rad2deg(m.angle), kd.angle_deg)
+    assert check_machine(m) == []
 
 
 def test_nominal_printer_maps_stable_positions_back_to_the_probe_points():
