@@ -84,3 +84,10 @@ def test_kalman_takes_constraint_recordings(ballbar, tmp_path):
     assert main(["identify", str(ballbar), "--machine", str(DELTA), "--method", "kalman", "--json", str(out), "--quiet"]) == 0
     ans = json.loads(out.read_text())
     assert ans["rms_after"]["position"] < ans["rms_before"]["position"]
+
+
+def test_write_klipper_needs_a_linear_delta(tmp_path, capsys):
+    prs3 = DELTA.parents[1] / "prs3"
+    code = main(["identify", str(prs3 / "recording.csv"), "--machine", str(prs3 / "machine.toml"), "--write-klipper", str(tmp_path / "k.cfg")])
+    assert code == 2 and "linear-delta" in capsys.readouterr().err
+    assert not (tmp_path / "k.cfg").exists()
