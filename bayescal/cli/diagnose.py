@@ -7,7 +7,7 @@ import argparse
 from ..effects import EFFECTS
 from ..errors import InputError
 from ..io import write_json_atomic
-from .inputs import name_list, recording_model
+from .inputs import add_frame_argument, name_list, recording_model
 
 HELP = f"""\
 Diagnose what the geometric model leaves out.
@@ -50,6 +50,7 @@ def register(sub) -> None:
     p.add_argument("--effects", help="comma-separated effects to try (default: every applicable one)")
     p.add_argument("--seed", type=int, default=0, help="seed of the permutation tests and CV folds (default 0)")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_frame_argument(p)
     p.set_defaults(func=run)
 
 

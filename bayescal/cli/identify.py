@@ -9,7 +9,8 @@ from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from ..io import write_json_atomic, write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
-from .inputs import free_arg, recording_model
+from .inputs import add_frame_argument, free_arg, instrument_inputs
+from .instrument import add_force_argument, judge, may_write_machine, refusal_note
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -77,6 +78,8 @@ def register(sub) -> None:
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_frame_argument(p)
+    add_force_argument(p)
     add_arguments(p)
     p.set_defaults(func=run)
 
@@ -102,7 +105,7 @@ def _k_arg(text: str):
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
 
-    machine, rec, model = recording_model(args)
+    machine, rec, model, check = instrument_inputs(args)
     free = free_arg(args.free)
     if args.method == "ridge" and args.lam is None:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
@@ -111,7 +114,7 @@ def run(args) -> int:
     if args.method in METHODS:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
-        return run_bayes(args, machine, model, free)
+        return run_bayes(args, machine, model, free, check)
     auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
     if not auto and (args.rule or args.figures):
         raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
@@ -122,9 +125,11 @@ def run(args) -> int:
         res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
+    # instrument frame and plausibility (docs/real-instruments.md)
+    extra, plaus = judge(machine, model, res, check)
     if args.json:
-        write_json_atomic(args.json, res.to_dict())
-    if args.write_machine and res.success:
+        write_json_atomic(args.json, {**res.to_dict(), **extra})
+    if may_write_machine(args, res, plaus):
         write_text_atomic(args.write_machine, machine.to_toml(res.theta))
     path = None
     if choice is not None and args.figures:
@@ -133,10 +138,13 @@ def run(args) -> int:
         path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
     if not args.quiet:
         print(res.report())
+        print(plaus.report())
         if choice is not None:
             print("\n" + choice.report())
         if path is not None:
             print(f"\nwrote {path}")
         if args.write_machine and not res.success:
             print(f"\nnot writing {args.write_machine}: the identification did not succeed")
-    return EXIT_OK if res.success else EXIT_FAILED
+        if note := refusal_note(args, res, plaus):
+            print("\n" + note)
+    return EXIT_OK if res.success and plaus.plausible else EXIT_FAILED

@@ -24,9 +24,45 @@ def recording_model(args: argparse.Namespace) -> tuple[Machine, Recording, Measu
 
     Raises a BayescalError naming the recording's file and line when the
     machine cannot assemble one of its poses at the nominal geometry.
+    With ``args.frame`` (``--frame base|fit``) see :func:`instrument_inputs`.
     """
+    if hasattr(args, "frame"):
+        machine, rec, model, _ = instrument_inputs(args)
+        return machine, rec, model
     machine = load_machine(args.machine)
     rec = read_recording(args.recording)
     model = MeasurementModel.from_recording(machine, rec, dof=getattr(args, "dof", None))
     check_recording_solves(model, rec)
     return machine, rec, model
+
+
+# ---------------------------------------------------------------- instrument frame (FORMATS.md section 4)
+FRAME_HELP = (
+    "frame of the recording: 'base' (default: the machine's base frame, or the machine file's [instrument] "
+    "frame) or 'fit' (an unknown instrument frame, fitted with the geometry; docs/real-instruments.md)"
+)
+
+
+def add_frame_argument(p) -> None:
+    """``--frame base|fit`` for commands that read a recording."""
+    p.add_argument("--frame", choices=("base", "fit"), default="base", help=FRAME_HELP)
+
+
+def instrument_inputs(args: argparse.Namespace):
+    """Machine, recording, model and the rigid-transform check, with ``args.frame`` applied.
+
+    Units are checked (RecordingError for positions that look like metres,
+    angles like degrees).  With ``--frame base``, a recording that a rigid
+    transform explains far better than the tolerances gets a warning on
+    stderr suggesting ``--frame fit`` (unless ``--quiet``).
+    """
+    import sys
+
+    from ..instrument import prepare_model
+
+    machine = load_machine(args.machine)
+    rec = read_recording(args.recording)
+    machine, model, check = prepare_model(machine, rec, dof=getattr(args, "dof", None), frame=args.frame)
+    if check is not None and check.fires and not getattr(args, "quiet", False):
+        print(f"bayescal {args.command}: warning: {check.message()}", file=sys.stderr)
+    return machine, rec, model, check

@@ -5,16 +5,17 @@ from __future__ import annotations
 import os
 
 from ..errors import MachineFileError
-from ..io.machine_file import read_toml
+from ..io.machine_file import TomlTable, read_toml
 from .base import Machine, MeasurementNoise, ToolPoses
 from .check import MachineCheckError, check_machine
+from .framed import Frame, InstrumentFrame, read_instrument
 from .prs3 import Prs3
 from .raspm import Raspm
 from .rupus_prs import RupusPrs
 
 __all__ = [
     "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "KINDS", "load_machine",
-    "machine_from_text", "check_machine", "MachineCheckError",
+    "machine_from_text", "check_machine", "MachineCheckError", "InstrumentFrame", "Frame",
 ]
 
 #: Machine kinds by the ``kind`` string of the machine file.
@@ -25,7 +26,12 @@ def _build(doc, path: str) -> Machine:
     kind = doc.string("kind")
     if kind not in KINDS:
         raise MachineFileError(path, "kind", f"unknown kind {kind!r}; expected one of: {', '.join(KINDS)}")
-    return KINDS[kind].from_toml(doc, path)
+    # FORMATS.md section 4: an optional [instrument] table (the recordings' frame) for every kind
+    frame = read_instrument(doc, path)
+    if frame is not None:
+        doc = TomlTable({k: v for k, v in doc.data.items() if k != "instrument"}, doc.path, doc.prefix)
+    machine = KINDS[kind].from_toml(doc, path)
+    return machine if frame is None else InstrumentFrame(machine, frame, fit=False)
 
 
 def load_machine(path: str | os.PathLike) -> Machine:
@@ -42,8 +48,6 @@ def load_machine(path: str | os.PathLike) -> Machine:
 def machine_from_text(text: str, path: str = "<memory>") -> Machine:
     """Build a machine from machine-file text (as written by ``Machine.to_toml``)."""
     import tomllib
-
-    from ..io.machine_file import TomlTable
 
     try:
         doc = tomllib.loads(text.removeprefix("\ufeff"))

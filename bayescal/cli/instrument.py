@@ -1,0 +1,47 @@
+"""What ``identify`` adds for recordings from real instruments: the fitted frame, plausibility, ``--force``.
+
+Kept apart from the solvers' output so that commands share one rule
+(docs/real-instruments.md): an implausible calibration is reported, its
+JSON answer says ``"plausible": false`` with the reasons, the command exits
+1, and no calibrated machine is written unless ``--force``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..instrument import Plausibility, assess_plausibility, frame_answer
+
+__all__ = ["add_force_argument", "judge", "may_write_machine", "refusal_note"]
+
+
+def add_force_argument(p) -> None:
+    p.add_argument(
+        "--force", action="store_true",
+        help="write --write-machine even when the calibration is not plausible (errors beyond 10 tolerances, "
+        "or no residual degrees of freedom)",
+    )
+
+
+def judge(machine, model, res, check) -> tuple[dict, Plausibility]:
+    """The answer's ``frame``, ``plausible`` and ``frame_check`` entries, and the verdict."""
+    theta = np.asarray(res.theta, dtype=float)
+    if np.all(np.isfinite(theta)):
+        plaus = assess_plausibility(model, theta, res.free, getattr(res, "residuals_after", None), check=check)
+    else:
+        plaus = Plausibility(False, ("the identified values are not finite",))
+    extra = {**frame_answer(machine, theta, res.free, getattr(res, "covariance", None)), **plaus.to_dict()}
+    if check is not None:
+        extra["frame_check"] = check.to_dict()
+    return extra, plaus
+
+
+def may_write_machine(args, res, plaus: Plausibility) -> bool:
+    return bool(args.write_machine) and bool(res.success) and (plaus.plausible or bool(getattr(args, "force", False)))
+
+
+def refusal_note(args, res, plaus: Plausibility) -> str | None:
+    """The line printed when ``--write-machine`` was asked for but not written."""
+    if not args.write_machine or not res.success or plaus.plausible or getattr(args, "force", False):
+        return None
+    return f"not writing {args.write_machine}: the calibration is not plausible (--force writes it anyway)"
