@@ -143,11 +143,18 @@ class FrameCheck:
     BEYOND = 5.0
     #: ... and the rigid transform must cut it by this factor, for the check to fire.
     DROP = 5.0
+    #: Firing with a nominal RMS above this many times the tolerance RMS: refused, not warned.
+    REFUSE = 100.0
 
     @property
     def fires(self) -> bool:
         """True when a rigid transform, not the tolerances, explains the recording (suggest ``--frame fit``)."""
         return self.rms_nominal > self.BEYOND * self.rms_tolerance and self.rms_rigid * self.DROP < self.rms_nominal
+
+    @property
+    def refuses(self) -> bool:
+        """True when it fires and the nominal RMS exceeds :attr:`REFUSE` times what the tolerances explain."""
+        return self.fires and self.rms_nominal > self.REFUSE * self.rms_tolerance
 
     @property
     def angle(self) -> float:
@@ -165,24 +172,26 @@ class FrameCheck:
 
     def to_dict(self) -> dict:
         return {
-            "fires": self.fires, "rms_nominal": self.rms_nominal, "rms_rigid": self.rms_rigid,
+            "fires": self.fires, "refuses": self.refuses, "rms_nominal": self.rms_nominal, "rms_rigid": self.rms_rigid,
             "rms_tolerance": self.rms_tolerance, "translation": float(np.linalg.norm(self.frame.origin)),
             "rotation_deg": float(np.degrees(self.angle)), "scale": self.scale,
         }
 
 
-def check_frame(machine: Machine, rec: Recording) -> FrameCheck:
+def check_frame(machine: Machine, rec: Recording) -> FrameCheck | None:
     """Compare the recording (read as base frame) with the nominal machine, as given and rigidly aligned.
 
     Uses the tool points only (every recording has them).  ``machine`` may
     carry a known instrument frame; the check is then in that frame.
+    None when there is nothing to align (fewer than 3 solvable poses, or
+    measured points that do not move).
     """
     q = machine.check_q(rec.q)
     nom = machine.forward(q)
     ok = nom.success
-    if not ok.any():
-        raise InputError(f"{rec.path}: the nominal machine {machine.source} cannot assemble any pose")
     pm, pn = rec.position[ok], nom.position[ok]
+    if ok.sum() < 3 or np.ptp(pm, axis=0).max() == 0 or np.ptp(pn, axis=0).max() == 0:
+        return None
     rms0 = float(np.sqrt(np.mean(np.sum((pm - pn) ** 2, axis=1))))
     f = align_frame(pm, pn)
     rms1 = float(np.sqrt(np.mean(np.sum((f.to_base(pm) - pn) ** 2, axis=1))))

@@ -44,13 +44,16 @@ def prepare_model(
         With the recording's per-pose noise, if it has any.
     check : FrameCheck or None
         For ``"base"``: whether a rigid transform explains the recording far
-        better than the tolerances (then suggest ``--frame fit``).
+        better than the tolerances (then suggest ``--frame fit``; the
+        command line warns on stderr).
 
     Raises
     ------
     RecordingError
-        Units that look wrong (:func:`check_recording_units`), or a pose the
-        nominal machine cannot assemble.
+        Units that look wrong (:func:`check_recording_units`), a pose the
+        nominal machine cannot assemble, or (``"base"``) a recording the
+        check refuses (:attr:`FrameCheck.refuses`: more than 100 times
+        what the tolerances explain, and rigidly explained).
     """
     if frame not in FRAMES:
         raise InputError(f"frame: expected one of {', '.join(FRAMES)}, got {frame!r}")
@@ -61,6 +64,9 @@ def prepare_model(
         machine = InstrumentFrame(base_machine(machine), frame_start(machine, rec, dof=dof), fit=True)
     else:
         check = check_frame(machine, rec)
+        if check is not None and check.refuses:
+            # metres off, tens of degrees turned: no calibration in the base frame can mean anything
+            raise RecordingError(rec.path, None, None, check.message())
     model = MeasurementModel.from_recording(machine, rec, dof=dof)
     try:
         check_recording_solves(model, rec)
