@@ -37,7 +37,7 @@ def add_arguments(p) -> None:
 
 def run_bayes(args, machine, model, free, check=None) -> int:
     from . import EXIT_FAILED, EXIT_OK
-    from .instrument import judge, may_write_machine, refusal_note
+    from .instrument import instrument_report, judge, may_write_machine, refusal_note
     from ..bayes.kalman import kalman_filter
     from ..bayes.mcmc import sample_posterior, write_posterior
 
@@ -70,7 +70,7 @@ def run_bayes(args, machine, model, free, check=None) -> int:
             made = [plot_trace(res, out / "mcmc_trace.png"), plot_pair(res, out / "mcmc_pair.png")]
     if not args.quiet:
         print(res.report())
-        print(plaus.report())
+        print(instrument_report(extra, plaus))
         if made:
             print("\nfigures: " + ", ".join(str(m) for m in made))
     if (args.write_machine or getattr(args, "posterior", None)) and not res.success and not args.quiet:

@@ -10,7 +10,7 @@ from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from ..io import write_json_atomic, write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .inputs import add_frame_argument, free_arg, instrument_inputs
-from .instrument import add_force_argument, judge, may_write_machine, refusal_note
+from .instrument import add_force_argument, instrument_report, judge, may_write_machine, refusal_note
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -138,7 +138,7 @@ def run(args) -> int:
         path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
     if not args.quiet:
         print(res.report())
-        print(plaus.report())
+        print(instrument_report(extra, plaus))
         if choice is not None:
             print("\n" + choice.report())
         if path is not None:

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..instrument import Plausibility, assess_plausibility, frame_answer
 
-__all__ = ["add_force_argument", "judge", "may_write_machine", "refusal_note"]
+__all__ = ["add_force_argument", "judge", "may_write_machine", "refusal_note", "instrument_report"]
 
 
 def add_force_argument(p) -> None:
@@ -45,3 +45,18 @@ def refusal_note(args, res, plaus: Plausibility) -> str | None:
     if not args.write_machine or not res.success or plaus.plausible or getattr(args, "force", False):
         return None
     return f"not writing {args.write_machine}: the calibration is not plausible (--force writes it anyway)"
+
+
+def instrument_report(extra: dict, plaus: Plausibility) -> str:
+    """The report's lines on the instrument frame (if any) and on plausibility."""
+    lines = []
+    f = extra.get("frame")
+    if f is not None:
+        fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"  # noqa: E731
+        word = "fitted" if f["fitted"] else "known, from the machine file"
+        lines.append(f"  instrument      frame {word}: origin {fmt(f['origin'])} mm, rotation vector {fmt(f['rotation_vector'])} rad")
+        if f.get("std"):
+            std = lambda v: "[" + ", ".join("-" if x is None else f"{x:.2g}" for x in v) + "]"  # noqa: E731
+            lines.append(f"                  std origin {std(f['std']['origin'])} mm, rotation vector {std(f['std']['rotation_vector'])} rad")
+    lines.append(plaus.report())
+    return "\n".join(lines)
