@@ -22,13 +22,15 @@ machine's own base parameters that share its gauge (a common shift of all
 rail origins, ...) as the unidentifiable combinations, by name.
 
 "No tolerance prior": the frame parameters get the tolerances
-:data:`FRAME_TOLERANCE` (1 m and 1 rad around the closed-form start), so
-wide that the MAP, Kalman and MCMC answers and the ridge scaling do not
-depend on them (a test multiplies them by 100 and compares).  They are not
-made strictly flat because every consumer of the layout's tolerance (ridge,
-evidence, Kalman initial covariance, MCMC prior, planning criteria) would
-need a special case; a Gaussian a million standard errors wide is flat for
-every purpose here.
+:data:`FRAME_TOLERANCE` (100 mm and 0.1 rad around the closed-form start,
+which is within about a millimetre and a milliradian), so wide that the
+MAP, Kalman and MCMC answers do not depend on them (a test multiplies them
+by 10 and compares).  They are not made strictly flat because every
+consumer of the layout's tolerance (ridge, evidence, Kalman initial
+covariance, MCMC prior, planning criteria) would need a special case.  Not
+wider either: the columns are scaled by the tolerances, and a frame column
+scaled by 1 m raises the condition number of the scaled matrix by 1e4 or
+more, towards least squares' rank-deficiency threshold (1e-10).
 
 With ``fit=False`` the frame is known (read from a machine file's
 ``[instrument]`` table) and adds no parameters.
@@ -57,7 +59,7 @@ FRAME_NAMES = (
 )
 #: One-sigma "tolerance" of the frame correction about its start: mm for the origin, rad for the rotation.
 #: Wide enough to be flat (see the module docstring).
-FRAME_TOLERANCE = {"frame_origin": 1000.0, "frame_rotation": 1.0}
+FRAME_TOLERANCE = {"frame_origin": 100.0, "frame_rotation": 0.1}
 
 
 @dataclass(frozen=True)
