@@ -58,7 +58,7 @@ def run(args) -> int:
     from ..diagnose import diagnose
     from . import EXIT_OK
 
-    machine, rec, _ = recording_model(args)
+    machine, rec, model = recording_model(args)
     effects = None
     if args.effects is not None:
         effects = name_list(args.effects)
@@ -68,8 +68,12 @@ def run(args) -> int:
         if unknown:
             raise InputError(f"--effects: unknown effect(s) {', '.join(unknown)}; expected some of {', '.join(EFFECTS)}")
     result = diagnose(machine, rec, effects=effects, seed=args.seed)
+    # --frame fit: the fitted instrument frame (FORMATS.md section 4)
+    from .instrument import fitted_frame_answer, instrument_frame_line
+
+    frame = fitted_frame_answer(machine, model)
     if args.json:
-        write_json_atomic(args.json, result.to_dict())
+        write_json_atomic(args.json, {**result.to_dict(), **frame})
     written = []
     if args.figures:
         from ..plots.diagnose import plot_diagnosis
@@ -77,6 +81,8 @@ def run(args) -> int:
         written = plot_diagnosis(result, args.figures)
     if not args.quiet:
         print(result.report())
+        if frame:
+            print(instrument_frame_line(frame))
         for path in written:
             print(f"figure: {path}")
     return EXIT_OK

@@ -12,7 +12,10 @@ import numpy as np
 
 from ..instrument import Plausibility, assess_plausibility, frame_answer
 
-__all__ = ["add_force_argument", "judge", "may_write_machine", "refusal_note", "instrument_report"]
+__all__ = [
+    "add_force_argument", "judge", "may_write_machine", "refusal_note", "instrument_report", "instrument_frame_line",
+    "fitted_frame_answer",
+]
 
 
 def add_force_argument(p) -> None:
@@ -49,6 +52,13 @@ def refusal_note(args, res, plaus: Plausibility) -> str | None:
 
 def instrument_report(extra: dict, plaus: Plausibility) -> str:
     """The report's lines on the instrument frame (if any) and on plausibility."""
+    lines = [instrument_frame_line(extra)] if extra.get("frame") else []
+    lines.append(plaus.report())
+    return "\n".join(lines)
+
+
+def instrument_frame_line(extra: dict) -> str:
+    """Two report lines: the instrument frame and its std."""
     lines = []
     f = extra.get("frame")
     if f is not None:
@@ -58,5 +68,19 @@ def instrument_report(extra: dict, plaus: Plausibility) -> str:
         if f.get("std"):
             std = lambda v: "[" + ", ".join("-" if x is None else f"{x:.2g}" for x in v) + "]"  # noqa: E731
             lines.append(f"                  std origin {std(f['std']['origin'])} mm, rotation vector {std(f['std']['rotation_vector'])} rad")
-    lines.append(plaus.report())
     return "\n".join(lines)
+
+
+def fitted_frame_answer(machine, model) -> dict:
+    """``{"frame": ...}`` for a command that fits the frame inside its own model (diagnose), else ``{}``.
+
+    The frame is that of the geometric MAP calibration (the diagnosis's
+    starting point), with its Laplace std.
+    """
+    from ..bayes.priors import map_estimate
+    from ..machines.framed import InstrumentFrame
+
+    if not isinstance(machine, InstrumentFrame) or not machine.fit:
+        return {}
+    res = map_estimate(model, free="auto")
+    return frame_answer(machine, res.theta, res.free, res.covariance)

@@ -87,7 +87,9 @@ def test_diagnose_and_grid_frame_fit(tracker, capsys):
     js = d / "diag.json"
     assert main(["diagnose", str(rec), "--machine", str(PRS3_FILE), "--frame", "fit", "--json", str(js), "--quiet",
                  "--effects", "backlash"]) == 0
-    assert json.loads(js.read_text())["verdict"] == "none"
+    ans = json.loads(js.read_text())
+    assert ans["verdict"] == "none"
+    assert np.linalg.norm(np.array(ans["frame"]["origin"]) - o) < 20.0
     g = d / "grid.csv"
     assert main(["grid", str(rec), "--machine", str(PRS3_FILE), "--frame", "fit", "--out", str(g), "--nodes", "3", "--quiet"]) == 0
     assert g.read_text().startswith("q1,q2,q3,dx")
