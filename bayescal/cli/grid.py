@@ -103,12 +103,10 @@ def base_frame_parts(machine, theta, free, kw: dict):
     if not isinstance(machine, InstrumentFrame) or not machine.fit:
         return getattr(machine, "machine", machine), theta, free, kw
     k = machine.n_frame
-    keep = free[k:][None, :]
-    sel = np.flatnonzero(free)  # columns of the covariance / samples
-    inner = sel >= k
+    inner = np.flatnonzero(free) >= k  # which columns of the covariance / samples are the machine's
     out = {}
     if kw.get("covariance") is not None:
         out["covariance"] = kw["covariance"][np.ix_(inner, inner)]
     if kw.get("samples") is not None:
         out["samples"] = kw["samples"][:, inner]
-    return machine.machine, theta[k:], keep[0], out
+    return machine.machine, theta[k:], free[k:], out

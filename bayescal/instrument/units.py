@@ -7,7 +7,7 @@ suffix, and all independent of the instrument frame:
 * **Positions.**  The spread of the measured tool points (RMS distance
   from their centroid) is compared with the spread of the nominal machine's
   tool points at the same commanded poses.  Below 1/100 of it: metres
-  (suffix ``_m``); above 100 times: micrometres (``_um``).  Comparing with
+  (suffix ``_m``); above 100 times and above 1 mm: micrometres (``_um``).  Comparing with
   the same poses, not with the whole workspace, keeps a legitimate
   small-workspace recording (poses a millimetre apart) from being refused.
   Skipped when the nominal points do not move (spread below 1e-6 mm).
@@ -15,7 +15,7 @@ suffix, and all independent of the instrument frame:
   radians: degrees (``_deg``).  Otherwise the angle of each measured
   platform orientation relative to the first pose's is compared with the
   nominal machine's at the same poses: more than 10 times larger (RMS)
-  means degrees (``_deg``; the factor is 57).  Smaller angles are not
+  and above 0.01 rad means degrees (``_deg``; the factor is 57).  Smaller angles are not
   refused (an orientation that hardly changes is legitimate).  Skipped when
   the nominal orientation does not change (RMS angle below 1e-6 rad).  A
   tool axis (5-DOF) is a unit vector and has no unit.
@@ -79,7 +79,9 @@ def check_recording_units(machine: Machine, rec: Recording) -> None:
                     f"moves them {s_nom:.4g} mm at the same poses: the positions look like metres; expected mm, or name "
                     "the columns x_m, y_m, z_m",
                 )
-            if ratio > POSITION_RATIO:
+            # and at least a millimetre: a nominal machine that hardly moves the tool must not make
+            # instrument noise look like micrometres
+            if ratio > POSITION_RATIO and s_meas > 1.0:
                 raise RecordingError(
                     rec.path, None, "x",
                     f"the measured tool points spread over {s_meas:.4g} (RMS about their centre) where the nominal machine "
@@ -103,7 +105,9 @@ def check_recording_units(machine: Machine, rec: Recording) -> None:
 def _angle_rule(rec, a_nom, a_meas, col, what) -> None:
     r_nom = float(np.sqrt(np.mean(a_nom**2)))
     r_meas = float(np.sqrt(np.mean(a_meas**2)))
-    if r_nom > 1e-6 and r_meas > ANGLE_RATIO * r_nom:
+    # and at least 0.01 rad: a machine that nominally hardly turns must not make its real errors
+    # (a fraction of a milliradian) look like degrees
+    if r_nom > 1e-6 and r_meas > ANGLE_RATIO * r_nom and r_meas > 0.01:
         raise RecordingError(
             rec.path, None, col,
             f"the measured orientations turn by {r_meas:.4g} (RMS angle from the first pose) where the nominal machine "

@@ -108,3 +108,12 @@ def test_known_instrument_frame_machine_file_passes(rec6, tmp_path):
     p.write_text(text)
     m = load_machine(p)
     check_recording_units(m, rec6)
+
+
+def test_a_machine_that_hardly_turns_is_not_taken_for_degrees(prs3):
+    # poses that nominally turn the platform by microradians; the real errors add far more
+    rng = np.random.default_rng(3)
+    q = 500.0 + rng.uniform(-1e-3, 1e-3, size=(12, 3))
+    theta = rng.normal(size=prs3.n_params) * prs3.tolerance
+    rec = measure(prs3, q, theta, 6, rng)
+    check_recording_units(prs3, rec)
