@@ -188,3 +188,25 @@ def test_answer_does_not_depend_on_the_frame_width(machines):
     std = a.std
     assert np.all(np.abs(a.theta - b.theta) < 1e-3 * np.maximum(std, 1e-12) + 1e-9)
     assert np.allclose(a.std, b.std, rtol=1e-3)
+
+
+@pytest.mark.parametrize("method,kw", [("ls", {}), ("ridge", {"lam": 1.0}), ("tsvd", {"k": 16}), ("ridge", {"lam": "auto"})])
+def test_every_deterministic_method_fits_the_frame(machines, method, kw):
+    from bayescal.identify import identify
+    from bayescal.identify.choose import choose_regularisation
+
+    machine = machines["raspm"]
+    sim = simulate_recording(machine, 40, seed=51, dof=6)
+    o, R = random_frame(np.random.default_rng(51))
+    m, model, _ = prepare_model(machine, to_instrument(sim.recording, o, R), frame="fit")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if kw.get("lam") == "auto":
+            _, res = choose_regularisation(model, "ridge")
+        else:
+            res = identify(model, method=method, **kw)
+    assert res.success, res.message
+    q = machine.sample_q(40, np.random.default_rng(7))
+    true_i = (machine.forward(q, sim.theta_true).position - o) @ R
+    # what the instrument reads at fresh poses, predicted through the fitted frame
+    assert _rms(m.forward(q, res.theta).position, true_i) < 5 * machine.noise.sigma_position
