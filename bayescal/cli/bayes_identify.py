@@ -35,11 +35,15 @@ def add_arguments(p) -> None:
     )
 
 
-def run_bayes(args, machine, model, free) -> int:
+def run_bayes(args, machine, model, free, outliers=None) -> int:
+    """Run kalman or mcmc; ``outliers`` (an OutlierHandling of a robust MAP pass) weights the poses and is reported."""
     from . import EXIT_FAILED, EXIT_OK
     from ..bayes.kalman import kalman_filter
     from ..bayes.mcmc import sample_posterior, write_posterior
 
+    base_model = model
+    if outliers is not None:
+        model = outliers.weighted_model(model)  # the robust MAP pass's weights (docs/outliers.md)
     if args.method == "kalman":
         res = kalman_filter(model, variant=args.variant, free=free, process_noise=args.process_noise)
     else:
@@ -50,8 +54,15 @@ def run_bayes(args, machine, model, free) -> int:
             model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
             progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,
         )
+    answer, outlier_text = res.to_dict(), ""
+    if outliers is not None:
+        from ..identify.robust import map_system
+
+        outliers = outliers.retested(base_model, res, map_system(res))
+        answer.update(outliers.to_dict())
+        outlier_text = outliers.report()
     if args.json:  # before printing: a closed stdout (`| head`) must not cost the answer
-        write_json_atomic(args.json, res.to_dict())
+        write_json_atomic(args.json, answer)
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
     if args.write_machine and res.success:
@@ -68,6 +79,8 @@ def run_bayes(args, machine, model, free) -> int:
             made = [plot_trace(res, out / "mcmc_trace.png"), plot_pair(res, out / "mcmc_pair.png")]
     if not args.quiet:
         print(res.report())
+        if outlier_text:
+            print(outlier_text)
         if made:
             print("\nfigures: " + ", ".join(str(m) for m in made))
     if (args.write_machine or getattr(args, "posterior", None)) and not res.success and not args.quiet:

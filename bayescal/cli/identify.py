@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 from ..errors import InputError
-from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
+from ..identify.robust import fit_system, identify_with_outliers, robust_map_weights
 from ..io import write_json_atomic, write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .inputs import free_arg, recording_model
+from .outlier_options import add_outlier_arguments, outlier_kwargs
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -35,6 +37,13 @@ default for lambda), risk (Bayes decision under the evidence prior: for k,
 keep the singular directions with s^2 > lambda_evidence; the default for k).
 See docs/regularisation.md.  The report prints the chosen value and what
 every other rule picks; --figures DIR draws the rule curves.
+
+Every pose is tested for being an outlier (a gross error no model of the
+machine explains: a beam break, a mistyped value), with a test that accounts
+for the number of poses; flagged poses are named by CSV line in the report
+and the JSON "outliers".  By default (--robust auto) a recording with flagged
+poses is refitted by Student-t IRLS, which down-weights them. See
+docs/outliers.md.
 """
 
 EXAMPLES = """\
@@ -47,6 +56,7 @@ examples:
   bayescal identify rec.csv --machine m.toml --method map --json map.json
   bayescal identify rec.csv --machine m.toml --method kalman --variant ukf --figures figs/
   bayescal identify rec.csv --machine m.toml --method mcmc --surrogate linear --progress --posterior post.nc --figures figs/
+  bayescal identify rec.csv --machine m.toml --method map --robust t --json answer.json
 """
 
 
@@ -78,6 +88,7 @@ def register(sub) -> None:
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_arguments(p)
+    add_outlier_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -108,18 +119,27 @@ def run(args) -> int:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
     if args.method == "tsvd" and args.k is None:
         raise InputError("--k is required with --method tsvd (a number, or --k auto)")
+    okw = outlier_kwargs(args, rec, model.n_poses)
     if args.method in METHODS:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
-        return run_bayes(args, machine, model, free)
+        return run_bayes(args, machine, model, free, outliers=robust_map_weights(model, free, max_iter=args.max_iter, **okw))
     auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
     if not auto and (args.rule or args.figures):
         raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
     choice = None
     if auto:
-        choice, res = choose_regularisation(model, args.method, rule=args.rule, free=free, max_iter=args.max_iter)
+        # the rules see the recording with the weights of a robust MAP pass: one gross pose must not choose lambda or k
+        handling = robust_map_weights(model, free, max_iter=args.max_iter, **okw)
+        choice, res = choose_regularisation(
+            handling.weighted_model(model), args.method, rule=args.rule, free=free, max_iter=args.max_iter,
+        )
+        handling = handling.retested(model, res, fit_system(res))
+        res = replace(res, extras={**res.extras, **handling.to_dict()})
     else:
-        res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
+        res, handling = identify_with_outliers(
+            model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter, **okw,
+        )
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
     if args.json:
@@ -133,6 +153,7 @@ def run(args) -> int:
         path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
     if not args.quiet:
         print(res.report())
+        print(handling.report())
         if choice is not None:
             print("\n" + choice.report())
         if path is not None:
