@@ -40,7 +40,9 @@ from ..errors import InputError, KinematicsError
 from ..io.recording import Recording
 from ..machines.base import Machine
 from ..measurement import MeasurementModel
+from ..outliers import recording_lines
 from .locate import locate
+from .outliers import screen_outliers
 from .result import Diagnosis, EffectTrial, ParameterValue
 
 __all__ = ["diagnose", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION"]
@@ -156,6 +158,15 @@ def diagnose(
         raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
     aux = dict(recording.aux)
 
+    # gross errors are not physics (docs/outliers.md): flagged poses leave every fit and test
+    try:
+        screen = screen_outliers(model, lines=recording_lines(n, recording))
+    except (KinematicsError, InputError):
+        screen = None  # the nominal machine cannot solve the recording: fit_map below says so
+    if screen is not None:
+        model = screen.weighted_model(model)
+    kept = np.arange(n) if screen is None else np.flatnonzero(~screen.excluded)
+
     try:
         fit0 = fit_map(model)
     except KinematicsError as exc:
@@ -186,7 +197,8 @@ def diagnose(
             continue
         cands.append(_Candidate(eff, f, eff.occam_penalty(f, model.q)))
 
-    perm = np.random.default_rng(seed).permutation(n)
+    # excluded poses are never held out: their residual would be the gross error, not the model's
+    perm = kept[np.random.default_rng(seed).permutation(kept.size)]
     folds = [np.sort(perm[i::n_folds]) for i in range(n_folds)]
     cv0 = _cv_rms(model, [], folds, fit0.theta, None)
 
@@ -297,4 +309,5 @@ def diagnose(
         recording=recording.path,
         seed=seed,
         message=message,
+        outliers=screen,
     )

@@ -84,6 +84,8 @@ class Diagnosis:
     n_poses, dof : int
     machine_name, recording : str
     seed : int
+    outliers : OutlierScreen or None
+        Gross-error poses named and excluded before the diagnosis (FORMATS.md section 4).
     """
 
     verdict: str
@@ -107,6 +109,7 @@ class Diagnosis:
     seed: int
     message: str = ""
     extra: dict = field(default_factory=dict)
+    outliers: object = None  # OutlierScreen (bayescal.diagnose.outliers), None if not screened
 
     @property
     def located(self) -> ChannelDependence | None:
@@ -139,7 +142,14 @@ class Diagnosis:
             "seed": self.seed,
             "evidence_kind": "log Bayes factor, Laplace approximation (nats)",
             "message": self.message,
+            **self._outlier_keys(),
         }
+
+    def _outlier_keys(self) -> dict:
+        """FORMATS.md section 4: ``outliers`` by CSV line and what the diagnosis did with them."""
+        if self.outliers is None:
+            return {"outliers": [], "outlier_handling": "not screened"}
+        return self.outliers.to_dict()
 
     def report(self) -> str:
         """A report a calibration engineer can act on."""
@@ -149,6 +159,8 @@ class Diagnosis:
             f"(p = {self.p_geometric:.2g}); cross-validated position RMS {1e3 * self.rms_cv_geometric:.1f} um "
             f"(noise alone {1e3 * self.rms_noise:.1f} um)"
         )
+        if self.outliers is not None:
+            L.append(self.outliers.report())
         loc = self.located
         if loc is not None:
             sig = "significant" if loc.significant else "not significant"
