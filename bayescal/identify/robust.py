@@ -119,6 +119,8 @@ class OutlierHandling:
                 )
         else:
             lines.append(f"  no pose flagged (smallest family-wise p = {float(np.min(t.p_adjusted)):.3g}); {self.action}")
+        if self.weights is not None:
+            lines.append("    (the chi-square and covariance above are those of the weighted fit; the RMS values use every pose)")
         if self.screen is not None and self.screen.flagged.any():
             lines.append(f"    flagged by the unweighted fit: lines {', '.join(str(o['line']) for o in self.screen.outliers())}")
         top = np.argsort(-t.cooks_distance)[:most_influential]
