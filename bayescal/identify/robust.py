@@ -185,6 +185,10 @@ def handle_outliers(
         return res0, OutlierHandling(test=test0, mode=robust, action="none flagged; every pose kept at full weight")
     loss = "t" if robust == "auto" else robust
     ir = irls_weights(model, fit, loss=loss, nu=nu, start=res0)
+    if not ir.result.success:
+        # keep the unweighted answer rather than a failed one, and say so
+        action = f"kept: the robust refit ({describe_loss(loss, nu)}) did not succeed ({ir.result.message})"
+        return res0, OutlierHandling(test=test0, mode=robust, action=action)
     test1 = pose_test(model, ir.result.theta, weights=ir.weights, alpha=alpha, lines=lines, **system(ir.result))
     why = "because the test flagged poses" if robust == "auto" else f"(--robust {robust})"
     action = f"down-weighted ({describe_loss(loss, nu)}, {ir.rounds} rounds{'' if ir.converged else ', weights not converged'}) {why}"
