@@ -30,6 +30,9 @@ explains, whatever the other poses are.
   s_(i)^2`` with ``s_(i)^2`` the (weighted) residual sum of squares of the
   other poses over its degrees of freedom ``N - tr(H) - d``, against
   ``F(d, N - tr(H) - d)`` (exact for least squares).
+* TSVD (``k`` kept directions): the dropped directions stay at nominal, so
+  their share of the true errors (a priori ``N(0, I)`` in tolerance units)
+  is in every residual; ``A_i V_drop V_drop^T A_i^T`` joins ``Cov(e_i)``.
 * ``scale="robust"`` (used by the diagnosis, whose geometric model may miss
   a physical effect that raises every residual): ``t_i / s^2`` against
   ``chi2(d)`` with ``s^2 = max(1, median(t) / median(chi2(d)))``, so that a
@@ -281,6 +284,15 @@ def pose_test_linear(
     rp = r.reshape(n, dof)
     a2 = np.einsum("nij,ni->nj", Q, rp) ** 2  # squared residual in the eigenbasis of G_i
     t = np.sum(a2 / ((1.0 + (1.0 - w[:, None]) * g) * (1.0 - wg)), axis=1)
+    if k is not None and np.any(~keep):
+        # TSVD leaves the dropped directions at nominal: their part of the truth, a priori
+        # N(0, I) in tolerance units, is in every residual (truncation bias), so it joins the
+        # deleted residual's covariance: Cov(e_i) = I + G_i (I - w_i G_i)^-1 + A_i V_drop V_drop^T A_i^T
+        Dp = (A @ Vt[~keep].T).reshape(n, dof, -1)
+        inv = np.einsum("nij,nj,nkj->nik", Q, 1.0 / (1.0 - wg), Q)
+        e = np.einsum("nij,nj->ni", inv, rp)
+        cov = np.eye(dof) + np.einsum("nij,nj,nkj->nik", Q, g / (1.0 - wg), Q) + Dp @ np.swapaxes(Dp, 1, 2)
+        t = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[:, :, None])[:, :, 0])
     leverage = np.sum(wg, axis=1)
     trH = float(np.sum(leverage))
     # Cook: (x - x_(i))^T C^-1 (x - x_(i)) = w^2 sum_j a_j^2 g_j / (1 - w g_j)^2
