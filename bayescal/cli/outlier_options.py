@@ -15,7 +15,9 @@ def add_outlier_arguments(p) -> None:
         "the test flags any, refits by Student-t IRLS; 't' / 'huber' always refit by IRLS with that loss; "
         "'off' keeps every pose at full weight (flagged poses are still reported)",
     )
-    g.add_argument("--nu", type=float, default=DEFAULT_NU, help=f"degrees of freedom of the Student-t loss (default {DEFAULT_NU:g})")
+    g.add_argument(
+        "--nu", type=float, default=DEFAULT_NU, help=f"degrees of freedom of the Student-t loss (default {DEFAULT_NU:g})",
+    )
     g.add_argument(
         "--outlier-alpha", type=float, default=ALPHA, metavar="ALPHA",
         help=f"family-wise level of the outlier test over all poses (default {ALPHA:g})",

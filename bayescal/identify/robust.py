@@ -191,7 +191,8 @@ def handle_outliers(
         return res0, OutlierHandling(test=test0, mode=robust, action=action)
     test1 = pose_test(model, ir.result.theta, weights=ir.weights, alpha=alpha, lines=lines, **system(ir.result))
     why = "because the test flagged poses" if robust == "auto" else f"(--robust {robust})"
-    action = f"down-weighted ({describe_loss(loss, nu)}, {ir.rounds} rounds{'' if ir.converged else ', weights not converged'}) {why}"
+    rounds = f"{ir.rounds} rounds" + ("" if ir.converged else ", weights not converged")
+    action = f"down-weighted ({describe_loss(loss, nu)}, {rounds}) {why}"
     return ir.result, OutlierHandling(test=test1, mode=robust, action=action, weights=ir.weights, screen=test0, rounds=ir.rounds)
 
 
