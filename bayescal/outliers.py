@@ -81,6 +81,7 @@ __all__ = [
     "ALPHA",
     "LOSSES",
     "DEFAULT_NU",
+    "MAX_FRACTION",
     "PoseTest",
     "pose_test_linear",
     "pose_test",
@@ -94,6 +95,8 @@ ALPHA = 0.01
 LOSSES = ("t", "huber")
 #: Degrees of freedom of the Student-t loss.
 DEFAULT_NU = 4.0
+#: More flagged poses than this share of a recording: a model mismatch, not outliers.
+MAX_FRACTION = 0.1
 #: Huber threshold on the whitened pose norm, as a chi quantile of the pose's rows.
 HUBER_QUANTILE = 0.95
 

@@ -31,14 +31,12 @@ from numpy.typing import NDArray
 
 from ..effects.model import fit_map
 from ..measurement import MeasurementModel
-from ..outliers import ALPHA, PoseTest, pose_test
+from ..outliers import ALPHA, MAX_FRACTION, PoseTest, pose_test
 
 __all__ = ["OutlierScreen", "screen_outliers", "EXCLUDE_FACTOR", "MAX_FRACTION"]
 
 #: A flagged pose's sigma is multiplied by this (weight 1e-12): out of every fit.
 EXCLUDE_FACTOR = 1e6
-#: More flagged poses than this share of the recording: structure, not outliers.
-MAX_FRACTION = 0.1
 MAX_ROUNDS = 3
 
 

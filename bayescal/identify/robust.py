@@ -9,6 +9,12 @@
 * ``t`` / ``huber``: always refit by IRLS with that loss.
 * ``off``: fit as asked; flagged poses are reported and kept.
 
+If more than :data:`~bayescal.outliers.MAX_FRACTION` (10 %) of the poses
+stand out even in the robust fit, that is a model mismatch (a wrong
+instrument frame or unit, unmodelled physics), not a few gross errors: the
+unweighted fit is kept, no pose is listed as an outlier, and the answer
+says so.
+
 Where the weights come from: the deterministic methods with a fixed
 regularisation (ls, ridge with a number, tsvd with a number, map) are
 iterated themselves.  Methods whose answer is not one cheap fit (``--lam
@@ -28,7 +34,7 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 from ..measurement import MeasurementModel
-from ..outliers import ALPHA, DEFAULT_NU, LOSSES, PoseTest, describe_loss, irls_weights, pose_test
+from ..outliers import ALPHA, DEFAULT_NU, LOSSES, MAX_FRACTION, PoseTest, describe_loss, irls_weights, pose_test
 from .gauss_newton import identify
 
 __all__ = [
@@ -70,6 +76,10 @@ class OutlierHandling:
         The test of the unweighted fit that triggered the refit (``auto``).
     rounds : int
         IRLS rounds.
+    structural : bool
+        More than :data:`~bayescal.outliers.MAX_FRACTION` of the poses stood
+        out even in the robust fit: a model mismatch, not outliers; the
+        unweighted fit is kept and no pose is listed as an outlier.
     """
 
     test: PoseTest | None
@@ -78,6 +88,7 @@ class OutlierHandling:
     weights: NDArray | None = None
     screen: PoseTest | None = None
     rounds: int = 0
+    structural: bool = False
 
     def weighted_model(self, model: MeasurementModel) -> MeasurementModel:
         """``model`` with the robust weights (each pose's sigma divided by ``sqrt(w)``), or itself."""
@@ -90,7 +101,7 @@ class OutlierHandling:
         if not res.success or self.test is None:
             return replace(self, test=None, action=_NOT_ASSESSED)
         t = pose_test(model, res.theta, weights=self.weights, alpha=self.test.alpha, lines=self.test.lines, **system)
-        return replace(self, test=t)
+        return replace(self, test=_unflag(t) if self.structural else t)
 
     def to_dict(self) -> dict:
         """JSON keys: ``outliers`` (FORMATS.md section 4), ``outlier_handling``, ``outlier_test`` (every pose)."""
@@ -117,6 +128,8 @@ class OutlierHandling:
                     f"    {t.lines[i]:>6d} {t.statistic[i]:11.4g} {t.p_adjusted[i]:11.3g} {t.p_value[i]:11.3g} "
                     f"{t.cooks_distance[i]:9.3g} {t.weight[i]:8.3g}"
                 )
+        elif self.structural:
+            lines.append(f"  {self.action}")
         else:
             lines.append(f"  no pose flagged (smallest family-wise p = {float(np.min(t.p_adjusted)):.3g}); {self.action}")
         if self.weights is not None:
@@ -127,6 +140,10 @@ class OutlierHandling:
         lines.append("    most influential poses (Cook's distance): "
                      + ", ".join(f"line {t.lines[i]} ({t.cooks_distance[i]:.3g})" for i in top))
         return "\n".join(lines)
+
+
+def _unflag(test: PoseTest) -> PoseTest:
+    return replace(test, flagged=np.zeros_like(test.flagged))
 
 
 def _check(robust: str, loss_nu: float) -> None:
@@ -190,6 +207,14 @@ def handle_outliers(
         action = f"kept: the robust refit ({describe_loss(loss, nu)}) did not succeed ({ir.result.message})"
         return res0, OutlierHandling(test=test0, mode=robust, action=action)
     test1 = pose_test(model, ir.result.theta, weights=ir.weights, alpha=alpha, lines=lines, **system(ir.result))
+    k = int(test1.flagged.sum())
+    if k > MAX_FRACTION * model.n_poses:
+        action = (
+            f"none taken as outliers: {k} of {model.n_poses} poses stand out even in the robust fit, more than "
+            f"{MAX_FRACTION:.0%}; that is a model mismatch (instrument frame: --frame fit; units; unmodelled physics: "
+            "bayescal diagnose), not a few gross errors, so the unweighted fit is kept"
+        )
+        return res0, OutlierHandling(test=_unflag(test0), mode=robust, action=action, screen=test0, structural=True)
     why = "because the test flagged poses" if robust == "auto" else f"(--robust {robust})"
     rounds = f"{ir.rounds} rounds" + ("" if ir.converged else ", weights not converged")
     action = f"down-weighted ({describe_loss(loss, nu)}, {rounds}) {why}"

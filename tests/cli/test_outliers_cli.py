@@ -92,3 +92,18 @@ def test_bad_outlier_options_are_input_errors(gross, capsys):
     assert "--outlier-alpha" in capsys.readouterr().err
     assert main(["identify", str(gross), "--machine", str(PRS3_FILE), "--method", "map", "--nu", "0"]) == 2
     assert "--nu" in capsys.readouterr().err
+
+
+def test_a_mismatch_of_every_pose_is_not_called_outliers(tmp_path):
+    """2 mm added to every x (a tracker frame offset): poses stand out in the robust fit too; not outliers."""
+    rows = list(csv.reader(REC.read_text().splitlines()))
+    for r in rows[1:]:
+        r[3] = repr(float(r[3]) + 2.0)
+    rec = tmp_path / "offset.csv"
+    with rec.open("w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    code, ans = _run(rec, tmp_path, "--method", "map")
+    _, off = _run(rec, tmp_path, "--method", "map", "--robust", "off")
+    assert code == 0 and ans["outliers"] == []
+    assert "model mismatch" in ans["outlier_handling"] and "--frame fit" in ans["outlier_handling"]
+    assert [p["value"] for p in ans["parameters"]] == [p["value"] for p in off["parameters"]]  # the unweighted fit
