@@ -76,7 +76,8 @@ class OutlierScreen:
         ]
 
     def to_dict(self) -> dict:
-        return {"outliers": self.outliers(), "outlier_handling": self.action, "outlier_test": self.test.describe()}
+        test = {**self.test.to_dict(), "excluded": self.excluded}
+        return {"outliers": self.outliers(), "outlier_handling": self.action, "outlier_test": test}
 
     def report(self) -> str:
         out = self.outliers()
