@@ -107,8 +107,9 @@ def _nonphysical(fit: EffectFit, cands: list["_Candidate"]) -> str | None:
     return None
 
 
-def _chi2_test(fit: EffectFit) -> tuple[float, float]:
-    dof = max(fit.n_rows - fit.edf, 1.0)
+def _chi2_test(fit: EffectFit, excluded_rows: int = 0) -> tuple[float, float]:
+    # rows of excluded outliers carry no weight: they add nothing to chi2, nor to its expectation
+    dof = max(fit.n_rows - excluded_rows - fit.edf, 1.0)
     return dof, float(chi2_dist.sf(fit.chi2, dof))
 
 
@@ -261,8 +262,9 @@ def diagnose(
         remaining.remove(c)
         cur_fit, cur_cv = fit, cv
 
-    dof0, p0 = _chi2_test(fit0)
-    dof_f, p_f = _chi2_test(cur_fit)
+    n_out = 0 if screen is None else int(screen.excluded.sum()) * model.dof
+    dof0, p0 = _chi2_test(fit0, n_out)
+    dof_f, p_f = _chi2_test(cur_fit, n_out)
     excess = fit0.chi2 - dof0
     explained = (fit0.chi2 - cur_fit.chi2) / excess if excess > 0 else 1.0
     message = ""
