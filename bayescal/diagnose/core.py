@@ -169,7 +169,7 @@ def diagnose(
     kept = np.arange(n) if screen is None else np.flatnonzero(~screen.excluded)
 
     try:
-        fit0 = fit_map(model)
+        fit0 = screen.fit if screen is not None and screen.fit is not None else fit_map(model)
     except KinematicsError as exc:
         raise InputError(
             f"{recording.path}: the machine {machine.source} cannot solve this recording at its nominal geometry "

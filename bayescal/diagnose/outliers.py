@@ -52,11 +52,15 @@ class OutlierScreen:
         Poses taken out of the fits.
     action : str
         What was done (the answer's ``outlier_handling``).
+    fit : EffectFit or None
+        The geometric MAP fit of the weighted model (the diagnosis's first
+        fit), when the screen ended on it; None otherwise.
     """
 
     test: PoseTest
     excluded: NDArray
     action: str
+    fit: object = None
 
     def weighted_model(self, model: MeasurementModel) -> MeasurementModel:
         """``model`` with the excluded poses' sigma multiplied by :data:`EXCLUDE_FACTOR`."""
@@ -106,7 +110,7 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
     n = model.n_poses
     excluded = np.zeros(n, dtype=bool)
     free = np.ones(model.n_params, dtype=bool)
-    test = None
+    test = fit = None
     for _ in range(MAX_ROUNDS):
         weights = np.where(excluded, EXCLUDE_FACTOR**-2, 1.0)
         m = OutlierScreen(test=None, excluded=excluded, action="").weighted_model(model)
@@ -121,9 +125,9 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
             )
         if np.array_equal(new, excluded):
             break
-        excluded = new
+        excluded, fit = new, None
     if excluded.any():
         action = "excluded from every fit, the location tests and the cross-validation (kept in the measurement order)"
     else:
         action = "no pose flagged; every pose used"
-    return OutlierScreen(test=test, excluded=excluded, action=action)
+    return OutlierScreen(test=test, excluded=excluded, action=action, fit=fit)
