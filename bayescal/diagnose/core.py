@@ -42,7 +42,7 @@ from ..machines.base import Machine
 from ..measurement import MeasurementModel
 from ..outliers import recording_lines
 from .locate import locate
-from .outliers import screen_outliers
+from .outliers import retest_with_effects, screen_outliers
 from .result import Diagnosis, EffectTrial, ParameterValue
 
 __all__ = ["diagnose", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION"]
@@ -121,6 +121,7 @@ def diagnose(
     seed: int = 0,
     n_folds: int = 5,
     n_perm: int = 199,
+    _screen=None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -160,8 +161,9 @@ def diagnose(
     aux = dict(recording.aux)
 
     # gross errors are not physics (docs/outliers.md): flagged poses leave every fit and test
+    base_model = model
     try:
-        screen = screen_outliers(model, lines=recording_lines(n, recording))
+        screen = _screen if _screen is not None else screen_outliers(model, lines=recording_lines(n, recording))
     except (KinematicsError, InputError):
         screen = None  # the nominal machine cannot solve the recording: fit_map below says so
     if screen is not None:
@@ -177,6 +179,10 @@ def diagnose(
         ) from exc
     pred0 = model.predict(fit0.theta)
     dq_res = actuator_residual(model, fit0.theta, fit0.residual, pred0)
+    if screen is not None:
+        # per-pose least squares undoes the exclusion's scaling: an excluded pose's gross error must not
+        # reach the actuator-space tests (periodogram, pitch search); zero is "no actuator error"
+        dq_res[screen.excluded] = 0.0
     location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, recording.position, seed=seed, n_perm=n_perm)
 
     cands: list[_Candidate] = []
@@ -280,6 +286,12 @@ def diagnose(
     else:
         loc = location.strongest
         verdict = "unexplained" if p0 < P_MISMATCH or (loc is not None and loc.significant) else "none"
+
+    if screen is not None and _screen is None and selected:
+        # outliers are judged against the final model; if that names other poses, diagnose once more
+        final = retest_with_effects(base_model, [(c.effect, c.features) for c in selected], cur_fit, screen)
+        if final is not None:
+            return diagnose(machine, recording, effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm, _screen=final)
 
     sel_names = [c.effect.name for c in selected]
     trials = []

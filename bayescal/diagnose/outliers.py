@@ -17,6 +17,11 @@ poses of the cross-validation.  The screen is repeated at the refit
 without them (at most :data:`MAX_ROUNDS` times) so that one gross pose
 cannot hide another.
 
+When the diagnosis selects effects, the poses are tested again against the
+final model (:func:`retest_with_effects`); if that names other poses, the
+diagnosis is run once more with those excluded (a warm-up's first poses are
+physics, not outliers, and a gross pose the geometric misfit hid is found).
+
 If more than :data:`MAX_FRACTION` of the poses would be flagged, the
 mismatch is not a few bad poses but structure: nothing is excluded and the
 diagnosis proceeds on every pose (the answer says so).
@@ -31,9 +36,9 @@ from numpy.typing import NDArray
 
 from ..effects.model import fit_map
 from ..measurement import MeasurementModel
-from ..outliers import ALPHA, MAX_FRACTION, PoseTest, pose_test
+from ..outliers import ALPHA, MAX_FRACTION, PoseTest, pose_test, pose_test_linear
 
-__all__ = ["OutlierScreen", "screen_outliers", "EXCLUDE_FACTOR", "MAX_FRACTION"]
+__all__ = ["OutlierScreen", "screen_outliers", "retest_with_effects", "EXCLUDE_FACTOR", "MAX_FRACTION"]
 
 #: A flagged pose's sigma is multiplied by this (weight 1e-12): out of every fit.
 EXCLUDE_FACTOR = 1e6
@@ -131,3 +136,61 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
     else:
         action = "no pose flagged; every pose used"
     return OutlierScreen(test=test, excluded=excluded, action=action, fit=fit)
+
+
+def retest_with_effects(
+    model: MeasurementModel,
+    effects,
+    fit,
+    screen: OutlierScreen,
+    *,
+    alpha: float = ALPHA,
+) -> OutlierScreen | None:
+    """Test every pose against the diagnosis's final model (geometry and the selected effects).
+
+    The screen judges the poses by the geometric model alone, whose misfit on
+    a recording with physics has tails (the first poses of a warm-up, the
+    heaviest payloads) that can pass for outliers, and whose inflated scale
+    can hide a gross pose.  Against the final model the yardstick is right:
+    this returns the screen the diagnosis should have used, or None when it
+    is the one it used.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The recording with its instrument noise (not the exclusion weights).
+    effects : list of (Effect, Features)
+        The selected effects.
+    fit : EffectFit
+        The final joint fit (on the weighted model).
+    screen : OutlierScreen
+        The screen the diagnosis used.
+    """
+    from ..effects.model import _dq, _predict, _slices
+
+    if not effects:
+        return None
+    machine = model.machine
+    P = machine.n_params
+    slices = _slices(effects, model)
+    q_eff = model.q + _dq(effects, slices, fit.eta, model.q.shape)
+    sub, pred = _predict(model, q_eff, fit.theta, None)
+    sig = np.asarray(model.row_sigma)
+    # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq
+    cols = [sub.jacobian(fit.theta, pred)]
+    Jq = sub.rows_jacobian(machine.actuator_jacobian(sub.q, fit.theta, pred.poses), pred)
+    for (eff, f), sl in zip(effects, slices):
+        cols.append(np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian(f, fit.eta[sl])))
+    scale = np.concatenate([machine.tolerance, [p.prior_sd for p in fit.params]])
+    A = (np.concatenate(cols, axis=2) / sig[:, :, None]).reshape(-1, P + len(fit.params)) * scale
+    r = (model.residual(pred) / sig).reshape(-1)
+    weights = np.where(screen.excluded, EXCLUDE_FACTOR**-2, 1.0)
+    test = pose_test_linear(A, r, model.dof, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=screen.test.lines)
+    flagged = test.flagged
+    if np.array_equal(flagged, screen.excluded) or flagged.sum() > MAX_FRACTION * model.n_poses:
+        return None
+    action = (
+        "excluded from every fit, the location tests and the cross-validation (kept in the measurement order); "
+        "judged against the geometry with " + ", ".join(e.name for e, _ in effects)
+    )
+    return OutlierScreen(test=test, excluded=flagged.copy(), action=action)

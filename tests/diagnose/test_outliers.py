@@ -57,3 +57,17 @@ def test_many_bad_poses_are_structure_not_outliers(prs3):
     screen = screen_outliers(MeasurementModel.from_recording(prs3, rec))
     assert not screen.excluded.any() and "structure" in screen.action
     assert screen.outliers() == []
+
+
+def test_physics_tails_are_not_outliers_when_judged_against_the_final_model(prs3):
+    """Thermal warm-up: the geometric screen also flags the first poses (lines 4 and 6 here); judged
+    against geometry + thermal_expansion only the three gross poses remain, and the diagnosis is rerun."""
+    sim = simulate_with_effects(prs3, 100, seed=20, dof=6, effects=[("thermal_expansion", 15.0)], record=("temp_C",))
+    bad = np.array([30, 55, 80])
+    rec = _beam_breaks(sim.recording, bad, prs3.noise.sigma_position, np.random.default_rng(0))
+    screen = screen_outliers(MeasurementModel.from_recording(prs3, rec))
+    assert set(bad) < set(np.flatnonzero(screen.excluded))  # the geometric screen alone over-flags
+    d = diagnose(prs3, rec, seed=1, n_perm=49)
+    assert d.verdict == "thermal_expansion"
+    assert [o["line"] for o in d.to_dict()["outliers"]] == list(bad + 2)
+    assert "judged against the geometry with thermal_expansion" in d.to_dict()["outlier_handling"]
