@@ -189,8 +189,9 @@ def retest_with_effects(
     flagged = test.flagged
     if np.array_equal(flagged, screen.excluded) or flagged.sum() > MAX_FRACTION * model.n_poses:
         return None
-    action = (
-        "excluded from every fit, the location tests and the cross-validation (kept in the measurement order); "
-        "judged against the geometry with " + ", ".join(e.name for e, _ in effects)
-    )
+    judged = "judged against the geometry with " + ", ".join(e.name for e, _ in effects)
+    if flagged.any():
+        action = f"excluded from every fit, the location tests and the cross-validation (kept in the measurement order); {judged}"
+    else:
+        action = f"no pose flagged, {judged} (the geometric model's misfit alone had flagged some); every pose used"
     return OutlierScreen(test=test, excluded=flagged.copy(), action=action)
