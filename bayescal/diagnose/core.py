@@ -118,6 +118,7 @@ def diagnose(
     seed: int = 0,
     n_folds: int = 5,
     n_perm: int = 199,
+    effect_settings: dict[str, dict] | None = None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -136,6 +137,10 @@ def diagnose(
         Folds of the leave-poses-out cross-validation.
     n_perm : int
         Permutations per location test.
+    effect_settings : dict of str to dict, optional
+        Inputs of effects by name (e.g. ``{"joint_compliance": {"gravity":
+        [1, 0, 0]}}`` for a machine mounted on its side); documented
+        defaults otherwise.
 
     Returns
     -------
@@ -149,7 +154,8 @@ def diagnose(
     """
     forced = effects is not None
     names = list(EFFECTS) if effects is None else list(dict.fromkeys(effects))
-    lib = [get_effect(n) for n in names]  # raises on unknown names
+    settings = dict(effect_settings or {})
+    lib = [get_effect(n, **settings.get(n, {})) for n in names]  # raises on unknown names and settings
     model = MeasurementModel.from_recording(machine, recording)
     n = model.n_poses
     if n < 2 * n_folds:

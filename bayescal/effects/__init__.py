@@ -28,8 +28,20 @@ EFFECTS: dict[str, type[Effect]] = {
 }
 
 
-def get_effect(name: str) -> Effect:
-    """An effect of the library by its name (default settings)."""
+def get_effect(name: str, **settings) -> Effect:
+    """An effect of the library by its name, with default settings unless given.
+
+    Parameters
+    ----------
+    name : str
+    **settings
+        The effect's inputs (its constructor's keyword arguments, e.g.
+        ``gravity=[0, 0, -1]`` for ``joint_compliance``); unknown keys are an
+        :class:`~bayescal.errors.InputError`.
+    """
     if name not in EFFECTS:
         raise InputError(f"unknown effect {name!r}; expected one of: {', '.join(EFFECTS)}")
-    return EFFECTS[name]()
+    try:
+        return EFFECTS[name](**settings)
+    except TypeError as exc:
+        raise InputError(f"effect {name}: unknown setting(s) {sorted(settings)} ({exc})") from None
