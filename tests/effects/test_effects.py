@@ -147,10 +147,13 @@ def test_nonphysical_flags_only_parameters_significantly_below_their_bound(prs3)
     t = get_effect("thermal_expansion")
     tf = t.features(prs3, np.zeros((4, 3)) + 400.0, None, {"temp_C": np.full(4, 21.0)}, None, None)
     tp = t.params(prs3, tf)
-    eta = np.zeros(6)
+    assert [p.name for p in tp][6:] == ["link.q1", "link.q2", "link.q3"]
+    eta = np.zeros(len(tp))
     eta[4] = -30.0  # alpha.q2: a screw that shrinks when warmed
-    assert "alpha.q2" in t.nonphysical(tp, eta, np.full(6, 2.0))
-    assert t.nonphysical(tp, -eta, np.full(6, 2.0)) is None  # drifts may take either sign; alpha > 0 is fine
+    assert "alpha.q2" in t.nonphysical(tp, eta, np.full(len(tp), 2.0))
+    assert t.nonphysical(tp, -eta, np.full(len(tp), 2.0)) is None  # drifts may take either sign; alpha > 0 is fine
+    eta[4], eta[7] = 0.0, -30.0  # link.q2: a link that shrinks when warmed
+    assert "link.q2" in t.nonphysical(tp, eta, np.full(len(tp), 2.0))
 
 
 def test_preload_deflections_must_share_one_sign():
