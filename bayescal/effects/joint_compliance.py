@@ -123,17 +123,27 @@ class JointCompliance(Effect):
 
     * ``weight_deflection.q<i>`` (um, ``>= 0``): ``w_i = c_i m_p g``, how far
       drive ``i`` would give way under the whole platform weight on its
-      axis.  Platform mass and compliance appear only as this product
+      axis; prior ``0 +- 300 um``.  Platform mass and compliance appear only as this product
       without a payload that changes.
     * ``com.x``, ``com.y``, ``com.z`` (mm, platform frame): the platform's
       centre of mass ``c`` from the platform origin; prior ``0 +- 200 mm``.
     * ``gravity.tilt_1``, ``gravity.tilt_2`` (rad, tangent of the tilt):
       ``d = normalise(d0 + t_1 e_1 + t_2 e_2)`` (:func:`gravity_direction`),
       the mounting's tilt from the nominal direction ``d0``; prior
-      ``0 +- 0.2``.  Only well determined when the deflections are large.
+      ``0 +- 0.5`` (27 degrees; tilts of 45 degrees are found from an
+      upright start with a changing payload).  Well determined when the
+      deflections are tens of um; otherwise reported near its prior.
     * ``compliance.q<i>`` (um/N, ``>= 0``): ``c_i``, only when the
       recording has a ``payload_kg`` channel that changes (a constant
-      payload is part of the weight).  Then ``m_p = w_i / (c_i g)``.
+      payload is part of the weight); prior ``0 +- 1 um/N``.  Then
+      ``m_p = w_i / (c_i g)`` (not imposed: the ratio is a check).
+
+    Sign rule: ``w_i >= 0`` and ``c_i >= 0`` (a drive gives way in the
+    direction it is pushed); the tilt keeps ``d`` in the half space of
+    ``d0``, so flipping both the direction and the deflections is not a
+    second solution, and a fit needing a negative ``w_i`` or ``c_i`` beyond
+    3 sigma is rejected as non-physical.  ``d0`` must therefore be right to
+    within 90 degrees (upright by default).
 
     Inputs with documented defaults (constructor arguments; machine-file
     keys ``gravity`` and ``payload_offset`` of the ``[effect.joint_compliance]``
@@ -161,7 +171,7 @@ class JointCompliance(Effect):
     #: Prior one-sigma of a weight deflection (um), of a centre-of-mass coordinate (mm), of a gravity tilt.
     WEIGHT_PRIOR_UM = 300.0
     COM_PRIOR_MM = 200.0
-    TILT_PRIOR = 0.2
+    TILT_PRIOR = 0.5
 
     def __init__(self, *, gravity=DEFAULT_GRAVITY_DIRECTION, payload_offset=(0.0, 0.0, 0.0), platform_mass_kg: float = 30.0):
         """

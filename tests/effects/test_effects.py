@@ -191,3 +191,14 @@ def test_simulating_an_effect_that_cannot_act_is_an_error():
     m = load_machine(PRS3_FILE.parent.parent / "rupus_prs" / "machine.toml")
     with pytest.raises(InputError, match=r"--effect joint_compliance:0.5: has no effect on the RU-PUS-PRS.*no gravity load"):
         simulate_with_effects(m, 10, seed=1, effects=[("joint_compliance", 0.5)])
+
+
+def test_preload_directions_keep_one_orientation_where_a_component_crosses_zero():
+    from bayescal.effects.redundancy_preload import orient_directions
+
+    # a direction turning through 60 degrees: its first component changes sign half way
+    a = np.linspace(-0.5, 0.5, 11)
+    nu = np.stack([np.sin(a), np.cos(a), np.zeros(11)], axis=1)
+    flips = np.where(np.arange(11) % 3 == 0, -1.0, 1.0)[:, None]  # given up to sign, as an SVD returns them
+    out = orient_directions(nu * flips)
+    np.testing.assert_allclose(out, nu)  # continuous, and the dominant component (the second) positive
