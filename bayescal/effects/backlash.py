@@ -36,24 +36,29 @@ def play_operator(x: NDArray, half_band: NDArray) -> tuple[NDArray, NDArray]:
     d_dh : ndarray, shape (n_poses, n_actuators)
         ``d (y - x) / d h`` (-1, +1 or carried from the last contact; 0 before any).
     """
-    # A Python loop over the poses: the operator is a recursion (each follower position depends
-    # on the previous one), vectorised over the actuators; one pass costs O(n_poses).
+    # A move of at least the whole band (2 h) ends in flank contact whatever the nut's position before
+    # it, so those rows are -h sign(move), vectorised; only rows after shorter moves (and the first) need
+    # the recursion, and the Python loop visits just those (rare with poses spread over the workspace).
     h = np.maximum(np.asarray(half_band, float), 0.0)
     n, m = x.shape
     out = np.zeros((n, m))
     der = np.zeros((n, m))
     if n == 0:
         return out, der
-    y = x[0].copy()
-    dy = np.zeros(m)  # d y / d h, in the frame where x does not depend on h
-    for t in range(n):
-        lo, hi = x[t] - h, x[t] + h
-        below, above = y < lo, y > hi
-        # driver pushing from below (moving up): the follower trails at x - h
-        y = np.where(below, lo, np.where(above, hi, y))
-        dy = np.where(below, -1.0, np.where(above, 1.0, dy))
-        out[t] = y - x[t]
-        der[t] = dy
+    step = np.diff(x, axis=0)
+    s = np.sign(step)
+    big = np.abs(step) >= 2 * h[None, :]
+    out[1:] = np.where(big, -h[None, :] * s, 0.0)
+    der[1:] = np.where(big, -s, 0.0)
+    small = np.zeros((n, m), dtype=bool)
+    small[1:] = ~big
+    for t in np.flatnonzero(small.any(axis=1)):
+        k = small[t]
+        y_prev = x[t - 1, k] + out[t - 1, k]
+        lo, hi = x[t, k] - h[k], x[t, k] + h[k]
+        below, above = y_prev < lo, y_prev > hi
+        out[t, k] = np.where(below, lo, np.where(above, hi, y_prev)) - x[t, k]
+        der[t, k] = np.where(below, -1.0, np.where(above, 1.0, der[t - 1, k]))
     return out, der
 
 
