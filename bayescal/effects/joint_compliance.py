@@ -156,7 +156,9 @@ class JointCompliance(Effect):
     compliance to first order); small deflections (the load is evaluated at
     the undeflected pose: the second-order change of the load with the
     deflection is below 1e-3 of it for deflections under 0.1 % of the
-    mechanism's size).  Usual size on machine tools: ball-screw drives
+    mechanism's size); on a redundantly actuated machine the load is shared
+    among the drives in a statically indeterminate way, and the model puts
+    it on the drives its forward kinematics reads.  Usual size on machine tools: ball-screw drives
     0.002-0.02 um/N (50-500 N/um axial stiffness); with links, spherical
     joints and a lightweight frame the apparent compliance at the actuator
     reaches 0.05-1 um/N; platforms of 10-200 kg.
