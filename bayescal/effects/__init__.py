@@ -41,7 +41,9 @@ def get_effect(name: str, **settings) -> Effect:
     """
     if name not in EFFECTS:
         raise InputError(f"unknown effect {name!r}; expected one of: {', '.join(EFFECTS)}")
-    try:
-        return EFFECTS[name](**settings)
-    except TypeError as exc:
-        raise InputError(f"effect {name}: unknown setting(s) {sorted(settings)} ({exc})") from None
+    cls = EFFECTS[name]
+    bad = sorted(set(settings) - set(cls.settings_keys))
+    if bad:
+        allowed = ", ".join(cls.settings_keys) or "none"
+        raise InputError(f"effect {name}: unknown setting(s) {', '.join(bad)}; expected some of: {allowed}")
+    return cls(**settings)

@@ -169,6 +169,7 @@ class JointCompliance(Effect):
     magnitude_unit = "um/N"
     default_magnitude = 0.5
     needs_poses = True
+    settings_keys = ("gravity", "payload_offset")
 
     #: Prior one-sigma of a weight deflection (um), of a centre-of-mass coordinate (mm), of a gravity tilt.
     WEIGHT_PRIOR_UM = 300.0
@@ -187,7 +188,10 @@ class JointCompliance(Effect):
             Used only to simulate (``simulated_values``: ``w_i = c_i m_p g``), kg.
         """
         self.down = _unit(gravity, "joint_compliance gravity")
-        self.payload_offset = np.asarray(payload_offset, float).reshape(3)
+        off = np.asarray(payload_offset, float).reshape(-1)
+        if off.shape != (3,) or not np.all(np.isfinite(off)):
+            raise InputError(f"joint_compliance payload_offset: expected a 3-vector in mm, got {off.tolist()}")
+        self.payload_offset = off
         self.platform_mass_kg = float(platform_mass_kg)
 
     def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:

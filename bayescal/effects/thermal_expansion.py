@@ -98,6 +98,7 @@ class ThermalExpansion(Effect):
     magnitude_unit = "um/m/K"
     default_magnitude = 12.0
     needs_poses = True
+    settings_keys = ("reference_C",)
 
     def __init__(self, *, reference_C: float = REFERENCE_TEMPERATURE_C):
         self.reference_C = float(reference_C)

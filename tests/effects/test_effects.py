@@ -202,3 +202,15 @@ def test_preload_directions_keep_one_orientation_where_a_component_crosses_zero(
     flips = np.where(np.arange(11) % 3 == 0, -1.0, 1.0)[:, None]  # given up to sign, as an SVD returns them
     out = orient_directions(nu * flips)
     np.testing.assert_allclose(out, nu)  # continuous, and the dominant component (the second) positive
+
+
+def test_effect_settings_are_checked_and_applied(prs3):
+    jc = get_effect("joint_compliance", gravity=[2.0, 0.0, 0.0])
+    np.testing.assert_allclose(jc.down, [1.0, 0.0, 0.0])
+    assert get_effect("thermal_expansion", reference_C=23.0).reference_C == 23.0
+    with pytest.raises(InputError, match="unknown setting.*mass.*expected some of: gravity, payload_offset"):
+        get_effect("joint_compliance", mass=30.0)
+    with pytest.raises(InputError, match="non-zero 3-vector"):
+        get_effect("joint_compliance", gravity=[0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match="expected some of: none"):
+        get_effect("backlash", gravity=[0.0, 0.0, -1.0])
