@@ -134,8 +134,9 @@ class JointCompliance(Effect):
       upright start with a changing payload).  Well determined when the
       deflections are tens of um; otherwise reported near its prior.
     * ``compliance.q<i>`` (um/N, ``>= 0``): ``c_i``, only when the
-      recording has a ``payload_kg`` channel that changes (a constant
-      payload is part of the weight); prior ``0 +- 1 um/N``.  Then
+      recording has a ``payload_kg`` channel (determined when the payload
+      changes; at a constant payload its load is nearly that of a heavier
+      platform); prior ``0 +- 1 um/N``.  Then
       ``m_p = w_i / (c_i g)`` (not imposed: the ratio is a check).
 
     Sign rule: ``w_i >= 0`` and ``c_i >= 0`` (a drive gives way in the
@@ -203,8 +204,11 @@ class JointCompliance(Effect):
         # the payload point and the platform origin, as offsets from the tool point (base frame, mm)
         payload_arm = np.einsum("nij,j->ni", R, self.payload_offset)
         origin_arm = _platform_origin(poses) - poses.position
-        mass = np.asarray(aux["payload_kg"], float) if "payload_kg" in aux else np.zeros(n)
-        has_payload = bool(mass.size and np.ptp(mass) > 0)
+        # the payload compliances are parameters whenever the channel is recorded (also at a constant
+        # payload: then weakly determined, at their prior if it is zero), so that the parameter set
+        # depends only on which channels a recording has, as machine-file effect tables need
+        has_payload = "payload_kg" in aux
+        mass = np.asarray(aux["payload_kg"], float) if has_payload else np.zeros(n)
         return Features(
             {"Jt": J[:, :3], "w": J[:, 3:], "R": R, "origin_arm": origin_arm, "payload_arm": payload_arm, "payload_kg": mass},
             {"down": self.down, "has_payload": has_payload},
@@ -265,7 +269,8 @@ class JointCompliance(Effect):
         m = features.per_pose["Jt"].shape[2]
         zero = np.zeros(m + 5 + (m if features.const["has_payload"] else 0))
         _, _, _, _, _, _, _, phi, psi, _ = self._terms(features, zero)
-        payload = features.const["has_payload"] and np.max(np.abs(psi)) > 1e-3
+        mass = features.per_pose["payload_kg"]
+        payload = bool(mass.size and np.ptp(mass) > 0 and psi.size and np.max(np.abs(psi)) > 1e-3)
         if phi.size and np.max(np.abs(phi)) <= 1e-3 and not payload:
             return ("the actuators carry no gravity load at any pose (under 0.1 % of the weight at the platform origin: "
                     "it acts at a passive joint) and no changing payload_kg is recorded")
