@@ -170,30 +170,53 @@ class JointCompliance(Effect):
     magnitude_unit = "um/N"
     default_magnitude = 0.5
     needs_poses = True
-    settings_keys = ("gravity", "payload_offset")
+    settings_keys = ("gravity", "payload_offset", "platform_mass_kg", "platform_com_mm")
 
     #: Prior one-sigma of a weight deflection (um), of a centre-of-mass coordinate (mm), of a gravity tilt.
     WEIGHT_PRIOR_UM = 300.0
+    COMPLIANCE_PRIOR = 1.0
+    MASS_PRIOR_KG = 100.0
     COM_PRIOR_MM = 200.0
     TILT_PRIOR = 0.5
 
-    def __init__(self, *, gravity=DEFAULT_GRAVITY_DIRECTION, payload_offset=(0.0, 0.0, 0.0), platform_mass_kg: float = 30.0):
+    def __init__(self, *, gravity=None, payload_offset=(0.0, 0.0, 0.0), platform_mass_kg: float | None = None,
+                 platform_com_mm=None):
         """
         Parameters
         ----------
-        gravity : (3,)
-            Nominal gravity direction ``d0`` in the base frame (normalised).
+        gravity : (3,), optional
+            Gravity direction ``d0`` in the base frame (normalised).  None
+            (default): ``[0, 0, -1]``, an upright mounting, assumed to within
+            the tilt prior ``0 +- 0.5``; stated: known to ``0 +- 0.02``.
         payload_offset : (3,)
             Payload's centre of mass from the tool point, platform frame, mm.
-        platform_mass_kg : float
-            Used only to simulate (``simulated_values``: ``w_i = c_i m_p g``), kg.
+        platform_mass_kg : float, optional
+            Stated mass of the platform (and everything that moves with it
+            but the payload), kg: the prior of ``platform_mass`` is then
+            centred on it with a 2 % width.  None (default): unknown, prior
+            ``0 +- 100 kg``.  Simulation uses it (30 kg when None).
+        platform_com_mm : (3,), optional
+            Stated centre of mass of the platform (platform frame, from its
+            origin), mm: prior centred on it, 5 mm wide.  None (default):
+            unknown, prior ``0 +- 200 mm``.
         """
-        self.down = _unit(gravity, "joint_compliance gravity")
+        self.gravity_stated = gravity is not None
+        self.down = _unit(DEFAULT_GRAVITY_DIRECTION if gravity is None else gravity, "joint_compliance gravity")
+        if platform_com_mm is None:
+            self.stated_com = None
+        else:
+            com = np.asarray(platform_com_mm, float).reshape(-1)
+            if com.shape != (3,) or not np.all(np.isfinite(com)):
+                raise InputError(f"joint_compliance platform_com_mm: expected a 3-vector in mm, got {com.tolist()}")
+            self.stated_com = com
         off = np.asarray(payload_offset, float).reshape(-1)
         if off.shape != (3,) or not np.all(np.isfinite(off)):
             raise InputError(f"joint_compliance payload_offset: expected a 3-vector in mm, got {off.tolist()}")
         self.payload_offset = off
-        self.platform_mass_kg = float(platform_mass_kg)
+        if platform_mass_kg is not None and not (np.isfinite(platform_mass_kg) and platform_mass_kg > 0):
+            raise InputError(f"joint_compliance platform_mass_kg: expected a positive mass in kg, got {platform_mass_kg!r}")
+        self.stated_mass_kg = None if platform_mass_kg is None else float(platform_mass_kg)
+        self.platform_mass_kg = 30.0 if platform_mass_kg is None else float(platform_mass_kg)
 
     def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:
         if poses is None:
@@ -216,11 +239,20 @@ class JointCompliance(Effect):
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
         m = machine.n_actuators
-        out = [EffectParam(f"weight_deflection.q{i + 1}", "um", self.WEIGHT_PRIOR_UM, lower=0.0) for i in range(m)]
-        out += [EffectParam(f"com.{x}", "mm", self.COM_PRIOR_MM) for x in "xyz"]
-        out += [EffectParam(f"gravity.tilt_{k}", "rad", self.TILT_PRIOR) for k in (1, 2)]
         if features is not None and features.const["has_payload"]:
-            out += [EffectParam(f"compliance.q{i + 1}", "um/N", 1.0, lower=0.0) for i in range(m)]
+            out = [EffectParam(f"compliance.q{i + 1}", "um/N", self.COMPLIANCE_PRIOR, lower=0.0) for i in range(m)]
+            if self.stated_mass_kg is None:
+                out.append(EffectParam("platform_mass", "kg", self.MASS_PRIOR_KG, lower=0.0))
+            else:
+                out.append(EffectParam("platform_mass", "kg", 0.02 * self.stated_mass_kg, prior_mean=self.stated_mass_kg, lower=0.0))
+        else:
+            out = [EffectParam(f"weight_deflection.q{i + 1}", "um", self.WEIGHT_PRIOR_UM, lower=0.0) for i in range(m)]
+        if self.stated_com is None:
+            out += [EffectParam(f"com.{x}", "mm", self.COM_PRIOR_MM) for x in "xyz"]
+        else:
+            out += [EffectParam(f"com.{x}", "mm", 5.0, prior_mean=float(v)) for x, v in zip("xyz", self.stated_com)]
+        tilt_sd = 0.02 if self.gravity_stated else self.TILT_PRIOR
+        out += [EffectParam(f"gravity.tilt_{k}", "rad", tilt_sd) for k in (1, 2)]
         return tuple(out)
 
     # the pieces of the model, per pose and actuator (see the class docstring)
@@ -228,37 +260,44 @@ class JointCompliance(Effect):
         eta = np.asarray(eta, float)
         Jt, w, R = features.per_pose["Jt"], features.per_pose["w"], features.per_pose["R"]
         m = Jt.shape[2]
-        wd = eta[:m]
-        com = eta[m : m + 3]
-        d, dd = gravity_direction(features.const["down"], eta[m + 3 : m + 5])
-        c = eta[m + 5 : 2 * m + 5] if features.const["has_payload"] else np.zeros(m)
+        if features.const["has_payload"]:
+            c, mp = eta[:m], eta[m]
+            W = c * mp * GRAVITY  # weight deflections c_i m_p g, um
+            k = m + 1
+        else:
+            c, mp = np.zeros(m), 0.0
+            W = eta[:m]
+            k = m
+        com = eta[k : k + 3]
+        d, dd = gravity_direction(features.const["down"], eta[k + 3 : k + 5])
         arm_c = features.per_pose["origin_arm"] + np.einsum("nij,j->ni", R, com)  # x_c - x_t
         Jc = Jt + np.cross(w, arm_c[:, :, None], axisa=1, axisb=1, axisc=1)  # (n, 3, m): d x_c / d q
         Jl = Jt + np.cross(w, features.per_pose["payload_arm"][:, :, None], axisa=1, axisb=1, axisc=1)
         phi = np.einsum("k,nkm->nm", d, Jc)  # (n, m)
         psi = np.einsum("k,nkm->nm", d, Jl)
         load = GRAVITY * features.per_pose["payload_kg"]  # N
-        return wd, com, d, dd, c, Jc, Jl, phi, psi, load
+        return k, W, c, mp, d, dd, Jc, Jl, phi, psi, load
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
-        wd, _, _, _, c, _, _, phi, psi, load = self._terms(features, eta)
-        return 1e-3 * (wd[None, :] * phi + c[None, :] * load[:, None] * psi)
+        _, W, c, _, _, _, _, _, phi, psi, load = self._terms(features, eta)
+        return 1e-3 * (W[None, :] * phi + c[None, :] * load[:, None] * psi)
 
     def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
-        wd, com, d, dd, c, Jc, Jl, phi, psi, load = self._terms(features, eta)
+        k, W, c, mp, d, dd, Jc, Jl, phi, psi, load = self._terms(features, eta)
         n, m = phi.shape
-        K = len(np.asarray(eta))
-        J = np.zeros((n, m, K))
+        J = np.zeros((n, m, len(np.asarray(eta))))
         ar = np.arange(m)
-        J[:, ar, ar] = 1e-3 * phi
+        if features.const["has_payload"]:
+            J[:, ar, ar] = 1e-3 * (mp * GRAVITY * phi + load[:, None] * psi)
+            J[:, :, m] = 1e-3 * c[None, :] * GRAVITY * phi
+        else:
+            J[:, ar, ar] = 1e-3 * phi
         # d phi_i / d com = R^T (d x omega_i): d . (omega x R c) = c . R^T (d x omega)
         dxw = np.cross(d[None, :, None], features.per_pose["w"], axisa=1, axisb=1, axisc=1)  # (n, 3, m)
-        J[:, :, m : m + 3] = 1e-3 * wd[None, :, None] * np.einsum("nji,njm->nmi", features.per_pose["R"], dxw)
+        J[:, :, k : k + 3] = 1e-3 * W[None, :, None] * np.einsum("nji,njm->nmi", features.per_pose["R"], dxw)
         dphi = np.einsum("kt,nkm->nmt", dd, Jc)  # (n, m, 2)
         dpsi = np.einsum("kt,nkm->nmt", dd, Jl)
-        J[:, :, m + 3 : m + 5] = 1e-3 * (wd[None, :, None] * dphi + (c[None, :] * load[:, None])[:, :, None] * dpsi)
-        if features.const["has_payload"]:
-            J[:, ar, m + 5 + ar] = 1e-3 * load[:, None] * psi
+        J[:, :, k + 3 : k + 5] = 1e-3 * (W[None, :, None] * dphi + (c[None, :] * load[:, None])[:, :, None] * dpsi)
         return J
 
     def inadmissible(self, features: Features, eta: NDArray | None = None) -> str | None:
@@ -267,8 +306,8 @@ class JointCompliance(Effect):
         # but that load is bilinear in the deflections and the offset and vanishes at the prior (no start
         # for the fit).  Compare the dimensionless loads (actuator force per unit of weight) with 1e-3.
         m = features.per_pose["Jt"].shape[2]
-        zero = np.zeros(m + 5 + (m if features.const["has_payload"] else 0))
-        _, _, _, _, _, _, _, phi, psi, _ = self._terms(features, zero)
+        zero = np.zeros(m + 5 + (1 if features.const["has_payload"] else 0))
+        phi, psi = self._terms(features, zero)[8:10]
         mass = features.per_pose["payload_kg"]
         payload = bool(mass.size and np.ptp(mass) > 0 and psi.size and np.max(np.abs(psi)) > 1e-3)
         if phi.size and np.max(np.abs(phi)) <= 1e-3 and not payload:
@@ -277,10 +316,12 @@ class JointCompliance(Effect):
         return None
 
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
-        """Compliances ``magnitude`` (um/N, +-40 %) under the platform mass of the constructor, CoM at the origin, no tilt."""
+        """Compliances ``magnitude`` (um/N, +-40 %) under the platform mass and centre of mass of the constructor, no tilt."""
         m = machine.n_actuators
         c = magnitude * rng.uniform(0.6, 1.4, m)
-        out = [c * self.platform_mass_kg * GRAVITY, np.zeros(3), np.zeros(2)]
+        com = np.zeros(3) if self.stated_com is None else self.stated_com
         if features.const["has_payload"]:
-            out.append(c)
+            out = [c, [self.platform_mass_kg], com, np.zeros(2)]
+        else:
+            out = [c * self.platform_mass_kg * GRAVITY, com, np.zeros(2)]
         return np.concatenate(out)

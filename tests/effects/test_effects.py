@@ -208,7 +208,7 @@ def test_effect_settings_are_checked_and_applied(prs3):
     jc = get_effect("joint_compliance", gravity=[2.0, 0.0, 0.0])
     np.testing.assert_allclose(jc.down, [1.0, 0.0, 0.0])
     assert get_effect("thermal_expansion", reference_C=23.0).reference_C == 23.0
-    with pytest.raises(InputError, match="unknown setting.*mass.*expected some of: gravity, payload_offset"):
+    with pytest.raises(InputError, match="unknown setting.*mass.*expected some of: gravity, payload_offset, platform_mass_kg, platform_com_mm"):
         get_effect("joint_compliance", mass=30.0)
     with pytest.raises(InputError, match="non-zero 3-vector"):
         get_effect("joint_compliance", gravity=[0.0, 0.0, 0.0])

@@ -20,11 +20,14 @@ def _truth(c, mp, com, down, d0=UP, payload=True) -> dict:
     e = e - np.outer(e @ d0, d0)
     e /= np.linalg.norm(e, axis=1, keepdims=True)
     tilt = e @ (down / (down @ d0))
-    names = [f"weight_deflection.q{i}" for i in (1, 2, 3)] + ["com.x", "com.y", "com.z", "gravity.tilt_1", "gravity.tilt_2"]
-    values = [*(c * mp * GRAVITY), *com, *tilt]
+    names = ["com.x", "com.y", "com.z", "gravity.tilt_1", "gravity.tilt_2"]
+    values = [*com, *tilt]
     if payload:
-        names += [f"compliance.q{i}" for i in (1, 2, 3)]
-        values += list(c)
+        names += [f"compliance.q{i}" for i in (1, 2, 3)] + ["platform_mass"]
+        values += [*c, mp]
+    else:
+        names += [f"weight_deflection.q{i}" for i in (1, 2, 3)]
+        values += list(c * mp * GRAVITY)
     return dict(zip(names, values))
 
 
