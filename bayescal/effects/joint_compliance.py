@@ -119,50 +119,61 @@ class JointCompliance(Effect):
     direction in the base frame.  ``dq_i > 0`` when gravity pulls the slider
     towards larger ``q_i``.
 
-    What the data identify, hence the parameters (names, units):
+    What the data identify, hence the parameters (names, units), in two
+    sets that depend only on whether the recording has a ``payload_kg``
+    channel:
 
-    * ``weight_deflection.q<i>`` (um, ``>= 0``): ``w_i = c_i m_p g``, how far
-      drive ``i`` would give way under the whole platform weight on its
-      axis; prior ``0 +- 300 um``.  Platform mass and compliance appear only as this product
-      without a payload that changes.
-    * ``com.x``, ``com.y``, ``com.z`` (mm, platform frame): the platform's
-      centre of mass ``c`` from the platform origin; prior ``0 +- 200 mm``.
-    * ``gravity.tilt_1``, ``gravity.tilt_2`` (rad, tangent of the tilt):
-      ``d = normalise(d0 + t_1 e_1 + t_2 e_2)`` (:func:`gravity_direction`),
-      the mounting's tilt from the nominal direction ``d0``; prior
-      ``0 +- 0.5`` (27 degrees; tilts of 45 degrees are found from an
-      upright start with a changing payload).  Well determined when the
-      deflections are tens of um; otherwise reported near its prior.
-    * ``compliance.q<i>`` (um/N, ``>= 0``): ``c_i``, only when the
-      recording has a ``payload_kg`` channel (determined when the payload
-      changes; at a constant payload its load is nearly that of a heavier
-      platform); prior ``0 +- 1 um/N``.  Then
-      ``m_p = w_i / (c_i g)`` (not imposed: the ratio is a check).
+    * without it: ``weight_deflection.q<i>`` (um, ``>= 0``), ``w_i = c_i
+      m_p g``, how far drive ``i`` would give way under the whole platform
+      weight on its axis (prior ``0 +- 300 um``): mass and compliance appear
+      only as this product;
+    * with it: ``compliance.q<i>`` (um/N, ``>= 0``, prior ``0 +- 1``) and
+      ``platform_mass`` (kg, ``>= 0``, prior ``0 +- 100``, or centred on a
+      stated mass with 2 % width), ``w_i = c_i m_p g`` (the payload's
+      changing load fixes ``c_i``; the platform's then fixes ``m_p``);
+    * both: ``com.x``, ``com.y``, ``com.z`` (mm, platform frame): the
+      platform's centre of mass from the platform origin (prior ``0 +-
+      200 mm``, or a stated one +- 5 mm), and ``gravity.tilt_1``,
+      ``gravity.tilt_2`` (tangent of the tilt, "rad"): ``d = normalise(d0 +
+      t_1 e_1 + t_2 e_2)`` (:func:`gravity_direction`), the mounting's tilt
+      from ``d0`` (prior ``0 +- 0.5``, 27 degrees, when ``d0`` is the
+      default; ``0 +- 0.02`` when the gravity direction is stated).  Tilts
+      of 45 degrees are found from an upright start when the deflections
+      are tens of um; otherwise they are reported near their prior.
 
-    Sign rule: ``w_i >= 0`` and ``c_i >= 0`` (a drive gives way in the
+    Sign rule: ``w_i``, ``c_i``, ``m_p >= 0`` (a drive gives way in the
     direction it is pushed); the tilt keeps ``d`` in the half space of
     ``d0``, so flipping both the direction and the deflections is not a
-    second solution, and a fit needing a negative ``w_i`` or ``c_i`` beyond
-    3 sigma is rejected as non-physical.  ``d0`` must therefore be right to
-    within 90 degrees (upright by default).
+    second solution, and a fit needing a negative value beyond 3 sigma is
+    rejected as non-physical.  ``d0`` must therefore be right to within 90
+    degrees (upright by default).
 
-    Inputs with documented defaults (constructor arguments; machine-file
-    keys ``gravity`` and ``payload_offset`` of the ``[effect.joint_compliance]``
-    table): ``gravity = [0, 0, -1]`` (``d0``: base frame, an upright
-    machine; give the mounting's direction for machines mounted on a wall
-    or tilted), ``payload_offset = [0, 0, 0]`` (mm, platform frame, the
-    payload's centre of mass from the tool point: a spindle's tool hangs at
-    the tool point).  Hidden assumptions: only the drives yield (links,
-    joints and frame rigid; their compliance shows as apparent drive
-    compliance to first order); small deflections (the load is evaluated at
-    the undeflected pose: the second-order change of the load with the
-    deflection is below 1e-3 of it for deflections under 0.1 % of the
-    mechanism's size); on a redundantly actuated machine the load is shared
-    among the drives in a statically indeterminate way, and the model puts
-    it on the drives its forward kinematics reads.  Usual size on machine tools: ball-screw drives
-    0.002-0.02 um/N (50-500 N/um axial stiffness); with links, spherical
-    joints and a lightweight frame the apparent compliance at the actuator
-    reaches 0.05-1 um/N; platforms of 10-200 kg.
+    Identifiability: the pose-independent part of the sag is exactly an
+    actuator zero offset.  It is told apart from the geometry only through
+    the physics tying it to the pose-dependent part (``c_i`` from the
+    payload, then ``m_p``, ``c``, ``d``), so with the mass, centre of mass
+    and mounting unknown, the geometry "without gravity" is uncertain by
+    tens of um at 0.5 um/N; stating them (below) pins it.
+
+    Inputs with documented defaults (constructor arguments,
+    :attr:`settings_keys`; proposed machine-file keys of the same names in
+    the ``[effect.joint_compliance]`` table): ``gravity`` (default ``[0, 0,
+    -1]``, ``d0`` in the base frame, an upright machine; give the mounting's
+    direction for machines mounted on a wall or tilted), ``payload_offset``
+    (default ``[0, 0, 0]`` mm, platform frame, the payload's centre of mass
+    from the tool point: a spindle's tool hangs at the tool point),
+    ``platform_mass_kg`` and ``platform_com_mm`` (default unknown).  Hidden
+    assumptions: only the drives yield (links, joints and frame rigid; their
+    compliance shows as apparent drive compliance to first order); small
+    deflections (the load is evaluated at the undeflected pose: the
+    second-order change of the load with the deflection is below 1e-3 of
+    it for deflections under 0.1 % of the mechanism's size); on a
+    redundantly actuated machine the load is shared among the drives in a
+    statically indeterminate way, and the model puts it on the drives its
+    forward kinematics reads.  Usual size on machine tools: ball-screw
+    drives 0.002-0.02 um/N (50-500 N/um axial stiffness); with links,
+    spherical joints and a lightweight frame the apparent compliance at the
+    actuator reaches 0.05-1 um/N; platforms of 10-200 kg.
     """
 
     name = "joint_compliance"
