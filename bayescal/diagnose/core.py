@@ -121,6 +121,7 @@ def diagnose(
     seed: int = 0,
     n_folds: int = 5,
     n_perm: int = 199,
+    effect_settings: dict[str, dict] | None = None,
     _screen=None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
@@ -142,6 +143,10 @@ def diagnose(
         Folds of the leave-poses-out cross-validation.
     n_perm : int
         Permutations per location test.
+    effect_settings : dict of str to dict, optional
+        Inputs of effects by name (e.g. ``{"joint_compliance": {"gravity":
+        [1, 0, 0]}}`` for a machine mounted on its side); documented
+        defaults otherwise.
 
     Returns
     -------
@@ -157,7 +162,8 @@ def diagnose(
     machine = machine.with_effects(())
     forced = effects is not None
     names = list(EFFECTS) if effects is None else list(dict.fromkeys(effects))
-    lib = [get_effect(n) for n in names]  # raises on unknown names
+    settings = dict(effect_settings or {})
+    lib = [get_effect(n, **settings.get(n, {})) for n in names]  # raises on unknown names and settings
     model = MeasurementModel.from_recording(machine, recording)
     n = model.n_poses
     if n < 2 * n_folds:
@@ -295,7 +301,8 @@ def diagnose(
         # outliers are judged against the final model; if that names other poses, diagnose once more
         final = retest_with_effects(base_model, [(c.effect, c.features) for c in selected], cur_fit, screen)
         if final is not None:
-            return diagnose(machine, recording, effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm, _screen=final)
+            return diagnose(machine, recording, effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm,
+                            effect_settings=effect_settings, _screen=final)
 
     sel_names = [c.effect.name for c in selected]
     trials = []
@@ -329,5 +336,6 @@ def diagnose(
         message=message,
         theta_final=cur_fit.theta,
         theta_geometric=fit0.theta,
+        effect_settings={k: dict(v) for k, v in settings.items()},
         outliers=screen,
     )

@@ -116,6 +116,9 @@ class Diagnosis:
     #: the geometric model alone: what ``--write-machine`` folds into the calibrated machine.
     theta_final: object = None
     theta_geometric: object = None
+    #: The stated inputs of effects the diagnosis used (``effect_settings``), by effect name: written
+    #: beside the fitted parameters in the calibrated machine's ``[effect.*]`` tables.
+    effect_settings: dict = field(default_factory=dict)
     outliers: object = None  # OutlierScreen (bayescal.diagnose.outliers), None if not screened
 
     @property
