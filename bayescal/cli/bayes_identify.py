@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from ..io import write_json_atomic, write_text_atomic
+from .outputs import write_json, write_machine, write_report
 
 __all__ = ["add_arguments", "run_bayes", "METHODS"]
 
@@ -29,6 +29,12 @@ def add_arguments(p) -> None:
         help="mcmc: 'linear' samples the model linearised at the MAP (fast; checked and reported)",
     )
     g.add_argument("--posterior", metavar="PATH", help="mcmc: write the posterior (arviz DataTree) as NetCDF")
+    g.add_argument("--checkpoint", metavar="PATH.npz",
+                   help="mcmc: save the chain and random state here every --checkpoint-every steps (atomically)")
+    g.add_argument("--checkpoint-every", type=int, default=100, metavar="N", help="mcmc: steps between checkpoints (default 100)")
+    g.add_argument("--resume", action="store_true",
+                   help="mcmc: continue the chain saved in --checkpoint up to --steps (same result as an uninterrupted "
+                   "run with the same --seed)")
     g.add_argument(
         "--progress", action=argparse.BooleanOptionalAction, default=None,
         help="mcmc: show a progress bar (default: when stderr is a terminal)",
@@ -40,6 +46,10 @@ def run_bayes(args, machine, model, free) -> int:
     from ..bayes.kalman import kalman_filter
     from ..bayes.mcmc import sample_posterior, write_posterior
 
+    if args.method != "mcmc" and (args.checkpoint or args.resume):
+        raise InputError("--checkpoint and --resume go with --method mcmc")
+    if args.resume and not args.checkpoint:
+        raise InputError("--resume needs --checkpoint PATH (the checkpoint to continue)")
     if args.method == "kalman":
         res = kalman_filter(model, variant=args.variant, free=free, process_noise=args.process_noise)
     else:
@@ -49,13 +59,14 @@ def run_bayes(args, machine, model, free) -> int:
         res = sample_posterior(
             model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
             progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,
+            checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every, resume=args.resume,
         )
-    if args.json:  # before printing: a closed stdout (`| head`) must not cost the answer
-        write_json_atomic(args.json, res.to_dict())
+    write_json(args, res.to_dict())  # before printing: a closed stdout (`| head`) must not cost the answer
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
-    if args.write_machine and res.success:
-        write_text_atomic(args.write_machine, machine.to_toml(res.theta))
+    if res.success:
+        write_machine(args, machine.to_toml(res.theta))
+    write_report(args, "identify", res, machine=machine, model=model)
     made = []
     if args.figures:
         from ..plots.bayes import plot_filter_history, plot_pair, plot_trace

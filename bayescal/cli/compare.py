@@ -9,6 +9,7 @@ from ..compare import METHODS, METRICS, compare_methods
 from ..errors import InputError
 from ..io import write_json_atomic
 from ..machines import load_machine
+from .outputs import add_output_options, write_json, write_report
 
 HELP = """\
 Compare identification methods by Monte Carlo on simulated machines.  Per
@@ -69,6 +70,7 @@ def register(sub) -> None:
     p.add_argument("--json", metavar="PATH", help="write the comparison as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -95,8 +97,8 @@ def run(args) -> int:
         write_text_atomic(out / "table.txt", text + "\n")
         write_json_atomic(out / "comparison.json", cmp.to_dict())
         plot_comparison(cmp, out)
-    if args.json:
-        write_json_atomic(args.json, cmp.to_dict())
+    write_json(args, cmp.to_dict())
+    write_report(args, "compare", cmp, machine=machine)
     if not args.quiet:
         print(text)
     return EXIT_OK

@@ -6,8 +6,8 @@ import argparse
 
 from ..effects import EFFECTS
 from ..errors import InputError
-from ..io import write_json_atomic
 from .inputs import name_list, recording_model
+from .outputs import add_output_options, write_json, write_report
 
 HELP = f"""\
 Diagnose what the geometric model leaves out.
@@ -43,13 +43,14 @@ def register(sub) -> None:
         "diagnose", help="locate and name physics the geometric model leaves out", description=HELP,
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (FORMATS.md section 2), rows in measurement order")
-    p.add_argument("--machine", required=True, help="nominal machine file TOML (FORMATS.md section 1)")
-    p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
+    p.add_argument("recording", help="recording CSV (docs/formats.md section 2), rows in measurement order")
+    p.add_argument("--machine", required=True, help="nominal machine file TOML (docs/formats.md section 1)")
+    p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
     p.add_argument("--figures", metavar="DIR", help="write residual-against-channel figures (PNG) here")
     p.add_argument("--effects", help="comma-separated effects to try (default: every applicable one)")
     p.add_argument("--seed", type=int, default=0, help="seed of the permutation tests and CV folds (default 0)")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -67,8 +68,8 @@ def run(args) -> int:
         if unknown:
             raise InputError(f"--effects: unknown effect(s) {', '.join(unknown)}; expected some of {', '.join(EFFECTS)}")
     result = diagnose(machine, rec, effects=effects, seed=args.seed)
-    if args.json:
-        write_json_atomic(args.json, result.to_dict())
+    write_json(args, result.to_dict())
+    write_report(args, "diagnose", result, machine=machine)
     written = []
     if args.figures:
         from ..plots.diagnose import plot_diagnosis

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
+
 from ..errors import InputError
-from ..io import write_json_atomic
 from .inputs import free_arg, recording_model
+from .outputs import add_output_options, say, write_json, write_report
 
 HELP = """\
 Identify the geometric errors (MAP under the tolerance prior, or the Kalman
@@ -18,6 +20,16 @@ with columns q1..qN, dx, dy, dz, sx, sy, sz, and optionally a heat map.
 With --free all (default) every parameter is estimated under its prior, so
 the std also carries what the measurement cannot separate; with --free auto
 only the identifiable set is, and the others are taken as exactly nominal.
+
+--space tool spans the grid over the nominal tool point instead (x, y, z in
+mm, the coordinates the actuators set; nominal inverse kinematics at every
+node): at each node the residual error (actual minus commanded) and its
+std.  --nc CSV writes it in the NC-loadable format (docs/formats.md: the BIC
+columns i,j,x,z,ex,ez,std_ex,std_ez for a planar machine such as the
+RASPM-2T1R, otherwise i,j,k,x,y,z,ex,ey,ez,std_ex,std_ey,std_ez).  The
+default space is 'tool' for a redundantly actuated machine (its actuators
+are not independent) and 'actuator' otherwise.  --range NAME=LO:HI narrows
+an axis (q1..qN in actuator space, x, y, z in tool space; repeatable).
 """
 
 EXAMPLES = """\
@@ -25,6 +37,9 @@ examples:
   bayescal grid examples/prs3/recording.csv --machine examples/prs3/machine.toml --out grid.csv --figure grid.png
   bayescal grid rec.csv --machine m.toml --nodes 15 --method kalman --json grid.json
   bayescal grid rec.csv --machine m.toml --method mcmc --surrogate linear --out grid.csv
+  bayescal grid rec.csv --machine m.toml --space tool --nodes 5 --nc nc_grid.csv
+  bayescal grid rec.csv --machine examples/raspm/machine.toml --range x=-200:200 --range z=-500:-250 --nc bic.csv
+  bayescal grid rec.csv --machine m.toml --range q1=460:540 --nodes 5 --out grid.csv
 """
 
 
@@ -42,10 +57,17 @@ def register(sub) -> None:
     p.add_argument("--steps", type=int, default=1000, help="mcmc: steps per walker (default 1000)")
     p.add_argument("--surrogate", choices=("none", "linear"), default="none", help="mcmc: sample the linearised model")
     p.add_argument("--seed", type=int, default=0, help="mcmc: random seed")
+    p.add_argument("--space", choices=("auto", "actuator", "tool"), default="auto",
+                   help="grid over actuator positions or over the tool point (default auto: tool for a redundantly "
+                   "actuated machine, actuator otherwise)")
+    p.add_argument("--range", action="append", default=[], metavar="NAME=LO:HI", dest="ranges",
+                   help="narrow one grid axis (repeatable): q1..qN (actuator unit) or x, y, z (mm)")
+    p.add_argument("--nc", metavar="CSV", help="tool space: write the NC-loadable grid CSV (docs/formats.md)")
     p.add_argument("--out", metavar="CSV", help="write the grid as CSV")
     p.add_argument("--figure", metavar="PNG", help="draw correction and std heat maps")
     p.add_argument("--json", metavar="PATH", help="write a summary as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -76,16 +98,60 @@ def run(args) -> int:
         return EXIT_FAILED
     if args.nodes < 2:
         raise InputError(f"--nodes: expected at least 2, got {args.nodes}")
-    grid = compensation_grid(machine, res.theta, free=res.free, n=args.nodes, **kw)
+    space = args.space
+    if space == "auto":
+        space = "tool" if getattr(machine, "redundant", ()) else "actuator"
+    ranges = _ranges(args.ranges, space, machine.n_actuators)
+    if space == "tool":
+        from ..bayes.tool_grid import tool_grid
+
+        grid = tool_grid(machine, res.theta, free=res.free, n=args.nodes, ranges=ranges, **kw)
+    else:
+        if args.nc:
+            raise InputError("--nc goes with --space tool (an NC system compensates tool points)")
+        axes = None
+        if ranges:
+            if machine.q_limits is None:
+                raise InputError(f"{args.machine}: no [workspace] q_limits to span a grid")
+            lim = {f"q{i + 1}": tuple(b) for i, b in enumerate(machine.q_limits)}
+            lim.update(ranges)
+            axes = tuple(np.linspace(*lim[f"q{i + 1}"], args.nodes) for i in range(machine.n_actuators))
+        grid = compensation_grid(machine, res.theta, free=res.free, n=args.nodes, axes=axes, **kw)
     # outputs first: a closed stdout (`| head`) must not cost them
     if args.out:
         grid.write_csv(args.out)
+        say(args, f"wrote {args.out} (grid CSV, {space} space)")
+    if args.nc:
+        grid.write_nc_csv(args.nc)
+        say(args, f"wrote {args.nc} (NC-loadable grid CSV, docs/formats.md)")
     if args.figure:
         from ..plots.bayes import plot_grid
 
         plot_grid(grid, args.figure)
-    if args.json:
-        write_json_atomic(args.json, {**grid.to_dict(), "method": args.method})
+    write_json(args, {**grid.to_dict(), "method": args.method})
+    write_report(args, "grid", grid, identification=res)
     if not args.quiet:
         print(grid.report())
     return EXIT_OK
+
+
+def _ranges(items: list[str], space: str, n_act: int) -> dict:
+    """``["x=-10:10", "q1=450:500"]`` -> ``{"x": (-10.0, 10.0), ...}``; names checked against the space."""
+    names = ("x", "y", "z") if space == "tool" else tuple(f"q{i + 1}" for i in range(n_act))
+    out = {}
+    for item in items:
+        name, eq, span = item.partition("=")
+        lo, colon, hi = span.partition(":")
+        name = name.strip()
+        try:
+            if not eq or not colon:
+                raise ValueError
+            a, b = float(lo), float(hi)
+        except ValueError:
+            raise InputError(f"--range {item!r}: expected NAME=LO:HI, e.g. {names[0]}=-100:100") from None
+        if name not in names:
+            raise InputError(f"--range {item!r}: {space} space has the axes {', '.join(names)}")
+        if not a < b:
+            raise InputError(f"--range {item!r}: expected LO < HI")
+        out[name] = (a, b)
+    return out

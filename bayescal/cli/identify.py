@@ -7,14 +7,14 @@ import argparse
 from ..errors import InputError
 from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
-from ..io import write_json_atomic, write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .inputs import free_arg, recording_model
+from .outputs import add_output_options, write_json, write_machine, write_report
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
 
-The recording (CSV, see FORMATS.md) holds commanded actuator positions q1..qN
+The recording (CSV, see docs/formats.md) holds commanded actuator positions q1..qN
 and the measured tool point x, y, z, plus either a rotation vector rx, ry, rz
 (6-DOF) or a tool axis nx, ny, nz (5-DOF), or nothing more (position only).
 Unidentifiable parameters are found by SVD and fixed at nominal; the report
@@ -55,8 +55,8 @@ def register(sub) -> None:
         "identify", help="identify geometric errors from a recording", description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (FORMATS.md section 2)")
-    p.add_argument("--machine", required=True, help="machine file TOML (FORMATS.md section 1)")
+    p.add_argument("recording", help="recording CSV (docs/formats.md section 2)")
+    p.add_argument("--machine", required=True, help="machine file TOML (docs/formats.md section 1)")
     p.add_argument("--method", choices=("ls", "ridge", "tsvd", "map") + METHODS, default="ls", help="solver (default: ls)")
     p.add_argument(
         "--lam", type=_lam_arg, metavar="LAM|auto",
@@ -74,10 +74,11 @@ def register(sub) -> None:
         help="parameters to identify: 'auto' (identifiable set, default), 'all', or comma-separated names",
     )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
-    p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
+    p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_arguments(p)
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -122,10 +123,10 @@ def run(args) -> int:
         res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
-    if args.json:
-        write_json_atomic(args.json, res.to_dict())
-    if args.write_machine and res.success:
-        write_text_atomic(args.write_machine, machine.to_toml(res.theta))
+    write_json(args, res.to_dict())
+    if res.success:
+        write_machine(args, machine.to_toml(res.theta))
+    write_report(args, "identify", res, machine=machine, model=model, choice=choice)
     path = None
     if choice is not None and args.figures:
         from ..plots.regularisation import plot_choice

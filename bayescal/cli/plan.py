@@ -6,8 +6,8 @@ import argparse
 
 from ..design import CRITERIA, SCALINGS, plan_poses, write_plan
 from ..errors import InputError
-from ..io import write_json_atomic
 from ..machines import load_machine
+from .outputs import add_output_options, write_json, write_report
 
 HELP = """\
 Plan a measurement session: choose N poses from candidates drawn uniformly
@@ -61,6 +61,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="CSV of commanded poses to write (q1..qN, pose_id)")
     p.add_argument("--json", metavar="PATH", help="write the plan and its criterion values as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -79,8 +80,8 @@ def run(args) -> int:
         scaling=args.scaling, n_random=args.random_sets, exchange=not args.no_exchange,
     )
     write_plan(args.out, plan)
-    if args.json:
-        write_json_atomic(args.json, plan.to_dict())
+    write_json(args, plan.to_dict())
+    write_report(args, "plan", plan, machine=machine)
     if not args.quiet:
         print(plan.report())
         print(f"\nwrote {args.out} ({plan.n_poses} poses: q1..q{plan.q.shape[1]}, pose_id)")
