@@ -69,14 +69,14 @@ def run_bayes(args, machine, model, free) -> int:
     write_report(args, "identify", res, machine=machine, model=model)
     made = []
     if args.figures:
-        from ..plots.bayes import plot_filter_history, plot_pair, plot_trace
+        from ..plots.bayes import plot_filter_history, plot_pair, plot_trace, plot_trace_pages
 
         out = Path(args.figures)
         out.mkdir(parents=True, exist_ok=True)
         if args.method == "kalman":
             made = [plot_filter_history(res, out / "kalman_history.png")]
         elif res.success:
-            made = [plot_trace(res, out / "mcmc_trace.png"), plot_pair(res, out / "mcmc_pair.png")]
+            made = [plot_trace(res, out / "mcmc_trace.png"), *plot_trace_pages(res, out), plot_pair(res, out / "mcmc_pair.png")]
     if not args.quiet:
         print(res.report())
         if made:

@@ -127,9 +127,10 @@ def run(args) -> int:
     if args.figure:
         from ..plots.bayes import plot_grid
 
-        plot_grid(grid, args.figure)
+        plot_grid(grid, args.figure, units=machine.actuator_units if space == "actuator" else None)
+        say(args, f"wrote {args.figure} (figure)")
     write_json(args, {**grid.to_dict(), "method": args.method})
-    write_report(args, "grid", grid, identification=res)
+    write_report(args, "grid", grid, identification=res, machine=machine)
     if not args.quiet:
         print(grid.report())
     return EXIT_OK

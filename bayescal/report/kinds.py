@@ -183,9 +183,9 @@ def identify_sections(result, *, machine=None, model=None, choice=None, **_) -> 
 
         figs.append(figure(lambda p: plot_filter_history(result, p), "Kalman filter: uncertainty after each pose"))
     if method == "mcmc" and ok:
-        from ..plots.bayes import plot_pair, plot_trace
+        from ..plots.bayes import plot_pair, plot_trace_pages
 
-        figs.append(figure(lambda p: plot_trace(result, p), "MCMC trace, one panel per parameter in its unit"))
+        figs.append(figure(lambda p: plot_trace_pages(result, p.parent), "MCMC trace, one labelled row per parameter in its unit"))
         figs.append(figure(lambda p: plot_pair(result, p), "MCMC pair plot of the most uncertain parameters"))
     figs = _flatten(figs)
     if figs:
@@ -281,7 +281,9 @@ def grid_sections(result, *, identification=None, machine=None, **_) -> tuple[st
              for k, v in d.items() if k not in ("axes", "machine")]
     sections = [
         section("Grid", id="grid", tables=[table(["", ""], stats, id="grid-summary")]),
-        section("Figures", id="figures", figures=_flatten([figure(lambda p: plot_grid(result, p), "grid: correction and its std")])),
+        section("Figures", id="figures", figures=_flatten([figure(
+            lambda p: plot_grid(result, p, units=machine.actuator_units if machine is not None and d.get("space") != "tool" else None),
+            "grid: correction and its std")])),
         section("Text report", id="text-report", pre=result.report()),
     ]
     if identification is not None:
