@@ -48,8 +48,8 @@ def register(sub) -> None:
         "grid", help="compensation grid with uncertainty per node", description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (FORMATS.md section 2)")
-    p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits")
+    p.add_argument("recording", help="recording CSV (docs/formats.md section 2)")
+    p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
     p.add_argument("--method", choices=("map", "kalman", "mcmc"), default="map", help="how to identify (default map)")
     p.add_argument("--free", default="all", help="'all' (default), 'auto' or comma-separated names")
     p.add_argument("--nodes", type=int, default=9, help="nodes per actuator within q_limits (default 9)")

@@ -109,6 +109,8 @@ def run(args) -> int:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
     if args.method == "tsvd" and args.k is None:
         raise InputError("--k is required with --method tsvd (a number, or --k auto)")
+    if args.method != "mcmc" and (args.checkpoint or args.resume):
+        raise InputError("--checkpoint and --resume go with --method mcmc")
     if args.method in METHODS:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")

@@ -48,7 +48,7 @@ def register(sub) -> None:
         "plan", help="choose measurement poses by information", description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits")
+    p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
     p.add_argument("--n", type=int, required=True, help="number of poses to plan")
     p.add_argument("--criterion", type=str.upper, choices=CRITERIA, default="D", help="what to maximise (default D)")
     p.add_argument("--candidates", type=int, default=20000, help="candidate poses drawn (default 20000)")
@@ -58,7 +58,7 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same plan (default 0)")
     p.add_argument("--random-sets", type=int, default=20, help="random selections to compare with (default 20)")
     p.add_argument("--no-exchange", action="store_true", help="greedy selection only")
-    p.add_argument("--out", required=True, help="CSV of commanded poses to write (q1..qN, pose_id)")
+    p.add_argument("--out", required=True, help="CSV of commanded poses to write (q1..qN, pose_id; docs/formats.md section 4)")
     p.add_argument("--json", metavar="PATH", help="write the plan and its criterion values as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_output_options(p)

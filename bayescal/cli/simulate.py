@@ -30,7 +30,7 @@ and auxiliary channels recorded with --aux
 (time_s; temp_C, a warm-up of 5 K; payload_kg, 0-25 kg changed between poses).
 Temperature drives thermal_expansion even when it is not recorded.
 
-Writes the recording (FORMATS.md CSV) and, beside it, the truth as JSON
+Writes the recording (CSV, docs/formats.md section 2) and, beside it, the truth as JSON
 (OUT with suffix .truth.json) and the true machine file (.truth.toml).
 """
 
@@ -50,7 +50,7 @@ def register(sub) -> None:
         "simulate", help="simulate a recording of a machine with drawn errors", description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--machine", required=True, help="nominal machine file TOML")
+    p.add_argument("--machine", required=True, help="nominal machine file TOML (docs/formats.md section 1)")
     p.add_argument("--poses", type=int, help="number of measured poses, drawn within q_limits (or --poses-file)")
     p.add_argument("--poses-file", metavar="CSV",
                    help="simulate at these commanded poses instead: a CSV with columns q1..qN (the plan 'bayescal plan "
@@ -70,7 +70,7 @@ def register(sub) -> None:
         help="where to write the truth JSON, the answer of this command (default: OUT with .truth.json); "
         "the true machine file goes beside it with suffix .toml",
     )
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_output_options(p, report=False)
     p.set_defaults(func=run)
 
