@@ -226,7 +226,7 @@ def diagnose_sections(result, **_) -> tuple[str, list[dict]]:
            "yes" if c.get("significant") else "no", c.get("detail", "")] for c in d.get("channels", [])]
     from ..plots.diagnose import plot_diagnosis
 
-    figs = _flatten([figure(lambda p: plot_diagnosis(result, p.parent), "residual against channel")])
+    figs = _flatten([figure(lambda p: plot_diagnosis(result, p.parent), "diagnosis figures")])
     sections = [
         section("Verdict", id="verdict", tables=[table(["", ""], evidence, id="verdict-evidence")]),
         section("Effects tried", id="effects-section", tables=[eff] + ([table(
