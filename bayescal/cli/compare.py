@@ -9,7 +9,7 @@ from ..compare import METHODS, METRICS, compare_methods
 from ..errors import InputError
 from ..io import write_json_atomic
 from ..machines import load_machine
-from .outputs import add_output_options, write_json, write_report
+from .outputs import add_output_options, say, write_json, write_report
 
 HELP = """\
 Compare identification methods by Monte Carlo on simulated machines.  Per
@@ -96,7 +96,8 @@ def run(args) -> int:
         out = Path(args.out)
         write_text_atomic(out / "table.txt", text + "\n")
         write_json_atomic(out / "comparison.json", cmp.to_dict())
-        plot_comparison(cmp, out)
+        figs = plot_comparison(cmp, out)
+        say(args, f"wrote {out / 'table.txt'}, {out / 'comparison.json'} and {len(figs)} figures in {out}")
     write_json(args, cmp.to_dict())
     write_report(args, "compare", cmp, machine=machine)
     if not args.quiet:
