@@ -134,6 +134,7 @@ def simulate_recording(
     theta_true: NDArray | None = None,
     effects: Sequence[PoseTransform] = (),
     aux: dict[str, NDArray] | None = None,
+    q: NDArray | None = None,
 ) -> SimulatedRecording:
     """Draw a true machine and poses, and simulate what the instrument records.
 
@@ -153,6 +154,8 @@ def simulate_recording(
         Physics beyond the geometric model, applied before the kinematics.
     aux : dict, optional
         Auxiliary channels to record (each of shape (n_poses,)).
+    q : ndarray, shape (n_poses, n_actuators), optional
+        Commanded actuator positions (a planned pose file) instead of drawing them.
 
     Returns
     -------
@@ -162,6 +165,15 @@ def simulate_recording(
         raise InputError(f"n_poses: expected at least 1, got {n_poses}")
     rng = np.random.default_rng(seed)
     theta = draw_errors(machine, rng, tolerance=tolerance) if theta_true is None else np.asarray(theta_true, float)
-    q = draw_poses(machine, n_poses, rng, theta)
+    if q is None:
+        q = draw_poses(machine, n_poses, rng, theta)
+    else:
+        q = machine.check_q(q)
+        if q.shape[0] != n_poses:
+            raise InputError(f"q: expected {n_poses} poses, got {q.shape[0]}")
+        reach = machine.forward(q, theta)
+        if not reach.success.all():
+            i = int(np.flatnonzero(~reach.success)[0])
+            raise InputError(f"pose {i + 1} (q = {q[i].tolist()}) cannot be solved on the drawn true machine")
     rec = measure(machine, q, theta, dof, rng, aux=aux, effects=effects)
     return SimulatedRecording(recording=rec, theta_true=theta, seed=seed, names=machine.layout.names)

@@ -178,7 +178,10 @@ def compensation_grid(
     bad = ~(nominal.success & est.success)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise InputError(f"grid node {i + 1} (q = {q_cmd[i].tolist()}) cannot be solved; narrow the grid")
+        raise InputError(
+            f"grid node {i + 1} (q = {q_cmd[i].tolist()}) cannot be solved; narrow the grid with --range q1=LO:HI "
+            f"(one per actuator, q1..q{machine.n_actuators}), or span the tool point with --space tool"
+        )
     correction = -(est.position - nominal.position)
     if samples is not None:
         S = np.asarray(samples, dtype=float)

@@ -35,6 +35,7 @@ from ..errors import InputError
 from ..identify import resolve_free
 from .accuracy import evaluation_poses, tool_point_jacobian, workspace_accuracy
 from .priors import GaussianPrior, prior_from_machine
+from ..identify.result import covariance_dict
 from .summary import parameter_list, parameter_table, strong_correlations
 
 __all__ = ["FilterResult", "kalman_filter"]
@@ -137,6 +138,7 @@ class FilterResult:
             "dof": self.dof,
             "n_poses": self.n_poses,
             "covariance_kind": "Kalman filter state covariance",
+            "covariance": covariance_dict(self.names, self.units, self.free, self.covariance),
             "fixed": list(self.fixed),
             "unidentifiable": list(self.unidentifiable),
             "strong_correlations": [

@@ -59,6 +59,7 @@ from ..errors import InputError
 from .linear import linearisation_error, linearise
 from .moves import default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
+from ..identify.result import covariance_dict
 from .summary import parameter_list, parameter_table, strong_correlations
 
 __all__ = ["PosteriorResult", "sample_posterior", "log_posterior_function", "write_posterior"]
@@ -192,6 +193,7 @@ class PosteriorResult:
                 {"name": n, "q05": float(a), "q50": float(b), "q95": float(c)}
                 for n, a, b, c in zip(self.free_names, *self.quantiles)
             ]
+            out["covariance"] = covariance_dict(self.names, self.units, self.free, self.covariance)
             out["strong_correlations"] = [
                 {"a": a, "b": b, "correlation": c} for a, b, c in strong_correlations(self.covariance, self.free_names)
             ]
@@ -300,6 +302,9 @@ def sample_posterior(
     tau_factor: float = TAU_FACTOR,
     moves=None,
     surrogate: str = "none",
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int = 100,
+    resume: bool = False,
 ) -> PosteriorResult:
     """Sample the posterior of the identifiable errors with emcee and check convergence.
 
@@ -330,6 +335,12 @@ def sample_posterior(
         ``"linear"`` samples the model linearised at the MAP (much faster);
         the largest linearisation error over 200 posterior draws, in units
         of the instrument sigma, is then checked (must be < 0.1) and reported.
+    checkpoint : path-like, optional
+        Save the chain and the random state here (.npz, atomically) every
+        ``checkpoint_every`` steps and at the end (:mod:`bayescal.bayes.checkpoint`).
+    resume : bool
+        Continue the chain saved in ``checkpoint`` up to ``n_steps``: the
+        same draws as an uninterrupted run with the same arguments.
 
     Returns
     -------
@@ -361,10 +372,32 @@ def sample_posterior(
     log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses)
     p0 = rng.multivariate_normal(start.theta[idx], start.covariance, size=n_walkers)
     moves = default_moves(start.theta[idx], start.covariance) if moves is None else moves
-    sampler = emcee.EnsembleSampler(n_walkers, n, log_prob, vectorize=True, moves=moves)
-    sampler.random_state = np.random.RandomState(seed).get_state()  # emcee seeds from numpy's legacy state
+    if resume and checkpoint is None:
+        raise InputError("resume: give the checkpoint to resume from")
+    fingerprint = None
+    if checkpoint is not None:
+        from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
+
+        if checkpoint_every < 1:
+            raise InputError(f"checkpoint_every: expected a positive number of steps, got {checkpoint_every}")
+        names = tuple(machine.layout.names[i] for i in idx)
+        fingerprint = run_fingerprint(model, names, seed=seed, n_walkers=n_walkers, surrogate=surrogate)
+    backend = load_checkpoint(checkpoint, fingerprint) if resume else None
+    if backend is not None and backend.iteration > n_steps:
+        raise InputError(f"--resume: {checkpoint} holds {backend.iteration} steps, more than n_steps = {n_steps}")
+    sampler = emcee.EnsembleSampler(n_walkers, n, log_prob, vectorize=True, moves=moves, backend=backend)
+    if backend is None:
+        sampler.random_state = np.random.RandomState(seed).get_state()  # emcee seeds from numpy's legacy state
     t0 = time.perf_counter()
-    sampler.run_mcmc(p0, n_steps, progress=progress)
+    remaining = n_steps - sampler.iteration
+    if remaining > 0:
+        # a resumed chain continues from the backend's last state, random state included
+        start_state = p0 if sampler.iteration == 0 else sampler.backend.get_last_sample()
+        for _ in sampler.sample(start_state, iterations=remaining, progress=progress):
+            if checkpoint is not None and sampler.iteration % checkpoint_every == 0:
+                save_checkpoint(checkpoint, sampler.backend, fingerprint)
+    if checkpoint is not None:
+        save_checkpoint(checkpoint, sampler.backend, fingerprint)
     seconds = time.perf_counter() - t0
     res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor)
     if surrogate == "linear":

@@ -32,10 +32,17 @@ Run 'bayescal COMMAND --help' for each command.
 """
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are the error and one hint, not the whole usage."""
+
+    def error(self, message: str):  # argparse's hook for every usage error
+        self.exit(EXIT_INPUT, f"{self.prog}: error: {message}\nRun '{self.prog} --help' for the options and examples.\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="bayescal",
         description="Kinematic calibration of parallel manipulators and hybrid machine tools.",
         epilog=_EPILOG,
@@ -55,7 +62,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_INPUT
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # for the report's inputs
     try:
+        from .outputs import check_output_folders
+
+        check_output_folders(args)
         with warnings.catch_warnings():
             # numerical trouble is reported in the result and the exit code, not as a warning dump
             warnings.simplefilter("ignore")

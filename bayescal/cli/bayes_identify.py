@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..effects.stored import machine_file_text
-from ..io import write_json_atomic, write_text_atomic
+from .outputs import write_json, write_machine, write_report
 
 __all__ = ["add_arguments", "run_bayes", "METHODS"]
 
@@ -30,6 +30,12 @@ def add_arguments(p) -> None:
         help="mcmc: 'linear' samples the model linearised at the MAP (fast; checked and reported)",
     )
     g.add_argument("--posterior", metavar="PATH", help="mcmc: write the posterior (arviz DataTree) as NetCDF")
+    g.add_argument("--checkpoint", metavar="PATH.npz",
+                   help="mcmc: save the chain and random state here every --checkpoint-every steps (atomically)")
+    g.add_argument("--checkpoint-every", type=int, default=100, metavar="N", help="mcmc: steps between checkpoints (default 100)")
+    g.add_argument("--resume", action="store_true",
+                   help="mcmc: continue the chain saved in --checkpoint up to --steps (same result as an uninterrupted "
+                   "run with the same --seed)")
     g.add_argument(
         "--progress", action=argparse.BooleanOptionalAction, default=None,
         help="mcmc: show a progress bar (default: when stderr is a terminal)",
@@ -43,6 +49,10 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
     from ..bayes.kalman import kalman_filter
     from ..bayes.mcmc import sample_posterior, write_posterior
 
+    if args.method != "mcmc" and (args.checkpoint or args.resume):
+        raise InputError("--checkpoint and --resume go with --method mcmc")
+    if args.resume and not args.checkpoint:
+        raise InputError("--resume needs --checkpoint PATH (the checkpoint to continue)")
     base_model = model
     if outliers is not None:
         model = outliers.weighted_model(model)  # the robust MAP pass's weights (docs/outliers.md)
@@ -55,6 +65,7 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
         res = sample_posterior(
             model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
             progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,
+            checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every, resume=args.resume,
         )
     answer, outlier_text = res.to_dict(), ""
     if outliers is not None:
@@ -65,22 +76,22 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
         outlier_text = outliers.report()
     extra, plaus = judge(machine, base_model, res, check)  # instrument frame and plausibility
     answer.update(extra)
-    if args.json:  # before printing: a closed stdout (`| head`) must not cost the answer
-        write_json_atomic(args.json, answer)
+    write_json(args, answer)  # before printing: a closed stdout (`| head`) must not cost the answer
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
     if may_write_machine(args, res, plaus):
-        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta))  # [effect.*] and [instrument] kept
+        write_machine(args, machine_file_text(machine, res.theta))  # [effect.*] and [instrument] kept
+    write_report(args, "identify", res, machine=machine, model=base_model)
     made = []
     if args.figures:
-        from ..plots.bayes import plot_filter_history, plot_pair, plot_trace
+        from ..plots.bayes import plot_filter_history, plot_pair, plot_trace, plot_trace_pages
 
         out = Path(args.figures)
         out.mkdir(parents=True, exist_ok=True)
         if args.method == "kalman":
             made = [plot_filter_history(res, out / "kalman_history.png")]
         elif res.success:
-            made = [plot_trace(res, out / "mcmc_trace.png"), plot_pair(res, out / "mcmc_pair.png")]
+            made = [plot_trace(res, out / "mcmc_trace.png"), *plot_trace_pages(res, out), plot_pair(res, out / "mcmc_pair.png")]
     if not args.quiet:
         print(res.report())
         print(instrument_report(extra, plaus))

@@ -9,6 +9,7 @@ from ..compare import METHODS, METRICS, compare_methods
 from ..errors import InputError
 from ..io import write_json_atomic
 from ..machines import load_machine
+from .outputs import add_output_options, say, write_json, write_report
 
 HELP = """\
 Compare identification methods by Monte Carlo on simulated machines.  Per
@@ -71,6 +72,7 @@ def register(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.add_argument("--frame", choices=("base", "fit"), default="base",
                    help="only 'base': trials are simulated in the base frame (see docs/real-instruments.md)")
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -102,9 +104,10 @@ def run(args) -> int:
         out = Path(args.out)
         write_text_atomic(out / "table.txt", text + "\n")
         write_json_atomic(out / "comparison.json", cmp.to_dict())
-        plot_comparison(cmp, out)
-    if args.json:
-        write_json_atomic(args.json, cmp.to_dict())
+        figs = plot_comparison(cmp, out)
+        say(args, f"wrote {out / 'table.txt'}, {out / 'comparison.json'} and {len(figs)} figures in {out}")
+    write_json(args, cmp.to_dict())
+    write_report(args, "compare", cmp, machine=machine)
     if not args.quiet:
         print(text)
     return EXIT_OK

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..compensation import build_grid, read_grid, write_grid
 from ..errors import InputError
-from ..io import write_json_atomic
+from .outputs import add_output_options, write_json, write_report
 
 HELP = """\
 Build a bilinear interpolation compensation (BIC) grid from a table of
@@ -42,6 +42,7 @@ def register(sub) -> None:
     p.add_argument("--grid", help="an existing grid CSV to evaluate")
     p.add_argument("--evaluate", help="CSV x,z,ex,ez of fresh measured errors: report them before/after compensation")
     p.add_argument("--json", help="write the evaluation as JSON")
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -83,12 +84,13 @@ def run(args) -> int:
         grid = read_grid(args.grid)
     else:
         raise InputError("give --errors (build a grid) or --grid (evaluate one)")
+    ans = None
     if args.evaluate:
         t = _table(args.evaluate)
         after = t[:, 2:] - grid.interpolate(t[:, 0], t[:, 1])
         ans = {"max_before_mm": float(np.abs(t[:, 2:]).max()), "max_after_mm": float(np.abs(after).max()),
                "rms_before_mm": float(np.sqrt(np.mean(t[:, 2:] ** 2))), "rms_after_mm": float(np.sqrt(np.mean(after**2)))}
-        if args.json:
-            write_json_atomic(args.json, ans)
+        write_json(args, ans)
         print(f"fresh points: max |error| {ans['max_before_mm']:.4f} mm -> {ans['max_after_mm']:.4f} mm after BIC")
+    write_report(args, "compensate", grid, evaluation=ans)
     return EXIT_OK

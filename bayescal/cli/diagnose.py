@@ -7,8 +7,9 @@ import sys
 
 from ..effects import EFFECTS
 from ..errors import InputError
-from ..io import write_json_atomic, write_text_atomic
+from ..io import write_text_atomic
 from .inputs import add_frame_argument, name_list, recording_model
+from .outputs import add_output_options, write_json, write_report
 
 HELP = f"""\
 Diagnose what the geometric model leaves out.
@@ -53,9 +54,9 @@ def register(sub) -> None:
         "diagnose", help="locate and name physics the geometric model leaves out", description=HELP,
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (FORMATS.md section 2), rows in measurement order")
-    p.add_argument("--machine", required=True, help="nominal machine file TOML (FORMATS.md section 1)")
-    p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
+    p.add_argument("recording", help="recording CSV (docs/formats.md section 2), rows in measurement order")
+    p.add_argument("--machine", required=True, help="nominal machine file TOML (docs/formats.md section 1)")
+    p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
     p.add_argument("--figures", metavar="DIR", help="write residual-against-channel figures (PNG) here")
     p.add_argument("--effects", help="comma-separated effects to try (default: every applicable one)")
     p.add_argument("--seed", type=int, default=0, help="seed of the permutation tests and CV folds (default 0)")
@@ -66,6 +67,7 @@ def register(sub) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_frame_argument(p)
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -94,17 +96,17 @@ def run(args) -> int:
         from ..diagnose.calibrated import calibrated_machine
 
         calibrated = calibrated_machine(machine, result)
-    if args.json:
-        answer = {**result.to_dict(), **frame}
-        if calibrated is not None:
-            answer["written_machine"] = {
-                "path": str(args.write_machine), "effects": list(calibrated.effects), "warning": calibrated.warning,
-            }
-        write_json_atomic(args.json, answer)
+    answer = {**result.to_dict(), **frame}
+    if calibrated is not None:
+        answer["written_machine"] = {
+            "path": str(args.write_machine), "effects": list(calibrated.effects), "warning": calibrated.warning,
+        }
+    write_json(args, answer)
     if calibrated is not None:
         write_text_atomic(args.write_machine, calibrated.text)
         if calibrated.warning:
             print(f"bayescal diagnose: warning: {calibrated.warning}", file=sys.stderr)
+    write_report(args, "diagnose", result, machine=machine)
     written = []
     if args.figures:
         from ..plots.diagnose import plot_diagnosis

@@ -7,8 +7,8 @@ import argparse
 import numpy as np
 
 from ..errors import InputError
-from ..io import write_json_atomic
 from .inputs import add_frame_argument, free_arg, recording_model
+from .outputs import add_output_options, say, write_json, write_report
 
 HELP = """\
 Identify the geometric errors (MAP under the tolerance prior, or the Kalman
@@ -28,6 +28,16 @@ compensation under a payload or temperature). A channel not given is
 absent, as in a recording without it: no payload; thermal expansion needs
 --aux temp_C=... . Grid nodes have no approach direction, so backlash is
 not in the grid (compensate it on reversal).
+
+--space tool spans the grid over the nominal tool point instead (x, y, z in
+mm, the coordinates the actuators set; nominal inverse kinematics at every
+node): at each node the residual error (actual minus commanded) and its
+std.  --nc CSV writes it in the NC-loadable format (docs/formats.md: the BIC
+columns i,j,x,z,ex,ez,std_ex,std_ez for a planar machine such as the
+RASPM-2T1R, otherwise i,j,k,x,y,z,ex,ey,ez,std_ex,std_ey,std_ez).  The
+default space is 'tool' for a redundantly actuated machine (its actuators
+are not independent) and 'actuator' otherwise.  --range NAME=LO:HI narrows
+an axis (q1..qN in actuator space, x, y, z in tool space; repeatable).
 """
 
 EXAMPLES = """\
@@ -36,6 +46,9 @@ examples:
   bayescal grid rec.csv --machine m.toml --nodes 15 --method kalman --json grid.json
   bayescal grid rec.csv --machine m.toml --method mcmc --surrogate linear --out grid.csv
   bayescal grid rec.csv --machine calibrated.toml --aux payload_kg=5 --aux temp_C=25 --out grid.csv
+  bayescal grid rec.csv --machine m.toml --space tool --nodes 5 --nc nc_grid.csv
+  bayescal grid rec.csv --machine examples/raspm/machine.toml --range x=-200:200 --range z=-500:-250 --nc bic.csv
+  bayescal grid rec.csv --machine m.toml --range q1=460:540 --nodes 5 --out grid.csv
 """
 
 
@@ -44,8 +57,8 @@ def register(sub) -> None:
         "grid", help="compensation grid with uncertainty per node", description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (FORMATS.md section 2)")
-    p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits")
+    p.add_argument("recording", help="recording CSV (docs/formats.md section 2)")
+    p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
     p.add_argument("--method", choices=("map", "kalman", "mcmc"), default="map", help="how to identify (default map)")
     p.add_argument("--free", default="all", help="'all' (default), 'auto' or comma-separated names")
     p.add_argument("--nodes", type=int, default=9, help="nodes per actuator within q_limits (default 9)")
@@ -58,11 +71,18 @@ def register(sub) -> None:
         help="auxiliary channel at which the machine file's [effect.*] tables act at every node (repeatable), "
         "e.g. --aux payload_kg=5 --aux temp_C=25; a channel not given is absent (no payload)",
     )
+    p.add_argument("--space", choices=("auto", "actuator", "tool"), default="auto",
+                   help="grid over actuator positions or over the tool point (default auto: tool for a redundantly "
+                   "actuated machine, actuator otherwise)")
+    p.add_argument("--range", action="append", default=[], metavar="NAME=LO:HI", dest="ranges",
+                   help="narrow one grid axis (repeatable): q1..qN (actuator unit) or x, y, z (mm)")
+    p.add_argument("--nc", metavar="CSV", help="tool space: write the NC-loadable grid CSV (docs/formats.md)")
     p.add_argument("--out", metavar="CSV", help="write the grid as CSV")
     p.add_argument("--figure", metavar="PNG", help="draw correction and std heat maps")
     p.add_argument("--json", metavar="PATH", help="write a summary as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_frame_argument(p)
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -106,17 +126,42 @@ def run(args) -> int:
         raise InputError(f"--nodes: expected at least 2, got {args.nodes}")
     # the grid is over the machine in its base frame: an instrument frame (fitted or known) is left out
     base, theta, free_mask, kw = base_frame_parts(machine, res.theta, res.free, kw)
-    grid = compensation_grid(base, theta, free=free_mask, n=args.nodes, aux=aux, **kw)
+    space = args.space
+    if space == "auto":
+        space = "tool" if getattr(base, "redundant", ()) else "actuator"
+    ranges = _ranges(args.ranges, space, base.n_actuators)
+    if space == "tool":
+        from ..bayes.tool_grid import tool_grid
+
+        if base.effects and aux:
+            raise InputError("--aux goes with --space actuator (the tool-space grid does not yet apply [effect.*] tables)")
+        grid = tool_grid(base, theta, free=free_mask, n=args.nodes, ranges=ranges, **kw)
+    else:
+        if args.nc:
+            raise InputError("--nc goes with --space tool (an NC system compensates tool points)")
+        axes = None
+        if ranges:
+            if base.q_limits is None:
+                raise InputError(f"{args.machine}: no [workspace] q_limits to span a grid")
+            lim = {f"q{i + 1}": tuple(b) for i, b in enumerate(base.q_limits)}
+            lim.update(ranges)
+            axes = tuple(np.linspace(*lim[f"q{i + 1}"], args.nodes) for i in range(base.n_actuators))
+        grid = compensation_grid(base, theta, free=free_mask, n=args.nodes, axes=axes, aux=aux, **kw)
     # outputs first: a closed stdout (`| head`) must not cost them
     if args.out:
         grid.write_csv(args.out)
+        say(args, f"wrote {args.out} (grid CSV, {space} space)")
+    if args.nc:
+        grid.write_nc_csv(args.nc)
+        say(args, f"wrote {args.nc} (NC-loadable grid CSV, docs/formats.md)")
     if args.figure:
         from ..plots.bayes import plot_grid
 
-        plot_grid(grid, args.figure)
-    if args.json:
-        extra = {"effects": [e.name for e in machine.effects], "aux": aux} if machine.effects else {}
-        write_json_atomic(args.json, {**grid.to_dict(), "method": args.method, **extra})
+        plot_grid(grid, args.figure, units=base.actuator_units if space == "actuator" else None)
+        say(args, f"wrote {args.figure} (figure)")
+    extra = {"effects": [e.name for e in machine.effects], "aux": aux} if machine.effects else {}
+    write_json(args, {**grid.to_dict(), "method": args.method, **extra})
+    write_report(args, "grid", grid, identification=res, machine=machine)
     if not args.quiet:
         print(grid.report())
         if machine.effects:
@@ -139,3 +184,25 @@ def base_frame_parts(machine, theta, free, kw: dict):
     if kw.get("samples") is not None:
         out["samples"] = kw["samples"][:, inner]
     return machine.machine, theta[k:], free[k:], out
+
+
+def _ranges(items: list[str], space: str, n_act: int) -> dict:
+    """``["x=-10:10", "q1=450:500"]`` -> ``{"x": (-10.0, 10.0), ...}``; names checked against the space."""
+    names = ("x", "y", "z") if space == "tool" else tuple(f"q{i + 1}" for i in range(n_act))
+    out = {}
+    for item in items:
+        name, eq, span = item.partition("=")
+        lo, colon, hi = span.partition(":")
+        name = name.strip()
+        try:
+            if not eq or not colon:
+                raise ValueError
+            a, b = float(lo), float(hi)
+        except ValueError:
+            raise InputError(f"--range {item!r}: expected NAME=LO:HI, e.g. {names[0]}=-100:100") from None
+        if name not in names:
+            raise InputError(f"--range {item!r}: {space} space has the axes {', '.join(names)}")
+        if not a < b:
+            raise InputError(f"--range {item!r}: expected LO < HI")
+        out[name] = (a, b)
+    return out

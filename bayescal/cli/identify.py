@@ -9,16 +9,17 @@ from ..errors import InputError
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from ..identify.robust import fit_system, identify_with_outliers, robust_map_weights
 from ..effects.stored import machine_file_text
-from ..io import write_json_atomic, write_text_atomic
+from ..io import write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .inputs import add_frame_argument, free_arg, instrument_inputs
 from .instrument import add_force_argument, instrument_report, judge, may_write_machine, refusal_note
 from .outlier_options import add_outlier_arguments, outlier_kwargs
+from .outputs import add_output_options, write_json, write_machine, write_report
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
 
-The recording (CSV, see FORMATS.md) holds commanded actuator positions q1..qN
+The recording (CSV, see docs/formats.md) holds commanded actuator positions q1..qN
 and the measured tool point x, y, z, plus either a rotation vector rx, ry, rz
 (6-DOF) or a tool axis nx, ny, nz (5-DOF), or nothing more (position only).
 Unidentifiable parameters are found by SVD and fixed at nominal; the report
@@ -72,8 +73,8 @@ def register(sub) -> None:
         "identify", help="identify geometric errors from a recording", description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (FORMATS.md section 2)")
-    p.add_argument("--machine", required=True, help="machine file TOML (FORMATS.md section 1)")
+    p.add_argument("recording", help="recording CSV (docs/formats.md section 2)")
+    p.add_argument("--machine", required=True, help="machine file TOML (docs/formats.md section 1)")
     p.add_argument("--method", choices=("ls", "ridge", "tsvd", "map") + METHODS, default="ls", help="solver (default: ls)")
     p.add_argument(
         "--lam", type=_lam_arg, metavar="LAM|auto",
@@ -91,7 +92,7 @@ def register(sub) -> None:
         help="parameters to identify: 'auto' (identifiable set, default), 'all', or comma-separated names",
     )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
-    p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
+    p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.add_argument(
@@ -103,6 +104,7 @@ def register(sub) -> None:
     add_force_argument(p)
     add_arguments(p)
     add_outlier_arguments(p)
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -136,6 +138,8 @@ def run(args) -> int:
     if args.method == "tsvd" and args.k is None:
         raise InputError("--k is required with --method tsvd (a number, or --k auto)")
     okw = outlier_kwargs(args, rec, model.n_poses)
+    if args.method != "mcmc" and (args.checkpoint or args.resume):
+        raise InputError("--checkpoint and --resume go with --method mcmc")
     if args.method in METHODS:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
@@ -163,15 +167,17 @@ def run(args) -> int:
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
     # instrument frame and plausibility (docs/real-instruments.md)
     extra, plaus = judge(machine, model, res, check)
-    if args.json:
-        write_json_atomic(args.json, {**res.to_dict(), **extra})
+    write_json(args, {**res.to_dict(), **extra})
     if may_write_machine(args, res, plaus):
         # [effect.*] and [instrument] kept; ballbar pivots (beyond the machine's parameters) left out
-        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta[: machine.n_params]))
+        write_machine(args, machine_file_text(machine, res.theta[: machine.n_params]))
     if args.write_klipper and res.success and plaus.plausible:
         from ..klipper import klipper_text
+        from .outputs import say
 
-        write_text_atomic(args.write_klipper, klipper_text(machine, res.theta[: machine.n_params]))
+        say(args, f"wrote {write_text_atomic(args.write_klipper, klipper_text(machine, res.theta[: machine.n_params]))} "
+            "(Klipper keys)")
+    write_report(args, "identify", res, machine=machine, model=model, choice=choice)
     path = None
     if choice is not None and args.figures:
         from ..plots.regularisation import plot_choice

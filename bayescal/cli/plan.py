@@ -6,8 +6,8 @@ import argparse
 
 from ..design import CRITERIA, SCALINGS, plan_poses, write_plan
 from ..errors import InputError
-from ..io import write_json_atomic
 from ..machines import load_machine
+from .outputs import add_output_options, write_json, write_report
 
 HELP = """\
 Plan a measurement session: choose N poses from candidates drawn uniformly
@@ -48,7 +48,7 @@ def register(sub) -> None:
         "plan", help="choose measurement poses by information", description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits")
+    p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
     p.add_argument("--n", type=int, required=True, help="number of poses to plan")
     p.add_argument("--criterion", type=str.upper, choices=CRITERIA, default="D", help="what to maximise (default D)")
     p.add_argument("--candidates", type=int, default=20000, help="candidate poses drawn (default 20000)")
@@ -64,7 +64,7 @@ def register(sub) -> None:
     p.add_argument("--no-box", action="store_true",
                    help="candidates only drawn uniformly; by default the corners, edge midpoints and face centres "
                         "of the q_limits box (and points 1 %% and 5 %% inside them) are candidates too")
-    p.add_argument("--out", required=True, help="CSV of commanded poses to write (q1..qN, pose_id)")
+    p.add_argument("--out", required=True, help="CSV of commanded poses to write (q1..qN, pose_id; docs/formats.md section 4)")
     p.add_argument("--json", metavar="PATH", help="write the plan and its criterion values as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.add_argument(
@@ -72,6 +72,7 @@ def register(sub) -> None:
         help="'fit': plan for a measurement whose instrument frame will be fitted with the geometry "
         "(identify --frame fit): the six frame parameters take part in the criterion (default base)",
     )
+    add_output_options(p)
     p.set_defaults(func=run)
 
 
@@ -96,8 +97,8 @@ def run(args) -> int:
         repeats=args.repeats, box=not args.no_box,
     )
     write_plan(args.out, plan)
-    if args.json:
-        write_json_atomic(args.json, plan.to_dict())
+    write_json(args, plan.to_dict())
+    write_report(args, "plan", plan, machine=machine)
     if not args.quiet:
         print(plan.report())
         print(f"\nwrote {args.out} ({plan.n_poses} poses: q1..q{plan.q.shape[1]}, pose_id)")

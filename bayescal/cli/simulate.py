@@ -13,6 +13,7 @@ from ..io import write_json_atomic, write_recording, write_text_atomic
 from ..machines import load_machine
 from ..simulate import simulate_recording
 from .inputs import name_list
+from .outputs import add_output_options
 
 HELP = """\
 Simulate a measurement session: draw a true machine from the tolerances
@@ -35,7 +36,7 @@ simulates a machine with those effects at their stored values, driven by the
 channels recorded with --aux (payload_kg absent: no payload; thermal
 expansion needs temp_C or time_s recorded).
 
-Writes the recording (FORMATS.md CSV) and, beside it, the truth as JSON
+Writes the recording (CSV, docs/formats.md section 2) and, beside it, the truth as JSON
 (OUT with suffix .truth.json) and the true machine file (.truth.toml, with
 the machine file's [effect.*] tables; concealed --effect values are in the
 JSON).
@@ -57,8 +58,11 @@ def register(sub) -> None:
         "simulate", help="simulate a recording of a machine with drawn errors", description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--machine", required=True, help="nominal machine file TOML")
-    p.add_argument("--poses", type=int, required=True, help="number of measured poses")
+    p.add_argument("--machine", required=True, help="nominal machine file TOML (docs/formats.md section 1)")
+    p.add_argument("--poses", type=int, help="number of measured poses, drawn within q_limits (or --poses-file)")
+    p.add_argument("--poses-file", metavar="CSV",
+                   help="simulate at these commanded poses instead: a CSV with columns q1..qN (the plan 'bayescal plan "
+                   "--out' writes; other columns are ignored), docs/formats.md")
     p.add_argument("--seed", type=int, required=True, help="random seed (errors, poses and noise)")
     p.add_argument("--out", required=True, help="recording CSV to write")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), default=6, help="measurement type (default 6)")
@@ -81,14 +85,43 @@ def register(sub) -> None:
     )
     p.add_argument("--pivot", metavar="X,Y,Z", help="ballbar pivot, base frame, mm (default: the tool point at the middle of q_limits)")
     p.add_argument("--planes", default="xy", help="ballbar circle planes, comma-separated from xy, xz, yz (default xy)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_output_options(p, report=False)
     p.set_defaults(func=run)
+
+
+def read_poses_file(path: str, n_actuators: int) -> np.ndarray:
+    """The commanded poses of a plan CSV: columns ``q1..qN`` (any order, other columns ignored), rows in order."""
+    from ..errors import RecordingError
+    from ..io.recording import parse_table, read_csv_rows
+
+    want = [f"q{i + 1}" for i in range(n_actuators)]
+    header, col, rows = read_csv_rows(path, None, f"a pose file with columns {','.join(want)}")
+    missing = [c for c in want if c not in col]
+    if missing:
+        raise RecordingError(path, 1, None, f"columns {', '.join(missing)} missing; expected {','.join(want)} (and e.g. pose_id)")
+    if not rows:
+        raise RecordingError(path, 2, None, "no data rows")
+    for i, r in enumerate(rows):
+        if len(r) != len(header):
+            raise RecordingError(path, i + 2, None, f"{len(r)} cells, expected {len(header)} (one per header column)")
+    return parse_table(path, want, [[r[col[c]] for c in want] for r in rows])
 
 
 def run(args) -> int:
     from . import EXIT_OK
 
     machine = load_machine(args.machine)
+    q = None
+    if args.poses_file:
+        q = read_poses_file(args.poses_file, machine.n_actuators)
+        if args.poses is not None and args.poses != q.shape[0]:
+            raise InputError(f"--poses {args.poses} but {args.poses_file} holds {q.shape[0]} poses; give one of them")
+        if args.effect or args.aux:
+            raise InputError("--poses-file cannot be combined with --effect or --aux yet; simulate them with --poses N")
+        args.poses = q.shape[0]
+    if args.poses is None:
+        raise InputError("give --poses N (poses drawn within q_limits) or --poses-file CSV (planned poses)")
     if args.poses < 1:
         raise InputError(f"--poses: expected a positive number, got {args.poses}")
     if not args.tolerance_scale > 0:
@@ -112,7 +145,7 @@ def run(args) -> int:
         )
     else:
         sim = simulate_recording(
-            machine, args.poses, seed=args.seed, dof=args.dof, tolerance=machine.tolerance * args.tolerance_scale,
+            machine, args.poses, seed=args.seed, dof=args.dof, tolerance=machine.tolerance * args.tolerance_scale, q=q,
             effects=stored,
         )
     out = Path(args.out)

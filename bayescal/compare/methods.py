@@ -71,18 +71,47 @@ def _ls(model, *, free):
     return identify(model, method="ls", free=free)
 
 
-def _ridge(model, *, free, lam=1.0):
-    return identify(model, method="ridge", lam=lam, free=free)
+def _auto(model, method, free, rule):
+    from ..identify.choose import choose_regularisation
+
+    return choose_regularisation(model, method, rule=None if rule in (None, "default") else str(rule), free=free)[1]
 
 
-def _tsvd(model, *, free, k="snr"):
+def _ridge(model, *, free, lam=1.0, rule=None):
+    if lam == "auto":
+        return _auto(model, "ridge", free, rule)
+    if isinstance(lam, str):
+        raise InputError(f"--methods: ridge:lam={lam}: expected a number >= 0 or 'auto'")
+    return identify(model, method="ridge", lam=float(lam), free=free)
+
+
+def _tsvd(model, *, free, k="snr", rule=None):
+    if k == "auto":
+        return _auto(model, "tsvd", free, rule)
     if k == "snr":
         k = tsvd_snr_rank(model, free)
+    if isinstance(k, str) or int(k) != k:
+        raise InputError(f"--methods: tsvd:k={k}: expected a positive integer, 'snr' or 'auto'")
     return identify(model, method="tsvd", k=int(k), free=free)
 
 
+def _kalman(model, *, free, variant="ekf"):
+    from ..bayes.kalman import kalman_filter
+
+    return kalman_filter(model, variant=str(variant), free=free)
+
+
+def _mcmc(model, *, free, steps=400, seed=0, surrogate="linear"):
+    # the linear surrogate by default: a comparison runs the sampler once per trial, and the
+    # full model costs minutes per run; the result still reports (and fails on) a poor linearisation
+    from ..bayes.mcmc import sample_posterior
+
+    return sample_posterior(model, free=free, n_steps=int(steps), seed=int(seed), surrogate=str(surrogate))
+
+
 register_method("ls", _ls, help="Gauss-Newton least squares")
-register_method("ridge", _ridge, lam=1.0, help="ridge towards nominal (lam=1: MAP under the tolerance prior)")
+register_method("ridge", _ridge, lam=1.0, help="ridge towards nominal (lam=1: MAP under the tolerance prior; "
+                "lam=auto chooses lam by a rule, rule=evidence by default)")
 def _map(model, *, free):
     # the identify core scales columns by the tolerances, so ridge with lam = 1 is exactly the MAP
     # estimate under the tolerance prior (bayescal.identify.gauss_newton); point this entry at a
@@ -92,7 +121,12 @@ def _map(model, *, free):
 
 register_method("map", _map, help="MAP under the tolerance prior (ridge with lam=1)")
 register_method("tsvd", _tsvd, k="snr",
-                help="truncated SVD; k=snr keeps singular values > 1 of the tolerance-scaled matrix")
+                help="truncated SVD; k=snr keeps singular values > 1 of the tolerance-scaled matrix, k=auto chooses "
+                "k by a rule (rule=cv|lcurve|gcv|discrepancy|evidence|risk)")
+register_method("kalman", _kalman, variant="ekf", help="recursive Kalman filter, one update per pose (variant=ekf|ukf)")
+register_method("mcmc", _mcmc, steps=400, seed=0, surrogate="linear",
+                help="posterior mean by emcee (steps=400, surrogate=linear|none); a trial whose chain has not "
+                "converged counts as a failure")
 
 
 def _value(text: str):

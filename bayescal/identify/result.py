@@ -7,10 +7,33 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["IdentificationResult", "ParameterEstimate"]
+__all__ = ["IdentificationResult", "ParameterEstimate", "covariance_dict"]
 
 STRONG_CORRELATION = 0.95
 POORLY_DETERMINED = 10.0  # std above this many tolerances: the value is not a physical error
+
+
+def covariance_dict(names, units, free, covariance) -> dict | None:
+    """The JSON block of a covariance over the identified parameters (docs/formats.md section 3).
+
+    ``{"names": [...], "units": [...], "matrix": [[...]], "correlation": [[...]], "unit": ...}``:
+    entry (i, j) of ``matrix`` is in unit_i x unit_j (mm, rad); ``correlation`` is dimensionless.
+    None without a covariance.
+    """
+    if covariance is None:
+        return None
+    C = np.atleast_2d(np.asarray(covariance, dtype=float))
+    free = np.asarray(free, dtype=bool)
+    d = np.sqrt(np.clip(np.diag(C), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        R = C / np.outer(d, d)
+    return {
+        "names": [n for n, f in zip(names, free) if f],
+        "units": [u for u, f in zip(units, free) if f],
+        "matrix": C,
+        "correlation": R,
+        "unit": "entry (i, j) in units[i] x units[j]; correlation dimensionless",
+    }
 
 
 @dataclass(frozen=True)
@@ -173,6 +196,7 @@ class IdentificationResult:
             "rank": self.rank,
             "singular_values": self.singular_values,
             "covariance_kind": self.covariance_kind,
+            "covariance": covariance_dict(self.names, self.units, self.free, self.covariance),
             "fixed": list(self.fixed),
             "unidentifiable": list(self.unidentifiable),
             "strong_correlations": [{"a": a, "b": b, "correlation": c} for a, b, c in self.correlations()],

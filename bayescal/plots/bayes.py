@@ -14,7 +14,7 @@ import numpy as np
 from ._backend import pyplot as _plt
 from ._backend import save
 
-__all__ = ["plot_filter_history", "plot_trace", "plot_pair", "plot_coverage", "plot_grid"]
+__all__ = ["plot_filter_history", "plot_trace", "plot_trace_page", "plot_trace_pages", "plot_pair", "plot_coverage", "plot_grid"]
 
 
 
@@ -61,40 +61,105 @@ def _top_params(result, max_params: int) -> list[str]:
     return [result.free_names[i] for i in sorted(order)]
 
 
-def plot_trace(result, path: str | os.PathLike, *, max_params: int = 6) -> Path:
-    """Trace and marginal density of up to ``max_params`` parameters (arviz), every walker a chain."""
-    import arviz as az
+#: Display scale of each parameter unit: small errors read better in um and urad.
+_DISPLAY = {"mm": (1e3, "um"), "rad": (1e6, "urad"), "m": (1e6, "um")}
 
-    _plt()
+
+def _display(unit: str) -> tuple[float, str]:
+    """Factor and unit label a parameter in ``unit`` is drawn in."""
+    return _DISPLAY.get(unit, (1.0, unit or "1"))
+
+
+def _units_of(result, names) -> list[str]:
+    unit = dict(zip(result.names, result.units))
+    return [unit.get(n, "") for n in names]
+
+
+def _chain(result) -> np.ndarray:
+    """Draws after burn-in, shape (n_walkers, n_kept, n_free)."""
+    return np.asarray(result.tree["posterior"]["theta"].values)
+
+
+def plot_trace_page(result, names, path: str | os.PathLike, *, title: str = "") -> Path:
+    """One labelled row per parameter: every walker's trace (thin) and their mean, and the marginal histogram.
+
+    Values are drawn in the parameter's unit scaled for reading (mm as um, rad as urad); the axis
+    label names the parameter and the unit.
+    """
+    plt = _plt()
+    chain = _chain(result)
+    idx = [result.free_names.index(n) for n in names]
+    units = _units_of(result, names)
+    k = len(idx)
+    fig, axes = plt.subplots(k, 2, figsize=(11, 1.9 * k + 0.6), squeeze=False, gridspec_kw={"width_ratios": [3, 1]})
+    steps = result.burn + np.arange(chain.shape[1])
+    for row, (j, name, unit) in enumerate(zip(idx, names, units)):
+        f, label = _display(unit)
+        x = f * chain[:, :, j]
+        a, b = axes[row]
+        # every walker in one NaN-separated line: one artist instead of one per walker (fast to draw)
+        xs = np.tile(np.append(steps, np.nan), x.shape[0])
+        ys = np.column_stack([x, np.full(x.shape[0], np.nan)]).ravel()
+        a.plot(xs, ys, color="C0", lw=0.3, alpha=0.25)
+        a.plot(steps, x.mean(axis=0), color="k", lw=0.9, label="mean over walkers")
+        a.set_ylabel(f"{name}\n({label})", fontsize=8)
+        a.tick_params(labelsize=7)
+        b.hist(x.ravel(), bins=40, orientation="horizontal", color="C0", histtype="stepfilled")
+        b.set_ylim(a.get_ylim())
+        b.tick_params(labelsize=7, labelleft=False)
+        if row == 0:
+            a.set_title("trace of every walker (after burn-in)", fontsize=9)
+            b.set_title("marginal posterior", fontsize=9)
+            a.legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("step")
+    axes[-1, 1].set_xlabel("draws")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_trace(result, path: str | os.PathLike, *, max_params: int = 6) -> Path:
+    """Trace and marginal of the ``max_params`` least-determined parameters, one labelled row each, in their units."""
     names = _top_params(result, max_params)
-    pc = az.plot_trace_dist(result.tree, var_names=["theta"], coords={"param": names}, backend="matplotlib")
-    pc.savefig(path)
-    _plt().close("all")
-    return Path(path)
+    return plot_trace_page(result, names, path, title=f"MCMC trace: the {len(names)} least-determined parameters")
+
+
+def plot_trace_pages(result, out_dir: str | os.PathLike, *, per_page: int = 6, stem: str = "mcmc_trace") -> list[Path]:
+    """Traces of every sampled parameter, ``per_page`` labelled rows per figure: ``stem_1.png``, ``stem_2.png``, ..."""
+    names = list(result.free_names)
+    pages = [names[i:i + per_page] for i in range(0, len(names), per_page)]
+    out = Path(out_dir)
+    return [
+        plot_trace_page(result, page, out / f"{stem}_{p + 1}.png",
+                        title=f"MCMC trace, parameters {p * per_page + 1}-{p * per_page + len(page)} of {len(names)}")
+        for p, page in enumerate(pages)
+    ]
 
 
 def plot_pair(result, path: str | os.PathLike, *, max_params: int = 5) -> Path:
-    """Pair plot of up to ``max_params`` parameters (thinned draws)."""
+    """Pair plot of up to ``max_params`` least-determined parameters (thinned draws), axes in their units."""
     plt = _plt()
     names = _top_params(result, max_params)
     idx = [result.free_names.index(n) for n in names]
-    x = result.samples[:, idx]
-    x = x[:: max(1, x.shape[0] // 4000)]
+    scales = [_display(u) for u in _units_of(result, names)]
+    x = result.samples[:, idx] * np.array([f for f, _ in scales])
+    x = x[:: max(1, x.shape[0] // 2000)]
     k = len(idx)
-    fig, axes = plt.subplots(k, k, figsize=(2.2 * k, 2.2 * k), squeeze=False)
+    fig, axes = plt.subplots(k, k, figsize=(2.4 * k + 0.6, 2.4 * k + 0.6), squeeze=False)
     for i in range(k):
         for j in range(k):
             ax = axes[i, j]
             if j > i:
                 ax.axis("off")
             elif i == j:
-                ax.hist(x[:, i], bins=40, color="C0")
+                ax.hist(x[:, i], bins=40, color="C0", histtype="stepfilled")
             else:
                 ax.plot(x[:, j], x[:, i], ",", alpha=0.3, color="C0")
             if i == k - 1:
-                ax.set_xlabel(names[j].replace("chain", "c"), fontsize=7)
+                ax.set_xlabel(f"{names[j]}\n({scales[j][1]})", fontsize=7)
             if j == 0 and i > 0:
-                ax.set_ylabel(names[i].replace("chain", "c"), fontsize=7)
+                ax.set_ylabel(f"{names[i]}\n({scales[i][1]})", fontsize=7)
             ax.tick_params(labelsize=6)
     fig.suptitle("posterior pairs (least-determined parameters)")
     fig.tight_layout()
@@ -121,23 +186,59 @@ def plot_coverage(table: dict, path: str | os.PathLike, *, nominal: float = 0.9,
     return _save(fig, path)
 
 
-def plot_grid(grid, path: str | os.PathLike) -> Path:
-    """Heat maps of a compensation grid: correction magnitude and its std over the first two grid axes."""
+def plot_grid(grid, path: str | os.PathLike, *, units=None, max_slices: int = 6) -> Path:
+    """Heat maps of a compensation grid: the correction magnitude and its std (um), over two grid axes.
+
+    Axes with one node are dropped.  With more than two axes left, every
+    slice through the others gets a row of panels when there are at most
+    ``max_slices`` of them; otherwise the rows are the slice with the
+    largest std and the slice with the largest correction, named in the
+    titles.  ``units`` (one per axis; default ``grid.axis_unit``) label
+    the axes.
+    """
     plt = _plt()
-    mag = np.linalg.norm(grid.correction, axis=-1)
-    std = np.sqrt(np.sum(grid.std**2, axis=-1))
-    # the grid may have more axes than two: show the slice through the middle of the others
-    sl = tuple(slice(None) if i < 2 else grid.shape[i] // 2 for i in range(len(grid.shape)))
-    ax0, ax1 = grid.axes[0], grid.axes[1]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
-    for ax, val, title in ((axes[0], mag[sl] * 1000, "correction |dp| (um)"), (axes[1], std[sl] * 1000, "std of the correction (um)")):
-        im = ax.pcolormesh(ax1, ax0, val, shading="nearest", cmap="viridis")
-        fig.colorbar(im, ax=ax)
-        ax.set_xlabel(f"{grid.axis_names[1]} ({grid.axis_unit})")
-        ax.set_ylabel(f"{grid.axis_names[0]} ({grid.axis_unit})")
-        ax.set_title(title)
-    if len(grid.shape) > 2:
-        others = ", ".join(f"{grid.axis_names[i]} = {grid.axes[i][grid.shape[i] // 2]:.4g}" for i in range(2, len(grid.shape)))
-        fig.suptitle(f"slice at {others}")
+    mag = np.linalg.norm(grid.correction, axis=-1) * 1000
+    std = np.sqrt(np.sum(grid.std**2, axis=-1)) * 1000
+    names = list(grid.axis_names)
+    units = list(units) if units is not None else [grid.axis_unit] * len(names)
+    active = [i for i, a in enumerate(grid.axes) if a.size > 1]
+    keep = tuple(slice(None) if i in active else 0 for i in range(len(names)))
+    mag, std = mag[keep], std[keep]
+    axes_v = [grid.axes[i] for i in active]
+    names = [names[i] for i in active]
+    units = [units[i] for i in active]
+    if len(active) == 1:
+        fig, ax = plt.subplots(figsize=(8, 3.8))
+        ax.errorbar(axes_v[0], mag, yerr=std, fmt="o-", capsize=3)
+        ax.set_xlabel(f"{names[0]} ({units[0]})")
+        ax.set_ylabel("correction |dp| +- std (um)")
+        fig.tight_layout()
+        return _save(fig, path)
+    rest = list(range(2, len(active)))
+    if rest:
+        shape = tuple(axes_v[i].size for i in rest)
+        combos = [tuple(c) for c in np.ndindex(*shape)]
+        label = lambda c: ", ".join(f"{names[i]} = {axes_v[i][k]:.4g} {units[i]}" for i, k in zip(rest, c))  # noqa: E731
+        if len(combos) <= max_slices:
+            rows = [(c, f"slice {label(c)}") for c in combos]
+        else:
+            sl_std = [std[(slice(None), slice(None)) + c].max() for c in combos]
+            sl_mag = [mag[(slice(None), slice(None)) + c].max() for c in combos]
+            w_std, w_mag = combos[int(np.argmax(sl_std))], combos[int(np.argmax(sl_mag))]
+            rows = [(w_std, f"worst slice for the std: {label(w_std)}")]
+            if w_mag != w_std:
+                rows.append((w_mag, f"worst slice for the correction: {label(w_mag)}"))
+    else:
+        rows = [((), "")]
+    fig, axes = plt.subplots(len(rows), 2, figsize=(10, 3.9 * len(rows) + 0.3), squeeze=False)
+    vmax_m, vmax_s = mag.max(), std.max()  # one colour scale for every slice, so slices compare
+    for r, (c, title) in enumerate(rows):
+        sel = (slice(None), slice(None)) + c
+        for ax, val, what, vmax in ((axes[r, 0], mag[sel], "correction |dp| (um)", vmax_m), (axes[r, 1], std[sel], "std of the correction (um)", vmax_s)):
+            im = ax.pcolormesh(axes_v[1], axes_v[0], val, shading="nearest", cmap="viridis", vmin=0, vmax=vmax)
+            fig.colorbar(im, ax=ax, label=what)
+            ax.set_xlabel(f"{names[1]} ({units[1]})")
+            ax.set_ylabel(f"{names[0]} ({units[0]})")
+            ax.set_title(f"{what.split(' (')[0]}" + (f"\n{title}" if title else ""), fontsize=9)
     fig.tight_layout()
     return _save(fig, path)

@@ -1,0 +1,107 @@
+"""What a report says: the JSON answer's numbers, the sections of each kind, outliers marked."""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+
+import numpy as np
+import pytest
+
+from bayescal.errors import InputError
+from bayescal.report import render_report
+from tests.report.parse import tables
+
+
+def test_template_is_package_data():
+    assert resources.files("bayescal.report").joinpath("templates/report.html.j2").is_file()
+
+
+@pytest.mark.parametrize("kind", ["identify", "kalman", "mcmc"])
+def test_parameter_table_equals_json_answer(reports, kind):
+    ans = json.loads((reports / f"{kind}.json").read_text())
+    t = tables((reports / f"{kind}.html").read_text())
+    rows = {r[0][0]: r for r in t["parameters"]}
+    assert len(rows) == len(ans["parameters"])
+    for p in ans["parameters"]:
+        r = rows[p["name"]]
+        assert r[1][1] == p["value"]  # exact: the report carries repr of the same float
+        assert r[2][1] == p["std"]
+        assert r[3][0] == p["unit"]
+    cov = ans["covariance"]
+    assert len(cov["matrix"]) == len(cov["names"]) == sum(p["identified"] for p in ans["parameters"])
+    C = np.array(cov["matrix"])
+    std = np.sqrt(np.diag(C))
+    got = {p["name"]: p["std"] for p in ans["parameters"]}
+    np.testing.assert_allclose(std, [got[n] for n in cov["names"]], rtol=1e-12)
+
+
+def test_report_states_inputs_with_hashes(reports):
+    import hashlib
+
+    from tests.conftest import PRS3_FILE
+
+    t = tables((reports / "identify.html").read_text())
+    files = {r[1][0]: r[2][0] for r in t["input-files"]}
+    assert files[str(PRS3_FILE)] == hashlib.sha256(PRS3_FILE.read_bytes()).hexdigest()
+    versions = dict((r[0][0], r[1][0]) for r in t["versions"])
+    assert {"bayescal", "numpy", "scipy", "jinja2"} <= set(versions)
+    machine = {r[0][0]: r[1] for r in t["machine"]}
+    assert machine["instrument sigma, position"][1] > 0
+
+
+def test_diagnose_report_has_verdict_located_channel_and_effects(reports):
+    ans = json.loads((reports / "diagnose.json").read_text())
+    html = (reports / "diagnose.html").read_text()
+    t = tables(html)
+    verdict = {r[0][0]: r[1][0] for r in t["verdict-evidence"]}
+    assert verdict["verdict"] == ans["verdict"]
+    if ans["located"]:
+        assert verdict["located channel"].startswith(ans["located"]["channel"])
+    assert [r[0][0] for r in t["effects"]][: len(ans["effects"])] == [e["name"] for e in ans["effects"]]
+    assert len(t["channels"]) == len(ans["channels"])
+
+
+def test_residual_rows_and_outliers_marked(reports):
+    """A result with an ``outliers`` list (0-based poses) gets those rows marked."""
+    from bayescal.identify import identify
+    from bayescal.io import read_recording
+    from bayescal.machines import load_machine
+    from bayescal.measurement import MeasurementModel
+    from tests.conftest import PRS3_FILE, ROOT
+
+    machine = load_machine(PRS3_FILE)
+    model = MeasurementModel.from_recording(machine, read_recording(ROOT / "examples" / "prs3" / "recording.csv"))
+    res = identify(model, method="ridge", lam=1.0)
+
+    class WithOutliers:
+        def __init__(self, r):
+            self._r, self.outliers = r, [2, {"pose": 5}]
+
+        def __getattr__(self, name):
+            return getattr(self._r, name)
+
+    html = render_report("identify", WithOutliers(res), machine=machine, model=model)
+    rows = tables(html)["pose-residuals"]
+    assert len(rows) == model.n_poses
+    marked = [i for i, r in enumerate(rows) if r[-1][0] == "outlier"]
+    assert marked == [2, 5]
+    # the residual column is the per-pose position error norm of the result, um
+    pos = 1e3 * np.linalg.norm(res.residuals_after[:, :3], axis=1)
+    np.testing.assert_allclose([r[2][1] for r in rows], pos, rtol=1e-12)
+    assert 'class="outlier"' in html
+
+
+def test_unknown_kind_is_an_input_error():
+    with pytest.raises(InputError, match="report kind"):
+        render_report("nonsense", None)
+
+
+def test_names_are_escaped(reports):
+    """Text from files never becomes markup."""
+    from bayescal.report.kinds import inputs_section
+
+    html = render_report("compensate", __import__("bayescal.compensation", fromlist=["read_grid"]).read_grid(reports / "bic.csv"),
+                         inputs={"command": "bayescal <script>alert(1)</script>", "files": [], "versions": {}})
+    assert "<script>alert(1)" not in html and "&lt;script&gt;" in html
+    assert inputs_section({}, None)["title"] == "Inputs"
