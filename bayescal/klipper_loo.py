@@ -101,12 +101,13 @@ def noise_scale_map(machine: Machine, rec: ConstraintRecording, *, prior_scale: 
     return res, scale
 
 
-def _map_theta(machine: Machine, rec: ConstraintRecording, prior_scale: float, noise: str = "stated") -> NDArray:
+def _map_theta(machine: Machine, rec: ConstraintRecording, prior_scale: float, noise: str = "stated",
+               free: str = "all") -> NDArray:
     if noise == "estimated":
         return noise_scale_map(machine, rec, prior_scale=prior_scale)[0].theta
     model = ConstraintModel.from_recording(machine, rec)
     prior = prior_from_machine(model.machine, scale=prior_scale)
-    return map_estimate(model, prior=prior, free="all").theta
+    return map_estimate(model, prior=prior, free=free).theta
 
 
 def _predict(machine: Machine, rec: ConstraintRecording, theta: NDArray) -> NDArray:
@@ -117,6 +118,7 @@ def _predict(machine: Machine, rec: ConstraintRecording, theta: NDArray) -> NDAr
 
 def loo_bayescal(
     machine: Machine, rec: ConstraintRecording, *, prior_scale: float = 1.0, noise: str = "stated", rows=None,
+    free: str = "all",
 ) -> LooResult:
     """bayescal's MAP calibration (tolerance prior, all parameters) left out one row at a time.
 
@@ -133,13 +135,16 @@ def loo_bayescal(
         estimated from each fit's residuals (:func:`noise_scale_map`).
     rows : sequence of int, optional
         Rows to leave out (default all); ``loo_error`` is NaN for the others.
+    free : {"all", "auto"}
+        All parameters under the prior, or only those the data determines
+        (``identify --method map``'s default; the others stay at nominal).
     """
     n = rec.n_rows
-    theta_all = _map_theta(machine, rec, prior_scale, noise)
+    theta_all = _map_theta(machine, rec, prior_scale, noise, free)
     in_sample = rec.value - _predict(machine, rec, theta_all)
     loo = np.full(n, np.nan)
     for i in range(n) if rows is None else rows:
-        theta = _map_theta(machine, rec.subset(_rows_without(n, i)), prior_scale, noise)
+        theta = _map_theta(machine, rec.subset(_rows_without(n, i)), prior_scale, noise, free)
         loo[i] = rec.value[i] - _predict(machine, rec.subset([i]), theta)[0]
     return LooResult(f"bayescal map ({noise} noise)", tuple(rec.measure), loo, in_sample)
 

@@ -273,6 +273,7 @@ def run(quick: bool, seed: int, data: Path = DATA) -> dict:
         summary = {"Klipper": kl.summary(), "bayescal": b.summary()}
         if not quick:
             summary["bayescal, noise scale estimated"] = loo_bayescal(machine_of(k, rec), rec, noise="estimated").summary()
+            summary["bayescal, free auto (undetermined fixed at nominal)"] = loo_bayescal(machine_of(k, rec), rec, free="auto").summary()
         res["loo_real"].append({
             "nominal": label, "summary": summary,
             "ratio": rms(b.loo_error) / rms(kl.loo_error),
