@@ -245,7 +245,7 @@ def figures(res, out: Path) -> None:
     ax.bar(i + 0.2, r[:, 1], 0.4, label="bayescal MAP re-fitted")
     ax.set_xticks(i, [x[0][0] + str(k) for k, x in enumerate(case["rows"])], fontsize=7)
     ax.set_ylabel("left-out error (mm)")
-    ax.set_title(f"leave-one-out, prior/start: {case['nominal']}")
+    ax.set_title(f"leave-one-out, prior mean and Klipper's start: {case['nominal'].split(' (')[0]}", fontsize=9)
     ax.legend()
     save(fig, out / "delta_klipper_loo.png")
 
