@@ -48,6 +48,18 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+#: Why the written [tolerance] (the MAP prior) is a printer's, at the top of the machine file.
+_TOLERANCE_NOTE = """\
+# Written by 'bayescal klipper' from a Klipper config (docs/delta-printers.md).
+# [tolerance] below is the prior of 'identify --method map': one sigma of how far the true
+# printer may be from the config's values. Printer values, not a machine tool's: frames of
+# extrusions and moulded brackets, rods cut to about a millimetre, and a delta_radius that folds
+# in the joint offsets make radii, endstops and arms good to ~1 mm, tower angles to ~0.5 deg and
+# tower tilts to ~0.1 deg. Tighten them if an earlier calibration you trust set the values.
+
+"""
+
+
 def run(args) -> int:
     from ..errors import InputError
     from ..io.klipper_cfg import read_klipper_config
@@ -67,7 +79,7 @@ def run(args) -> int:
     span = np.vstack([rec.qa, rec.qb[np.isfinite(rec.qb).all(axis=1)]])
     machine = klipper_machine(kd, name=f"Klipper delta {Path(args.config).name}", q_span=span)
     out = Path(args.out)
-    write_text_atomic(out / "machine.toml", machine.to_toml())
+    write_text_atomic(out / "machine.toml", _TOLERANCE_NOTE + machine.to_toml())
     write_text_atomic(out / "recording.csv", constraints_to_csv(rec))
     n_h = sum(m == "height" for m in rec.measure)
     if args.json:

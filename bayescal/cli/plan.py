@@ -40,6 +40,18 @@ examples:
   bayescal plan --machine m.toml --n 24 --criterion EIG --dof 5 --seed 3 --out poses.csv --json plan.json
   bayescal plan --machine m.toml --n 18 --criterion I --out poses.csv
   bayescal plan --machine m.toml --n 40 --criterion O4 --candidates 5000 --scaling candidates --out p.csv
+  bayescal plan --machine calib/machine.toml --measure height --given calib/recording.csv --n 6 \
+      --centre 0,0,0 --radius 80 --sigma 0.02 --out heights.csv
+  bayescal plan --machine calib/machine.toml --measure distance --given calib/recording.csv --n 6 \
+      --centre 0,0,0.2 --radius 80 --sigma 0.05 --min-distance 20 --out distances.csv
+
+With --measure height or distance the candidates are relations on a horizontal
+grid (--centre, --radius, --spacing): probe heights at grid points, or distances
+between two grid points (a printed part measured with a caliper); the selection
+starts from the tolerance prior plus the measurements in --given (criterion EIG
+by default), and the report lists each parameter's std before and after and
+what the data cannot determine (docs/delta-printers.md).  The CSV is a
+constraint recording with an empty value column: fill in what you measure.
 """
 
 
@@ -50,7 +62,8 @@ def register(sub) -> None:
     )
     p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
     p.add_argument("--n", type=int, required=True, help="number of poses to plan")
-    p.add_argument("--criterion", type=str.upper, choices=CRITERIA, default="D", help="what to maximise (default D)")
+    p.add_argument("--criterion", type=str.upper, choices=CRITERIA, default=None,
+                   help="what to maximise (default D for poses, EIG for heights and distances)")
     p.add_argument("--candidates", type=int, default=20000, help="candidate poses drawn (default 20000)")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), default=6, help="what the instrument measures (default 6)")
     p.add_argument("--scaling", choices=SCALINGS, default="tolerance",
@@ -64,7 +77,15 @@ def register(sub) -> None:
     p.add_argument("--no-box", action="store_true",
                    help="candidates only drawn uniformly; by default the corners, edge midpoints and face centres "
                         "of the q_limits box (and points 1 %% and 5 %% inside them) are candidates too")
-    p.add_argument("--out", required=True, help="CSV of commanded poses to write (q1..qN, pose_id; docs/formats.md section 4)")
+    p.add_argument("--measure", choices=("pose", "height", "distance"), default="pose",
+                   help="what to plan: poses (default), probe heights or distances between points")
+    p.add_argument("--given", metavar="RECORDING", help="constraint recording already measured (--measure height/distance)")
+    p.add_argument("--centre", type=_vector, help="grid centre X,Y,Z in mm (tool point; default: middle of q_limits)")
+    p.add_argument("--radius", type=float, default=50.0, help="grid radius in mm (default 50)")
+    p.add_argument("--spacing", type=float, help="grid spacing in mm (default radius/4)")
+    p.add_argument("--sigma", type=float, help="noise of a planned measurement in mm (default [measurement] sigma_position)")
+    p.add_argument("--min-distance", type=float, default=0.0, help="shortest distance to plan, mm (default 0)")
+    p.add_argument("--out", required=True, help="CSV to write (poses: q1..qN, pose_id, docs/formats.md section 4; relations: a constraint recording)")
     p.add_argument("--json", metavar="PATH", help="write the plan and its criterion values as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.add_argument(
@@ -76,8 +97,47 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _vector(text: str) -> list[float]:
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z in mm, got {text!r}") from None
+    if len(v) != 3:
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z, got {text!r}")
+    return v
+
+
+def run_relations(args) -> int:
+    from ..design.relations import plan_relations, relation_plan_csv
+    from ..io import write_text_atomic
+    from ..io.constraints import read_constraints
+    from . import EXIT_OK
+
+    if args.n < 1:
+        raise InputError(f"--n: expected a positive number of measurements, got {args.n}")
+    machine = load_machine(args.machine)
+    given = read_constraints(args.given) if args.given else None
+    if given is not None:
+        given.check_machine(machine.n_actuators, None, args.machine)
+    criterion = args.criterion or "EIG"
+    plan = plan_relations(
+        machine, args.n, measure=args.measure, given=given, centre=args.centre, radius=args.radius,
+        spacing=args.spacing, sigma=args.sigma, criterion=criterion, repeats=args.repeats,
+        min_distance=args.min_distance,
+    )
+    write_text_atomic(args.out, relation_plan_csv(plan))
+    write_json(args, plan.to_dict())
+    if not args.quiet:
+        print(plan.report())
+        print(f"\nwrote {args.out} ({plan.recording.n_rows} {args.measure} rows; fill in the value column)")
+    return EXIT_OK
+
+
 def run(args) -> int:
     from . import EXIT_OK
+
+    if args.measure != "pose":
+        return run_relations(args)
 
     if args.n < 1:
         raise InputError(f"--n: expected a positive number of poses, got {args.n}")
@@ -92,7 +152,7 @@ def run(args) -> int:
         # where the instrument stands does not change the information; identity is as good as any frame
         machine = InstrumentFrame(base_machine(machine), Frame.identity(), fit=True)
     plan = plan_poses(
-        machine, args.n, criterion=args.criterion, dof=args.dof, n_candidates=args.candidates, seed=args.seed,
+        machine, args.n, criterion=args.criterion or "D", dof=args.dof, n_candidates=args.candidates, seed=args.seed,
         scaling=args.scaling, n_random=args.random_sets, exchange=not args.no_exchange,
         repeats=args.repeats, box=not args.no_box,
     )

@@ -138,7 +138,8 @@ def identify(
         raise InputError("scale: expected positive values")
     idx, ida = resolve_free(model, free, theta)
     n_rows = model.n_poses * model.dof
-    if n_rows < idx.size:
+    # a prior (map, ridge with lam > 0) makes fewer rows than parameters well posed
+    if n_rows < idx.size and not (solver == "ridge" and lam > 0):
         raise InputError(
             f"{model.n_poses} poses give {n_rows} measured components for {idx.size} parameters; "
             f"expected at least {idx.size // model.dof + 1} poses"

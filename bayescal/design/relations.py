@@ -1,0 +1,270 @@
+"""Planning constraint measurements: which heights to probe and which distances to measure next.
+
+Candidates are *relations*, not poses: a probe height at a point of a
+horizontal grid, or the distance between two grid points (a caliper on a
+printed part, a length bar).  Each candidate contributes one row of the
+whitened, tolerance-scaled Jacobian ``a = J diag(tol) / sigma``
+(:class:`bayescal.constraint_model.ConstraintModel`), and the selection is
+the same greedy rank-one update as for poses
+(:func:`bayescal.design.select.greedy_select`), started from the information
+the user already has: ``M0 = I + A_given^T A_given`` (the tolerance prior
+plus the measurements already taken).  With the prior in ``M0`` the log-det
+utility is the expected information gain (EIG) of the new rows given the
+old; other criteria of :mod:`bayescal.design.criteria` work alike.
+
+The answer says, per parameter, the posterior standard deviation (linearised,
+under the tolerance prior) with the given measurements and with the planned
+ones added, and which parameters the data (without the prior) determines
+before and after (:func:`bayescal.identifiability.analyse_identifiability`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from itertools import combinations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..constraint_model import ConstraintModel
+from ..errors import InputError
+from ..identifiability import analyse_identifiability
+from ..io.constraints import ConstraintRecording
+from ..machines.base import Machine
+from ..simulate_constraints import solve_q_for_points
+from .criteria import check_criterion
+from .select import greedy_select
+
+__all__ = ["RelationPlan", "grid_points", "relation_candidates", "plan_relations", "relation_plan_csv", "MEASURES"]
+
+MEASURES = ("height", "distance")
+
+
+def grid_points(centre: NDArray, radius: float, spacing: float) -> NDArray:
+    """Points of a square grid of ``spacing`` within ``radius`` of ``centre`` (horizontal plane), mm."""
+    if not (radius > 0 and spacing > 0):
+        raise InputError(f"grid: expected a positive radius and spacing, got {radius} and {spacing} mm")
+    k = int(np.floor(radius / spacing))
+    u = np.arange(-k, k + 1) * spacing
+    X, Y = np.meshgrid(u, u, indexing="ij")
+    keep = X**2 + Y**2 <= radius**2 * (1 + 1e-12)
+    c = np.asarray(centre, dtype=float)
+    return np.column_stack([X[keep] + c[0], Y[keep] + c[1], np.full(int(keep.sum()), c[2])])
+
+
+def relation_candidates(machine: Machine, measure: str, points: NDArray, *, min_distance: float = 0.0) -> ConstraintRecording:
+    """Candidate relations at nominal tool ``points``: heights at each, or distances between pairs.
+
+    Parameters
+    ----------
+    machine : Machine
+        Nominal geometry (commanded positions come from it).
+    measure : {"height", "distance"}
+    points : ndarray, shape (n, 3)
+        Tool points, base frame, mm.
+    min_distance : float
+        Pairs closer than this (mm) are not candidates (a caliper needs a span).
+
+    Returns
+    -------
+    ConstraintRecording
+        ``value`` is the nominal prediction (a placeholder for the measured value).
+    """
+    if measure not in MEASURES:
+        raise InputError(f"measure: expected one of {', '.join(MEASURES)}, got {measure!r}")
+    pts = np.atleast_2d(np.asarray(points, dtype=float))
+    q = solve_q_for_points(machine, pts)
+    N = q.shape[1]
+    if measure == "height":
+        k = np.arange(len(q), dtype=float)
+        return ConstraintRecording(measure=("height",) * len(q), qa=q, qb=np.full_like(q, np.nan), value=pts[:, 2].copy(),
+                                   aux={"point_a": k, "point_b": np.full(len(q), np.nan)})
+    pairs = np.array([(i, j) for i, j in combinations(range(len(pts)), 2)
+                      if np.linalg.norm(pts[i] - pts[j]) >= max(min_distance, 1e-9)], dtype=int).reshape(-1, 2)
+    if not len(pairs):
+        raise InputError("distance candidates: no pair of grid points is far enough apart; enlarge --radius")
+    d = np.linalg.norm(pts[pairs[:, 0]] - pts[pairs[:, 1]], axis=1)
+    return ConstraintRecording(measure=("distance",) * len(pairs), qa=q[pairs[:, 0]].reshape(-1, N),
+                               qb=q[pairs[:, 1]].reshape(-1, N), value=d,
+                               aux={"point_a": pairs[:, 0].astype(float), "point_b": pairs[:, 1].astype(float)})
+
+
+def _scaled_rows(machine: Machine, rec: ConstraintRecording, sigma: float | None) -> tuple[NDArray, ConstraintModel]:
+    model = ConstraintModel.from_recording(machine, rec)
+    if any(m == "ballbar" for m in rec.measure):
+        raise InputError("planning with ballbar rows is not supported: plan heights or distances")
+    pred = model.predict(None)
+    if not pred.success.all():
+        raise InputError(f"{int((~pred.success).sum())} measurement poses cannot be solved on the nominal machine")
+    J = model.jacobian(None, pred).reshape(rec.n_rows, -1)
+    s = model.row_sigma[:, 0] if sigma is None else np.full(rec.n_rows, float(sigma))
+    return J * machine.tolerance[None, :] / s[:, None], model
+
+
+@dataclass(frozen=True)
+class RelationPlan:
+    """Planned heights or distances, and what they add to the measurements already taken.
+
+    Attributes
+    ----------
+    measure : str
+    recording : ConstraintRecording
+        The planned rows (``value``: nominal prediction, to be replaced by the measurement).
+    points_a, points_b : ndarray, shape (n, 3)
+        Nominal tool points of pose a and b (b NaN for heights), mm.
+    names, units : tuple of str
+    std_prior, std_given, std_planned : ndarray, shape (P,)
+        Posterior std (linearised, tolerance prior) before any data, with the
+        given data and with the plan added, parameter units.
+    fixed_given, fixed_planned : tuple of str
+        Parameters the data (without the prior) cannot determine, before and after.
+    criterion : str
+    utility_given, utility_planned : float
+        ``log det`` of the information matrix (EIG-type utility) before and after.
+    """
+
+    measure: str
+    recording: ConstraintRecording
+    points_a: NDArray
+    points_b: NDArray
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    std_prior: NDArray
+    std_given: NDArray
+    std_planned: NDArray
+    fixed_given: tuple[str, ...]
+    fixed_planned: tuple[str, ...]
+    criterion: str
+    utility_given: float
+    utility_planned: float
+
+    def report(self) -> str:
+        n = self.recording.n_rows
+        lines = [
+            f"bayescal plan: {n} {self.measure} measurements to take next (criterion {self.criterion}, "
+            f"tolerance prior plus the measurements given)",
+            f"  expected information gain {0.5 * (self.utility_planned - self.utility_given):.3g} nats",
+            f"  not determined by the data before: {', '.join(self.fixed_given) or 'none'}",
+            f"  not determined by the data after:  {', '.join(self.fixed_planned) or 'none'}",
+            "",
+            f"  {'parameter':<28}{'prior std':>12}{'given':>12}{'planned':>12}",
+        ]
+        for k, name in enumerate(self.names):
+            lines.append(f"  {name:<28}{self.std_prior[k]:12.4g}{self.std_given[k]:12.4g}{self.std_planned[k]:12.4g}  {self.units[k]}")
+        lines += ["", "  what to measure (nominal tool points, mm):"]
+        for i in range(n):
+            a = ", ".join(f"{v:.2f}" for v in self.points_a[i])
+            if self.measure == "height":
+                lines.append(f"  {i + 1:3d}. height at ({a})")
+            else:
+                b = ", ".join(f"{v:.2f}" for v in self.points_b[i])
+                lines.append(f"  {i + 1:3d}. distance ({a}) - ({b}), nominal {self.recording.value[i]:.3f}")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {
+            "measure": self.measure, "criterion": self.criterion, "n": self.recording.n_rows,
+            "qa": self.recording.qa, "qb": self.recording.qb, "nominal_value": self.recording.value,
+            "points_a": self.points_a, "points_b": self.points_b,
+            "parameters": {n: {"prior_std": float(p), "given_std": float(g), "planned_std": float(q)}
+                           for n, p, g, q in zip(self.names, self.std_prior, self.std_given, self.std_planned)},
+            "fixed_given": list(self.fixed_given), "fixed_planned": list(self.fixed_planned),
+            "expected_information_gain_nats": 0.5 * (self.utility_planned - self.utility_given),
+        }
+
+
+def plan_relations(
+    machine: Machine, n: int, *, measure: str = "height", given: ConstraintRecording | None = None,
+    centre: NDArray | None = None, radius: float = 50.0, spacing: float | None = None, sigma: float | None = None,
+    criterion: str = "EIG", repeats: bool = False, min_distance: float = 0.0,
+) -> RelationPlan:
+    """Choose ``n`` heights or distances on a horizontal grid that add the most information.
+
+    Parameters
+    ----------
+    machine : Machine
+        Nominal geometry and tolerances (the prior).
+    n : int
+        Number of relations to plan.
+    measure : {"height", "distance"}
+    given : ConstraintRecording, optional
+        Measurements already taken (their information starts the selection).
+    centre : array_like, shape (3,), optional
+        Grid centre (tool point), mm; default the tool point at the middle of ``q_limits``.
+    radius, spacing : float
+        Grid radius and spacing, mm (spacing default ``radius / 4``).
+    sigma : float, optional
+        One-sigma noise of a planned row, mm; default ``[measurement] sigma_position``.
+    criterion : str
+        Any of :data:`bayescal.design.criteria.CRITERIA`; log-det ones (EIG, D) work from the prior.
+    repeats : bool
+        Allow a relation to be planned twice.
+    min_distance : float
+        Shortest distance candidate, mm.
+    """
+    criterion = check_criterion(criterion)
+    if criterion == "I":
+        raise InputError("criterion I needs workspace tool-point weights; plan relations with EIG, D, A or E")
+    if n < 1:
+        raise InputError(f"n: expected a positive number of measurements, got {n}")
+    if centre is None:
+        centre = machine.forward(machine.home_q()[None, :]).position[0]
+    pts = grid_points(np.asarray(centre, dtype=float), radius, radius / 4 if spacing is None else spacing)
+    cands = relation_candidates(machine, measure, pts, min_distance=min_distance)
+    s_new = machine.noise.sigma_position if sigma is None else sigma
+    A_c, _ = _scaled_rows(machine, cands, s_new)
+    P = machine.n_params
+    M0 = np.eye(P)
+    A_g = np.zeros((0, P))
+    if given is not None:
+        A_g, _ = _scaled_rows(machine, given, None)
+        M0 = M0 + A_g.T @ A_g
+    idx, M = greedy_select(A_c[:, None, :], n, criterion, M0=M0, repeats=repeats)
+    planned = replace(cands.subset(idx), sigma=np.full(len(idx), float(s_new)))
+    A_all = np.vstack([A_g, A_c[idx]])
+    tol = machine.tolerance
+    names, units = machine.layout.names, machine.layout.units
+
+    def fixed(A: NDArray) -> tuple[str, ...]:
+        return analyse_identifiability(A, machine.layout).fixed if A.shape[0] else tuple(names)
+
+    ld0, ld1 = np.linalg.slogdet(M0)[1], np.linalg.slogdet(M)[1]
+    pa = pts[planned.aux["point_a"].astype(int)]
+    pb = (pts[planned.aux["point_b"].astype(int)] if measure == "distance" else np.full((planned.n_rows, 3), np.nan))
+    return RelationPlan(
+        measure=measure, recording=planned, points_a=pa, points_b=pb, names=tuple(names), units=tuple(units),
+        std_prior=tol.copy(), std_given=tol * np.sqrt(np.diag(np.linalg.inv(M0))),
+        std_planned=tol * np.sqrt(np.diag(np.linalg.inv(M))), fixed_given=fixed(A_g), fixed_planned=fixed(A_all),
+        criterion=criterion, utility_given=float(ld0), utility_planned=float(ld1),
+    )
+
+
+def relation_plan_csv(plan: RelationPlan) -> str:
+    """The plan as a constraint-recording CSV with an empty ``value`` column for the user to fill in.
+
+    Aux columns: ``nominal`` (the value the nominal machine predicts, mm) and
+    the nominal tool points ``x_a, y_a, z_a`` (and ``x_b, y_b, z_b`` for
+    distances), mm, so the user knows where to probe or what to measure.
+    The empty ``value`` cells make the file unreadable as a recording until
+    every measurement is entered.
+    """
+    import csv
+    import io
+
+    from ..io.constraints import constraints_to_csv
+
+    rec = plan.recording
+    aux = {"nominal": rec.value.copy()}
+    for k, c in enumerate("xyz"):
+        aux[f"{c}_a"] = plan.points_a[:, k]
+    if plan.measure == "distance":
+        for k, c in enumerate("xyz"):
+            aux[f"{c}_b"] = plan.points_b[:, k]
+    text = constraints_to_csv(replace(rec, aux=aux))
+    rows = list(csv.reader(io.StringIO(text)))
+    j = rows[0].index("value")
+    for r in rows[1:]:
+        r[j] = ""
+    out = io.StringIO()
+    csv.writer(out, lineterminator="\n").writerows(rows)
+    return out.getvalue()

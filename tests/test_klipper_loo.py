@@ -1,0 +1,73 @@
+"""Leave-one-out of Klipper's fit and bayescal's MAP on a simulated Klipper printer (no ../shared data needed)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bayescal.bayes.priors import map_estimate
+from bayescal.constraint_model import ConstraintModel
+from bayescal.design.relations import grid_points, relation_candidates
+from bayescal.io.constraints import ConstraintRecording
+from bayescal.klipper import KlipperDelta, klipper_machine
+from bayescal.klipper_loo import loo_bayescal, loo_klipper, noise_scale_map, rms
+
+NOMINAL = KlipperDelta(
+    delta_radius=105.0, angle_deg=np.array([210.0, 330.0, 90.0]), arm_length=np.full(3, 216.0),
+    position_endstop=np.full(3, 219.0), step_dist=np.full(3, 0.0125), print_radius=90.0, minimum_z=0.0,
+)
+TRUE = replace(NOMINAL, delta_radius=104.2, angle_deg=np.array([210.3, 329.6, 90.0]),
+               arm_length=np.array([216.5, 215.8, 216.3]), position_endstop=np.array([218.7, 219.3, 219.1]))
+
+
+def _pattern_on(kd: KlipperDelta) -> ConstraintRecording:
+    """Klipper-like pattern: 7 heights (centre and a ring) and 12 distances, commanded on the nominal printer."""
+    m = klipper_machine(NOMINAL)
+    ring = [[60 * np.cos(a), 60 * np.sin(a), 0.0] for a in np.deg2rad(np.arange(0, 360, 60))]
+    h = relation_candidates(m, "height", np.array([[0.0, 0.0, 0.0]] + ring))
+    pts = grid_points(np.array([0.0, 0.0, 0.0]), 40.0, 20.0)
+    d = relation_candidates(m, "distance", pts, min_distance=35.0).subset(np.arange(0, 48, 4)[:12])
+    rec = ConstraintRecording(
+        measure=h.measure + d.measure, qa=np.vstack([h.qa, d.qa]), qb=np.vstack([h.qb, d.qb]),
+        value=np.zeros(h.n_rows + d.n_rows), sigma=np.r_[np.full(h.n_rows, 0.02), np.full(d.n_rows, 0.05)],
+    )
+    # the true printer's heights and distances at those commanded positions (Klipper's own model)
+    true = klipper_machine(kd, q_span=rec.qa)
+    return replace(rec, value=ConstraintModel.from_recording(true, rec).predict(None).y[:, 0])
+
+
+@pytest.fixture(scope="module")
+def exact():
+    return _pattern_on(TRUE)
+
+
+def test_klippers_loo_is_exact_when_its_model_is(exact):
+    # noise-free data from a printer Klipper's nine parameters describe: every refit predicts the left-out row
+    assert exact.n_rows == 19
+    r = loo_klipper(NOMINAL, exact, rows=[0, 3, 8, 15])
+    assert rms(r.loo_error) < 1e-5 and rms(r.in_sample) < 1e-6
+    assert np.isnan(r.loo_error[1]) and np.isfinite(r.loo_error[3])
+
+
+def test_bayescal_loo_rows_match_separate_fits(exact):
+    rng = np.random.default_rng(4)
+    noisy = replace(exact, value=exact.value + exact.sigma * rng.normal(size=exact.n_rows))
+    m = klipper_machine(NOMINAL, q_span=exact.qa)
+    r = loo_bayescal(m, noisy, rows=[2, 11])
+    # row 11 by hand: MAP on the other 18, prediction of row 11
+    keep = np.delete(np.arange(noisy.n_rows), 11)
+    theta = map_estimate(ConstraintModel.from_recording(m, noisy.subset(keep)), free="all").theta
+    pred = ConstraintModel.from_recording(m, noisy.subset([11])).predict(theta).y[0, 0]
+    assert abs(r.loo_error[11] - (noisy.value[11] - pred)) < 1e-9
+    # the prior keeps 21 parameters from 18 rows sensible: errors at the noise level, not millimetres
+    assert rms(r.loo_error) < 0.3
+
+
+def test_noise_scale_is_estimated_and_floored_at_one(exact):
+    m = klipper_machine(NOMINAL, q_span=exact.qa)
+    rng = np.random.default_rng(7)
+    noisy = replace(exact, value=exact.value + 6.0 * exact.sigma * rng.normal(size=exact.n_rows))
+    _, s = noise_scale_map(m, noisy)
+    assert 3.0 < s < 12.0
+    _, s1 = noise_scale_map(m, exact)
+    assert s1 == 1.0
