@@ -7,8 +7,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from ..effects.stored import machine_file_text
-from .outputs import write_json, write_machine, write_report
+from .outputs import write_calibrated_machine, write_json, write_report
 
 __all__ = ["add_arguments", "run_bayes", "METHODS"]
 
@@ -80,7 +79,7 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
     if may_write_machine(args, res, plaus):
-        write_machine(args, machine_file_text(machine, res.theta))  # [effect.*] and [instrument] kept
+        write_calibrated_machine(args, machine, res.theta)  # [effect.*] and [instrument] kept
     write_report(args, "identify", res, machine=machine, model=base_model)
     made = []
     if args.figures:

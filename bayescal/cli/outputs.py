@@ -114,3 +114,31 @@ def write_report(args: argparse.Namespace, kind: str, result, **extra) -> Path |
     out = write_text_atomic(path, html)
     say(args, f"wrote {out} (HTML report; open it in a browser)")
     return out
+
+
+def write_calibrated_machine(args: argparse.Namespace, machine, theta) -> Path | None:
+    """Write the calibrated machine (``nominal + theta``) to ``args.write_machine`` and say so.
+
+    Every kind is one file (its ``[effect.*]`` and ``[instrument]`` tables
+    kept), except a hybrid machine, which is written in FORMATS.md section
+    5's file-per-module form (``<stem>.m<k>.toml`` beside it, listed with
+    ``file = ...``) so that any reader of that format reads it; its
+    ``[instrument]`` table, if any, goes into the main file.
+    """
+    if not getattr(args, "write_machine", None):
+        return None
+    from ..effects.stored import machine_file_text
+    from ..machines.framed import InstrumentFrame, instrument_toml
+    from ..machines.hybrid import Hybrid, write_machine_files
+
+    inner = machine.machine if isinstance(machine, InstrumentFrame) else machine
+    if not isinstance(inner, Hybrid):
+        return write_machine(args, machine_file_text(machine, theta))
+    th = machine.check_theta(theta)
+    framed = isinstance(machine, InstrumentFrame)
+    paths = write_machine_files(args.write_machine, inner, th[machine.n_frame:] if framed else th)
+    if framed:
+        main = paths[0]
+        write_text_atomic(main, main.read_text().rstrip("\n") + "\n\n" + instrument_toml(machine.frame_at(th)))
+    say(args, f"wrote {', '.join(str(p) for p in paths)} (calibrated hybrid machine: main file and one file per module)")
+    return paths[0]

@@ -204,9 +204,8 @@ def check_frame(machine: Machine, rec: Recording) -> FrameCheck | None:
 
 def nom_subset(poses, mask):
     """The solved poses ``mask`` (state fields indexed too)."""
-    from ..machines.base import ToolPoses
+    from ..machines.base import ToolPoses, map_state
 
-    st = poses.state
-    sub = type(st)(**{k: getattr(st, k)[mask] for k in st.__dataclass_fields__}) if st is not None and hasattr(st, "__dataclass_fields__") else st
+    sub = map_state(lambda a: a[mask], poses.state)  # any kind's state, nested ones (hybrid) included
     return ToolPoses(poses.position[mask], poses.rotation[mask], poses.success[mask],
                      tuple(np.asarray(poses.message, dtype=object)[mask]), sub)
