@@ -50,9 +50,13 @@ class LinearisedModel:
     theta_ref: NDArray
     y_measured: NDArray | None = None
     pose_sigma: NDArray | None = None
+    noise_sigma: NDArray | None = None  # the linearised model's sigma when it is not MeasurementModel's (constraint rows)
 
     # the parts of MeasurementModel that only use rows, sigma and dof
-    sigma = MeasurementModel.sigma
+    @property
+    def sigma(self) -> NDArray:
+        return self.noise_sigma if self.noise_sigma is not None else MeasurementModel.sigma.fget(self)
+
     row_sigma = MeasurementModel.row_sigma
     residual = MeasurementModel.residual
     errors = MeasurementModel.errors
@@ -95,7 +99,7 @@ class LinearisedModel:
         return LinearisedModel(
             self.machine, self.q[idx], self.dof, self.y0[idx], self.J[idx], self.theta_ref,
             None if self.y_measured is None else self.y_measured[idx],
-            None if self.pose_sigma is None else self.pose_sigma[idx],
+            None if self.pose_sigma is None else self.pose_sigma[idx], self.noise_sigma,
         )
 
     def with_measured(self, y: ArrayLike) -> "LinearisedModel":
@@ -103,7 +107,8 @@ class LinearisedModel:
         y = np.asarray(y, dtype=float)
         if y.shape != self.y0.shape:
             raise InputError(f"y: expected shape {self.y0.shape}, got {y.shape}")
-        return LinearisedModel(self.machine, self.q, self.dof, self.y0, self.J, self.theta_ref, y, self.pose_sigma)
+        return LinearisedModel(self.machine, self.q, self.dof, self.y0, self.J, self.theta_ref, y, self.pose_sigma,
+                               self.noise_sigma)
 
 
 def linearise(model, theta_ref: ArrayLike | None = None) -> LinearisedModel:
@@ -116,6 +121,7 @@ def linearise(model, theta_ref: ArrayLike | None = None) -> LinearisedModel:
     return LinearisedModel(
         model.machine, np.asarray(model.q), model.dof, pred.y, model.jacobian(ref, pred), ref, model.y_measured,
         getattr(model, "pose_sigma", None),
+        None if isinstance(model, MeasurementModel) else np.asarray(model.sigma),
     )
 
 

@@ -82,6 +82,11 @@ def register(sub) -> None:
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
+    p.add_argument(
+        "--write-klipper", metavar="PATH",
+        help="linear-delta only: write the calibrated geometry in Klipper's keys (delta_radius, angle, arm_length, "
+        "position_endstop) for printer.cfg",
+    )
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_arguments(p)
     p.set_defaults(func=run)
@@ -108,7 +113,9 @@ def _k_arg(text: str):
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
 
-    machine, rec, model = recording_model(args)
+    machine, rec, model = recording_model(args, constraints=True)
+    if args.write_klipper and machine.kind != "linear-delta":
+        raise InputError(f"--write-klipper: Klipper's delta keys describe a linear-delta machine; {args.machine} is a {machine.kind}")
     free = free_arg(args.free)
     if args.method == "ridge" and args.lam is None:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
@@ -126,12 +133,20 @@ def run(args) -> int:
         choice, res = choose_regularisation(model, args.method, rule=args.rule, free=free, max_iter=args.max_iter)
     else:
         res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
+    if hasattr(model, "pivot_positions"):  # a constraint recording's fitted ballbar pivots
+        import dataclasses
+
+        res = dataclasses.replace(res, extras={**res.extras, "pivots": model.pivot_positions(res.theta)})
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
     if args.json:
         write_json_atomic(args.json, res.to_dict())
     if args.write_machine and res.success:
-        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta))  # [effect.*] kept
+        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta[: machine.n_params]))  # [effect.*] kept; without ballbar pivots
+    if args.write_klipper and res.success:
+        from ..klipper import klipper_text
+
+        write_text_atomic(args.write_klipper, klipper_text(machine, res.theta[: machine.n_params]))
     path = None
     if choice is not None and args.figures:
         from ..plots.regularisation import plot_choice
@@ -147,4 +162,6 @@ def run(args) -> int:
             print(f"\nwrote {path}")
         if args.write_machine and not res.success:
             print(f"\nnot writing {args.write_machine}: the identification did not succeed")
+        if args.write_klipper and not res.success:
+            print(f"\nnot writing {args.write_klipper}: the identification did not succeed")
     return EXIT_OK if res.success else EXIT_FAILED

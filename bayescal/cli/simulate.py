@@ -74,6 +74,13 @@ def register(sub) -> None:
         help="where to write the truth JSON, the answer of this command (default: OUT with .truth.json); "
         "the true machine file goes beside it with suffix .toml",
     )
+    p.add_argument(
+        "--ballbar", type=float, metavar="RADIUS",
+        help="record a ballbar session instead (FORMATS.md section 6): --poses readings per circle of RADIUS mm "
+        "about --pivot, one circle per plane of --planes, written as ballbar rows",
+    )
+    p.add_argument("--pivot", metavar="X,Y,Z", help="ballbar pivot, base frame, mm (default: the tool point at the middle of q_limits)")
+    p.add_argument("--planes", default="xy", help="ballbar circle planes, comma-separated from xy, xz, yz (default xy)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
 
@@ -87,6 +94,8 @@ def run(args) -> int:
     if not args.tolerance_scale > 0:
         raise InputError(f"--tolerance-scale: expected a positive number, got {args.tolerance_scale}")
     aux = name_list(args.aux)
+    if args.ballbar is not None:
+        return _run_ballbar(args, machine)
     # a machine file's [effect.*] tables act on the simulated machine, driven by the recorded channels
     stored = []
     if machine.effects:
@@ -118,4 +127,34 @@ def run(args) -> int:
             f"position error of the nominal model on these poses: RMS {np.sqrt(np.mean(err**2)):.4f} mm, "
             f"max {err.max():.4f} mm"
         )
+    return EXIT_OK
+
+
+def _run_ballbar(args, machine) -> int:
+    """``simulate --ballbar``: circles about a pivot, read as distances (a constraint recording)."""
+    from . import EXIT_OK
+    from ..io.constraints import write_constraints
+    from ..simulate_constraints import simulate_ballbar
+
+    if args.effect or args.aux or args.dof != 6:
+        raise InputError("--ballbar records distances to a pivot; it does not take --effect, --aux or --dof")
+    pivot = None
+    if args.pivot:
+        try:
+            pivot = [float(v) for v in args.pivot.split(",")]
+        except ValueError:
+            pivot = []
+        if len(pivot) != 3:
+            raise InputError(f"--pivot: expected X,Y,Z in mm, got {args.pivot!r}")
+    sim = simulate_ballbar(
+        machine, args.ballbar, n_points=args.poses, pivot=pivot, planes=tuple(name_list(args.planes)), seed=args.seed,
+        tolerance=machine.tolerance * args.tolerance_scale,
+    )
+    out = Path(args.out)
+    truth = Path(args.truth) if args.truth else out.with_suffix(".truth.json")
+    write_constraints(out, sim.recording)
+    write_json_atomic(truth, {"machine": machine.name, "measure": "ballbar", **sim.truth_dict(machine)})
+    write_text_atomic(truth.with_suffix(".toml"), machine.to_toml(sim.theta_true))
+    if not args.quiet:
+        print(f"wrote {out} ({sim.recording.n_rows} ballbar readings of {args.ballbar:g} mm), truth {truth}")
     return EXIT_OK

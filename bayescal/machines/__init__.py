@@ -8,6 +8,7 @@ from ..errors import MachineFileError
 from ..io.machine_file import read_toml
 from .base import Machine, MeasurementNoise, ToolPoses
 from .check import MachineCheckError, check_machine
+from .linear_delta import LinearDelta
 from .prs3 import Prs3
 from .raspm import Raspm
 from .rupus_prs import RupusPrs
@@ -15,12 +16,15 @@ from .hybrid import Hybrid, write_machine_files
 from .serial import Serial
 
 __all__ = [
-    "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "Serial", "Hybrid", "KINDS", "load_machine",
-    "machine_from_text", "write_machine_files", "check_machine", "MachineCheckError",
+    "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "Serial", "Hybrid", "LinearDelta", "KINDS",
+    "load_machine", "machine_from_text", "write_machine_files", "check_machine", "MachineCheckError",
 ]
 
 #: Machine kinds by the ``kind`` string of the machine file.
-KINDS: dict[str, type[Machine]] = {Prs3.kind: Prs3, RupusPrs.kind: RupusPrs, Raspm.kind: Raspm, Serial.kind: Serial, Hybrid.kind: Hybrid}
+KINDS: dict[str, type[Machine]] = {
+    Prs3.kind: Prs3, RupusPrs.kind: RupusPrs, Raspm.kind: Raspm, Serial.kind: Serial, Hybrid.kind: Hybrid,
+    LinearDelta.kind: LinearDelta,
+}
 
 
 def _build(doc, path: str) -> Machine:

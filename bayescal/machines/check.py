@@ -42,8 +42,9 @@ KNOWN_UNITS = frozenset({"mm", "rad"})
 #: hybrid machine prefixes its modules' names with ``m<k>.``.
 # chain<i>.<key>[.<component>]; a key may itself be a dotted path into a sub-table of the chain
 # (the redundant module's `chain3.slider2.rail_origin.x`)
+# (a linear delta names its chains `tower<i>`, as its machine file does)
 PARAM_NAME = re.compile(
-    r"^(m[1-9][0-9]*\.)*(chain[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,3}|joint[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,2}"
+    r"^(m[1-9][0-9]*\.)*((chain|tower)[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,3}|joint[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,2}"
     r"|tool\.(point|rpy)\.[a-z][a-z0-9_]*)$"
 )
 

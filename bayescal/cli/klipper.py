@@ -1,0 +1,86 @@
+"""``bayescal klipper``: a Klipper delta printer's config and saved calibration as machine file and recording."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..io import write_json_atomic, write_text_atomic
+from ..io.constraints import constraints_to_csv
+
+HELP = """\
+Read a Klipper printer.cfg of a linear delta printer with a saved
+DELTA_CALIBRATE (the [delta_calibrate] entries height0, height0_pos, ...,
+distance0, distance0_pos1, distance0_pos2, ... in the SAVE_CONFIG block at
+the end of the file) and write
+
+  DIR/machine.toml    the linear-delta machine of the config's geometry
+                      ([printer] delta_radius, [stepper_a/b/c] angle,
+                      arm_length, position_endstop), kind = "linear-delta";
+  DIR/recording.csv   the probe heights and the printed-object distances as
+                      a constraint recording (FORMATS.md section 6).
+
+Stable positions (microsteps below each endstop) become carriage travel in
+mm with step_dist = rotation_distance / (full_steps_per_rotation *
+microsteps): q_i = -steps_i * step_dist_i.  Then run
+`bayescal identify DIR/recording.csv --machine DIR/machine.toml` and, to
+paste the result into printer.cfg, add --write-klipper PATH.  See docs/delta.md.
+"""
+
+EXAMPLES = """\
+examples:
+  bayescal klipper printer.cfg --out calib/
+  bayescal identify calib/recording.csv --machine calib/machine.toml --method map --write-klipper calib/klipper.cfg
+"""
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "klipper", help="read a Klipper delta printer.cfg with a saved calibration", description=HELP, epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("config", help="Klipper printer.cfg (with its SAVE_CONFIG block)")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for machine.toml and recording.csv")
+    p.add_argument("--sigma-height", type=float, default=None, help="one-sigma noise of a probe height, mm (default 0.02)")
+    p.add_argument("--sigma-distance", type=float, default=None, help="one-sigma noise of a caliper distance, mm (default 0.05)")
+    p.add_argument("--json", metavar="PATH", help="write a summary (geometry read, step distances, counts, files) as JSON")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..errors import InputError
+    from ..io.klipper_cfg import read_klipper_config
+    from ..klipper import SIGMA_DISTANCE, SIGMA_HEIGHT, klipper_machine, klipper_recording, read_klipper_delta
+    from . import EXIT_OK
+
+    sh = SIGMA_HEIGHT if args.sigma_height is None else args.sigma_height
+    sd = SIGMA_DISTANCE if args.sigma_distance is None else args.sigma_distance
+    for flag, v in (("--sigma-height", sh), ("--sigma-distance", sd)):
+        if not v > 0:
+            raise InputError(f"{flag}: expected a positive number of mm, got {v!r}")
+    cfg = read_klipper_config(args.config)
+    kd = read_klipper_delta(cfg)
+    rec = klipper_recording(cfg, kd, sigma_height=sh, sigma_distance=sd)
+    import numpy as np
+
+    span = np.vstack([rec.qa, rec.qb[np.isfinite(rec.qb).all(axis=1)]])
+    machine = klipper_machine(kd, name=f"Klipper delta {Path(args.config).name}", q_span=span)
+    out = Path(args.out)
+    write_text_atomic(out / "machine.toml", machine.to_toml())
+    write_text_atomic(out / "recording.csv", constraints_to_csv(rec))
+    n_h = sum(m == "height" for m in rec.measure)
+    if args.json:
+        write_json_atomic(args.json, {
+            "machine": machine.name, "config": str(args.config), "delta_radius": kd.delta_radius,
+            "angle_deg": kd.angle_deg, "arm_length": kd.arm_length, "position_endstop": kd.position_endstop,
+            "step_dist": kd.step_dist, "n_heights": n_h, "n_distances": rec.n_rows - n_h,
+            "files": {"machine": str(out / "machine.toml"), "recording": str(out / "recording.csv")},
+        })
+    if not args.quiet:
+        print(
+            f"wrote {out / 'machine.toml'} (linear-delta, delta_radius {kd.delta_radius:g} mm, step_dist "
+            f"{', '.join(f'{s:g}' for s in kd.step_dist)} mm) and {out / 'recording.csv'} "
+            f"({n_h} heights, {rec.n_rows - n_h} distances)"
+        )
+    return EXIT_OK

@@ -1,0 +1,409 @@
+"""Measurement model of constraint recordings: distances, heights and ballbar readings.
+
+One scalar row per measurement (``dof = 1``), for any machine kind:
+
+    distance:  h = |x(q_a) - x(q_b)|
+    height:    h = e_z . x(q_a)
+    ballbar:   h = |x(q_a) - c_k|
+
+with ``x(q)`` the tool point in the base frame and ``c_k`` the fitted pivot
+of the row.  The parameter vector is the machine's geometric errors followed
+by three coordinates per pivot (``pivot.<id>.x``, ``.y``, ``.z``, mm,
+relative to the pivot's start estimate, :attr:`ConstraintModel.pivot_start`).
+The Jacobian rows are the chain rule on the machine's analytic
+``tool_jacobian``:
+
+    distance:  n_ab^T (J_a - J_b),   n_ab = (x_a - x_b) / |x_a - x_b|
+    height:    e_z^T J_a
+    ballbar:   n^T J_a for the machine, -n^T for the pivot,  n = (x_a - c) / |x_a - c|
+
+The model exposes what consumers use of
+:class:`bayescal.measurement.MeasurementModel` (``predict``, ``jacobian``,
+``residual``, ``sigma``, ``subset``, ``rms``, ``n_poses``, ``n_params``,
+``q``, ``aux``, ``machine``), so identification works on it unchanged.  Its
+``machine`` is a :class:`PivotAugmented` view: the machine's layout and
+tolerances plus the pivots'.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import InputError, RecordingError
+from .io.constraints import ConstraintRecording
+from .machines.base import Machine, ToolPoses
+from .params import ParamLayout, ParamSpec
+
+__all__ = ["ConstraintModel", "ConstraintPrediction", "PivotAugmented", "PIVOT_TOLERANCE"]
+
+#: One-sigma scale (mm) of a pivot's correction to its start estimate: column scaling and ridge prior.
+PIVOT_TOLERANCE = 1.0
+_CODES = {"distance": 0, "height": 1, "ballbar": 2}
+
+
+@dataclass(frozen=True, eq=False)
+class PivotAugmented:
+    """A machine's parameter layout extended by ballbar pivots.
+
+    Identification reads ``name``, ``kind``, ``layout``, ``tolerance``,
+    ``noise``, ``n_params`` and ``to_toml`` from the model's machine; this
+    view gives them for machine plus pivots.  ``base`` is the machine.
+    """
+
+    base: Machine
+    pivot_ids: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        specs = [ParamSpec(f"pivot.{p}.{c}", "mm", "pivot") for p in self.pivot_ids for c in "xyz"]
+        object.__setattr__(self, "layout", self.base.layout + ParamLayout(tuple(specs)))
+        tol = np.concatenate([self.base.tolerance, np.full(len(specs), PIVOT_TOLERANCE)])
+        object.__setattr__(self, "tolerance", tol)
+
+    def __getattr__(self, name):
+        # everything else (name, kind, noise, q_limits, source, ...) is the machine's
+        if name == "base" or name.startswith("__"):
+            raise AttributeError(name)  # not set yet (copy, pickle): no recursion
+        return getattr(self.base, name)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.layout)
+
+    def check_theta(self, theta, n_poses=None) -> NDArray:
+        if theta is None:
+            return np.zeros(self.n_params)
+        theta = np.asarray(theta, dtype=float)
+        if theta.ndim not in (1, 2) or theta.shape[-1] != self.n_params:
+            raise InputError(f"theta: expected shape ({self.n_params},) or (n, {self.n_params}), got {theta.shape}")
+        return theta
+
+    def _machine_theta(self, theta):
+        return None if theta is None else np.asarray(theta, dtype=float)[..., : self.base.n_params]
+
+    def forward(self, q, theta=None, *, guess=None) -> ToolPoses:
+        """The machine's tool poses (pivots do not move the tool)."""
+        return self.base.forward(q, self._machine_theta(theta), guess=guess)
+
+    def tool_jacobian(self, q, theta, poses) -> NDArray:
+        """The machine's tool Jacobian with zero columns for the pivots, shape (n, 6, P + 3K)."""
+        J = self.base.tool_jacobian(q, self._machine_theta(theta), poses)
+        return np.concatenate([J, np.zeros(J.shape[:2] + (self.n_params - self.base.n_params,))], axis=2)
+
+    def to_toml(self, theta: ArrayLike | None = None) -> str:
+        """The calibrated machine file (pivots are not part of the machine)."""
+        theta = self.check_theta(theta)
+        return self.base.to_toml(theta[: self.base.n_params])
+
+
+@dataclass(frozen=True)
+class ConstraintPrediction:
+    """Model output: ``y`` (n_rows, 1) and the solved poses (a poses, then b poses of distance rows)."""
+
+    y: NDArray
+    poses: ToolPoses
+    row_success: NDArray
+
+    @property
+    def success(self) -> NDArray:
+        """Per measurement row: both of its poses solved."""
+        return self.row_success
+
+
+@dataclass(frozen=True, eq=False)
+class ConstraintModel:
+    """``h(theta)`` for a list of distance, height and ballbar measurements.
+
+    Parameters
+    ----------
+    machine : Machine
+    measure : tuple of str
+        ``distance``, ``height`` or ``ballbar`` per row.
+    qa, qb : ndarray, shape (n, N)
+        Actuator positions of poses a and b (qb used on distance rows only).
+    pivot : tuple of str
+        Pivot id per row (``""`` unless ballbar).
+    pivot_start : ndarray, shape (K, 3), optional
+        Start estimates of the pivots (mm, base frame), in the order of
+        first appearance; estimated from the nominal machine if omitted.
+    y_measured : ndarray, shape (n, 1), optional
+    pose_sigma : ndarray, shape (n, 1) or (n,), optional
+        Per-row one-sigma noise (the ``sigma_position`` column), mm; the
+        machine's ``[measurement] sigma_position`` for every row by default.
+    aux : dict, optional
+    pivot_order : tuple of str, optional
+        The pivots' order in the parameter vector (default: first appearance);
+        subsets keep the full model's.
+    """
+
+    base: Machine
+    measure: tuple[str, ...]
+    qa: NDArray
+    qb: NDArray
+    pivot: tuple[str, ...]
+    pivot_start: NDArray | None = None
+    y_measured: NDArray | None = None
+    pose_sigma: NDArray | None = None
+    aux: dict = field(default_factory=dict)
+    pivot_order: tuple[str, ...] = ()
+    dof: int = 1
+
+    def __post_init__(self) -> None:
+        qa = self.base.check_q(self.qa)
+        object.__setattr__(self, "qa", qa)
+        object.__setattr__(self, "qb", np.asarray(self.qb, dtype=float).reshape(qa.shape))
+        codes = np.array([_CODES[m] for m in self.measure], dtype=int)
+        object.__setattr__(self, "_codes", codes)
+        ids = self.pivot_order or tuple(dict.fromkeys(p for p in self.pivot if p))
+        unknown = sorted({p for p in self.pivot if p} - set(ids))
+        if unknown:
+            raise InputError(f"pivot ids {unknown} are not in pivot_order {list(ids)}")
+        object.__setattr__(self, "pivot_ids", ids)
+        object.__setattr__(self, "_pivot_index", np.array([ids.index(p) if p else -1 for p in self.pivot], dtype=int))
+        object.__setattr__(self, "machine", PivotAugmented(self.base, ids))
+        object.__setattr__(self, "_dist", np.flatnonzero(codes == 0))
+        if self.pivot_start is None:
+            object.__setattr__(self, "pivot_start", self._estimate_pivots())
+        if self.y_measured is not None:
+            y = np.asarray(self.y_measured, dtype=float).reshape(self.n_poses, 1)
+            object.__setattr__(self, "y_measured", y)
+        if self.pose_sigma is not None:
+            ps = np.asarray(self.pose_sigma, dtype=float).reshape(self.n_poses, 1)
+            if not np.all(np.isfinite(ps)) or np.any(ps <= 0):
+                raise InputError("pose_sigma: expected finite values > 0")
+            object.__setattr__(self, "pose_sigma", ps)
+
+    # ----------------------------------------------------------- construction
+    @classmethod
+    def from_recording(cls, machine: Machine, rec: ConstraintRecording, *, dof: int | None = None) -> "ConstraintModel":
+        """The model of a constraint recording (checked against the machine's actuators and ``q_limits``)."""
+        if dof not in (None, 1):
+            raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
+        rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
+        model = cls(
+            base=machine, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot,
+            y_measured=rec.value[:, None], pose_sigma=rec.sigma, aux=dict(rec.aux),
+        )
+        pred = model.predict(None)
+        if not pred.success.all():
+            i = int(np.flatnonzero(~pred.success)[0])
+            raise RecordingError(
+                rec.path, i + 2, None,
+                f"the machine {machine.source} cannot assemble this row's pose(s) at its nominal geometry "
+                f"({pred.poses.message[i]}); expected poses of this machine, in its units",
+            )
+        return model
+
+    def _estimate_pivots(self) -> NDArray:
+        """Start estimates: per pivot, the sphere through the nominal tool points with the measured radii.
+
+        ``|x - c|^2 = rho^2`` is linear in ``(c, |c|^2)``; for points in one
+        plane the pivot's offset from that plane is not seen (first order),
+        and the minimum-norm solution about the points' centroid puts it in
+        the plane.  Without measured radii the centroid is the start.
+        """
+        K = len(self.pivot_ids)
+        out = np.zeros((K, 3))
+        if K == 0:
+            return out
+        pos = self.base.forward(self.qa).position
+        for k in range(K):
+            rows = np.flatnonzero(self._pivot_index == k)
+            x = pos[rows]
+            m = x.mean(axis=0)
+            if self.y_measured is None or rows.size < 4:
+                out[k] = m
+                continue
+            xc = x - m
+            rho = np.asarray(self.y_measured, dtype=float).reshape(-1)[rows]
+            # 2 x.c - s = |x|^2 - rho^2, s = |c|^2 (coordinates about the centroid)
+            A = np.column_stack([2 * xc, -np.ones(rows.size)])
+            sol, *_ = np.linalg.lstsq(A, np.einsum("ij,ij->i", xc, xc) - rho**2, rcond=1e-10)
+            out[k] = m + sol[:3] if np.all(np.isfinite(sol)) else m
+        return out
+
+    # ------------------------------------------------------------- properties
+    @property
+    def n_poses(self) -> int:
+        """Number of measurement rows (the consumers' "poses")."""
+        return self.qa.shape[0]
+
+    @property
+    def n_params(self) -> int:
+        return self.machine.n_params
+
+    @property
+    def q(self) -> NDArray:
+        """Actuator positions of pose a per row (for messages and pose-region diagnostics)."""
+        return self.qa
+
+    @property
+    def guess(self) -> None:
+        return None
+
+    @property
+    def sigma(self) -> NDArray:
+        """The instrument's nominal one-sigma noise of a row, shape (1,), mm (``[measurement] sigma_position``)."""
+        return np.array([self.base.noise.sigma_position])
+
+    @property
+    def row_sigma(self) -> NDArray:
+        """One-sigma noise of every row, shape (n_rows, 1), mm: :attr:`pose_sigma` where given, else :attr:`sigma`.
+
+        Everything that whitens residuals divides by this (as for
+        :attr:`bayescal.measurement.MeasurementModel.row_sigma`).
+        """
+        if self.pose_sigma is not None:
+            return self.pose_sigma
+        return np.broadcast_to(self.sigma, (self.n_poses, 1))
+
+    def with_pose_sigma(self, pose_sigma: NDArray | None) -> "ConstraintModel":
+        """The same model with other per-row noise (None: the machine's)."""
+        from dataclasses import replace
+
+        return replace(self, pose_sigma=pose_sigma)
+
+    @property
+    def measure_codes(self) -> NDArray:
+        return self._codes
+
+    def subset(self, idx) -> "ConstraintModel":
+        """The model restricted to rows ``idx`` (order kept; the pivots and their starts stay)."""
+        idx = np.asarray(idx)
+        rows = np.arange(self.n_poses)[idx]
+        return ConstraintModel(
+            base=self.base, measure=tuple(self.measure[i] for i in rows), qa=self.qa[idx], qb=self.qb[idx],
+            pivot=tuple(self.pivot[i] for i in rows), pivot_start=self.pivot_start, pivot_order=self.pivot_ids,
+            y_measured=None if self.y_measured is None else self.y_measured[idx],
+            pose_sigma=None if self.pose_sigma is None else self.pose_sigma[idx],
+            aux={k: v[idx] for k, v in self.aux.items()},
+        )
+
+    # ---------------------------------------------------------------- the model
+    def _split(self, theta: ArrayLike | None):
+        """Machine theta per stacked pose, pivots per row, and the number of stacked blocks."""
+        P, n = self.base.n_params, self.n_poses
+        theta = np.zeros(self.n_params) if theta is None else np.asarray(theta, dtype=float)
+        if theta.shape[-1] != self.n_params or theta.ndim not in (1, 2):
+            raise InputError(f"theta: expected shape ({self.n_params},) or (n, {self.n_params}), got {theta.shape}")
+        K = len(self.pivot_ids)
+        if theta.ndim == 1:
+            blocks = 1
+            th_m = theta[:P]
+            piv = np.broadcast_to(self.pivot_start + theta[P:].reshape(K, 3), (1, K, 3))
+            return th_m, piv, blocks
+        if theta.shape[0] % n:
+            raise InputError(f"theta: {theta.shape[0]} rows is not a multiple of {n} measurements")
+        blocks = theta.shape[0] // n
+        th = theta.reshape(blocks, n, -1)
+        rows = np.concatenate([np.arange(n), self._dist])
+        th_m = th[:, rows, :P].reshape(-1, P)
+        piv = self.pivot_start[None, None] + th[:, :, P:].reshape(blocks, n, K, 3)  # per row
+        return th_m, piv, blocks
+
+    def _stacked_q(self, blocks: int) -> NDArray:
+        Q = np.vstack([self.qa, self.qb[self._dist]])
+        return np.tile(Q, (blocks, 1)) if blocks > 1 else Q
+
+    def _row_pivots(self, piv: NDArray, blocks: int) -> NDArray:
+        """Pivot of each row, shape (blocks, n, 3) (zeros on non-ballbar rows)."""
+        n = self.n_poses
+        k = np.maximum(self._pivot_index, 0)
+        if piv.ndim == 3:  # (1, K, 3): one pivot set
+            out = np.broadcast_to(piv[0][k], (blocks, n, 3)) if len(self.pivot_ids) else np.zeros((blocks, n, 3))
+        else:  # (blocks, n, K, 3): per-row parameter sets
+            out = piv[:, np.arange(n), k] if len(self.pivot_ids) else np.zeros((blocks, n, 3))
+        return out
+
+    def predict(self, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> ConstraintPrediction:
+        """``h(theta)``, shape (n_rows, 1) (``n_sets * n_rows`` for stacked parameter sets), mm.
+
+        Parameters
+        ----------
+        theta : array_like, shape (P,), (n, P) or (n_sets * n, P)
+            Machine errors then pivot corrections.
+        guess : ToolPoses, optional
+            An earlier prediction's ``poses`` (warm start).
+        """
+        th_m, piv, blocks = self._split(theta)
+        Q = self._stacked_q(blocks)
+        if guess is not None and guess.position.shape[0] != Q.shape[0]:
+            guess = None
+        poses = self.base.forward(Q, th_m, guess=guess)
+        n, nd = self.n_poses, self._dist.size
+        M = n + nd
+        pos = poses.position.reshape(blocks, M, 3)
+        ok = poses.success.reshape(blocks, M)
+        xa = pos[:, :n]
+        y = np.empty((blocks, n))
+        c = self._codes
+        row_ok = ok[:, :n].copy()
+        if nd:
+            xb = pos[:, n:]
+            y[:, self._dist] = np.linalg.norm(xa[:, self._dist] - xb, axis=2)
+            row_ok[:, self._dist] &= ok[:, n:]
+        h = c == 1
+        y[:, h] = xa[:, h, 2]
+        b = c == 2
+        if b.any():
+            cp = self._row_pivots(piv, blocks)
+            y[:, b] = np.linalg.norm(xa[:, b] - cp[:, b], axis=2)
+        msgs = list(poses.message)
+        for j in range(blocks):
+            for r, i in enumerate(self._dist):
+                mb = poses.message[j * M + n + r]
+                if mb and not msgs[j * M + i]:
+                    msgs[j * M + i] = f"pose b: {mb}"
+        poses = ToolPoses(poses.position, poses.rotation, poses.success, tuple(msgs), poses.state)
+        return ConstraintPrediction(y=y.reshape(-1, 1), poses=poses, row_success=row_ok.reshape(-1))
+
+    def jacobian(self, theta: ArrayLike | None, prediction: ConstraintPrediction) -> NDArray:
+        """``dh/dtheta``, shape (n_rows, 1, P + 3K), analytic (chain rule on ``tool_jacobian``)."""
+        th_m, piv, blocks = self._split(theta)
+        Q = self._stacked_q(blocks)
+        Jt = self.base.tool_jacobian(Q, th_m, prediction.poses)[:, :3, :]
+        n, nd, P = self.n_poses, self._dist.size, self.base.n_params
+        M = n + nd
+        Jt = Jt.reshape(blocks, M, 3, P)
+        pos = prediction.poses.position.reshape(blocks, M, 3)
+        xa, Ja = pos[:, :n], Jt[:, :n]
+        J = np.zeros((blocks, n, self.n_params))
+        c = self._codes
+        if nd:
+            d = xa[:, self._dist] - pos[:, n:]
+            u = d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-300)
+            J[:, self._dist, :P] = np.einsum("bri,brip->brp", u, Ja[:, self._dist] - Jt[:, n:])
+        h = c == 1
+        J[:, h, :P] = Ja[:, h, 2]
+        b = np.flatnonzero(c == 2)
+        if b.size:
+            cp = self._row_pivots(piv, blocks)
+            d = xa[:, b] - cp[:, b]
+            u = d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-300)
+            J[:, b, :P] = np.einsum("bri,brip->brp", u, Ja[:, b])
+            for r, i in enumerate(b):
+                k = self._pivot_index[i]
+                J[:, i, P + 3 * k : P + 3 * k + 3] = -u[:, r]
+        return J.reshape(-1, 1, self.n_params)
+
+    def residual(self, prediction: ConstraintPrediction) -> NDArray:
+        """``y_measured - h``, shape (n_rows, 1), mm."""
+        if self.y_measured is None:
+            raise InputError("this constraint model has no measured values")
+        return self.y_measured - prediction.y
+
+    def errors(self, residual: NDArray) -> tuple[NDArray, None]:
+        """Per-row absolute error (mm) and no orientation error."""
+        return np.abs(residual[:, 0]), None
+
+    def rms(self, residual: NDArray) -> dict[str, float | None]:
+        """``{"position": RMS of the row residuals (mm), "angle": None}`` (distances and heights are lengths)."""
+        return {"position": float(np.sqrt(np.mean(residual[:, 0] ** 2))), "angle": None}
+
+    def pivot_positions(self, theta: ArrayLike) -> dict[str, list[float]]:
+        """Fitted pivot positions (base frame, mm) by id."""
+        theta = np.asarray(theta, dtype=float)
+        P = self.base.n_params
+        return {p: (self.pivot_start[k] + theta[P + 3 * k : P + 3 * k + 3]).tolist() for k, p in enumerate(self.pivot_ids)}

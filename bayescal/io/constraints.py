@@ -1,0 +1,256 @@
+"""Constraint recordings: distances, heights and ballbar readings (CSV, FORMATS.md section 6).
+
+One row per measurement:
+
+* ``measure``: ``distance`` (between the tool points of poses a and b),
+  ``height`` (z of the tool point of pose a, base frame) or ``ballbar``
+  (distance from the tool point of pose a to a fixed pivot that is fitted;
+  one pivot per recording, or one per value of the optional ``pivot`` column);
+* ``a_q1`` ... ``a_qN``: actuator positions of pose a;
+* ``b_q1`` ... ``b_qN``: of pose b (``distance`` only, empty otherwise);
+* ``value``: the measured distance or height, mm;
+* optional ``pivot`` (an id of letters, digits, ``_`` or ``-``) and
+  ``sigma_position`` (mm, the one-sigma noise of ``value``);
+* anything else: numeric auxiliary channels.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import RecordingError
+from .answers import write_text_atomic
+from .recording import check_q_limits, parse_number, read_csv_rows
+
+__all__ = [
+    "ConstraintRecording", "read_constraints", "write_constraints", "constraints_to_csv",
+    "is_constraint_recording", "MEASURES",
+]
+
+#: The measurement types of FORMATS.md section 6.
+MEASURES = ("distance", "height", "ballbar")
+_AQ = re.compile(r"^a_q([1-9][0-9]*)$")
+_BQ = re.compile(r"^b_q([1-9][0-9]*)$")
+_PIVOT_ID = re.compile(r"^[A-Za-z0-9_-]+$")
+#: The pivot id ballbar rows get when the recording has no ``pivot`` column.
+DEFAULT_PIVOT = "1"
+
+
+@dataclass(frozen=True)
+class ConstraintRecording:
+    """Measured relations between poses, in measurement order.
+
+    Attributes
+    ----------
+    measure : tuple of str, length n
+        ``distance``, ``height`` or ``ballbar`` per row.
+    qa : ndarray, shape (n, N)
+        Actuator positions of pose a (mm or rad).
+    qb : ndarray, shape (n, N)
+        Of pose b; NaN on rows that are not distances.
+    value : ndarray, shape (n,)
+        Measured distance or height, mm.
+    pivot : tuple of str, length n
+        Pivot id of ballbar rows, ``""`` on other rows.
+    sigma : ndarray, shape (n,) or None
+        Per-row one-sigma noise of ``value`` (mm), from ``sigma_position``.
+    aux : dict of str to ndarray
+        Auxiliary channels.
+    path : str
+    """
+
+    measure: tuple[str, ...]
+    qa: NDArray
+    qb: NDArray
+    value: NDArray
+    pivot: tuple[str, ...] = ()
+    sigma: NDArray | None = None
+    aux: dict[str, NDArray] = field(default_factory=dict)
+    path: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        if not self.pivot:
+            object.__setattr__(self, "pivot", tuple(DEFAULT_PIVOT if m == "ballbar" else "" for m in self.measure))
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.measure)
+
+    n_poses = n_rows
+
+    @property
+    def n_actuators(self) -> int:
+        return self.qa.shape[1]
+
+    @property
+    def pivot_ids(self) -> tuple[str, ...]:
+        """Distinct pivot ids in order of first appearance."""
+        return tuple(dict.fromkeys(p for p in self.pivot if p))
+
+    def subset(self, idx) -> "ConstraintRecording":
+        idx = np.asarray(idx)
+        rows = np.arange(self.n_rows)[idx]
+        return ConstraintRecording(
+            measure=tuple(self.measure[i] for i in rows), qa=self.qa[idx], qb=self.qb[idx], value=self.value[idx],
+            pivot=tuple(self.pivot[i] for i in rows), sigma=None if self.sigma is None else self.sigma[idx],
+            aux={k: v[idx] for k, v in self.aux.items()}, path=self.path,
+        )
+
+    def check_machine(self, n_actuators: int, q_limits: NDArray | None, machine_path: str = "") -> None:
+        """Raise RecordingError if the actuator count or ``q_limits`` do not fit the machine."""
+        if self.n_actuators != n_actuators:
+            raise RecordingError(
+                self.path, 1, None,
+                f"{self.n_actuators} actuator columns per pose (a_q1..a_q{self.n_actuators}) but the machine "
+                f"{machine_path} has {n_actuators} actuators; expected a_q1..a_q{n_actuators}",
+            )
+        if q_limits is None:
+            return
+        check_q_limits(self.path, self.qa, q_limits, machine_path=machine_path, names=tuple(f"a_q{k + 1}" for k in range(n_actuators)))
+        dist = np.array([m == "distance" for m in self.measure])
+        if dist.any():
+            qb = np.where(dist[:, None], self.qb, q_limits[:, 0][None, :])
+            check_q_limits(self.path, qb, q_limits, machine_path=machine_path, names=tuple(f"b_q{k + 1}" for k in range(n_actuators)))
+
+
+def is_constraint_recording(path: str | os.PathLike) -> bool:
+    """True when the CSV's header has a ``measure`` column (a constraint recording, not a pose recording)."""
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as fh:
+            header = next(csv.reader(fh), [])
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return False  # the pose-recording reader reports what is wrong with the file
+    return "measure" in [h.strip() for h in header]
+
+
+def _actuator_columns(path: str, seen: dict[str, int], pattern: re.Pattern, prefix: str) -> list[int]:
+    nums = sorted(int(m.group(1)) for h in seen if (m := pattern.match(h)))
+    if nums and nums != list(range(1, len(nums) + 1)):
+        missing = sorted(set(range(1, max(nums) + 1)) - set(nums))
+        raise RecordingError(path, 1, None, f"actuator columns must be {prefix}1..{prefix}N without gaps; missing {prefix}{missing[0]}")
+    return nums
+
+
+def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> ConstraintRecording:
+    """Read a constraint recording CSV strictly (FORMATS.md section 6).
+
+    Parameters
+    ----------
+    path : path-like
+        The CSV file (for messages only if ``text`` is given).
+    text : str, optional
+        The file's content.
+
+    Returns
+    -------
+    ConstraintRecording
+
+    Raises
+    ------
+    RecordingError
+        Naming the file, line and column: unknown ``measure``, missing or
+        non-numeric cells, ``b_q`` cells on rows that are not distances,
+        non-positive distances, sigmas or ballbar readings, bad pivot ids.
+    """
+    path = str(path)
+    header, seen, rows = read_csv_rows(path, text, "a constraint recording (CSV)")
+    for col in ("measure", "value"):
+        if col not in seen:
+            raise RecordingError(path, 1, col, f"missing column; a constraint recording has measure, a_q1..a_qN, [b_q1..b_qN], value")
+    a_nums = _actuator_columns(path, seen, _AQ, "a_q")
+    if not a_nums:
+        raise RecordingError(path, 1, None, "no actuator columns; expected a_q1, a_q2, ...")
+    b_nums = _actuator_columns(path, seen, _BQ, "b_q")
+    if b_nums and b_nums != a_nums:
+        raise RecordingError(path, 1, None, f"b_q1..b_q{len(b_nums)} but a_q1..a_q{len(a_nums)}; expected as many b as a columns")
+    if not rows:
+        raise RecordingError(path, 2, None, "no data rows; expected one row per measurement")
+    N = len(a_nums)
+    n = len(rows)
+    known = {"measure", "value", "pivot", "sigma_position"} | {f"a_q{k}" for k in a_nums} | {f"b_q{k}" for k in b_nums}
+    aux_cols = [h for h in header if h not in known]
+    measure: list[str] = []
+    qa = np.empty((n, N))
+    qb = np.full((n, N), np.nan)
+    value = np.empty(n)
+    pivot: list[str] = []
+    sigma = np.empty(n) if "sigma_position" in seen else None
+    aux = {h: np.empty(n) for h in aux_cols}
+    for i, row in enumerate(rows):
+        line = i + 2
+        if len(row) != len(header):
+            raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
+        cell = lambda c: row[seen[c]].strip()  # noqa: E731
+        m = cell("measure")
+        if m not in MEASURES:
+            raise RecordingError(path, line, "measure", f"expected one of {', '.join(MEASURES)}, got {m!r}")
+        measure.append(m)
+        for k in range(N):
+            qa[i, k] = parse_number(cell(f"a_q{k + 1}"), path, line, f"a_q{k + 1}")
+        if m == "distance":
+            if not b_nums:
+                raise RecordingError(path, 1, "b_q1", f"line {line} is a distance, but the file has no b_q1..b_q{N} columns")
+            for k in range(N):
+                qb[i, k] = parse_number(cell(f"b_q{k + 1}"), path, line, f"b_q{k + 1}")
+        else:
+            for k in b_nums:
+                if cell(f"b_q{k}") != "":
+                    raise RecordingError(path, line, f"b_q{k}", f"a {m} row has no pose b; expected an empty cell")
+        v = parse_number(cell("value"), path, line, "value")
+        if m != "height" and v <= 0:
+            raise RecordingError(path, line, "value", f"a {m} must be positive, got {v!r}")
+        value[i] = v
+        pid = cell("pivot") if "pivot" in seen else (DEFAULT_PIVOT if m == "ballbar" else "")
+        if m == "ballbar":
+            if not _PIVOT_ID.match(pid):
+                raise RecordingError(path, line, "pivot", f"expected a pivot id of letters, digits, _ or -, got {pid!r}")
+        elif pid != "":
+            raise RecordingError(path, line, "pivot", f"a {m} row has no pivot; expected an empty cell")
+        pivot.append(pid if m == "ballbar" else "")
+        if sigma is not None:
+            s = parse_number(cell("sigma_position"), path, line, "sigma_position")
+            if s <= 0:
+                raise RecordingError(path, line, "sigma_position", f"expected a positive one-sigma noise in mm, got {s!r}")
+            sigma[i] = s
+        for h in aux_cols:
+            aux[h][i] = parse_number(cell(h), path, line, h)
+    return ConstraintRecording(
+        measure=tuple(measure), qa=qa, qb=qb, value=value, pivot=tuple(pivot), sigma=sigma, aux=aux, path=path
+    )
+
+
+def constraints_to_csv(rec: ConstraintRecording) -> str:
+    """The CSV text of a constraint recording (shortest round-tripping numbers)."""
+    N = rec.n_actuators
+    has_b = any(m == "distance" for m in rec.measure)
+    has_pivot = len(rec.pivot_ids) > 1 or any(p not in ("", DEFAULT_PIVOT) for p in rec.pivot)
+    head = ["measure"] + [f"a_q{k + 1}" for k in range(N)] + ([f"b_q{k + 1}" for k in range(N)] if has_b else []) + ["value"]
+    head += (["pivot"] if has_pivot else []) + (["sigma_position"] if rec.sigma is not None else []) + list(rec.aux)
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(head)
+    for i, m in enumerate(rec.measure):
+        row = [m] + [repr(float(x)) for x in rec.qa[i]]
+        if has_b:
+            row += [repr(float(x)) for x in rec.qb[i]] if m == "distance" else [""] * N
+        row.append(repr(float(rec.value[i])))
+        if has_pivot:
+            row.append(rec.pivot[i])
+        if rec.sigma is not None:
+            row.append(repr(float(rec.sigma[i])))
+        row += [repr(float(v[i])) for v in rec.aux.values()]
+        w.writerow(row)
+    return out.getvalue()
+
+
+def write_constraints(path: str | os.PathLike, rec: ConstraintRecording) -> Path:
+    """Write a constraint recording CSV atomically."""
+    return write_text_atomic(path, constraints_to_csv(rec))
