@@ -45,28 +45,27 @@ def kfold(n: int, k: int, seed: int) -> list[np.ndarray]:
     return [np.sort(f) for f in np.array_split(perm, k)]
 
 
-def fit(model: MeasurementModel, method: str, *, free="auto", seed: int = 0, quick: bool = False):
+def fit(model: MeasurementModel, method: str, *, free="auto", seed: int = 0, quick: bool = False, theta0=None):
     """One identification with bayescal; returns the result object (``theta``, ``free``, ...).
 
     Warnings bayescal raises (a diverged or unconverged fit) are kept on the
     result's ``success`` / ``message``, not raised: the study reports them.
+    ``theta0`` starts the deterministic methods (ls, ridge, tsvd, map) there.
     """
     import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        return _fit(model, method, free=free, seed=seed, quick=quick)
+        return _fit(model, method, free=free, seed=seed, quick=quick, theta0=theta0)
 
 
-def _fit(model, method, *, free, seed, quick):
-    if method == "ridge":
-        return choose_regularisation(model, "ridge", free=free)[1]
-    if method == "tsvd":
-        return choose_regularisation(model, "tsvd", free=free)[1]
+def _fit(model, method, *, free, seed, quick, theta0):
+    if method in ("ridge", "tsvd"):
+        return choose_regularisation(model, method, free=free, theta0=theta0)[1]
     if method in ("ls", "map"):
-        return identify(model, method=method, free=free)
+        return identify(model, method=method, free=free, theta0=theta0)
     if method == "registration":  # frame and tool only: the nominal machine placed and its tool point found
-        return identify(model, method="ls", free=free)
+        return identify(model, method="ls", free=free, theta0=theta0)
     if method == "kalman":
         from bayescal.bayes.kalman import kalman_filter
 
