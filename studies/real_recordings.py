@@ -138,6 +138,21 @@ def positioner(out: Path, *, quick: bool, seed: int, folds: int, t0: float) -> d
         # the recording is the converter's output, row for row (same keys, same order)
         assert np.array_equal(np.array(data.keys, dtype=float), rec.aux["source_key"])
         src = (ps, data, guesses)
+    if src is not None:  # the baselines in sample, the noise weights of fit_full from bayescal's ls residuals
+        ps, data, guesses = src
+        s = rc.noise_estimate(model, ls)
+        allidx = np.arange(rec.n_poses)
+        start = ps.SourceFit(np.zeros((2, 4)), ps._x6(guesses[0]), ps._x6(guesses[1]), np.nan, 0)
+        sols = []
+        if not quick:
+            start = ps.fit_source(data, guesses)
+            sols = [("scipy: source cost, calibrated DH", start), ("scipy: source cost, static DH",
+                                                                  ps.fit_source(data, guesses, static_dh=True))]
+        sols.append(("scipy: full-parameter LS", ps.fit_full(data, start, sigma_position_mm=float(s[0]),
+                                                             sigma_angle=float(s[3]))))
+        for key, sol in sols:
+            p_, a_ = ps.errors(data, sol.predict(data.q), allidx)
+            result["in_sample"][key] = rc.summary(p_, a_) | {"success": True, "n_free": None}
     test_sets = rc.kfold(rec.n_poses, folds, seed)
     held: dict[str, list] = {}
     cover = []
@@ -386,8 +401,14 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
         result["ls_message"] = ls.message
         reg = fits["registration (frame + tool point)"]
         frame = fm.frame_at(reg.theta)
+        # the machine's tool point lives in the last moving joint's frame (arm_7_link; the fixed joints to
+        # wrist_ft_tool_link are folded in): carried back into wrist_ft_tool_link to compare with the README
+        from bayescal.machines.urdf import chain_from_urdf
+
+        R_tail, p_tail = chain_from_urdf(shared / TIAGO_URDF, "base_footprint", "wrist_ft_tool_link").tail
+        tool_arm7 = fm.tool_point + reg.theta[[names.index(n) for n in TOOL3]]
         result["registration_frame"] = {"origin_mm": frame.origin.tolist(), "rotation_vector": frame.rotation_vector.tolist(),
-                                        "tool_mm": reg.theta[[names.index(n) for n in TOOL3]].tolist()}
+                                        "tool_mm": (R_tail.T @ (tool_arm7 - p_tail)).tolist()}
 
         # ---- independent registration
         sc = tiago_scipy_registration(shared, rec, 5 if quick else 20)
@@ -564,6 +585,11 @@ def main(argv=None) -> int:
         t = tiago(a.out, quick=a.quick, seed=a.seed, t0=t0)
         if t is not None:
             res["tiago"] = t
+    if not a.quick:  # the docs page shows the figures of the full run
+        import shutil
+
+        for png in sorted(a.out.glob("*.png")):
+            shutil.copyfile(png, ROOT / "docs" / "figures" / f"real_{png.name}")
     res["seconds"] = time.time() - t0
     write_json_atomic(a.out / "results.json", res)
     text = tables(res)

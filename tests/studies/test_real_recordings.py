@@ -53,6 +53,11 @@ def test_positioner_reaches_the_converged_optimum(quick):
     assert 0.40 < ins["frame+tool only"]["pos_mean"] < 0.46
     assert ins["ls"]["n_free"] == 14
     assert abs(ins["map"]["pos_mean"] - ins["ls"]["pos_mean"]) < 0.01
+    if HAVE_POSITIONER_SOURCE:
+        # the independent scipy fit of all DH offsets and both transforms reaches the same optimum
+        base = ins["scipy: full-parameter LS"]
+        assert ins["ls"]["pos_mean"] == pytest.approx(base["pos_mean"], rel=0.01)
+        assert ins["ls"]["ang_mean"] == pytest.approx(base["ang_mean"], rel=0.01)
 
 
 def test_positioner_names_the_dh_offsets_it_cannot_determine(quick):
