@@ -465,6 +465,9 @@ def _cli_json(args: list[str], tmp: Path) -> dict:
     out = {"exit": proc.returncode, "stderr": proc.stderr.strip()[-2000:]}
     if path.is_file():
         answer = json.loads(path.read_text())
+        test = answer.get("outlier_test") or {}
+        if "flagged_before_refit" in test:
+            out["flagged_before_refit"] = test["flagged_before_refit"]
         for k in ("outliers", "outlier_handling", "verdict", "rms_before", "rms_after", "frame", "located", "unidentifiable",
                   "effects", "success", "message"):
             if k in answer:
@@ -483,7 +486,8 @@ def _figure_tiago(out: Path, held: dict, reg_in: np.ndarray, cli: dict) -> None:
     ax.bar(lines - w, reg_in, w, label="registration, in sample (scipy)")
     ax.bar(lines, held["registration"], w, label="registration, held out")
     ax.bar(lines + w, held["map"], w, label="bayescal map, held out")
-    flagged = sorted({o["line"] for k in ("identify map", "identify tsvd") for o in cli.get(k, {}).get("outliers", []) or []})
+    flagged = sorted({o["line"] for v in cli.values() for o in v.get("outliers", []) or []}
+                     | {ln for v in cli.values() for ln in v.get("flagged_before_refit", []) or []})
     for ln in flagged:
         ax.axvspan(ln - 0.5, ln + 0.5, color="red", alpha=0.12)
     ax.set_xlabel("CSV line of qualysis_base_hand_calibration.csv (header = 1)")
@@ -551,6 +555,10 @@ def tables(res: dict) -> str:
             o = v.get("outliers")
             flagged = "n/a (this bayescal has no outlier screen)" if o is None else (", ".join(str(x["line"]) for x in o) or "none")
             ra = (v.get("rms_after") or {}).get("position")
+            if v.get("flagged_before_refit"):
+                flagged += "; lines the unweighted fit's test flags: " + ", ".join(str(x) for x in v["flagged_before_refit"])
+            if v.get("outlier_handling"):
+                flagged += f"; handling: {v['outlier_handling']}"
             out.append(f"\n`{k} --frame fit`: exit {v['exit']}" + (f", RMS after {ra:.2f} mm" if ra is not None else "")
                        + f"; outlier lines: {flagged}"
                        + (f"; verdict `{v.get('verdict')}`" if "verdict" in v else ""))
