@@ -66,9 +66,11 @@ def _fit(model, method, *, free, seed, quick, theta0):
         return identify(model, method=method, free=free, theta0=theta0)
     if method == "registration":  # frame and tool only: the nominal machine placed and its tool point found
         return identify(model, method="ls", free=free, theta0=theta0)
-    if method == "kalman":
+    if method in ("kalman", "kalman-shuffled"):
         from bayescal.bayes.kalman import kalman_filter
 
+        if method == "kalman-shuffled":  # the same filter over the poses in a seeded random order
+            model = model.subset(np.random.default_rng(seed).permutation(model.n_poses))
         return kalman_filter(model, free=free)
     if method == "mcmc":
         from bayescal.bayes.mcmc import sample_posterior

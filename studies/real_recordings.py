@@ -68,8 +68,8 @@ import real_common as rc  # noqa: E402
 
 EXAMPLE = ROOT / "examples" / "positioner"
 OUT = ROOT / "studies" / "out" / "real_recordings"
-METHODS = ("ls", "ridge", "tsvd", "map", "kalman", "mcmc")
-CV_METHODS = ("ls", "ridge", "tsvd", "map", "kalman")
+METHODS = ("ls", "ridge", "tsvd", "map", "kalman", "kalman-shuffled", "mcmc")
+CV_METHODS = ("ls", "ridge", "tsvd", "map", "kalman", "kalman-shuffled")
 FRAME = ("frame.origin.x", "frame.origin.y", "frame.origin.z",
          "frame.rotation_vector.x", "frame.rotation_vector.y", "frame.rotation_vector.z")
 TOOL6 = ("tool.point.x", "tool.point.y", "tool.point.z", "tool.rpy.r", "tool.rpy.p", "tool.rpy.y")
@@ -435,6 +435,10 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
         result["worst_lines_heldout_registration"] = [[int(i) + 2, float(held["registration"][i])] for i in order[:6]]
         _stamp("tiago cross-validation done", t0)
 
+        # ---- bayescal's outlier screen (FORMATS.md section 4), from the registered machine (no local minimum)
+        result["outlier_screen"] = _outlier_screen(fm.to_toml(reg.theta), rec, Path(tmp), REG)
+        _stamp("tiago outlier screen done", t0)
+
         # ---- what bayescal's own commands say: identify (outliers) and diagnose, through the CLI
         cli = {}
         for key, args in (("identify map", ["identify", "--method", "map"]),
@@ -452,8 +456,32 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
         if not quick:
             cli["diagnose"] = _cli_json(["diagnose", str(rec_path), "--machine", str(machine_path), "--frame", "fit"], Path(tmp))
         result["cli"] = cli
-        _figure_tiago(out, held, sc["per_pose"], cli)
+        _figure_tiago(out, held, sc["per_pose"], result["outlier_screen"])
     return result
+
+
+def _outlier_screen(registered_toml: str, rec, tmp: Path, reg_free: list[str]) -> dict:
+    """The per-pose outlier test of bayescal's robust identification, for registration and MAP.
+
+    Returns ``{"available": False}`` when this bayescal has no outlier screen.
+    """
+    try:
+        from bayescal.identify.robust import identify_with_outliers
+        from bayescal.outliers import recording_lines
+    except ImportError:
+        return {"available": False}
+    path = tmp / "registered_lib.toml"
+    write_text_atomic(path, registered_toml)
+    _, model = rc.prepare(load_machine(path), rec)
+    lines = recording_lines(rec.n_poses, rec)
+    out = {"available": True}
+    for key, kw in (("registration", dict(method="ls", free=reg_free)), ("map", dict(method="map"))):
+        res, h = identify_with_outliers(model, lines=lines, **kw)
+        d = h.to_dict()
+        out[key] = {"outliers": [o["line"] for o in d["outliers"]], "handling": d["outlier_handling"],
+                    "flagged_before_refit": (d.get("outlier_test") or {}).get("flagged_before_refit", []),
+                    "report": h.report().strip()}
+    return out
 
 
 def _cli_json(args: list[str], tmp: Path) -> dict:
@@ -475,7 +503,7 @@ def _cli_json(args: list[str], tmp: Path) -> dict:
     return out
 
 
-def _figure_tiago(out: Path, held: dict, reg_in: np.ndarray, cli: dict) -> None:
+def _figure_tiago(out: Path, held: dict, reg_in: np.ndarray, screen: dict) -> None:
     from bayescal.plots._backend import pyplot, save
 
     plt = pyplot()
@@ -486,13 +514,14 @@ def _figure_tiago(out: Path, held: dict, reg_in: np.ndarray, cli: dict) -> None:
     ax.bar(lines - w, reg_in, w, label="registration, in sample (scipy)")
     ax.bar(lines, held["registration"], w, label="registration, held out")
     ax.bar(lines + w, held["map"], w, label="bayescal map, held out")
-    flagged = sorted({o["line"] for v in cli.values() for o in v.get("outliers", []) or []}
-                     | {ln for v in cli.values() for ln in v.get("flagged_before_refit", []) or []})
+    flagged = sorted(set(screen.get("registration", {}).get("flagged_before_refit", []))
+                     | set(screen.get("registration", {}).get("outliers", [])))
     for ln in flagged:
         ax.axvspan(ln - 0.5, ln + 0.5, color="red", alpha=0.12)
     ax.set_xlabel("CSV line of qualysis_base_hand_calibration.csv (header = 1)")
     ax.set_ylabel("position error (mm)")
-    ax.set_title("TIAGo: per-posture position error" + (f"; shaded: lines bayescal flags ({len(flagged)})" if flagged else ""))
+    ax.set_title("TIAGo: per-posture position error"
+                 + (f"; shaded: lines the outlier test flags after registration ({len(flagged)})" if flagged else ""))
     ax.legend(fontsize=8)
     fig.tight_layout()
     save(fig, out / "tiago_per_line.png")
@@ -550,6 +579,14 @@ def tables(res: dict) -> str:
         out.append(f"\n### TIAGo: held out ({t['cv_kind']})\n")
         out.append(rc.fmt_table(["fit", "mean mm", "RMS mm", "max mm"],
                                 [[k, v["pos_mean"], v["pos_rms"], v["pos_max"]] for k, v in t["cv"].items()]))
+        scr = t.get("outlier_screen", {})
+        if not scr.get("available"):
+            out.append("\noutlier screen: not in this bayescal")
+        for key in ("registration", "map"):
+            if key in scr:
+                s_ = scr[key]
+                out.append(f"\noutlier screen, {key}: outliers {s_['outliers'] or 'none'}; the unweighted fit's test flags "
+                           f"lines {', '.join(map(str, s_['flagged_before_refit'])) or 'none'}\n\n```\n{s_['report']}\n```")
         out.append("\nworst held-out lines (registration): " + ", ".join(f"line {a} ({b:.1f} mm)" for a, b in t["worst_lines_heldout_registration"]))
         for k, v in t["cli"].items():
             o = v.get("outliers")
