@@ -591,7 +591,8 @@ def tables(res: dict) -> str:
         for k, v in t["cli"].items():
             o = v.get("outliers")
             flagged = "n/a (this bayescal has no outlier screen)" if o is None else (", ".join(str(x["line"]) for x in o) or "none")
-            ra = (v.get("rms_after") or {}).get("position")
+            ra = v.get("rms_after")
+            ra = ra.get("position") if isinstance(ra, dict) else ra  # identify: {"position": ...}; diagnose: mm
             if v.get("flagged_before_refit"):
                 flagged += "; lines the unweighted fit's test flags: " + ", ".join(str(x) for x in v["flagged_before_refit"])
             if v.get("outlier_handling"):
