@@ -282,9 +282,6 @@ TIAGO_TOLERANCE = {"origin": 2.0, "rpy": 0.005, "axis": 0.005, "offset_angle": 0
 #: 0.2 mm for the rebuilt sessions; this file's floor is the timing defect and the arm (see the docs page), so the
 #: study estimates the noise from training residuals instead of trusting this number.
 TIAGO_SIGMA = 1.0
-#: data rows (1-based) the data set's README names: our registration's worst row, 30; the upstream audit's
-#: "posture 29" (0-based, the same row); upstream's rebuild names 16 affected rows without listing them.
-TIAGO_README_WORST_LINE = 31  # CSV line = data row + 1
 
 
 def tiago_files(folder: Path, shared: Path) -> tuple[Path, Path]:
