@@ -154,9 +154,18 @@ class MeasurementModel:
             # the machine file's [effect.*] tables at their stored values: the kinematics sees the
             # actuator positions the effects make of the commanded ones, so every consumer applies them
             from .effects.stored import effect_delta_q
+            from .machines.framed import InstrumentFrame, base_machine
 
-            poses = machine.forward(q, None, guess=guess) if guess is not None else None
-            q = q + effect_delta_q(machine, machine.effects, q, dict(rec.aux), poses=poses)
+            if isinstance(machine, InstrumentFrame):
+                # loads and growth live in the base frame: evaluate the effects on the base machine
+                # (started from its own assembly, since the measured poses are in the instrument frame)
+                base = base_machine(machine)
+                poses = base.forward(q, None)
+                poses = poses if poses.success.all() else None
+                q = q + effect_delta_q(base, machine.effects, q, dict(rec.aux), poses=poses)
+            else:
+                poses = machine.forward(q, None, guess=guess) if guess is not None else None
+                q = q + effect_delta_q(machine, machine.effects, q, dict(rec.aux), poses=poses)
             guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
         n = rec.n_poses
         y = np.zeros((n, dof))
@@ -168,7 +177,10 @@ class MeasurementModel:
             axis = rec.axis if rec.axis is not None else R_meas[:, :, 2]
             # any rotation whose third column is the measured axis will do as a reference
             R_ref = _frame_with_z(axis)
-        return cls(machine=machine, q=q, dof=dof, y_measured=y, R_ref=R_ref, aux=dict(rec.aux), guess=guess)
+        return cls(
+            machine=machine, q=q, dof=dof, y_measured=y, R_ref=R_ref, aux=dict(rec.aux), guess=guess,
+            pose_sigma=_recording_pose_sigma(machine, rec, dof),
+        )
 
     # ------------------------------------------------------------- properties
     @property
@@ -337,6 +349,23 @@ def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:
             f"the machine {model.machine.source} cannot assemble this pose (q = {model.q[i].tolist()}): "
             f"{pred.poses.message[i]}; expected a pose of this machine, in its units",
         )
+
+
+def _recording_pose_sigma(machine: Machine, rec: Recording, dof: int) -> NDArray | None:
+    """Per-pose noise from the recording's ``sigma_position`` / ``sigma_angle`` columns (FORMATS.md section 4).
+
+    A missing column takes the machine's ``[measurement]`` value; a
+    position-only model ignores ``sigma_angle``.  None when neither applies.
+    """
+    sp, sa = getattr(rec, "sigma_position", None), getattr(rec, "sigma_angle", None)
+    if sp is None and (sa is None or dof == 3):
+        return None
+    nz = machine.noise
+    out = np.empty((rec.n_poses, dof))
+    out[:, :3] = (np.full(rec.n_poses, nz.sigma_position) if sp is None else sp)[:, None]
+    if dof > 3:
+        out[:, 3:] = (np.full(rec.n_poses, nz.sigma_angle) if sa is None else sa)[:, None]
+    return out
 
 
 def _frame_with_z(axis: NDArray) -> NDArray:

@@ -36,8 +36,9 @@ def add_arguments(p) -> None:
     )
 
 
-def run_bayes(args, machine, model, free) -> int:
+def run_bayes(args, machine, model, free, check=None) -> int:
     from . import EXIT_FAILED, EXIT_OK
+    from .instrument import instrument_report, judge, may_write_machine, refusal_note
     from ..bayes.kalman import kalman_filter
     from ..bayes.mcmc import sample_posterior, write_posterior
 
@@ -51,12 +52,13 @@ def run_bayes(args, machine, model, free) -> int:
             model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
             progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,
         )
+    extra, plaus = judge(machine, model, res, check)  # instrument frame and plausibility
     if args.json:  # before printing: a closed stdout (`| head`) must not cost the answer
-        write_json_atomic(args.json, res.to_dict())
+        write_json_atomic(args.json, {**res.to_dict(), **extra})
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
-    if args.write_machine and res.success:
-        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta))  # [effect.*] kept
+    if may_write_machine(args, res, plaus):
+        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta))  # [effect.*] and [instrument] kept
     made = []
     if args.figures:
         from ..plots.bayes import plot_filter_history, plot_pair, plot_trace
@@ -69,8 +71,11 @@ def run_bayes(args, machine, model, free) -> int:
             made = [plot_trace(res, out / "mcmc_trace.png"), plot_pair(res, out / "mcmc_pair.png")]
     if not args.quiet:
         print(res.report())
+        print(instrument_report(extra, plaus))
         if made:
             print("\nfigures: " + ", ".join(str(m) for m in made))
     if (args.write_machine or getattr(args, "posterior", None)) and not res.success and not args.quiet:
         print("\nnot writing outputs: the identification did not succeed")
-    return EXIT_OK if res.success else EXIT_FAILED
+    if (note := refusal_note(args, res, plaus)) and not args.quiet:
+        print("\n" + note)
+    return EXIT_OK if res.success and plaus.plausible else EXIT_FAILED

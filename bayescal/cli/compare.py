@@ -69,12 +69,20 @@ def register(sub) -> None:
     p.add_argument("--json", metavar="PATH", help="write the comparison as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    p.add_argument("--frame", choices=("base", "fit"), default="base",
+                   help="only 'base': trials are simulated in the base frame (see docs/real-instruments.md)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from . import EXIT_OK
 
+    if args.frame == "fit":
+        raise InputError(
+            "--frame fit: compare draws each trial's true machine from the tolerance prior, and an instrument frame "
+            "has none to draw from; the fitted frame changes the calibrated geometry only by the gauge "
+            "(docs/real-instruments.md), so compare methods in the base frame"
+        )
     if args.trials < 1:
         raise InputError(f"--trials: expected a positive number, got {args.trials}")
     if not 0 < args.alpha < 1:

@@ -8,7 +8,7 @@ import sys
 from ..effects import EFFECTS
 from ..errors import InputError
 from ..io import write_json_atomic, write_text_atomic
-from .inputs import name_list, recording_model
+from .inputs import add_frame_argument, name_list, recording_model
 
 HELP = f"""\
 Diagnose what the geometric model leaves out.
@@ -65,6 +65,7 @@ def register(sub) -> None:
         "as [effect.*] tables (verdict none: the geometry-only calibration; unexplained: written with a warning)",
     )
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_frame_argument(p)
     p.set_defaults(func=run)
 
 
@@ -72,7 +73,7 @@ def run(args) -> int:
     from ..diagnose import diagnose
     from . import EXIT_OK
 
-    machine, rec, _ = recording_model(args)
+    machine, rec, model = recording_model(args)
     effects = None
     if args.effects is not None:
         effects = name_list(args.effects)
@@ -84,13 +85,17 @@ def run(args) -> int:
     if machine.effects and not args.quiet:
         print(f"note: the [effect.*] tables of {args.machine} are not applied: the diagnosis fits every effect afresh")
     result = diagnose(machine, rec, effects=effects, seed=args.seed)
+    # --frame fit: the fitted instrument frame (FORMATS.md section 4)
+    from .instrument import fitted_frame_answer, instrument_frame_line
+
+    frame = fitted_frame_answer(machine, model)
     calibrated = None
     if args.write_machine:
         from ..diagnose.calibrated import calibrated_machine
 
         calibrated = calibrated_machine(machine, result)
     if args.json:
-        answer = result.to_dict()
+        answer = {**result.to_dict(), **frame}
         if calibrated is not None:
             answer["written_machine"] = {
                 "path": str(args.write_machine), "effects": list(calibrated.effects), "warning": calibrated.warning,
@@ -107,6 +112,8 @@ def run(args) -> int:
         written = plot_diagnosis(result, args.figures)
     if not args.quiet:
         print(result.report())
+        if frame:
+            print(instrument_frame_line(frame))
         for path in written:
             print(f"figure: {path}")
         if calibrated is not None:

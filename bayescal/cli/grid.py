@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
+
 from ..errors import InputError
 from ..io import write_json_atomic
-from .inputs import free_arg, recording_model
+from .inputs import add_frame_argument, free_arg, recording_model
 
 HELP = """\
 Identify the geometric errors (MAP under the tolerance prior, or the Kalman
@@ -60,6 +62,7 @@ def register(sub) -> None:
     p.add_argument("--figure", metavar="PNG", help="draw correction and std heat maps")
     p.add_argument("--json", metavar="PATH", help="write a summary as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_frame_argument(p)
     p.set_defaults(func=run)
 
 
@@ -101,7 +104,9 @@ def run(args) -> int:
         return EXIT_FAILED
     if args.nodes < 2:
         raise InputError(f"--nodes: expected at least 2, got {args.nodes}")
-    grid = compensation_grid(machine, res.theta, free=res.free, n=args.nodes, aux=aux, **kw)
+    # the grid is over the machine in its base frame: an instrument frame (fitted or known) is left out
+    base, theta, free_mask, kw = base_frame_parts(machine, res.theta, res.free, kw)
+    grid = compensation_grid(base, theta, free=free_mask, n=args.nodes, aux=aux, **kw)
     # outputs first: a closed stdout (`| head`) must not cost them
     if args.out:
         grid.write_csv(args.out)
@@ -118,3 +123,19 @@ def run(args) -> int:
             at = ", ".join(f"{k} = {v:g}" for k, v in aux.items()) or "no auxiliary channel"
             print(f"  effects         {', '.join(e.name for e in machine.effects)} applied at {at}")
     return EXIT_OK
+
+
+def base_frame_parts(machine, theta, free, kw: dict):
+    """The base machine, its part of ``theta`` / ``free``, and of the covariance or samples (frame dropped)."""
+    from ..machines.framed import InstrumentFrame
+
+    if not isinstance(machine, InstrumentFrame) or not machine.fit:
+        return getattr(machine, "machine", machine), theta, free, kw
+    k = machine.n_frame
+    inner = np.flatnonzero(free) >= k  # which columns of the covariance / samples are the machine's
+    out = {}
+    if kw.get("covariance") is not None:
+        out["covariance"] = kw["covariance"][np.ix_(inner, inner)]
+    if kw.get("samples") is not None:
+        out["samples"] = kw["samples"][:, inner]
+    return machine.machine, theta[k:], free[k:], out

@@ -7,10 +7,11 @@ import argparse
 from ..errors import InputError
 from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
-from ..effects.stored import machine_file_text
 from ..io import write_json_atomic, write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
-from .inputs import free_arg, recording_model
+from ..effects.stored import machine_file_text
+from .inputs import add_frame_argument, free_arg, instrument_inputs
+from .instrument import add_force_argument, instrument_report, judge, may_write_machine, refusal_note
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -82,12 +83,14 @@ def register(sub) -> None:
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.add_argument(
         "--write-klipper", metavar="PATH",
         help="linear-delta only: write the calibrated geometry in Klipper's keys (delta_radius, angle, arm_length, "
         "position_endstop) for printer.cfg",
     )
-    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_frame_argument(p)
+    add_force_argument(p)
     add_arguments(p)
     p.set_defaults(func=run)
 
@@ -113,7 +116,7 @@ def _k_arg(text: str):
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
 
-    machine, rec, model = recording_model(args, constraints=True)
+    machine, rec, model, check = instrument_inputs(args, constraints=True)
     if args.write_klipper and machine.kind != "linear-delta":
         raise InputError(f"--write-klipper: Klipper's delta keys describe a linear-delta machine; {args.machine} is a {machine.kind}")
     free = free_arg(args.free)
@@ -124,7 +127,7 @@ def run(args) -> int:
     if args.method in METHODS:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
-        return run_bayes(args, machine, model, free)
+        return run_bayes(args, machine, model, free, check)
     auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
     if not auto and (args.rule or args.figures):
         raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
@@ -139,11 +142,14 @@ def run(args) -> int:
         res = dataclasses.replace(res, extras={**res.extras, "pivots": model.pivot_positions(res.theta)})
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
+    # instrument frame and plausibility (docs/real-instruments.md)
+    extra, plaus = judge(machine, model, res, check)
     if args.json:
-        write_json_atomic(args.json, res.to_dict())
-    if args.write_machine and res.success:
-        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta[: machine.n_params]))  # [effect.*] kept; without ballbar pivots
-    if args.write_klipper and res.success:
+        write_json_atomic(args.json, {**res.to_dict(), **extra})
+    if may_write_machine(args, res, plaus):
+        # [effect.*] and [instrument] kept; ballbar pivots (beyond the machine's parameters) left out
+        write_text_atomic(args.write_machine, machine_file_text(machine, res.theta[: machine.n_params]))
+    if args.write_klipper and res.success and plaus.plausible:
         from ..klipper import klipper_text
 
         write_text_atomic(args.write_klipper, klipper_text(machine, res.theta[: machine.n_params]))
@@ -154,6 +160,7 @@ def run(args) -> int:
         path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
     if not args.quiet:
         print(res.report())
+        print(instrument_report(extra, plaus))
         if machine.effects:
             print(f"\neffects applied at their stored values ({args.machine}): {', '.join(e.name for e in machine.effects)}")
         if choice is not None:
@@ -162,6 +169,8 @@ def run(args) -> int:
             print(f"\nwrote {path}")
         if args.write_machine and not res.success:
             print(f"\nnot writing {args.write_machine}: the identification did not succeed")
-        if args.write_klipper and not res.success:
-            print(f"\nnot writing {args.write_klipper}: the identification did not succeed")
-    return EXIT_OK if res.success else EXIT_FAILED
+        if note := refusal_note(args, res, plaus):
+            print("\n" + note)
+        if args.write_klipper and not (res.success and plaus.plausible):
+            print(f"\nnot writing {args.write_klipper}: the identification did not succeed or is not plausible")
+    return EXIT_OK if res.success and plaus.plausible else EXIT_FAILED

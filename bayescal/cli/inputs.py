@@ -27,23 +27,78 @@ def recording_model(args: argparse.Namespace, *, constraints: bool = False) -> t
     constraint recording (FORMATS.md section 6, a ``measure`` column) gives a
     :class:`~bayescal.constraint_model.ConstraintModel` when the command
     takes one (``constraints=True``), and a clear error otherwise.
+    With ``args.frame`` (``--frame base|fit``) see :func:`instrument_inputs`.
     """
+    if hasattr(args, "frame"):
+        machine, rec, model, _ = instrument_inputs(args, constraints=constraints)
+        return machine, rec, model
     machine = load_machine(args.machine)
-    from ..io.constraints import is_constraint_recording
-
-    if is_constraint_recording(args.recording):
-        from ..constraint_model import ConstraintModel
-        from ..errors import InputError
-        from ..io.constraints import read_constraints
-
-        if not constraints:
-            raise InputError(
-                f"{args.recording}: a constraint recording (distances, heights, ballbar); this command takes "
-                "recordings of measured poses only (use bayescal identify)"
-            )
-        crec = read_constraints(args.recording)
-        return machine, crec, ConstraintModel.from_recording(machine, crec, dof=getattr(args, "dof", None))
+    constrained = _constraint_inputs(args, machine, constraints)
+    if constrained is not None:
+        return constrained
     rec = read_recording(args.recording)
     model = MeasurementModel.from_recording(machine, rec, dof=getattr(args, "dof", None))
     check_recording_solves(model, rec)
     return machine, rec, model
+
+
+def _constraint_inputs(args: argparse.Namespace, machine: Machine, constraints: bool):
+    """``(machine, recording, ConstraintModel)`` for a constraint recording (FORMATS.md section 6), else None."""
+    from ..io.constraints import is_constraint_recording
+
+    if not is_constraint_recording(args.recording):
+        return None
+    from ..constraint_model import ConstraintModel
+    from ..errors import InputError
+    from ..io.constraints import read_constraints
+
+    if not constraints:
+        raise InputError(
+            f"{args.recording}: a constraint recording (distances, heights, ballbar); this command takes "
+            "recordings of measured poses only (use bayescal identify)"
+        )
+    if getattr(args, "frame", "base") == "fit":
+        raise InputError(
+            f"--frame fit: {args.recording} is a constraint recording; distances and ballbar radii do not see an "
+            "instrument frame, and heights are measured along the base z axis (FORMATS.md section 6): drop --frame fit"
+        )
+    crec = read_constraints(args.recording)
+    return machine, crec, ConstraintModel.from_recording(machine, crec, dof=getattr(args, "dof", None))
+
+
+# ---------------------------------------------------------------- instrument frame (FORMATS.md section 4)
+FRAME_HELP = (
+    "frame of the recording: 'base' (default: the machine's base frame, or the machine file's [instrument] "
+    "frame) or 'fit' (an unknown instrument frame, fitted with the geometry; docs/real-instruments.md)"
+)
+
+
+def add_frame_argument(p) -> None:
+    """``--frame base|fit`` for commands that read a recording."""
+    p.add_argument("--frame", choices=("base", "fit"), default="base", help=FRAME_HELP)
+
+
+def instrument_inputs(args: argparse.Namespace, *, constraints: bool = False):
+    """Machine, recording, model and the rigid-transform check, with ``args.frame`` applied.
+
+    A constraint recording gives ``(machine, recording, ConstraintModel, None)``
+    when ``constraints`` (see :func:`recording_model`).
+
+    Units are checked (RecordingError for positions that look like metres,
+    angles like degrees).  With ``--frame base``, a recording that a rigid
+    transform explains far better than the tolerances gets a warning on
+    stderr suggesting ``--frame fit`` (unless ``--quiet``).
+    """
+    import sys
+
+    from ..instrument import prepare_model
+
+    machine = load_machine(args.machine)
+    constrained = _constraint_inputs(args, machine, constraints)
+    if constrained is not None:
+        return (*constrained, None)
+    rec = read_recording(args.recording)
+    machine, model, check = prepare_model(machine, rec, dof=getattr(args, "dof", None), frame=args.frame)
+    if check is not None and check.fires and not getattr(args, "quiet", False):
+        print(f"bayescal {args.command}: warning: {check.message()}", file=sys.stderr)
+    return machine, rec, model, check

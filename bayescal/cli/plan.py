@@ -67,6 +67,11 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="CSV of commanded poses to write (q1..qN, pose_id)")
     p.add_argument("--json", metavar="PATH", help="write the plan and its criterion values as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    p.add_argument(
+        "--frame", choices=("base", "fit"), default="base",
+        help="'fit': plan for a measurement whose instrument frame will be fitted with the geometry "
+        "(identify --frame fit): the six frame parameters take part in the criterion (default base)",
+    )
     p.set_defaults(func=run)
 
 
@@ -80,6 +85,11 @@ def run(args) -> int:
     if args.random_sets < 0:
         raise InputError(f"--random-sets: expected >= 0, got {args.random_sets}")
     machine = load_machine(args.machine)
+    if args.frame == "fit":
+        from ..machines.framed import Frame, InstrumentFrame, base_machine
+
+        # where the instrument stands does not change the information; identity is as good as any frame
+        machine = InstrumentFrame(base_machine(machine), Frame.identity(), fit=True)
     plan = plan_poses(
         machine, args.n, criterion=args.criterion, dof=args.dof, n_candidates=args.candidates, seed=args.seed,
         scaling=args.scaling, n_random=args.random_sets, exchange=not args.no_exchange,

@@ -22,9 +22,12 @@ _Q = re.compile(r"^q([1-9][0-9]*)$")
 # FORMATS.md: "millimetres for lengths, radians for angles, unless a column name says
 # otherwise (_deg, _um)".  A measured quantity's column may carry its unit as a suffix;
 # it is converted on reading.  Other names stay auxiliary channels, read as they are.
-_UNIT_COLUMN = re.compile(r"^(q[1-9][0-9]*|x|y|z|rx|ry|rz|nx|ny|nz)_(um|mm|deg|rad)$")
-_LENGTH_UNITS = {"mm": 1.0, "um": 1e-3}
-_ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+# FORMATS.md section 4 adds _m and _mrad, and the per-pose noise columns sigma_position (mm)
+# and sigma_angle (rad), which take the same suffixes.
+_UNIT_COLUMN = re.compile(r"^(q[1-9][0-9]*|x|y|z|rx|ry|rz|nx|ny|nz|sigma_position|sigma_angle)_(um|mm|m|deg|rad|mrad)$")
+_LENGTH_UNITS = {"mm": 1.0, "um": 1e-3, "m": 1e3}
+_ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0, "mrad": 1e-3}
+_SIGMA = ("sigma_position", "sigma_angle")
 _POS = ("x", "y", "z")
 _ROT = ("rx", "ry", "rz")
 _AXIS = ("nx", "ny", "nz")
@@ -57,6 +60,13 @@ class Recording:
         ``_mm``/``_um``, ``"rad"`` for ``_rad``/``_deg``; ``q`` holds the
         converted values) or ``""`` for a plain ``q<i>``; empty for
         recordings made in memory.
+    sigma_position, sigma_angle : ndarray, shape (n_poses,) or None
+        Per-pose one-sigma noise (mm, rad) from the optional columns of the
+        same names (FORMATS.md section 4); None when absent.
+    declared_units : dict of str to str
+        The unit suffix each measured column carried (``{"x": "m"}``); a
+        quantity without suffix is absent.  Used to judge unsuffixed columns
+        whose numbers look like another unit.
     """
 
     q: NDArray
@@ -67,6 +77,10 @@ class Recording:
     path: str = "<memory>"
     q_columns: tuple[str, ...] = ()
     q_units: tuple[str, ...] = ()
+    # FORMATS.md section 4: per-pose noise and the units the columns declared
+    sigma_position: NDArray | None = None
+    sigma_angle: NDArray | None = None
+    declared_units: dict = field(default_factory=dict)
 
     @property
     def n_poses(self) -> int:
@@ -97,6 +111,9 @@ class Recording:
             path=self.path,
             q_columns=self.q_columns,
             q_units=self.q_units,
+            sigma_position=None if self.sigma_position is None else self.sigma_position[idx],
+            sigma_angle=None if self.sigma_angle is None else self.sigma_angle[idx],
+            declared_units=self.declared_units,
         )
 
     def check_machine(
@@ -309,12 +326,29 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
                 f"tool axis (nx, ny, nz) has norm {norms[bad[0]]:.6g}; expected a unit vector (within {AXIS_NORM_TOL})",
             )
         axis = axis / norms[:, None]
-    known = set(_POS + _ROT + _AXIS) | {f"q{k}" for k in qnums}
+    known = set(_POS + _ROT + _AXIS + _SIGMA) | {f"q{k}" for k in qnums}
     aux = {h: data[:, seen[h]].copy() for h in seen if h not in known}
+    sig = {name: _sigma_column(path, header, seen, data, name) for name in _SIGMA}
+    declared = {m.group(1): m.group(2) for h in header if (m := _UNIT_COLUMN.match(h))}
     return Recording(
         q=q, position=col(_POS), rotvec=rotvec, axis=axis, aux=aux, path=path,
         q_columns=tuple(header[seen[f"q{k}"]] for k in qnums), q_units=tuple(q_unit.get(f"q{k}", "") for k in qnums),
+        sigma_position=sig["sigma_position"], sigma_angle=sig["sigma_angle"], declared_units=declared,
     )
+
+
+def _sigma_column(path: str, header: list[str], seen: dict[str, int], data: NDArray, name: str) -> NDArray | None:
+    """A per-pose noise column (mm or rad after unit conversion), strictly positive; None if absent."""
+    if name not in seen:
+        return None
+    v = data[:, seen[name]].copy()
+    bad = np.flatnonzero(~(v > 0))
+    if bad.size:
+        raise RecordingError(
+            path, int(bad[0]) + 2, header[seen[name]],
+            f"{v[bad[0]]!r}; expected a positive one-sigma noise ({'mm' if name == 'sigma_position' else 'rad'})",
+        )
+    return v
 
 
 def _case_hint(seen: dict[str, int], name: str) -> str:
@@ -339,10 +373,10 @@ def _unit_columns(path: str, header: list[str], seen: dict[str, int]) -> tuple[d
             name, unit = m.group(1), m.group(2)
             if name in _AXIS:
                 raise RecordingError(path, 1, h, f"the tool axis is a unit vector without unit; expected {name}")
-            if name in _POS and unit not in _LENGTH_UNITS:
-                raise RecordingError(path, 1, h, f"{name} is a length; expected {name} (mm), {name}_mm or {name}_um")
-            if name in _ROT and unit not in _ANGLE_UNITS:
-                raise RecordingError(path, 1, h, f"{name} is an angle; expected {name} (rad), {name}_rad or {name}_deg")
+            if name in _POS + ("sigma_position",) and unit not in _LENGTH_UNITS:
+                raise RecordingError(path, 1, h, f"{name} is a length; expected {name} (mm), {name}_mm, {name}_um or {name}_m")
+            if name in _ROT + ("sigma_angle",) and unit not in _ANGLE_UNITS:
+                raise RecordingError(path, 1, h, f"{name} is an angle; expected {name} (rad), {name}_rad, {name}_mrad or {name}_deg")
             scale[j] = _LENGTH_UNITS.get(unit) or _ANGLE_UNITS[unit]
             if name.startswith("q"):
                 q_unit[name] = "mm" if unit in _LENGTH_UNITS else "rad"
@@ -367,6 +401,7 @@ def recording_to_csv(rec: Recording, *, precision: int | None = None) -> str:
         cols += [(c, rec.rotvec[:, k]) for k, c in enumerate(_ROT)]
     if rec.axis is not None:
         cols += [(c, rec.axis[:, k]) for k, c in enumerate(_AXIS)]
+    cols += [(c, v) for c, v in (("sigma_position", rec.sigma_position), ("sigma_angle", rec.sigma_angle)) if v is not None]
     cols += list(rec.aux.items())
     out = io.StringIO()
     w = csv.writer(out, lineterminator="\n")

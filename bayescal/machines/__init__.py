@@ -5,10 +5,11 @@ from __future__ import annotations
 import os
 
 from ..errors import MachineFileError
-from ..io.machine_file import read_toml
+from ..io.machine_file import TomlTable, read_toml
 from .base import Machine, MeasurementNoise, ToolPoses
 from .check import MachineCheckError, check_machine
 from .linear_delta import LinearDelta
+from .framed import Frame, InstrumentFrame, read_instrument
 from .prs3 import Prs3
 from .raspm import Raspm
 from .rupus_prs import RupusPrs
@@ -17,7 +18,8 @@ from .serial import Serial
 
 __all__ = [
     "Machine", "ToolPoses", "MeasurementNoise", "Prs3", "RupusPrs", "Raspm", "Serial", "Hybrid", "LinearDelta", "KINDS",
-    "load_machine", "machine_from_text", "write_machine_files", "check_machine", "MachineCheckError",
+    "load_machine", "machine_from_text", "write_machine_files", "check_machine", "MachineCheckError", "InstrumentFrame",
+    "Frame",
 ]
 
 #: Machine kinds by the ``kind`` string of the machine file.
@@ -31,14 +33,16 @@ def _build(doc, path: str) -> Machine:
     kind = doc.string("kind")
     if kind not in KINDS:
         raise MachineFileError(path, "kind", f"unknown kind {kind!r}; expected one of: {', '.join(KINDS)}")
-    # [effect.<name>] tables (FORMATS.md section 7) are read for every kind alike, after the geometry
-    geometry = type(doc)({k: v for k, v in doc.data.items() if k != "effect"}, doc.path, doc.prefix)
+    # FORMATS.md section 4: an optional [instrument] table (the recordings' frame) for every kind;
+    # [effect.<name>] tables (section 7) are read for every kind alike, after the geometry
+    frame = read_instrument(doc, path)
+    geometry = type(doc)({k: v for k, v in doc.data.items() if k not in ("effect", "instrument")}, doc.path, doc.prefix)
     machine = KINDS[kind].from_toml(geometry, path)
     if "effect" in doc.data:
         from ..effects.stored import read_effect_tables
 
         machine = machine.with_effects(read_effect_tables(doc, machine))
-    return machine
+    return machine if frame is None else InstrumentFrame(machine, frame, fit=False)
 
 
 def load_machine(path: str | os.PathLike) -> Machine:
@@ -55,8 +59,6 @@ def load_machine(path: str | os.PathLike) -> Machine:
 def machine_from_text(text: str, path: str = "<memory>") -> Machine:
     """Build a machine from machine-file text (as written by ``Machine.to_toml``)."""
     import tomllib
-
-    from ..io.machine_file import TomlTable
 
     try:
         doc = tomllib.loads(text.removeprefix("\ufeff"))

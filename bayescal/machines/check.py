@@ -47,6 +47,8 @@ PARAM_NAME = re.compile(
     r"^(m[1-9][0-9]*\.)*((chain|tower)[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,3}|joint[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,2}"
     r"|tool\.(point|rpy)\.[a-z][a-z0-9_]*)$"
 )
+#: The instrument frame's parameters (FORMATS.md section 4; bayescal.machines.framed).
+FRAME_PARAM_NAME = re.compile(r"^frame\.(origin|rotation_vector)\.[xyz]$")
 
 #: Agreement demanded of two solutions of the same pose (mm for positions, rad for rotations).
 SAME_POSE_TOL = 1e-9
@@ -76,7 +78,7 @@ def _check_layout(machine: Machine) -> list[str]:
         dup = sorted({n for n in names if names.count(n) > 1})
         problems.append(f"layout: duplicate parameter names {dup}")
     for n, u in zip(names, units):
-        if not PARAM_NAME.match(n):
+        if not PARAM_NAME.match(n) and not FRAME_PARAM_NAME.match(n):
             problems.append(f"layout: parameter name '{n}' is not chain<i>.<key>[.<component>] or tool.point.<component>")
         if u not in KNOWN_UNITS:
             problems.append(f"layout: parameter '{n}' has unit '{u}', expected one of {sorted(KNOWN_UNITS)}")
@@ -149,8 +151,8 @@ def _check_file_round_trip(machine: Machine, q: NDArray, theta: NDArray, poses: 
     except BayescalError as exc:
         return [f"to_toml: the written machine file cannot be read back ({exc})"]
     problems = []
-    if type(again).kind != machine.kind or again.n_actuators != machine.n_actuators:
-        problems.append(f"to_toml: read back as kind {type(again).kind!r} with {again.n_actuators} actuators")
+    if again.kind != machine.kind or again.n_actuators != machine.n_actuators:
+        problems.append(f"to_toml: read back as kind {again.kind!r} with {again.n_actuators} actuators")
         return problems
     back = again.forward(q)  # cold start: the file alone must determine the poses
     problems += _check_poses(back, q.shape[0], "to_toml read back, forward")

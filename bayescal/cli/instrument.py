@@ -1,0 +1,86 @@
+"""What ``identify`` adds for recordings from real instruments: the fitted frame, plausibility, ``--force``.
+
+Kept apart from the solvers' output so that commands share one rule
+(docs/real-instruments.md): an implausible calibration is reported, its
+JSON answer says ``"plausible": false`` with the reasons, the command exits
+1, and no calibrated machine is written unless ``--force``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..instrument import Plausibility, assess_plausibility, frame_answer
+
+__all__ = [
+    "add_force_argument", "judge", "may_write_machine", "refusal_note", "instrument_report", "instrument_frame_line",
+    "fitted_frame_answer",
+]
+
+
+def add_force_argument(p) -> None:
+    p.add_argument(
+        "--force", action="store_true",
+        help="write --write-machine even when the calibration is not plausible (errors beyond 10 tolerances, "
+        "or no residual degrees of freedom)",
+    )
+
+
+def judge(machine, model, res, check) -> tuple[dict, Plausibility]:
+    """The answer's ``frame``, ``plausible`` and ``frame_check`` entries, and the verdict."""
+    theta = np.asarray(res.theta, dtype=float)
+    if np.all(np.isfinite(theta)):
+        plaus = assess_plausibility(model, theta, res.free, getattr(res, "residuals_after", None), check=check)
+    else:
+        plaus = Plausibility(False, ("the identified values are not finite",))
+    extra = {**frame_answer(machine, theta, res.free, getattr(res, "covariance", None)), **plaus.to_dict()}
+    if check is not None:
+        extra["frame_check"] = check.to_dict()
+    return extra, plaus
+
+
+def may_write_machine(args, res, plaus: Plausibility) -> bool:
+    return bool(args.write_machine) and bool(res.success) and (plaus.plausible or bool(getattr(args, "force", False)))
+
+
+def refusal_note(args, res, plaus: Plausibility) -> str | None:
+    """The line printed when ``--write-machine`` was asked for but not written."""
+    if not args.write_machine or not res.success or plaus.plausible or getattr(args, "force", False):
+        return None
+    return f"not writing {args.write_machine}: the calibration is not plausible (--force writes it anyway)"
+
+
+def instrument_report(extra: dict, plaus: Plausibility) -> str:
+    """The report's lines on the instrument frame (if any) and on plausibility."""
+    lines = [instrument_frame_line(extra)] if extra.get("frame") else []
+    lines.append(plaus.report())
+    return "\n".join(lines)
+
+
+def instrument_frame_line(extra: dict) -> str:
+    """Two report lines: the instrument frame and its std."""
+    lines = []
+    f = extra.get("frame")
+    if f is not None:
+        fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"  # noqa: E731
+        word = "fitted" if f["fitted"] else "known, from the machine file"
+        lines.append(f"  instrument      frame {word}: origin {fmt(f['origin'])} mm, rotation vector {fmt(f['rotation_vector'])} rad")
+        if f.get("std"):
+            std = lambda v: "[" + ", ".join("-" if x is None else f"{x:.2g}" for x in v) + "]"  # noqa: E731
+            lines.append(f"                  std origin {std(f['std']['origin'])} mm, rotation vector {std(f['std']['rotation_vector'])} rad")
+    return "\n".join(lines)
+
+
+def fitted_frame_answer(machine, model) -> dict:
+    """``{"frame": ...}`` for a command that fits the frame inside its own model (diagnose), else ``{}``.
+
+    The frame is that of the geometric MAP calibration (the diagnosis's
+    starting point), with its Laplace std.
+    """
+    from ..bayes.priors import map_estimate
+    from ..machines.framed import InstrumentFrame
+
+    if not isinstance(machine, InstrumentFrame) or not machine.fit:
+        return {}
+    res = map_estimate(model, free="auto")
+    return frame_answer(machine, res.theta, res.free, res.covariance)

@@ -1,0 +1,222 @@
+"""Calibrated results that refuse to be implausible, and the fitted frame in the answer.
+
+The rule (docs/real-instruments.md): a calibration is **not plausible** when
+
+1. any identified machine parameter (frame parameters excluded) lies more
+   than :data:`PLAUSIBLE_SIGMAS` = 10 prior sigmas (tolerances) from
+   nominal, ``|value| > 10 tolerance``; or
+2. the fit has no residual degrees of freedom: measured components
+   ``n_poses * dof <= `` identified parameters.
+
+Likely causes are named for each flagged case:
+
+* *unidentifiable combination*: the parameter's scaled value lies mostly
+  (more than half) along near-null directions of the whitened,
+  tolerance-scaled identification matrix at the answer (singular values
+  below 1: the data determine those directions worse than one tolerance);
+* *wrong frame*: the rigid-transform check of the recording fires
+  (:class:`~bayescal.instrument.alignment.FrameCheck`);
+* *wrong units*: the measured points spread more than 5 % more or less
+  than the nominal machine's at the same poses;
+* *outliers*: the worst 3 % of poses (at least one) carry more than half
+  of the chi-square, with a reduced chi-square above 2.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry import left_jacobian_inverse
+from ..machines.base import Machine
+from ..machines.framed import FRAME_NAMES, InstrumentFrame, _left_jacobian
+from ..measurement import MeasurementModel
+from .alignment import FrameCheck
+
+__all__ = ["Plausibility", "assess_plausibility", "frame_answer", "PLAUSIBLE_SIGMAS"]
+
+#: |value| above this many tolerances (prior sigmas) makes a calibration implausible.
+PLAUSIBLE_SIGMAS = 10.0
+
+
+@dataclass(frozen=True)
+class Plausibility:
+    """Whether a calibrated machine is believable, and why not.
+
+    Attributes
+    ----------
+    plausible : bool
+    reasons : tuple of str
+        What broke the rule (empty when plausible).
+    causes : tuple of str
+        Likely causes, in words.
+    parameters : tuple of dict
+        The flagged parameters: name, value, unit, tolerance, sigmas.
+    """
+
+    plausible: bool
+    reasons: tuple[str, ...] = ()
+    causes: tuple[str, ...] = ()
+    parameters: tuple[dict, ...] = ()
+
+    def to_dict(self) -> dict:
+        return {
+            "plausible": self.plausible,
+            "plausibility": {
+                "rule": f"|value| > {PLAUSIBLE_SIGMAS:g} tolerances for an identified machine parameter, "
+                "or no residual degrees of freedom",
+                "reasons": list(self.reasons), "causes": list(self.causes), "parameters": list(self.parameters),
+            },
+        }
+
+    def report(self) -> str:
+        if self.plausible:
+            return "  plausibility    plausible (no machine parameter beyond 10 tolerances; residual degrees of freedom left)"
+        lines = ["  NOT PLAUSIBLE:"] + [f"    - {r}" for r in self.reasons]
+        if self.causes:
+            lines += ["  likely causes:"] + [f"    - {c}" for c in self.causes]
+        return "\n".join(lines)
+
+
+def assess_plausibility(
+    model: MeasurementModel,
+    theta: NDArray,
+    free: NDArray,
+    residuals: NDArray | None = None,
+    *,
+    check: FrameCheck | None = None,
+    line_offset: int = 2,
+) -> Plausibility:
+    """Judge a calibrated parameter vector by the rule of the module docstring.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The model it was identified on (machine with frame, if fitted).
+    theta : ndarray, shape (P,)
+        Identified errors.
+    free : ndarray of bool, shape (P,)
+        Which were identified.
+    residuals : ndarray, shape (n_poses, dof), optional
+        ``y - h(theta)``; computed if not given.
+    check : FrameCheck, optional
+        The rigid-transform check of the recording (base frame only).
+    line_offset : int
+        CSV line of pose 0 (header = line 1).
+    """
+    machine = model.machine
+    names, units = machine.layout.names, machine.layout.units
+    theta = np.asarray(theta, dtype=float)
+    free = np.asarray(free, dtype=bool)
+    tol = np.asarray(machine.tolerance, dtype=float)
+    is_frame = np.array([n in FRAME_NAMES for n in names])
+    ratio = np.abs(theta) / tol
+    flagged = np.flatnonzero(free & ~is_frame & (ratio > PLAUSIBLE_SIGMAS))
+    reasons, causes, params = [], [], []
+    n_rows, n_free = model.n_poses * model.dof, int(free.sum())
+    if flagged.size:
+        order = flagged[np.argsort(-ratio[flagged])]
+        shown = ", ".join(f"{names[j]} = {theta[j]:.4g} {units[j]} ({ratio[j]:.0f} tolerances)" for j in order[:6])
+        more = f" and {order.size - 6} more" if order.size > 6 else ""
+        reasons.append(f"{order.size} identified errors lie beyond {PLAUSIBLE_SIGMAS:g} tolerances: {shown}{more}")
+        params = [
+            {"name": names[j], "value": float(theta[j]), "unit": units[j], "tolerance": float(tol[j]), "sigmas": float(ratio[j])}
+            for j in order
+        ]
+    if n_rows <= n_free:
+        reasons.append(
+            f"no residual degrees of freedom: {n_rows} measured components for {n_free} identified parameters; "
+            "the fit reproduces any recording, noise included"
+        )
+    if not reasons:
+        return Plausibility(True)
+    pred = model.predict(theta)
+    if residuals is None:
+        residuals = model.residual(pred)
+    if flagged.size and pred.success.all():
+        null = _near_null(model, theta, free, pred, flagged)
+        if null:
+            causes.append(
+                "unidentifiable combination: " + ", ".join(null) + " lie(s) along near-null directions of the "
+                "identification matrix (the data determine them worse than one tolerance); use --method ridge --lam auto, "
+                "--method map or --free auto"
+            )
+    if check is not None and check.fires:
+        causes.append("wrong frame: " + check.message())
+    if check is not None and math.isfinite(check.scale) and abs(math.log(check.scale)) > 0.05:
+        causes.append(
+            f"wrong units: the nominal machine's tool points spread {check.scale:.4g} times as far as the measured ones "
+            "at the same poses; check the units of x, y, z (suffixes _mm, _um, _m)"
+        )
+    out = _outlier_cause(model, residuals, line_offset, n_rows - n_free)
+    if out:
+        causes.append(out)
+    return Plausibility(False, tuple(reasons), tuple(causes), tuple(params))
+
+
+def _near_null(model, theta, free, pred, flagged) -> list[str]:
+    idx = np.flatnonzero(free)
+    S = np.asarray(model.machine.tolerance, dtype=float)[idx]
+    J = model.jacobian(theta, pred)[:, :, idx] / model.row_sigma[:, :, None]
+    A = J.reshape(-1, idx.size) * S
+    _, s, Vt = np.linalg.svd(A, full_matrices=False)
+    V = Vt.T
+    null = V[:, s < 1.0]
+    if null.shape[1] == 0 and idx.size > s.size:
+        null = np.zeros((idx.size, 0))
+    phi = theta[idx] / S
+    along = null @ (null.T @ phi)
+    out = []
+    pos = {j: i for i, j in enumerate(idx)}
+    names = model.machine.layout.names
+    for j in flagged:
+        i = pos[j]
+        # fewer rows than parameters: the directions beyond the rows are null by construction
+        if idx.size > A.shape[0] or abs(along[i]) > 0.5 * abs(phi[i]):
+            out.append(names[j])
+    return out
+
+
+def _outlier_cause(model, residuals, line_offset, dof_left) -> str | None:
+    z2 = np.sum((residuals / model.row_sigma) ** 2, axis=1)
+    total = float(z2.sum())
+    n = z2.size
+    if total <= 0 or dof_left <= 0 or total / dof_left <= 2.0:
+        return None
+    k = max(1, math.ceil(0.03 * n))
+    worst = np.argsort(-z2)[:k]
+    share = float(z2[worst].sum() / total)
+    if share <= 0.5:
+        return None
+    lines = ", ".join(str(int(i) + line_offset) for i in sorted(worst))
+    return f"outliers: {k} pose(s) (CSV line {lines}) carry {100 * share:.0f} % of the chi-square"
+
+
+def frame_answer(machine: Machine, theta: NDArray, free: NDArray, covariance: NDArray | None) -> dict:
+    """The ``"frame"`` block of the JSON answer (FORMATS.md section 4), or ``{}`` without an instrument frame.
+
+    ``std`` is that of the composed frame: the origin's is the correction's,
+    the rotation vector's ``r = log(exp(d_phi) R0)`` is propagated through
+    ``dr/de = J_l^-1(r) J_l(d_phi)``.
+    """
+    if not isinstance(machine, InstrumentFrame):
+        return {}
+    f = machine.frame_at(theta)
+    rv = f.rotation_vector
+    out = {"origin": f.origin.tolist(), "rotation_vector": rv.tolist(), "fitted": bool(machine.fit), "std": None}
+    if machine.fit and covariance is not None:
+        P = machine.n_params
+        C = np.full((P, P), np.nan)
+        idx = np.flatnonzero(free)
+        C[np.ix_(idx, idx)] = covariance
+        Cf = C[:6, :6]
+        std_o = np.sqrt(np.clip(np.diag(Cf[:3, :3]), 0, None))
+        with np.errstate(all="ignore"):
+            M = left_jacobian_inverse(rv) @ _left_jacobian(np.asarray(theta, dtype=float)[3:6])
+            std_r = np.sqrt(np.clip(np.diag(M @ Cf[3:, 3:] @ M.T), 0, None))
+        clean = lambda v: [float(x) if np.isfinite(x) else None for x in v]  # noqa: E731
+        out["std"] = {"origin": clean(std_o), "rotation_vector": clean(std_r)}
+    return {"frame": out}

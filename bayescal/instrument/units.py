@@ -1,0 +1,115 @@
+"""Recordings whose numbers look like another unit than their columns say.
+
+The rules (FORMATS.md section 4: "refused with a message that names the unit
+it suspects and the suffix to use"), applied only to columns without a unit
+suffix, and all independent of the instrument frame:
+
+* **Positions.**  The spread of the measured tool points (RMS distance
+  from their centroid) is compared with the spread of the nominal machine's
+  tool points at the same commanded poses.  Below 1/100 of it: metres
+  (suffix ``_m``); above 100 times and above 1 mm: micrometres (``_um``).  Comparing with
+  the same poses, not with the whole workspace, keeps a legitimate
+  small-workspace recording (poses a millimetre apart) from being refused.
+  Skipped when the nominal points do not move (spread below 1e-6 mm).
+* **Orientations.**  A rotation vector with a norm above pi is not in
+  radians: degrees (``_deg``).  Otherwise the angle of each measured
+  platform orientation relative to the first pose's is compared with the
+  nominal machine's at the same poses: more than 10 times larger (RMS)
+  and above 0.01 rad means degrees (``_deg``; the factor is 57).  Smaller angles are not
+  refused (an orientation that hardly changes is legitimate).  Skipped when
+  the nominal orientation does not change (RMS angle below 1e-6 rad).  A
+  tool axis (5-DOF) is a unit vector and has no unit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..errors import RecordingError
+from ..io.recording import Recording
+from ..machines.base import Machine
+
+__all__ = ["check_recording_units", "POSITION_RATIO", "ANGLE_RATIO"]
+
+#: Measured/nominal spread outside [1/POSITION_RATIO, POSITION_RATIO]: another length unit.
+POSITION_RATIO = 100.0
+#: Measured/nominal RMS relative angle above this: degrees.
+ANGLE_RATIO = 10.0
+
+
+def _spread(p: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
+
+
+def _relative_angles(R: np.ndarray) -> np.ndarray:
+    """Angle (rad) of each rotation relative to the first, valid up to pi."""
+    return np.linalg.norm((Rotation.from_matrix(R) * Rotation.from_matrix(R[0]).inv()).as_rotvec(), axis=1)
+
+
+def _axis_angles(a: np.ndarray) -> np.ndarray:
+    return np.arccos(np.clip(a @ a[0], -1.0, 1.0))
+
+
+def check_recording_units(machine: Machine, rec: Recording) -> None:
+    """Raise RecordingError when positions look like metres or micrometres, or angles like degrees.
+
+    Parameters
+    ----------
+    machine : Machine
+        Nominal machine (any instrument frame it carries does not matter:
+        the rules compare spreads and relative angles).
+    rec : Recording
+        Columns with a unit suffix are not judged.
+    """
+    declared = getattr(rec, "declared_units", {}) or {}
+    q = machine.check_q(rec.q)
+    nom = machine.forward(q)
+    ok = nom.success
+    if ok.sum() < 2:
+        return
+    if not any(declared.get(c) for c in ("x", "y", "z")):
+        s_nom, s_meas = _spread(nom.position[ok]), _spread(rec.position[ok])
+        if s_nom > 1e-6 and s_meas > 0:
+            ratio = s_meas / s_nom
+            if ratio < 1.0 / POSITION_RATIO:
+                raise RecordingError(
+                    rec.path, None, "x",
+                    f"the measured tool points spread over {s_meas:.4g} (RMS about their centre) where the nominal machine "
+                    f"moves them {s_nom:.4g} mm at the same poses: the positions look like metres; expected mm, or name "
+                    "the columns x_m, y_m, z_m",
+                )
+            # and at least a millimetre: a nominal machine that hardly moves the tool must not make
+            # instrument noise look like micrometres
+            if ratio > POSITION_RATIO and s_meas > 1.0:
+                raise RecordingError(
+                    rec.path, None, "x",
+                    f"the measured tool points spread over {s_meas:.4g} (RMS about their centre) where the nominal machine "
+                    f"moves them {s_nom:.4g} mm at the same poses: the positions look like micrometres; expected mm, or "
+                    "name the columns x_um, y_um, z_um",
+                )
+    if rec.rotvec is not None and not any(declared.get(c) for c in ("rx", "ry", "rz")):
+        norms = np.linalg.norm(rec.rotvec, axis=1)
+        if norms.max() > np.pi + 1e-9:
+            i = int(np.argmax(norms))
+            raise RecordingError(
+                rec.path, i + 2, "rx",
+                f"rotation vector of norm {norms[i]:.4g}, above pi: the orientations look like degrees; expected rad, "
+                "or name the columns rx_deg, ry_deg, rz_deg",
+            )
+        a_nom = _relative_angles(nom.rotation[ok])
+        a_meas = _relative_angles(Rotation.from_rotvec(rec.rotvec[ok]).as_matrix())
+        _angle_rule(rec, a_nom, a_meas, "rx", "the orientations look like degrees; expected rad, or name the columns rx_deg, ry_deg, rz_deg")
+
+
+def _angle_rule(rec, a_nom, a_meas, col, what) -> None:
+    r_nom = float(np.sqrt(np.mean(a_nom**2)))
+    r_meas = float(np.sqrt(np.mean(a_meas**2)))
+    # and at least 0.01 rad: a machine that nominally hardly turns must not make its real errors
+    # (a fraction of a milliradian) look like degrees
+    if r_nom > 1e-6 and r_meas > ANGLE_RATIO * r_nom and r_meas > 0.01:
+        raise RecordingError(
+            rec.path, None, col,
+            f"the measured orientations turn by {r_meas:.4g} (RMS angle from the first pose) where the nominal machine "
+            f"turns by {r_nom:.4g} rad at the same poses: {what}",
+        )

@@ -1,0 +1,111 @@
+"""Results that refuse to be implausible; the rigid-transform check; the frame block of the answer."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bayescal.bayes.priors import map_estimate
+from bayescal.identify import identify
+from bayescal.instrument import assess_plausibility, check_frame, frame_answer, prepare_model
+from bayescal.io import read_recording
+from bayescal.measurement import MeasurementModel
+from bayescal.simulate import simulate_recording
+from tests.instrument.frames import random_frame, to_instrument
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "prs3" / "recording.csv"
+
+
+def _quiet(f, *a, **k):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return f(*a, **k)
+
+
+def test_least_squares_on_the_example_is_not_plausible(prs3):
+    model = MeasurementModel.from_recording(prs3, read_recording(EXAMPLE))
+    res = _quiet(identify, model, method="ls")
+    p = assess_plausibility(model, res.theta, res.free, res.residuals_after)
+    assert not p.plausible
+    names = {d["name"] for d in p.parameters}
+    assert "chain3.rail_origin.x" in names and all(d["sigmas"] > 10 for d in p.parameters)
+    assert any(c.startswith("unidentifiable combination") and "chain3.rail_origin.x" in c for c in p.causes)
+    # the same data with the tolerance prior: plausible
+    m = _quiet(map_estimate, model)
+    assert assess_plausibility(model, m.theta, m.free, m.residuals_after).plausible
+
+
+def test_no_residual_degrees_of_freedom(prs3):
+    rec = read_recording(EXAMPLE).subset(np.arange(3))
+    model = MeasurementModel.from_recording(prs3, rec)
+    res = _quiet(map_estimate, model, free="auto")
+    p = assess_plausibility(model, res.theta, res.free)
+    assert not p.plausible and any("no residual degrees of freedom" in r for r in p.reasons)
+
+
+def test_frame_parameters_are_exempt(prs3):
+    sim = simulate_recording(prs3, 30, seed=3, dof=6)
+    o, R = random_frame(np.random.default_rng(3))
+    m, model, _ = prepare_model(prs3, to_instrument(sim.recording, o, R), frame="fit")
+    theta = np.zeros(m.n_params)
+    theta[:3] = 5e4  # 50 m off the start: far beyond any tolerance, but the frame has none
+    assert assess_plausibility(model, theta, np.ones(m.n_params, bool)).plausible
+
+
+def test_causes_wrong_frame_units_and_outliers(prs3):
+    sim = simulate_recording(prs3, 40, seed=4, dof=6)
+    rec = sim.recording
+    shifted = replace(rec, position=rec.position + np.array([2.0, -1.0, 1.5]))
+    chk = check_frame(prs3, shifted)
+    assert chk.fires and "--frame fit" in chk.message()
+    assert not check_frame(prs3, rec).fires
+    model = MeasurementModel.from_recording(prs3, shifted)
+    theta = np.zeros(prs3.n_params)
+    theta[prs3.layout.index("chain1.link_length")] = 20 * prs3.tolerance[prs3.layout.index("chain1.link_length")]
+    free = np.ones(prs3.n_params, bool)
+    p = assess_plausibility(model, theta, free, check=chk)
+    assert not p.plausible and any(c.startswith("wrong frame") for c in p.causes)
+    # inches: the spreads disagree by 25.4
+    inch = replace(rec, position=rec.position / 25.4)
+    p = assess_plausibility(MeasurementModel.from_recording(prs3, inch), theta, free, check=check_frame(prs3, inch))
+    assert any(c.startswith("wrong units") for c in p.causes)
+    # one gross pose carries the chi-square
+    res = np.random.default_rng(0).normal(size=(40, 6)) * np.r_[[prs3.noise.sigma_position] * 3, [prs3.noise.sigma_angle] * 3]
+    res[13, 0] = 0.5
+    p = assess_plausibility(MeasurementModel.from_recording(prs3, rec), theta, free, res)
+    assert any(c.startswith("outliers") and "line 15" in c for c in p.causes)
+
+
+def test_frame_answer_std_matches_the_covariance(prs3):
+    sim = simulate_recording(prs3, 36, seed=6, dof=6)
+    o, R = random_frame(np.random.default_rng(6))
+    m, model, _ = prepare_model(prs3, to_instrument(sim.recording, o, R), frame="fit")
+    res = _quiet(map_estimate, model, free="auto")
+    ans = frame_answer(m, res.theta, res.free, res.covariance)["frame"]
+    assert np.allclose(ans["origin"], m.frame_at(res.theta).origin)
+    assert np.allclose(ans["std"]["origin"], res.std[:3])
+    # the rotation vector's std by finite differences of the composed frame (linear propagation)
+    from scipy.spatial.transform import Rotation
+
+    C = res.covariance[3:6, 3:6]
+    M = np.empty((3, 3))
+    for j in range(3):
+        d = np.zeros(m.n_params)
+        d[3 + j] = 1e-7
+        rp = Rotation.from_matrix(m.frame_at(res.theta + d).rotation).as_rotvec()
+        rm = Rotation.from_matrix(m.frame_at(res.theta - d).rotation).as_rotvec()
+        M[:, j] = (rp - rm) / 2e-7
+    assert np.allclose(ans["std"]["rotation_vector"], np.sqrt(np.diag(M @ C @ M.T)), rtol=1e-4)
+    assert frame_answer(prs3, res.theta[6:], res.free[6:], None) == {}
+
+
+@pytest.mark.parametrize("dof", [6, 3])
+def test_base_frame_recordings_do_not_trigger_the_check(prs3, dof):
+    for seed in range(5):
+        rec = simulate_recording(prs3, 30, seed=100 + seed, dof=dof).recording
+        assert not check_frame(prs3, rec).fires
