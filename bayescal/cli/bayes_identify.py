@@ -36,12 +36,16 @@ def add_arguments(p) -> None:
     )
 
 
-def run_bayes(args, machine, model, free, check=None) -> int:
+def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
+    """Run kalman or mcmc; ``outliers`` (an OutlierHandling of a robust MAP pass) weights the poses and is reported."""
     from . import EXIT_FAILED, EXIT_OK
     from .instrument import instrument_report, judge, may_write_machine, refusal_note
     from ..bayes.kalman import kalman_filter
     from ..bayes.mcmc import sample_posterior, write_posterior
 
+    base_model = model
+    if outliers is not None:
+        model = outliers.weighted_model(model)  # the robust MAP pass's weights (docs/outliers.md)
     if args.method == "kalman":
         res = kalman_filter(model, variant=args.variant, free=free, process_noise=args.process_noise)
     else:
@@ -52,9 +56,17 @@ def run_bayes(args, machine, model, free, check=None) -> int:
             model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
             progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,
         )
-    extra, plaus = judge(machine, model, res, check)  # instrument frame and plausibility
+    answer, outlier_text = res.to_dict(), ""
+    if outliers is not None:
+        from ..identify.robust import map_system
+
+        outliers = outliers.retested(base_model, res, map_system(res))
+        answer.update(outliers.to_dict())
+        outlier_text = outliers.report()
+    extra, plaus = judge(machine, base_model, res, check)  # instrument frame and plausibility
+    answer.update(extra)
     if args.json:  # before printing: a closed stdout (`| head`) must not cost the answer
-        write_json_atomic(args.json, {**res.to_dict(), **extra})
+        write_json_atomic(args.json, answer)
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
     if may_write_machine(args, res, plaus):
@@ -72,6 +84,8 @@ def run_bayes(args, machine, model, free, check=None) -> int:
     if not args.quiet:
         print(res.report())
         print(instrument_report(extra, plaus))
+        if outlier_text:
+            print(outlier_text)
         if made:
             print("\nfigures: " + ", ".join(str(m) for m in made))
     if (args.write_machine or getattr(args, "posterior", None)) and not res.success and not args.quiet:

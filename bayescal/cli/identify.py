@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 from ..errors import InputError
-from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
+from ..identify.robust import fit_system, identify_with_outliers, robust_map_weights
+from ..effects.stored import machine_file_text
 from ..io import write_json_atomic, write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
-from ..effects.stored import machine_file_text
 from .inputs import add_frame_argument, free_arg, instrument_inputs
 from .instrument import add_force_argument, instrument_report, judge, may_write_machine, refusal_note
+from .outlier_options import add_outlier_arguments, outlier_kwargs
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -42,6 +44,13 @@ A machine file with [effect.<name>] tables (written by diagnose
 --write-machine) has those effects applied at their stored values, driven by
 the recording's auxiliary channels and measurement order: only the geometry
 is identified, and --write-machine keeps the tables (FORMATS.md section 7).
+
+Every pose is tested for being an outlier (a gross error no model of the
+machine explains: a beam break, a mistyped value), with a test that accounts
+for the number of poses; flagged poses are named by CSV line in the report
+and the JSON "outliers".  By default (--robust auto) a recording with flagged
+poses is refitted by Student-t IRLS, which down-weights them. See
+docs/outliers.md.
 """
 
 EXAMPLES = """\
@@ -54,6 +63,7 @@ examples:
   bayescal identify rec.csv --machine m.toml --method map --json map.json
   bayescal identify rec.csv --machine m.toml --method kalman --variant ukf --figures figs/
   bayescal identify rec.csv --machine m.toml --method mcmc --surrogate linear --progress --posterior post.nc --figures figs/
+  bayescal identify rec.csv --machine m.toml --method map --robust t --json answer.json
 """
 
 
@@ -92,6 +102,7 @@ def register(sub) -> None:
     add_frame_argument(p)
     add_force_argument(p)
     add_arguments(p)
+    add_outlier_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -124,22 +135,30 @@ def run(args) -> int:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
     if args.method == "tsvd" and args.k is None:
         raise InputError("--k is required with --method tsvd (a number, or --k auto)")
+    okw = outlier_kwargs(args, rec, model.n_poses)
     if args.method in METHODS:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
-        return run_bayes(args, machine, model, free, check)
+        return run_bayes(args, machine, model, free, check,
+                         outliers=robust_map_weights(model, free, max_iter=args.max_iter, **okw))
     auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
     if not auto and (args.rule or args.figures):
         raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
     choice = None
     if auto:
-        choice, res = choose_regularisation(model, args.method, rule=args.rule, free=free, max_iter=args.max_iter)
+        # the rules see the recording with the weights of a robust MAP pass: one gross pose must not choose lambda or k
+        handling = robust_map_weights(model, free, max_iter=args.max_iter, **okw)
+        choice, res = choose_regularisation(
+            handling.weighted_model(model), args.method, rule=args.rule, free=free, max_iter=args.max_iter,
+        )
+        handling = handling.retested(model, res, fit_system(res))
+        res = replace(res, extras={**res.extras, **handling.to_dict()})
     else:
-        res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
+        res, handling = identify_with_outliers(
+            model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter, **okw,
+        )
     if hasattr(model, "pivot_positions"):  # a constraint recording's fitted ballbar pivots
-        import dataclasses
-
-        res = dataclasses.replace(res, extras={**res.extras, "pivots": model.pivot_positions(res.theta)})
+        res = replace(res, extras={**res.extras, "pivots": model.pivot_positions(res.theta)})
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
     # instrument frame and plausibility (docs/real-instruments.md)
@@ -160,6 +179,7 @@ def run(args) -> int:
         path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
     if not args.quiet:
         print(res.report())
+        print(handling.report())
         print(instrument_report(extra, plaus))
         if machine.effects:
             print(f"\neffects applied at their stored values ({args.machine}): {', '.join(e.name for e in machine.effects)}")

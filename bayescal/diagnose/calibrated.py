@@ -91,6 +91,8 @@ def calibrated_machine(machine: Machine, diagnosis: Diagnosis) -> CalibratedMach
             tuple((p.name, float(p.value)) for p in trials[name].parameters),
             tuple(p.unit for p in trials[name].parameters),
             source="<diagnosis>",
+            settings=tuple((k, np.asarray(v, float).tolist() if np.ndim(v) else float(v))
+                           for k, v in diagnosis.effect_settings.get(name, {}).items()),
         )
         for name in selected
     )

@@ -40,7 +40,9 @@ from ..errors import InputError, KinematicsError
 from ..io.recording import Recording
 from ..machines.base import Machine
 from ..measurement import MeasurementModel
+from ..outliers import recording_lines
 from .locate import locate
+from .outliers import retest_with_effects, screen_outliers
 from .result import Diagnosis, EffectTrial, ParameterValue
 
 __all__ = ["diagnose", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION"]
@@ -105,8 +107,9 @@ def _nonphysical(fit: EffectFit, cands: list["_Candidate"]) -> str | None:
     return None
 
 
-def _chi2_test(fit: EffectFit) -> tuple[float, float]:
-    dof = max(fit.n_rows - fit.edf, 1.0)
+def _chi2_test(fit: EffectFit, excluded_rows: int = 0) -> tuple[float, float]:
+    # rows of excluded outliers carry no weight: they add nothing to chi2, nor to its expectation
+    dof = max(fit.n_rows - excluded_rows - fit.edf, 1.0)
     return dof, float(chi2_dist.sf(fit.chi2, dof))
 
 
@@ -118,6 +121,8 @@ def diagnose(
     seed: int = 0,
     n_folds: int = 5,
     n_perm: int = 199,
+    effect_settings: dict[str, dict] | None = None,
+    _screen=None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -138,6 +143,10 @@ def diagnose(
         Folds of the leave-poses-out cross-validation.
     n_perm : int
         Permutations per location test.
+    effect_settings : dict of str to dict, optional
+        Inputs of effects by name (e.g. ``{"joint_compliance": {"gravity":
+        [1, 0, 0]}}`` for a machine mounted on its side); documented
+        defaults otherwise.
 
     Returns
     -------
@@ -153,15 +162,26 @@ def diagnose(
     machine = machine.with_effects(())
     forced = effects is not None
     names = list(EFFECTS) if effects is None else list(dict.fromkeys(effects))
-    lib = [get_effect(n) for n in names]  # raises on unknown names
+    settings = dict(effect_settings or {})
+    lib = [get_effect(n, **settings.get(n, {})) for n in names]  # raises on unknown names and settings
     model = MeasurementModel.from_recording(machine, recording)
     n = model.n_poses
     if n < 2 * n_folds:
         raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
     aux = dict(recording.aux)
 
+    # gross errors are not physics (docs/outliers.md): flagged poses leave every fit and test
+    base_model = model
     try:
-        fit0 = fit_map(model)
+        screen = _screen if _screen is not None else screen_outliers(model, lines=recording_lines(n, recording))
+    except (KinematicsError, InputError):
+        screen = None  # the nominal machine cannot solve the recording: fit_map below says so
+    if screen is not None:
+        model = screen.weighted_model(model)
+    kept = np.arange(n) if screen is None else np.flatnonzero(~screen.excluded)
+
+    try:
+        fit0 = screen.fit if screen is not None and screen.fit is not None else fit_map(model)
     except KinematicsError as exc:
         raise InputError(
             f"{recording.path}: the machine {machine.source} cannot solve this recording at its nominal geometry "
@@ -169,6 +189,10 @@ def diagnose(
         ) from exc
     pred0 = model.predict(fit0.theta)
     dq_res = actuator_residual(model, fit0.theta, fit0.residual, pred0)
+    if screen is not None:
+        # per-pose least squares undoes the exclusion's scaling: an excluded pose's gross error must not
+        # reach the actuator-space tests (periodogram, pitch search); zero is "no actuator error"
+        dq_res[screen.excluded] = 0.0
     location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, recording.position, seed=seed, n_perm=n_perm)
 
     cands: list[_Candidate] = []
@@ -190,7 +214,8 @@ def diagnose(
             continue
         cands.append(_Candidate(eff, f, eff.occam_penalty(f, model.q)))
 
-    perm = np.random.default_rng(seed).permutation(n)
+    # excluded poses are never held out: their residual would be the gross error, not the model's
+    perm = kept[np.random.default_rng(seed).permutation(kept.size)]
     folds = [np.sort(perm[i::n_folds]) for i in range(n_folds)]
     cv0 = _cv_rms(model, [], folds, fit0.theta, None)
 
@@ -253,8 +278,9 @@ def diagnose(
         remaining.remove(c)
         cur_fit, cur_cv = fit, cv
 
-    dof0, p0 = _chi2_test(fit0)
-    dof_f, p_f = _chi2_test(cur_fit)
+    n_out = 0 if screen is None else int(screen.excluded.sum()) * model.dof
+    dof0, p0 = _chi2_test(fit0, n_out)
+    dof_f, p_f = _chi2_test(cur_fit, n_out)
     excess = fit0.chi2 - dof0
     explained = (fit0.chi2 - cur_fit.chi2) / excess if excess > 0 else 1.0
     message = ""
@@ -270,6 +296,13 @@ def diagnose(
     else:
         loc = location.strongest
         verdict = "unexplained" if p0 < P_MISMATCH or (loc is not None and loc.significant) else "none"
+
+    if screen is not None and _screen is None and selected:
+        # outliers are judged against the final model; if that names other poses, diagnose once more
+        final = retest_with_effects(base_model, [(c.effect, c.features) for c in selected], cur_fit, screen)
+        if final is not None:
+            return diagnose(machine, recording, effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm,
+                            effect_settings=effect_settings, _screen=final)
 
     sel_names = [c.effect.name for c in selected]
     trials = []
@@ -303,4 +336,6 @@ def diagnose(
         message=message,
         theta_final=cur_fit.theta,
         theta_geometric=fit0.theta,
+        effect_settings={k: dict(v) for k, v in settings.items()},
+        outliers=screen,
     )

@@ -87,6 +87,8 @@ class Diagnosis:
     theta_final, theta_geometric : ndarray, shape (P,), or None
         Geometric errors of the final model (jointly with the selected
         effects) and of the geometric model alone.
+    outliers : OutlierScreen or None
+        Gross-error poses named and excluded before the diagnosis (FORMATS.md section 4).
     """
 
     verdict: str
@@ -114,6 +116,10 @@ class Diagnosis:
     #: the geometric model alone: what ``--write-machine`` folds into the calibrated machine.
     theta_final: object = None
     theta_geometric: object = None
+    #: The stated inputs of effects the diagnosis used (``effect_settings``), by effect name: written
+    #: beside the fitted parameters in the calibrated machine's ``[effect.*]`` tables.
+    effect_settings: dict = field(default_factory=dict)
+    outliers: object = None  # OutlierScreen (bayescal.diagnose.outliers), None if not screened
 
     @property
     def located(self) -> ChannelDependence | None:
@@ -146,7 +152,14 @@ class Diagnosis:
             "seed": self.seed,
             "evidence_kind": "log Bayes factor, Laplace approximation (nats)",
             "message": self.message,
+            **self._outlier_keys(),
         }
+
+    def _outlier_keys(self) -> dict:
+        """FORMATS.md section 4: ``outliers`` by CSV line and what the diagnosis did with them."""
+        if self.outliers is None:
+            return {"outliers": [], "outlier_handling": "not screened"}
+        return self.outliers.to_dict()
 
     def report(self) -> str:
         """A report a calibration engineer can act on."""
@@ -156,6 +169,8 @@ class Diagnosis:
             f"(p = {self.p_geometric:.2g}); cross-validated position RMS {1e3 * self.rms_cv_geometric:.1f} um "
             f"(noise alone {1e3 * self.rms_noise:.1f} um)"
         )
+        if self.outliers is not None:
+            L.append(self.outliers.report())
         loc = self.located
         if loc is not None:
             sig = "significant" if loc.significant else "not significant"

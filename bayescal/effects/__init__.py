@@ -28,8 +28,22 @@ EFFECTS: dict[str, type[Effect]] = {
 }
 
 
-def get_effect(name: str) -> Effect:
-    """An effect of the library by its name (default settings)."""
+def get_effect(name: str, **settings) -> Effect:
+    """An effect of the library by its name, with default settings unless given.
+
+    Parameters
+    ----------
+    name : str
+    **settings
+        The effect's inputs (its constructor's keyword arguments, e.g.
+        ``gravity=[0, 0, -1]`` for ``joint_compliance``); unknown keys are an
+        :class:`~bayescal.errors.InputError`.
+    """
     if name not in EFFECTS:
         raise InputError(f"unknown effect {name!r}; expected one of: {', '.join(EFFECTS)}")
-    return EFFECTS[name]()
+    cls = EFFECTS[name]
+    bad = sorted(set(settings) - set(cls.settings_keys))
+    if bad:
+        allowed = ", ".join(cls.settings_keys) or "none"
+        raise InputError(f"effect {name}: unknown setting(s) {', '.join(bad)}; expected some of: {allowed}")
+    return cls(**settings)

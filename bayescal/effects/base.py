@@ -128,6 +128,9 @@ class Effect(ABC):
     default_magnitude: ClassVar[float] = 0.0
     #: Whether :meth:`features` needs the solved poses (then :class:`BoundEffect` solves them).
     needs_poses: ClassVar[bool] = False
+    #: Inputs a user may state (constructor keywords, documented defaults in the class docstring); in a
+    #: machine file they sit beside the fitted parameters in the effect's ``[effect.<name>]`` table.
+    settings_keys: ClassVar[tuple[str, ...]] = ()
 
     def not_applicable(self, machine: Machine, aux: dict) -> str | None:
         """Why the effect cannot be modelled for this machine and recording, or None."""

@@ -13,7 +13,7 @@ from .base import Effect, Features
 __all__ = ["check_effect", "EffectCheckError"]
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
-_PARAM = re.compile(r"^[a-z][a-z0-9_]*(\.q[1-9][0-9]*)?$")
+_PARAM = re.compile(r"^[a-z][a-z0-9_]*(\.[a-z][a-z0-9_]*)?$")
 
 
 class EffectCheckError(BayescalError, AssertionError):

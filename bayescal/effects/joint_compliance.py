@@ -1,38 +1,85 @@
-"""Joint compliance: the actuated joints yield under the gravity load they carry."""
+"""Joint compliance: the actuated joints yield under the gravity load of platform and payload."""
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import InputError
 from ..machines.base import Machine, ToolPoses
 from .base import Effect, EffectParam, Features
 
-__all__ = ["JointCompliance", "actuator_loads", "GRAVITY"]
+__all__ = ["JointCompliance", "actuator_loads", "gravity_direction", "GRAVITY", "DEFAULT_GRAVITY_DIRECTION"]
 
 #: Standard gravity, m/s^2.
 GRAVITY = 9.80665
+#: Gravity in the base frame of a machine mounted upright (rails along +z pointing up), unit vector.
+DEFAULT_GRAVITY_DIRECTION = (0.0, 0.0, -1.0)
+
+
+def _unit(v, what: str) -> NDArray:
+    v = np.asarray(v, float).reshape(-1)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
+        raise InputError(f"{what}: expected a non-zero 3-vector, got {v.tolist()}")
+    return v / np.linalg.norm(v)
+
+
+def _tilt_basis(down: NDArray) -> NDArray:
+    """Two unit vectors normal to ``down``: the base axes it is most perpendicular to, orthogonalised, (2, 3)."""
+    keep = [i for i in range(3) if i != int(np.argmax(np.abs(down)))]
+    out = []
+    for k in keep:
+        e = np.eye(3)[k] - down * down[k]
+        for o in out:
+            e = e - o * (o @ e)
+        out.append(e / np.linalg.norm(e))
+    return np.array(out)
+
+
+def gravity_direction(down0: NDArray, tilt: NDArray) -> tuple[NDArray, NDArray]:
+    """Gravity direction tilted from ``down0`` and its derivative by the two tilts.
+
+    ``d = normalise(down0 + t_1 e_1 + t_2 e_2)`` with ``e_1, e_2`` the unit
+    vectors normal to ``down0`` along the base axes it is most perpendicular
+    to (for ``down0 = -z``: ``e_1 = x``, ``e_2 = y``), so ``t_k`` is the
+    tangent of the tilt towards ``e_k`` (rad at small angles), exact at any
+    tilt below 90 degrees.
+
+    Returns
+    -------
+    d : ndarray, shape (3,)
+    dd : ndarray, shape (3, 2)
+        ``d d / d t_k``.
+    """
+    E = _tilt_basis(down0)
+    v = down0 + np.asarray(tilt, float) @ E
+    nv = np.linalg.norm(v)
+    d = v / nv
+    dd = (E.T - np.outer(d, d @ E.T)) / nv
+    return d, dd
 
 
 def actuator_loads(
-    machine: Machine, q: NDArray, theta: NDArray, poses: ToolPoses, mass_kg: NDArray, *, down: NDArray = (0.0, 0.0, -1.0)
+    machine: Machine, q: NDArray, theta: NDArray, poses: ToolPoses, mass_kg: NDArray, *, down=DEFAULT_GRAVITY_DIRECTION,
+    point: str = "origin",
 ) -> NDArray:
-    """Actuator forces (N) that hold the platform and payload against gravity.
+    """Actuator forces (N) of a weight ``m g`` at the platform origin (or the tool point), by virtual work.
 
-    Static equilibrium by virtual work: for every motion the actuators can
-    make, ``f . dq = w . dx``, with ``dx = J dq`` the tool twist (``J`` from
-    :meth:`Machine.actuator_jacobian`), hence ``f = J^T w`` (the transpose
-    of the inverse Jacobian's inverse: ``J^-T`` of the usual ``dq = J^-1 dx``).
-    The wrench ``w`` of the weight ``m g`` acting at the platform origin,
-    expressed at the tool point: force ``F = m g down``, moment
-    ``(p - tool) x F``.
+    For every motion the actuators can make, ``f . dq = F . dx``, with ``dx``
+    the displacement of the point the weight acts at (``J dq``, ``J`` from
+    :meth:`Machine.actuator_jacobian`): ``f = J_x^T F``, ``J_x = J_t + [w]x
+    (x - tool)``, i.e. the tool-point wrench ``(F, (x - tool) x F)`` mapped
+    by ``J^T``.
 
     Parameters
     ----------
     mass_kg : ndarray, shape (n_poses,)
-        Platform plus payload mass per pose, kg.
+        kg.
     down : (3,)
         Gravity direction in the base frame (unit vector).
+    point : {"origin", "tool"}
+        Where the weight acts: the platform origin (``poses.state.p``; the
+        tool point on kinds whose state has none) or the tool point.
 
     Returns
     -------
@@ -41,69 +88,251 @@ def actuator_loads(
         gravity pushes ``q_i`` up).
     """
     J = machine.actuator_jacobian(q, theta, poses)
-    F = np.asarray(mass_kg, float)[:, None] * GRAVITY * np.asarray(down, float)[None, :]
-    origin = poses.state.p if hasattr(poses.state, "p") else poses.position
-    M = np.cross(origin - poses.position, F)
+    F = np.asarray(mass_kg, float)[:, None] * GRAVITY * _unit(down, "down")[None, :]
+    x = _platform_origin(poses) if point == "origin" else poses.position
+    M = np.cross(x - poses.position, F)
     return np.einsum("nki,nk->ni", J[:, :3], F) + np.einsum("nki,nk->ni", J[:, 3:], M)
 
 
+def _platform_origin(poses: ToolPoses) -> NDArray:
+    p = getattr(poses.state, "p", None)
+    return np.asarray(p, float) if p is not None else poses.position
+
+
 class JointCompliance(Effect):
-    """Actuated joints (screw, nut, bearings, slider) yield under the load they carry.
+    """Actuated joints (screw, nut, bearings, slider, drive train) yield under the gravity load they carry.
 
-    Physics: the weight of the platform (``platform_mass_kg``, default 30 kg,
-    acting at the platform origin, gravity along ``-z`` of the base frame)
-    and of the payload (channel ``payload_kg`` when recorded) loads each
-    actuator with ``f_i = (J^T w)_i`` (:func:`actuator_loads`), which
-    depends on the pose; a drive of compliance ``c_i`` gives way by
+    Physics: the platform's weight ``m_p g`` acts at its centre of mass
+    ``x_c = p + R c`` (``c`` in the platform frame, from the platform origin
+    ``p``: the machine's platform frame origin, or the tool point on kinds
+    without one) and a payload ``m_L g`` (channel ``payload_kg``) at the
+    tool point ``x_t``.  By virtual work the gravity force on actuator
+    coordinate ``q_i`` is the derivative of ``g . sum(m x)`` by ``q_i``, and
+    a drive of compliance ``c_i`` gives way by ``c_i`` times it:
 
-        dq_i = c_i f_i.
+        dq_i = w_i d . (dx_c / dq_i) + c_i m_L g d . (dx_t / dq_i),
+        dx_c / dq_i = J_t,i + omega_i x (x_c - x_t),    w_i = c_i m_p g
 
-    Parameters ``compliance.q<i>`` in um/N.  Usual size on machine tools:
-    ball-screw drives 0.002-0.02 um/N (50-500 N/um axial stiffness); with
-    links, spherical joints and a lightweight frame the apparent compliance
-    at the actuator reaches 0.05-1 um/N.  Without a payload channel only the
-    pose-dependent part of the load is seen; the constant part is absorbed
-    by the actuator offsets.
+    with ``(J_t,i, omega_i)`` column ``i`` of
+    :meth:`Machine.actuator_jacobian` (tool-point velocity and platform
+    angular velocity per unit of ``q_i``) and ``d`` the unit gravity
+    direction in the base frame.  ``dq_i > 0`` when gravity pulls the slider
+    towards larger ``q_i``.
+
+    What the data identify, hence the parameters (names, units), in two
+    sets that depend only on whether the recording has a ``payload_kg``
+    channel:
+
+    * without it: ``weight_deflection.q<i>`` (um, ``>= 0``), ``w_i = c_i
+      m_p g``, how far drive ``i`` would give way under the whole platform
+      weight on its axis (prior ``0 +- 300 um``): mass and compliance appear
+      only as this product;
+    * with it: ``compliance.q<i>`` (um/N, ``>= 0``, prior ``0 +- 1``) and
+      ``platform_mass`` (kg, ``>= 0``, prior ``0 +- 100``, or centred on a
+      stated mass with 2 % width), ``w_i = c_i m_p g`` (the payload's
+      changing load fixes ``c_i``; the platform's then fixes ``m_p``);
+    * both: ``com.x``, ``com.y``, ``com.z`` (mm, platform frame): the
+      platform's centre of mass from the platform origin (prior ``0 +-
+      200 mm``, or a stated one +- 5 mm), and ``gravity.tilt_1``,
+      ``gravity.tilt_2`` (tangent of the tilt, "rad"): ``d = normalise(d0 +
+      t_1 e_1 + t_2 e_2)`` (:func:`gravity_direction`), the mounting's tilt
+      from ``d0`` (prior ``0 +- 0.5``, 27 degrees, when ``d0`` is the
+      default; ``0 +- 0.02`` when the gravity direction is stated).  Tilts
+      of 45 degrees are found from an upright start when the deflections
+      are tens of um; otherwise they are reported near their prior.
+
+    Sign rule: ``w_i``, ``c_i``, ``m_p >= 0`` (a drive gives way in the
+    direction it is pushed); the tilt keeps ``d`` in the half space of
+    ``d0``, so flipping both the direction and the deflections is not a
+    second solution, and a fit needing a negative value beyond 3 sigma is
+    rejected as non-physical.  ``d0`` must therefore be right to within 90
+    degrees (upright by default).
+
+    Identifiability: the pose-independent part of the sag is exactly an
+    actuator zero offset.  It is told apart from the geometry only through
+    the physics tying it to the pose-dependent part (``c_i`` from the
+    payload, then ``m_p``, ``c``, ``d``), so with the mass, centre of mass
+    and mounting unknown, the geometry "without gravity" is uncertain by
+    tens of um at 0.5 um/N; stating them (below) pins it.
+
+    Inputs with documented defaults (constructor arguments,
+    :attr:`settings_keys`; proposed machine-file keys of the same names in
+    the ``[effect.joint_compliance]`` table): ``gravity`` (default ``[0, 0,
+    -1]``, ``d0`` in the base frame, an upright machine; give the mounting's
+    direction for machines mounted on a wall or tilted), ``payload_offset``
+    (default ``[0, 0, 0]`` mm, platform frame, the payload's centre of mass
+    from the tool point: a spindle's tool hangs at the tool point),
+    ``platform_mass_kg`` and ``platform_com_mm`` (default unknown).  Hidden
+    assumptions: only the drives yield (links, joints and frame rigid; their
+    compliance shows as apparent drive compliance to first order); small
+    deflections (the load is evaluated at the undeflected pose: the
+    second-order change of the load with the deflection is below 1e-3 of
+    it for deflections under 0.1 % of the mechanism's size); on a
+    redundantly actuated machine the load is shared among the drives in a
+    statically indeterminate way, and the model puts it on the drives its
+    forward kinematics reads.  Usual size on machine tools: ball-screw
+    drives 0.002-0.02 um/N (50-500 N/um axial stiffness); with links,
+    spherical joints and a lightweight frame the apparent compliance at the
+    actuator reaches 0.05-1 um/N; platforms of 10-200 kg.
     """
 
     name = "joint_compliance"
-    summary = "actuators yield under the gravity load of platform and payload (pose- and payload_kg-dependent)"
+    summary = "actuators yield under the gravity load of platform (unknown mass and centre of mass) and payload (payload_kg)"
     magnitude_unit = "um/N"
     default_magnitude = 0.5
     needs_poses = True
+    settings_keys = ("gravity", "payload_offset", "platform_mass_kg", "platform_com_mm")
 
-    def __init__(self, *, platform_mass_kg: float = 30.0, down=(0.0, 0.0, -1.0)):
-        self.platform_mass_kg = float(platform_mass_kg)
-        self.down = np.asarray(down, float)
+    #: Prior one-sigma of a weight deflection (um), of a centre-of-mass coordinate (mm), of a gravity tilt.
+    WEIGHT_PRIOR_UM = 300.0
+    COMPLIANCE_PRIOR = 1.0
+    MASS_PRIOR_KG = 100.0
+    COM_PRIOR_MM = 200.0
+    TILT_PRIOR = 0.5
+
+    def __init__(self, *, gravity=None, payload_offset=(0.0, 0.0, 0.0), platform_mass_kg: float | None = None,
+                 platform_com_mm=None):
+        """
+        Parameters
+        ----------
+        gravity : (3,), optional
+            Gravity direction ``d0`` in the base frame (normalised).  None
+            (default): ``[0, 0, -1]``, an upright mounting, assumed to within
+            the tilt prior ``0 +- 0.5``; stated: known to ``0 +- 0.02``.
+        payload_offset : (3,)
+            Payload's centre of mass from the tool point, platform frame, mm.
+        platform_mass_kg : float, optional
+            Stated mass of the platform (and everything that moves with it
+            but the payload), kg: the prior of ``platform_mass`` is then
+            centred on it with a 2 % width.  None (default): unknown, prior
+            ``0 +- 100 kg``.  Simulation uses it (30 kg when None).
+        platform_com_mm : (3,), optional
+            Stated centre of mass of the platform (platform frame, from its
+            origin), mm: prior centred on it, 5 mm wide.  None (default):
+            unknown, prior ``0 +- 200 mm``.
+        """
+        self.gravity_stated = gravity is not None
+        self.down = _unit(DEFAULT_GRAVITY_DIRECTION if gravity is None else gravity, "joint_compliance gravity")
+        if platform_com_mm is None:
+            self.stated_com = None
+        else:
+            com = np.asarray(platform_com_mm, float).reshape(-1)
+            if com.shape != (3,) or not np.all(np.isfinite(com)):
+                raise InputError(f"joint_compliance platform_com_mm: expected a 3-vector in mm, got {com.tolist()}")
+            self.stated_com = com
+        off = np.asarray(payload_offset, float).reshape(-1)
+        if off.shape != (3,) or not np.all(np.isfinite(off)):
+            raise InputError(f"joint_compliance payload_offset: expected a 3-vector in mm, got {off.tolist()}")
+        self.payload_offset = off
+        if platform_mass_kg is not None and not (np.isfinite(platform_mass_kg) and platform_mass_kg > 0):
+            raise InputError(f"joint_compliance platform_mass_kg: expected a positive mass in kg, got {platform_mass_kg!r}")
+        self.stated_mass_kg = None if platform_mass_kg is None else float(platform_mass_kg)
+        self.platform_mass_kg = 30.0 if platform_mass_kg is None else float(platform_mass_kg)
 
     def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:
         if poses is None:
             poses = machine.forward(q, theta)
-        mass = self.platform_mass_kg + np.asarray(aux.get("payload_kg", np.zeros(q.shape[0])), float)
-        f = actuator_loads(machine, q, theta, poses, mass, down=self.down)
-        return Features({"f": f}, {"platform_mass_kg": self.platform_mass_kg})
-
-    def inadmissible(self, features: Features, eta: NDArray | None = None) -> str | None:
-        # e.g. the RU-PUS-PRS: the platform origin is the centre of the passive post's universal joint,
-        # so the post carries the weight and a drive compliance cannot show (evidence 0); the drives'
-        # share is then round-off plus what geometric errors of a few 0.01 mm give (1e-4 of the weight)
-        f = features.per_pose["f"]
-        if f.size and np.max(np.abs(f)) <= 1e-3 * features.const["platform_mass_kg"] * GRAVITY:
-            return "the actuators carry no gravity load at any pose (under 0.1 % of the weight: it acts at a passive joint)"
-        return None
+        n = q.shape[0]
+        J = machine.actuator_jacobian(q, theta, poses)
+        R = np.asarray(poses.rotation, float)
+        # the payload point and the platform origin, as offsets from the tool point (base frame, mm)
+        payload_arm = np.einsum("nij,j->ni", R, self.payload_offset)
+        origin_arm = _platform_origin(poses) - poses.position
+        # the payload compliances are parameters whenever the channel is recorded (also at a constant
+        # payload: then weakly determined, at their prior if it is zero), so that the parameter set
+        # depends only on which channels a recording has, as machine-file effect tables need
+        has_payload = "payload_kg" in aux
+        mass = np.asarray(aux["payload_kg"], float) if has_payload else np.zeros(n)
+        return Features(
+            {"Jt": J[:, :3], "w": J[:, 3:], "R": R, "origin_arm": origin_arm, "payload_arm": payload_arm, "payload_kg": mass},
+            {"down": self.down, "has_payload": has_payload},
+        )
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
-        return tuple(EffectParam(f"compliance.q{i + 1}", "um/N", 1.0, lower=0.0) for i in range(machine.n_actuators))
+        m = machine.n_actuators
+        if features is not None and features.const["has_payload"]:
+            out = [EffectParam(f"compliance.q{i + 1}", "um/N", self.COMPLIANCE_PRIOR, lower=0.0) for i in range(m)]
+            if self.stated_mass_kg is None:
+                out.append(EffectParam("platform_mass", "kg", self.MASS_PRIOR_KG, lower=0.0))
+            else:
+                out.append(EffectParam("platform_mass", "kg", 0.02 * self.stated_mass_kg, prior_mean=self.stated_mass_kg, lower=0.0))
+        else:
+            out = [EffectParam(f"weight_deflection.q{i + 1}", "um", self.WEIGHT_PRIOR_UM, lower=0.0) for i in range(m)]
+        if self.stated_com is None:
+            out += [EffectParam(f"com.{x}", "mm", self.COM_PRIOR_MM) for x in "xyz"]
+        else:
+            out += [EffectParam(f"com.{x}", "mm", 5.0, prior_mean=float(v)) for x, v in zip("xyz", self.stated_com)]
+        tilt_sd = 0.02 if self.gravity_stated else self.TILT_PRIOR
+        out += [EffectParam(f"gravity.tilt_{k}", "rad", tilt_sd) for k in (1, 2)]
+        return tuple(out)
+
+    # the pieces of the model, per pose and actuator (see the class docstring)
+    def _terms(self, features: Features, eta: NDArray):
+        eta = np.asarray(eta, float)
+        Jt, w, R = features.per_pose["Jt"], features.per_pose["w"], features.per_pose["R"]
+        m = Jt.shape[2]
+        if features.const["has_payload"]:
+            c, mp = eta[:m], eta[m]
+            W = c * mp * GRAVITY  # weight deflections c_i m_p g, um
+            k = m + 1
+        else:
+            c, mp = np.zeros(m), 0.0
+            W = eta[:m]
+            k = m
+        com = eta[k : k + 3]
+        d, dd = gravity_direction(features.const["down"], eta[k + 3 : k + 5])
+        arm_c = features.per_pose["origin_arm"] + np.einsum("nij,j->ni", R, com)  # x_c - x_t
+        Jc = Jt + np.cross(w, arm_c[:, :, None], axisa=1, axisb=1, axisc=1)  # (n, 3, m): d x_c / d q
+        Jl = Jt + np.cross(w, features.per_pose["payload_arm"][:, :, None], axisa=1, axisb=1, axisc=1)
+        phi = np.einsum("k,nkm->nm", d, Jc)  # (n, m)
+        psi = np.einsum("k,nkm->nm", d, Jl)
+        load = GRAVITY * features.per_pose["payload_kg"]  # N
+        return k, W, c, mp, d, dd, Jc, Jl, phi, psi, load
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
-        return 1e-3 * features.per_pose["f"] * np.asarray(eta)[None, :]
+        _, W, c, _, _, _, _, _, phi, psi, load = self._terms(features, eta)
+        return 1e-3 * (W[None, :] * phi + c[None, :] * load[:, None] * psi)
 
     def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
-        f = features.per_pose["f"]
-        n, m = f.shape
-        J = np.zeros((n, m, m))
-        J[:, np.arange(m), np.arange(m)] = 1e-3 * f
+        k, W, c, mp, d, dd, Jc, Jl, phi, psi, load = self._terms(features, eta)
+        n, m = phi.shape
+        J = np.zeros((n, m, len(np.asarray(eta))))
+        ar = np.arange(m)
+        if features.const["has_payload"]:
+            J[:, ar, ar] = 1e-3 * (mp * GRAVITY * phi + load[:, None] * psi)
+            J[:, :, m] = 1e-3 * c[None, :] * GRAVITY * phi
+        else:
+            J[:, ar, ar] = 1e-3 * phi
+        # d phi_i / d com = R^T (d x omega_i): d . (omega x R c) = c . R^T (d x omega)
+        dxw = np.cross(d[None, :, None], features.per_pose["w"], axisa=1, axisb=1, axisc=1)  # (n, 3, m)
+        J[:, :, k : k + 3] = 1e-3 * W[None, :, None] * np.einsum("nji,njm->nmi", features.per_pose["R"], dxw)
+        dphi = np.einsum("kt,nkm->nmt", dd, Jc)  # (n, m, 2)
+        dpsi = np.einsum("kt,nkm->nmt", dd, Jl)
+        J[:, :, k + 3 : k + 5] = 1e-3 * (W[None, :, None] * dphi + (c[None, :] * load[:, None])[:, :, None] * dpsi)
         return J
 
+    def inadmissible(self, features: Features, eta: NDArray | None = None) -> str | None:
+        # e.g. the RU-PUS-PRS: its platform origin is the centre of the passive post's universal joint, so
+        # a weight there loads only the post; with a centre of mass off it the drives would carry its moment,
+        # but that load is bilinear in the deflections and the offset and vanishes at the prior (no start
+        # for the fit).  Compare the dimensionless loads (actuator force per unit of weight) with 1e-3.
+        m = features.per_pose["Jt"].shape[2]
+        zero = np.zeros(m + 5 + (1 if features.const["has_payload"] else 0))
+        phi, psi = self._terms(features, zero)[8:10]
+        mass = features.per_pose["payload_kg"]
+        payload = bool(mass.size and np.ptp(mass) > 0 and psi.size and np.max(np.abs(psi)) > 1e-3)
+        if phi.size and np.max(np.abs(phi)) <= 1e-3 and not payload:
+            return ("the actuators carry no gravity load at any pose (under 0.1 % of the weight at the platform origin: "
+                    "it acts at a passive joint) and no changing payload_kg is recorded")
+        return None
+
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
-        return magnitude * rng.uniform(0.6, 1.4, machine.n_actuators)
+        """Compliances ``magnitude`` (um/N, +-40 %) under the platform mass and centre of mass of the constructor, no tilt."""
+        m = machine.n_actuators
+        c = magnitude * rng.uniform(0.6, 1.4, m)
+        com = np.zeros(3) if self.stated_com is None else self.stated_com
+        if features.const["has_payload"]:
+            out = [c, [self.platform_mass_kg], com, np.zeros(2)]
+        else:
+            out = [c * self.platform_mass_kg * GRAVITY, com, np.zeros(2)]
+        return np.concatenate(out)

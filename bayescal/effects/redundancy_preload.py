@@ -8,7 +8,7 @@ from numpy.typing import NDArray
 from ..machines.base import Machine, ToolPoses
 from .base import NONPHYSICAL_Z, Effect, EffectParam, Features
 
-__all__ = ["RedundancyPreload", "machine_dof", "PRELOAD_PRIOR_UM"]
+__all__ = ["RedundancyPreload", "machine_dof", "orient_directions", "PRELOAD_PRIOR_UM"]
 
 #: Prior one-sigma of a preload deflection, um.  Wide on purpose: the geometric parameters absorb about
 #: 99 % of a preload's signature on the RASPM (docs/diagnose.md), so only deflections of a few hundred um
@@ -26,6 +26,24 @@ def machine_dof(machine: Machine) -> int:
     return machine.n_actuators
 
 
+def orient_directions(nu: NDArray) -> NDArray:
+    """Unit directions (n, m) given up to sign, flipped to one continuous orientation over the poses.
+
+    A preload ``P`` pushes along the same internal-force direction at every
+    pose, so the sign of ``nu`` must not jump between poses.  Fixing one
+    component's sign (``nu_1 >= 0``) would flip the direction wherever that
+    component passes through zero in the workspace; instead every ``nu`` is
+    aligned with the principal direction of all of them (``nu . r >= 0``),
+    and ``r`` is signed so that its largest component is positive.
+    """
+    nu = np.asarray(nu, float)
+    if nu.size == 0:
+        return nu
+    r = np.linalg.svd(nu, full_matrices=False)[2][0]
+    r = r if r[int(np.argmax(np.abs(r)))] > 0 else -r
+    return np.where((nu @ r)[:, None] >= 0, nu, -nu)
+
+
 class RedundancyPreload(Effect):
     """Internal preload of a redundantly actuated machine (more actuators than DOF).
 
@@ -36,10 +54,11 @@ class RedundancyPreload(Effect):
     inverse-kinematics Jacobian when the machine has one (``ik_jacobian``,
     the RASPM), else the null space of the actuator Jacobian ``d x / d q``).  A preload ``P`` along the unit
     direction ``nu(q)`` of that space deflects compliant drives by
-    ``c_i P nu_i``; unequal compliances leave a deflection outside the null
+    ``c_i P nu_i`` (sign as in ``joint_compliance``: ``dq_i = c_i f_i``, ``f_i`` the force
+    pushing drive ``i`` towards larger ``q_i``); unequal compliances leave a deflection outside the null
     space, which moves the tool:
 
-        dq_i = d_i nu_i(q)            (one redundant direction; nu_1 >= 0)
+        dq_i = d_i nu_i(q)            (one redundant direction, oriented by :func:`orient_directions`)
 
     Parameters ``preload_deflection.q<i>`` (um, ``c_i P``; they share the
     sign of ``P``, so a fit with significantly opposite signs is rejected as
@@ -78,17 +97,15 @@ class RedundancyPreload(Effect):
             from ..redundant.physics import internal_force_basis
 
             _, Ja = machine.ik_jacobian(x, theta)
-            nu = internal_force_basis(Ja)[:, :, 0]
-            return Features({"nu": np.where(nu[:, :1] >= 0, nu, -nu)}, {})
+            return Features({"nu": orient_directions(internal_force_basis(Ja)[:, :, 0])}, {})
         J = machine.actuator_jacobian(q, theta, poses)  # (n, 6, m)
         n, _, m = J.shape
         k = m - machine_dof(machine)
         nu = np.zeros((n, m))
         for j in range(n):
             # the direction of actuator motion that moves the tool least: the internal-force direction
-            v = np.linalg.svd(J[j])[2][-max(k, 1):][0]
-            nu[j] = v if v[0] >= 0 else -v
-        return Features({"nu": nu}, {})
+            nu[j] = np.linalg.svd(J[j])[2][-max(k, 1):][0]
+        return Features({"nu": orient_directions(nu)}, {})
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
         return tuple(EffectParam(f"preload_deflection.q{i + 1}", "um", PRELOAD_PRIOR_UM) for i in range(machine.n_actuators))

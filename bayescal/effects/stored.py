@@ -81,12 +81,14 @@ class StoredEffect:
     values: tuple[tuple[str, float], ...]
     units: tuple[str, ...] = ()
     source: str = "<memory>"
+    #: Stated inputs of the effect (``Effect.settings_keys``: e.g. ``gravity`` of joint_compliance), in file order.
+    settings: tuple[tuple[str, object], ...] = ()
 
     def effect(self) -> Effect:
-        """The library effect (default settings)."""
+        """The library effect with the table's stated inputs (documented defaults for the others)."""
         from . import get_effect
 
-        return get_effect(self.name)
+        return get_effect(self.name, **{k: (np.asarray(v, float) if isinstance(v, (list, tuple)) else v) for k, v in self.settings})
 
     def key(self, param: str | None = None) -> str:
         """The dotted machine-file key of the table or of one of its parameters."""
@@ -156,14 +158,25 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
     key = f"{TABLE}.{name}"
     if name not in EFFECTS:
         raise MachineFileError(path, key, f"unknown effect {name!r}; expected one of: {', '.join(EFFECTS)}")
-    eff = get_effect(name)
     raw = t.table(name)
     values: list[tuple[str, float]] = []
+    settings: list[tuple[str, object]] = []
     for k in raw.keys():
         v = raw.data[k]
+        if k in EFFECTS[name].settings_keys:
+            # a stated input (a number or a vector of numbers), not a fitted parameter
+            flat = v if isinstance(v, list) else [v]
+            if not flat or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in flat):
+                raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number or a vector of numbers (an input of {name}), got {v!r}")
+            settings.append((k, [float(x) for x in v] if isinstance(v, list) else float(v)))
+            continue
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number (the parameter's value in its unit), got {v!r}")
         values.append((k, float(v)))
+    try:
+        eff = get_effect(name, **{k: (np.asarray(v, float) if isinstance(v, list) else v) for k, v in settings})
+    except InputError as exc:
+        raise MachineFileError(path, key, str(exc)) from exc
     why = eff.not_applicable(machine, {c: np.zeros(1) for c in PROBE_CHANNELS})
     if why is not None:
         raise MachineFileError(path, key, f"{name} cannot act on this {machine.kind} machine: {why}")
@@ -192,7 +205,7 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
                 path, key, f"parameters of different parametrisations of {name} mixed; expected one of " + " or ".join(
                     "{" + ", ".join(p.name for p in s) + "}" for s in sets),
             )
-    return StoredEffect(name, tuple(values), tuple(units.get(k, "") for k, _ in values), path)
+    return StoredEffect(name, tuple(values), tuple(units.get(k, "") for k, _ in values), path, tuple(settings))
 
 
 def read_effect_tables(doc: TomlTable, machine: Machine) -> tuple[StoredEffect, ...]:
@@ -225,6 +238,9 @@ def effect_tables_toml(effects: tuple[StoredEffect, ...]) -> str:
     out = []
     for e in effects:
         out.append(f"[{TABLE}.{e.name}]")
+        for k, v in e.settings:
+            val = "[" + ", ".join(format_toml_value(float(x)) for x in v) + "]" if isinstance(v, (list, tuple, np.ndarray)) else format_toml_value(float(v))
+            out.append(f"{format_toml_value(k)} = {val}")
         units = e.units or ("",) * len(e.values)
         for (k, v), u in zip(e.values, units):
             line = f"{format_toml_value(k)} = {format_toml_value(float(v))}"
@@ -335,15 +351,17 @@ def static_effect_delta_q(machine: Machine, effects: tuple[StoredEffect, ...], q
 
     A grid node has no measurement order, so effects of the approach
     direction (backlash) or of elapsed time must not read one from the
-    order of the nodes.  Each node is evaluated as if approached from
-    itself: the features are computed on the nodes each repeated twice in a
-    row, and the second copy is kept (no move, no elapsed time since the
-    first copy).  ``aux`` holds constants or per-node arrays.
+    order of the nodes.  Each node is evaluated as a session of its own
+    (the first pose: unknown approach, no elapsed time).  ``aux`` holds
+    constants or per-node arrays.
     """
     q = machine.check_q(q)
     n = q.shape[0]
-    aux2 = {k: np.repeat(np.broadcast_to(np.asarray(v, float), (n,)), 2) for k, v in (aux or {}).items()}
-    return effect_delta_q(machine, effects, np.repeat(q, 2, axis=0), aux2)[1::2]
+    aux_n = {k: np.broadcast_to(np.asarray(v, float), (n,)) for k, v in (aux or {}).items()}
+    # one session per node: the first pose of a session has no known approach (backlash: the centre of
+    # the band) and no elapsed time; a node repeated in one session would keep the previous node's lag
+    return np.concatenate([effect_delta_q(machine, effects, q[j : j + 1], {k: v[j : j + 1] for k, v in aux_n.items()})
+                           for j in range(n)]) if n else np.zeros_like(q)
 
 
 @dataclass(frozen=True, eq=False)

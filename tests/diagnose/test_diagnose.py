@@ -165,12 +165,15 @@ def test_negative_compliance_is_not_reported_as_a_detection(prs3):
     # a machine that "yields upwards" under gravity: the compliance fit explains it only with c < 0
     from bayescal.effects import get_effect
 
-    bound = get_effect("joint_compliance").bind(prs3, np.array([0.6, -0.6, 0.6]))
+    # (compliances under a 30 kg platform and the payload, centre of mass at the origin, no tilt)
+    values = np.concatenate([[0.6, -0.6, 0.6, 30.0], np.zeros(5)])
+    bound = get_effect("joint_compliance").bind(prs3, values)
     sim = simulate_with_effects(prs3, 80, seed=7, dof=6, record=("payload_kg",), extra=[bound])
     d = diagnose(prs3, sim.recording, seed=1, n_perm=19)
     assert d.verdict != "joint_compliance" and "joint_compliance" not in d.selected
     why = dict(d.skipped)["joint_compliance"]
     assert "non-physical" in why and "compliance.q2" in why
+    assert "q1" not in why and "q3" not in why
     assert "joint_compliance" not in [e.name for e in d.effects]  # not listed as a tried-and-scored explanation
 
 

@@ -85,9 +85,10 @@ def test_bound_effect_in_the_simulator(prs3, rng):
     bl = measure(prs3, q, theta, 3, None, effects=[bound])
     diff = bl.position - clean.position
     assert np.linalg.norm(diff[0]) == pytest.approx(0.0, abs=1e-12)  # first pose: approach unknown
-    # the rest: exactly the kinematics at q + 20 um * approach sign
+    # the rest: exactly the kinematics at q - 20 um * approach sign (the slider lags the command;
+    # the moves between random poses are far longer than the 40 um band)
     s = approach_direction(q)
-    expected = prs3.forward(q + 0.02 * s).position - clean.position
+    expected = prs3.forward(q - 0.02 * s).position - clean.position
     np.testing.assert_allclose(diff, expected, atol=1e-9)
     sim = simulate_with_effects(prs3, 30, seed=4, dof=3, effects=[("backlash", 40.0)])
     assert sim.info["effects"]["backlash"]["parameters"][0]["name"] == "backlash.q1"
@@ -134,20 +135,25 @@ def test_measurement_rows_jacobian_of_effect_parameters(prs3, sim6, name):
 def test_nonphysical_flags_only_parameters_significantly_below_their_bound(prs3):
     f = get_effect("joint_compliance")
     params = f.params(prs3, None)
-    assert all(p.lower == 0.0 for p in params)
-    std = np.full(3, 0.1)
-    assert f.nonphysical(params, np.array([0.5, -0.05, -0.29]), std) is None  # within 3 sigma of zero: noise
-    why = f.nonphysical(params, np.array([0.5, -0.05, -1.0]), std)
-    assert why and "compliance.q3" in why and "compliance.q2" not in why
+    bounded = [p.name for p in params if p.lower is not None]
+    assert bounded == ["weight_deflection.q1", "weight_deflection.q2", "weight_deflection.q3"]
+    assert all(p.lower == 0.0 for p in params if p.lower is not None)
+    std = np.full(8, 10.0)
+    assert f.nonphysical(params, np.array([50, -5, -29, -300, 300, 0, 0.5, -0.5]), std) is None  # within 3 sigma: noise
+    why = f.nonphysical(params, np.array([50, -5, -100, -300, 300, 0, 0.5, -0.5]), std)
+    assert why and "weight_deflection.q3" in why and "weight_deflection.q2" not in why
     b = get_effect("backlash")
     assert "backlash.q1" in b.nonphysical(b.params(prs3, None), np.array([-40.0, 10.0, 10.0]), np.full(3, 5.0))
     t = get_effect("thermal_expansion")
     tf = t.features(prs3, np.zeros((4, 3)) + 400.0, None, {"temp_C": np.full(4, 21.0)}, None, None)
     tp = t.params(prs3, tf)
-    eta = np.zeros(6)
+    assert [p.name for p in tp][6:] == ["link.q1", "link.q2", "link.q3"]
+    eta = np.zeros(len(tp))
     eta[4] = -30.0  # alpha.q2: a screw that shrinks when warmed
-    assert "alpha.q2" in t.nonphysical(tp, eta, np.full(6, 2.0))
-    assert t.nonphysical(tp, -eta, np.full(6, 2.0)) is None  # drifts may take either sign; alpha > 0 is fine
+    assert "alpha.q2" in t.nonphysical(tp, eta, np.full(len(tp), 2.0))
+    assert t.nonphysical(tp, -eta, np.full(len(tp), 2.0)) is None  # drifts may take either sign; alpha > 0 is fine
+    eta[4], eta[7] = 0.0, -30.0  # link.q2: a link that shrinks when warmed
+    assert "link.q2" in t.nonphysical(tp, eta, np.full(len(tp), 2.0))
 
 
 def test_preload_deflections_must_share_one_sign():
@@ -163,15 +169,19 @@ def test_preload_deflections_must_share_one_sign():
 
 
 def test_joint_compliance_inadmissible_when_no_drive_carries_the_weight():
-    # RU-PUS-PRS: the weight acts at the centre of the passive post's universal joint
+    # RU-PUS-PRS: a weight at the platform origin (the centre of the passive post's universal joint) loads
+    # only the post; a changing payload at the tool point (50 mm above it) loads the drives through its moment
     from bayescal.machines import load_machine
     from tests.conftest import PRS3_FILE
 
     m = load_machine(PRS3_FILE.parent.parent / "rupus_prs" / "machine.toml")
     sim = simulate_with_effects(m, 15, seed=1, dof=6, record=("payload_kg",))
     eff = get_effect("joint_compliance")
-    f = eff.features(m, sim.recording.q, np.zeros(m.n_params), dict(sim.recording.aux), None, None)
+    aux = dict(sim.recording.aux)
+    f = eff.features(m, sim.recording.q, np.zeros(m.n_params), {}, None, None)
     assert "no gravity load" in eff.inadmissible(f)
+    f = eff.features(m, sim.recording.q, np.zeros(m.n_params), aux, None, None)
+    assert eff.inadmissible(f) is None and "compliance.q2" in [p.name for p in eff.params(m, f)]
 
 
 def test_simulating_an_effect_that_cannot_act_is_an_error():
@@ -180,4 +190,27 @@ def test_simulating_an_effect_that_cannot_act_is_an_error():
 
     m = load_machine(PRS3_FILE.parent.parent / "rupus_prs" / "machine.toml")
     with pytest.raises(InputError, match=r"--effect joint_compliance:0.5: has no effect on the RU-PUS-PRS.*no gravity load"):
-        simulate_with_effects(m, 10, seed=1, effects=[("joint_compliance", 0.5)], record=("payload_kg",))
+        simulate_with_effects(m, 10, seed=1, effects=[("joint_compliance", 0.5)])
+
+
+def test_preload_directions_keep_one_orientation_where_a_component_crosses_zero():
+    from bayescal.effects.redundancy_preload import orient_directions
+
+    # a direction turning through 60 degrees: its first component changes sign half way
+    a = np.linspace(-0.5, 0.5, 11)
+    nu = np.stack([np.sin(a), np.cos(a), np.zeros(11)], axis=1)
+    flips = np.where(np.arange(11) % 3 == 0, -1.0, 1.0)[:, None]  # given up to sign, as an SVD returns them
+    out = orient_directions(nu * flips)
+    np.testing.assert_allclose(out, nu)  # continuous, and the dominant component (the second) positive
+
+
+def test_effect_settings_are_checked_and_applied(prs3):
+    jc = get_effect("joint_compliance", gravity=[2.0, 0.0, 0.0])
+    np.testing.assert_allclose(jc.down, [1.0, 0.0, 0.0])
+    assert get_effect("thermal_expansion", reference_C=23.0).reference_C == 23.0
+    with pytest.raises(InputError, match="unknown setting.*mass.*expected some of: gravity, payload_offset, platform_mass_kg, platform_com_mm"):
+        get_effect("joint_compliance", mass=30.0)
+    with pytest.raises(InputError, match="non-zero 3-vector"):
+        get_effect("joint_compliance", gravity=[0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match="expected some of: none"):
+        get_effect("backlash", gravity=[0.0, 0.0, -1.0])

@@ -18,8 +18,16 @@ from tests.conftest import PRS3_FILE
 
 GOOD = PRS3_FILE.read_text()
 
-COMPLIANCE = '[effect.joint_compliance]\n"compliance.q1" = 0.4\n"compliance.q2" = 0.6\n"compliance.q3" = 0.5\n'
-THERMAL_T = "[effect.thermal_expansion]\n" + "".join(f'"drift.q{i}" = {i}.5\n"alpha.q{i}" = 1{i}.0\n' for i in (1, 2, 3))
+# joint_compliance as fitted with a payload_kg channel: compliances, one platform mass, centre of mass, mounting tilt
+REST = '"platform_mass" = 30.0\n"com.x" = 0.0\n"com.y" = 0.0\n"com.z" = 0.0\n"gravity.tilt_1" = 0.0\n"gravity.tilt_2" = 0.0\n'
+COMPLIANCE = '[effect.joint_compliance]\n"compliance.q1" = 0.4\n"compliance.q2" = 0.6\n"compliance.q3" = 0.5\n' + REST
+THERMAL_T = "[effect.thermal_expansion]\n" + "".join(f'"drift.q{i}" = {i}.5\n"alpha.q{i}" = 1{i}.0\n"link.q{i}" = 0.{i}\n' for i in (1, 2, 3))
+#: joint_compliance without a payload channel: the weight deflections c_i m_p g (um)
+W_REST = (("com.x", 0.0), ("com.y", 0.0), ("com.z", 0.0), ("gravity.tilt_1", 0.0), ("gravity.tilt_2", 0.0))
+
+
+def _weight(c):
+    return tuple((f"weight_deflection.q{i + 1}", v * 30.0 * 9.80665) for i, v in enumerate(c)) + W_REST
 BACKLASH = '[effect.backlash]\n"backlash.q1" = 20.0\n"backlash.q2" = 30.0\n"backlash.q3" = 25.0\n'
 
 
@@ -33,7 +41,7 @@ def test_tables_round_trip_through_the_machine_file(tmp_path):
     m, _ = _machine(tmp_path, COMPLIANCE + THERMAL_T + BACKLASH)
     assert [e.name for e in m.effects] == ["joint_compliance", "thermal_expansion", "backlash"]
     assert dict(m.effects[1].values)["alpha.q2"] == 12.0
-    assert m.effects[0].units == ("um/N",) * 3  # units come from the effect, written as comments
+    assert m.effects[0].units == ("um/N",) * 3 + ("kg", "mm", "mm", "mm", "rad", "rad")  # units come from the effect, as comments
     text = machine_file_text(m)
     assert '"compliance.q1" = 0.4' in text and "# um/N" in text
     again = machine_from_text(text)
@@ -90,11 +98,11 @@ def test_every_registered_effect_writes_and_reads_its_own_parameters(prs3):
 def test_application_maps_names_not_file_order(prs3, sim6):
     """A table in any key order gives the dq of the effect bound to its values in parameter order."""
     eff = get_effect("joint_compliance")
-    c = {"compliance.q1": 0.3, "compliance.q2": 0.9, "compliance.q3": 0.6}
+    c = dict(_weight([0.3, 0.9, 0.6]))
     st = StoredEffect("joint_compliance", tuple(reversed(list(c.items()))))
     rec = sim6.recording
     dq = effect_delta_q(prs3, (st,), rec.q, rec.aux)
-    bound = eff.bind(prs3, [c["compliance.q1"], c["compliance.q2"], c["compliance.q3"]])
+    bound = eff.bind(prs3, list(c.values()))
     q_ref, _ = bound.transform(rec.q, np.zeros(prs3.n_params), dict(rec.aux), np.arange(rec.n_poses))
     np.testing.assert_allclose(dq, q_ref - rec.q, rtol=0, atol=1e-11)  # forward-kinematics round-off
     assert np.abs(dq).max() > 1e-3  # a 30 kg platform on 0.3-0.9 um/N drives: microns
@@ -133,7 +141,7 @@ def test_mode_and_channels_are_checked_when_applied(tmp_path, prs3):
 
 
 def test_simulating_a_machine_with_tables_applies_them(prs3):
-    st = StoredEffect("joint_compliance", (("compliance.q1", 0.5), ("compliance.q2", 0.5), ("compliance.q3", 0.5)))
+    st = StoredEffect("joint_compliance", _weight([0.5, 0.5, 0.5]))
     m = prs3.with_effects((st,))
     with_eff = simulate_recording(m, 30, seed=2, effects=[StoredEffectsTransform(m, m.effects)])
     plain = simulate_recording(prs3, 30, seed=2)
@@ -143,7 +151,7 @@ def test_simulating_a_machine_with_tables_applies_them(prs3):
 
 
 def test_grid_applies_tables_under_the_stated_channels(prs3):
-    comp = StoredEffect("joint_compliance", (("compliance.q1", 0.5), ("compliance.q2", 0.5), ("compliance.q3", 0.5)))
+    comp = StoredEffect("joint_compliance", tuple((f"compliance.q{i}", 0.5) for i in (1, 2, 3)) + (("platform_mass", 30.0),) + W_REST)
     back = StoredEffect("backlash", (("backlash.q1", 30.0), ("backlash.q2", 30.0), ("backlash.q3", 30.0)))
     theta = np.zeros(prs3.n_params)
     cov = np.eye(prs3.n_params) * 1e-8
@@ -152,12 +160,13 @@ def test_grid_applies_tables_under_the_stated_channels(prs3):
     # nodes have no approach direction: backlash leaves the grid unchanged
     gb = compensation_grid(prs3.with_effects((back,)), theta, covariance=cov, n=3)
     np.testing.assert_allclose(gb.correction, g0.correction, atol=1e-12)
-    # compliance: the sag grows linearly with the total mass (30 kg platform + payload)
+    # compliance: the sag of the payload (at the tool point) grows linearly with its mass
     mc = prs3.with_effects((comp,))
-    c0 = compensation_grid(mc, theta, covariance=cov, n=3).correction
+    c0 = compensation_grid(mc, theta, covariance=cov, n=3, aux={"payload_kg": 0.0}).correction
+    c15 = compensation_grid(mc, theta, covariance=cov, n=3, aux={"payload_kg": 15.0}).correction
     c30 = compensation_grid(mc, theta, covariance=cov, n=3, aux={"payload_kg": 30.0}).correction
-    assert np.abs(c0).max() > 1e-3
-    np.testing.assert_allclose(c30, 2 * c0, rtol=2e-3, atol=1e-7)
+    assert np.abs(c0).max() > 1e-3 and np.abs(c30 - c0).max() > 1e-3
+    np.testing.assert_allclose(c30 - c0, 2 * (c15 - c0), rtol=2e-3, atol=1e-7)
     # the static dq is the per-node dq of a recording whose poses do not move (no approach)
     q = g0.q[:5]
     np.testing.assert_allclose(static_effect_delta_q(mc, mc.effects, q, {"payload_kg": 5.0}),
@@ -165,7 +174,7 @@ def test_grid_applies_tables_under_the_stated_channels(prs3):
     assert np.all(static_effect_delta_q(prs3, (back,), q) == 0)
     with pytest.raises(InputError, match="temp_C"):
         compensation_grid(machine_from_text(machine_file_text(prs3, None, ())).with_effects(
-            (StoredEffect("thermal_expansion", tuple((f"{k}.q{i}", 1.0) for k in ("drift", "alpha") for i in (1, 2, 3))),)),
+            (StoredEffect("thermal_expansion", tuple((f"{k}.q{i}", 1.0) for k in ("drift", "alpha", "link") for i in (1, 2, 3))),)),
             theta, covariance=cov, n=2)
 
 
@@ -209,3 +218,20 @@ def test_predict_poses_is_the_model_of_a_recording(prs3, sim6):
     model = MeasurementModel.from_recording(m, rec)
     np.testing.assert_allclose(predict_poses(m, rec.q, rec.aux).position, model.predict(None).y[:, :3], atol=1e-9)
     np.testing.assert_allclose(predict_poses(prs3, rec.q).position, prs3.forward(rec.q).position, atol=0)
+
+
+def test_stated_inputs_sit_beside_the_parameters(tmp_path, prs3):
+    """Effect.settings_keys (e.g. the gravity direction of a machine on its side) are read, applied and written."""
+    side = COMPLIANCE.replace("[effect.joint_compliance]\n", "[effect.joint_compliance]\ngravity = [1.0, 0.0, 0.0]\n")
+    m, _ = _machine(tmp_path, side)
+    assert dict(m.effects[0].settings) == {"gravity": [1.0, 0.0, 0.0]}
+    np.testing.assert_allclose(m.effects[0].effect().down, [1.0, 0.0, 0.0])
+    text = machine_file_text(m)
+    assert '"gravity" = [1.0, 0.0, 0.0]' in text and machine_file_text(machine_from_text(text)) == text
+    up, _ = _machine(tmp_path, COMPLIANCE)
+    q = prs3.sample_q(4, np.random.default_rng(1))
+    aux = {"payload_kg": np.full(4, 10.0)}
+    assert np.abs(effect_delta_q(m, m.effects, q, aux) - effect_delta_q(up, up.effects, q, aux)).max() > 1e-3
+    with pytest.raises(MachineFileError, match="an input of joint_compliance") as err:
+        _machine(tmp_path, side.replace("[1.0, 0.0, 0.0]", '"sideways"'))
+    assert err.value.key == 'effect.joint_compliance."gravity"'

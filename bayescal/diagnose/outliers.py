@@ -1,0 +1,197 @@
+"""Gross errors are not physics: name the outlying poses and take them out of the diagnosis.
+
+A tracker beam break or a mistyped value makes one pose disagree with every
+model of the machine.  Left in, it is a "structured mismatch" the location
+tests pin on a pose region and no effect explains ("unexplained").  The
+screen runs before anything else: the geometric MAP fit (tolerance prior,
+every parameter free, as the diagnosis fits it), the per-pose test of
+:func:`bayescal.outliers.pose_test` with the *robust* noise scale
+(``s^2 = max(1, median(t) / median(chi2(d)))``: a missing physical effect
+raises the residuals of every pose and with them the scale, so it is not
+taken for outliers, while a pose far from the rest is), Sidak-adjusted over
+the poses.  Flagged poses are excluded by weight: their sigma is multiplied
+by :data:`EXCLUDE_FACTOR`, so that they carry no weight in any fit but keep
+their place in the measurement order (the order carries the approach
+direction and the time the effects read); they are never held-out test
+poses of the cross-validation.  The screen is repeated at the refit
+without them (at most :data:`MAX_ROUNDS` times) so that one gross pose
+cannot hide another.
+
+When the diagnosis selects effects, the poses are tested again against the
+final model (:func:`retest_with_effects`); if that names other poses, the
+diagnosis is run once more with those excluded (a warm-up's first poses are
+physics, not outliers, and a gross pose the geometric misfit hid is found).
+
+If more than :data:`MAX_FRACTION` of the poses would be flagged, the
+mismatch is not a few bad poses but structure: nothing is excluded and the
+diagnosis proceeds on every pose (the answer says so).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..effects.model import fit_map
+from ..measurement import MeasurementModel
+from ..outliers import ALPHA, MAX_FRACTION, PoseTest, pose_test, pose_test_linear
+
+__all__ = ["OutlierScreen", "screen_outliers", "retest_with_effects", "EXCLUDE_FACTOR", "MAX_FRACTION"]
+
+#: A flagged pose's sigma is multiplied by this (weight 1e-12): out of every fit.
+EXCLUDE_FACTOR = 1e6
+MAX_ROUNDS = 3
+
+
+@dataclass(frozen=True)
+class OutlierScreen:
+    """Outlying poses of a recording, and what the diagnosis did with them.
+
+    Attributes
+    ----------
+    test : PoseTest
+        The last round's test (robust scale).
+    excluded : ndarray of bool, shape (n_poses,)
+        Poses taken out of the fits.
+    action : str
+        What was done (the answer's ``outlier_handling``).
+    fit : EffectFit or None
+        The geometric MAP fit of the weighted model (the diagnosis's first
+        fit), when the screen ended on it; None otherwise.
+    """
+
+    test: PoseTest
+    excluded: NDArray
+    action: str
+    fit: object = None
+
+    def weighted_model(self, model: MeasurementModel) -> MeasurementModel:
+        """``model`` with the excluded poses' sigma multiplied by :data:`EXCLUDE_FACTOR`."""
+        if not self.excluded.any():
+            return model
+        sig = np.array(model.row_sigma, dtype=float)
+        sig[self.excluded] *= EXCLUDE_FACTOR
+        return model.with_pose_sigma(sig)
+
+    def outliers(self) -> list[dict]:
+        """FORMATS.md section 4 entries of the excluded poses (line order)."""
+        t = self.test
+        return [
+            {"line": int(t.lines[i]), "statistic": float(t.statistic[i]), "p_value": float(t.p_adjusted[i]),
+             "p_value_single": float(t.p_value[i])}
+            for i in np.flatnonzero(self.excluded)
+        ]
+
+    def to_dict(self) -> dict:
+        test = {**self.test.to_dict(), "excluded": self.excluded}
+        return {"outliers": self.outliers(), "outlier_handling": self.action, "outlier_test": test}
+
+    def report(self) -> str:
+        out = self.outliers()
+        if not out:
+            return f"outliers: none ({self.action})"
+        rows = "; ".join(f"line {o['line']} (statistic {o['statistic']:.4g}, p = {o['p_value']:.3g})" for o in out)
+        return f"outliers: {len(out)} pose(s) no model explains, {self.action}: {rows}"
+
+
+def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, alpha: float = ALPHA) -> OutlierScreen:
+    """Find gross-error poses before the diagnosis (see the module docstring).
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The recording with its instrument noise.
+    lines : ndarray of int, optional
+        CSV line of every pose (default ``i + 2``).
+    alpha : float
+        Family-wise level over the poses.
+
+    Returns
+    -------
+    OutlierScreen
+    """
+    n = model.n_poses
+    excluded = np.zeros(n, dtype=bool)
+    free = np.ones(model.n_params, dtype=bool)
+    test = fit = None
+    for _ in range(MAX_ROUNDS):
+        weights = np.where(excluded, EXCLUDE_FACTOR**-2, 1.0)
+        m = OutlierScreen(test=None, excluded=excluded, action="").weighted_model(model)
+        fit = fit_map(m)
+        test = pose_test(model, fit.theta, free, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=lines)
+        new = excluded | test.flagged
+        if new.sum() > MAX_FRACTION * n:
+            return OutlierScreen(
+                test=test, excluded=np.zeros(n, dtype=bool),
+                action=f"none excluded: {int(new.sum())} of {n} poses stand out, more than {MAX_FRACTION:.0%}; "
+                "that is structure, not a few bad poses",
+            )
+        if np.array_equal(new, excluded):
+            break
+        excluded, fit = new, None
+    if excluded.any():
+        action = "excluded from every fit, the location tests and the cross-validation (kept in the measurement order)"
+    else:
+        action = "no pose flagged; every pose used"
+    return OutlierScreen(test=test, excluded=excluded, action=action, fit=fit)
+
+
+def retest_with_effects(
+    model: MeasurementModel,
+    effects,
+    fit,
+    screen: OutlierScreen,
+    *,
+    alpha: float = ALPHA,
+) -> OutlierScreen | None:
+    """Test every pose against the diagnosis's final model (geometry and the selected effects).
+
+    The screen judges the poses by the geometric model alone, whose misfit on
+    a recording with physics has tails (the first poses of a warm-up, the
+    heaviest payloads) that can pass for outliers, and whose inflated scale
+    can hide a gross pose.  Against the final model the yardstick is right:
+    this returns the screen the diagnosis should have used, or None when it
+    is the one it used.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The recording with its instrument noise (not the exclusion weights).
+    effects : list of (Effect, Features)
+        The selected effects.
+    fit : EffectFit
+        The final joint fit (on the weighted model).
+    screen : OutlierScreen
+        The screen the diagnosis used.
+    """
+    from ..effects.model import _dq, _predict, _slices
+
+    if not effects:
+        return None
+    machine = model.machine
+    P = machine.n_params
+    slices = _slices(effects, model)
+    q_eff = model.q + _dq(effects, slices, fit.eta, model.q.shape)
+    sub, pred = _predict(model, q_eff, fit.theta, None)
+    sig = np.asarray(model.row_sigma)
+    # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq
+    cols = [sub.jacobian(fit.theta, pred)]
+    Jq = sub.rows_jacobian(machine.actuator_jacobian(sub.q, fit.theta, pred.poses), pred)
+    for (eff, f), sl in zip(effects, slices):
+        cols.append(np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian(f, fit.eta[sl])))
+    scale = np.concatenate([machine.tolerance, [p.prior_sd for p in fit.params]])
+    A = (np.concatenate(cols, axis=2) / sig[:, :, None]).reshape(-1, P + len(fit.params)) * scale
+    r = (model.residual(pred) / sig).reshape(-1)
+    weights = np.where(screen.excluded, EXCLUDE_FACTOR**-2, 1.0)
+    test = pose_test_linear(A, r, model.dof, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=screen.test.lines)
+    flagged = test.flagged
+    if np.array_equal(flagged, screen.excluded) or flagged.sum() > MAX_FRACTION * model.n_poses:
+        return None
+    judged = "judged against the geometry with " + ", ".join(e.name for e, _ in effects)
+    if flagged.any():
+        action = f"excluded from every fit, the location tests and the cross-validation (kept in the measurement order); {judged}"
+    else:
+        action = f"no pose flagged, {judged} (the geometric model's misfit alone had flagged some); every pose used"
+    return OutlierScreen(test=test, excluded=flagged.copy(), action=action)

@@ -1,0 +1,73 @@
+"""A bad pose is not physics: gross errors named as outliers and left out of the diagnosis."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bayescal.cli import main
+from bayescal.diagnose import diagnose
+from bayescal.diagnose.outliers import MAX_FRACTION, screen_outliers
+from bayescal.effects.simulate import simulate_with_effects
+from bayescal.io import write_recording
+from bayescal.measurement import MeasurementModel
+from tests.conftest import PRS3_FILE
+
+
+def _beam_breaks(rec, idx, sigma, rng, low=10.0, high=100.0):
+    """The recording with gross errors (10 to 100 sigma, random directions) at poses ``idx``."""
+    pos = rec.position.copy()
+    for i in idx:
+        d = rng.normal(size=3)
+        pos[i] += 10 ** rng.uniform(np.log10(low), np.log10(high)) * sigma * d / np.linalg.norm(d)
+    return replace(rec, position=pos)
+
+
+@pytest.mark.parametrize("effect,verdict", [((), "none"), ((("backlash", 30.0),), "backlash")])
+def test_gross_poses_named_and_verdict_describes_the_rest(prs3, effect, verdict):
+    sim = simulate_with_effects(prs3, 80, seed=20, dof=6, effects=list(effect), record=("time_s", "temp_C"))
+    bad = np.array([37, 50])
+    rec = _beam_breaks(sim.recording, bad, prs3.noise.sigma_position, np.random.default_rng(0))
+    d = diagnose(prs3, rec, seed=1, n_perm=49)
+    ans = d.to_dict()
+    assert [o["line"] for o in ans["outliers"]] == list(bad + 2)
+    assert all(o["p_value"] < 0.01 for o in ans["outliers"])
+    assert ans["outlier_handling"].startswith("excluded")
+    assert d.verdict == verdict
+    assert "outliers: 2 pose(s)" in d.report()
+
+
+def test_clean_recording_has_no_outliers_and_cli_json_carries_the_keys(prs3, tmp_path):
+    sim = simulate_with_effects(prs3, 60, seed=8, dof=6, record=("time_s",))
+    rec = tmp_path / "rec.csv"
+    write_recording(rec, sim.recording)
+    out = tmp_path / "d.json"
+    assert main(["diagnose", str(rec), "--machine", str(PRS3_FILE), "--json", str(out), "--quiet"]) == 0
+    ans = json.loads(out.read_text())
+    assert ans["verdict"] == "none"
+    assert ans["outliers"] == [] and ans["outlier_handling"].startswith("no pose flagged")
+
+
+def test_many_bad_poses_are_structure_not_outliers(prs3):
+    sim = simulate_with_effects(prs3, 60, seed=9, dof=6)
+    rng = np.random.default_rng(1)
+    bad = rng.choice(60, int(2 * MAX_FRACTION * 60), replace=False)
+    rec = _beam_breaks(sim.recording, bad, prs3.noise.sigma_position, rng, low=50.0, high=60.0)
+    screen = screen_outliers(MeasurementModel.from_recording(prs3, rec))
+    assert not screen.excluded.any() and "structure" in screen.action
+    assert screen.outliers() == []
+
+
+def test_physics_tails_are_not_outliers_when_judged_against_the_final_model(prs3):
+    """Thermal warm-up: the geometric screen also flags the first poses (lines 4 and 6 here); judged
+    against geometry + thermal_expansion only the three gross poses remain, and the diagnosis is rerun."""
+    sim = simulate_with_effects(prs3, 100, seed=20, dof=6, effects=[("thermal_expansion", 15.0)], record=("temp_C",))
+    bad = np.array([30, 55, 80])
+    rec = _beam_breaks(sim.recording, bad, prs3.noise.sigma_position, np.random.default_rng(0))
+    screen = screen_outliers(MeasurementModel.from_recording(prs3, rec))
+    assert set(bad) < set(np.flatnonzero(screen.excluded))  # the geometric screen alone over-flags
+    d = diagnose(prs3, rec, seed=1, n_perm=49)
+    assert d.verdict == "thermal_expansion"
+    assert [o["line"] for o in d.to_dict()["outliers"]] == list(bad + 2)
+    assert "judged against the geometry with thermal_expansion" in d.to_dict()["outlier_handling"]
