@@ -114,3 +114,17 @@ def test_tiago_registration_and_full_fit(quick):
     staged = t["cli"]["identify map, from the registered machine"]
     assert staged["exit"] == 0
     assert staged["rms_after"]["position"] == pytest.approx(t["in_sample"]["map"]["pos_rms"], abs=0.05)
+
+
+@pytest.mark.skipif(not HAVE_TIAGO, reason="shared TIAGo data absent")
+def test_tiago_outlier_screen_names_the_bad_row(quick):
+    _, res = quick
+    scr = res["tiago"]["outlier_screen"]
+    if not scr["available"]:
+        pytest.skip("this bayescal has no outlier screen")
+    reg = scr["registration"]
+    # data row 30 (CSV line 31), the row the source's audit names, is among the flagged lines, and with many
+    # rows flagged the screen calls it a model mismatch rather than a few gross errors (the timing defect)
+    assert 31 in reg["flagged_before_refit"]
+    assert len(reg["flagged_before_refit"]) > 4
+    assert reg["outliers"] == []
