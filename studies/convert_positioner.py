@@ -142,14 +142,15 @@ def machine_text(target_mount: np.ndarray) -> str:
         "[workspace]                    # the source's joint limits",
         f"q_limits = {format_toml_value(np.array(LIMITS))}",
         "",
-        "[tolerance]                    # the source's prior on DH offsets (0.005 m / rad); the target mount is a rough guess",
+        "[tolerance]                    # the source's prior on DH offsets (0.005 m / rad); the target mount is unknown:",
+        "                               # its nominal is the source's rough guess, so 1 m / 1 rad leave it effectively free",
         "origin = 5.0",
         "rpy = 0.005",
         "axis = 0.005",
         "offset_angle = 0.005",
         "offset_length = 5.0",
-        "tool_point = 50.0",
-        "tool_rpy = 0.1",
+        "tool_point = 1000.0",
+        "tool_rpy = 1.0",
         "",
     ]
     return "\n".join(out)
@@ -198,7 +199,9 @@ sensor that reports the full 6-DOF pose of a target on the turntable: 205 poses,
   is normalised). `Rz(theta_i)` commutes with the joint rotation, so
   the chain is the same; moving it avoids a gimbal-locked rpy on joint 2.
   `[tolerance]` follows the source's prior on the DH offsets (0.005 m and 0.005 rad); the
-  target mount gets wide tolerances (50 mm, 0.1 rad) because it is only a guess.
+  target mount gets tolerances of 1 m and 1 rad, which leave it effectively free (its nominal is
+  only the source's rough guess: 18 mm and 0.18 rad from the mount a converged fit finds, so the
+  earlier 50 mm / 0.1 rad would have pulled MAP towards a wrong mount).
   `[measurement]` (0.5 mm, 0.9 mrad) is the residual floor found in the data set's
   description (`nominal.md`), not a specification of the (unnamed) sensor.
 * `recording.csv`: `q1, q2` (rad, `target_joints`), `x, y, z` (mm, the measured
