@@ -117,7 +117,7 @@ def diagnose(
     effects: list[str] | None = None,
     seed: int = 0,
     n_folds: int = 5,
-    n_perm: int = 199,
+    n_perm: int | None = None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -131,11 +131,13 @@ def diagnose(
         Effects to try (forced: an effect that cannot be modelled is an
         error).  Default: every effect of the library that applies.
     seed : int
-        Seeds the permutation tests and the cross-validation folds.
+        Seeds the cross-validation folds and the blocks of the location tests.
     n_folds : int
         Folds of the leave-poses-out cross-validation.
-    n_perm : int
-        Permutations per location test.
+    n_perm : int, optional
+        Not used any more (the location tests now use the exact permutation
+        moments, :mod:`bayescal.diagnose.dependence`); accepted so that callers
+        written for the sampled permutation test keep working unchanged.
 
     Returns
     -------
@@ -165,7 +167,7 @@ def diagnose(
         ) from exc
     pred0 = model.predict(fit0.theta)
     dq_res = actuator_residual(model, fit0.theta, fit0.residual, pred0)
-    location = locate(model.q, fit0.residual / model.sigma[None, :], dq_res, aux, recording.position, seed=seed, n_perm=n_perm)
+    location = locate(model.q, fit0.residual / model.sigma[None, :], dq_res, aux, recording.position, seed=seed)
 
     cands: list[_Candidate] = []
     skipped: list[tuple[str, str]] = []
