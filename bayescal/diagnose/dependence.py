@@ -397,11 +397,13 @@ class ResidualBlocks:
             self.index = [np.arange(n)]
         else:
             self.index = [np.sort(b) for b in np.array_split(np.random.default_rng(seed).permutation(n), n_blocks)]
-        self._B, self._sums, self._vyy = [], [], []
+        # the blocks' distance matrices are rebuilt per channel (a few ms each) rather than kept:
+        # kept, they would hold 2 MB per 500 poses (200 MB at 50,000 poses)
+        self._y, self._sums, self._vyy = [], [], []
         for idx in self.index:
             yb = y[idx]
             B = centered_distances(yb)
-            self._B.append(B)
+            self._y.append(yb)
             self._sums.append(_Sums.of(B, x=yb if yb.ndim == 1 else None))
             self._vyy.append(float(np.vdot(B, B)) / B.size)
 
@@ -419,7 +421,7 @@ class ResidualBlocks:
         x = np.asarray(x, float)
         one_d = x.ndim == 1 or x.shape[1] == 1
         vxy = vxx = vyy = mean = var = third = 0.0
-        for idx, B, sb, byy in zip(self.index, self._B, self._sums, self._vyy):
+        for idx, yb, sb, byy in zip(self.index, self._y, self._sums, self._vyy):
             xb = x[idx]
             A = centered_distances(xb)
             n2 = A.size
@@ -428,7 +430,7 @@ class ResidualBlocks:
                 continue  # constant channel (or residual) in this block: no information, no null mass
             m, v, t = _cumulants(_Sums.of(A, x=xb if one_d else None), sb)
             # cumulants of independent blocks add (the third central moment is the third cumulant)
-            vxy += float(np.vdot(A, B)) / n2
+            vxy += float(np.vdot(A, centered_distances(yb))) / n2
             vxx += axx
             vyy += byy
             mean += m / n2
