@@ -43,8 +43,10 @@ at 5,000, and 50,000 poses do not fit in memory.  A random-projection test
 projections times the permutations, or an asymptotic null on top.  The
 block test keeps the exact statistic and an exact permutation null per
 block (so ``dcor`` is not a dependency; the tests check the statistic
-against its definition without double centring).  This test costs about 5 ms per channel at 100 poses and 0.1 s
-per channel per 1,000 poses above (benchmarks/README.md).
+against its definition without double centring).  This test costs about
+5 ms per channel at 100 poses and 0.05 s of CPU per channel and 1,000 poses
+from 1,000 poses on: all location tests of a 50,000-pose diagnosis took
+29 s (benchmarks/README.md).
 """
 
 from __future__ import annotations
