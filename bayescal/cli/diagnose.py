@@ -59,7 +59,7 @@ def register(sub) -> None:
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
     p.add_argument("--figures", metavar="DIR", help="write residual-against-channel figures (PNG) here")
     p.add_argument("--effects", help="comma-separated effects to try (default: every applicable one)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the permutation tests and CV folds (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the cross-validation folds and of the location tests' blocks from 1,000 poses on (default 0)")
     p.add_argument(
         "--write-machine", metavar="PATH",
         help="write the calibrated machine: the geometry fitted jointly with the selected effects, and those effects "

@@ -120,7 +120,7 @@ def diagnose(
     effects: list[str] | None = None,
     seed: int = 0,
     n_folds: int = 5,
-    n_perm: int = 199,
+    n_perm: int | None = None,
     effect_settings: dict[str, dict] | None = None,
     _screen=None,
 ) -> Diagnosis:
@@ -138,11 +138,13 @@ def diagnose(
         Effects to try (forced: an effect that cannot be modelled is an
         error).  Default: every effect of the library that applies.
     seed : int
-        Seeds the permutation tests and the cross-validation folds.
+        Seeds the cross-validation folds and the blocks of the location tests.
     n_folds : int
         Folds of the leave-poses-out cross-validation.
-    n_perm : int
-        Permutations per location test.
+    n_perm : int, optional
+        Not used any more (the location tests now use the exact permutation
+        moments, :mod:`bayescal.diagnose.dependence`); accepted so that callers
+        written for the sampled permutation test keep working unchanged.
     effect_settings : dict of str to dict, optional
         Inputs of effects by name (e.g. ``{"joint_compliance": {"gravity":
         [1, 0, 0]}}`` for a machine mounted on its side); documented
@@ -193,7 +195,7 @@ def diagnose(
         # per-pose least squares undoes the exclusion's scaling: an excluded pose's gross error must not
         # reach the actuator-space tests (periodogram, pitch search); zero is "no actuator error"
         dq_res[screen.excluded] = 0.0
-    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, recording.position, seed=seed, n_perm=n_perm)
+    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, recording.position, seed=seed)
 
     cands: list[_Candidate] = []
     skipped: list[tuple[str, str]] = []

@@ -7,11 +7,14 @@ and the pose region (the measured tool point).  The dependence measure is
 the distance correlation (Szekely, Rizzo and Bakirov 2007) between the
 channel and the per-pose whitened residual vector: zero only for
 independence, so it catches non-monotone relations that a correlation
-coefficient misses.  Its p-value is from a seeded permutation test
-whose null distribution is summarised by a moment-matched gamma
+coefficient misses.  Its p-value is from the exact permutation null
+of the distance covariance, summarised by the moment-matched gamma
 distribution (the usual approximation of distance-covariance and HSIC
-null distributions), so that p-values far below ``1 / n_perm`` are
-resolved and survive the multiple-testing correction; the
+null distributions), so that p-values far below any ``1 / n_perm`` are
+resolved and survive the multiple-testing correction; from 2,000 poses on
+the test runs on seeded random blocks of 1,000-1,999 poses, so that its
+cost grows linearly (:mod:`bayescal.diagnose.dependence`, which also says
+why not the ``dcor`` package).  The
 periodic channels use the Lomb-Scargle false-alarm probability instead
 (``M (1 - P)^((N - 3) / 2)`` for ``M`` independent frequencies, Zechmeister
 and Kuerster 2009).  All p-values are adjusted together by Holm's step-down
@@ -25,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import gamma as gamma_dist
 
 from ..effects.base import approach_direction
 from ..effects.periodogram import PITCH_RANGE_MM, admissible_pitch_range, n_independent_frequencies, periodogram, pitch_grid
+from .dependence import BLOCK, ResidualBlocks, distance_correlation
 
 __all__ = ["ChannelDependence", "Location", "locate", "distance_correlation", "holm"]
 
@@ -103,52 +106,6 @@ class Location:
         return "\n".join(lines)
 
 
-def _centered(x: NDArray) -> NDArray:
-    x = x.reshape(len(x), -1)
-    d = np.sqrt(np.sum((x[:, None, :] - x[None, :, :]) ** 2, axis=-1))
-    return d - d.mean(axis=0)[None, :] - d.mean(axis=1)[:, None] + d.mean()
-
-
-def distance_correlation(x: NDArray, y: NDArray) -> float:
-    """Sample distance correlation of ``x`` (n,) or (n, k) and ``y`` (n,) or (n, k), in [0, 1].
-
-    (Written here because neither numpy nor scipy has it; the ``dcor``
-    package is a new dependency for one function.)
-    """
-    A, B = _centered(np.asarray(x, float)), _centered(np.asarray(y, float))
-    return _dcor(A, B)
-
-
-def _dcor(A: NDArray, B: NDArray) -> float:
-    vxy = np.mean(A * B)
-    vxx, vyy = np.mean(A * A), np.mean(B * B)
-    if vxx <= 0 or vyy <= 0:
-        return 0.0
-    return float(np.sqrt(max(vxy, 0.0) / np.sqrt(vxx * vyy)))
-
-
-def _perm_test(x: NDArray, B: NDArray, rng: np.random.Generator, n_perm: int) -> tuple[float, float]:
-    A = _centered(x)
-    stat = _dcor(A, B)
-    vyy = np.mean(B * B)
-    vxx = np.mean(A * A)
-    if vxx <= 0 or vyy <= 0:
-        return 0.0, 1.0
-    obs = np.mean(A * B)
-    null = np.empty(n_perm)
-    for k in range(n_perm):
-        p = rng.permutation(len(x))
-        null[k] = np.mean(A[np.ix_(p, p)] * B)
-    # shift so the null is positive (the V-statistic is), then match mean and variance of a gamma
-    m, v = null.mean(), null.var()
-    if v <= 0:
-        return stat, 1.0
-    shape, scale = m * m / v, v / m
-    if m <= 0:
-        return stat, float((np.sum(null >= obs) + 1) / (n_perm + 1))
-    return stat, float(gamma_dist.sf(obs, shape, scale=scale))
-
-
 def holm(p: NDArray) -> NDArray:
     """Holm step-down adjusted p-values (family-wise error control)."""
     p = np.asarray(p, float)
@@ -170,7 +127,7 @@ def locate(
     position: NDArray,
     *,
     seed: int = 0,
-    n_perm: int = 199,
+    block: int = BLOCK,
 ) -> Location:
     """Test every channel for a dependence of the residuals (see the module docstring).
 
@@ -187,17 +144,16 @@ def locate(
     position : ndarray, shape (n_poses, 3)
         Measured tool points (the pose region), mm.
     seed : int
-        Seeds the permutations.
-    n_perm : int
-        Permutations per test.
+        Seeds the assignment of poses to the blocks of the dependence tests.
+    block : int
+        Poses per block of the dependence tests (:data:`bayescal.diagnose.dependence.BLOCK`).
 
     Returns
     -------
     Location
     """
-    rng = np.random.default_rng(seed)
     n, m = q.shape
-    B = _centered(residual_whitened)
+    blocks = ResidualBlocks(residual_whitened, seed=seed, block=block)
     order = np.arange(n, dtype=float)
     s = approach_direction(q)
     tests: list[tuple[str, str, NDArray, str]] = []
@@ -213,8 +169,8 @@ def locate(
     tests.append(("pose_region", "region", position, ""))
     out = []
     for name, kind, v, detail in tests:
-        stat, p = _perm_test(v, B, rng, n_perm)
-        out.append([name, kind, stat, p, detail, v])
+        t = blocks.test(v)
+        out.append([name, kind, t.strength, t.p_value, detail, v])
     span = float(np.ptp(q, axis=0).max())
     # only pitches that repeat at least twice in the stroke (as for the screw_periodic_error effect)
     prange = admissible_pitch_range(span) or (PITCH_RANGE_MM[0], PITCH_RANGE_MM[0])

@@ -10,6 +10,8 @@ __all__ = ["PITCH_RANGE_MM", "MIN_PERIODS", "admissible_pitch_range", "pitch_gri
 
 #: Pitches searched for a periodic actuator error, mm (lead screws 2-40 mm; encoders' sub-periods).
 PITCH_RANGE_MM = (1.0, 50.0)
+#: Samples x frequencies per call of scipy's lombscargle (about 32 MB per array it builds).
+_CHUNK = 4_000_000
 #: Fewest full periods a pitch must fit within the recorded stroke to be admissible: with fewer, a
 #: long-pitch sine is indistinguishable from a smooth (e.g. quadratic) error over the stroke.
 MIN_PERIODS = 2.0
@@ -48,4 +50,11 @@ def periodogram(q: NDArray, y: NDArray, freqs: NDArray) -> NDArray:
     y = np.asarray(y, float)
     if np.ptp(y) == 0:
         return np.zeros(len(freqs))
-    return lombscargle(np.asarray(q, float), y, 2 * np.pi * np.asarray(freqs), normalize=True, floating_mean=True)
+    q, w = np.asarray(q, float), 2 * np.pi * np.asarray(freqs, float)
+    # lombscargle holds several (samples x frequencies) arrays at once: 1.4 GB for 50,000 poses and
+    # 500 frequencies.  Frequencies are independent (the normalisation is per data set), so chunks
+    # of about _CHUNK elements give the same powers in bounded memory.
+    step = max(1, _CHUNK // max(len(q), 1))
+    return np.concatenate([
+        lombscargle(q, y, w[k:k + step], normalize=True, floating_mean=True) for k in range(0, len(w), step)
+    ]) if len(w) else np.zeros(0)

@@ -21,7 +21,7 @@ CLEAR = [
 @pytest.mark.parametrize("name,magnitude,aux", CLEAR)
 def test_effect_named_and_parameters_recovered(prs3, name, magnitude, aux):
     sim = simulate_with_effects(prs3, 80, seed=7, dof=6, effects=[(name, magnitude)], record=aux)
-    d = diagnose(prs3, sim.recording, seed=1, n_perm=49)
+    d = diagnose(prs3, sim.recording, seed=1)
     assert d.verdict == name
     assert d.selected[0] == name
     trial = next(e for e in d.effects if e.name == name)
@@ -35,7 +35,7 @@ def test_effect_named_and_parameters_recovered(prs3, name, magnitude, aux):
 
 def test_clean_data_gives_none(prs3):
     sim = simulate_with_effects(prs3, 80, seed=8, dof=6, record=("time_s", "temp_C", "payload_kg"))
-    d = diagnose(prs3, sim.recording, seed=1, n_perm=49)
+    d = diagnose(prs3, sim.recording, seed=1)
     assert d.verdict == "none"
     assert not any(e.detected for e in d.effects)
     assert d.p_geometric > 1e-3
@@ -82,10 +82,10 @@ def test_forced_effect_without_its_channel_is_an_error(tmp_path, capsys):
 def test_too_few_poses_are_errors(prs3):
     sim = simulate_with_effects(prs3, 20, seed=2, dof=6)
     with pytest.raises(InputError, match="too few poses"):
-        diagnose(prs3, sim.recording, effects=["screw_periodic_error"], n_perm=19)
+        diagnose(prs3, sim.recording, effects=["screw_periodic_error"])
     tiny = simulate_with_effects(prs3, 6, seed=2, dof=6)
     with pytest.raises(InputError, match="at least 10"):
-        diagnose(prs3, tiny.recording, n_perm=19)
+        diagnose(prs3, tiny.recording)
 
 
 def test_simulate_rejects_unknown_aux(tmp_path, capsys):
@@ -117,7 +117,6 @@ def test_quadratic_straightness_is_not_a_screw_error():
     from studies.diagnose_concealed import make_case, run_case
 
     case = make_case("outside_straightness", 25, 2026)
-    case["n_perm"] = 49
     row = run_case(case)
     assert row["verdict"] != "screw_periodic_error"
     assert "screw_periodic_error" not in row["selected"].split("+")
@@ -125,7 +124,7 @@ def test_quadratic_straightness_is_not_a_screw_error():
 
 def test_fitted_pitch_fits_twice_in_the_stroke(prs3):
     sim = simulate_with_effects(prs3, 80, seed=7, dof=6, effects=[("screw_periodic_error", 20.0)])
-    d = diagnose(prs3, sim.recording, effects=["screw_periodic_error"], seed=1, n_perm=19)
+    d = diagnose(prs3, sim.recording, effects=["screw_periodic_error"], seed=1)
     span = float(np.ptp(sim.recording.q, axis=0).max())
     pitch = next(e for e in d.effects if e.name == "screw_periodic_error").parameters[0].value
     assert pitch <= span / 2
@@ -155,7 +154,7 @@ def test_clean_raspm_names_no_effect():
 
     m = load_machine(RASPM_FILE)
     sim = simulate_with_effects(m, 40, seed=5, dof=6)
-    d = diagnose(m, sim.recording, seed=1, n_perm=19)
+    d = diagnose(m, sim.recording, seed=1)
     assert d.verdict == "none"
     assert "redundancy_preload" in [e.name for e in d.effects]
     assert not d.selected
@@ -169,7 +168,7 @@ def test_negative_compliance_is_not_reported_as_a_detection(prs3):
     values = np.concatenate([[0.6, -0.6, 0.6, 30.0], np.zeros(5)])
     bound = get_effect("joint_compliance").bind(prs3, values)
     sim = simulate_with_effects(prs3, 80, seed=7, dof=6, record=("payload_kg",), extra=[bound])
-    d = diagnose(prs3, sim.recording, seed=1, n_perm=19)
+    d = diagnose(prs3, sim.recording, seed=1)
     assert d.verdict != "joint_compliance" and "joint_compliance" not in d.selected
     why = dict(d.skipped)["joint_compliance"]
     assert "non-physical" in why and "compliance.q2" in why
@@ -219,13 +218,13 @@ def test_raspm_preload_named_when_visible_and_none_when_absorbed():
 
     m = load_machine(RASPM_FILE)
     small = simulate_with_effects(m, 70, seed=2, dof=6, effects=[("redundancy_preload", 20.0)])
-    d = diagnose(m, small.recording, seed=1, n_perm=19)
+    d = diagnose(m, small.recording, seed=1)
     pre = next(e for e in d.effects if e.name == "redundancy_preload")
     # 20 um is absorbed: honest "none", and the effect does not improve the out-of-sample RMS by a noise sigma
     assert d.verdict == "none"
     assert np.sqrt(max(pre.rms_before**2 - pre.rms_after**2, 0.0)) < m.noise.sigma_position
     large = simulate_with_effects(m, 70, seed=2, dof=6, effects=[("redundancy_preload", 800.0)])
-    d = diagnose(m, large.recording, seed=1, n_perm=19)
+    d = diagnose(m, large.recording, seed=1)
     assert d.verdict == "redundancy_preload"
     pre = next(e for e in d.effects if e.name == "redundancy_preload")
     assert pre.rms_after < pre.rms_before - 2 * m.noise.sigma_position
@@ -261,4 +260,4 @@ def test_recording_of_another_machine_is_a_clear_error(prs3):
     sim = simulate_with_effects(prs3, 20, seed=3, dof=3)
     short = machine_from_text(PRS3_FILE.read_text().replace("link_length    = 400.0", "link_length    = 120.0"), "short.toml")
     with pytest.raises(InputError, match=r"short\.toml cannot solve this recording.*pose 1.*check the machine file"):
-        diagnose(short, sim.recording, n_perm=9)
+        diagnose(short, sim.recording)
