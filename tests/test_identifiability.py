@@ -47,3 +47,13 @@ def test_round_off_columns_do_not_count_in_the_rank():
     assert ida.rank == 5 and len(ida.kept) == 5
     assert set(ida.fixed) == {"p5", "p6"}
     assert ida.singular_values[5:].max() == 0.0
+
+
+def test_priority_order_puts_declared_unknown_parameters_first():
+    from bayescal.identifiability import priority_order
+
+    tol = np.array([0.05, 2e-4, 0.05, 100.0, 0.1, 1.0, 0.05])
+    units = ["mm", "rad", "mm", "mm", "rad", "rad", "mm"]
+    # 100 mm >= 10 x median(mm) and 1 rad >= 10 x median(rad) go first, the rest keep their order
+    assert priority_order(tol, units).tolist() == [3, 5, 0, 1, 2, 4, 6]
+    assert priority_order(np.full(4, 0.05), ["mm"] * 4).tolist() == [0, 1, 2, 3]

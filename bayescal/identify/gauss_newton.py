@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import ConvergenceWarning, InputError
-from ..identifiability import analyse_identifiability
+from ..identifiability import analyse_identifiability, priority_order
 from ..measurement import MeasurementModel
 from .result import IdentificationResult
 from .solvers import LS_RCOND, filtered_solve
@@ -50,7 +50,7 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray):
         _, J = whitened_system(model, theta0, pred) if model.y_measured is not None else (None, None)
         if J is None:
             J = (model.jacobian(theta0, pred) / model.row_sigma[:, :, None]).reshape(-1, model.n_params)
-        ida = analyse_identifiability(J, layout)
+        ida = analyse_identifiability(J, layout, candidates=priority_order(model.machine.tolerance, layout.units))
         return ida.kept_index, ida
     if isinstance(free, str) and free == "all":
         return np.arange(len(layout)), None
