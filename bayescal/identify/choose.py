@@ -33,7 +33,18 @@ through the SVD ``A = U diag(s) V^T``, ``beta = U^T z``:
   vectors, so keeping direction ``i`` costs ``(beta_i / s_i - m_i)^2`` and
   dropping it ``m_i^2``: keep it iff ``s_i^2 > lam_ev``, i.e.
   ``k = #{s_i^2 > lam_ev}`` (the directions the data determine better than
-  the prior does).  The default for TSVD (docs/regularisation.md).
+  the prior does).
+* ``success``: the Bayes decision for the *success event* of the study
+  (output error within ``ratio`` = 10 % of the best candidate's, the best
+  picked in hindsight knowing the truth).  Under the same empirical-Bayes
+  posterior as ``risk``, the posterior probability that each candidate's
+  output error ``|G (x_v - x)|`` is within ``ratio`` of ``min_u |G (x_u - x)|``
+  is estimated from ``n_posterior`` seeded posterior draws
+  (:func:`bayescal.identify.ceiling.success_probabilities`, the machinery of
+  the success ceiling); the candidate with the largest probability wins
+  (ties: the smaller posterior expected ratio).  ``G`` is the output map
+  (tool-point Jacobians, tolerance-scaled); without one, the scaled
+  parameter error ``|x_v - x|``.
 
 Where the problem is linearised (see :func:`choose_regularisation`): ridge
 iterates rule and Gauss-Newton to a fixed point (linearise at the converged
@@ -58,6 +69,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
 from ..measurement import MeasurementModel
+from .ceiling import success_probabilities
 from .gauss_newton import identify, resolve_free, whitened_system
 from .result import IdentificationResult
 
@@ -72,7 +84,7 @@ __all__ = [
 ]
 
 #: Rule names, in the order reports list them.
-RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence", "risk")
+RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence", "risk", "success")
 
 #: Default rule per method, chosen by the repetition study of
 #: ``studies/seed2_ls_re_tsvd.py`` (docs/regularisation.md, "Which rule").
@@ -104,7 +116,10 @@ class RegularisationChoice:
         (mean squared held-out whitened error), ``discrepancy``
         (``|r|^2 - (N - sum f)``), ``log_evidence``, ``curvature`` (L-curve),
         ``posterior_risk`` (posterior expected squared error of the scaled
-        solution under the empirical-Bayes prior, see ``risk``).
+        solution under the empirical-Bayes prior, see ``risk``),
+        ``success_probability`` (posterior probability of being within
+        ``ratio`` of the hindsight best, see ``success``) and
+        ``success_expected_ratio``.
     singular_values : ndarray
     n_rows, n_params : int
         Rows (whitened residuals) and identified parameters of the linear problem.
@@ -265,6 +280,38 @@ def _posterior_risk(d: _Svd, F: NDArray, noise_known: bool) -> tuple[float, NDAr
     return lam_ev, np.sum((est - m[None, :]) ** 2, axis=1) + trace
 
 
+def _eb_posterior(d: _Svd, noise_known: bool) -> tuple[float, NDArray, NDArray, float]:
+    """``lam_ev`` (ridge evidence on a fine grid), posterior mean and sd per singular direction, unseen sd."""
+    grid = lambda_grid(d.s)
+    lam_ev = float(grid[int(np.argmax(_log_evidence_ridge(d, grid, noise_known)))])
+    g = d.s**2 + lam_ev
+    if noise_known:
+        sigma2 = 1.0
+    else:
+        sigma2 = float(np.sum(d.beta**2 / (1.0 + d.s**2 / lam_ev)) + d.c_perp) / d.n_rows
+    return lam_ev, d.s * d.beta / g, np.sqrt(sigma2 / g), float(np.sqrt(sigma2 / lam_ev))
+
+
+def _success_curve(
+    A: NDArray, d: _Svd, F: NDArray, noise_known: bool, G: NDArray | None, ratio: float, n_posterior: int, seed: int
+) -> tuple[float, NDArray, NDArray]:
+    """``lam_ev`` and, per filter row, the posterior probability of success and expected ratio to the best."""
+    lam_ev, m, sd, sd_unseen = _eb_posterior(d, noise_known)
+    p, r = A.shape[1], d.s.size
+    if p > r:  # directions A does not see: estimates stay 0 there, the posterior is the prior
+        V = np.linalg.svd(A, full_matrices=True)[2].T
+        m = np.concatenate([m, np.zeros(p - r)])
+        sd = np.concatenate([sd, np.full(p - r, sd_unseen)])
+    else:
+        V = d.V
+    GV = V if G is None else np.asarray(G, dtype=float) @ V
+    if GV.shape[0] > p:  # |GV e| = |R e| with GV = Q R: fewer rows, same answer
+        GV = np.linalg.qr(GV, mode="r")
+    est = F * (d.beta * _safe_inv(d.s))[None, :]
+    prob, exp_ratio = success_probabilities(est, m, sd, GV, ratio=ratio, n_posterior=n_posterior, seed=seed)
+    return lam_ev, prob, exp_ratio
+
+
 def _ridge_curvature(d: _Svd, lams: NDArray) -> NDArray:
     """Signed curvature of ``(log |r|, log |x|)`` against ``t = log lam``, analytic.
 
@@ -341,6 +388,9 @@ def choose_linear(
     folds: int = 6,
     seed: int = 0,
     linearisation: str = "given linear problem",
+    output_map: ArrayLike | None = None,
+    ratio: float = 1.1,
+    n_posterior: int = 400,
 ) -> RegularisationChoice:
     """Apply every rule to the linear problem ``A x ~ z`` (rows whitened).
 
@@ -365,7 +415,17 @@ def choose_linear(
     folds : int
         Cross-validation folds.
     seed : int
-        Seeds the assignment of poses to folds.
+        Seeds the assignment of poses to folds and the posterior draws of ``success``.
+    linearisation : str
+        Where the linear problem was taken (for the report).
+    output_map : array_like, shape (M, p), optional
+        ``G``: the output error of an estimate is ``|G (x_v - x)|`` (for
+        example tool-point Jacobians times the tolerances, mm per scaled
+        unit; only ratios matter).  Default: the scaled parameter error.
+    ratio : float
+        The ``success`` rule's event: output error at most ``ratio`` times the best candidate's.
+    n_posterior : int
+        Posterior draws of the ``success`` rule.
 
     Returns
     -------
@@ -418,6 +478,14 @@ def choose_linear(
         i_disc = int(ok[0]) if ok.size else int(np.argmin(disc))
     lam_ev, risk = _posterior_risk(d, F, noise_known)
     extras["risk_prior_ratio"] = lam_ev
+    if output_map is not None:
+        output_map = np.asarray(output_map, dtype=float)
+        if output_map.ndim != 2 or output_map.shape[1] != p:
+            raise InputError(f"output_map: expected shape (M, {p}), got {output_map.shape}")
+    if not ratio >= 1.0:
+        raise InputError(f"ratio: expected >= 1, got {ratio}")
+    _, succ, exp_ratio = _success_curve(A, d, F, noise_known, output_map, ratio, n_posterior, seed)
+    extras["success_expected_ratio"] = exp_ratio
     picks = {
         "cv": int(np.nanargmin(cv)) if np.isfinite(cv).any() else None,
         "lcurve": int(np.argmax(np.where(np.isfinite(curvature), curvature, -np.inf))),
@@ -426,6 +494,8 @@ def choose_linear(
         "evidence": int(np.argmax(log_ev)),
         # ties (TSVD: directions with beta_i = 0) go to the most regularised value
         "risk": int(np.flatnonzero(risk <= risk.min() * (1 + 1e-12))[0 if method == "tsvd" else -1]),
+        # largest probability; ties (common for neighbouring lambdas) to the smaller expected ratio
+        "success": int(np.lexsort((exp_ratio, -succ))[0]),
     }
     cast = float if method == "ridge" else int
     choices = {r: cast(grid[i]) for r, i in picks.items() if i is not None}
@@ -441,6 +511,7 @@ def choose_linear(
         "log_evidence": log_ev,
         "curvature": curvature,
         "posterior_risk": risk,
+        "success_probability": succ,
         **extras,
     }
     return RegularisationChoice(
@@ -464,6 +535,22 @@ def linearised_problem(model: MeasurementModel, theta: NDArray, idx: NDArray, sc
     return A, z, groups
 
 
+def _tool_output_map(machine, q: ArrayLike, idx: NDArray, scale: NDArray) -> NDArray | None:
+    """Tool-point Jacobians at ``q`` (nominal geometry), tolerance-scaled: mm per scaled unit, shape (3 n, |idx|).
+
+    None (the ``success`` rule then judges the scaled parameter error) when a
+    pose cannot be solved at nominal.
+    """
+    if q is None or not hasattr(machine, "tool_jacobian"):
+        return None
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    poses = machine.forward(q)
+    if not np.all(poses.success):
+        return None
+    J = machine.tool_jacobian(q, None, poses)[:, :3, :][:, :, idx] * scale[idx]
+    return J.reshape(-1, idx.size)
+
+
 def choose_regularisation(
     model: MeasurementModel,
     method: str,
@@ -476,6 +563,7 @@ def choose_regularisation(
     seed: int = 0,
     max_rounds: int = 3,
     max_iter: int = 50,
+    eval_q: ArrayLike | None = None,
 ) -> tuple[RegularisationChoice, IdentificationResult]:
     """Choose ``lam`` (ridge) or ``k`` (TSVD) for a measurement model, and identify with it.
 
@@ -485,6 +573,10 @@ def choose_regularisation(
     changes by less than 10 %.  TSVD: the rules are applied once, at the
     start geometry, where TSVD fixes its subspace; then TSVD runs with the
     chosen ``k``.
+
+    The ``success`` rule judges candidates by the tool-point error at the
+    actuator positions ``eval_q`` (default: the measured poses), through the
+    tool-point Jacobians at nominal.
 
     Returns
     -------
@@ -500,7 +592,8 @@ def choose_regularisation(
     idx, _ = resolve_free(model, free, theta)
     free_arg = free if free is not None else idx
     known = bool(machine.noise.given)
-    kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed)
+    kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed,
+              output_map=_tool_output_map(machine, getattr(model, "q", None) if eval_q is None else eval_q, idx, S_all))
     if method == "tsvd":
         A, z, groups = linearised_problem(model, theta, idx, S_all)
         choice = choose_linear(A, z, "tsvd", groups=groups, linearisation="linearised at the start geometry", **kw)
