@@ -249,8 +249,10 @@ def success_probabilities(
     ----------
     est : array_like, shape (n_values, r)
         Candidate estimates (first ``r`` coordinates; the rest zero).
-    mean, sd : array_like, shape (p,)
-        Posterior mean and standard deviation per coordinate (``p >= r``).
+    mean, sd : array_like, shape (p,) or (n_posterior, p)
+        Posterior mean and standard deviation per coordinate (``p >= r``);
+        with one row per draw, each draw comes from its own component (a
+        mixture, for example over the prior scale).
     GV : array_like, shape (M, p)
         Output map in those coordinates (only ``|GV d|`` matters, so any
         ``Q`` with ``Q^T Q = GV^T GV`` gives the same answer).
@@ -269,13 +271,16 @@ def success_probabilities(
         ``E[error_v / min_u error_u | data]`` per candidate.
     """
     est = np.atleast_2d(np.asarray(est, dtype=float))
-    mean = np.asarray(mean, dtype=float).reshape(-1)
-    sd = np.asarray(sd, dtype=float).reshape(-1)
+    mean = np.asarray(mean, dtype=float)
+    sd = np.asarray(sd, dtype=float)
     GV = np.asarray(GV, dtype=float)
-    if sd.shape != mean.shape or GV.ndim != 2 or GV.shape[1] != mean.size or est.shape[1] > mean.size:
+    p = mean.shape[-1] if mean.ndim else 0
+    if (sd.shape != mean.shape or mean.ndim not in (1, 2) or (mean.ndim == 2 and mean.shape[0] != n_posterior)
+            or GV.ndim != 2 or GV.shape[1] != p or est.shape[1] > p):
         raise InputError(f"est, mean, sd, GV: inconsistent shapes {est.shape}, {mean.shape}, {sd.shape}, {GV.shape}")
     if n_posterior < 2:
         raise InputError(f"n_posterior: expected >= 2, got {n_posterior}")
-    draws = mean[None, :] + np.random.default_rng(seed).normal(size=(n_posterior, mean.size)) * sd[None, :]
+    # a (n_posterior, p) mean and sd: a mixture, one component per draw (e.g. over the prior scale)
+    draws = mean + np.random.default_rng(seed).normal(size=(n_posterior, p)) * sd
     within, rel = within_best(draws, est, GV, ratio)
     return within.mean(axis=0), rel.mean(axis=0)

@@ -280,28 +280,38 @@ def _posterior_risk(d: _Svd, F: NDArray, noise_known: bool) -> tuple[float, NDAr
     return lam_ev, np.sum((est - m[None, :]) ** 2, axis=1) + trace
 
 
-def _eb_posterior(d: _Svd, noise_known: bool) -> tuple[float, NDArray, NDArray, float]:
-    """``lam_ev`` (ridge evidence on a fine grid), posterior mean and sd per singular direction, unseen sd."""
-    grid = lambda_grid(d.s)
-    lam_ev = float(grid[int(np.argmax(_log_evidence_ridge(d, grid, noise_known)))])
-    g = d.s**2 + lam_ev
-    if noise_known:
-        sigma2 = 1.0
-    else:
-        sigma2 = float(np.sum(d.beta**2 / (1.0 + d.s**2 / lam_ev)) + d.c_perp) / d.n_rows
-    return lam_ev, d.s * d.beta / g, np.sqrt(sigma2 / g), float(np.sqrt(sigma2 / lam_ev))
-
-
 def _success_curve(
-    A: NDArray, d: _Svd, F: NDArray, noise_known: bool, G: NDArray | None, ratio: float, n_posterior: int, seed: int
+    A: NDArray, d: _Svd, F: NDArray, noise_known: bool, G: NDArray | None, ratio: float, n_posterior: int, seed: int,
+    integrate_scale: bool = True,
 ) -> tuple[float, NDArray, NDArray]:
-    """``lam_ev`` and, per filter row, the posterior probability of success and expected ratio to the best."""
-    lam_ev, m, sd, sd_unseen = _eb_posterior(d, noise_known)
+    """``lam_ev`` and, per filter row, the posterior probability of success and expected ratio to the best.
+
+    ``integrate_scale``: the prior ratio ``lam`` is drawn per posterior draw
+    from its own posterior (flat in ``log lam`` over :func:`lambda_grid`,
+    times the evidence) instead of being fixed at ``lam_ev``: the evidence
+    of one scale from a few dozen parameters is uncertain by tens of per cent.
+    """
+    grid = lambda_grid(d.s)
+    log_ev = _log_evidence_ridge(d, grid, noise_known)
+    lam_ev = float(grid[int(np.argmax(log_ev))])
+    rng = np.random.default_rng([seed, 1])
+    if integrate_scale:
+        w = np.exp(log_ev - log_ev.max())
+        lam = grid[rng.choice(grid.size, size=n_posterior, p=w / w.sum())]
+    else:
+        lam = np.full(n_posterior, lam_ev)
+    g = d.s[None, :] ** 2 + lam[:, None]  # (n_posterior, r)
+    if noise_known:
+        sigma2 = np.ones(n_posterior)
+    else:  # the profiled noise scale at each lam
+        sigma2 = (np.sum(d.beta[None, :] ** 2 / (1.0 + d.s[None, :] ** 2 / lam[:, None]), axis=1) + d.c_perp) / d.n_rows
+    m = d.s[None, :] * d.beta[None, :] / g
+    sd = np.sqrt(sigma2[:, None] / g)
     p, r = A.shape[1], d.s.size
     if p > r:  # directions A does not see: estimates stay 0 there, the posterior is the prior
         V = np.linalg.svd(A, full_matrices=True)[2].T
-        m = np.concatenate([m, np.zeros(p - r)])
-        sd = np.concatenate([sd, np.full(p - r, sd_unseen)])
+        m = np.hstack([m, np.zeros((n_posterior, p - r))])
+        sd = np.hstack([sd, np.repeat(np.sqrt(sigma2 / lam)[:, None], p - r, axis=1)])
     else:
         V = d.V
     GV = V if G is None else np.asarray(G, dtype=float) @ V
@@ -391,6 +401,7 @@ def choose_linear(
     output_map: ArrayLike | None = None,
     ratio: float = 1.1,
     n_posterior: int = 400,
+    integrate_scale: bool = True,
 ) -> RegularisationChoice:
     """Apply every rule to the linear problem ``A x ~ z`` (rows whitened).
 
@@ -426,6 +437,9 @@ def choose_linear(
         The ``success`` rule's event: output error at most ``ratio`` times the best candidate's.
     n_posterior : int
         Posterior draws of the ``success`` rule.
+    integrate_scale : bool
+        ``success``: average over the posterior of the prior scale (True)
+        rather than plugging in its evidence maximum.
 
     Returns
     -------
@@ -484,7 +498,7 @@ def choose_linear(
             raise InputError(f"output_map: expected shape (M, {p}), got {output_map.shape}")
     if not ratio >= 1.0:
         raise InputError(f"ratio: expected >= 1, got {ratio}")
-    _, succ, exp_ratio = _success_curve(A, d, F, noise_known, output_map, ratio, n_posterior, seed)
+    _, succ, exp_ratio = _success_curve(A, d, F, noise_known, output_map, ratio, n_posterior, seed, integrate_scale)
     extras["success_expected_ratio"] = exp_ratio
     picks = {
         "cv": int(np.nanargmin(cv)) if np.isfinite(cv).any() else None,

@@ -10,11 +10,11 @@ fails exactly for ``t`` between ``(r a_u + a_v) / (r + 1)`` and
 
 import numpy as np
 import pytest
-from scipy.stats import norm
+from scipy.stats import multivariate_normal, norm
 
 from bayescal.errors import InputError
 from bayescal.identify.ceiling import success_probabilities
-from bayescal.identify.choose import RULES, choose_linear
+from bayescal.identify.choose import RULES, choose_linear, lambda_grid
 
 
 def exact_success(a: np.ndarray, mu: float, sd: float, r: float) -> np.ndarray:
@@ -71,7 +71,8 @@ def test_success_rule_is_the_exact_bayes_decision(rng, method):
     checked = 0
     for trial in range(4):
         z = A @ rng.normal(size=p) + rng.normal(size=N)
-        ch = choose_linear(A, z, method, rule="success", output_map=g, grid=grid, n_posterior=20_000, seed=trial)
+        ch = choose_linear(A, z, method, rule="success", output_map=g, grid=grid, n_posterior=20_000, seed=trial,
+                           integrate_scale=False)
         # the empirical-Bayes posterior the rule uses, rebuilt here from lam_ev
         lam = ch.curves["risk_prior_ratio"]
         U, s, Vt = np.linalg.svd(A, full_matrices=False)
@@ -85,6 +86,31 @@ def test_success_rule_is_the_exact_bayes_decision(rng, method):
         assert exact[list(ch.grid).index(ch.value)] >= exact.max() - 0.01
         checked += 1
     assert checked == 4 and "success" in RULES and ch.rule == "success"
+
+
+def test_success_rule_with_the_prior_scale_integrated_out(rng):
+    """integrate_scale=True: the posterior is a mixture over the lambda grid weighted by the evidence
+    (computed here by scipy's dense Gaussian density); its exact success probabilities, component by component."""
+    N, p = 25, 5
+    A = rng.normal(size=(N, p)) * np.logspace(0.6, -0.6, p)
+    g = rng.normal(size=(1, p))
+    z = A @ (1.7 * rng.normal(size=p)) + rng.normal(size=N)
+    ch = choose_linear(A, z, "tsvd", rule="success", output_map=g, n_posterior=30_000, seed=3)
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    beta, gv = U.T @ z, Vt @ g[0]
+    lams = lambda_grid(s)
+    log_ev = np.array([multivariate_normal(np.zeros(N), np.eye(N) + A @ A.T / lam).logpdf(z) for lam in lams])
+    w = np.exp(log_ev - log_ev.max())
+    w /= w.sum()
+    a = ((np.arange(p)[None, :] < np.arange(1, p + 1)[:, None]) * beta / s) @ gv
+    exact = np.zeros(p)
+    for lam, wj in zip(lams, w):
+        if wj < 1e-8:
+            continue
+        m, sd = s * beta / (s**2 + lam), 1.0 / np.sqrt(s**2 + lam)
+        exact += wj * exact_success(a, float(gv @ m), float(np.sqrt(np.sum((gv * sd) ** 2))), 1.1)
+    np.testing.assert_allclose(ch.curves["success_probability"], exact / w[w >= 1e-8].sum(), atol=0.015)
+    assert exact[ch.value - 1] >= exact.max() - 0.01
 
 
 def test_success_rule_realises_its_prediction(rng):
