@@ -81,6 +81,7 @@ __all__ = [
     "choose_regularisation",
     "linearised_problem",
     "lambda_grid",
+    "evidence_lambda",
 ]
 
 #: Rule names, in the order reports list them.
@@ -252,6 +253,19 @@ def _log_evidence_tsvd(d: _Svd, lams: NDArray, noise_known: bool) -> tuple[NDArr
         ev = -0.5 * (N * np.log(np.maximum(quad, 1e-300) / N) + logdet + N * (1.0 + _LOG2PI))
     best = np.argmax(ev, axis=0)
     return ev[best, np.arange(ev.shape[1])], lams[best]
+
+
+def evidence_lambda(A: ArrayLike, z: ArrayLike, *, noise_known: bool = True, n_grid: int = 241) -> float:
+    """The ridge ``lam`` that maximises the evidence of ``z = A x + e``, ``x ~ N(0, I / lam)``, ``e ~ N(0, I)``.
+
+    ``lam`` is the noise-to-prior variance ratio (dimensionless); with rows
+    whitened by the instrument sigma and columns scaled by the tolerances,
+    ``1 / sqrt(lam)`` is the prior scale the data support, in tolerances.
+    Searched over :func:`lambda_grid` (``n_grid`` points, about 0.1 decade apart).
+    """
+    d = _svd(np.asarray(A, dtype=float), np.asarray(z, dtype=float).reshape(-1))
+    grid = lambda_grid(d.s, n_grid)
+    return float(grid[int(np.argmax(_log_evidence_ridge(d, grid, noise_known)))])
 
 
 def _posterior_risk(d: _Svd, F: NDArray, noise_known: bool) -> tuple[float, NDArray]:
