@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..bayes.priors import PRIOR_SCALES, map_estimate
 from ..errors import InputError
 from ..identify import identify
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
@@ -32,9 +33,15 @@ pose), mcmc (emcee posterior, refused unless converged). See docs/bayes.md.
 (--rule): cv (K-fold cross-validation over held-out poses), lcurve (L-curve
 corner), gcv (generalised cross-validation), discrepancy (residual matches
 the instrument sigma), evidence (marginal likelihood, empirical Bayes; the
-default for lambda), risk (Bayes decision under the evidence prior: for k,
-keep the singular directions with s^2 > lambda_evidence; the default for k).
-See docs/regularisation.md.  The report prints the chosen value and what
+default for lambda), risk (Bayes decision under the evidence prior for the
+squared error: for k, keep the singular directions with s^2 >
+lambda_evidence), success (Bayes decision for "tool-point error within 10 %
+of the best candidate's", by Monte Carlo over the evidence posterior; the
+default for k).  See docs/regularisation.md.
+
+--method map --prior-scale empirical multiplies every tolerance of the prior
+by one factor estimated from the data (the evidence), so that the intervals
+hold when the machine is better or worse than its tolerances say.  The report prints the chosen value and what
 every other rule picks; --figures DIR draws the rule curves.
 
 A machine file with [effect.<name>] tables (written by diagnose
@@ -79,6 +86,11 @@ def register(sub) -> None:
         "--free", default="auto",
         help="parameters to identify: 'auto' (identifiable set, default), 'all', or comma-separated names",
     )
+    p.add_argument(
+        "--prior-scale", choices=PRIOR_SCALES, default="tolerance",
+        help="map: the prior's scale: the machine file's tolerances (default) or 'empirical' (one factor on them "
+             "estimated from the data)",
+    )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
@@ -121,8 +133,12 @@ def run(args) -> int:
     auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
     if not auto and (args.rule or args.figures):
         raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
+    if args.prior_scale != "tolerance" and args.method != "map":
+        raise InputError("--prior-scale goes with --method map")
     choice = None
-    if auto:
+    if args.method == "map" and args.prior_scale != "tolerance":
+        res = map_estimate(model, free=free, max_iter=args.max_iter, prior_scale=args.prior_scale)
+    elif auto:
         choice, res = choose_regularisation(model, args.method, rule=args.rule, free=free, max_iter=args.max_iter)
     else:
         res = identify(model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter)
@@ -141,6 +157,9 @@ def run(args) -> int:
         print(res.report())
         if machine.effects:
             print(f"\neffects applied at their stored values ({args.machine}): {', '.join(e.name for e in machine.effects)}")
+        if "prior_scale" in res.extras:
+            print(f"\nprior scale: {res.extras['prior_scale']:.3g} x the machine file's tolerances "
+                  f"(estimated from the data, --prior-scale {args.prior_scale})")
         if choice is not None:
             print("\n" + choice.report())
         if path is not None:

@@ -66,3 +66,24 @@ def test_intervals_hold_when_the_machine_is_worse_than_its_tolerances(prs3, lin)
     assert 0.84 < np.mean(inside["empirical"]) < 0.96, inside
     with pytest.raises(InputError, match="prior_scale"):
         map_estimate(model, prior_scale="guess")
+
+
+def test_cli_prior_scale_option(tmp_path, capsys):
+    import json
+
+    from bayescal.cli import main
+    from bayescal.io import read_recording
+    from bayescal.machines import load_machine
+    from tests.conftest import PRS3_FILE, ROOT
+
+    rec = ROOT / "examples" / "prs3" / "recording.csv"
+    out = tmp_path / "a.json"
+    code = main(["identify", str(rec), "--machine", str(PRS3_FILE), "--method", "map", "--prior-scale", "empirical",
+                 "--json", str(out)])
+    assert code == 0 and "prior scale:" in capsys.readouterr().out
+    ans = json.loads(out.read_text())
+    res = map_estimate(MeasurementModel.from_recording(load_machine(PRS3_FILE), read_recording(rec)),
+                       prior_scale="empirical")
+    assert ans["prior_scale"] == pytest.approx(res.extras["prior_scale"])
+    np.testing.assert_allclose([p["value"] for p in ans["parameters"]], res.theta, rtol=1e-10, atol=1e-14)
+    assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--method", "ls", "--prior-scale", "empirical"]) == 2
