@@ -39,9 +39,10 @@ lambda_evidence), success (Bayes decision for "tool-point error within 10 %
 of the best candidate's", by Monte Carlo over the evidence posterior; the
 default for k).  See docs/regularisation.md.
 
---method map --prior-scale empirical multiplies every tolerance of the prior
-by one factor estimated from the data (the evidence), so that the intervals
-hold when the machine is better or worse than its tolerances say.  The report prints the chosen value and what
+--method map multiplies every tolerance of the prior by one factor estimated
+from the data (the evidence), so that the intervals hold when the machine is
+better or worse than its tolerances say; --prior-scale tolerance uses the
+tolerances as they are (MAP = ridge with --lam 1).  The report prints the chosen value and what
 every other rule picks; --figures DIR draws the rule curves.
 
 A machine file with [effect.<name>] tables (written by diagnose
@@ -87,9 +88,9 @@ def register(sub) -> None:
         help="parameters to identify: 'auto' (identifiable set, default), 'all', or comma-separated names",
     )
     p.add_argument(
-        "--prior-scale", choices=PRIOR_SCALES, default="tolerance",
-        help="map: the prior's scale: the machine file's tolerances (default) or 'empirical' (one factor on them "
-             "estimated from the data)",
+        "--prior-scale", choices=PRIOR_SCALES, default=None,
+        help="map: the prior's scale: 'empirical' (default: one factor on the machine file's tolerances, estimated "
+             "from the data) or 'tolerance' (the tolerances as they are)",
     )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (FORMATS.md section 3)")
@@ -133,11 +134,12 @@ def run(args) -> int:
     auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
     if not auto and (args.rule or args.figures):
         raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
-    if args.prior_scale != "tolerance" and args.method != "map":
+    if args.prior_scale is not None and args.method != "map":
         raise InputError("--prior-scale goes with --method map")
     choice = None
-    if args.method == "map" and args.prior_scale != "tolerance":
-        res = map_estimate(model, free=free, max_iter=args.max_iter, prior_scale=args.prior_scale)
+    if args.method == "map":
+        # empirical by default: studies/coverage_offprior.py (docs/bayes.md section 5)
+        res = map_estimate(model, free=free, max_iter=args.max_iter, prior_scale=args.prior_scale or "empirical")
     elif auto:
         choice, res = choose_regularisation(model, args.method, rule=args.rule, free=free, max_iter=args.max_iter)
     else:
@@ -159,7 +161,7 @@ def run(args) -> int:
             print(f"\neffects applied at their stored values ({args.machine}): {', '.join(e.name for e in machine.effects)}")
         if "prior_scale" in res.extras:
             print(f"\nprior scale: {res.extras['prior_scale']:.3g} x the machine file's tolerances "
-                  f"(estimated from the data, --prior-scale {args.prior_scale})")
+                  f"(estimated from the data; --prior-scale tolerance to use them as they are)")
         if choice is not None:
             print("\n" + choice.report())
         if path is not None:

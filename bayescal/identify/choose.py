@@ -41,10 +41,12 @@ through the SVD ``A = U diag(s) V^T``, ``beta = U^T z``:
   output error ``|G (x_v - x)|`` is within ``ratio`` of ``min_u |G (x_u - x)|``
   is estimated from ``n_posterior`` seeded posterior draws
   (:func:`bayescal.identify.ceiling.success_probabilities`, the machinery of
-  the success ceiling); the candidate with the largest probability wins
-  (ties: the smaller posterior expected ratio).  ``G`` is the output map
-  (tool-point Jacobians, tolerance-scaled); without one, the scaled
-  parameter error ``|x_v - x|``.
+  the success ceiling), with the prior ratio integrated out (each draw takes
+  its ``lam`` from the evidence over :func:`lambda_grid`, flat in ``log lam``);
+  the candidate with the largest probability wins (ties: the smaller
+  posterior expected ratio).  ``G`` is the output map (tool-point Jacobians,
+  tolerance-scaled); without one, the scaled parameter error ``|x_v - x|``.
+  The default for TSVD (``studies/choice_rules.py``, docs/regularisation.md).
 
 Where the problem is linearised (see :func:`choose_regularisation`): ridge
 iterates rule and Gauss-Newton to a fixed point (linearise at the converged

@@ -87,3 +87,14 @@ def test_cli_prior_scale_option(tmp_path, capsys):
     assert ans["prior_scale"] == pytest.approx(res.extras["prior_scale"])
     np.testing.assert_allclose([p["value"] for p in ans["parameters"]], res.theta, rtol=1e-10, atol=1e-14)
     assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--method", "ls", "--prior-scale", "empirical"]) == 2
+    # empirical is the CLI default; 'tolerance' is the plain MAP (= ridge lam 1)
+    out2 = tmp_path / "b.json"
+    assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--method", "map", "--json", str(out2)]) == 0
+    assert json.loads(out2.read_text())["prior_scale"] == pytest.approx(ans["prior_scale"])
+    out3 = tmp_path / "c.json"
+    assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--method", "map", "--prior-scale", "tolerance",
+                 "--json", str(out3)]) == 0
+    plain = map_estimate(MeasurementModel.from_recording(load_machine(PRS3_FILE), read_recording(rec)))
+    d3 = json.loads(out3.read_text())
+    assert "prior_scale" not in d3
+    np.testing.assert_allclose([p["value"] for p in d3["parameters"]], plain.theta, rtol=1e-10, atol=1e-14)
