@@ -193,7 +193,7 @@ def empirical_bayes_map(
         return identify(model, method="map", free=free_now, theta0=start, scale=std, prior_mean=prior.mean,
                         max_iter=max_iter)
 
-    res = fit(1.0, prior.mean, free)
+    res = first = fit(1.0, prior.mean, free)
     c, rounds = 1.0, 0
     while res.success and rounds < max_rounds:
         rounds += 1
@@ -207,4 +207,13 @@ def empirical_bayes_map(
         res = fit(c, res.theta, idx)  # warm start; the covariance is the Laplace one at this c
         if not moved:
             break
-    return replace(res, extras={**res.extras, "prior_scale": c, "prior_scale_rounds": rounds})
+    if not res.success:
+        return replace(res, extras={**res.extras, "prior_scale": c, "prior_scale_rounds": rounds})
+    # later rounds start from the earlier solution: report "before" against the start, and say which prior
+    kind = res.covariance_kind.replace("under the tolerance prior", f"under the tolerance prior x {c:.3g} (empirical Bayes)")
+    if kind == res.covariance_kind:
+        kind += f" (prior: tolerances x {c:.3g}, empirical Bayes)"
+    # lam relative to the tolerance scaling (as ridge's): the noise-to-prior variance ratio 1 / c^2
+    return replace(res, lam=1.0 / c**2, rms_before=first.rms_before, residuals_before=first.residuals_before,
+                   covariance_kind=kind,
+                   extras={**res.extras, "prior_scale": c, "prior_scale_rounds": rounds})
