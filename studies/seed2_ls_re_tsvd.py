@@ -342,9 +342,12 @@ def run_repetition(machine, dof, q, q_eval, seed_set, seed, lam_grid):
     P, tol = machine.n_params, machine.tolerance
     pilot = _quiet_identify(model, method="ridge", lam=1.0, free=seed_set)
     A, z, groups = linearised_problem(model, pilot.theta, seed_set, tol)
-    ch_r = choose_linear(A, z, "ridge", groups=groups, seed=seed)
+    # the 'success' rule judges candidates by the study's own output error: tool points over the evaluation grid
+    G = (machine.tool_jacobian(q_eval, None, machine.forward(q_eval))[:, :3, :][:, :, seed_set]
+         * tol[seed_set]).reshape(-1, seed_set.size)
+    ch_r = choose_linear(A, z, "ridge", groups=groups, seed=seed, output_map=G)
     A0, z0, groups0 = linearised_problem(model, np.zeros(P), seed_set, tol)
-    ch_k = choose_linear(A0, z0, "tsvd", groups=groups0, seed=seed)
+    ch_k = choose_linear(A0, z0, "tsvd", groups=groups0, seed=seed, output_map=G)
     # the grid, every rule's lambda, and lambda = 1 (MAP under the tolerance prior: the yardstick)
     lams = np.concatenate([lam_grid, [ch_r.choices[r] for r in RULES], [1.0]])
     ks = np.arange(1, seed_set.size + 1)

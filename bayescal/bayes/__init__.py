@@ -12,7 +12,7 @@ Submodules not imported here (they pull in arviz/emcee or are rarely needed):
 
 from .kalman import FilterResult, kalman_filter
 from .linear import LinearisedModel, linearise
-from .priors import GaussianPrior, map_estimate, prior_from_machine
+from .priors import PRIOR_SCALES, GaussianPrior, empirical_bayes_map, map_estimate, prior_from_machine
 
 __all__ = [
     "FilterResult",
@@ -22,4 +22,6 @@ __all__ = [
     "linearise",
     "map_estimate",
     "prior_from_machine",
+    "empirical_bayes_map",
+    "PRIOR_SCALES",
 ]

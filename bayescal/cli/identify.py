@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
+from ..bayes.priors import PRIOR_SCALES, map_estimate
 from ..errors import InputError
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
-from ..identify.robust import fit_system, identify_with_outliers, robust_map_weights
+from ..identify.robust import fit_system, identify_with_outliers, map_system, robust_map_weights
 from ..io import write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .inputs import add_frame_argument, free_arg, instrument_inputs
@@ -35,9 +36,16 @@ pose), mcmc (emcee posterior, refused unless converged). See docs/bayes.md.
 (--rule): cv (K-fold cross-validation over held-out poses), lcurve (L-curve
 corner), gcv (generalised cross-validation), discrepancy (residual matches
 the instrument sigma), evidence (marginal likelihood, empirical Bayes; the
-default for lambda), risk (Bayes decision under the evidence prior: for k,
-keep the singular directions with s^2 > lambda_evidence; the default for k).
-See docs/regularisation.md.  The report prints the chosen value and what
+default for lambda), risk (Bayes decision under the evidence prior for the
+squared error: for k, keep the singular directions with s^2 >
+lambda_evidence), success (Bayes decision for "tool-point error within 10 %
+of the best candidate's", by Monte Carlo over the evidence posterior; the
+default for k).  See docs/regularisation.md.
+
+--method map multiplies every tolerance of the prior by one factor estimated
+from the data (the evidence), so that the intervals hold when the machine is
+better or worse than its tolerances say; --prior-scale tolerance uses the
+tolerances as they are (MAP = ridge with --lam 1).  The report prints the chosen value and what
 every other rule picks; --figures DIR draws the rule curves.
 
 A machine file with [effect.<name>] tables (written by diagnose
@@ -89,6 +97,11 @@ def register(sub) -> None:
     p.add_argument(
         "--free", default="auto",
         help="parameters to identify: 'auto' (identifiable set, default), 'all', or comma-separated names",
+    )
+    p.add_argument(
+        "--prior-scale", choices=PRIOR_SCALES, default=None,
+        help="map: the prior's scale: 'empirical' (default: one factor on the machine file's tolerances, estimated "
+             "from the data) or 'tolerance' (the tolerances as they are)",
     )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
@@ -147,8 +160,18 @@ def run(args) -> int:
     auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
     if not auto and (args.rule or args.figures):
         raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
+    if args.prior_scale is not None and args.method != "map":
+        raise InputError("--prior-scale goes with --method map")
     choice = None
-    if auto:
+    if args.method == "map":
+        # empirical prior scale by default (studies/coverage_offprior.py, docs/bayes.md), on the poses weighted
+        # as a robust MAP pass weights them: one gross pose must not set the scale
+        handling = robust_map_weights(model, free, max_iter=args.max_iter, **okw)
+        res = map_estimate(handling.weighted_model(model), free=free, max_iter=args.max_iter,
+                           prior_scale=args.prior_scale or "empirical")
+        handling = handling.retested(model, res, map_system(res))
+        res = replace(res, extras={**res.extras, **handling.to_dict()})
+    elif auto:
         # the rules see the recording with the weights of a robust MAP pass: one gross pose must not choose lambda or k
         handling = robust_map_weights(model, free, max_iter=args.max_iter, **okw)
         choice, res = choose_regularisation(
@@ -188,6 +211,9 @@ def run(args) -> int:
         print(instrument_report(extra, plaus))
         if machine.effects:
             print(f"\neffects applied at their stored values ({args.machine}): {', '.join(e.name for e in machine.effects)}")
+        if "prior_scale" in res.extras:
+            print(f"\nprior scale: {res.extras['prior_scale']:.3g} x the machine file's tolerances "
+                  f"(estimated from the data; --prior-scale tolerance to use them as they are)")
         if choice is not None:
             print("\n" + choice.report())
         if path is not None:

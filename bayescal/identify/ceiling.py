@@ -43,7 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
 
-__all__ = ["ChoiceCeiling", "choice_ceiling"]
+__all__ = ["ChoiceCeiling", "choice_ceiling", "success_probabilities", "within_best"]
 
 
 @dataclass(frozen=True)
@@ -169,7 +169,6 @@ def choice_ceiling(
     post_sd = 1.0 / np.sqrt(s**2 + 1.0)
     unseen = p - s.size  # directions A does not touch keep the prior N(0, 1)
     GV = G @ Vt_full.T  # (M, p)
-    GVest = GV[:, : s.size]
     rng = np.random.default_rng(seed)
     best_p, bayes_ok = np.empty(n_data), np.empty(n_data, dtype=bool)
     fixed_ok = {label: np.empty(n_data, dtype=bool) for label in fixed_idx}
@@ -182,12 +181,7 @@ def choice_ceiling(
         if unseen:
             draws = np.hstack([draws, rng.normal(size=(n_posterior, unseen))])
         truths = np.vstack([draws, c_true[None, :]])  # posterior samples, then the true value
-        # output errors |G V (c_est - c)| for every truth and value: |GV c|^2 - 2 (GV c).(GVest e) + |GVest e|^2
-        Gt = truths @ GV.T  # (n+1, M)
-        Ge = est @ GVest.T  # (n_values, M)
-        err2 = np.sum(Gt**2, axis=1)[:, None] - 2.0 * Gt @ Ge.T + np.sum(Ge**2, axis=1)[None, :]
-        err = np.sqrt(np.maximum(err2, 0.0))
-        within = err <= ratio * err.min(axis=1, keepdims=True)
+        within, _ = within_best(truths, est, GV, ratio)
         p_v = within[:-1].mean(axis=0)
         j = int(np.argmax(p_v))
         best_p[t], bayes_ok[t] = p_v[j], within[-1, j]
@@ -199,3 +193,94 @@ def choice_ceiling(
         bayes_rule_rate=float(bayes_ok.mean()), fixed_rates={k: float(v.mean()) for k, v in fixed_ok.items()},
         n_data=int(n_data), n_posterior=int(n_posterior),
     )
+
+
+def within_best(truths: NDArray, est: NDArray, GV: NDArray, ratio: float) -> tuple[NDArray, NDArray]:
+    """Which candidates are within ``ratio`` of the best, for each possible truth.
+
+    Parameters
+    ----------
+    truths : ndarray, shape (n, p)
+        Truths in the coordinates of the estimates (for example ``V^T x``).
+    est : ndarray, shape (n_values, r)
+        Candidate estimates in the first ``r <= p`` of those coordinates
+        (the others are zero).
+    GV : ndarray, shape (M, p)
+        Output map in those coordinates.
+    ratio : float
+
+    Returns
+    -------
+    within : ndarray of bool, shape (n, n_values)
+        ``|GV (est_v - t)| <= ratio min_u |GV (est_u - t)|``.
+    rel : ndarray, shape (n, n_values)
+        ``|GV (est_v - t)| / min_u |GV (est_u - t)|`` (the ratio to the hindsight best; 1 where all are 0).
+    """
+    # output errors |GV (e - t)|^2 = |GV t|^2 - 2 (GV t).(GV e) + |GV e|^2, without forming n x n_values x M
+    Gt = truths @ GV.T  # (n, M)
+    Ge = est @ GV[:, : est.shape[1]].T  # (n_values, M)
+    err2 = np.sum(Gt**2, axis=1)[:, None] - 2.0 * Gt @ Ge.T + np.sum(Ge**2, axis=1)[None, :]
+    err = np.sqrt(np.maximum(err2, 0.0))
+    best = err.min(axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(best > 0, err / np.where(best > 0, best, 1.0), 1.0)
+    return err <= ratio * best, rel
+
+
+def success_probabilities(
+    est: ArrayLike,
+    mean: ArrayLike,
+    sd: ArrayLike,
+    GV: ArrayLike,
+    *,
+    ratio: float = 1.1,
+    n_posterior: int = 400,
+    seed: int = 0,
+) -> tuple[NDArray, NDArray]:
+    """Posterior probability that each candidate is within ``ratio`` of the hindsight best, by Monte Carlo.
+
+    The posterior of the truth is independent Gaussian in the coordinates of
+    the estimates: ``t_i ~ N(mean_i, sd_i^2)`` (the right singular vectors of
+    a linear-Gaussian problem with an isotropic prior).  The same draws serve
+    every candidate (common random numbers), so differences between
+    candidates carry less Monte Carlo noise than the probabilities.
+
+    Parameters
+    ----------
+    est : array_like, shape (n_values, r)
+        Candidate estimates (first ``r`` coordinates; the rest zero).
+    mean, sd : array_like, shape (p,) or (n_posterior, p)
+        Posterior mean and standard deviation per coordinate (``p >= r``);
+        with one row per draw, each draw comes from its own component (a
+        mixture, for example over the prior scale).
+    GV : array_like, shape (M, p)
+        Output map in those coordinates (only ``|GV d|`` matters, so any
+        ``Q`` with ``Q^T Q = GV^T GV`` gives the same answer).
+    ratio : float
+        Success: output error at most ``ratio`` times the best candidate's.
+    n_posterior : int
+        Posterior draws.
+    seed : int
+        Seeds the draws (the answer is a deterministic function of the data).
+
+    Returns
+    -------
+    prob : ndarray, shape (n_values,)
+        ``P(within ratio | data)`` per candidate.
+    expected_ratio : ndarray, shape (n_values,)
+        ``E[error_v / min_u error_u | data]`` per candidate.
+    """
+    est = np.atleast_2d(np.asarray(est, dtype=float))
+    mean = np.asarray(mean, dtype=float)
+    sd = np.asarray(sd, dtype=float)
+    GV = np.asarray(GV, dtype=float)
+    p = mean.shape[-1] if mean.ndim else 0
+    if (sd.shape != mean.shape or mean.ndim not in (1, 2) or (mean.ndim == 2 and mean.shape[0] != n_posterior)
+            or GV.ndim != 2 or GV.shape[1] != p or est.shape[1] > p):
+        raise InputError(f"est, mean, sd, GV: inconsistent shapes {est.shape}, {mean.shape}, {sd.shape}, {GV.shape}")
+    if n_posterior < 2:
+        raise InputError(f"n_posterior: expected >= 2, got {n_posterior}")
+    # a (n_posterior, p) mean and sd: a mixture, one component per draw (e.g. over the prior scale)
+    draws = mean + np.random.default_rng(seed).normal(size=(n_posterior, p)) * sd
+    within, rel = within_best(draws, est, GV, ratio)
+    return within.mean(axis=0), rel.mean(axis=0)

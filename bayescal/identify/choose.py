@@ -33,7 +33,20 @@ through the SVD ``A = U diag(s) V^T``, ``beta = U^T z``:
   vectors, so keeping direction ``i`` costs ``(beta_i / s_i - m_i)^2`` and
   dropping it ``m_i^2``: keep it iff ``s_i^2 > lam_ev``, i.e.
   ``k = #{s_i^2 > lam_ev}`` (the directions the data determine better than
-  the prior does).  The default for TSVD (docs/regularisation.md).
+  the prior does).
+* ``success``: the Bayes decision for the *success event* of the study
+  (output error within ``ratio`` = 10 % of the best candidate's, the best
+  picked in hindsight knowing the truth).  Under the same empirical-Bayes
+  posterior as ``risk``, the posterior probability that each candidate's
+  output error ``|G (x_v - x)|`` is within ``ratio`` of ``min_u |G (x_u - x)|``
+  is estimated from ``n_posterior`` seeded posterior draws
+  (:func:`bayescal.identify.ceiling.success_probabilities`, the machinery of
+  the success ceiling), with the prior ratio integrated out (each draw takes
+  its ``lam`` from the evidence over :func:`lambda_grid`, flat in ``log lam``);
+  the candidate with the largest probability wins (ties: the smaller
+  posterior expected ratio).  ``G`` is the output map (tool-point Jacobians,
+  tolerance-scaled); without one, the scaled parameter error ``|x_v - x|``.
+  The default for TSVD (``studies/choice_rules.py``, docs/regularisation.md).
 
 Where the problem is linearised (see :func:`choose_regularisation`): ridge
 iterates rule and Gauss-Newton to a fixed point (linearise at the converged
@@ -58,6 +71,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
 from ..measurement import MeasurementModel
+from .ceiling import success_probabilities
 from .gauss_newton import identify, resolve_free, whitened_system
 from .result import IdentificationResult
 
@@ -69,14 +83,15 @@ __all__ = [
     "choose_regularisation",
     "linearised_problem",
     "lambda_grid",
+    "evidence_lambda",
 ]
 
 #: Rule names, in the order reports list them.
-RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence", "risk")
+RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence", "risk", "success")
 
-#: Default rule per method, chosen by the repetition study of
-#: ``studies/seed2_ls_re_tsvd.py`` (docs/regularisation.md, "Which rule").
-DEFAULT_RULE: dict[str, str] = {"ridge": "evidence", "tsvd": "risk"}
+#: Default rule per method, chosen by ``studies/choice_rules.py`` (400
+#: linear-Gaussian data sets per situation and truth scale; docs/regularisation.md, "Which rule").
+DEFAULT_RULE: dict[str, str] = {"ridge": "evidence", "tsvd": "success"}
 
 _LOG2PI = float(np.log(2.0 * np.pi))
 
@@ -104,7 +119,10 @@ class RegularisationChoice:
         (mean squared held-out whitened error), ``discrepancy``
         (``|r|^2 - (N - sum f)``), ``log_evidence``, ``curvature`` (L-curve),
         ``posterior_risk`` (posterior expected squared error of the scaled
-        solution under the empirical-Bayes prior, see ``risk``).
+        solution under the empirical-Bayes prior, see ``risk``),
+        ``success_probability`` (posterior probability of being within
+        ``ratio`` of the hindsight best, see ``success``) and
+        ``success_expected_ratio``.
     singular_values : ndarray
     n_rows, n_params : int
         Rows (whitened residuals) and identified parameters of the linear problem.
@@ -239,6 +257,19 @@ def _log_evidence_tsvd(d: _Svd, lams: NDArray, noise_known: bool) -> tuple[NDArr
     return ev[best, np.arange(ev.shape[1])], lams[best]
 
 
+def evidence_lambda(A: ArrayLike, z: ArrayLike, *, noise_known: bool = True, n_grid: int = 241) -> float:
+    """The ridge ``lam`` that maximises the evidence of ``z = A x + e``, ``x ~ N(0, I / lam)``, ``e ~ N(0, I)``.
+
+    ``lam`` is the noise-to-prior variance ratio (dimensionless); with rows
+    whitened by the instrument sigma and columns scaled by the tolerances,
+    ``1 / sqrt(lam)`` is the prior scale the data support, in tolerances.
+    Searched over :func:`lambda_grid` (``n_grid`` points, about 0.1 decade apart).
+    """
+    d = _svd(np.asarray(A, dtype=float), np.asarray(z, dtype=float).reshape(-1))
+    grid = lambda_grid(d.s, n_grid)
+    return float(grid[int(np.argmax(_log_evidence_ridge(d, grid, noise_known)))])
+
+
 def _posterior_risk(d: _Svd, F: NDArray, noise_known: bool) -> tuple[float, NDArray]:
     """Posterior expected ``|x_v - x|^2`` of each filtered solution under the empirical-Bayes prior.
 
@@ -263,6 +294,48 @@ def _posterior_risk(d: _Svd, F: NDArray, noise_known: bool) -> tuple[float, NDAr
     trace = sigma2 * float(np.sum(1.0 / g)) + unseen * sigma2 / lam_ev
     est = F * (d.beta * _safe_inv(d.s))[None, :]
     return lam_ev, np.sum((est - m[None, :]) ** 2, axis=1) + trace
+
+
+def _success_curve(
+    A: NDArray, d: _Svd, F: NDArray, noise_known: bool, G: NDArray | None, ratio: float, n_posterior: int, seed: int,
+    integrate_scale: bool = True,
+) -> tuple[float, NDArray, NDArray]:
+    """``lam_ev`` and, per filter row, the posterior probability of success and expected ratio to the best.
+
+    ``integrate_scale``: the prior ratio ``lam`` is drawn per posterior draw
+    from its own posterior (flat in ``log lam`` over :func:`lambda_grid`,
+    times the evidence) instead of being fixed at ``lam_ev``: the evidence
+    of one scale from a few dozen parameters is uncertain by tens of per cent.
+    """
+    grid = lambda_grid(d.s)
+    log_ev = _log_evidence_ridge(d, grid, noise_known)
+    lam_ev = float(grid[int(np.argmax(log_ev))])
+    rng = np.random.default_rng([seed, 1])
+    if integrate_scale:
+        w = np.exp(log_ev - log_ev.max())
+        lam = grid[rng.choice(grid.size, size=n_posterior, p=w / w.sum())]
+    else:
+        lam = np.full(n_posterior, lam_ev)
+    g = d.s[None, :] ** 2 + lam[:, None]  # (n_posterior, r)
+    if noise_known:
+        sigma2 = np.ones(n_posterior)
+    else:  # the profiled noise scale at each lam
+        sigma2 = (np.sum(d.beta[None, :] ** 2 / (1.0 + d.s[None, :] ** 2 / lam[:, None]), axis=1) + d.c_perp) / d.n_rows
+    m = d.s[None, :] * d.beta[None, :] / g
+    sd = np.sqrt(sigma2[:, None] / g)
+    p, r = A.shape[1], d.s.size
+    if p > r:  # directions A does not see: estimates stay 0 there, the posterior is the prior
+        V = np.linalg.svd(A, full_matrices=True)[2].T
+        m = np.hstack([m, np.zeros((n_posterior, p - r))])
+        sd = np.hstack([sd, np.repeat(np.sqrt(sigma2 / lam)[:, None], p - r, axis=1)])
+    else:
+        V = d.V
+    GV = V if G is None else np.asarray(G, dtype=float) @ V
+    if GV.shape[0] > p:  # |GV e| = |R e| with GV = Q R: fewer rows, same answer
+        GV = np.linalg.qr(GV, mode="r")
+    est = F * (d.beta * _safe_inv(d.s))[None, :]
+    prob, exp_ratio = success_probabilities(est, m, sd, GV, ratio=ratio, n_posterior=n_posterior, seed=seed)
+    return lam_ev, prob, exp_ratio
 
 
 def _ridge_curvature(d: _Svd, lams: NDArray) -> NDArray:
@@ -341,6 +414,10 @@ def choose_linear(
     folds: int = 6,
     seed: int = 0,
     linearisation: str = "given linear problem",
+    output_map: ArrayLike | None = None,
+    ratio: float = 1.1,
+    n_posterior: int = 400,
+    integrate_scale: bool = True,
 ) -> RegularisationChoice:
     """Apply every rule to the linear problem ``A x ~ z`` (rows whitened).
 
@@ -365,7 +442,20 @@ def choose_linear(
     folds : int
         Cross-validation folds.
     seed : int
-        Seeds the assignment of poses to folds.
+        Seeds the assignment of poses to folds and the posterior draws of ``success``.
+    linearisation : str
+        Where the linear problem was taken (for the report).
+    output_map : array_like, shape (M, p), optional
+        ``G``: the output error of an estimate is ``|G (x_v - x)|`` (for
+        example tool-point Jacobians times the tolerances, mm per scaled
+        unit; only ratios matter).  Default: the scaled parameter error.
+    ratio : float
+        The ``success`` rule's event: output error at most ``ratio`` times the best candidate's.
+    n_posterior : int
+        Posterior draws of the ``success`` rule.
+    integrate_scale : bool
+        ``success``: average over the posterior of the prior scale (True)
+        rather than plugging in its evidence maximum.
 
     Returns
     -------
@@ -418,6 +508,14 @@ def choose_linear(
         i_disc = int(ok[0]) if ok.size else int(np.argmin(disc))
     lam_ev, risk = _posterior_risk(d, F, noise_known)
     extras["risk_prior_ratio"] = lam_ev
+    if output_map is not None:
+        output_map = np.asarray(output_map, dtype=float)
+        if output_map.ndim != 2 or output_map.shape[1] != p:
+            raise InputError(f"output_map: expected shape (M, {p}), got {output_map.shape}")
+    if not ratio >= 1.0:
+        raise InputError(f"ratio: expected >= 1, got {ratio}")
+    _, succ, exp_ratio = _success_curve(A, d, F, noise_known, output_map, ratio, n_posterior, seed, integrate_scale)
+    extras["success_expected_ratio"] = exp_ratio
     picks = {
         "cv": int(np.nanargmin(cv)) if np.isfinite(cv).any() else None,
         "lcurve": int(np.argmax(np.where(np.isfinite(curvature), curvature, -np.inf))),
@@ -426,6 +524,8 @@ def choose_linear(
         "evidence": int(np.argmax(log_ev)),
         # ties (TSVD: directions with beta_i = 0) go to the most regularised value
         "risk": int(np.flatnonzero(risk <= risk.min() * (1 + 1e-12))[0 if method == "tsvd" else -1]),
+        # largest probability; ties (common for neighbouring lambdas) to the smaller expected ratio
+        "success": int(np.lexsort((exp_ratio, -succ))[0]),
     }
     cast = float if method == "ridge" else int
     choices = {r: cast(grid[i]) for r, i in picks.items() if i is not None}
@@ -441,6 +541,7 @@ def choose_linear(
         "log_evidence": log_ev,
         "curvature": curvature,
         "posterior_risk": risk,
+        "success_probability": succ,
         **extras,
     }
     return RegularisationChoice(
@@ -464,6 +565,22 @@ def linearised_problem(model: MeasurementModel, theta: NDArray, idx: NDArray, sc
     return A, z, groups
 
 
+def _tool_output_map(machine, q: ArrayLike, idx: NDArray, scale: NDArray) -> NDArray | None:
+    """Tool-point Jacobians at ``q`` (nominal geometry), tolerance-scaled: mm per scaled unit, shape (3 n, |idx|).
+
+    None (the ``success`` rule then judges the scaled parameter error) when a
+    pose cannot be solved at nominal.
+    """
+    if q is None or not hasattr(machine, "tool_jacobian"):
+        return None
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    poses = machine.forward(q)
+    if not np.all(poses.success):
+        return None
+    J = machine.tool_jacobian(q, None, poses)[:, :3, :][:, :, idx] * scale[idx]
+    return J.reshape(-1, idx.size)
+
+
 def choose_regularisation(
     model: MeasurementModel,
     method: str,
@@ -476,6 +593,7 @@ def choose_regularisation(
     seed: int = 0,
     max_rounds: int = 3,
     max_iter: int = 50,
+    eval_q: ArrayLike | None = None,
 ) -> tuple[RegularisationChoice, IdentificationResult]:
     """Choose ``lam`` (ridge) or ``k`` (TSVD) for a measurement model, and identify with it.
 
@@ -485,6 +603,10 @@ def choose_regularisation(
     changes by less than 10 %.  TSVD: the rules are applied once, at the
     start geometry, where TSVD fixes its subspace; then TSVD runs with the
     chosen ``k``.
+
+    The ``success`` rule judges candidates by the tool-point error at the
+    actuator positions ``eval_q`` (default: the measured poses), through the
+    tool-point Jacobians at nominal.
 
     Returns
     -------
@@ -500,7 +622,8 @@ def choose_regularisation(
     idx, _ = resolve_free(model, free, theta)
     free_arg = free if free is not None else idx
     known = bool(machine.noise.given)
-    kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed)
+    kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed,
+              output_map=_tool_output_map(machine, getattr(model, "q", None) if eval_q is None else eval_q, idx, S_all))
     if method == "tsvd":
         A, z, groups = linearised_problem(model, theta, idx, S_all)
         choice = choose_linear(A, z, "tsvd", groups=groups, linearisation="linearised at the start geometry", **kw)

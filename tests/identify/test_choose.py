@@ -234,6 +234,6 @@ def test_ridge_choice_is_a_fixed_point_and_report(prs3, sim6):
 def test_tsvd_choice_uses_start_geometry(prs3, sim6):
     model = MeasurementModel.from_recording(prs3, sim6.recording)
     choice, res = choose_regularisation(model, "tsvd")
-    assert res.success and res.k == choice.value == choice.choices["risk"]  # the TSVD default
+    assert res.success and res.k == choice.value == choice.choices["success"]  # the TSVD default
     d = choice.to_dict()
     assert d["method"] == "tsvd" and len(d["curves"]["gcv"]) == choice.n_params

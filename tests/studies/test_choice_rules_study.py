@@ -1,0 +1,37 @@
+"""The two issue-17 studies in their quick modes: they run, write their tables, and the numbers are sane."""
+
+import json
+import os
+import subprocess
+import sys
+
+from tests.conftest import ROOT
+
+ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+
+
+def test_choice_rules_quick(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "studies" / "choice_rules.py"), "--quick", "--n-data", "8",
+                           "--out", str(tmp_path)], env=ENV, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    summary = json.loads((tmp_path / "choice_rules.json").read_text())
+    by_scale = summary["situations"]["3-PRS 6-DOF"]
+    assert set(by_scale) == {"1", "0.5", "2", "4"}
+    for st in (m for by_m in by_scale.values() for m in by_m.values()):
+        assert 0.0 < st["ceiling"] <= 1.0 and st["floor"] >= 1.0
+        for x in st["rules"].values():
+            # no rule beats the ceiling given the data, nor the least expected ratio (up to Monte Carlo error)
+            assert x["gap"] > -0.02 and x["regret"] > -0.01 and x["p90"] >= 1.0
+    assert "| success |" in (tmp_path / "choice_rules.md").read_text()
+
+
+def test_coverage_offprior_quick(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "studies" / "coverage_offprior.py"), "--quick",
+                           "--out", str(tmp_path)], env=ENV, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    summary = json.loads((tmp_path / "coverage_offprior.json").read_text())
+    lin = summary["linear"]["6"]["gauss 2"]
+    assert set(lin) == {"ls", "map", "map_eb", "map_all", "map_all_eb"}
+    # truths at twice the tolerances: the tolerance prior is overconfident on all parameters, least squares is not
+    assert lin["map_all"]["parameters"] < lin["ls"]["parameters"]
+    assert summary["exact"]["6"]["gauss 2"]["map_eb"]["n"] >= 1
