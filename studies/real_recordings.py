@@ -374,12 +374,13 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
         # ---- in sample
         ins = {}
         fits = {}
-        # started at the Kabsch frame with the nominal tool point (0: unknown), the full fits stop in a local
-        # minimum (MAP: 12.9 mm RMS); started from the 9-parameter registration they do not (see the docs page)
+        # one command (--frame fit: the frame start registers the frame with a tool-point offset, and the
+        # tool point, declared unknown by its tolerance, is kept identifiable), and the staged route: the
+        # 9-parameter registration first, the full fits started from it (see the docs page)
         reg = rc.fit(model, "registration", free=REG)
         for key, method, free, start in (
             ("registration (frame + tool point)", "registration", REG, None),
-            ("map, from the Kabsch frame (no registration stage)", "map", "auto", None),
+            ("map, one command (--frame fit)", "map", "auto", None),
             ("ls", "ls", "auto", reg.theta), ("map", "map", "auto", reg.theta),
             ("ridge --lam auto", "ridge", "auto", reg.theta), ("tsvd --k auto", "tsvd", "auto", reg.theta),
         ):

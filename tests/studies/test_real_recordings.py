@@ -104,16 +104,18 @@ def test_tiago_registration_and_full_fit(quick):
     assert t["scipy_vs_bayescal_per_pose_max_diff_mm"] < 1e-3
     assert t["scipy_registration"]["worst_line"] == 31
     assert np.allclose(t["registration_frame"]["tool_mm"], t["scipy_registration"]["tool_mm"], atol=0.05)
-    # the full fit, started from the registration, explains more in sample (upstream: 2.71 mm); from the
-    # Kabsch frame with the unknown tool point at 0 it stops in a local minimum, which the command line
-    # refuses, and the two-step command line (register, then fit from the registered machine) avoids
+    # the full fit, started from the registration, explains more in sample (upstream: 2.71 mm); so does one
+    # command from the frame start, which registers the frame with the unknown tool point (it used to stop
+    # in a local minimum at 12.9 mm RMS), and so does the two-step command line
     assert t["in_sample"]["map"]["success"]
     assert t["in_sample"]["map"]["pos_rms"] < 3.0
-    assert t["in_sample"]["map, from the Kabsch frame (no registration stage)"]["pos_rms"] > 10.0
-    assert t["cli"]["identify map"]["exit"] == 1
+    assert t["in_sample"]["map, one command (--frame fit)"]["pos_rms"] < 3.0
+    assert t["cli"]["identify map"]["exit"] == 0
+    assert t["cli"]["identify map"]["rms_after"]["position"] < 3.0
     staged = t["cli"]["identify map, from the registered machine"]
     assert staged["exit"] == 0
-    assert staged["rms_after"]["position"] == pytest.approx(t["in_sample"]["map"]["pos_rms"], abs=0.05)
+    # (the command line's MAP estimates the prior scale from the data: at least as close as the library's default)
+    assert staged["rms_after"]["position"] < t["in_sample"]["map"]["pos_rms"] + 0.05
 
 
 @pytest.mark.skipif(not HAVE_TIAGO, reason="shared TIAGo data absent")
