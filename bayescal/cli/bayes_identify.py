@@ -80,7 +80,7 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
         write_posterior(res, args.posterior)
     if may_write_machine(args, res, plaus):
         write_calibrated_machine(args, machine, res.theta)  # [effect.*] and [instrument] kept
-    write_report(args, "identify", res, machine=machine, model=base_model)
+    write_report(args, "identify", res, machine=machine, model=base_model, answer_extra=extra)
     made = []
     if args.figures:
         from ..plots.bayes import plot_filter_history, plot_pair, plot_trace, plot_trace_pages

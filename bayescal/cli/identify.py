@@ -199,7 +199,7 @@ def run(args) -> int:
 
         say(args, f"wrote {write_text_atomic(args.write_klipper, klipper_text(machine, res.theta[: machine.n_params]))} "
             "(Klipper keys)")
-    write_report(args, "identify", res, machine=machine, model=model, choice=choice)
+    write_report(args, "identify", res, machine=machine, model=model, choice=choice, answer_extra=extra)
     path = None
     if choice is not None and args.figures:
         from ..plots.regularisation import plot_choice

@@ -88,10 +88,16 @@ def _unidentifiable_section(d: dict) -> dict:
 
 
 def _outlier_indices(result) -> list[int]:
+    """0-based poses named as outliers: the answer's ``outliers`` (FORMATS.md section 4: CSV ``line``, header = 1)."""
     out = []
-    for o in getattr(result, "outliers", None) or []:
+    found = getattr(result, "outliers", None)
+    if found is None and hasattr(result, "to_dict"):
+        found = result.to_dict().get("outliers")
+    if found is not None and not isinstance(found, (list, tuple)):
+        found = getattr(found, "outliers", None) or []  # a diagnosis's OutlierScreen
+    for o in found or []:
         if isinstance(o, dict):
-            o = o.get("pose", o.get("index", o.get("row")))
+            o = o["line"] - 2 if "line" in o else o.get("pose", o.get("index", o.get("row")))
         try:
             out.append(int(o))
         except (TypeError, ValueError):
@@ -138,7 +144,30 @@ def _residual_section(result, model, sigma) -> dict | None:
 
 
 # ----------------------------------------------------------------------------- kinds
-def identify_sections(result, *, machine=None, model=None, choice=None, **_) -> tuple[str, list[dict]]:
+def _instrument_section(d: dict, answer_extra: dict | None) -> dict | None:
+    """The fitted instrument frame, the outlier handling and the plausibility verdict of the answer."""
+    extra = answer_extra or {}
+    text = []
+    frame = extra.get("frame")
+    if frame:
+        fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"  # noqa: E731
+        text.append(f"Instrument frame ({'fitted' if frame.get('fitted', True) else 'known'}): origin {fmt(frame['origin'])} mm, "
+                    f"rotation vector {fmt(frame['rotation_vector'])} rad.")
+    if d.get("outlier_handling"):
+        text.append(f"Outliers: {d['outlier_handling']}.")
+    if "plausible" in extra:
+        pl = extra.get("plausibility") or {}
+        if extra["plausible"]:
+            text.append("Plausible: no machine parameter beyond 10 tolerances, residual degrees of freedom left.")
+        else:
+            text += ["NOT PLAUSIBLE (no calibrated machine written unless --force): " + "; ".join(pl.get("reasons", []))]
+            text += ["likely cause: " + c for c in pl.get("causes", [])]
+    if not text:
+        return None
+    return section("Instrument, outliers and plausibility", id="instrument", text=text)
+
+
+def identify_sections(result, *, machine=None, model=None, choice=None, answer_extra=None, **_) -> tuple[str, list[dict]]:
     d = result.to_dict()
     method = d.get("method", getattr(result, "method", ""))
     ok = d.get("success", True)
@@ -171,6 +200,7 @@ def identify_sections(result, *, machine=None, model=None, choice=None, **_) -> 
                       "'fixed at nominal' marks parameters that were not identified."]),
         _correlation_section(d),
         _unidentifiable_section(d),
+        _instrument_section(d, answer_extra),
         _residual_section(result, model, sigma),
     ]
     figs = []

@@ -105,3 +105,27 @@ def test_names_are_escaped(reports):
                          inputs={"command": "bayescal <script>alert(1)</script>", "files": [], "versions": {}})
     assert "<script>alert(1)" not in html and "&lt;script&gt;" in html
     assert inputs_section({}, None)["title"] == "Inputs"
+
+
+def test_cli_report_marks_the_gross_pose_and_states_plausibility(tmp_path):
+    """Through the command line: one pose +0.3 mm in x is marked in the residual table by its CSV line."""
+    import csv
+
+    from bayescal.cli import main
+    from tests.conftest import PRS3_FILE, ROOT
+
+    rows = list(csv.reader((ROOT / "examples" / "prs3" / "recording.csv").read_text().splitlines()))
+    x = rows[0].index("x")
+    rows[12][x] = repr(float(rows[12][x]) + 0.3)  # CSV line 13, pose 12
+    rec = tmp_path / "gross.csv"
+    with rec.open("w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    html_path, json_path = tmp_path / "r.html", tmp_path / "a.json"
+    assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--method", "map", "--report", str(html_path),
+                 "--json", str(json_path), "--quiet"]) == 0
+    assert [o["line"] for o in json.loads(json_path.read_text())["outliers"]] == [13]
+    html = html_path.read_text()
+    res = tables(html)["pose-residuals"]
+    marked = [i for i, r in enumerate(res) if r[-1][0] == "outlier"]
+    assert marked == [11]  # 0-based pose 11 = CSV line 13
+    assert "Plausible: no machine parameter beyond 10 tolerances" in html and "down-weighted" in html
