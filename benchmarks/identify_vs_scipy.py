@@ -28,6 +28,10 @@ fresh poses.  Prints a table and writes it as JSON to ``benchmarks/out/``.
 Run from the repository root::
 
     python benchmarks/identify_vs_scipy.py [--repeats 5] [--seed 7] [--out benchmarks/out]
+    python benchmarks/identify_vs_scipy.py --machine examples/arm6/machine.toml --poses 1000 --repeats 2 --scipy-repeats 1
+
+Any machine file works (``--machine``); the second line is the serial-arm case: a six-revolute arm, 1,000
+poses.  The JSON goes to ``identify_vs_scipy[_<machine folder>].json``.
 """
 
 from __future__ import annotations
@@ -116,6 +120,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scipy-repeats", type=int, default=2, help="timing repeats of each scipy run (default 2)")
     ap.add_argument("--seed", type=int, default=7, help="simulation seed (default 7)")
     ap.add_argument("--poses", type=int, default=36)
+    ap.add_argument("--machine", default=str(MACHINE), help="machine file (default: the bundled 3-PRS)")
     ap.add_argument(
         "--baselines", default="2-point,3-point,analytic",
         help="comma-separated scipy Jacobians to run: 2-point, 3-point, analytic (default: all)",
@@ -123,7 +128,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out"), help="folder for the JSON table")
     args = ap.parse_args(argv)
 
-    machine = load_machine(MACHINE)
+    machine_path = Path(args.machine).resolve()
+    machine = load_machine(machine_path)
     sim = simulate_recording(machine, args.poses, seed=args.seed, dof=6)
     model = MeasurementModel.from_recording(machine, sim.recording)
     idx, _ = resolve_free(model, "auto", np.zeros(machine.n_params))
@@ -158,7 +164,8 @@ def main(argv=None) -> int:
     table = {
         "benchmark": "identify_vs_scipy",
         "problem": {
-            "machine": str(MACHINE.relative_to(ROOT)), "poses": args.poses, "dof": 6, "seed": args.seed,
+            "machine": str(machine_path.relative_to(ROOT)) if machine_path.is_relative_to(ROOT) else str(machine_path),
+            "poses": args.poses, "dof": 6, "seed": args.seed,
             "free_parameters": int(idx.size), "fresh_poses": len(fresh_q),
         },
         "rows": rows,
@@ -166,7 +173,8 @@ def main(argv=None) -> int:
         "speed_ratio_baseline": None if headline is None else headline["solver"],
         "rms_against_truth_mm": float(np.sqrt(np.mean(np.sum((p_bc - p_true) ** 2, axis=1)))),
         "target": {"speed_ratio": 20.0, "max_tool_point_difference_mm": 1e-6},
-        "passed": bool(ratio is not None and ratio >= 20.0),
+        # the 20x target is the 3-PRS's (issue 2); other machines report their ratio and the agreement only
+        "passed": bool(ratio is not None and (ratio >= 20.0 or machine_path != MACHINE.resolve())),
         "repeats": {"bayescal": args.repeats, "scipy": args.scipy_repeats},
         "environment": {
             "python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
@@ -187,7 +195,8 @@ def main(argv=None) -> int:
         print("  no baseline reached bayescal's answer to 1e-6 mm")
     print(f"  max |dp|: largest tool-point difference from bayescal's answer on {len(fresh_q)} fresh poses; "
           f"RMS error of bayescal's model against the truth {table['rms_against_truth_mm']:.4f} mm")
-    out = Path(args.out) / "identify_vs_scipy.json"
+    suffix = "" if machine_path == MACHINE.resolve() else f"_{machine_path.parent.name}"
+    out = Path(args.out) / f"identify_vs_scipy{suffix}.json"
     write_json_atomic(out, table)
     print(f"  wrote {out}")
     return 0 if table["passed"] else 1
