@@ -44,8 +44,11 @@ default for k).  See docs/regularisation.md.
 
 --method map multiplies every tolerance of the prior by one factor estimated
 from the data (the evidence), so that the intervals hold when the machine is
-better or worse than its tolerances say; --prior-scale tolerance uses the
-tolerances as they are (MAP = ridge with --lam 1).  The report prints the chosen value and what
+better or worse than its tolerances say, when the recording has at least
+three measured components per parameter (fewer cannot estimate a scale as
+well as the parameters: the tolerances are then used as they are, and the
+report says so); --prior-scale tolerance|empirical chooses explicitly
+(tolerance: MAP = ridge with --lam 1).  The report prints the chosen value and what
 every other rule picks; --figures DIR draws the rule curves.
 
 A machine file with [effect.<name>] tables (written by diagnose
@@ -100,8 +103,9 @@ def register(sub) -> None:
     )
     p.add_argument(
         "--prior-scale", choices=PRIOR_SCALES, default=None,
-        help="map: the prior's scale: 'empirical' (default: one factor on the machine file's tolerances, estimated "
-             "from the data) or 'tolerance' (the tolerances as they are)",
+        help="map: the prior's scale: 'empirical' (one factor on the machine file's tolerances, estimated from the "
+             "data) or 'tolerance' (the tolerances as they are); default: empirical with at least 3 measured "
+             "components per parameter, else tolerance",
     )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
@@ -167,8 +171,16 @@ def run(args) -> int:
         # empirical prior scale by default (studies/coverage_offprior.py, docs/bayes.md), on the poses weighted
         # as a robust MAP pass weights them: one gross pose must not set the scale
         handling = robust_map_weights(model, free, max_iter=args.max_iter, **okw)
-        res = map_estimate(handling.weighted_model(model), free=free, max_iter=args.max_iter,
-                           prior_scale=args.prior_scale or "empirical")
+        # one scale factor from the evidence needs data to spare: with fewer than 3 measured components per
+        # parameter (a delta printer's 19 probe rows for 21 parameters) the estimate follows the noise
+        # (4.6x on the FLSUN Q5, pushing a tower tilt to 13 tolerances), so the tolerances stand
+        enough = model.n_poses * model.dof >= 3 * model.n_params
+        scale = args.prior_scale or ("empirical" if enough else "tolerance")
+        res = map_estimate(handling.weighted_model(model), free=free, max_iter=args.max_iter, prior_scale=scale)
+        if args.prior_scale is None and not enough:
+            res = replace(res, extras={**res.extras, "prior_scale_note": (
+                f"prior scale: the machine file's tolerances ({model.n_poses * model.dof} measured components for "
+                f"{model.n_params} parameters: too few to estimate a scale; --prior-scale empirical to try)")})
         handling = handling.retested(model, res, map_system(res))
         res = replace(res, extras={**res.extras, **handling.to_dict()})
     elif auto:
@@ -211,6 +223,8 @@ def run(args) -> int:
         print(instrument_report(extra, plaus))
         if machine.effects:
             print(f"\neffects applied at their stored values ({args.machine}): {', '.join(e.name for e in machine.effects)}")
+        if "prior_scale_note" in res.extras:
+            print("\n" + res.extras["prior_scale_note"])
         if "prior_scale" in res.extras:
             print(f"\nprior scale: {res.extras['prior_scale']:.3g} x the machine file's tolerances "
                   f"(estimated from the data; --prior-scale tolerance to use them as they are)")
