@@ -459,20 +459,15 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
 
 
 def _outlier_screen(registered_toml: str, rec, tmp: Path, reg_free: list[str]) -> dict:
-    """The per-pose outlier test of bayescal's robust identification, for registration and MAP.
+    """The per-pose outlier test of bayescal's robust identification, for registration and MAP."""
+    from bayescal.identify.robust import identify_with_outliers
+    from bayescal.outliers import recording_lines
 
-    Returns ``{"available": False}`` when this bayescal has no outlier screen.
-    """
-    try:
-        from bayescal.identify.robust import identify_with_outliers
-        from bayescal.outliers import recording_lines
-    except ImportError:
-        return {"available": False}
     path = tmp / "registered_lib.toml"
     write_text_atomic(path, registered_toml)
     _, model = rc.prepare(load_machine(path), rec)
     lines = recording_lines(rec.n_poses, rec)
-    out = {"available": True}
+    out = {}
     for key, kw in (("registration", dict(method="ls", free=reg_free)), ("map", dict(method="map"))):
         res, h = identify_with_outliers(model, lines=lines, **kw)
         d = h.to_dict()
@@ -578,8 +573,6 @@ def tables(res: dict) -> str:
         out.append(rc.fmt_table(["fit", "mean mm", "RMS mm", "max mm"],
                                 [[k, v["pos_mean"], v["pos_rms"], v["pos_max"]] for k, v in t["cv"].items()]))
         scr = t.get("outlier_screen", {})
-        if not scr.get("available"):
-            out.append("\noutlier screen: not in this bayescal")
         for key in ("registration", "map"):
             if key in scr:
                 s_ = scr[key]

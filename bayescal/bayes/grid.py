@@ -83,17 +83,12 @@ class CompensationGrid:
         return write_text_atomic(path, self.to_csv())
 
     def to_dict(self) -> dict:
-        mag = np.linalg.norm(self.correction, axis=-1)
-        s3 = np.sqrt(np.sum(self.std**2, axis=-1))
         return {
             "machine": self.machine_name,
             "axes": {n: a for n, a in zip(self.axis_names, self.axes)},
             "n_nodes": int(np.prod(self.shape)),
             "std_source": self.source,
-            "max_correction_mm": float(mag.max()),
-            "rms_correction_mm": float(np.sqrt(np.mean(mag**2))),
-            "max_std_mm": float(s3.max()),
-            "rms_std_mm": float(np.sqrt(np.mean(s3**2))),
+            **grid_summary(self.correction, self.std),
         }
 
     def report(self) -> str:
@@ -104,6 +99,24 @@ class CompensationGrid:
             f"  correction      max {d['max_correction_mm']:.5f} mm, RMS {d['rms_correction_mm']:.5f} mm",
             f"  its std (3-D)   max {d['max_std_mm']:.5f} mm, RMS {d['rms_std_mm']:.5f} mm ({self.source})",
         ])
+
+
+def grid_summary(correction: NDArray, std: NDArray) -> dict[str, float]:
+    """Largest and RMS 3-D correction and 3-D std over the nodes (mm), the figures every grid reports.
+
+    Parameters
+    ----------
+    correction, std : ndarray, shape (..., 3)
+        Per node: the tool-point correction (or error) and its one-sigma std per axis, mm.
+    """
+    mag = np.linalg.norm(correction, axis=-1)
+    s3 = np.sqrt(np.sum(np.asarray(std) ** 2, axis=-1))
+    return {
+        "max_correction_mm": float(mag.max()),
+        "rms_correction_mm": float(np.sqrt(np.mean(mag**2))),
+        "max_std_mm": float(s3.max()),
+        "rms_std_mm": float(np.sqrt(np.mean(s3**2))),
+    }
 
 
 def actuator_nodes(axes) -> NDArray:

@@ -39,6 +39,7 @@ from ..geometry import so3_log
 from ..io import write_text_atomic
 from ..machines.base import Machine
 from .accuracy import tool_point_jacobian, tool_point_std
+from .grid import grid_summary
 
 __all__ = ["ToolGrid", "tool_grid", "tool_box", "solve_tool_points", "NC_COLUMNS", "NC_COLUMNS_PLANAR"]
 
@@ -136,8 +137,7 @@ class ToolGrid:
         return write_text_atomic(path, self.to_csv())
 
     def to_dict(self) -> dict:
-        mag = np.linalg.norm(self.error, axis=-1)
-        s3 = np.sqrt(np.sum(self.std**2, axis=-1))
+        summary = grid_summary(self.error, self.std)  # the correction's size is the error's
         return {
             "machine": self.machine_name,
             "space": "tool",
@@ -145,12 +145,9 @@ class ToolGrid:
             "controlled_axes": [self.axis_names[a] for a in self.controlled],
             "n_nodes": int(np.prod(self.shape)),
             "std_source": self.source,
-            "max_error_mm": float(mag.max()),
-            "rms_error_mm": float(np.sqrt(np.mean(mag**2))),
-            "max_correction_mm": float(mag.max()),
-            "rms_correction_mm": float(np.sqrt(np.mean(mag**2))),
-            "max_std_mm": float(s3.max()),
-            "rms_std_mm": float(np.sqrt(np.mean(s3**2))),
+            "max_error_mm": summary["max_correction_mm"],
+            "rms_error_mm": summary["rms_correction_mm"],
+            **summary,
         }
 
     def report(self) -> str:

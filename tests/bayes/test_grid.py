@@ -57,3 +57,13 @@ def test_grid_cli(tmp_path, prs3, sim6):
     assert rc == 0 and out.exists() and (tmp_path / "g.png").stat().st_size > 1000
     assert len(out.read_text().splitlines()) == 28
     assert main(["grid", str(rec), "--machine", str(PRS3_FILE), "--nodes", "1", "--quiet"]) == 2
+
+
+def test_grid_summary_against_hand_computed_values():
+    from bayescal.bayes.grid import grid_summary
+
+    corr = np.array([[[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]]])  # norms 5 and 0
+    std = np.array([[[1.0, 2.0, 2.0], [0.0, 0.0, 0.0]]])  # 3-D std 3 and 0
+    s = grid_summary(corr, std)
+    assert s == {"max_correction_mm": 5.0, "rms_correction_mm": np.sqrt(12.5), "max_std_mm": 3.0,
+                 "rms_std_mm": np.sqrt(4.5)}

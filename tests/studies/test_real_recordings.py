@@ -122,8 +122,6 @@ def test_tiago_registration_and_full_fit(quick):
 def test_tiago_outlier_screen_names_the_bad_row(quick):
     _, res = quick
     scr = res["tiago"]["outlier_screen"]
-    if not scr["available"]:
-        pytest.skip("this bayescal has no outlier screen")
     reg = scr["registration"]
     # data row 30 (CSV line 31), the row the source's audit names, is among the flagged lines, and with many
     # rows flagged the screen calls it a model mismatch rather than a few gross errors (the timing defect)
