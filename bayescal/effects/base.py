@@ -158,6 +158,29 @@ class Effect(ABC):
     def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
         """``d dq / d eta``, shape (n_poses, n_actuators, n_params)."""
 
+    #: Whether ``dq`` also depends on the geometric errors ``theta`` being fitted (then the effect overrides
+    #: :meth:`delta_q_at`, :meth:`delta_q_jacobian_at` and :meth:`delta_q_theta_jacobian`, and
+    #: :meth:`delta_q` is ``dq`` at the geometry its features were computed at).
+    geometry_dependent: ClassVar[bool] = False
+
+    def delta_q_at(self, features: Features, eta: NDArray, theta: NDArray) -> NDArray:
+        """``dq`` at geometric errors ``theta`` ((P,) or (n_poses, P)); :meth:`delta_q` unless :attr:`geometry_dependent`.
+
+        A geometry-dependent effect (the restrained preload of a redundant
+        module, driven by the incompatibility the geometry leaves) changes
+        with the geometry a fit is moving; consumers that fit the geometry
+        (:func:`bayescal.effects.fit_map`) call this form.
+        """
+        return self.delta_q(features, eta)
+
+    def delta_q_jacobian_at(self, features: Features, eta: NDArray, theta: NDArray) -> NDArray:
+        """``d dq / d eta`` at geometric errors ``theta``, shape (n_poses, n_actuators, n_params)."""
+        return self.delta_q_jacobian(features, eta)
+
+    def delta_q_theta_jacobian(self, features: Features, eta: NDArray, theta: NDArray) -> NDArray | None:
+        """``d dq / d theta``, shape (n_poses, n_actuators, P), or None when ``dq`` does not depend on ``theta``."""
+        return None
+
     @abstractmethod
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng: np.random.Generator) -> NDArray:
         """Parameter values of a simulated machine whose effect has size ``magnitude``."""

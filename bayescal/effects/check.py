@@ -26,7 +26,8 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
     Checks: a stable snake_case name, a docstring stating the physics, named
     parameters with units and positive prior widths, ``delta_q`` of the right
     shape and zero at zero parameters (where the prior mean is zero),
-    ``delta_q_jacobian`` against central finite differences, the
+    ``delta_q_jacobian`` against central finite differences (and, for a
+    geometry-dependent effect, ``delta_q_at`` and its two Jacobians), the
     :class:`~bayescal.simulate.PoseTransform` behaviour of the bound effect
     (``theta`` unchanged, ``q`` moved by ``delta_q``), and feature subsetting.
 
@@ -94,6 +95,8 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
     scale = max(np.max(np.abs(Jfd)), 1e-300)
     if np.max(np.abs(J - Jfd)) > rtol * scale:
         fail(f"delta_q_jacobian differs from finite differences by {np.max(np.abs(J - Jfd)) / scale:.1e} (relative)")
+    if effect.geometry_dependent:
+        _check_geometry_dependence(effect, machine, feats, eta, theta, rng, rtol, fail)
     idx = np.arange(0, n_poses, 2)
     sub = feats.subset(idx)
     if not np.allclose(effect.delta_q(sub, eta), effect.delta_q(feats, eta)[idx]):
@@ -104,3 +107,34 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
         fail("the bound effect's transform does not move q by delta_q")
     if not np.array_equal(th2, np.broadcast_to(theta, th2.shape)):
         fail("the bound effect's transform changed theta")
+
+
+def _check_geometry_dependence(effect: Effect, machine: Machine, feats: Features, eta, theta, rng, rtol: float, fail) -> None:
+    """An effect whose ``dq`` depends on the geometry: ``delta_q_at`` at the features' geometry is ``delta_q``,
+    and ``delta_q_jacobian_at`` and ``delta_q_theta_jacobian`` agree with central finite differences."""
+    if not np.allclose(effect.delta_q_at(feats, eta, theta), effect.delta_q(feats, eta), rtol=0, atol=1e-12):
+        fail("delta_q_at at the features' geometry differs from delta_q")
+    P = machine.n_params
+    th = theta + machine.tolerance * rng.uniform(-1.0, 1.0, P)
+    Jt = effect.delta_q_theta_jacobian(feats, eta, th)
+    n, m = effect.delta_q(feats, eta).shape
+    if Jt is None or Jt.shape != (n, m, P):
+        fail(f"delta_q_theta_jacobian: expected shape {(n, m, P)} for a geometry-dependent effect, got {None if Jt is None else Jt.shape}")
+    Jfd = np.empty_like(Jt)
+    for j in range(P):
+        e = np.zeros(P)
+        e[j] = 1e-3 * machine.tolerance[j]
+        Jfd[..., j] = (effect.delta_q_at(feats, eta, th + e) - effect.delta_q_at(feats, eta, th - e)) / (2 * e[j])
+    scale = max(np.max(np.abs(Jfd)), 1e-300)
+    if np.max(np.abs(Jt - Jfd)) > rtol * scale:
+        fail(f"delta_q_theta_jacobian differs from finite differences by {np.max(np.abs(Jt - Jfd)) / scale:.1e} (relative)")
+    J = effect.delta_q_jacobian_at(feats, eta, th)
+    sd = np.array([p.prior_sd for p in effect.params(machine, feats)])
+    Jfd = np.empty_like(J)
+    for k in range(len(sd)):
+        e = np.zeros(len(sd))
+        e[k] = 1e-4 * sd[k]
+        Jfd[..., k] = (effect.delta_q_at(feats, eta + e, th) - effect.delta_q_at(feats, eta - e, th)) / (2 * e[k])
+    scale = max(np.max(np.abs(Jfd)), 1e-300)
+    if np.max(np.abs(J - Jfd)) > rtol * scale:
+        fail(f"delta_q_jacobian_at differs from finite differences by {np.max(np.abs(J - Jfd)) / scale:.1e} (relative)")

@@ -99,11 +99,26 @@ class EffectFit:
         return np.sqrt(np.clip(np.diag(self.cov_eta), 0, None) * noise_scale2)
 
 
-def _dq(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, shape) -> NDArray:
+def _dq(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, shape, theta: NDArray | None = None) -> NDArray:
+    """``sum_e dq_e``; at the geometry ``theta`` for effects whose ``dq`` depends on it (Effect.geometry_dependent)."""
     dq = np.zeros(shape)
     for (eff, f), sl in zip(effects, slices):
-        dq += eff.delta_q(f, eta[sl])
+        dq += eff.delta_q(f, eta[sl]) if theta is None else eff.delta_q_at(f, eta[sl], theta)
     return dq
+
+
+def _effect_columns(effects: Sequence[tuple[Effect, Features]], slices, Jq: NDArray, eta: NDArray, theta: NDArray):
+    """Jacobian columns of the effects, ``(d h / d q) (d dq / d eta)`` (n, dof, K), and what ``dq``'s
+    dependence on the geometry adds to the geometric columns, ``(d h / d q) (d dq / d theta)`` (n, dof, P) or None."""
+    cols, extra = [], None
+    for (eff, f), sl in zip(effects, slices):
+        cols.append(np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian_at(f, eta[sl], theta)))
+        Jt = eff.delta_q_theta_jacobian(f, eta[sl], theta)
+        if Jt is not None:
+            add = np.einsum("ndm,nmp->ndp", Jq, Jt)
+            extra = add if extra is None else extra + add
+    n, dof = Jq.shape[:2]
+    return (np.concatenate(cols, axis=2) if cols else np.zeros((n, dof, 0))), extra
 
 
 def _merge(pred: Prediction, other: Prediction) -> Prediction:
@@ -146,7 +161,7 @@ def effect_residual(
 ) -> NDArray:
     """``y - h(q + dq(eta), theta)``, shape (n_poses, dof): prediction on (held-out) poses."""
     slices = _slices(effects, model)
-    q_eff = model.q + _dq(effects, slices, np.asarray(eta, float), model.q.shape)
+    q_eff = model.q + _dq(effects, slices, np.asarray(eta, float), model.q.shape, np.asarray(theta, float))
     _, pred = _predict(model, q_eff, theta, None)
     return model.residual(pred)
 
@@ -209,7 +224,7 @@ def fit_map(
     sig = model.row_sigma
 
     def evaluate(theta, eta, guess):
-        q_eff = model.q + _dq(effects, slices, eta, model.q.shape)
+        q_eff = model.q + _dq(effects, slices, eta, model.q.shape, theta)
         sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if K else "")
         r = model.residual(pred)
         rw = (r / sig).reshape(-1)
@@ -221,8 +236,8 @@ def fit_map(
         cols = [Jg]
         if K:
             Jq = sub.rows_jacobian(machine.actuator_jacobian(sub.q, theta, pred.poses), pred)
-            for (eff, f), sl in zip(effects, slices):
-                cols.append(np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian(f, eta[sl])))
+            Je, Jt = _effect_columns(effects, slices, Jq, eta, theta)
+            cols = [Jg if Jt is None else Jg + Jt, Je]
         J = np.concatenate(cols, axis=2) / sig[:, :, None]
         return J.reshape(-1, P + K) * scale
 

@@ -1,4 +1,4 @@
-"""Restrained deformation of a redundantly actuated module: actuators fight through the closed loops."""
+"""Restrained deformation of a redundantly actuated module: position-controlled drives fight through the closed loops."""
 
 from __future__ import annotations
 
@@ -6,15 +6,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..machines.base import Machine, ToolPoses
-from .base import NONPHYSICAL_Z, Effect, EffectParam, Features
+from .base import Effect, EffectParam, Features
 
-__all__ = ["RedundancyPreload", "machine_dof", "orient_directions", "PRELOAD_PRIOR_UM"]
+__all__ = ["RedundancyPreload", "machine_dof", "orient_directions", "RATIO_PRIOR", "RATIO_PRIOR_MEAN", "OFFSET_PRIOR_MM", "redundant_columns"]
 
-#: Prior one-sigma of a preload deflection, um.  Wide on purpose: the geometric parameters absorb about
-#: 99 % of a preload's signature on the RASPM (docs/diagnose.md), so only deflections of a few hundred um
-#: (kN preloads on apparent compliances of 0.1 um/N) are visible at all, and a narrow prior would rule
-#: exactly those out.
-PRELOAD_PRIOR_UM = 200.0
+#: Prior centre and one-sigma of a compliance ratio ``c_s / c_r`` (dimensionless).  Drives of one module are
+#: of one size, so ratios of 0.3-3 are usual; zero (an infinitely compliant redundant drive) is "no preload".
+#: The centre is also where the fit starts: the model is bilinear in the ratios and the incompatibility, and
+#: from zero ratios Gauss-Newton can run into a minimum with negative compliances.
+RATIO_PRIOR_MEAN = 1.0
+RATIO_PRIOR = 2.0
+#: Prior one-sigma of the redundant drive's offset from its compatible position, mm.  Wide on purpose: a
+#: redundant drive may be commanded a deliberate preload offset of tenths of a millimetre.
+OFFSET_PRIOR_MM = 1.0
 
 
 def machine_dof(machine: Machine) -> int:
@@ -29,12 +33,11 @@ def machine_dof(machine: Machine) -> int:
 def orient_directions(nu: NDArray) -> NDArray:
     """Unit directions (n, m) given up to sign, flipped to one continuous orientation over the poses.
 
-    A preload ``P`` pushes along the same internal-force direction at every
-    pose, so the sign of ``nu`` must not jump between poses.  Fixing one
-    component's sign (``nu_1 >= 0``) would flip the direction wherever that
-    component passes through zero in the workspace; instead every ``nu`` is
-    aligned with the principal direction of all of them (``nu . r >= 0``),
-    and ``r`` is signed so that its largest component is positive.
+    Every ``nu`` is aligned with the principal direction of all of them
+    (``nu . r >= 0``), and ``r`` is signed so that its largest component is
+    positive.  (The restrained model below uses only products ``nu_k nu_r``,
+    which do not depend on the sign; the orientation keeps reported
+    directions readable.)
     """
     nu = np.asarray(nu, float)
     if nu.size == 0:
@@ -44,95 +47,212 @@ def orient_directions(nu: NDArray) -> NDArray:
     return np.where((nu @ r)[:, None] >= 0, nu, -nu)
 
 
+def _inner(machine: Machine) -> tuple[Machine, int]:
+    """The kinematic machine (inside an instrument frame) and the number of frame parameters before its own."""
+    from ..machines.framed import InstrumentFrame
+
+    if isinstance(machine, InstrumentFrame):
+        return machine.machine, machine.n_frame
+    return machine, 0
+
+
+def _probe_planar(inner) -> NDArray:
+    """A fixed set of planar poses (centre and corners of ``pose_range``) to find a parameter's reach structurally."""
+    if getattr(inner, "pose_range", None) is None:
+        return np.zeros((1, 3))
+    lo, hi = inner.pose_range[:, 0], inner.pose_range[:, 1]
+    grid = np.array(np.meshgrid(*[[0.1, 0.5, 0.9]] * 3, indexing="ij")).reshape(3, -1).T
+    return lo + (hi - lo) * grid
+
+
+def redundant_columns(inner) -> NDArray:
+    """Geometric parameters that reach only the redundant drive's inverse kinematics (indices into ``inner``'s layout).
+
+    The non-redundant model never reads them; through the preload they are
+    the redundant drive's own geometric errors.  Found structurally (exact
+    zeros of ``dIK_s / dtheta`` for every non-redundant drive ``s`` at fixed
+    poses spread over ``pose_range``), so the set does not depend on a recording.
+    """
+    x = _probe_planar(inner)
+    G = inner.ik_parameter_jacobian(x, None)
+    s, r = list(inner.nonredundant), inner.redundant[0]
+    reach_s = np.abs(G[:, s]).max(axis=(0, 1))
+    reach_r = np.abs(G[:, r]).max(axis=0)
+    return np.flatnonzero((reach_s == 0) & (reach_r > 0))
+
+
 class RedundancyPreload(Effect):
-    """Internal preload of a redundantly actuated machine (more actuators than DOF).
+    """Internal preload of a redundantly actuated module whose drives are all position controlled.
 
-    Physics: with ``m`` actuators for ``n < m`` degrees of freedom, the
-    actuators can push against each other without moving the platform: the
-    internal force lies in the ``m - n`` dimensional space of actuator
-    motions that do not move the tool: ``null(J_a^T)``, ``J_a = dq/dx`` the
-    inverse-kinematics Jacobian when the machine has one (``ik_jacobian``,
-    the RASPM), else the null space of the actuator Jacobian ``d x / d q``).  A preload ``P`` along the unit
-    direction ``nu(q)`` of that space deflects compliant drives by
-    ``c_i P nu_i`` (sign as in ``joint_compliance``: ``dq_i = c_i f_i``, ``f_i`` the force
-    pushing drive ``i`` towards larger ``q_i``); unequal compliances leave a deflection outside the null
-    space, which moves the tool:
+    Physics: with ``m`` drives for ``n = m - 1`` degrees of freedom, the
+    commanded positions are compatible only for the exact geometry.  The
+    redundant drive ``r`` (the one the non-redundant model does not read) is
+    commanded ``g_r = IK_r(x0) - q_r`` away from where the others put the
+    platform (``x0``, the non-redundant pose); the drives, compliances
+    ``c_k``, settle at the least elastic energy ``sum_k (IK_k(x) - q_k)^2 /
+    (2 c_k)`` with a self-equilibrated force ``tau = nu P`` (``nu``: unit
+    basis of ``null(J_a^T)``, ``J_a = dq/dx``).  To first order in the
+    deflections (``J_a dx = delta - g_r e_r`` and ``nu . J_a dx = 0``):
 
-        dq_i = d_i nu_i(q)            (one redundant direction, oriented by :func:`orient_directions`)
+        P = nu_r g_r / sum_k c_k nu_k^2,        dq_k = c_k nu_k P = w_k nu_k nu_r g_r / sum_j w_j nu_j^2
 
-    Parameters ``preload_deflection.q<i>`` (um, ``c_i P``; they share the
-    sign of ``P``, so a fit with significantly opposite signs is rejected as
-    non-physical).  Usual size: preloads of 100-1000 N on drives of 50-500
-    N/um give 1-20 um; with links and frame, apparent compliances of 0.1-1
-    um/N and kN preloads give hundreds of um.  On the RASPM about 99 % of
-    the signature is absorbed by the geometric parameters (the constant and
-    pose-linear parts of ``d_i nu_i(x)``; docs/diagnose.md), so only
-    deflections of some hundred um are visible.  Not
-    applicable to machines with as many actuators as degrees of freedom
-    (the 3-PRS): there is no internal force to carry.
+    with ``w_k = c_k / c_r`` the compliance ratios (only ratios matter with
+    no external load), and the incompatibility, linear in the geometry,
+
+        g_r(x; theta) = g_r(x0; theta_f) + G_r(x) dtheta_r - offset_r + L_s(x) (theta_s - theta_f,s)
+
+    ``G_r = dIK_r / dtheta_r`` for the redundant drive's own geometric
+    errors ``dtheta_r`` (parameters of the effect: the non-redundant model
+    never reads them), ``offset_r`` the redundant drive's offset along its
+    rail (a commanded preload offset and its zero error are one number),
+    and ``L_s = G_r - J_r J_s^-1 G_s`` how the geometry being fitted moves
+    ``x0`` and so ``g_r`` (:attr:`geometry_dependent`).  The non-redundant
+    model reads the deflected drives ``q_s + dq_s``.  The model is bilinear
+    in the ratios and ``dtheta_r``; it vanishes with ``w = 0`` (an infinitely
+    compliant redundant drive carries no force).
+
+    Parameters: ``compliance_ratio.q<s>`` (``c_s / c_r``, dimensionless,
+    >= 0, prior ``1 +- 2``), ``offset.q<r>`` (mm, prior ``0 +- 1``) and
+    ``redundant.<parameter>`` (the redundant chain's geometric errors, mm or
+    rad, priors their tolerances).  Usual size: 0.05 mm of tolerance errors
+    leave incompatibilities of 0.1-0.5 mm, which drives of 150-500 N/um turn
+    into internal forces of tens of kN and deflections of tens to hundreds
+    of um.  Needs one redundant drive and the closed-form inverse
+    kinematics of every drive (``ik_jacobian``, ``ik_parameter_jacobian``:
+    the RASPM); not applicable to machines with as many actuators as
+    degrees of freedom (the 3-PRS).
     """
 
     name = "redundancy_preload"
-    summary = "actuators preloaded against each other through the closed loops (redundant machines only)"
-    magnitude_unit = "um"
-    default_magnitude = 20.0
+    summary = "position-controlled redundant drives preloaded against each other through the closed loops (redundant machines only)"
+    magnitude_unit = "um"  # the redundant drive's commanded offset
+    default_magnitude = 100.0
     needs_poses = True
+    geometry_dependent = True
 
     def not_applicable(self, machine: Machine, aux: dict) -> str | None:
-        if machine.n_actuators <= machine_dof(machine):
+        inner, _ = _inner(machine)
+        m, n = machine.n_actuators, machine_dof(inner)
+        if m <= n:
             return (
-                f"not applicable: the {machine.kind} has {machine.n_actuators} actuators for "
-                f"{machine_dof(machine)} degrees of freedom (no redundant actuation, no internal preload)"
+                f"not applicable: the {machine.kind} has {m} actuators for "
+                f"{n} degrees of freedom (no redundant actuation, no internal preload)"
+            )
+        if m - n != 1 or not all(hasattr(inner, a) for a in ("ik_jacobian", "ik_parameter_jacobian", "inverse_planar", "redundant")):
+            return (
+                f"not applicable: the restrained-preload model needs exactly one redundant drive and the closed-form inverse "
+                f"kinematics of every drive (the {machine.kind} has {m} actuators for {n} degrees of freedom)"
             )
         return None
 
     def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:
+        inner, k = _inner(machine)
+        n = q.shape[0]
+        th = np.broadcast_to(np.asarray(theta if theta is not None else np.zeros(machine.n_params), float), (n, machine.n_params))
+        th_in = th[:, k:]
         if poses is None:
-            poses = machine.forward(q, theta)
-        x = getattr(poses.state, "x", None)
-        if hasattr(machine, "ik_jacobian") and x is not None:
-            # the internal forces are null(J_a^T), J_a = dq/dx of the full (redundant) inverse kinematics.
-            # The forward kinematics of a redundant machine reads only a non-redundant subset of q, so
-            # the null space of its dh/dq is just the ignored actuator, which would never move the tool.
-            from ..redundant.physics import internal_force_basis
+            poses = machine.forward(q, th)
+        x = poses.state.x
+        s, r = list(inner.nonredundant), inner.redundant[0]
+        q_ik, Ja = inner.ik_jacobian(x, th_in)
+        G = inner.ik_parameter_jacobian(x, th_in)
+        from ..redundant.physics import internal_force_basis
 
-            _, Ja = machine.ik_jacobian(x, theta)
-            return Features({"nu": orient_directions(internal_force_basis(Ja)[:, :, 0])}, {})
-        J = machine.actuator_jacobian(q, theta, poses)  # (n, 6, m)
-        n, _, m = J.shape
-        k = m - machine_dof(machine)
-        nu = np.zeros((n, m))
-        for j in range(n):
-            # the direction of actuator motion that moves the tool least: the internal-force direction
-            nu[j] = np.linalg.svd(J[j])[2][-max(k, 1):][0]
-        return Features({"nu": orient_directions(nu)}, {})
+        nu = orient_directions(internal_force_basis(Ja)[:, :, 0])
+        cols = redundant_columns(inner)
+        # L = dg_r/dtheta at fixed q: G_r - J_r J_s^-1 G_s (the geometry moves x0, which moves IK_r)
+        c = np.linalg.solve(np.swapaxes(Ja[:, s], 1, 2), Ja[:, r][..., None])[..., 0]  # J_s^-T J_r
+        L = G[:, r] - np.einsum("ni,nip->np", c, G[:, s])
+        L[:, cols] = 0.0  # the redundant drive's own parameters are the effect's (dtheta_r)
+        return Features(
+            {"nu": nu, "g": q_ik[:, r] - q[:, r], "G_r": G[:, r][:, cols], "L": L, "theta_f": th.copy()},
+            {"n_frame": k, "nonredundant": tuple(s), "redundant": r, "columns": tuple(int(j) for j in cols)},
+        )
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
-        return tuple(EffectParam(f"preload_deflection.q{i + 1}", "um", PRELOAD_PRIOR_UM) for i in range(machine.n_actuators))
+        inner, _ = _inner(machine)
+        s, r = features.const["nonredundant"], features.const["redundant"]
+        out = [EffectParam(f"compliance_ratio.q{i + 1}", "1", RATIO_PRIOR, RATIO_PRIOR_MEAN, lower=0.0) for i in s]
+        offset = int(inner.offset_index()[r]) if hasattr(inner, "offset_index") else -1
+        for j in features.const["columns"]:
+            spec = inner.layout.specs[j]
+            if j == offset:
+                out.append(EffectParam(f"offset.q{r + 1}", "mm", OFFSET_PRIOR_MM))
+            else:
+                out.append(EffectParam("redundant." + spec.name.replace(".", "_"), spec.unit, float(inner.tolerance[j])))
+        return tuple(out)
+
+    # ------------------------------------------------------------------ the model
+    def _parts(self, features: Features, eta: NDArray, theta: NDArray | None):
+        """Ratios ``w`` (m,), ``nu``, ``D = sum w nu^2`` (n,), ``rho = w nu nu_r / D`` (n, m) and ``g_r`` (n,)."""
+        f = features.per_pose
+        s, r = list(features.const["nonredundant"]), features.const["redundant"]
+        eta = np.asarray(eta, float)
+        nu = f["nu"]
+        w = np.ones(nu.shape[1])
+        w[s] = eta[: len(s)]
+        D = np.maximum(np.einsum("m,nm->n", w, nu**2), 1e-300)
+        rho = w[None] * nu * nu[:, r : r + 1] / D[:, None]
+        # the redundant drive's own deflection (nu_r^2 g_r / D) is left out: the non-redundant model never
+        # reads q_r, and so w = 0 (no force) means no change at all
+        rho[:, r] = 0.0
+        g = f["g"] + f["G_r"] @ eta[len(s):]
+        if theta is not None:
+            k = features.const["n_frame"]
+            dth = np.broadcast_to(np.asarray(theta, float), f["theta_f"].shape)[:, k:] - f["theta_f"][:, k:]
+            g = g + np.einsum("np,np->n", f["L"], dth)
+        return w, nu, D, rho, g
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
-        return 1e-3 * features.per_pose["nu"] * np.asarray(eta)[None, :]
+        """Deflections at the geometry the features were computed at (mm)."""
+        _, _, _, rho, g = self._parts(features, eta, None)
+        return rho * g[:, None]
+
+    def delta_q_at(self, features: Features, eta: NDArray, theta: NDArray) -> NDArray:
+        _, _, _, rho, g = self._parts(features, eta, theta)
+        return rho * g[:, None]
 
     def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
-        nu = features.per_pose["nu"]
+        return self._jacobian(features, eta, None)
+
+    def delta_q_jacobian_at(self, features: Features, eta: NDArray, theta: NDArray) -> NDArray:
+        return self._jacobian(features, eta, theta)
+
+    def _jacobian(self, features: Features, eta: NDArray, theta) -> NDArray:
+        s, r = list(features.const["nonredundant"]), features.const["redundant"]
+        w, nu, D, rho, g = self._parts(features, eta, theta)
         n, m = nu.shape
-        J = np.zeros((n, m, m))
-        J[:, np.arange(m), np.arange(m)] = 1e-3 * nu
+        J = np.zeros((n, m, len(eta)))
+        # d/dw_j of w_k nu_k nu_r g / D = nu_k nu_r g (delta_kj D - w_k nu_j^2) / D^2
+        for a, j in enumerate(s):
+            col = -(w[None] * nu) * nu[:, j : j + 1] ** 2
+            col[:, j] += nu[:, j] * D
+            col[:, r] = 0.0
+            J[:, :, a] = col * (nu[:, r] * g / D**2)[:, None]
+        J[:, :, len(s):] = rho[:, :, None] * features.per_pose["G_r"][:, None, :]
         return J
 
-    def nonphysical(self, params, eta: NDArray, std: NDArray) -> str | None:
-        """Deflections of significantly opposite signs: ``d_i = c_i P`` with every compliance ``c_i > 0``."""
-        eta, std = np.asarray(eta, float), np.asarray(std, float)
-        z = eta / np.maximum(std, 1e-300)
-        pos, neg = np.flatnonzero(z > NONPHYSICAL_Z), np.flatnonzero(z < -NONPHYSICAL_Z)
-        if pos.size and neg.size:
-            i, j = pos[0], neg[0]
-            return (
-                f"non-physical fit: {params[i].name} = {eta[i]:.3g} and {params[j].name} = {eta[j]:.3g} um have opposite "
-                "signs (each is a positive compliance times the one preload force)"
-            )
-        return None
+    def delta_q_theta_jacobian(self, features: Features, eta: NDArray, theta: NDArray) -> NDArray:
+        _, _, _, rho, _ = self._parts(features, eta, theta)
+        L = features.per_pose["L"]
+        k = features.const["n_frame"]
+        out = np.zeros(rho.shape + (k + L.shape[1],))
+        out[:, :, k:] = rho[:, :, None] * L[:, None, :]
+        return out
 
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
-        """Deflections ``c_i P``: compliances within +-40 % of each other, one preload of either sign."""
-        return rng.choice([-1.0, 1.0]) * magnitude * rng.uniform(0.6, 1.4, machine.n_actuators)
+        """Drive stiffnesses 150-500 N/um (ratios ``k_r / k_s``), the redundant drive ``magnitude`` um off (either sign).
+
+        The redundant chain's own geometric errors are left at zero here: a
+        simulated machine carries them in its drawn geometry, which the
+        features read.
+        """
+        params = self.params(machine, features)
+        s, r = features.const["nonredundant"], features.const["redundant"]
+        k = rng.uniform(150.0, 500.0, machine.n_actuators)
+        out = np.zeros(len(params))
+        out[: len(s)] = k[r] / k[list(s)]
+        names = [p.name for p in params]
+        if f"offset.q{r + 1}" in names:
+            out[names.index(f"offset.q{r + 1}")] = rng.choice([-1.0, 1.0]) * magnitude * 1e-3
+        return out
