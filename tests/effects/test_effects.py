@@ -156,16 +156,22 @@ def test_nonphysical_flags_only_parameters_significantly_below_their_bound(prs3)
     assert "link.q2" in t.nonphysical(tp, eta, np.full(len(tp), 2.0))
 
 
-def test_preload_deflections_must_share_one_sign():
+def test_preload_compliance_ratios_must_not_be_negative():
+    # a compliance ratio c_s / c_r is a ratio of two positive compliances; the offset and geometry take either sign
     from bayescal.effects import get_effect as ge
+    from bayescal.machines import load_machine
+    from tests.conftest import ROOT
 
+    m = load_machine(ROOT / "examples" / "raspm" / "machine.toml")
     p = ge("redundancy_preload")
-    params = tuple(p.params(type("M", (), {"n_actuators": 4})(), None))
-    std = np.full(4, 5.0)
-    assert p.nonphysical(params, np.array([100.0, 0.0, 80.0, 60.0]), std) is None
-    assert p.nonphysical(params, np.array([-100.0, 3.0, -80.0, -60.0]), std) is None
-    why = p.nonphysical(params, np.array([100.0, 0.0, -80.0, 60.0]), std)
-    assert why and "opposite" in why
+    params = p.params(m, p.features(m, m.sample_q(3, np.random.default_rng(0)), np.zeros(m.n_params), {}, None, None))
+    eta, std = np.zeros(len(params)), np.full(len(params), 0.05)
+    eta[:3] = [1.2, 0.8, 2.0]
+    eta[3:] = -0.3
+    assert p.nonphysical(params, eta, std) is None
+    eta[1] = -0.5
+    why = p.nonphysical(params, eta, std)
+    assert why and "compliance_ratio.q3" in why and "q1" not in why
 
 
 def test_joint_compliance_inadmissible_when_no_drive_carries_the_weight():
