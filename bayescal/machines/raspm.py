@@ -450,6 +450,27 @@ class Raspm(Machine):
         dx = self.planar_jacobian(q, theta, x)
         return self.tool_jacobian_from_planar(x, theta, dx)
 
+    def actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
+        """``d(tool pose)/dq`` of the non-redundant model, shape (n, 6, m), analytic.
+
+        ``IK_s(x) = q_s`` for the non-redundant drives gives ``dx/dq_s = J_s^-1``;
+        the redundant drives are not read (zero columns).  Replaces the
+        finite differences of the base class (8 forward solves per call).
+        """
+        q = self.check_q(q)
+        x = poses.state.x
+        n = x.shape[0]
+        _, Ja = self.ik_jacobian(x, theta)
+        s = list(self.nonredundant)
+        dx = np.zeros((n, 3, self.n_actuators))
+        dx[:, :, s] = np.linalg.inv(Ja[:, s])
+        g = self._geometry(self._theta_rows(theta, n))
+        dRt = np.einsum("nij,nj->ni", drot2(x[:, 2]), g.t)
+        J = np.zeros((n, 6, self.n_actuators))
+        J2 = dx[:, :2] + dRt[:, :, None] * dx[:, 2:3]
+        J[:, 0], J[:, 2], J[:, 4] = J2[:, 0], J2[:, 1], dx[:, 2]
+        return J
+
     def tool_jacobian_from_planar(self, x: NDArray, theta: ArrayLike | None, dx: NDArray) -> NDArray:
         """Tool-pose Jacobian (n, 6, P) from a planar-pose Jacobian ``dx`` (n, 3, P)."""
         n = x.shape[0]

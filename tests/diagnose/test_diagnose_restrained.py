@@ -49,7 +49,6 @@ def test_restrained_recording_named_and_its_calibrated_machine_predicts(seed, of
     assert final < geo, (final, geo)
 
 
-@pytest.mark.slow
 def test_clean_restrained_module_with_compatible_commands_and_a_soft_redundant_drive_is_none():
     # a redundant drive 1000 times softer than the others carries no force worth seeing: no preload named
     m = load_machine(RASPM)
