@@ -62,7 +62,8 @@ def restrained_recording(
         Nominal machine (one redundant drive).
     n_poses : int
     seed : int
-        Seeds the errors (drawn from the tolerances), poses, stiffnesses and noise.
+        Seeds the errors (drawn from the tolerances), the stiffnesses, then the poses and the noise
+        (the same seed with more poses is the same module, its first poses the same).
     offset_mm : float
         The redundant drive's commanded offset from the nominal compatible position, mm.
     stiffness_n_per_um : (float, float)
@@ -74,10 +75,11 @@ def restrained_recording(
     """
     rng = np.random.default_rng(seed)
     theta = draw_errors(machine, rng)
+    # the module first (geometry, stiffnesses), then the poses: one seed is one module whatever n_poses
+    k = rng.uniform(*stiffness_n_per_um, machine.n_actuators) * 1e3
     q = machine.inverse_planar(machine.sample_planar(n_poses, rng))
     r = machine.redundant[0]
     q[:, r] += offset_mm * ((np.arange(n_poses) % 2) if alternate_offset else 1.0)
-    k = rng.uniform(*stiffness_n_per_um, machine.n_actuators) * 1e3
     st = solve_restrained(machine, q, theta, k)
     pos, R = machine.tool_from_planar(st.x, theta)
     pos = pos + rng.normal(0.0, machine.noise.sigma_position, pos.shape)
