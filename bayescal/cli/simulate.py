@@ -24,9 +24,10 @@ reads with its noise ([measurement] sigma_position, sigma_angle).
 Physics beyond the geometric model can be concealed in the recording with
 --effect NAME[:magnitude] (several allowed; magnitudes in the effect's unit:
 joint_compliance um/N, thermal_expansion um/m/K, backlash um,
-screw_periodic_error um, redundancy_preload um of actuator deflection, only
-on redundantly actuated machines such as the RASPM-2T1R; about 99 % of a
-preload is absorbed by the geometry there, so use some hundred um to see it),
+screw_periodic_error um, redundancy_preload um of the redundant drive's
+offset, only on redundantly actuated machines such as the RASPM-2T1R: drive
+stiffnesses of 150-500 N/um turn that offset and the incompatibility the drawn
+geometric errors leave into internal forces and deflections),
 and auxiliary channels recorded with --aux
 (time_s; temp_C, a warm-up of 5 K; payload_kg, 0-25 kg changed between poses).
 Temperature drives thermal_expansion even when it is not recorded.
@@ -49,7 +50,7 @@ examples:
   bayescal simulate --machine m.toml --poses 160 --seed 3 --effect backlash:30 --out rec.csv
   bayescal simulate --machine m.toml --poses 160 --seed 3 --effect joint_compliance:0.5 --aux payload_kg --out rec.csv
   bayescal simulate --machine m.toml --poses 120 --seed 4 --effect thermal_expansion --aux time_s,temp_C --out rec.csv
-  bayescal simulate --machine examples/raspm/machine.toml --poses 120 --seed 2 --effect redundancy_preload:800 --out rec.csv
+  bayescal simulate --machine examples/raspm/machine.toml --poses 120 --seed 2 --effect redundancy_preload:200 --out rec.csv
 """
 
 

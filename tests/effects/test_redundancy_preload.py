@@ -156,3 +156,22 @@ def test_a_geometry_change_along_the_compliant_internal_force_is_invisible_to_re
     rms = lambda a, b: float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))  # noqa: E731
     assert rms(*tool) < 0.5 * m.noise.sigma_position * np.sqrt(3)
     assert rms(*fk) > 20e-3
+
+
+def test_in_a_fitted_instrument_frame_the_preload_is_the_base_machines(raspm):
+    """--frame fit: the effect reads the inner RASPM; the six frame parameters do not move the incompatibility."""
+    from bayescal.machines.framed import Frame, InstrumentFrame
+
+    framed = InstrumentFrame(raspm, Frame.from_rotation_vector([100.0, -50.0, 20.0], [0.01, -0.02, 0.3]), fit=True)
+    eff = get_effect("redundancy_preload")
+    assert eff.not_applicable(framed, {}) is None
+    q = raspm.sample_q(8, np.random.default_rng(3))
+    theta = draw_errors(raspm, np.random.default_rng(4))
+    f_in = eff.features(raspm, q, theta, {}, None, None)
+    f_fr = eff.features(framed, q, np.concatenate([np.full(6, 0.1), theta]), {}, None, None)
+    eta = np.r_[1.5, 0.7, 1.1, np.full(6, 0.02)]
+    np.testing.assert_allclose(eff.delta_q(f_fr, eta), eff.delta_q(f_in, eta), atol=1e-12)
+    assert [p.name for p in eff.params(framed, f_fr)] == [p.name for p in eff.params(raspm, f_in)]
+    Jt = eff.delta_q_theta_jacobian(f_fr, eta, np.concatenate([np.zeros(6), theta]))
+    assert Jt.shape == (8, 4, 6 + raspm.n_params) and np.all(Jt[:, :, :6] == 0.0)
+    check_effect(eff, framed)
