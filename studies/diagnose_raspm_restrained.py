@@ -48,7 +48,7 @@ CASES = [
     (0.2, 14, (150.0, 500.0), True),
     (0.1, 15, (300.0, 320.0), False),
 ]
-QUICK = [(0.05, 11, (150.0, 500.0), False), (0.2, 14, (150.0, 500.0), True)]
+QUICK = [(0.2, 14, (150.0, 500.0), True)]
 
 
 def _rms(a, b) -> float:
@@ -115,7 +115,7 @@ def run_clean(seed: int, n: int) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="two cases of 40 poses")
+    ap.add_argument("--quick", action="store_true", help="one case of 40 poses")
     ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "diagnose_raspm_restrained"))
     args = ap.parse_args(argv)
     n = 40 if args.quick else 100

@@ -58,8 +58,12 @@ def test_restrained_raspm_cross_check_quick(tmp_path):
     spec = importlib.util.spec_from_file_location("diagnose_raspm_restrained", ROOT / "studies" / "diagnose_raspm_restrained.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
+    # exit 1: the target "as close to the true geometry as a clean calibration" is missed by design of the
+    # physics (an unobservable direction, docs/diagnose.md "Preload on the RASPM"); the others must pass
+    assert mod.main(["--quick", "--out", str(tmp_path)]) in (0, 1)
     text = (tmp_path / "summary.md").read_text()
     row = text.splitlines()[2].split("|")
-    assert float(row[3]) > 1.0  # kN: the drawn geometric errors alone make the drives fight
-    assert row[4].strip() in {"none", "redundancy_preload", "unexplained"}
+    assert float(row[5]) > 1.0  # kN: the drawn geometric errors alone make the drives fight
+    assert row[6].strip() == "redundancy_preload"
+    misses = [line for line in text.splitlines() if line.startswith("- MISS")]
+    assert misses == ["- MISS: its geometry within twice the clean calibration's error of the true geometry"], misses
