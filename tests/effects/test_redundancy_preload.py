@@ -94,10 +94,10 @@ def test_zero_compliance_ratios_mean_no_preload(raspm):
     assert np.abs(eff.delta_q(f, eta)).max() > 1e-3
 
 
-@pytest.mark.parametrize("seed, offset", [(11, 0.05), (12, 0.5), (13, -0.2)])
-def test_parameters_recovered_within_their_uncertainty(raspm, seed, offset):
+@pytest.mark.parametrize("seed, offset, dof", [(11, 0.05, 3), (12, 0.5, 3), (13, -0.2, 3), (14, 0.1, 6)])
+def test_parameters_recovered_within_their_uncertainty(raspm, seed, offset, dof):
     """Joint MAP fit on restrained recordings: every effect parameter within 4 reported sigmas of the truth."""
-    sim = restrained_recording(raspm, 80, seed, offset_mm=offset)
+    sim = restrained_recording(raspm, 80, seed, offset_mm=offset, dof=dof)
     model = MeasurementModel.from_recording(raspm, sim.recording)
     fit0 = fit_map(model)
     eff = get_effect("redundancy_preload")
