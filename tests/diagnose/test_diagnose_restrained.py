@@ -9,9 +9,7 @@ from bayescal.effects.stored import predict_poses
 from bayescal.machines import load_machine
 from bayescal.redundant.physics import solve_restrained
 from bayescal.redundant.restrained_recording import restrained_recording
-from bayescal.effects import fit_map
 from bayescal.io.recording import Recording
-from bayescal.measurement import MeasurementModel
 from tests.conftest import ROOT
 
 RASPM = ROOT / "examples" / "raspm" / "machine.toml"
