@@ -41,6 +41,7 @@ from ..io.recording import Recording
 from ..machines.base import Machine
 from ..measurement import MeasurementModel
 from ..outliers import recording_lines
+from .confound import geometry_confound
 from .locate import locate
 from .outliers import retest_with_effects, screen_outliers
 from .result import Diagnosis, EffectTrial, ParameterValue
@@ -307,6 +308,10 @@ def diagnose(
                             effect_settings=effect_settings, _screen=final)
 
     sel_names = [c.effect.name for c in selected]
+    confound = None
+    if selected:
+        confound = geometry_confound(machine, model.q, cur_fit, fit0, [c.effect for c in selected],
+                                     noise_scale2=_scale2(cur_fit), keep=kept)
     trials = []
     for c in cands:
         name = c.effect.name
@@ -340,4 +345,5 @@ def diagnose(
         theta_geometric=fit0.theta,
         effect_settings={k: dict(v) for k, v in settings.items()},
         outliers=screen,
+        confound=confound,
     )

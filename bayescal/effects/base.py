@@ -132,6 +132,14 @@ class Effect(ABC):
     #: machine file they sit beside the fitted parameters in the effect's ``[effect.<name>]`` table.
     settings_keys: ClassVar[tuple[str, ...]] = ()
 
+    def confound_note(self) -> str:
+        """What part of the effect the geometry cannot be told from, and how a user pins it, or ``""``.
+
+        Reported with the diagnosis when the written geometry is confounded
+        with the effect (:mod:`bayescal.diagnose.confound`).
+        """
+        return ""
+
     def not_applicable(self, machine: Machine, aux: dict) -> str | None:
         """Why the effect cannot be modelled for this machine and recording, or None."""
         return None

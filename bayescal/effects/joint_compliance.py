@@ -182,7 +182,6 @@ class JointCompliance(Effect):
     default_magnitude = 0.5
     needs_poses = True
     settings_keys = ("gravity", "payload_offset", "platform_mass_kg", "platform_com_mm")
-
     #: Prior one-sigma of a weight deflection (um), of a centre-of-mass coordinate (mm), of a gravity tilt.
     WEIGHT_PRIOR_UM = 300.0
     COMPLIANCE_PRIOR = 1.0
@@ -228,6 +227,17 @@ class JointCompliance(Effect):
             raise InputError(f"joint_compliance platform_mass_kg: expected a positive mass in kg, got {platform_mass_kg!r}")
         self.stated_mass_kg = None if platform_mass_kg is None else float(platform_mass_kg)
         self.platform_mass_kg = 30.0 if platform_mass_kg is None else float(platform_mass_kg)
+
+    def confound_note(self) -> str:
+        """The constant sag is a zero offset; which inputs, stated, would pin it."""
+        head = ("joint_compliance: the pose-independent part of the sag is exactly an actuator zero offset "
+                "(rail_origin along the rail); the data fix it only through the sag's pose-dependent part")
+        unstated = [k for k, v in (("platform_mass_kg", self.stated_mass_kg), ("platform_com_mm", self.stated_com),
+                                   ("gravity", self.gravity_stated or None)) if v is None]
+        if not unstated:
+            return head + " and the stated platform_mass_kg, platform_com_mm and gravity (to 2 %, 5 mm and 0.02)."
+        return (head + f". Stating {', '.join(unstated)} (inputs of [effect.joint_compliance], diagnose "
+                "--effect-input joint_compliance.KEY=VALUE) pins it.")
 
     def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:
         if poses is None:

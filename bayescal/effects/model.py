@@ -61,6 +61,10 @@ class EffectFit:
     success : bool
     message : str
     iterations : int
+    covariance : ndarray, shape (P + K, P + K), or None
+        Laplace posterior covariance of ``(theta, eta)`` together, in their
+        units (unit noise scale): how far the geometry trades off against
+        the effects (:mod:`bayescal.diagnose.confound`).
     """
 
     theta: NDArray
@@ -76,6 +80,7 @@ class EffectFit:
     success: bool
     message: str
     iterations: int
+    covariance: NDArray | None = None
 
     @property
     def edf(self) -> float:
@@ -259,13 +264,11 @@ def fit_map(
         message = f"did not converge in {max_iter} iterations"
     AtA = np.einsum("ij,ik->jk", A, A)
     s = np.sqrt(np.clip(np.linalg.eigvalsh(AtA), 0, None))[::-1]
-    if K:
-        cov = np.linalg.inv(AtA + np.eye(P + K))[P:, P:] * np.outer(scale[P:], scale[P:])
-    else:
-        cov = np.zeros((0, 0))
+    full = np.linalg.inv(AtA + np.eye(P + K)) * np.outer(scale, scale)
+    cov = full[P:, P:]
     names = tuple((eff.name, sl) for (eff, _), sl in zip(effects, slices))
     return EffectFit(
         theta=theta, eta=eta, params=tuple(params), effect_slices=names, cov_eta=cov, residual=r,
         chi2=chi2, prior_term=pri, singular_values=s, n_rows=rw.size, success=success, message=message,
-        iterations=it,
+        iterations=it, covariance=full,
     )
