@@ -256,7 +256,7 @@ def diagnose(
                 combo = selected + [c]
                 try:
                     fit = fit_map(model, [(x.effect, x.features) for x in combo], theta0=cur_fit.theta,
-                                  eta0=np.concatenate([cur_fit.eta, [p.prior_mean for p in c.effect.params(machine, c.features)]]))
+                                  eta0=np.concatenate([cur_fit.eta, [p.start_value for p in c.effect.params(machine, c.features)]]))
                 except KinematicsError:
                     continue
                 sl = dict(fit.effect_slices)[c.effect.name]

@@ -52,6 +52,12 @@ class EffectParam:
         expansion of a screw cannot be negative); None when either sign is
         physical.  A fit that puts the parameter significantly below it is
         not reported as a detection (:meth:`Effect.nonphysical`).
+    start : float or None
+        Where the fit starts, in ``unit``; None: at ``prior_mean``.  A
+        parameter that enters as a product with others (a platform mass
+        times compliances) starts off zero, where the product's gradient
+        vanishes and Gauss-Newton would crawl out of the saddle or stop in
+        it; the start changes no prior, only where the search begins.
     """
 
     name: str
@@ -59,6 +65,12 @@ class EffectParam:
     prior_sd: float
     prior_mean: float = 0.0
     lower: float | None = None
+    start: float | None = None
+
+    @property
+    def start_value(self) -> float:
+        """The fit's start, in ``unit`` (``start``, else ``prior_mean``)."""
+        return self.prior_mean if self.start is None else self.start
 
 
 @dataclass(frozen=True)

@@ -191,7 +191,7 @@ def fit_map(
     effects : sequence of (Effect, Features)
         The effects switched on, with their features for the model's poses.
     theta0, eta0 : ndarray, optional
-        Start; zeros and the prior means by default.
+        Start; zeros and the parameters' :attr:`EffectParam.start_value` by default.
     max_iter : int
     xtol : float
         Convergence when the largest step is below this many prior sigmas.
@@ -210,7 +210,7 @@ def fit_map(
     scale = np.concatenate([machine.tolerance, [p.prior_sd for p in params]])
     mu = np.concatenate([np.zeros(P), [p.prior_mean for p in params]]) / scale
     theta = np.zeros(P) if theta0 is None else np.asarray(theta0, float).copy()
-    eta = np.array([p.prior_mean for p in params]) if eta0 is None else np.asarray(eta0, float).copy()
+    eta = np.array([p.start_value for p in params]) if eta0 is None else np.asarray(eta0, float).copy()
     sig = model.row_sigma
 
     def evaluate(theta, eta, guess):

@@ -88,3 +88,27 @@ def test_written_machine_is_within_its_reported_uncertainty_and_stated_inputs_pi
     assert stated.tool_std_um < conf.tool_std_um / 3
     assert err_stated < 3 * stated.tool_std_um
     assert err_stated < 10 * err_clean
+
+
+@pytest.mark.parametrize("seed,payload", [(102, True), (101, False)])
+def test_joint_fit_reaches_the_map_from_its_default_start(seed, payload):
+    # recordings on which the fit used to start the platform mass (weight deflections) at zero, a saddle of the
+    # bilinear load, and stopped above the MAP (102: in the saddle, 35 above; 101: at the iteration limit, 340 above)
+    rng = np.random.default_rng(seed)
+    m = machine_from_text(random_prs3_text(rng), f"random-{seed}.toml")
+    theta = rng.normal(size=m.n_params) * m.tolerance
+    q = draw_poses(m, 160, rng, theta)
+    down, com = tilted_down(rng, 15.0), np.array([*rng.uniform(-80, 80, 2), rng.uniform(-150, 50)])
+    mp, c = rng.uniform(20, 100), rng.uniform(0.2, 1.0, 3)
+    mass = rng.choice(np.arange(0.0, 26.0, 5.0), 160) if payload else np.zeros(160)
+    aux = {"payload_kg": mass} if payload else {}
+    rec = measure(m, q, theta, 6, np.random.default_rng(seed), aux=aux, effects=[CompliantDrives(m, c, GravityLoad(mp, com, down), mass)])
+    model = MeasurementModel.from_recording(m, rec)
+    fit0 = fit_map(model)
+    eff = get_effect("joint_compliance")
+    f = eff.features(m, model.q, fit0.theta, aux, None, model.predict(fit0.theta).poses)
+    fit = fit_map(model, [(eff, f)], theta0=fit0.theta)
+    truth = _truth(c, mp, com, down, payload=payload)
+    from_truth = fit_map(model, [(eff, f)], theta0=theta, eta0=np.array([truth[p.name] for p in eff.params(m, f)]))
+    assert fit.success and fit.iterations < 25
+    assert fit.chi2 + fit.prior_term == pytest.approx(from_truth.chi2 + from_truth.prior_term, abs=0.05)
