@@ -30,6 +30,7 @@ import numpy as np
 
 from ..effects.base import Effect
 from ..effects.model import EffectFit
+from ..errors import KinematicsError
 from ..machines.base import Machine
 
 __all__ = ["GeometryConfound", "geometry_confound", "CONFOUND_RATIO"]
@@ -131,11 +132,23 @@ def geometry_confound(machine: Machine, q: np.ndarray, final: EffectFit, geometr
     Returns
     -------
     GeometryConfound
+
+    Raises
+    ------
+    KinematicsError
+        No pose assembles at the written geometry without the effects.
     """
     P = machine.n_params
     q = np.asarray(q, float) if keep is None else np.asarray(q, float)[keep]
-    n = q.shape[0]
     poses = machine.forward(q, final.theta)
+    if not poses.success.all():
+        # the fits solved the poses with the effects applied; without them a pose near the workspace's edge may
+        # not assemble: average over those that do
+        q = q[poses.success]
+        poses = machine.forward(q, final.theta)
+    n = q.shape[0]
+    if n == 0:
+        raise KinematicsError("no pose of the recording assembles at the written geometry without the effects")
     G = machine.tool_jacobian(q, final.theta, poses)[:, :3, :].reshape(-1, P)
     cov = final.covariance
     std = _tool_rms_um(G, cov[:P, :P], n, noise_scale2)

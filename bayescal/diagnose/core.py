@@ -310,8 +310,11 @@ def diagnose(
     sel_names = [c.effect.name for c in selected]
     confound = None
     if selected:
-        confound = geometry_confound(machine, model.q, cur_fit, fit0, [c.effect for c in selected],
-                                     noise_scale2=_scale2(cur_fit), keep=kept)
+        try:
+            confound = geometry_confound(machine, model.q, cur_fit, fit0, [c.effect for c in selected],
+                                         noise_scale2=_scale2(cur_fit), keep=kept)
+        except KinematicsError:
+            confound = None  # nothing to average over; the answer's written_geometry is then null
     trials = []
     for c in cands:
         name = c.effect.name
