@@ -122,7 +122,7 @@ def one_case(seed, *, incline, payload, n):
     c = rng.uniform(0.2, 1.0, 3)
     aux = {"payload_kg": rng.choice(np.arange(0.0, 26.0, 5.0), n)} if payload else {}
     P = machine.n_params
-    out = {"mass": mp}
+    out = {}
     # the yardstick: geometry only on a clean recording
 
     model = MeasurementModel(machine, q, dof=6, aux=aux)
