@@ -37,6 +37,8 @@ __all__ = ["GeometryConfound", "geometry_confound", "CONFOUND_RATIO"]
 
 #: Written-geometry uncertainty above this many times the geometry-only one is reported as a confound.
 CONFOUND_RATIO = 2.0
+#: Most poses the tool-point RMS is averaged over (evenly spread over the recording beyond that).
+MAX_POSES = 2000
 
 
 @dataclass(frozen=True)
@@ -125,7 +127,8 @@ def geometry_confound(machine: Machine, q: np.ndarray, final: EffectFit, geometr
     noise_scale2 : float
         Factor on the instrument variance (the diagnosis' fitted scale, >= 1).
     keep : ndarray of int, optional
-        Poses to average over (outliers left out).
+        Poses to average over (outliers left out); at most
+        :data:`MAX_POSES` of them, evenly spread, are used.
     top : int
         How many components of each kind to name.
 
@@ -140,6 +143,10 @@ def geometry_confound(machine: Machine, q: np.ndarray, final: EffectFit, geometr
     """
     P = machine.n_params
     q = np.asarray(q, float) if keep is None else np.asarray(q, float)[keep]
+    if q.shape[0] > MAX_POSES:
+        # an RMS over the workspace: evenly spread poses of a tracker-size recording give it to a percent,
+        # without a (n, 6, P) Jacobian of 50,000 poses
+        q = q[np.linspace(0, q.shape[0] - 1, MAX_POSES).astype(int)]
     poses = machine.forward(q, final.theta)
     if not poses.success.all():
         # the fits solved the poses with the effects applied; without them a pose near the workspace's edge may

@@ -156,11 +156,14 @@ class JointCompliance(Effect):
     uncertain by 40-65 um, the platform mass by about 20 kg, so the
     geometry "without gravity" is uncertain by tens of um at the tool
     whatever the priors (studies/compliance_identifiability.py; 1,000
-    poses help little, a tenth of the noise about threefold).  The fit
-    writes the posterior mean under the tolerance prior, and the diagnosis
+    poses take a quarter to 40 % off, a tenth of the noise two thirds).
+    The fit writes the MAP under the tolerance prior, and the diagnosis
     reports that uncertainty and the parameters that trade off
     (:mod:`bayescal.diagnose.confound`, :meth:`confound_note`); stating the
-    mass, centre of mass and mounting (below) pins it to a few um.
+    mass, centre of mass and mounting (below) pins it to a few um.  The
+    fit starts ``platform_mass`` at the stated mass, else 30 kg (weight
+    deflections at 0.5 um/N under 30 kg): at zero the bilinear load has no
+    gradient and Gauss-Newton stalls (:attr:`EffectParam.start`).
 
     Inputs with documented defaults (constructor arguments,
     :attr:`settings_keys`; proposed machine-file keys of the same names in
@@ -189,6 +192,7 @@ class JointCompliance(Effect):
     default_magnitude = 0.5
     needs_poses = True
     settings_keys = ("gravity", "payload_offset", "platform_mass_kg", "platform_com_mm")
+
     #: Prior one-sigma of a weight deflection (um), of a centre-of-mass coordinate (mm), of a gravity tilt.
     WEIGHT_PRIOR_UM = 300.0
     COMPLIANCE_PRIOR = 1.0

@@ -86,3 +86,15 @@ def test_an_effect_that_is_a_zero_offset_is_named_against_the_rail_origins(fits)
     assert "CONFOUNDED" in c.report() and top_geo in c.report()
     d = c.to_dict()
     assert d["confounded"] and d["trade_off"]["geometry"][0]["name"] == top_geo
+
+
+def test_a_long_recording_is_averaged_over_evenly_spread_poses(fits, monkeypatch):
+    import bayescal.diagnose.confound as confound
+
+    prs3, model, eff, fit0, fit = fits
+    full = geometry_confound(prs3, model.q, fit, fit0, [eff])
+    monkeypatch.setattr(confound, "MAX_POSES", 30)
+    half = geometry_confound(prs3, model.q, fit, fit0, [eff])
+    assert half.tool_std_um != full.tool_std_um  # the subsample was used
+    assert half.tool_std_um == pytest.approx(full.tool_std_um, rel=0.15)
+    assert half.geometric_tool_std_um == pytest.approx(full.geometric_tool_std_um, rel=0.15)
