@@ -65,6 +65,12 @@ def register(sub) -> None:
         help="write the calibrated machine: the geometry fitted jointly with the selected effects, and those effects "
         "as [effect.*] tables (verdict none: the geometry-only calibration; unexplained: written with a warning)",
     )
+    p.add_argument(
+        "--effect-input", action="append", default=[], metavar="NAME.KEY=VALUE",
+        help="state an input of an effect, e.g. joint_compliance.platform_mass_kg=45 or "
+        "joint_compliance.gravity=0,0,-1 (repeatable; default: the inputs stated in the machine file's "
+        "[effect.NAME] tables, else the effect's documented defaults)",
+    )
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_frame_argument(p)
     add_output_options(p)
@@ -86,7 +92,7 @@ def run(args) -> int:
             raise InputError(f"--effects: unknown effect(s) {', '.join(unknown)}; expected some of {', '.join(EFFECTS)}")
     if machine.effects and not args.quiet:
         print(f"note: the [effect.*] tables of {args.machine} are not applied: the diagnosis fits every effect afresh")
-    result = diagnose(machine, rec, effects=effects, seed=args.seed)
+    result = diagnose(machine, rec, effects=effects, seed=args.seed, effect_settings=effect_inputs(machine, args.effect_input))
     # --frame fit: the fitted instrument frame (FORMATS.md section 4)
     from .instrument import fitted_frame_answer, instrument_frame_line
 
@@ -121,3 +127,43 @@ def run(args) -> int:
         if calibrated is not None:
             print(calibrated.summary(args.write_machine))
     return EXIT_OK
+
+
+def effect_inputs(machine, items: list[str]) -> dict[str, dict]:
+    """Stated effect inputs: the machine file's ``[effect.*]`` inputs, overridden by ``--effect-input NAME.KEY=VALUE``.
+
+    Returns
+    -------
+    dict of str to dict
+        ``{effect name: {input key: float or list of float}}``.
+
+    Raises
+    ------
+    InputError
+        An item not of the form ``NAME.KEY=VALUE``, an unknown effect or
+        input key, a value that is not a number or comma-separated numbers.
+    """
+    out: dict[str, dict] = {e.name: dict(e.settings) for e in machine.effects if e.settings}
+    for item in items:
+        key, sep, value = item.partition("=")
+        name, dot, k = key.strip().partition(".")
+        if not sep or not dot:
+            raise InputError(f"--effect-input {item!r}: expected NAME.KEY=VALUE, e.g. joint_compliance.platform_mass_kg=45")
+        if name not in EFFECTS:
+            raise InputError(f"--effect-input {item!r}: unknown effect {name!r}; expected one of {', '.join(EFFECTS)}")
+        keys = EFFECTS[name].settings_keys
+        if k not in keys:
+            raise InputError(f"--effect-input {item!r}: {name} has no input {k!r}; expected one of {', '.join(keys) or '(none)'}")
+        try:
+            nums = [float(x) for x in value.split(",")]
+        except ValueError:
+            raise InputError(f"--effect-input {item!r}: expected a number or comma-separated numbers after '='") from None
+        out.setdefault(name, {})[k] = nums if len(nums) > 1 else nums[0]
+    from ..effects import get_effect
+
+    for name, stated in out.items():
+        try:
+            get_effect(name, **stated)  # the effect's own checks (a positive mass, a 3-vector, ...)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"--effect-input: {name} inputs {stated}: {exc}") from None
+    return out

@@ -41,6 +41,7 @@ from ..io.recording import Recording
 from ..machines.base import Machine
 from ..measurement import MeasurementModel
 from ..outliers import recording_lines
+from .confound import geometry_confound
 from .locate import locate
 from .outliers import retest_with_effects, screen_outliers
 from .result import Diagnosis, EffectTrial, ParameterValue
@@ -255,7 +256,7 @@ def diagnose(
                 combo = selected + [c]
                 try:
                     fit = fit_map(model, [(x.effect, x.features) for x in combo], theta0=cur_fit.theta,
-                                  eta0=np.concatenate([cur_fit.eta, [p.prior_mean for p in c.effect.params(machine, c.features)]]))
+                                  eta0=np.concatenate([cur_fit.eta, [p.start_value for p in c.effect.params(machine, c.features)]]))
                 except KinematicsError:
                     continue
                 sl = dict(fit.effect_slices)[c.effect.name]
@@ -307,6 +308,13 @@ def diagnose(
                             effect_settings=effect_settings, _screen=final)
 
     sel_names = [c.effect.name for c in selected]
+    confound = None
+    if selected:
+        try:
+            confound = geometry_confound(machine, model.q, cur_fit, fit0, [c.effect for c in selected],
+                                         noise_scale2=_scale2(cur_fit), keep=kept)
+        except KinematicsError:
+            confound = None  # nothing to average over; the answer's written_geometry is then null
     trials = []
     for c in cands:
         name = c.effect.name
@@ -340,4 +348,5 @@ def diagnose(
         theta_geometric=fit0.theta,
         effect_settings={k: dict(v) for k, v in settings.items()},
         outliers=screen,
+        confound=confound,
     )

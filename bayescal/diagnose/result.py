@@ -120,6 +120,9 @@ class Diagnosis:
     #: beside the fitted parameters in the calibrated machine's ``[effect.*]`` tables.
     effect_settings: dict = field(default_factory=dict)
     outliers: object = None  # OutlierScreen (bayescal.diagnose.outliers), None if not screened
+    #: How well the written geometry (without the effects) is known and what it trades off against
+    #: (bayescal.diagnose.confound.GeometryConfound); None when no effect was selected.
+    confound: object = None
 
     @property
     def located(self) -> ChannelDependence | None:
@@ -152,6 +155,7 @@ class Diagnosis:
             "seed": self.seed,
             "evidence_kind": "log Bayes factor, Laplace approximation (nats)",
             "message": self.message,
+            "written_geometry": None if self.confound is None else self.confound.to_dict(),
             **self._outlier_keys(),
         }
 
@@ -190,6 +194,8 @@ class Diagnosis:
                 f"VERDICT {self.verdict}: model it. Out-of-sample position RMS {1e3 * self.rms_cv_geometric:.1f} um "
                 f"-> {1e3 * self.rms_cv_final:.1f} um with {', '.join(self.selected)}."
             )
+        if self.confound is not None:
+            L.append(self.confound.report())
         L.append("")
         L.append("effect                 kept  evidence  CV RMS before -> after (um)")
         for e in self.effects:

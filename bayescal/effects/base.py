@@ -52,6 +52,12 @@ class EffectParam:
         expansion of a screw cannot be negative); None when either sign is
         physical.  A fit that puts the parameter significantly below it is
         not reported as a detection (:meth:`Effect.nonphysical`).
+    start : float or None
+        Where the fit starts, in ``unit``; None: at ``prior_mean``.  A
+        parameter that enters as a product with others (a platform mass
+        times compliances) starts off zero, where the product's gradient
+        vanishes and Gauss-Newton would crawl out of the saddle or stop in
+        it; the start changes no prior, only where the search begins.
     """
 
     name: str
@@ -59,6 +65,12 @@ class EffectParam:
     prior_sd: float
     prior_mean: float = 0.0
     lower: float | None = None
+    start: float | None = None
+
+    @property
+    def start_value(self) -> float:
+        """The fit's start, in ``unit`` (``start``, else ``prior_mean``)."""
+        return self.prior_mean if self.start is None else self.start
 
 
 @dataclass(frozen=True)
@@ -131,6 +143,14 @@ class Effect(ABC):
     #: Inputs a user may state (constructor keywords, documented defaults in the class docstring); in a
     #: machine file they sit beside the fitted parameters in the effect's ``[effect.<name>]`` table.
     settings_keys: ClassVar[tuple[str, ...]] = ()
+
+    def confound_note(self) -> str:
+        """What part of the effect the geometry cannot be told from, and how a user pins it, or ``""``.
+
+        Reported with the diagnosis when the written geometry is confounded
+        with the effect (:mod:`bayescal.diagnose.confound`).
+        """
+        return ""
 
     def not_applicable(self, machine: Machine, aux: dict) -> str | None:
         """Why the effect cannot be modelled for this machine and recording, or None."""

@@ -151,9 +151,19 @@ class JointCompliance(Effect):
     Identifiability: the pose-independent part of the sag is exactly an
     actuator zero offset.  It is told apart from the geometry only through
     the physics tying it to the pose-dependent part (``c_i`` from the
-    payload, then ``m_p``, ``c``, ``d``), so with the mass, centre of mass
-    and mounting unknown, the geometry "without gravity" is uncertain by
-    tens of um at 0.5 um/N; stating them (below) pins it.
+    payload, then ``m_p``, ``c``, ``d``), and on a 3-PRS that tie is weak:
+    at 4 um noise and 160 poses the data alone leave the constant sag
+    uncertain by 40-65 um, the platform mass by about 20 kg, so the
+    geometry "without gravity" is uncertain by tens of um at the tool
+    whatever the priors (studies/compliance_identifiability.py; 1,000
+    poses take a quarter to 40 % off, a tenth of the noise two thirds).
+    The fit writes the MAP under the tolerance prior, and the diagnosis
+    reports that uncertainty and the parameters that trade off
+    (:mod:`bayescal.diagnose.confound`, :meth:`confound_note`); stating the
+    mass, centre of mass and mounting (below) pins it to a few um.  The
+    fit starts ``platform_mass`` at the stated mass, else 30 kg (weight
+    deflections at 0.5 um/N under 30 kg): at zero the bilinear load has no
+    gradient and Gauss-Newton stalls (:attr:`EffectParam.start`).
 
     Inputs with documented defaults (constructor arguments,
     :attr:`settings_keys`; proposed machine-file keys of the same names in
@@ -229,6 +239,17 @@ class JointCompliance(Effect):
         self.stated_mass_kg = None if platform_mass_kg is None else float(platform_mass_kg)
         self.platform_mass_kg = 30.0 if platform_mass_kg is None else float(platform_mass_kg)
 
+    def confound_note(self) -> str:
+        """The constant sag is a zero offset; which inputs, stated, would pin it."""
+        head = ("joint_compliance: the pose-independent part of the sag is exactly an actuator zero offset "
+                "(rail_origin along the rail); the data fix it only through the sag's pose-dependent part")
+        unstated = [k for k, v in (("platform_mass_kg", self.stated_mass_kg), ("platform_com_mm", self.stated_com),
+                                   ("gravity", self.gravity_stated or None)) if v is None]
+        if not unstated:
+            return head + " and the stated platform_mass_kg, platform_com_mm and gravity (to 2 %, 5 mm and 0.02)."
+        return (head + f". Stating {', '.join(unstated)} (inputs of [effect.joint_compliance], diagnose "
+                "--effect-input joint_compliance.KEY=VALUE) pins it.")
+
     def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:
         if poses is None:
             poses = machine.forward(q, theta)
@@ -252,12 +273,20 @@ class JointCompliance(Effect):
         m = machine.n_actuators
         if features is not None and features.const["has_payload"]:
             out = [EffectParam(f"compliance.q{i + 1}", "um/N", self.COMPLIANCE_PRIOR, lower=0.0) for i in range(m)]
+            # the mass starts at a typical platform's (the stated one, else 30 kg), not at zero: there the
+            # platform's load c_i m_p g has no gradient in c_i nor m_p, and Gauss-Newton crawls out of that
+            # saddle for tens of iterations or stops in it (studies/compliance_identifiability.py, docs/diagnose.md)
             if self.stated_mass_kg is None:
-                out.append(EffectParam("platform_mass", "kg", self.MASS_PRIOR_KG, lower=0.0))
+                out.append(EffectParam("platform_mass", "kg", self.MASS_PRIOR_KG, lower=0.0, start=self.platform_mass_kg))
             else:
-                out.append(EffectParam("platform_mass", "kg", 0.02 * self.stated_mass_kg, prior_mean=self.stated_mass_kg, lower=0.0))
+                out.append(EffectParam("platform_mass", "kg", 0.02 * self.stated_mass_kg, prior_mean=self.stated_mass_kg,
+                                       lower=0.0, start=self.stated_mass_kg))
         else:
-            out = [EffectParam(f"weight_deflection.q{i + 1}", "um", self.WEIGHT_PRIOR_UM, lower=0.0) for i in range(m)]
+            # likewise the weight deflections start at 0.5 um/N under 30 kg: at zero the centre of mass and
+            # the tilt have no gradient
+            start = self.default_magnitude * self.platform_mass_kg * GRAVITY
+            out = [EffectParam(f"weight_deflection.q{i + 1}", "um", self.WEIGHT_PRIOR_UM, lower=0.0, start=start)
+                   for i in range(m)]
         if self.stated_com is None:
             out += [EffectParam(f"com.{x}", "mm", self.COM_PRIOR_MM) for x in "xyz"]
         else:

@@ -61,6 +61,10 @@ class EffectFit:
     success : bool
     message : str
     iterations : int
+    covariance : ndarray, shape (P + K, P + K), or None
+        Laplace posterior covariance of ``(theta, eta)`` together, in their
+        units (unit noise scale): how far the geometry trades off against
+        the effects (:mod:`bayescal.diagnose.confound`).
     """
 
     theta: NDArray
@@ -76,6 +80,7 @@ class EffectFit:
     success: bool
     message: str
     iterations: int
+    covariance: NDArray | None = None
 
     @property
     def edf(self) -> float:
@@ -201,7 +206,7 @@ def fit_map(
     effects : sequence of (Effect, Features)
         The effects switched on, with their features for the model's poses.
     theta0, eta0 : ndarray, optional
-        Start; zeros and the prior means by default.
+        Start; zeros and the parameters' :attr:`EffectParam.start_value` by default.
     max_iter : int
     xtol : float
         Convergence when the largest step is below this many prior sigmas.
@@ -220,7 +225,7 @@ def fit_map(
     scale = np.concatenate([machine.tolerance, [p.prior_sd for p in params]])
     mu = np.concatenate([np.zeros(P), [p.prior_mean for p in params]]) / scale
     theta = np.zeros(P) if theta0 is None else np.asarray(theta0, float).copy()
-    eta = np.array([p.prior_mean for p in params]) if eta0 is None else np.asarray(eta0, float).copy()
+    eta = np.array([p.start_value for p in params]) if eta0 is None else np.asarray(eta0, float).copy()
     sig = model.row_sigma
 
     def evaluate(theta, eta, guess):
@@ -274,13 +279,11 @@ def fit_map(
         message = f"did not converge in {max_iter} iterations"
     AtA = np.einsum("ij,ik->jk", A, A)
     s = np.sqrt(np.clip(np.linalg.eigvalsh(AtA), 0, None))[::-1]
-    if K:
-        cov = np.linalg.inv(AtA + np.eye(P + K))[P:, P:] * np.outer(scale[P:], scale[P:])
-    else:
-        cov = np.zeros((0, 0))
+    full = np.linalg.inv(AtA + np.eye(P + K)) * np.outer(scale, scale)
+    cov = full[P:, P:]
     names = tuple((eff.name, sl) for (eff, _), sl in zip(effects, slices))
     return EffectFit(
         theta=theta, eta=eta, params=tuple(params), effect_slices=names, cov_eta=cov, residual=r,
         chi2=chi2, prior_term=pri, singular_values=s, n_rows=rw.size, success=success, message=message,
-        iterations=it,
+        iterations=it, covariance=full,
     )

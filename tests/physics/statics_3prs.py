@@ -122,18 +122,28 @@ class CompliantDrives:
         return deflected_q(self.machine, th, q, self.c, self.load, self.payload), theta
 
 
-def random_prs3_text(rng: np.random.Generator, *, sigma_position: float = 0.004) -> str:
-    """A 3-PRS with random radii, link length, chain angles, tool offset and stroke (vertical rails)."""
+def random_prs3_text(rng: np.random.Generator, *, sigma_position: float = 0.004, incline_deg: float = 0.0) -> str:
+    """A 3-PRS with random radii, link length, chain angles, tool offset and stroke.
+
+    ``incline_deg`` tilts every rail towards the machine's axis by that angle
+    (a pyramid converging upwards; 0: vertical rails), with the rail origin
+    moved out so that the slider sits at the drawn radius at mid-stroke.
+    """
     rb, ra = rng.uniform(220, 400), rng.uniform(90, 200)
     link = rng.uniform(max(320.0, (rb - ra) * 1.3), 550.0)
     ang = np.deg2rad(np.array([0.0, 120.0, 240.0]) + rng.uniform(-8, 8, 3) + rng.uniform(0, 360))
     tool = [rng.uniform(-30, 30), rng.uniform(-30, 30), -rng.uniform(60, 220)]
     lo = rng.uniform(300, 500)
     stroke = rng.uniform(0.4, 0.7) * ra
+    inc = np.deg2rad(incline_deg)
+    mid = lo + stroke / 2
     lines = ['kind = "3-PRS"', 'name = "random 3-PRS"', ""]
     for a in ang:
         c, s = np.cos(a), np.sin(a)
-        lines += ["[[chain]]", f"rail_origin = [{float(rb * c)!r}, {float(rb * s)!r}, 0.0]", "rail_direction = [0.0, 0.0, 1.0]",
+        r0 = rb + mid * np.sin(inc)
+        u = [-np.sin(inc) * c, -np.sin(inc) * s, np.cos(inc)]
+        lines += ["[[chain]]", f"rail_origin = [{float(r0 * c)!r}, {float(r0 * s)!r}, 0.0]",
+                  f"rail_direction = [{float(u[0])!r}, {float(u[1])!r}, {float(u[2])!r}]",
                   f"revolute_axis = [{float(-s)!r}, {float(c)!r}, 0.0]", f"link_length = {float(link)!r}",
                   f"sphere_center = [{float(ra * c)!r}, {float(ra * s)!r}, 0.0]", ""]
     lines += ["[tool]", f"point = [{float(tool[0])!r}, {float(tool[1])!r}, {float(tool[2])!r}]", ""]
