@@ -198,8 +198,11 @@ def simulated_markdown(res) -> list[str]:
          "(linearised model, exact; `studies/delta_klipper_floor.py`). *excess*: (MSE - oracle's) / (Klipper's MSE - "
          "oracle's), the share of Klipper's error above the noise floor the method keeps (0.5 = halved). "
          "mean +- SE over printers; *expected*: sqrt of the summed expected squared errors over Klipper's (closed form).", ""]
+    real_k = res["loo_real"][0]["summary"]["Klipper"]
     for sc in res["floor"]:
-        L += [f"**{sc['label']}** ({sc['n_printers']} printers)", ""]
+        km = sc["klipper_mm"]
+        L += [f"**{sc['label']}** ({sc['n_printers']} printers): Klipper's LOO RMS median {km['loo_rms']:.4f} mm, "
+              f"in-sample {km['in_sample_rms']:.4f} mm (the real printer: {real_k['loo_rms']:.4f} and {real_k['in_sample_rms']:.4f})", ""]
         L.append(_md_table(
             ["method", "ratio median", "ratio mean +- SE", "<= 0.5 on", "max", "excess +- SE", "expected"],
             [[METHOD_LABEL[k], f"{v['median']:.3f}", f"{v['mean']:.3f} +- {v['se']:.3f}", f"{100 * v['share_at_most_half']:.0f} %",
@@ -299,7 +302,8 @@ def floor_study(kd, kd_design, rec, quick, seed, rows):
     out, check = [], None
     for j, (label, key, tt, nz) in enumerate(scen):
         sc = floor.scenario(Jb, JK, rec, machine, tt, nz, n, seed + j)
-        out.append({"label": label, "key": key, "n_printers": n, "summary": floor.summarise(sc, seed=seed)})
+        out.append({"label": label, "key": key, "n_printers": n, "summary": floor.summarise(sc, seed=seed),
+                    "klipper_mm": sc["klipper_mm"]})
         if key == "real":
             check = (label, sc["draws"][: 1 if quick else 24])
     printers = floor.nonlinear_check(machine, kd, rec, check[1], loo_bayescal, loo_klipper, Jb, JK, rows=rows)

@@ -106,6 +106,10 @@ def scenario(Jb, JK, rec, machine, truth_tol, noise, n_printers, seed, *, eviden
     expected = {k: float(np.sqrt(expected_sq_error(M, Jb, truth_tol, noise).sum() / ek)) for k, M in ops.items()}
     expected["oracle"] = float(np.sqrt(np.sum(noise**2) / ek))
     fixed = _fixed_by_auto(Jb, rec, machine)
+    # Klipper's in-sample residual operator (all rows, its weights): for comparing the simulated scale with a real printer's
+    wk = np.sqrt(klipper_weights(h)(np.arange(rec.n_rows)))
+    RK = np.eye(rec.n_rows) - JK @ np.linalg.pinv(JK * wk[:, None]) * wk[None, :]
+    klipper_mm = {"loo_rms": [], "in_sample_rms": []}
     rng = np.random.default_rng(seed)
     mse = {k: [] for k in ("klipper",) + LINEAR_METHODS}
     draws = []
@@ -115,6 +119,8 @@ def scenario(Jb, JK, rec, machine, truth_tol, noise, n_printers, seed, *, eviden
         y = Jb @ theta + e
         draws.append((theta, e))
         err = {"klipper": MK @ y, "oracle": e, **{k: M @ y for k, M in ops.items()}}
+        klipper_mm["loo_rms"].append(float(np.sqrt(np.mean(err["klipper"] ** 2))))
+        klipper_mm["in_sample_rms"].append(float(np.sqrt(np.mean((RK @ y) ** 2))))
         if evidence:
             err["default"] = loo_errors(Jb, y, evidence_map_gain(y, sig, tol))
             err["default_auto"] = loo_errors(Jb, y, evidence_map_gain(y, sig, np.where(fixed, 0.0, tol)))
@@ -122,7 +128,8 @@ def scenario(Jb, JK, rec, machine, truth_tol, noise, n_printers, seed, *, eviden
             mse[k].append(float(np.mean(v**2)))
     mse = {k: np.array(v) for k, v in mse.items() if v}
     printers = {k: np.sqrt(v / mse["klipper"]) for k, v in mse.items() if k != "klipper"}
-    return {"expected": expected, "printers": printers, "mse": mse, "draws": draws}
+    return {"expected": expected, "printers": printers, "mse": mse, "draws": draws,
+            "klipper_mm": {k: float(np.median(v)) for k, v in klipper_mm.items()}}
 
 
 def summarise(sc: dict, n_boot: int = 2000, seed: int = 0) -> dict:
