@@ -46,9 +46,10 @@ default for k).  See docs/regularisation.md.
 --method map multiplies every tolerance of the prior by one factor estimated
 from the data (the evidence), so that the intervals hold when the machine is
 better or worse than its tolerances say, when the recording has at least
-three measured components per parameter (fewer cannot estimate a scale as
-well as the parameters: the tolerances are then used as they are, and the
-report says so); --prior-scale tolerance|empirical chooses explicitly
+three measured components per parameter or the machine file states no
+noise (no [measurement] table: the sigmas are weights, and the factor sets
+the geometry's spread against the noise); otherwise the tolerances are
+used as they are, and the report says so; --prior-scale tolerance|empirical chooses explicitly
 (tolerance: MAP = ridge with --lam 1).  The report prints the chosen value and what
 every other rule picks; --figures DIR draws the rule curves.
 
@@ -106,7 +107,7 @@ def register(sub) -> None:
         "--prior-scale", choices=PRIOR_SCALES, default=None,
         help="map: the prior's scale: 'empirical' (one factor on the machine file's tolerances, estimated from the "
              "data) or 'tolerance' (the tolerances as they are); default: empirical with at least 3 measured "
-             "components per parameter, else tolerance",
+             "components per parameter or with no stated noise (no [measurement] table), else tolerance",
     )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
