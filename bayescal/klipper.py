@@ -209,7 +209,9 @@ def klipper_machine(kd: KlipperDelta, *, name: str | None = None, q_span: ArrayL
     return LinearDelta(
         angle=np.deg2rad(kd.angle_deg), radius=np.full(3, kd.delta_radius), zero=E, direction=np.tile([0.0, 0.0, 1.0], (3, 1)),
         arm_length=kd.arm_length.copy(), tool_point=np.zeros(3), name=name or f"Klipper delta ({kd.path})",
-        noise=MeasurementNoise(sigma_position=SIGMA_DISTANCE, sigma_angle=MeasurementNoise().sigma_angle, given=True),
+        # no [measurement] table: the rows' sigmas (SIGMA_HEIGHT, SIGMA_DISTANCE) are guesses that weight heights
+        # against distances, not a stated noise; identify estimates the noise scale (docs/delta-printers.md)
+        noise=MeasurementNoise(),
         q_limits=np.column_stack([low, np.zeros(3)]), tolerance_groups=dict(KLIPPER_TOLERANCE), source=kd.path,
     )
 

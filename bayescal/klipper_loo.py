@@ -3,8 +3,9 @@
 For each row ``i`` of a constraint recording (heights and distances), both
 calibrations are re-fitted on the other rows and then predict row ``i``:
 
-* **bayescal**: the MAP estimate of all the linear-delta parameters under
-  the machine's tolerance prior (:func:`bayescal.bayes.priors.map_estimate`),
+* **bayescal**: ``identify --method map`` (:func:`bayescal.bayes.map_identify.identify_map`:
+  the robust pass, the prior-scale rule, the MAP), or the MAP under the
+  tolerance prior as it is (:func:`bayescal.bayes.priors.map_estimate`),
   the rows weighted by their ``sigma_position``;
 * **Klipper**: ``DELTA_CALIBRATE``'s objective, weights and parameter set
   (:func:`bayescal.klipper_fit.fit_klipper`), started from the config's
@@ -22,8 +23,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from .bayes.map_identify import identify_map
 from .bayes.priors import map_estimate, prior_from_machine
 from .constraint_model import ConstraintModel
+from .errors import InputError
 from .io.constraints import ConstraintRecording
 from .klipper import KlipperDelta, klipper_machine
 from .klipper_fit import fit_klipper
@@ -101,10 +104,14 @@ def noise_scale_map(machine: Machine, rec: ConstraintRecording, *, prior_scale: 
     return res, scale
 
 
-def _map_theta(machine: Machine, rec: ConstraintRecording, prior_scale: float, noise: str = "stated",
+def _map_theta(machine: Machine, rec: ConstraintRecording, prior_scale: float, noise: str = "identify",
                free: str = "all") -> NDArray:
+    if noise == "identify":
+        return identify_map(ConstraintModel.from_recording(machine, rec), free)[0].theta
     if noise == "estimated":
         return noise_scale_map(machine, rec, prior_scale=prior_scale)[0].theta
+    if noise != "stated":
+        raise InputError(f"noise: expected 'identify', 'stated' or 'estimated', got {noise!r}")
     model = ConstraintModel.from_recording(machine, rec)
     prior = prior_from_machine(model.machine, scale=prior_scale)
     return map_estimate(model, prior=prior, free=free).theta
@@ -117,10 +124,10 @@ def _predict(machine: Machine, rec: ConstraintRecording, theta: NDArray) -> NDAr
 
 
 def loo_bayescal(
-    machine: Machine, rec: ConstraintRecording, *, prior_scale: float = 1.0, noise: str = "stated", rows=None,
+    machine: Machine, rec: ConstraintRecording, *, prior_scale: float = 1.0, noise: str = "identify", rows=None,
     free: str = "all",
 ) -> LooResult:
-    """bayescal's MAP calibration (tolerance prior, all parameters) left out one row at a time.
+    """bayescal's MAP calibration left out one row at a time.
 
     Parameters
     ----------
@@ -129,15 +136,18 @@ def loo_bayescal(
     rec : ConstraintRecording
         Heights and distances (no ballbar rows: a pivot needs its rows).
     prior_scale : float
-        Multiplies every prior std (sensitivity studies).
-    noise : {"stated", "estimated"}
-        Rows weighted by their stated sigma, or by it times a factor
-        estimated from each fit's residuals (:func:`noise_scale_map`).
+        Multiplies every prior std (sensitivity studies; not with ``"identify"``).
+    noise : {"identify", "stated", "estimated"}
+        ``identify --method map`` as the command runs it (default: the
+        prior-scale rule of :mod:`bayescal.bayes.map_identify`, the robust
+        pass), the tolerance prior with the rows weighted by their stated
+        sigma, or by it times a factor estimated from each fit's residuals
+        (:func:`noise_scale_map`).
     rows : sequence of int, optional
         Rows to leave out (default all); ``loo_error`` is NaN for the others.
     free : {"all", "auto"}
-        All parameters under the prior, or only those the data determines
-        (``identify --method map``'s default; the others stay at nominal).
+        All parameters under the prior (``--free all``), or only those the
+        data determines (``--free auto``; the others stay at nominal).
     """
     n = rec.n_rows
     theta_all = _map_theta(machine, rec, prior_scale, noise, free)

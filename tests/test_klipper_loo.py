@@ -5,6 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from bayescal.bayes.map_identify import identify_map
 from bayescal.bayes.priors import map_estimate
 from bayescal.constraint_model import ConstraintModel
 from bayescal.design.relations import grid_points, relation_candidates
@@ -53,14 +54,18 @@ def test_bayescal_loo_rows_match_separate_fits(exact):
     rng = np.random.default_rng(4)
     noisy = replace(exact, value=exact.value + exact.sigma * rng.normal(size=exact.n_rows))
     m = klipper_machine(NOMINAL, q_span=exact.qa)
-    r = loo_bayescal(m, noisy, rows=[2, 11])
-    # row 11 by hand: MAP on the other 18, prediction of row 11
     keep = np.delete(np.arange(noisy.n_rows), 11)
-    theta = map_estimate(ConstraintModel.from_recording(m, noisy.subset(keep)), free="all").theta
-    pred = ConstraintModel.from_recording(m, noisy.subset([11])).predict(theta).y[0, 0]
-    assert abs(r.loo_error[11] - (noisy.value[11] - pred)) < 1e-9
-    # the prior keeps 21 parameters from 18 rows sensible: errors at the noise level, not millimetres
-    assert rms(r.loo_error) < 0.3
+    for noise, fit in (
+        ("stated", lambda model: map_estimate(model, free="all")),
+        ("identify", lambda model: identify_map(model, "all")[0]),  # what `identify --method map --free all` runs
+    ):
+        r = loo_bayescal(m, noisy, rows=[2, 11], noise=noise)
+        # row 11 by hand: MAP on the other 18, prediction of row 11
+        theta = fit(ConstraintModel.from_recording(m, noisy.subset(keep))).theta
+        pred = ConstraintModel.from_recording(m, noisy.subset([11])).predict(theta).y[0, 0]
+        assert abs(r.loo_error[11] - (noisy.value[11] - pred)) < 1e-9
+        # the prior keeps 21 parameters from 18 rows sensible: errors at the noise level, not millimetres
+        assert rms(r.loo_error) < 0.3
 
 
 def test_noise_scale_is_estimated_and_floored_at_one(exact):

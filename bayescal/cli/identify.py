@@ -5,10 +5,11 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
-from ..bayes.priors import PRIOR_SCALES, map_estimate
+from ..bayes.map_identify import identify_map
+from ..bayes.priors import PRIOR_SCALES
 from ..errors import InputError
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
-from ..identify.robust import fit_system, identify_with_outliers, map_system, robust_map_weights
+from ..identify.robust import fit_system, identify_with_outliers, robust_map_weights
 from ..io import write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .inputs import add_frame_argument, free_arg, instrument_inputs
@@ -45,9 +46,10 @@ default for k).  See docs/regularisation.md.
 --method map multiplies every tolerance of the prior by one factor estimated
 from the data (the evidence), so that the intervals hold when the machine is
 better or worse than its tolerances say, when the recording has at least
-three measured components per parameter (fewer cannot estimate a scale as
-well as the parameters: the tolerances are then used as they are, and the
-report says so); --prior-scale tolerance|empirical chooses explicitly
+three measured components per parameter or the machine file states no
+noise (no [measurement] table: the sigmas are weights, and the factor sets
+the geometry's spread against the noise); otherwise the tolerances are
+used as they are, and the report says so; --prior-scale tolerance|empirical chooses explicitly
 (tolerance: MAP = ridge with --lam 1).  The report prints the chosen value and what
 every other rule picks; --figures DIR draws the rule curves.
 
@@ -105,7 +107,7 @@ def register(sub) -> None:
         "--prior-scale", choices=PRIOR_SCALES, default=None,
         help="map: the prior's scale: 'empirical' (one factor on the machine file's tolerances, estimated from the "
              "data) or 'tolerance' (the tolerances as they are); default: empirical with at least 3 measured "
-             "components per parameter, else tolerance",
+             "components per parameter or with no stated noise (no [measurement] table), else tolerance",
     )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
@@ -168,21 +170,8 @@ def run(args) -> int:
         raise InputError("--prior-scale goes with --method map")
     choice = None
     if args.method == "map":
-        # empirical prior scale by default (studies/coverage_offprior.py, docs/bayes.md), on the poses weighted
-        # as a robust MAP pass weights them: one gross pose must not set the scale
-        handling = robust_map_weights(model, free, max_iter=args.max_iter, **okw)
-        # one scale factor from the evidence needs data to spare: with fewer than 3 measured components per
-        # parameter (a delta printer's 19 probe rows for 21 parameters) the estimate follows the noise
-        # (4.6x on the FLSUN Q5, pushing a tower tilt to 13 tolerances), so the tolerances stand
-        enough = model.n_poses * model.dof >= 3 * model.n_params
-        scale = args.prior_scale or ("empirical" if enough else "tolerance")
-        res = map_estimate(handling.weighted_model(model), free=free, max_iter=args.max_iter, prior_scale=scale)
-        if args.prior_scale is None and not enough:
-            res = replace(res, extras={**res.extras, "prior_scale_note": (
-                f"prior scale: the machine file's tolerances ({model.n_poses * model.dof} measured components for "
-                f"{model.n_params} parameters: too few to estimate a scale; --prior-scale empirical to try)")})
-        handling = handling.retested(model, res, map_system(res))
-        res = replace(res, extras={**res.extras, **handling.to_dict()})
+        # the prior-scale rule and the robust pass live in one function the studies call too (bayescal.bayes.map_identify)
+        res, handling = identify_map(model, free, prior_scale=args.prior_scale, max_iter=args.max_iter, **okw)
     elif auto:
         # the rules see the recording with the weights of a robust MAP pass: one gross pose must not choose lambda or k
         handling = robust_map_weights(model, free, max_iter=args.max_iter, **okw)

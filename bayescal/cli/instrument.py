@@ -30,13 +30,23 @@ def judge(machine, model, res, check) -> tuple[dict, Plausibility]:
     """The answer's ``frame``, ``plausible`` and ``frame_check`` entries, and the verdict."""
     theta = np.asarray(res.theta, dtype=float)
     if np.all(np.isfinite(theta)):
-        plaus = assess_plausibility(model, theta, res.free, getattr(res, "residuals_after", None), check=check)
+        plaus = assess_plausibility(model, theta, res.free, getattr(res, "residuals_after", None), check=check,
+                                    effective_params=_effective_params(res))
     else:
         plaus = Plausibility(False, ("the identified values are not finite",))
     extra = {**frame_answer(machine, theta, res.free, getattr(res, "covariance", None)), **plaus.to_dict()}
     if check is not None:
         extra["frame_check"] = check.to_dict()
     return extra, plaus
+
+
+def _effective_params(res) -> float | None:
+    """A regularised fit's effective number of parameters (its filter factors summed), else None."""
+    f = getattr(res, "filter_factors", None)
+    if getattr(res, "method", "ls") not in ("ridge", "tsvd", "map") or f is None:
+        return None
+    f = np.asarray(f, dtype=float)
+    return float(f.sum()) if f.size and np.all(np.isfinite(f)) else None
 
 
 def may_write_machine(args, res, plaus: Plausibility) -> bool:

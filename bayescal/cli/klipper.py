@@ -22,15 +22,19 @@ the end of the file) and write
 
 Stable positions (microsteps below each endstop) become carriage travel in
 mm with step_dist = rotation_distance / (full_steps_per_rotation *
-microsteps): q_i = -steps_i * step_dist_i.  Then run
-`bayescal identify DIR/recording.csv --machine DIR/machine.toml` and, to
-paste the result into printer.cfg, add --write-klipper PATH.  See docs/delta.md.
+microsteps): q_i = -steps_i * step_dist_i.  The machine file states no
+noise ([measurement] table left out): the rows' sigmas weight heights
+against distances, and identify --method map estimates the noise and prior
+scales from the data.  Then run
+`bayescal identify DIR/recording.csv --machine DIR/machine.toml --method map --free all`
+and, to paste the result into printer.cfg, add --write-klipper PATH.  See
+docs/delta-printers.md.
 """
 
 EXAMPLES = """\
 examples:
   bayescal klipper printer.cfg --out calib/
-  bayescal identify calib/recording.csv --machine calib/machine.toml --method map --write-klipper calib/klipper.cfg
+  bayescal identify calib/recording.csv --machine calib/machine.toml --method map --free all --write-klipper calib/klipper.cfg
 """
 
 
@@ -41,8 +45,11 @@ def register(sub) -> None:
     )
     p.add_argument("config", help="Klipper printer.cfg (with its SAVE_CONFIG block)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for machine.toml and recording.csv")
-    p.add_argument("--sigma-height", type=float, default=None, help="one-sigma noise of a probe height, mm (default 0.02)")
-    p.add_argument("--sigma-distance", type=float, default=None, help="one-sigma noise of a caliper distance, mm (default 0.05)")
+    p.add_argument("--sigma-height", type=float, default=None,
+                   help="one-sigma noise of a probe height, mm (default 0.02); a weight against the distances, the noise "
+                        "scale is estimated by identify")
+    p.add_argument("--sigma-distance", type=float, default=None,
+                   help="one-sigma noise of a caliper distance, mm (default 0.05); a weight against the heights")
     p.add_argument("--json", metavar="PATH", help="write a summary (geometry read, step distances, counts, files) as JSON")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
@@ -56,6 +63,8 @@ _TOLERANCE_NOTE = """\
 # extrusions and moulded brackets, rods cut to about a millimetre, and a delta_radius that folds
 # in the joint offsets make radii, endstops and arms good to ~1 mm, tower angles to ~0.5 deg and
 # tower tilts to ~0.1 deg. Tighten them if an earlier calibration you trust set the values.
+# No [measurement] table: the recording's sigmas weight heights against distances; identify
+# --method map estimates one factor on these tolerances against the noise from the data.
 
 """
 

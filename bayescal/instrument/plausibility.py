@@ -6,7 +6,11 @@ The rule (docs/real-instruments.md): a calibration is **not plausible** when
    than :data:`PLAUSIBLE_SIGMAS` = 10 prior sigmas (tolerances) from
    nominal, ``|value| > 10 tolerance``; or
 2. the fit has no residual degrees of freedom: measured components
-   ``n_poses * dof <= `` identified parameters.
+   ``n_poses * dof <= `` identified parameters (for a regularised fit,
+   ridge, TSVD or MAP, the *effective* number of parameters, the sum of
+   its filter factors: a prior keeps what the data cannot determine near
+   nominal, so 19 probe rows can carry 21 parameters under a prior but not
+   by least squares).
 
 Likely causes are named for each flagged case:
 
@@ -89,6 +93,7 @@ def assess_plausibility(
     *,
     check: FrameCheck | None = None,
     line_offset: int = 2,
+    effective_params: float | None = None,
 ) -> Plausibility:
     """Judge a calibrated parameter vector by the rule of the module docstring.
 
@@ -106,6 +111,10 @@ def assess_plausibility(
         The rigid-transform check of the recording (base frame only).
     line_offset : int
         CSV line of pose 0 (header = line 1).
+    effective_params : float, optional
+        For a regularised fit, the sum of its filter factors (the trace of
+        its hat matrix); rule 2 compares the measured components with it
+        instead of the number of identified parameters.
     """
     machine = model.machine
     names, units = machine.layout.names, machine.layout.units
@@ -117,6 +126,7 @@ def assess_plausibility(
     flagged = np.flatnonzero(free & ~is_frame & (ratio > PLAUSIBLE_SIGMAS))
     reasons, causes, params = [], [], []
     n_rows, n_free = model.n_poses * model.dof, int(free.sum())
+    n_eff = float(n_free) if effective_params is None else float(effective_params)
     if flagged.size:
         order = flagged[np.argsort(-ratio[flagged])]
         shown = ", ".join(f"{names[j]} = {theta[j]:.4g} {units[j]} ({ratio[j]:.0f} tolerances)" for j in order[:6])
@@ -126,9 +136,11 @@ def assess_plausibility(
             {"name": names[j], "value": float(theta[j]), "unit": units[j], "tolerance": float(tol[j]), "sigmas": float(ratio[j])}
             for j in order
         ]
-    if n_rows <= n_free:
+    if n_rows <= n_eff:
+        what = (f"{n_free} identified parameters" if effective_params is None
+                else f"{n_eff:.1f} effective parameters (filter factors summed, {n_free} identified)")
         reasons.append(
-            f"no residual degrees of freedom: {n_rows} measured components for {n_free} identified parameters; "
+            f"no residual degrees of freedom: {n_rows} measured components for {what}; "
             "the fit reproduces any recording, noise included"
         )
     if not reasons:
@@ -151,7 +163,7 @@ def assess_plausibility(
             f"wrong units: the nominal machine's tool points spread {check.scale:.4g} times as far as the measured ones "
             "at the same poses; check the units of x, y, z (suffixes _mm, _um, _m)"
         )
-    out = _outlier_cause(model, residuals, line_offset, n_rows - n_free)
+    out = _outlier_cause(model, residuals, line_offset, n_rows - n_eff)
     if out:
         causes.append(out)
     return Plausibility(False, tuple(reasons), tuple(causes), tuple(params))

@@ -48,6 +48,20 @@ def test_no_residual_degrees_of_freedom(prs3):
     assert not p.plausible and any("no residual degrees of freedom" in r for r in p.reasons)
 
 
+def test_a_prior_counts_effective_parameters(prs3):
+    # MAP: the filter factors summed (the hat matrix's trace) is what the prior leaves to the data
+    rec = read_recording(EXAMPLE).subset(np.arange(3))
+    model = MeasurementModel.from_recording(prs3, rec)
+    res = _quiet(map_estimate, model, free="all")
+    n_rows, p_eff = model.n_poses * model.dof, float(res.filter_factors.sum())
+    assert p_eff < n_rows < int(res.free.sum())
+    dof_reason = lambda p: [r for r in p.reasons if "no residual degrees of freedom" in r]  # noqa: E731
+    assert dof_reason(assess_plausibility(model, res.theta, res.free))
+    assert not dof_reason(assess_plausibility(model, res.theta, res.free, effective_params=p_eff))
+    r = dof_reason(assess_plausibility(model, res.theta, res.free, effective_params=float(n_rows)))
+    assert r and "effective parameters" in r[0]
+
+
 def test_frame_parameters_are_exempt(prs3):
     sim = simulate_recording(prs3, 30, seed=3, dof=6)
     o, R = random_frame(np.random.default_rng(3))
