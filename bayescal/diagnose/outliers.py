@@ -166,21 +166,19 @@ def retest_with_effects(
     screen : OutlierScreen
         The screen the diagnosis used.
     """
-    from ..effects.model import _dq, _predict, _slices
+    from ..effects.model import _dq, _predict, _slices, effect_jacobian
 
     if not effects:
         return None
     machine = model.machine
     P = machine.n_params
     slices = _slices(effects, model)
-    q_eff = model.q + _dq(effects, slices, fit.eta, model.q.shape)
+    q_eff = model.pose_q + _dq(effects, slices, fit.eta, model.pose_q.shape)
     sub, pred = _predict(model, q_eff, fit.theta, None)
     sig = np.asarray(model.row_sigma)
     # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq
     cols = [sub.jacobian(fit.theta, pred)]
-    Jq = sub.rows_jacobian(machine.actuator_jacobian(sub.q, fit.theta, pred.poses), pred)
-    for (eff, f), sl in zip(effects, slices):
-        cols.append(np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian(f, fit.eta[sl])))
+    cols += effect_jacobian(sub, fit.theta, pred, effects, slices, fit.eta)
     scale = np.concatenate([machine.tolerance, [p.prior_sd for p in fit.params]])
     A = (np.concatenate(cols, axis=2) / sig[:, :, None]).reshape(-1, P + len(fit.params)) * scale
     r = (model.residual(pred) / sig).reshape(-1)

@@ -19,7 +19,7 @@ the posterior covariance ``(A^T A + I)^-1`` and the log marginal likelihood
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -30,7 +30,7 @@ from ..machines.base import ToolPoses, map_state
 from ..measurement import MeasurementModel, Prediction
 from .base import Effect, EffectParam, Features
 
-__all__ = ["EffectFit", "fit_map", "effect_residual", "actuator_residual"]
+__all__ = ["EffectFit", "fit_map", "effect_residual", "actuator_residual", "effect_jacobian", "actuator_rows_jacobian"]
 
 
 @dataclass(frozen=True)
@@ -111,6 +111,9 @@ def _merge(pred: Prediction, other: Prediction) -> Prediction:
     take = ~pred.success & other.success
     if not take.any():
         return pred
+    if take.shape[0] != pred.poses.position.shape[0]:
+        # rows of several poses (a distance): no per-pose merge, take the better prediction whole
+        return other if other.success.sum() > pred.success.sum() else pred
     st, ost = pred.poses.state, other.poses.state
 
     def pick(a, b):
@@ -125,7 +128,8 @@ def _merge(pred: Prediction, other: Prediction) -> Prediction:
 
 
 def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, note: str = " (with the effect applied)") -> tuple[MeasurementModel, Prediction]:
-    sub = replace(model, q=q_eff)
+    # q_eff: every solved pose's actuator positions (model.pose_q + dq), as effects act on poses, not rows
+    sub = model.with_pose_q(q_eff)
     pred = sub.predict(theta, guess=guess)
     if not pred.success.all():
         # Newton from a given start can miss a pose that a nearby start solves: retry from the
@@ -134,7 +138,7 @@ def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, not
         if base.success.any():
             pred = _merge(pred, sub.predict(theta, guess=base.poses))
         if not pred.success.all():
-            pred = _merge(pred, replace(sub, guess=None).predict(theta, guess=None))
+            pred = _merge(pred, model.with_pose_q(q_eff, keep_guess=False).predict(theta, guess=None))
     if not pred.success.all():
         i = int(np.flatnonzero(~pred.success)[0])
         raise KinematicsError(f"pose {i + 1}: {pred.poses.message[i]}{note}")
@@ -144,19 +148,52 @@ def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, not
 def effect_residual(
     model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray, eta: NDArray
 ) -> NDArray:
-    """``y - h(q + dq(eta), theta)``, shape (n_poses, dof): prediction on (held-out) poses."""
+    """``y - h(q + dq(eta), theta)``, shape (n_poses, dof): prediction on (held-out) poses.
+
+    The features are those of the model's solved poses (:attr:`MeasurementModel.pose_q`).
+    """
     slices = _slices(effects, model)
-    q_eff = model.q + _dq(effects, slices, np.asarray(eta, float), model.q.shape)
+    q_eff = model.pose_q + _dq(effects, slices, np.asarray(eta, float), model.pose_q.shape)
     _, pred = _predict(model, q_eff, theta, None)
     return model.residual(pred)
 
 
 def actuator_residual(model: MeasurementModel, theta: NDArray, residual: NDArray, prediction: Prediction) -> NDArray:
-    """Residuals mapped to actuator space: per pose the ``dq`` (mm) that best explains them (whitened LS)."""
-    Jq = model.rows_jacobian(model.machine.actuator_jacobian(model.q, theta, prediction.poses), prediction)
+    """Residuals mapped to actuator space: per row the ``dq`` (mm) of its own pose that best explains them (whitened LS).
+
+    Returns an array of shape (n_poses, n_actuators): the change of the row's
+    first pose (``model.q``); a row's other poses (a distance's pose b) are
+    held, so that the answer is one actuator vector per row.
+    """
+    Jq = actuator_rows_jacobian(model, theta, prediction, own_pose_only=True)
     Jw = Jq / model.row_sigma[:, :, None]
     rw = residual / model.row_sigma
     return np.stack([np.linalg.lstsq(Jw[i], rw[i], rcond=None)[0] for i in range(model.n_poses)])
+
+
+def actuator_rows_jacobian(model: MeasurementModel, theta: NDArray, prediction: Prediction, *, own_pose_only: bool = False) -> NDArray:
+    """``d rows / d q`` of every solved pose, per pose, shape (n_solved, 6, N) before the rows map.
+
+    Returns the rows' derivative, shape (n_poses, dof, N), with respect to a
+    common change of every solved pose's actuator positions; with
+    ``own_pose_only`` only the rows' first poses move.
+    """
+    machine, th, poses = model.effect_inputs(theta, prediction)
+    Ja = machine.actuator_jacobian(model.pose_q, th, poses)
+    if own_pose_only:
+        Ja = Ja.copy()
+        Ja[model.n_poses :] = 0.0
+    return model.rows_jacobian(Ja, prediction)
+
+
+def effect_jacobian(model: MeasurementModel, theta: NDArray, prediction: Prediction, effects, slices, eta) -> list[NDArray]:
+    """Per effect, ``d rows / d eta``, shape (n_poses, dof, k): the chain rule through every solved pose's ``dq``."""
+    machine, th, poses = model.effect_inputs(theta, prediction)
+    Ja = machine.actuator_jacobian(model.pose_q, th, poses)
+    return [
+        model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, eff.delta_q_jacobian(f, eta[sl])), prediction)
+        for (eff, f), sl in zip(effects, slices)
+    ]
 
 
 def _slices(effects, model) -> list[slice]:
@@ -209,7 +246,7 @@ def fit_map(
     sig = model.row_sigma
 
     def evaluate(theta, eta, guess):
-        q_eff = model.q + _dq(effects, slices, eta, model.q.shape)
+        q_eff = model.pose_q + _dq(effects, slices, eta, model.pose_q.shape)
         sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if K else "")
         r = model.residual(pred)
         rw = (r / sig).reshape(-1)
@@ -220,9 +257,7 @@ def fit_map(
         Jg = sub.jacobian(theta, pred)
         cols = [Jg]
         if K:
-            Jq = sub.rows_jacobian(machine.actuator_jacobian(sub.q, theta, pred.poses), pred)
-            for (eff, f), sl in zip(effects, slices):
-                cols.append(np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian(f, eta[sl])))
+            cols += effect_jacobian(sub, theta, pred, effects, slices, eta)
         J = np.concatenate(cols, axis=2) / sig[:, :, None]
         return J.reshape(-1, P + K) * scale
 
