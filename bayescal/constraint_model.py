@@ -190,7 +190,12 @@ class ConstraintModel:
     # ----------------------------------------------------------- construction
     @classmethod
     def from_recording(cls, machine: Machine, rec: ConstraintRecording, *, dof: int | None = None) -> "ConstraintModel":
-        """The model of a constraint recording (checked against the machine's actuators and ``q_limits``)."""
+        """The model of a constraint recording (checked against the machine's actuators and ``q_limits``).
+
+        A machine that carries effects (``[effect.<name>]`` tables) has them
+        applied at their stored values to every pose the rows measure, as
+        :meth:`bayescal.measurement.MeasurementModel.from_recording` does.
+        """
         if dof not in (None, 1):
             raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
         rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
@@ -198,6 +203,14 @@ class ConstraintModel:
             base=machine, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot,
             y_measured=rec.value[:, None], pose_sigma=rec.sigma, aux=dict(rec.aux),
         )
+        if machine.effects:
+            # the machine file's [effect.*] tables at their stored values (FORMATS.md section 7), as for pose
+            # recordings: every solved pose moves by the effects' dq, driven by its row's channels, in time order
+            from .effects.stored import effect_delta_q
+
+            pose_aux = {k: np.asarray(v)[model.pose_row] for k, v in model.aux.items()}
+            dq = effect_delta_q(machine, machine.effects, model.pose_q, pose_aux, order=model.pose_order)
+            model = model.with_pose_q(model.pose_q + dq)
         pred = model.predict(None)
         if not pred.success.all():
             i = int(np.flatnonzero(~pred.success)[0])

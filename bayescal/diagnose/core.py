@@ -340,8 +340,9 @@ def diagnose(
         p_final=p_f,
         rms_cv_geometric=cv0,
         rms_cv_final=cur_cv,
-        # expected per-pose position RMS of pure noise: the position rows' sigmas (3 for a pose, 1 for a distance)
-        rms_noise=float(np.sqrt(np.sum(model.sigma[:3] ** 2))),
+        # expected per-pose position RMS of pure noise: the position rows' sigmas (3 for a pose, 1 for a
+        # distance), per row as the recording states them (not the exclusion weights of outliers)
+        rms_noise=float(np.sqrt(np.mean(np.sum(np.asarray(base_model.row_sigma)[:, :3] ** 2, axis=1)))),
         n_poses=n,
         dof=model.dof,
         machine_name=machine.name,

@@ -15,7 +15,9 @@ their place in the measurement order (the order carries the approach
 direction and the time the effects read); they are never held-out test
 poses of the cross-validation.  The screen is repeated at the refit
 without them (at most :data:`MAX_ROUNDS` times) so that one gross pose
-cannot hide another.
+cannot hide another, and excluded poses are tested again by their residual
+against the fit of the others: one that a gross pose only dragged out of
+line (swamping) is released.
 
 When the diagnosis selects effects, the poses are tested again against the
 final model (:func:`retest_with_effects`); if that names other poses, the
@@ -121,7 +123,11 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
         m = OutlierScreen(test=None, excluded=excluded, action="").weighted_model(model)
         fit = fit_map(m)
         test = pose_test(model, fit.theta, free, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=lines)
-        new = excluded | test.flagged
+        # an excluded pose is tested by its residual against the fit of the others, so it stays out only
+        # while that still flags it: a gross reading that dragged the first fit makes innocent poses
+        # stand out there (swamping; a few parameters seen by few rows, as distances on a delta), and
+        # they are released once it is out
+        new = test.flagged.copy()
         if new.sum() > MAX_FRACTION * n:
             return OutlierScreen(
                 test=test, excluded=np.zeros(n, dtype=bool),
