@@ -74,9 +74,14 @@ def test_lost_motion_of_an_independent_nut_screw_is_named_backlash():
     for i, b in enumerate(band):
         p = got[f"backlash.q{i + 1}"]
         assert abs(p.value - b) < max(4 * p.std, 0.3 * b), (p, b)
-    # the location tests see the approach direction of the rows' first poses, which follow the
-    # previous row's last pose: the strongest significant channel is a direction
-    assert d.location.strongest.kind == "direction", d.location.report()
+    # the direction channel the location tests see is each row's first pose's approach from the
+    # previous row's last pose (a distance's pose b), not from the previous row's pose a
+    s = next(c for c in d.location.channels if c.channel == "direction_q1").values
+    q_time = np.empty((2 * 70 + 20, 3))
+    q_time[0:140:2], q_time[1:140:2], q_time[140:] = rec.qa[:70], rec.qb[:70], rec.qa[70:]
+    step = np.sign(np.diff(q_time[:, 0]))
+    np.testing.assert_array_equal(s[1:70], step[1:139:2])
+    np.testing.assert_array_equal(s[70:], step[139:])
 
 
 def test_clean_session_of_the_same_kind_is_none():
