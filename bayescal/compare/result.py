@@ -154,7 +154,7 @@ def compare_methods(
     *,
     methods: str = "ls,ridge,tsvd",
     trials: int = 500,
-    dof: int | None = 6,
+    dof: int | None = None,
     n_poses: int = 36,
     n_eval: int = 100,
     seed: int = 0,
@@ -183,7 +183,8 @@ def compare_methods(
     methods : str
         Comma-separated registry names with options (``ls,ridge:lam=0.1,tsvd:k=20``).
     trials : int
-    dof : {6, 5, 3}
+    dof : {6, 5, 3}, optional
+        Default 6, or the recording's.
     n_poses, n_eval : int
     seed : int
         Trial ``t`` uses child ``t`` of ``SeedSequence(seed)``.
