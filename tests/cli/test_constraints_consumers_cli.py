@@ -106,3 +106,15 @@ def test_frame_fit_on_a_constraint_recording_is_refused(tmp_path, command, capsy
     write_constraints(rec, simulate_distances(load_machine(machine), 4, seed=1).recording)
     assert main([command, str(rec), "--machine", str(machine), "--frame", "fit"]) == 2
     assert "constraint recording" in capsys.readouterr().err
+
+
+def test_diagnose_figures_report_and_calibrated_machine(tmp_path):
+    machine, sim = KINDS["delta"]
+    rec = tmp_path / "bb.csv"
+    assert main(["simulate", "--machine", str(machine), *sim, "--seed", "4", "--out", str(rec), "--quiet"]) == 0
+    figs, report, cal = tmp_path / "figs", tmp_path / "d.html", tmp_path / "cal.toml"
+    assert main(["diagnose", str(rec), "--machine", str(machine), "--effects", "backlash", "--figures", str(figs),
+                 "--report", str(report), "--write-machine", str(cal), "--quiet"]) == 0
+    assert (figs / "residuals_vs_channels.png").stat().st_size > 0 and report.stat().st_size > 0
+    assert load_machine(cal).n_params == load_machine(machine).n_params  # the geometry, not the pivot
+    assert main(["identify", str(rec), "--machine", str(cal), "--method", "map", "--quiet"]) in (0, 1)

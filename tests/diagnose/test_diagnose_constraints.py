@@ -1,15 +1,18 @@
 """diagnose on constraint recordings (distances, heights, ballbar): noise gives "none", a gross reading
 is named by its CSV line, and lost motion simulated by the independent nut-and-screw physics of
-tests/physics (not bayescal's backlash effect) is named backlash, with dead bands near the truth."""
+tests/physics (not bayescal's backlash effect) is named backlash, with dead bands near the truth;
+the machine --write-machine writes reproduces the diagnosis's final misfit."""
 
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from bayescal.constraint_model import ConstraintModel
 from bayescal.diagnose import diagnose
+from bayescal.diagnose.calibrated import calibrated_machine
 from bayescal.io.constraints import ConstraintRecording
-from bayescal.machines import load_machine
+from bayescal.machines import load_machine, machine_from_text
 from bayescal.simulate import draw_errors, draw_poses
 from bayescal.simulate_constraints import simulate_distances
 from tests.physics.nut_screw import LostMotion
@@ -82,6 +85,14 @@ def test_lost_motion_of_an_independent_nut_screw_is_named_backlash():
     step = np.sign(np.diff(q_time[:, 0]))
     np.testing.assert_array_equal(s[1:70], step[1:139:2])
     np.testing.assert_array_equal(s[70:], step[139:])
+    # --write-machine: the calibrated geometry with the [effect.backlash] table, which the constraint
+    # model applies to every solved pose: its misfit on the recording is the diagnosis's final one
+    cal = machine_from_text(calibrated_machine(m, d).text, "<calibrated>")
+    assert [e.name for e in cal.effects] == ["backlash"] and cal.n_params == m.n_params
+    model = ConstraintModel.from_recording(cal, rec)
+    r = model.residual(model.predict(None)) / model.row_sigma
+    assert float(np.sum(r**2)) == pytest.approx(d.chi2_final, rel=1e-6)
+    assert d.chi2_final < 0.2 * d.chi2_geometric
 
 
 def test_clean_session_of_the_same_kind_is_none():
