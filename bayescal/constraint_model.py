@@ -92,6 +92,15 @@ class PivotAugmented:
         J = self.base.tool_jacobian(q, self._machine_theta(theta), poses)
         return np.concatenate([J, np.zeros(J.shape[:2] + (self.n_params - self.base.n_params,))], axis=2)
 
+    def actuator_jacobian(self, q, theta, poses) -> NDArray:
+        """The machine's ``d pose / d q`` (pivots do not enter it)."""
+        return self.base.actuator_jacobian(q, self._machine_theta(theta), poses)
+
+    @property
+    def geometry_part(self) -> tuple[Machine, NDArray]:
+        """The machine whose geometry the parameters describe, and their indices (the pivots are nuisance)."""
+        return self.base, np.arange(self.base.n_params)
+
     def to_toml(self, theta: ArrayLike | None = None) -> str:
         """The calibrated machine file (pivots are not part of the machine)."""
         theta = self.check_theta(theta)
@@ -105,6 +114,9 @@ class ConstraintPrediction:
     y: NDArray
     poses: ToolPoses
     row_success: NDArray
+    #: Per row, the unit vector along which the row measures its tool point(s), shape (n_sets * n_rows, 3):
+    #: ``(x_a - x_b) / |x_a - x_b|``, ``e_z`` or ``(x_a - c) / |x_a - c|``.
+    direction: NDArray | None = None
 
     @property
     def success(self) -> NDArray:
@@ -178,7 +190,12 @@ class ConstraintModel:
     # ----------------------------------------------------------- construction
     @classmethod
     def from_recording(cls, machine: Machine, rec: ConstraintRecording, *, dof: int | None = None) -> "ConstraintModel":
-        """The model of a constraint recording (checked against the machine's actuators and ``q_limits``)."""
+        """The model of a constraint recording (checked against the machine's actuators and ``q_limits``).
+
+        A machine that carries effects (``[effect.<name>]`` tables) has them
+        applied at their stored values to every pose the rows measure, as
+        :meth:`bayescal.measurement.MeasurementModel.from_recording` does.
+        """
         if dof not in (None, 1):
             raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
         rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
@@ -186,6 +203,14 @@ class ConstraintModel:
             base=machine, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot,
             y_measured=rec.value[:, None], pose_sigma=rec.sigma, aux=dict(rec.aux),
         )
+        if machine.effects:
+            # the machine file's [effect.*] tables at their stored values (FORMATS.md section 7), as for pose
+            # recordings: every solved pose moves by the effects' dq, driven by its row's channels, in time order
+            from .effects.stored import effect_delta_q
+
+            pose_aux = {k: np.asarray(v)[model.pose_row] for k, v in model.aux.items()}
+            dq = effect_delta_q(machine, machine.effects, model.pose_q, pose_aux, order=model.pose_order)
+            model = model.with_pose_q(model.pose_q + dq)
         pred = model.predict(None)
         if not pred.success.all():
             i = int(np.flatnonzero(~pred.success)[0])
@@ -350,6 +375,14 @@ class ConstraintModel:
         if b.any():
             cp = self._row_pivots(piv, blocks)
             y[:, b] = np.linalg.norm(xa[:, b] - cp[:, b], axis=2)
+        u = np.zeros((blocks, n, 3))
+        u[:, h, 2] = 1.0
+        if nd:
+            d = xa[:, self._dist] - xb
+            u[:, self._dist] = d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-300)
+        if b.any():
+            d = xa[:, b] - cp[:, b]
+            u[:, b] = d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-300)
         msgs = list(poses.message)
         for j in range(blocks):
             for r, i in enumerate(self._dist):
@@ -357,7 +390,7 @@ class ConstraintModel:
                 if mb and not msgs[j * M + i]:
                     msgs[j * M + i] = f"pose b: {mb}"
         poses = ToolPoses(poses.position, poses.rotation, poses.success, tuple(msgs), poses.state)
-        return ConstraintPrediction(y=y.reshape(-1, 1), poses=poses, row_success=row_ok.reshape(-1))
+        return ConstraintPrediction(y=y.reshape(-1, 1), poses=poses, row_success=row_ok.reshape(-1), direction=u.reshape(-1, 3))
 
     def jacobian(self, theta: ArrayLike | None, prediction: ConstraintPrediction) -> NDArray:
         """``dh/dtheta``, shape (n_rows, 1, P + 3K), analytic (chain rule on ``tool_jacobian``)."""
@@ -387,6 +420,80 @@ class ConstraintModel:
                 k = self._pivot_index[i]
                 J[:, i, P + 3 * k : P + 3 * k + 3] = -u[:, r]
         return J.reshape(-1, 1, self.n_params)
+
+    # ------------------------------------------------- poses (what effects act on)
+    @property
+    def pose_q(self) -> NDArray:
+        """Actuator positions of every pose the model solves, shape (n_rows + n_distances, N).
+
+        The rows' poses a first (``pose_q[:n_poses] == q``), then the poses b
+        of the distance rows in row order: the order of :meth:`predict`'s poses.
+        """
+        return np.vstack([self.qa, self.qb[self._dist]])
+
+    @property
+    def pose_row(self) -> NDArray:
+        """Measurement row of every solved pose, shape (n_rows + n_distances,)."""
+        return np.concatenate([np.arange(self.n_poses), self._dist])
+
+    @property
+    def pose_order(self) -> NDArray:
+        """Time rank of every solved pose: row by row, pose a then (distance rows) pose b."""
+        dist = self._codes == 0
+        rank_a = np.arange(self.n_poses) + np.cumsum(dist) - dist
+        return np.concatenate([rank_a, rank_a[self._dist] + 1])
+
+    def poses_of(self, rows) -> NDArray:
+        """Indices into :attr:`pose_q` of the poses of ``rows``, in the order ``subset(rows)`` solves them."""
+        rows = np.arange(self.n_poses)[np.asarray(rows)]
+        d = rows[self._codes[rows] == 0]
+        return np.concatenate([rows, self.n_poses + np.searchsorted(self._dist, d)]).astype(int)
+
+    def with_pose_q(self, pose_q: NDArray, *, keep_guess: bool = True) -> "ConstraintModel":
+        """The same relations at other actuator positions of the solved poses (an effect's ``q + dq``)."""
+        from dataclasses import replace
+
+        pose_q = np.asarray(pose_q, dtype=float)
+        n = self.n_poses
+        qb = self.qb.copy()
+        qb[self._dist] = pose_q[n:]
+        return replace(self, qa=pose_q[:n], qb=qb, pivot_start=self.pivot_start, pivot_order=self.pivot_ids)
+
+    def effect_inputs(self, theta: NDArray, prediction: ConstraintPrediction | None) -> tuple[Machine, NDArray, ToolPoses | None]:
+        """The machine, its geometry (pivots dropped) and the solved poses at which effects are evaluated (None without a prediction)."""
+        return self.base, np.asarray(theta, dtype=float)[..., : self.base.n_params], None if prediction is None else prediction.poses
+
+    def rows_jacobian(self, Jt: NDArray, prediction: ConstraintPrediction) -> NDArray:
+        """Measurement-row derivative from a derivative of the solved poses.
+
+        Parameters
+        ----------
+        Jt : ndarray, shape (n_rows + n_distances, 6, k)
+            Tool point (rows 0-2) per unit of ``k`` variables, for every pose
+            of :attr:`pose_q` (rows 3-5 are not used: the relations see points).
+        prediction : ConstraintPrediction
+            At which the rows are linearised (one parameter set).
+
+        Returns
+        -------
+        ndarray, shape (n_rows, 1, k)
+            ``u^T (J_a - J_b)`` for distances, ``u^T J_a`` otherwise (:attr:`ConstraintPrediction.direction`).
+        """
+        n = self.n_poses
+        Jp = np.asarray(Jt)[:, :3]
+        Jrow = Jp[:n].copy()
+        if self._dist.size:
+            Jrow[self._dist] -= Jp[n:]
+        return np.einsum("ni,nik->nk", prediction.direction[:n], Jrow)[:, None, :]
+
+    def region(self, prediction: ConstraintPrediction) -> NDArray:
+        """Where each row was measured, shape (n_rows, 3), mm: the tool point of pose a (distances: the midpoint)."""
+        n = self.n_poses
+        pos = prediction.poses.position[: n + self._dist.size]
+        out = pos[:n].copy()
+        if self._dist.size:
+            out[self._dist] = 0.5 * (out[self._dist] + pos[n:])
+        return out
 
     def residual(self, prediction: ConstraintPrediction) -> NDArray:
         """``y_measured - h``, shape (n_rows, 1), mm."""

@@ -232,6 +232,51 @@ class MeasurementModel:
             pose_sigma=None if self.pose_sigma is None else self.pose_sigma[idx],
         )
 
+    # ------------------------------------------------- poses (what effects act on)
+    # A measurement row may involve more than one pose (a distance: two); these say which poses the
+    # model solves, so that effects (which act on actuator positions) and diagnostics work on every
+    # model alike.  Here every row is one pose.
+    @property
+    def pose_q(self) -> NDArray:
+        """Actuator positions of every pose the model solves, shape (n_solved, N): here ``q``.
+
+        The first :attr:`n_poses` are the rows' own poses (``pose_q[:n_poses] == q``).
+        """
+        return self.q
+
+    @property
+    def pose_row(self) -> NDArray:
+        """Measurement row of every solved pose, shape (n_solved,)."""
+        return np.arange(self.n_poses)
+
+    @property
+    def pose_order(self) -> NDArray | None:
+        """Time rank of every solved pose, or None when they are in measurement order (here: None)."""
+        return None
+
+    def poses_of(self, rows) -> NDArray:
+        """Indices into :attr:`pose_q` of the poses of ``rows``, in the order ``subset(rows)`` solves them."""
+        return np.arange(self.n_poses)[np.asarray(rows)]
+
+    def with_pose_q(self, pose_q: NDArray, *, keep_guess: bool = True) -> "MeasurementModel":
+        """The same model at other actuator positions of its solved poses (an effect's ``q + dq``)."""
+        from dataclasses import replace
+
+        return replace(self, q=pose_q, guess=self.guess if keep_guess else None)
+
+    def effect_inputs(self, theta: NDArray, prediction: Prediction | None) -> tuple[Machine, NDArray, ToolPoses | None]:
+        """The machine, geometry and solved poses at which effects are evaluated (``features``, ``actuator_jacobian``).
+
+        Without a prediction the poses are None (an effect's ``dq`` at a geometry needs no poses).
+        """
+        return self.machine, theta, None if prediction is None else prediction.poses
+
+    def region(self, prediction: Prediction) -> NDArray:
+        """Where each row was measured, shape (n_poses, 3), mm: the measured tool point (else the predicted one)."""
+        if self.y_measured is not None:
+            return self.y_measured[:, :3]
+        return prediction.y[:, :3]
+
     # ---------------------------------------------------------------- the model
     def _rows(self, poses: ToolPoses) -> NDArray:
         y = np.empty((poses.position.shape[0], self.dof))

@@ -25,6 +25,12 @@ Methods: registry names, comma separated, options after a colon
 (ridge:lam=0.1, tsvd:k=20; several options separated by ';').  Registered:
 {methods}
 
+With --recording CSV every trial re-measures what that recording measured
+(its poses, or the distance pairs, heights and ballbar circles of a
+constraint recording, FORMATS.md section 6) on its true machine, so the
+methods are compared on the user's own measurement plan; ballbar pivots
+are fitted as nuisance parameters and the output error is the geometry's.
+
 Trials are seeded by their index: the answer is the same in-process, on
 --workers N local processes, or on dask (--dask-workers N for a local
 cluster, --scheduler tcp://host:port for a running one).  With --out DIR
@@ -39,6 +45,7 @@ examples:
   bayescal compare --machine m.toml --methods ls,ridge:lam=0.1,ridge:lam=1,tsvd:k=25 --dof 5 --trials 200 --workers 2
   bayescal compare --machine m.toml --methods ridge,tsvd --trials 2000 --dask-workers 8 --out big --json big.json
   bayescal compare --machine m.toml --methods ls,ridge --trials 500 --scheduler tcp://10.0.0.5:8786 --out run1
+  bayescal compare --machine m.toml --recording ballbar.csv --methods ridge,tsvd --trials 200
 """
 
 
@@ -51,8 +58,10 @@ def register(sub) -> None:
     p.add_argument("--machine", required=True, help="nominal machine file TOML with [workspace] q_limits")
     p.add_argument("--methods", default="ls,ridge,tsvd", help="comma-separated methods (default ls,ridge,tsvd)")
     p.add_argument("--trials", type=int, default=500, help="Monte Carlo trials (default 500)")
-    p.add_argument("--dof", type=int, choices=(6, 5, 3), default=6, help="measurement (default 6)")
-    p.add_argument("--poses", type=int, default=36, help="measured poses per trial (default 36)")
+    p.add_argument("--dof", type=int, choices=(6, 5, 3), help="measurement (default 6, or the --recording's)")
+    p.add_argument("--poses", type=int, help="measured poses per trial (default 36; not with --recording)")
+    p.add_argument("--recording", metavar="CSV",
+                   help="re-measure this recording's poses or relations (distances, heights, ballbar) in every trial")
     p.add_argument("--eval-poses", type=int, default=100, help="fresh poses for the output error (default 100)")
     p.add_argument("--free", choices=("auto", "all"), default="auto",
                    help="auto: the identifiable set of each trial (default); all: every parameter")
@@ -89,9 +98,12 @@ def run(args) -> int:
         raise InputError(f"--trials: expected a positive number, got {args.trials}")
     if not 0 < args.alpha < 1:
         raise InputError(f"--alpha: expected a number between 0 and 1, got {args.alpha}")
+    if args.recording and args.poses is not None:
+        raise InputError(f"--poses: every trial re-measures {args.recording}'s measurements; drop --poses or --recording")
     machine = load_machine(args.machine)
     cmp = compare_methods(
-        machine, methods=args.methods, trials=args.trials, dof=args.dof, n_poses=args.poses, n_eval=args.eval_poses,
+        machine, methods=args.methods, trials=args.trials, dof=args.dof if args.recording else (args.dof or 6),
+        n_poses=36 if args.poses is None else args.poses, n_eval=args.eval_poses, recording=args.recording,
         seed=args.seed, free=args.free, tolerance_scale=args.tolerance_scale, metric=args.metric, alpha=args.alpha,
         out=args.out, workers=args.workers, dask_workers=args.dask_workers, scheduler=args.scheduler,
         retries=args.retries, progress=not (args.no_progress or args.quiet),

@@ -26,6 +26,12 @@ Diagnose what the geometric model leaves out.
    decisive (> ln 100) and the leave-poses-out cross-validated position RMS
    improves; combine effects by greedy forward selection.
 
+A constraint recording (distances, heights, ballbar readings; FORMATS.md
+section 6) is diagnosed the same way, one row per measurement: the effects
+act on the actuator positions of every pose a row measures (a distance's
+pose a, then its pose b, in that time order), the pose region is the tool
+point the row measures, and outliers are named by CSV line.
+
 Verdict: an effect name, "none" (noise explains the residuals) or
 "unexplained" (structured mismatch that no effect explains; see 'located').
 
@@ -54,7 +60,7 @@ def register(sub) -> None:
         "diagnose", help="locate and name physics the geometric model leaves out", description=HELP,
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (docs/formats.md section 2), rows in measurement order")
+    p.add_argument("recording", help="recording CSV (docs/formats.md section 2, or a constraint recording, section 6), rows in measurement order")
     p.add_argument("--machine", required=True, help="nominal machine file TOML (docs/formats.md section 1)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
     p.add_argument("--figures", metavar="DIR", help="write residual-against-channel figures (PNG) here")
@@ -81,7 +87,7 @@ def run(args) -> int:
     from ..diagnose import diagnose
     from . import EXIT_OK
 
-    machine, rec, model = recording_model(args)
+    machine, rec, model = recording_model(args, constraints=True)
     effects = None
     if args.effects is not None:
         effects = name_list(args.effects)

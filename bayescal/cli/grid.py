@@ -29,6 +29,11 @@ absent, as in a recording without it: no payload; thermal expansion needs
 --aux temp_C=... . Grid nodes have no approach direction, so backlash is
 not in the grid (compensate it on reversal).
 
+A constraint recording (distances, heights, ballbar readings; FORMATS.md
+section 6) gives the grid of the geometry it calibrates; ballbar pivots are
+nuisance parameters, fitted and left out of the grid (so is a fitted
+instrument frame).
+
 --space tool spans the grid over the nominal tool point instead (x, y, z in
 mm, the coordinates the actuators set; nominal inverse kinematics at every
 node): at each node the residual error (actual minus commanded) and its
@@ -57,7 +62,7 @@ def register(sub) -> None:
         "grid", help="compensation grid with uncertainty per node", description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (docs/formats.md section 2)")
+    p.add_argument("recording", help="recording CSV (docs/formats.md section 2, or a constraint recording, section 6)")
     p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
     p.add_argument("--method", choices=("map", "kalman", "mcmc"), default="map", help="how to identify (default map)")
     p.add_argument("--free", default="all", help="'all' (default), 'auto' or comma-separated names")
@@ -96,7 +101,7 @@ def run(args) -> int:
     from ..effects.stored import parse_aux_values
 
     aux = parse_aux_values(args.aux)  # bad --aux is bad input before any work
-    machine, rec, model = recording_model(args)
+    machine, rec, model = recording_model(args, constraints=True)
     if aux and not machine.effects:
         raise InputError(f"--aux: {args.machine} carries no [effect.*] tables, so the grid depends on no channel")
     from ..effects.stored import PROBE_CHANNELS
@@ -125,7 +130,7 @@ def run(args) -> int:
     if args.nodes < 2:
         raise InputError(f"--nodes: expected at least 2, got {args.nodes}")
     # the grid is over the machine in its base frame: an instrument frame (fitted or known) is left out
-    base, theta, free_mask, kw = base_frame_parts(machine, res.theta, res.free, kw)
+    base, theta, free_mask, kw = base_frame_parts(model.machine, res.theta, res.free, kw)
     space = args.space
     if space == "auto":
         space = "tool" if getattr(base, "redundant", ()) else "actuator"
@@ -171,19 +176,23 @@ def run(args) -> int:
 
 
 def base_frame_parts(machine, theta, free, kw: dict):
-    """The base machine, its part of ``theta`` / ``free``, and of the covariance or samples (frame dropped)."""
-    from ..machines.framed import InstrumentFrame
+    """The geometry's machine, its part of ``theta`` / ``free``, and of the covariance or samples.
 
-    if not isinstance(machine, InstrumentFrame) or not machine.fit:
-        return getattr(machine, "machine", machine), theta, free, kw
-    k = machine.n_frame
-    inner = np.flatnonzero(free) >= k  # which columns of the covariance / samples are the machine's
+    Nuisance parameters of the model's machine (a fitted instrument frame,
+    ballbar pivots: :attr:`bayescal.machines.Machine.geometry_part`) are dropped.
+    """
+    base, idx = machine.geometry_part
+    if idx.size == machine.n_params:
+        return base, theta, free, kw
+    keep = np.zeros(machine.n_params, dtype=bool)
+    keep[idx] = True
+    inner = keep[np.flatnonzero(free)]  # which columns of the covariance / samples are the geometry's
     out = {}
     if kw.get("covariance") is not None:
         out["covariance"] = kw["covariance"][np.ix_(inner, inner)]
     if kw.get("samples") is not None:
         out["samples"] = kw["samples"][:, inner]
-    return machine.machine, theta[k:], free[k:], out
+    return base, np.asarray(theta)[idx], np.asarray(free)[idx], out
 
 
 def _ranges(items: list[str], space: str, n_act: int) -> dict:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -78,9 +79,11 @@ class Comparison:
     def report(self) -> str:
         unit, f = _UNITS.get(self.metric, ("", 1.0))
         c = self.config
+        what = (f"the {c['n_poses']} measurements of {c['recording']} re-simulated per trial" if c.get("recording")
+                else f"{c['n_poses']} poses per trial")
         lines = [
             f"bayescal comparison on '{c.get('machine', '')}': {self.n_trials} trials, {c['dof']}-DOF, "
-            f"{c['n_poses']} poses per trial, error on {c['n_eval']} fresh poses, seed {c['seed']}",
+            f"{what}, error on {c['n_eval']} fresh poses, seed {c['seed']}",
             f"  metric {self.metric} ({unit}); nominal (uncalibrated) median {f * np.nanmedian(self.nominal):.4g}",
             "",
             f"  {'method':<22}{'ok':>5}{'failed':>8}{'median':>11}{'mean':>11}{'q05':>10}{'q95':>10}",
@@ -136,7 +139,7 @@ def comparison_from_records(
                 msgs.append(m["message"])
         messages[lab] = msgs[:3]
     nominal = np.array([r["nominal"].get(metric, np.nan) for r in records], dtype=float)
-    cfg = {k: v for k, v in config.to_dict().items() if k != "machine_text"}
+    cfg = {k: v for k, v in config.to_dict().items() if k not in ("machine_text", "recording_text")}
     cfg["machine"] = machine_name
     return Comparison(
         config=cfg, labels=labels, metric=metric, errors=errors, nominal=nominal,
@@ -151,7 +154,7 @@ def compare_methods(
     *,
     methods: str = "ls,ridge,tsvd",
     trials: int = 500,
-    dof: int = 6,
+    dof: int | None = None,
     n_poses: int = 36,
     n_eval: int = 100,
     seed: int = 0,
@@ -165,6 +168,7 @@ def compare_methods(
     scheduler: str | None = None,
     retries: int = 3,
     progress: bool = True,
+    recording: str | os.PathLike | None = None,
 ) -> Comparison:
     """Compare identification methods by Monte Carlo on simulated machines.
 
@@ -179,7 +183,8 @@ def compare_methods(
     methods : str
         Comma-separated registry names with options (``ls,ridge:lam=0.1,tsvd:k=20``).
     trials : int
-    dof : {6, 5, 3}
+    dof : {6, 5, 3}, optional
+        Default 6, or the recording's.
     n_poses, n_eval : int
     seed : int
         Trial ``t`` uses child ``t`` of ``SeedSequence(seed)``.
@@ -195,6 +200,13 @@ def compare_methods(
         Save and resume trials there (see :mod:`bayescal.compare.runner`).
     workers, dask_workers, scheduler, retries, progress
         Backend (see :func:`bayescal.compare.runner.run_trials`).
+    recording : path, optional
+        A recording (measured poses, or a constraint recording of
+        distances, heights and ballbar readings, FORMATS.md section 6):
+        every trial then re-measures what it measured on its true machine,
+        with the machine file's noise (or the recording's per-row
+        ``sigma_position``), instead of ``n_poses`` drawn poses; ``dof`` as
+        for ``identify`` (the recording's by default), ``n_poses`` unused.
 
     Returns
     -------
@@ -208,9 +220,23 @@ def compare_methods(
         raise InputError("n_poses and n_eval: expected positive integers")
     if machine.q_limits is None:
         raise InputError(f"{machine.source}: the machine file has no [workspace] q_limits; a comparison draws poses there")
+    rec_text = rec_name = ""
+    if recording is not None:
+        from ..models import model_from_recording, read_any_recording
+
+        rec_name = str(recording)
+        try:
+            rec_text = Path(recording).read_text(encoding="utf-8-sig")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputError(f"{rec_name}: cannot read the recording ({exc})") from exc
+        # checked here (bad input is an error before any trial), and its size and DOF recorded
+        model = model_from_recording(machine, read_any_recording(rec_name, text=rec_text), dof=dof)
+        n_poses, dof = model.n_poses, model.dof
+    elif dof is None:
+        dof = 6
     config = CompareConfig(machine_text=machine.to_toml(), methods=methods, trials=int(trials), dof=int(dof),
                            n_poses=int(n_poses), n_eval=int(n_eval), seed=int(seed), free=free,
-                           tolerance_scale=float(tolerance_scale))
+                           tolerance_scale=float(tolerance_scale), recording_text=rec_text, recording=rec_name)
     records, info = run_trials(config, out=out, workers=workers, dask_workers=dask_workers, scheduler=scheduler,
                                retries=retries, progress=progress)
     return comparison_from_records(records, config, metric=metric, alpha=alpha, machine_name=machine.name, info=info)

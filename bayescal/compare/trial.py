@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -50,6 +50,13 @@ class CompareConfig:
         method) or ``all``.
     tolerance_scale : float
         True machines drawn from ``N(0, (scale * tol)^2)``.
+    recording_text, recording : str
+        A recording's CSV text and name (``""``: none).  Given, every trial
+        measures what it measured (the same poses, or the same distance
+        pairs, heights and ballbar readings of a constraint recording) on
+        its true machine instead of ``n_poses`` drawn poses; a ballbar's
+        true pivot is drawn about its start estimate with the pivot
+        tolerance, and ``n_poses`` and ``dof`` are the recording's.
     """
 
     machine_text: str
@@ -61,6 +68,8 @@ class CompareConfig:
     seed: int = 0
     free: str = "auto"
     tolerance_scale: float = 1.0
+    recording_text: str = ""
+    recording: str = ""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -78,6 +87,37 @@ def trial_rng(seed: int, t: int) -> np.random.Generator:
 @lru_cache(maxsize=4)
 def _machine(text: str):
     return machine_from_text(text, "<comparison machine>")
+
+
+@lru_cache(maxsize=4)
+def _recording_model(machine_text: str, recording_text: str, name: str, dof: int):
+    """The measurement model of the comparison's recording (any kind of recording)."""
+    from ..models import model_from_recording, read_any_recording
+
+    return model_from_recording(_machine(machine_text), read_any_recording(name, text=recording_text), dof=dof)
+
+
+def _trial_model(cfg: "CompareConfig", machine, rng: np.random.Generator):
+    """The trial's true parameters and its measurement model with simulated values.
+
+    Returns ``(theta_true, model)``; ``theta_true`` has the model's
+    parameters (the machine's, then nuisance ones such as ballbar pivots).
+    """
+    scale = cfg.tolerance_scale
+    if not cfg.recording_text:
+        theta = draw_errors(machine, rng, tolerance=machine.tolerance * scale)
+        q = draw_poses(machine, cfg.n_poses, rng, theta)
+        return theta, MeasurementModel.from_recording(machine, measure(machine, q, theta, cfg.dof, rng), dof=cfg.dof)
+    model = _recording_model(cfg.machine_text, cfg.recording_text, cfg.recording, cfg.dof)
+    for _ in range(20):  # a true machine that cannot assemble one of the recorded poses is redrawn
+        theta = draw_errors(model.machine, rng, tolerance=model.machine.tolerance * scale)
+        pred = model.predict(theta)
+        if pred.success.all():
+            break
+    else:
+        raise BayescalError(f"{cfg.recording}: 20 true machines drawn from the tolerances could not assemble its poses")
+    y = pred.y + model.row_sigma * rng.normal(size=pred.y.shape)
+    return theta, replace(model, y_measured=y)
 
 
 def _output_errors(machine, q_eval, true_poses, theta) -> dict[str, float]:
@@ -123,15 +163,15 @@ def _run_trial(config: dict, t: int) -> dict:
     cfg = CompareConfig(**config)
     machine = _machine(cfg.machine_text)
     rng = trial_rng(cfg.seed, t)
-    theta = draw_errors(machine, rng, tolerance=machine.tolerance * cfg.tolerance_scale)
-    q = draw_poses(machine, cfg.n_poses, rng, theta)
-    rec = measure(machine, q, theta, cfg.dof, rng)
-    q_eval = draw_poses(machine, cfg.n_eval, rng, theta)
-    true_poses = machine.forward(q_eval, theta)
-    model = MeasurementModel.from_recording(machine, rec, dof=cfg.dof)
+    theta_all, model = _trial_model(cfg, machine, rng)
+    # the output error is the geometry's: nuisance parameters (ballbar pivots) are not evaluated
+    geo, idx = model.machine.geometry_part
+    theta = theta_all[idx]
+    q_eval = draw_poses(geo, cfg.n_eval, rng, theta)
+    true_poses = geo.forward(q_eval, theta)
     # one parameter set for every method: the comparison is about the solvers, not the selection
-    free = resolve_free(model, cfg.free, np.zeros(machine.n_params))[0]
-    out = {"trial": int(t), "nominal": _output_errors(machine, q_eval, true_poses, np.zeros(machine.n_params)),
+    free = resolve_free(model, cfg.free, np.zeros(model.n_params))[0]
+    out = {"trial": int(t), "nominal": _output_errors(geo, q_eval, true_poses, np.zeros(geo.n_params)),
            "n_free": int(free.size), "methods": {}}
     for spec in cfg.specs:
         t0 = time.perf_counter()
@@ -143,7 +183,7 @@ def _run_trial(config: dict, t: int) -> dict:
             entry["success"] = bool(res.success)
             entry["message"] = res.message
             if res.success:
-                errs = _output_errors(machine, q_eval, true_poses, res.theta)
+                errs = _output_errors(geo, q_eval, true_poses, np.asarray(res.theta)[idx])
                 if errs:
                     entry.update(errs)
                 else:

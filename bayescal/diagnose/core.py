@@ -39,7 +39,9 @@ from ..effects.model import EffectFit, actuator_residual, effect_residual, fit_m
 from ..errors import InputError, KinematicsError
 from ..io.recording import Recording
 from ..machines.base import Machine
+from ..effects.base import approach_direction
 from ..measurement import MeasurementModel
+from ..models import model_from_recording
 from ..outliers import recording_lines
 from .confound import geometry_confound
 from .locate import locate
@@ -70,8 +72,10 @@ def _cv_rms(model: MeasurementModel, cands: list[_Candidate], folds: list[NDArra
     for test in folds:
         train = np.setdiff1d(np.arange(n), test)
         tr = model.subset(train)
-        fit = fit_map(tr, [(c.effect, c.features.subset(train)) for c in cands], theta0=theta0, eta0=eta0)
-        r = effect_residual(model.subset(test), [(c.effect, c.features.subset(test)) for c in cands], fit.theta, fit.eta)
+        # features are per solved pose: a row's poses are model.poses_of(row) (a distance has two)
+        ptr, pte = model.poses_of(train), model.poses_of(test)
+        fit = fit_map(tr, [(c.effect, c.features.subset(ptr)) for c in cands], theta0=theta0, eta0=eta0)
+        r = effect_residual(model.subset(test), [(c.effect, c.features.subset(pte)) for c in cands], fit.theta, fit.eta)
         sq += float(np.sum(r[:, :3] ** 2))
         count += len(test)
     return float(np.sqrt(sq / count))
@@ -133,8 +137,10 @@ def diagnose(
         Nominal machine (its ``[measurement]`` noise is the yardstick).
         Effects it carries (``[effect.*]`` tables) are not applied: every
         effect is fitted afresh with the geometry.
-    recording : Recording
-        Rows in measurement order.
+    recording : Recording or ConstraintRecording
+        Rows in measurement order: measured poses (FORMATS.md section 2) or
+        distances, heights and ballbar readings (section 6), whose poses the
+        effects act on (a distance's pose a, then its pose b).
     effects : list of str, optional
         Effects to try (forced: an effect that cannot be modelled is an
         error).  Default: every effect of the library that applies.
@@ -167,7 +173,7 @@ def diagnose(
     names = list(EFFECTS) if effects is None else list(dict.fromkeys(effects))
     settings = dict(effect_settings or {})
     lib = [get_effect(n, **settings.get(n, {})) for n in names]  # raises on unknown names and settings
-    model = MeasurementModel.from_recording(machine, recording)
+    model = model_from_recording(machine, recording, check=False)
     n = model.n_poses
     if n < 2 * n_folds:
         raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
@@ -196,14 +202,19 @@ def diagnose(
         # per-pose least squares undoes the exclusion's scaling: an excluded pose's gross error must not
         # reach the actuator-space tests (periodogram, pitch search); zero is "no actuator error"
         dq_res[screen.excluded] = 0.0
-    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, recording.position, seed=seed)
+    # effects act on every solved pose (a distance row has two), in time order, with its row's channels
+    pose_aux = {k: np.asarray(v)[model.pose_row] for k, v in aux.items()}
+    direction = approach_direction(model.pose_q, model.pose_order)[:n]
+    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, model.region(pred0), seed=seed,
+                      direction=direction)
+    eff_machine, eff_theta, eff_poses = model.effect_inputs(fit0.theta, pred0)
 
     cands: list[_Candidate] = []
     skipped: list[tuple[str, str]] = []
     for eff in lib:
         why = eff.not_applicable(machine, aux)
         if why is None:
-            f = eff.features(machine, model.q, fit0.theta, aux, None, pred0.poses)
+            f = eff.features(eff_machine, model.pose_q, eff_theta, pose_aux, model.pose_order, eff_poses)
             f = eff.refine(f, model.q, dq_res)
             why = eff.inadmissible(f)
         if why is None:
@@ -337,15 +348,18 @@ def diagnose(
         p_final=p_f,
         rms_cv_geometric=cv0,
         rms_cv_final=cur_cv,
-        rms_noise=float(machine.noise.sigma_position * np.sqrt(3)),
+        # expected per-pose position RMS of pure noise: the position rows' sigmas (3 for a pose, 1 for a
+        # distance), per row as the recording states them (not the exclusion weights of outliers)
+        rms_noise=float(np.sqrt(np.mean(np.sum(np.asarray(base_model.row_sigma)[:, :3] ** 2, axis=1)))),
         n_poses=n,
         dof=model.dof,
         machine_name=machine.name,
         recording=recording.path,
         seed=seed,
         message=message,
-        theta_final=cur_fit.theta,
-        theta_geometric=fit0.theta,
+        # the machine's parameters only: a model's own nuisance parameters (ballbar pivots) follow them
+        theta_final=cur_fit.theta[: machine.n_params],
+        theta_geometric=fit0.theta[: machine.n_params],
         effect_settings={k: dict(v) for k, v in settings.items()},
         outliers=screen,
         confound=confound,

@@ -128,6 +128,7 @@ def locate(
     *,
     seed: int = 0,
     block: int = BLOCK,
+    direction: NDArray | None = None,
 ) -> Location:
     """Test every channel for a dependence of the residuals (see the module docstring).
 
@@ -147,6 +148,10 @@ def locate(
         Seeds the assignment of poses to the blocks of the dependence tests.
     block : int
         Poses per block of the dependence tests (:data:`bayescal.diagnose.dependence.BLOCK`).
+    direction : ndarray, shape (n_poses, n_actuators), optional
+        Each row's approach direction (+1, -1, 0); from ``q`` in row order by
+        default.  Rows with more than one pose (a distance) approach their
+        first pose from the previous row's last, which ``q`` alone does not show.
 
     Returns
     -------
@@ -155,7 +160,7 @@ def locate(
     n, m = q.shape
     blocks = ResidualBlocks(residual_whitened, seed=seed, block=block)
     order = np.arange(n, dtype=float)
-    s = approach_direction(q)
+    s = approach_direction(q) if direction is None else np.asarray(direction, float)
     tests: list[tuple[str, str, NDArray, str]] = []
     for name, v in aux.items():
         v = np.asarray(v, float)

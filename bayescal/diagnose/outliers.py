@@ -15,7 +15,9 @@ their place in the measurement order (the order carries the approach
 direction and the time the effects read); they are never held-out test
 poses of the cross-validation.  The screen is repeated at the refit
 without them (at most :data:`MAX_ROUNDS` times) so that one gross pose
-cannot hide another.
+cannot hide another, and excluded poses are tested again by their residual
+against the fit of the others: one that a gross pose only dragged out of
+line (swamping) is released.
 
 When the diagnosis selects effects, the poses are tested again against the
 final model (:func:`retest_with_effects`); if that names other poses, the
@@ -121,7 +123,11 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
         m = OutlierScreen(test=None, excluded=excluded, action="").weighted_model(model)
         fit = fit_map(m)
         test = pose_test(model, fit.theta, free, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=lines)
-        new = excluded | test.flagged
+        # an excluded pose is tested by its residual against the fit of the others, so it stays out only
+        # while that still flags it: a gross reading that dragged the first fit makes innocent poses
+        # stand out there (swamping; a few parameters seen by few rows, as distances on a delta), and
+        # they are released once it is out
+        new = test.flagged.copy()
         if new.sum() > MAX_FRACTION * n:
             return OutlierScreen(
                 test=test, excluded=np.zeros(n, dtype=bool),
@@ -166,21 +172,20 @@ def retest_with_effects(
     screen : OutlierScreen
         The screen the diagnosis used.
     """
-    from ..effects.model import _dq, _effect_columns, _predict, _slices
+    from ..effects.model import _dq, _effect_theta, _predict, _slices, effect_columns
 
     if not effects:
         return None
     machine = model.machine
     P = machine.n_params
     slices = _slices(effects, model)
-    q_eff = model.q + _dq(effects, slices, fit.eta, model.q.shape, fit.theta)
+    q_eff = model.pose_q + _dq(effects, slices, fit.eta, model.pose_q.shape, _effect_theta(model, fit.theta))
     sub, pred = _predict(model, q_eff, fit.theta, None)
     sig = np.asarray(model.row_sigma)
     # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq
     Jg = sub.jacobian(fit.theta, pred)
-    Jq = sub.rows_jacobian(machine.actuator_jacobian(sub.q, fit.theta, pred.poses), pred)
-    Je, Jt = _effect_columns(effects, slices, Jq, fit.eta, fit.theta)
-    cols = [Jg if Jt is None else Jg + Jt, Je]
+    Je, Jt = effect_columns(sub, fit.theta, pred, effects, slices, fit.eta)
+    cols = [Jg if Jt is None else Jg + Jt] + Je
     scale = np.concatenate([machine.tolerance, [p.prior_sd for p in fit.params]])
     A = (np.concatenate(cols, axis=2) / sig[:, :, None]).reshape(-1, P + len(fit.params)) * scale
     r = (model.residual(pred) / sig).reshape(-1)

@@ -19,7 +19,7 @@ the posterior covariance ``(A^T A + I)^-1`` and the log marginal likelihood
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -30,7 +30,7 @@ from ..machines.base import ToolPoses, map_state
 from ..measurement import MeasurementModel, Prediction
 from .base import Effect, EffectParam, Features
 
-__all__ = ["EffectFit", "fit_map", "effect_residual", "actuator_residual"]
+__all__ = ["EffectFit", "fit_map", "effect_residual", "actuator_residual", "effect_jacobian", "actuator_rows_jacobian"]
 
 
 @dataclass(frozen=True)
@@ -112,18 +112,9 @@ def _dq(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, shape,
     return dq
 
 
-def _effect_columns(effects: Sequence[tuple[Effect, Features]], slices, Jq: NDArray, eta: NDArray, theta: NDArray):
-    """Jacobian columns of the effects, ``(d h / d q) (d dq / d eta)`` (n, dof, K), and what ``dq``'s
-    dependence on the geometry adds to the geometric columns, ``(d h / d q) (d dq / d theta)`` (n, dof, P) or None."""
-    cols, extra = [], None
-    for (eff, f), sl in zip(effects, slices):
-        cols.append(np.einsum("ndm,nmk->ndk", Jq, eff.delta_q_jacobian_at(f, eta[sl], theta)))
-        Jt = eff.delta_q_theta_jacobian(f, eta[sl], theta)
-        if Jt is not None:
-            add = np.einsum("ndm,nmp->ndp", Jq, Jt)
-            extra = add if extra is None else extra + add
-    n, dof = Jq.shape[:2]
-    return (np.concatenate(cols, axis=2) if cols else np.zeros((n, dof, 0))), extra
+def _effect_theta(model: MeasurementModel, theta: NDArray) -> NDArray:
+    """The geometry the effects see (:meth:`MeasurementModel.effect_inputs`: a constraint model drops its pivots)."""
+    return model.effect_inputs(np.asarray(theta, dtype=float), None)[1]
 
 
 def _merge(pred: Prediction, other: Prediction) -> Prediction:
@@ -131,6 +122,9 @@ def _merge(pred: Prediction, other: Prediction) -> Prediction:
     take = ~pred.success & other.success
     if not take.any():
         return pred
+    if take.shape[0] != pred.poses.position.shape[0]:
+        # rows of several poses (a distance): no per-pose merge, take the better prediction whole
+        return other if other.success.sum() > pred.success.sum() else pred
     st, ost = pred.poses.state, other.poses.state
 
     def pick(a, b):
@@ -145,7 +139,8 @@ def _merge(pred: Prediction, other: Prediction) -> Prediction:
 
 
 def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, note: str = " (with the effect applied)") -> tuple[MeasurementModel, Prediction]:
-    sub = replace(model, q=q_eff)
+    # q_eff: every solved pose's actuator positions (model.pose_q + dq), as effects act on poses, not rows
+    sub = model.with_pose_q(q_eff)
     pred = sub.predict(theta, guess=guess)
     if not pred.success.all():
         # Newton from a given start can miss a pose that a nearby start solves: retry from the
@@ -154,7 +149,7 @@ def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, not
         if base.success.any():
             pred = _merge(pred, sub.predict(theta, guess=base.poses))
         if not pred.success.all():
-            pred = _merge(pred, replace(sub, guess=None).predict(theta, guess=None))
+            pred = _merge(pred, model.with_pose_q(q_eff, keep_guess=False).predict(theta, guess=None))
     if not pred.success.all():
         i = int(np.flatnonzero(~pred.success)[0])
         raise KinematicsError(f"pose {i + 1}: {pred.poses.message[i]}{note}")
@@ -164,19 +159,76 @@ def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, not
 def effect_residual(
     model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray, eta: NDArray
 ) -> NDArray:
-    """``y - h(q + dq(eta), theta)``, shape (n_poses, dof): prediction on (held-out) poses."""
+    """``y - h(q + dq(eta), theta)``, shape (n_poses, dof): prediction on (held-out) poses.
+
+    The features are those of the model's solved poses (:attr:`MeasurementModel.pose_q`).
+    """
     slices = _slices(effects, model)
-    q_eff = model.q + _dq(effects, slices, np.asarray(eta, float), model.q.shape, np.asarray(theta, float))
+    q_eff = model.pose_q + _dq(effects, slices, np.asarray(eta, float), model.pose_q.shape, _effect_theta(model, theta))
     _, pred = _predict(model, q_eff, theta, None)
     return model.residual(pred)
 
 
 def actuator_residual(model: MeasurementModel, theta: NDArray, residual: NDArray, prediction: Prediction) -> NDArray:
-    """Residuals mapped to actuator space: per pose the ``dq`` (mm) that best explains them (whitened LS)."""
-    Jq = model.rows_jacobian(model.machine.actuator_jacobian(model.q, theta, prediction.poses), prediction)
+    """Residuals mapped to actuator space: per row the ``dq`` (mm) of its own pose that best explains them (whitened LS).
+
+    Returns an array of shape (n_poses, n_actuators): the change of the row's
+    first pose (``model.q``); a row's other poses (a distance's pose b) are
+    held, so that the answer is one actuator vector per row.
+    """
+    Jq = actuator_rows_jacobian(model, theta, prediction, own_pose_only=True)
     Jw = Jq / model.row_sigma[:, :, None]
     rw = residual / model.row_sigma
     return np.stack([np.linalg.lstsq(Jw[i], rw[i], rcond=None)[0] for i in range(model.n_poses)])
+
+
+def actuator_rows_jacobian(model: MeasurementModel, theta: NDArray, prediction: Prediction, *, own_pose_only: bool = False) -> NDArray:
+    """``d rows / d q`` of every solved pose, per pose, shape (n_solved, 6, N) before the rows map.
+
+    Returns the rows' derivative, shape (n_poses, dof, N), with respect to a
+    common change of every solved pose's actuator positions; with
+    ``own_pose_only`` only the rows' first poses move.
+    """
+    machine, th, poses = model.effect_inputs(theta, prediction)
+    Ja = machine.actuator_jacobian(model.pose_q, th, poses)
+    if own_pose_only:
+        Ja = Ja.copy()
+        Ja[model.n_poses :] = 0.0
+    return model.rows_jacobian(Ja, prediction)
+
+
+def effect_columns(model: MeasurementModel, theta: NDArray, prediction: Prediction, effects, slices, eta) -> tuple[list[NDArray], NDArray | None]:
+    """The effects' Jacobian columns by the chain rule through every solved pose's ``dq``.
+
+    Returns
+    -------
+    columns : list of ndarray
+        Per effect, ``d rows / d eta``, shape (n_poses, dof, k).
+    geometric : ndarray or None
+        What ``dq``'s dependence on the geometry adds to the geometric columns,
+        ``(d rows / d q) (d dq / d theta)``, shape (n_poses, dof, P) (zero for
+        nuisance parameters the effects do not see); None when no effect is
+        :attr:`~bayescal.effects.base.Effect.geometry_dependent`.
+    """
+    machine, th, poses = model.effect_inputs(theta, prediction)
+    Ja = machine.actuator_jacobian(model.pose_q, th, poses)
+    cols, extra = [], None
+    for (eff, f), sl in zip(effects, slices):
+        cols.append(model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, eff.delta_q_jacobian_at(f, eta[sl], th)), prediction))
+        Jt = eff.delta_q_theta_jacobian(f, eta[sl], th)
+        if Jt is not None:
+            add = model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, Jt), prediction)
+            P = model.machine.n_params
+            if add.shape[2] < P:
+                # the effects see the leading geometry only; nuisance parameters (pivots) come last
+                add = np.concatenate([add, np.zeros(add.shape[:2] + (P - add.shape[2],))], axis=2)
+            extra = add if extra is None else extra + add
+    return cols, extra
+
+
+def effect_jacobian(model: MeasurementModel, theta: NDArray, prediction: Prediction, effects, slices, eta) -> list[NDArray]:
+    """Per effect, ``d rows / d eta``, shape (n_poses, dof, k) (:func:`effect_columns`)."""
+    return effect_columns(model, theta, prediction, effects, slices, eta)[0]
 
 
 def _slices(effects, model) -> list[slice]:
@@ -229,7 +281,7 @@ def fit_map(
     sig = model.row_sigma
 
     def evaluate(theta, eta, guess):
-        q_eff = model.q + _dq(effects, slices, eta, model.q.shape, theta)
+        q_eff = model.pose_q + _dq(effects, slices, eta, model.pose_q.shape, _effect_theta(model, theta))
         sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if K else "")
         r = model.residual(pred)
         rw = (r / sig).reshape(-1)
@@ -240,9 +292,8 @@ def fit_map(
         Jg = sub.jacobian(theta, pred)
         cols = [Jg]
         if K:
-            Jq = sub.rows_jacobian(machine.actuator_jacobian(sub.q, theta, pred.poses), pred)
-            Je, Jt = _effect_columns(effects, slices, Jq, eta, theta)
-            cols = [Jg if Jt is None else Jg + Jt, Je]
+            Je, Jt = effect_columns(sub, theta, pred, effects, slices, eta)
+            cols = [Jg if Jt is None else Jg + Jt] + Je
         J = np.concatenate(cols, axis=2) / sig[:, :, None]
         return J.reshape(-1, P + K) * scale
 

@@ -56,5 +56,6 @@ def periodogram(q: NDArray, y: NDArray, freqs: NDArray) -> NDArray:
     # of about _CHUNK elements give the same powers in bounded memory.
     step = max(1, _CHUNK // max(len(q), 1))
     return np.concatenate([
-        lombscargle(q, y, w[k:k + step], normalize=True, floating_mean=True) for k in range(0, len(w), step)
+        # atleast_1d: scipy returns a 0-d power for a single frequency (a short stroke, e.g. in rad)
+        np.atleast_1d(lombscargle(q, y, w[k:k + step], normalize=True, floating_mean=True)) for k in range(0, len(w), step)
     ]) if len(w) else np.zeros(0)

@@ -151,6 +151,17 @@ class Machine(ABC):
     def n_params(self) -> int:
         return len(self.layout)
 
+    @property
+    def geometry_part(self) -> tuple["Machine", NDArray]:
+        """The machine whose geometry the parameters describe, and the indices of its parameters.
+
+        A plain machine: itself and every parameter.  A view with nuisance
+        parameters (a fitted instrument frame, ballbar pivots) gives the inner
+        machine and where its parameters sit, so that a compensation grid or
+        an output error is the geometry's alone.
+        """
+        return self, np.arange(self.n_params)
+
     def check_theta(self, theta: ArrayLike | None, n_poses: int | None = None) -> NDArray:
         """``theta`` as an array of shape ``(P,)`` or ``(n_poses, P)``; zeros if None."""
         if theta is None:

@@ -196,6 +196,11 @@ class InstrumentFrame(Machine):
         return 6 if self.fit else 0
 
     @property
+    def geometry_part(self) -> tuple[Machine, NDArray]:
+        """The inner machine and the indices of its parameters (after the frame's, when fitted)."""
+        return self.machine, np.arange(self.n_frame, self.n_params)
+
+    @property
     def layout(self) -> ParamLayout:  # type: ignore[override]
         return _frame_layout() + self.machine.layout if self.fit else self.machine.layout
 

@@ -62,7 +62,9 @@ def plot_diagnosis(diagnosis, out_dir: str | os.PathLike, *, top: int = 6) -> li
             ax.plot(x, 1e3 * dq[:, int(act) - 1], ".", ms=3, color="C3")
             ax.set_ylabel(f"actuator-space residual q{act} (um)")
         else:
-            for k, col in enumerate("xyz"):
+            # a pose's x, y, z rows; a constraint recording's one row per measurement
+            cols = "xyz"[: res.shape[1]] if res.shape[1] > 1 else ("measured value",)
+            for k, col in enumerate(cols):
                 ax.plot(x, res[:, k], ".", ms=3, label=col)
             ax.set_ylabel("whitened residual")
             ax.legend(fontsize=7)

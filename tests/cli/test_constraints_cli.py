@@ -1,5 +1,5 @@
 """Constraint recordings through the command line: simulate --ballbar, identify with every
-deterministic method, --write-machine, clear refusals by commands that take pose recordings only."""
+deterministic method, --write-machine (diagnose, grid and compare: test_constraints_consumers_cli.py)."""
 
 import json
 from pathlib import Path
@@ -63,12 +63,6 @@ def test_identify_ls_on_heights_and_distances(tmp_path):
     ans = json.loads(out.read_text())
     assert ans["rms_after"]["position"] < 1e-6 < ans["rms_before"]["position"]
     assert "tool.point.x" in ans["fixed"] and "tool.point.y" in ans["fixed"]
-
-
-@pytest.mark.parametrize("command", ["diagnose", "grid"])
-def test_pose_only_commands_refuse_clearly(ballbar, command, capsys):
-    assert main([command, str(ballbar), "--machine", str(DELTA)]) == 2
-    assert "constraint recording" in capsys.readouterr().err
 
 
 def test_bad_constraint_recording_exit_2(tmp_path, capsys):

@@ -1,0 +1,56 @@
+"""The measurement model of any recording: measured poses or measured relations.
+
+The one place that knows which model goes with which recording; every
+consumer (diagnosis, comparison, grids) asks here and then sees only the
+measurement-model interface (:mod:`bayescal.measurement`).
+"""
+
+from __future__ import annotations
+
+import os
+
+from .io import Recording, read_recording
+from .io.constraints import ConstraintRecording, is_constraint_recording, read_constraints
+from .machines.base import Machine
+
+__all__ = ["read_any_recording", "model_from_recording"]
+
+
+def read_any_recording(path: str | os.PathLike, *, text: str | None = None) -> Recording | ConstraintRecording:
+    """Read a recording CSV: a constraint recording (a ``measure`` column, FORMATS.md section 6) or measured poses.
+
+    Parameters
+    ----------
+    path : path-like
+        The CSV file (for messages only when ``text`` is given).
+    text : str, optional
+        The file's content.
+    """
+    if text is not None:
+        header = text.lstrip("\ufeff").split("\n", 1)[0]
+        constraint = "measure" in [h.strip() for h in header.split(",")]
+    else:
+        constraint = is_constraint_recording(path)
+    if constraint:
+        return read_constraints(path, text=text)
+    return read_recording(path, text=text)
+
+
+def model_from_recording(machine: Machine, rec: Recording | ConstraintRecording, *, dof: int | None = None, check: bool = True):
+    """The measurement model of ``rec``: a :class:`~bayescal.constraint_model.ConstraintModel` for measured
+    relations, a :class:`~bayescal.measurement.MeasurementModel` for measured poses.
+
+    Raises a BayescalError naming the recording's file and line when the
+    machine cannot assemble one of its poses at the nominal geometry (for
+    measured poses only with ``check``; a constraint recording is always checked).
+    """
+    if isinstance(rec, ConstraintRecording):
+        from .constraint_model import ConstraintModel
+
+        return ConstraintModel.from_recording(machine, rec, dof=dof)
+    from .measurement import MeasurementModel, check_recording_solves
+
+    model = MeasurementModel.from_recording(machine, rec, dof=dof)
+    if check:
+        check_recording_solves(model, rec)
+    return model
