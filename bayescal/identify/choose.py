@@ -50,7 +50,8 @@ through the SVD ``A = U diag(s) V^T``, ``beta = U^T z``:
   posterior expected ratio).  So it is the Bayes decision for the success
   event in the hierarchical model ``c ~ hyperprior``, ``x ~ N(0, c^2 I)``.
   ``G`` is the output map (tool-point Jacobians, tolerance-scaled); without
-  one, the scaled parameter error ``|x_v - x|``.
+  one, the scaled parameter error ``|x_v - x|``.  The default for lambda and
+  k (``studies/choice_rules.py``, docs/regularisation.md).
 
 Where the problem is linearised (see :func:`choose_regularisation`): ridge
 iterates rule and Gauss-Newton to a fixed point (linearise at the converged
