@@ -36,12 +36,13 @@ pose), mcmc (emcee posterior, refused unless converged). See docs/bayes.md.
 --lam auto / --k auto choose the regularisation from the data by a rule
 (--rule): cv (K-fold cross-validation over held-out poses), lcurve (L-curve
 corner), gcv (generalised cross-validation), discrepancy (residual matches
-the instrument sigma), evidence (marginal likelihood, empirical Bayes; the
-default for lambda), risk (Bayes decision under the evidence prior for the
-squared error: for k, keep the singular directions with s^2 >
-lambda_evidence), success (Bayes decision for "tool-point error within 10 %
-of the best candidate's", by Monte Carlo over the evidence posterior; the
-default for k).  See docs/regularisation.md.
+the instrument sigma), evidence (marginal likelihood, empirical Bayes),
+risk (Bayes decision under the evidence prior for the squared error: for k,
+keep the singular directions with s^2 > lambda_evidence), success (Bayes
+decision for "tool-point error within 10 % of the best candidate's", by
+Monte Carlo over the posterior, the prior scale integrated over a hyperprior:
+log-normal around the tolerances, sd ln 2, within 0.3-6 times them; the
+default for lambda and k).  See docs/regularisation.md.
 
 --method map multiplies every tolerance of the prior by one factor estimated
 from the data (the evidence), so that the intervals hold when the machine is

@@ -41,12 +41,17 @@ through the SVD ``A = U diag(s) V^T``, ``beta = U^T z``:
   output error ``|G (x_v - x)|`` is within ``ratio`` of ``min_u |G (x_u - x)|``
   is estimated from ``n_posterior`` seeded posterior draws
   (:func:`bayescal.identify.ceiling.success_probabilities`, the machinery of
-  the success ceiling), with the prior ratio integrated out (each draw takes
-  its ``lam`` from the evidence over :func:`lambda_grid`, flat in ``log lam``);
+  the success ceiling), with the prior ratio integrated out: each draw takes
+  its ``lam`` from the posterior of ``lam`` over :func:`lambda_grid`, the
+  evidence times a hyperprior on the prior scale ``c = sigma / sqrt(lam)``
+  (:func:`lambda_posterior`, :mod:`bayescal.identify.scale_prior`: the
+  tolerances are information, the scale is not left flat in ``log lam``);
   the candidate with the largest probability wins (ties: the smaller
-  posterior expected ratio).  ``G`` is the output map (tool-point Jacobians,
-  tolerance-scaled); without one, the scaled parameter error ``|x_v - x|``.
-  The default for TSVD (``studies/choice_rules.py``, docs/regularisation.md).
+  posterior expected ratio).  So it is the Bayes decision for the success
+  event in the hierarchical model ``c ~ hyperprior``, ``x ~ N(0, c^2 I)``.
+  ``G`` is the output map (tool-point Jacobians, tolerance-scaled); without
+  one, the scaled parameter error ``|x_v - x|``.  The default for lambda and
+  k (``studies/choice_rules.py``, docs/regularisation.md).
 
 Where the problem is linearised (see :func:`choose_regularisation`): ridge
 iterates rule and Gauss-Newton to a fixed point (linearise at the converged
@@ -74,6 +79,7 @@ from ..measurement import MeasurementModel
 from .ceiling import success_probabilities
 from .gauss_newton import identify, resolve_free, whitened_system
 from .result import IdentificationResult
+from .scale_prior import DEFAULT_HYPERPRIOR, ScaleHyperprior
 
 __all__ = [
     "RULES",
@@ -84,14 +90,23 @@ __all__ = [
     "linearised_problem",
     "lambda_grid",
     "evidence_lambda",
+    "lambda_posterior",
 ]
 
 #: Rule names, in the order reports list them.
 RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence", "risk", "success")
 
 #: Default rule per method, chosen by ``studies/choice_rules.py`` (400
-#: linear-Gaussian data sets per situation and truth scale; docs/regularisation.md, "Which rule").
-DEFAULT_RULE: dict[str, str] = {"ridge": "evidence", "tsvd": "success"}
+#: linear-Gaussian data sets per situation and truth scale; docs/regularisation.md, "Which rule"):
+#: the Bayes decision for the success event, the prior scale integrated over
+#: :data:`bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`, for both.
+DEFAULT_RULE: dict[str, str] = {"ridge": "success", "tsvd": "success"}
+
+#: Posterior draws of the ``success`` rule.  With 400 the rule's own Monte
+#: Carlo noise cost 0.3-0.6 point of success probability against the ceiling
+#: in studies/choice_rules.py (the same rule knowing the true prior scale);
+#: with 2000, 0.1-0.3.  The draws are cheap next to the SVD of a recording.
+N_POSTERIOR = 2000
 
 _LOG2PI = float(np.log(2.0 * np.pi))
 
@@ -270,6 +285,56 @@ def evidence_lambda(A: ArrayLike, z: ArrayLike, *, noise_known: bool = True, n_g
     return float(grid[int(np.argmax(_log_evidence_ridge(d, grid, noise_known)))])
 
 
+def _log_lambda_posterior(d: _Svd, lams: NDArray, noise_known: bool, hyperprior: ScaleHyperprior) -> NDArray:
+    """Log posterior of ``lam`` on a log-spaced grid: log evidence + log hyperprior of ``log c``, up to a constant.
+
+    ``c^2 = sigma2 / lam`` is the prior scale in tolerances; ``sigma2 = 1``
+    for whitened rows, else the noise scale profiled at each ``lam``.  On a
+    log grid ``d log c = -d log lam / 2`` (known noise), a constant factor.
+    """
+    log_ev = _log_evidence_ridge(d, lams, noise_known)
+    if noise_known:
+        log_sigma2 = np.zeros(lams.size)
+    else:
+        g = 1.0 + d.s[None, :] ** 2 / lams[:, None]
+        quad = np.sum(d.beta[None, :] ** 2 / g, axis=1) + d.c_perp
+        log_sigma2 = np.log(np.maximum(quad, 1e-300) / d.n_rows)
+    return log_ev + hyperprior.log_density(0.5 * (log_sigma2 - np.log(lams)))
+
+
+def lambda_posterior(
+    A: ArrayLike, z: ArrayLike, *, hyperprior: ScaleHyperprior = DEFAULT_HYPERPRIOR, noise_known: bool = True,
+    n_grid: int = 241,
+) -> tuple[NDArray, NDArray]:
+    """Posterior probabilities of the ridge ``lam`` over :func:`lambda_grid`: evidence times the hyperprior on the scale.
+
+    Parameters
+    ----------
+    A : array_like, shape (N, p)
+        Whitened, tolerance-scaled identification matrix.
+    z : array_like, shape (N,)
+        Whitened right-hand side.
+    hyperprior : ScaleHyperprior
+        Density of the prior scale ``c = sqrt(sigma2 / lam)`` (tolerances).
+    noise_known : bool
+        Rows whitened by a known sigma (else the noise scale is profiled out).
+    n_grid : int
+        Grid points (about 0.1 decade apart for 241).
+
+    Returns
+    -------
+    grid : ndarray, shape (n_grid,)
+        ``lam`` values, ascending (dimensionless).
+    weights : ndarray, shape (n_grid,)
+        Posterior probability of each grid value (sum 1).
+    """
+    d = _svd(np.asarray(A, dtype=float), np.asarray(z, dtype=float).reshape(-1))
+    grid = lambda_grid(d.s, n_grid)
+    lp = _log_lambda_posterior(d, grid, noise_known, hyperprior)
+    w = np.exp(lp - lp.max())
+    return grid, w / w.sum()
+
+
 def _posterior_risk(d: _Svd, F: NDArray, noise_known: bool) -> tuple[float, NDArray]:
     """Posterior expected ``|x_v - x|^2`` of each filtered solution under the empirical-Bayes prior.
 
@@ -298,21 +363,23 @@ def _posterior_risk(d: _Svd, F: NDArray, noise_known: bool) -> tuple[float, NDAr
 
 def _success_curve(
     A: NDArray, d: _Svd, F: NDArray, noise_known: bool, G: NDArray | None, ratio: float, n_posterior: int, seed: int,
-    integrate_scale: bool = True,
+    integrate_scale: bool = True, hyperprior: ScaleHyperprior = DEFAULT_HYPERPRIOR,
 ) -> tuple[float, NDArray, NDArray]:
     """``lam_ev`` and, per filter row, the posterior probability of success and expected ratio to the best.
 
     ``integrate_scale``: the prior ratio ``lam`` is drawn per posterior draw
-    from its own posterior (flat in ``log lam`` over :func:`lambda_grid`,
-    times the evidence) instead of being fixed at ``lam_ev``: the evidence
-    of one scale from a few dozen parameters is uncertain by tens of per cent.
+    from its own posterior (evidence times ``hyperprior`` over
+    :func:`lambda_grid`) instead of being fixed at the evidence maximum
+    ``lam_ev``: the evidence of one scale from a few dozen parameters is
+    uncertain by tens of per cent.
     """
     grid = lambda_grid(d.s)
     log_ev = _log_evidence_ridge(d, grid, noise_known)
     lam_ev = float(grid[int(np.argmax(log_ev))])
     rng = np.random.default_rng([seed, 1])
     if integrate_scale:
-        w = np.exp(log_ev - log_ev.max())
+        lp = _log_lambda_posterior(d, grid, noise_known, hyperprior)
+        w = np.exp(lp - lp.max())
         lam = grid[rng.choice(grid.size, size=n_posterior, p=w / w.sum())]
     else:
         lam = np.full(n_posterior, lam_ev)
@@ -416,8 +483,9 @@ def choose_linear(
     linearisation: str = "given linear problem",
     output_map: ArrayLike | None = None,
     ratio: float = 1.1,
-    n_posterior: int = 400,
+    n_posterior: int = N_POSTERIOR,
     integrate_scale: bool = True,
+    hyperprior: ScaleHyperprior | None = None,
 ) -> RegularisationChoice:
     """Apply every rule to the linear problem ``A x ~ z`` (rows whitened).
 
@@ -456,6 +524,11 @@ def choose_linear(
     integrate_scale : bool
         ``success``: average over the posterior of the prior scale (True)
         rather than plugging in its evidence maximum.
+    hyperprior : ScaleHyperprior, optional
+        ``success``: the hyperprior on the prior scale that, times the
+        evidence, gives the posterior of ``lam`` (default
+        :data:`bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`;
+        :data:`~bayescal.identify.scale_prior.FLAT_HYPERPRIOR` for flat in ``log lam``).
 
     Returns
     -------
@@ -514,7 +587,9 @@ def choose_linear(
             raise InputError(f"output_map: expected shape (M, {p}), got {output_map.shape}")
     if not ratio >= 1.0:
         raise InputError(f"ratio: expected >= 1, got {ratio}")
-    _, succ, exp_ratio = _success_curve(A, d, F, noise_known, output_map, ratio, n_posterior, seed, integrate_scale)
+    hyperprior = DEFAULT_HYPERPRIOR if hyperprior is None else hyperprior
+    _, succ, exp_ratio = _success_curve(A, d, F, noise_known, output_map, ratio, n_posterior, seed, integrate_scale,
+                                        hyperprior)
     extras["success_expected_ratio"] = exp_ratio
     picks = {
         "cv": int(np.nanargmin(cv)) if np.isfinite(cv).any() else None,
@@ -594,6 +669,7 @@ def choose_regularisation(
     max_rounds: int = 3,
     max_iter: int = 50,
     eval_q: ArrayLike | None = None,
+    hyperprior: ScaleHyperprior | None = None,
 ) -> tuple[RegularisationChoice, IdentificationResult]:
     """Choose ``lam`` (ridge) or ``k`` (TSVD) for a measurement model, and identify with it.
 
@@ -606,7 +682,8 @@ def choose_regularisation(
 
     The ``success`` rule judges candidates by the tool-point error at the
     actuator positions ``eval_q`` (default: the measured poses), through the
-    tool-point Jacobians at nominal.
+    tool-point Jacobians at nominal, with the prior scale integrated over
+    ``hyperprior`` (default :data:`~bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`).
 
     Returns
     -------
@@ -622,7 +699,7 @@ def choose_regularisation(
     idx, _ = resolve_free(model, free, theta)
     free_arg = free if free is not None else idx
     known = bool(machine.noise.given)
-    kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed,
+    kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed, hyperprior=hyperprior,
               output_map=_tool_output_map(machine, getattr(model, "q", None) if eval_q is None else eval_q, idx, S_all))
     if method == "tsvd":
         A, z, groups = linearised_problem(model, theta, idx, S_all)

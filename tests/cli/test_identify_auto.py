@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayescal.cli import main
-from bayescal.identify.choose import RULES, choose_regularisation
+from bayescal.identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from bayescal.io import read_recording
 from bayescal.machines import load_machine
 from bayescal.measurement import MeasurementModel
@@ -21,11 +21,12 @@ def test_ridge_lam_auto_reports_all_rules_and_writes_json_and_figure(tmp_path, c
                  "--json", str(out), "--figures", str(figs)])
     assert code == 0
     text = capsys.readouterr().out
-    assert "chosen by 'evidence'" in text and all(f"    {r}" in text for r in RULES)
+    default = DEFAULT_RULE["ridge"]
+    assert f"chosen by '{default}'" in text and all(f"    {r}" in text for r in RULES)
     ans = json.loads(out.read_text())
     reg = ans["regularisation"]
-    assert reg["rule"] == "evidence" and reg["method"] == "ridge"
-    assert ans["lam"] == pytest.approx(reg["value"]) == pytest.approx(reg["choices"]["evidence"])
+    assert reg["rule"] == default and reg["method"] == "ridge"
+    assert ans["lam"] == pytest.approx(reg["value"]) == pytest.approx(reg["choices"][default])
     assert set(reg["choices"]) == set(RULES) and len(reg["curves"]["gcv"]) == len(reg["grid"])
     png = figs / "regularisation_ridge.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000

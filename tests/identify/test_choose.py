@@ -8,6 +8,7 @@ from scipy.stats import multivariate_normal
 from bayescal.errors import InputError
 from bayescal.identify import filter_factors, filtered_solve
 from bayescal.identify.choose import (
+    DEFAULT_RULE,
     RULES,
     _menger_curvature,
     choose_linear,
@@ -91,7 +92,7 @@ def test_ridge_rules_against_dense_brute_force(rng):
     np.testing.assert_allclose(ch.curves["log_evidence"], ev, rtol=1e-9)
     assert ch.choices["gcv"] == grid[np.argmin(gcv)]
     assert ch.choices["evidence"] == grid[np.argmax(ev)]
-    assert set(ch.choices) == set(RULES) and ch.value == ch.choices["evidence"]
+    assert set(ch.choices) == set(RULES) and ch.value == ch.choices[DEFAULT_RULE["ridge"]]
 
 
 def test_evidence_with_unknown_noise_profiles_the_scale():

@@ -15,10 +15,16 @@ from scipy.stats import multivariate_normal, norm
 from bayescal.errors import InputError
 from bayescal.identify.ceiling import success_probabilities
 from bayescal.identify.choose import RULES, choose_linear, lambda_grid
+from bayescal.identify.scale_prior import DEFAULT_HYPERPRIOR, FLAT_HYPERPRIOR, ScaleHyperprior
 
 
 def exact_success(a: np.ndarray, mu: float, sd: float, r: float) -> np.ndarray:
     """P(|a_v - t| <= r min_u |a_u - t|), t ~ N(mu, sd^2), for every v: exact."""
+    return exact_success_mixture(a, np.array([mu]), np.array([sd]), np.array([1.0]), r)
+
+
+def exact_success_mixture(a: np.ndarray, mu: np.ndarray, sd: np.ndarray, w: np.ndarray, r: float) -> np.ndarray:
+    """The same for t from the mixture sum_j w_j N(mu_j, sd_j^2) (the failure intervals depend on a only)."""
     out = np.empty(a.size)
     for v in range(a.size):
         iv = []
@@ -34,9 +40,17 @@ def exact_success(a: np.ndarray, mu: float, sd: float, r: float) -> np.ndarray:
                 merged[-1][1] = max(merged[-1][1], hi)
             else:
                 merged.append([lo, hi])
-        fail = sum(norm.cdf(hi, mu, sd) - norm.cdf(lo, mu, sd) for lo, hi in merged)
-        out[v] = 1.0 - fail
+        fail = sum(float(w @ (norm.cdf(hi, mu, sd) - norm.cdf(lo, mu, sd))) for lo, hi in merged)
+        out[v] = float(w.sum()) - fail
     return out
+
+
+def _default_log_hp(log_c: np.ndarray) -> np.ndarray:
+    """The default hyperprior from scipy: a normal density of log c, truncated to [low, high]."""
+    hp = DEFAULT_HYPERPRIOR
+    assert hp.kind == "lognormal"
+    inside = (np.exp(log_c) >= hp.low) & (np.exp(log_c) <= hp.high)
+    return np.where(inside, norm.logpdf(log_c, np.log(hp.centre), hp.width), -np.inf)
 
 
 def test_exact_formula_against_brute_force(rng):
@@ -88,19 +102,27 @@ def test_success_rule_is_the_exact_bayes_decision(rng, method):
     assert checked == 4 and "success" in RULES and ch.rule == "success"
 
 
-def test_success_rule_with_the_prior_scale_integrated_out(rng):
-    """integrate_scale=True: the posterior is a mixture over the lambda grid weighted by the evidence
-    (computed here by scipy's dense Gaussian density); its exact success probabilities, component by component."""
+@pytest.mark.parametrize("hyperprior, log_hp", [
+    (FLAT_HYPERPRIOR, lambda log_c: np.zeros_like(log_c)),
+    (DEFAULT_HYPERPRIOR, lambda log_c: _default_log_hp(log_c)),
+    (ScaleHyperprior("loguniform", low=0.3, high=6.0),
+     lambda log_c: np.where((log_c >= np.log(0.3)) & (log_c <= np.log(6.0)), 0.0, -np.inf)),
+])
+def test_success_rule_with_the_prior_scale_integrated_out(rng, hyperprior, log_hp):
+    """integrate_scale=True: the posterior is a mixture over the lambda grid weighted by the evidence (computed here
+    by scipy's dense Gaussian density) times the hyperprior of c = 1/sqrt(lam) (scipy's normal density of log c for
+    the log-normal); its exact success probabilities, component by component, and the exact Bayes decision."""
     N, p = 25, 5
     A = rng.normal(size=(N, p)) * np.logspace(0.6, -0.6, p)
     g = rng.normal(size=(1, p))
     z = A @ (1.7 * rng.normal(size=p)) + rng.normal(size=N)
-    ch = choose_linear(A, z, "tsvd", rule="success", output_map=g, n_posterior=30_000, seed=3)
+    ch = choose_linear(A, z, "tsvd", rule="success", output_map=g, n_posterior=30_000, seed=3, hyperprior=hyperprior)
     U, s, Vt = np.linalg.svd(A, full_matrices=False)
     beta, gv = U.T @ z, Vt @ g[0]
     lams = lambda_grid(s)
     log_ev = np.array([multivariate_normal(np.zeros(N), np.eye(N) + A @ A.T / lam).logpdf(z) for lam in lams])
-    w = np.exp(log_ev - log_ev.max())
+    lp = log_ev + log_hp(-0.5 * np.log(lams))
+    w = np.exp(lp - lp.max())
     w /= w.sum()
     a = ((np.arange(p)[None, :] < np.arange(1, p + 1)[:, None]) * beta / s) @ gv
     exact = np.zeros(p)
@@ -109,8 +131,41 @@ def test_success_rule_with_the_prior_scale_integrated_out(rng):
             continue
         m, sd = s * beta / (s**2 + lam), 1.0 / np.sqrt(s**2 + lam)
         exact += wj * exact_success(a, float(gv @ m), float(np.sqrt(np.sum((gv * sd) ** 2))), 1.1)
-    np.testing.assert_allclose(ch.curves["success_probability"], exact / w[w >= 1e-8].sum(), atol=0.015)
+    exact /= w[w >= 1e-8].sum()
+    np.testing.assert_allclose(ch.curves["success_probability"], exact, atol=0.015)
     assert exact[ch.value - 1] >= exact.max() - 0.01
+
+
+def test_hyperprior_changes_the_ridge_decision_as_the_exact_integral_does(rng):
+    """Ridge, few weak rows, one output row: the exact Bayes decision under the flat and under the log-normal
+    hyperprior differ, and the rule follows the exact decision in both cases (each within 0.01 of the exact best)."""
+    N, p = 8, 5
+    A = rng.normal(size=(N, p)) * np.logspace(0.3, -0.9, p)
+    g = rng.normal(size=(1, p))
+    grid = np.logspace(-2, 2, 9)
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    gv = Vt @ g[0]
+    lams = lambda_grid(s)
+    differ = 0
+    for trial in range(6):
+        z = A @ (0.5 * rng.normal(size=p)) + rng.normal(size=N)
+        beta = U.T @ z
+        log_ev = np.array([multivariate_normal(np.zeros(N), np.eye(N) + A @ A.T / lam).logpdf(z) for lam in lams])
+        a = ((s**2 / (s**2 + grid[:, None])) * beta / s) @ gv
+        picks = []
+        for hp, log_hp in ((FLAT_HYPERPRIOR, 0.0), (DEFAULT_HYPERPRIOR, _default_log_hp(-0.5 * np.log(lams)))):
+            lp = log_ev + log_hp
+            w = np.exp(lp - lp.max())
+            w /= w.sum()
+            mus = (s * beta / (s[None, :] ** 2 + lams[:, None])) @ gv
+            sds = np.sqrt(np.sum(gv**2 / (s[None, :] ** 2 + lams[:, None]), axis=1))
+            exact = exact_success_mixture(a, mus, sds, w, 1.1)
+            ch = choose_linear(A, z, "ridge", rule="success", output_map=g, grid=grid, n_posterior=20_000,
+                               seed=trial, hyperprior=hp)
+            assert exact[list(ch.grid).index(ch.value)] >= exact.max() - 0.01
+            picks.append(int(np.argmax(exact)))
+        differ += picks[0] != picks[1]
+    assert differ >= 1  # the hyperprior is not a no-op here
 
 
 def test_success_rule_realises_its_prediction(rng):
