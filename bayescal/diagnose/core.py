@@ -195,7 +195,8 @@ def diagnose(
         # per-pose least squares undoes the exclusion's scaling: an excluded pose's gross error must not
         # reach the actuator-space tests (periodogram, pitch search); zero is "no actuator error"
         dq_res[screen.excluded] = 0.0
-    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, recording.position, seed=seed)
+    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, recording.position, seed=seed,
+                      units=machine.actuator_units)
 
     cands: list[_Candidate] = []
     skipped: list[tuple[str, str]] = []
