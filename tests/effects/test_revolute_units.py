@@ -119,3 +119,12 @@ def test_smooth_tilt_dependent_error_is_not_a_periodic_gear_error(shape):
         assert spe.parameters[0].unit == "rad" and spe.parameters[0].value <= 0.5 * 1.001
     periodic = [ch for ch in d.location.channels if ch.kind == "periodic"]
     assert len(periodic) == 2 and all(ch.detail.endswith(" rad") for ch in periodic)
+
+
+def test_mixed_drives_get_their_own_units_and_no_shared_pitch():
+    # a 3-PRS head over a turntable: three sliders and one revolute joint
+    m = load_machine(ROOT / "examples" / "hybrid_table" / "machine.toml")
+    assert m.actuator_units == ("mm", "mm", "mm", "rad")
+    assert list(_units(m, "backlash", {}).values()) == ["um", "um", "um", "urad"]
+    why = get_effect("screw_periodic_error").not_applicable(m, {})
+    assert why is not None and "both prismatic (mm) and revolute (rad)" in why
