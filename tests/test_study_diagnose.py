@@ -67,3 +67,58 @@ def test_restrained_raspm_cross_check_quick(tmp_path):
     assert row[6].strip() == "redundancy_preload"
     misses = [line for line in text.splitlines() if line.startswith("- MISS")]
     assert misses == ["- MISS: its geometry within twice the clean calibration's error of the true geometry"], misses
+
+
+def test_physics_classes_come_from_the_independent_simulators():
+    import numpy as np
+
+    from bayescal.machines import machine_from_text
+    from bayescal.simulate import measure
+
+    study = _study()
+    for cls in study.PHYS_CLASSES:
+        case = {**study.make_case(cls, 0, 1, (40, 40)), "dof": 6}
+        m = machine_from_text(case["machine"])
+        rec, theta, info = study.physics_recording(m, case, np.random.default_rng(case["seed"]))
+        assert rec.q.shape == (40, 3) and theta.shape == (m.n_params,)
+        assert set(rec.aux) == set(case["aux"])
+        # the physics moved the tool: far more than the noise against the same poses without it
+        clean = measure(m, rec.q, theta, 6, None)
+        assert np.sqrt(np.mean((rec.position - clean.position) ** 2)) > 0.3 * m.noise.sigma_position
+        if cls == "phys_backlash":
+            assert info["serpentine"]
+        if cls == "phys_compliance":
+            assert 0.0 < info["tilt_deg"] <= 15.0
+
+
+def test_serpentine_is_a_raster_of_the_poses():
+    import numpy as np
+
+    from bayescal.machines import machine_from_text
+
+    study = _study()
+    m = machine_from_text(study.make_case("none", 0, 1)["machine"])
+    q = m.sample_q(64, np.random.default_rng(0))
+    order = study.serpentine(m, q, np.random.default_rng(1))
+    assert sorted(order) == list(range(64))
+    # consecutive poses of a raster are close: the path is much shorter than a random tour
+    xy = m.forward(q[order]).position[:, :2]
+    rand = m.forward(q).position[:, :2]
+    assert np.linalg.norm(np.diff(xy, axis=0), axis=1).sum() < 0.6 * np.linalg.norm(np.diff(rand, axis=0), axis=1).sum()
+
+
+def test_targets_say_pass_miss_and_not_tested():
+    study = _study()
+
+    def row(cls, verdict, contrib=float("nan"), written=float("nan"), clean=float("nan")):
+        return {"cls": cls, "verdict": verdict, "contribution": contrib, "sigma_position": 0.005,
+                "cal_written": written, "cal_clean": clean}
+
+    rows = [row("none", "none")] * 19 + [row("none", "unexplained")]  # 5 %: met
+    rows += [row("backlash", "backlash", 0.02)] * 9 + [row("backlash", "none", 0.02)]  # 9/10 >= 2 sigma: met
+    rows += [row("phys_backlash", "backlash", 0.001, 0.003, 0.001)] * 3  # ratio 3: missed; too few >= 2 sigma
+    rows += [row("outside_step", "unexplained")] * 2 + [row("outside_step", "none")] * 2  # 2/4, not most
+    checks = {name.split(":")[0] + ("/cal" if "written" in name else ""): met for name, met, _ in study.targets(rows)}
+    assert checks == {"none": True, "backlash": True, "phys_backlash": None, "phys_backlash/cal": False, "outside_step": False}
+    text = study.targets_text(study.targets(rows))
+    assert "MISS" in text and "PASS" in text and "NOT TESTED" in text

@@ -206,7 +206,7 @@ def diagnose(
     pose_aux = {k: np.asarray(v)[model.pose_row] for k, v in aux.items()}
     direction = approach_direction(model.pose_q, model.pose_order)[:n]
     location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, model.region(pred0), seed=seed,
-                      direction=direction)
+                      direction=direction, units=machine.actuator_units)
     eff_machine, eff_theta, eff_poses = model.effect_inputs(fit0.theta, pred0)
 
     cands: list[_Candidate] = []

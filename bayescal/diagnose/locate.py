@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..effects.base import approach_direction
-from ..effects.periodogram import PITCH_RANGE_MM, admissible_pitch_range, n_independent_frequencies, periodogram, pitch_grid
+from ..effects.periodogram import PITCH_RANGES, admissible_pitch_range, n_independent_frequencies, periodogram, pitch_grid
 from .dependence import BLOCK, ResidualBlocks, distance_correlation
 
 __all__ = ["ChannelDependence", "Location", "locate", "distance_correlation", "holm"]
@@ -129,6 +129,7 @@ def locate(
     seed: int = 0,
     block: int = BLOCK,
     direction: NDArray | None = None,
+    units: tuple[str, ...] | None = None,
 ) -> Location:
     """Test every channel for a dependence of the residuals (see the module docstring).
 
@@ -152,6 +153,10 @@ def locate(
         Each row's approach direction (+1, -1, 0); from ``q`` in row order by
         default.  Rows with more than one pose (a distance) approach their
         first pose from the previous row's last, which ``q`` alone does not show.
+    units : tuple of str, optional
+        Unit of each actuator's ``q`` (``Machine.actuator_units``: ``"mm"`` or
+        ``"rad"``); it sets the periods searched by the periodic tests
+        (:data:`bayescal.effects.periodogram.PITCH_RANGES`).  All mm if omitted.
 
     Returns
     -------
@@ -176,17 +181,22 @@ def locate(
     for name, kind, v, detail in tests:
         t = blocks.test(v)
         out.append([name, kind, t.strength, t.p_value, detail, v])
-    span = float(np.ptp(q, axis=0).max())
-    # only pitches that repeat at least twice in the stroke (as for the screw_periodic_error effect)
-    prange = admissible_pitch_range(span) or (PITCH_RANGE_MM[0], PITCH_RANGE_MM[0])
-    freqs = pitch_grid(span, prange)
-    M = n_independent_frequencies(span, prange)
+    units = ("mm",) * m if units is None else tuple(units)
+    bands = {}
+    for u in dict.fromkeys(units):
+        # the largest stroke among the actuators of this unit, as for the screw_periodic_error effect
+        span = float(max(np.ptp(q[:, j]) for j in range(m) if units[j] == u))
+        full = PITCH_RANGES[u]
+        # only pitches that repeat at least twice in the stroke
+        prange = admissible_pitch_range(span, full) or (full[0], full[0])
+        bands[u] = (pitch_grid(span, prange), n_independent_frequencies(span, prange))
     for i in range(m):
+        freqs, M = bands[units[i]]
         power = periodogram(q[:, i], dq_residual[:, i], freqs)
         k = int(np.argmax(power))
         P = float(power[k])
         p = float(min(1.0, M * (1.0 - min(P, 1.0)) ** ((n - 3) / 2)))
-        out.append([f"periodic_q{i + 1}", "periodic", P, p, f"pitch {1 / freqs[k]:.3g} mm", q[:, i]])
+        out.append([f"periodic_q{i + 1}", "periodic", P, p, f"pitch {1 / freqs[k]:.3g} {units[i]}", q[:, i]])
     adj = holm(np.array([o[3] for o in out]))
     deps = [ChannelDependence(o[0], o[1], float(o[2]), float(o[3]), float(a), o[4], o[5]) for o, a in zip(out, adj)]
     # significant dependences first, strongest first; then the rest by strength

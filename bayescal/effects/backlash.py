@@ -86,7 +86,8 @@ class Backlash(Effect):
     friction or elastic windup inside the band.  With a linear scale on the
     slider (closed loop on the slider position) there is no backlash to see.
     Parameters: ``backlash.q<i>`` in um (full width ``b_i`` of the dead
-    band, ``>= 0``).  Usual size on machine tools: 1-20 um with preloaded
+    band, ``>= 0``; in urad on a revolute drive, the lost motion of its gear
+    train, prior 300 urad).  Usual size on machine tools: 1-20 um with preloaded
     ball screws, up to 50-100 um on worn drives or belt/gear axes.
     """
 
@@ -102,14 +103,16 @@ class Backlash(Effect):
         rank[seq] = np.arange(n)
         # the play operator runs over the whole session in time order; a subset of the poses
         # (cross-validation) keeps that history and only picks its rows
-        return Features({"rank": rank}, {"q_seq": np.asarray(q, float)[seq], "m": q.shape[1]})
+        to_q = np.array([u.small_to_q for u in machine.actuator_unit_info])  # um -> mm, urad -> rad
+        return Features({"rank": rank}, {"q_seq": np.asarray(q, float)[seq], "m": q.shape[1], "to_q": to_q})
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
-        return tuple(EffectParam(f"backlash.q{i + 1}", "um", 30.0, lower=0.0) for i in range(machine.n_actuators))
+        return tuple(EffectParam(f"backlash.q{i + 1}", u.small, 30.0 * u.per_um, lower=0.0)
+                     for i, u in enumerate(machine.actuator_unit_info))
 
     @staticmethod
     def _play(features: Features, eta: NDArray) -> tuple[NDArray, NDArray]:
-        y, d = play_operator(features.const["q_seq"], 0.5e-3 * np.asarray(eta, float))
+        y, d = play_operator(features.const["q_seq"], 0.5 * features.const["to_q"] * np.asarray(eta, float))
         rank = features.per_pose["rank"]
         return y[rank], d[rank]
 
@@ -120,7 +123,7 @@ class Backlash(Effect):
         _, d = self._play(features, eta)
         n, m = d.shape
         J = np.zeros((n, m, m))
-        J[:, np.arange(m), np.arange(m)] = 0.5e-3 * d
+        J[:, np.arange(m), np.arange(m)] = 0.5 * features.const["to_q"][None, :] * d
         return J
 
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:

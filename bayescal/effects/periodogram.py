@@ -6,10 +6,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lombscargle
 
-__all__ = ["PITCH_RANGE_MM", "MIN_PERIODS", "admissible_pitch_range", "pitch_grid", "periodogram", "n_independent_frequencies"]
+__all__ = ["PITCH_RANGE_MM", "PITCH_RANGES", "MIN_PERIODS", "admissible_pitch_range", "pitch_grid", "periodogram", "n_independent_frequencies"]
 
 #: Pitches searched for a periodic actuator error, mm (lead screws 2-40 mm; encoders' sub-periods).
 PITCH_RANGE_MM = (1.0, 50.0)
+#: Periods searched, by the unit of ``q`` (:data:`bayescal.machines.base.ACTUATOR_UNITS`): mm for a screw or
+#: scale; rad for a revolute joint's gears or encoder (tooth mesh of gears with 13-600 teeth, 2 pi / z: 0.01-0.5
+#: rad).  Longer periods on a revolute joint (once or twice per turn) are the joint's geometric errors.
+PITCH_RANGES = {"mm": PITCH_RANGE_MM, "rad": (0.01, 0.5)}
 #: Samples x frequencies per call of scipy's lombscargle (about 32 MB per array it builds).
 _CHUNK = 4_000_000
 #: Fewest full periods a pitch must fit within the recorded stroke to be admissible: with fewer, a

@@ -114,7 +114,8 @@ class ThermalExpansion(Effect):
             poses = machine.forward(q, theta)
         K = link_factors(machine, q, theta, poses)
         per = {"q": q}
-        const = {"q0": q0, "links": K is not None}
+        # drifts and shifts are small changes of q: um on a slider, urad on a revolute joint
+        const = {"q0": q0, "links": K is not None, "to_q": np.array([u.small_to_q for u in machine.actuator_unit_info])}
         if K is not None:
             per["K"] = K - K.mean(axis=0)[None]
         if "temp_C" in aux:
@@ -131,15 +132,16 @@ class ThermalExpansion(Effect):
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
         m = machine.n_actuators
         links = features.const["links"]
+        units = machine.actuator_unit_info
         if features.const["mode"] == "temperature":
-            out = [EffectParam(f"drift.q{i + 1}", "um/K", 10.0) for i in range(m)]
-            out += [EffectParam(f"alpha.q{i + 1}", "um/m/K", 20.0, lower=0.0) for i in range(m)]
+            out = [EffectParam(f"drift.q{i + 1}", f"{u.small}/K", 10.0 * u.per_um) for i, u in enumerate(units)]
+            out += [EffectParam(f"alpha.q{i + 1}", f"{units[i].strain}/K", 20.0, lower=0.0) for i in range(m)]
             if links:
                 out += [EffectParam(f"link.q{i + 1}", "um/K", 10.0, lower=0.0) for i in range(m)]
             return tuple(out)
         span = features.const["span"]
-        out = [EffectParam(f"shift.q{i + 1}", "um", 50.0) for i in range(m)]
-        out += [EffectParam(f"strain.q{i + 1}", "um/m", 100.0, lower=0.0) for i in range(m)]
+        out = [EffectParam(f"shift.q{i + 1}", u.small, 50.0 * u.per_um) for i, u in enumerate(units)]
+        out += [EffectParam(f"strain.q{i + 1}", units[i].strain, 100.0, lower=0.0) for i in range(m)]
         if links:
             out += [EffectParam(f"link_shift.q{i + 1}", "um", 50.0, lower=0.0) for i in range(m)]
         out.append(EffectParam("tau", "s", span, prior_mean=span / 2, lower=0.0))
@@ -159,7 +161,7 @@ class ThermalExpansion(Effect):
         """Per unit of the driving term: ``g + alpha (q - q0) + (K - K_bar) lambda`` in mm (per K or per warm-up)."""
         q = features.per_pose["q"]
         m = q.shape[1]
-        out = 1e-3 * eta[None, :m] + 1e-6 * eta[None, m : 2 * m] * (q - features.const["q0"][None, :])
+        out = features.const["to_q"][None, :] * eta[None, :m] + 1e-6 * eta[None, m : 2 * m] * (q - features.const["q0"][None, :])
         if features.const["links"]:
             out = out + 1e-3 * np.einsum("nij,j->ni", features.per_pose["K"], eta[2 * m : 3 * m])
         return out
@@ -175,7 +177,7 @@ class ThermalExpansion(Effect):
         q = features.per_pose["q"]
         n, m = q.shape
         J = np.zeros((n, m, len(eta)))
-        J[:, np.arange(m), np.arange(m)] = 1e-3 * x[:, None]
+        J[:, np.arange(m), np.arange(m)] = features.const["to_q"][None, :] * x[:, None]
         J[:, np.arange(m), m + np.arange(m)] = 1e-6 * x[:, None] * (q - features.const["q0"][None, :])
         if features.const["links"]:
             J[:, :, 2 * m : 3 * m] = 1e-3 * x[:, None, None] * features.per_pose["K"]
@@ -186,7 +188,8 @@ class ThermalExpansion(Effect):
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
         """Screws of expansion ``magnitude`` (um/m/K, +-30 %) fixed at ``q = 0``: drift ``alpha q0``; rigid links."""
         alpha = magnitude * rng.uniform(0.7, 1.3, machine.n_actuators)
-        drift = 1e-3 * alpha * features.const["q0"]  # um/m/K x mm -> um/K
+        # um/m/K x mm -> um/K; on a revolute joint urad/rad/K x rad -> urad/K (the factor 1e-3 / to_q is 1 or 1000)
+        drift = 1e-3 * alpha * features.const["q0"] * (1e-3 / features.const["to_q"])
         links = [np.zeros(machine.n_actuators)] if features.const["links"] else []
         if features.const["mode"] == "time":
             # what a 5 K rise gives when warm; a 25-minute time constant

@@ -21,7 +21,50 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from ..params import ParamLayout
 
-__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "map_state"]
+__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "map_state", "ActuatorUnit", "ACTUATOR_UNITS"]
+
+
+@dataclass(frozen=True)
+class ActuatorUnit:
+    """How small changes of one actuator's position are named, scaled and described (prismatic or revolute).
+
+    Effects state their parameters through this (``Machine.actuator_unit_info``),
+    never through the machine's kind, so a new kind with revolute drives gets
+    revolute units everywhere by saying ``"rad"`` in :attr:`Machine.actuator_units`.
+
+    Attributes
+    ----------
+    unit : str
+        Unit of ``q``: ``"mm"`` or ``"rad"``.
+    small : str
+        Unit of small changes of ``q`` (effect amplitudes, dead bands): ``"um"`` or ``"urad"``.
+    small_to_q : float
+        ``q`` units per ``small`` unit: 1e-3 (um -> mm) or 1e-6 (urad -> rad).
+    per_um : float
+        Prior widths: an effect whose prior is ``w`` um on a slider gets
+        ``per_um * w`` in ``small`` on this actuator.  1 for mm; 10 for rad
+        (the angle that moves a point 100 mm from the joint axis by ``w`` um:
+        a 30 um backlash prior becomes 300 urad, about 1 arcmin, the size of a
+        gear train's lost motion).
+    drive : str
+        What carries the position, for messages: ``"screw or scale"`` or ``"gear or encoder"``.
+    strain : str
+        Unit of a relative change of ``q``'s own scale (1e-6): ``"um/m"`` or ``"urad/rad"``.
+    """
+
+    unit: str
+    small: str
+    small_to_q: float
+    per_um: float
+    drive: str
+    strain: str
+
+
+#: The two actuator units of FORMATS.md (``q`` in mm for prismatic, rad for revolute joints).
+ACTUATOR_UNITS = {
+    "mm": ActuatorUnit("mm", "um", 1e-3, 1.0, "screw or scale", "um/m"),
+    "rad": ActuatorUnit("rad", "urad", 1e-6, 10.0, "gear or encoder", "urad/rad"),
+}
 
 
 @dataclass(frozen=True)
@@ -146,6 +189,11 @@ class Machine(ABC):
         actuators overrides this, so that recordings are checked against it.
         """
         return ("mm",) * self.n_actuators
+
+    @property
+    def actuator_unit_info(self) -> tuple[ActuatorUnit, ...]:
+        """Per actuator, the :class:`ActuatorUnit` of its ``q`` (from :attr:`actuator_units`)."""
+        return tuple(ACTUATOR_UNITS[u] for u in self.actuator_units)
 
     @property
     def n_params(self) -> int:
