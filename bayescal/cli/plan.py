@@ -71,9 +71,14 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same plan (default 0)")
     p.add_argument("--random-sets", type=int, default=20, help="random selections to compare with (default 20)")
     p.add_argument("--no-exchange", action="store_true", help="greedy selection only")
-    p.add_argument("--repeats", action="store_true",
-                   help="allow a pose to be planned more than once (measure it again): optimal designs often "
-                        "repeat a few extreme poses")
+    p.add_argument("--repeats", nargs="?", const="yes", choices=("auto", "yes", "no"), default="auto",
+                   help="allow a pose (or relation) to be planned more than once (measure it again): optimal designs "
+                        "repeat a few extreme poses. auto (default): yes with --method relaxed, no otherwise; "
+                        "a bare --repeats means yes")
+    p.add_argument("--method", choices=("auto", "greedy", "relaxed"), default="auto",
+                   help="selection: greedy + exchange, or (criterion I) the Frank-Wolfe relaxed design rounded and "
+                        "improved by exchanges, which also reports the bound on sqrt(E[MSE]) of every design. "
+                        "auto (default): relaxed for I (it beat greedy at every size tried), greedy otherwise")
     p.add_argument("--no-box", action="store_true",
                    help="candidates only drawn uniformly; by default the corners, edge midpoints and face centres "
                         "of the q_limits box (and points 1 %% and 5 %% inside them) are candidates too")
@@ -107,6 +112,10 @@ def _vector(text: str) -> list[float]:
     return v
 
 
+def _repeats(args) -> bool | None:
+    return {"auto": None, "yes": True, "no": False}[args.repeats]
+
+
 def run_relations(args) -> int:
     from ..design.relations import plan_relations, relation_plan_csv
     from ..io import write_text_atomic
@@ -122,8 +131,8 @@ def run_relations(args) -> int:
     criterion = args.criterion or "EIG"
     plan = plan_relations(
         machine, args.n, measure=args.measure, given=given, centre=args.centre, radius=args.radius,
-        spacing=args.spacing, sigma=args.sigma, criterion=criterion, repeats=args.repeats,
-        min_distance=args.min_distance,
+        spacing=args.spacing, sigma=args.sigma, criterion=criterion, repeats=_repeats(args),
+        min_distance=args.min_distance, method=None if args.method == "auto" else args.method, seed=args.seed,
     )
     write_text_atomic(args.out, relation_plan_csv(plan))
     write_json(args, plan.to_dict())
@@ -154,7 +163,7 @@ def run(args) -> int:
     plan = plan_poses(
         machine, args.n, criterion=args.criterion or "D", dof=args.dof, n_candidates=args.candidates, seed=args.seed,
         scaling=args.scaling, n_random=args.random_sets, exchange=not args.no_exchange,
-        repeats=args.repeats, box=not args.no_box,
+        repeats=_repeats(args), box=not args.no_box, method=None if args.method == "auto" else args.method,
     )
     write_plan(args.out, plan)
     write_json(args, plan.to_dict())
