@@ -114,3 +114,17 @@ def test_cli_plan_writes_the_csv_and_json(tmp_path, capsys):
     rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "4", "--criterion", "I", "--candidates", "100",
                "--seed", "1", "--random-sets", "3", "--out", str(out), "--json", str(js)])
     assert rc == 0 and '"criterion": "I"' in js.read_text() and '"root_expected_mse_mm"' in js.read_text()
+
+
+def test_i_plan_defaults_to_the_relaxed_design_with_its_bound(prs3):
+    c = draw_candidates(prs3, 300, dof=6, rng=np.random.default_rng(5))
+    p = plan_poses(prs3, 12, criterion="I", candidates=c, n_random=0)
+    assert p.extras["method"] == "relaxed" and p.extras["repeats"] is True
+    # the plan is an exact 12-pose design, so the bound on every such design is below it
+    assert p.extras["bound_root_mse_mm"] <= p.extras["root_expected_mse_mm"]
+    g = plan_poses(prs3, 12, criterion="I", candidates=c, n_random=0, method="greedy")
+    assert g.extras["method"] == "greedy" and g.extras["root_expected_mse_mm"] >= p.extras["bound_root_mse_mm"]
+    with pytest.raises(InputError, match="only for criterion I"):
+        plan_poses(prs3, 12, criterion="D", candidates=c, n_random=0, method="relaxed")
+    d = plan_poses(prs3, 12, criterion="I", candidates=c, n_random=0, repeats=False)
+    assert len(set(d.candidate_index.tolist())) == 12
