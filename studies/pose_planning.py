@@ -35,7 +35,7 @@ Targets (PASS/MISS each; exit 1 on any MISS):
 5. least squares (3-PRS, nonlinear): D-planned poses reach the median RMS of
    36 random poses with at most 12.
 
-    python studies/pose_planning.py [--quick] [--out DIR] [--trials 400] [--nl-trials 100] [--settings ...]
+    python studies/pose_planning.py [--quick] [--out DIR] [--trials 400] [--nl-trials 60] [--settings ...]
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ class Setting:
     Q: np.ndarray
     G: np.ndarray            # (n_e, 3, L) tool-point Jacobian, mm per tolerance, at uniform workspace poses
     uniform: np.ndarray      # candidates a random design draws from
-    plan_i: object           # n -> index (the library default for criterion I)
+    plan_i: object           # n -> (index, bound or None): the library default for criterion I
     plan_i_misstated: object  # (n, factor) -> index planned with tolerances x factor
     cands: object = None     # CandidateSet (poses) for the nonlinear checks and greedy plans
     machine: object = None
@@ -96,8 +96,12 @@ def pose_setting(name, machine, dof, n_cand, seed) -> Setting:
         cf = candidate_set_from_jacobian(c.q, J, tol * f, machine.layout, output_jacobian=c.output_jacobian)
         return relaxed_select(cf, n)[0].index
 
+    def plan(n):
+        sel, b = relaxed_select(c, n)
+        return sel.index, b
+
     return Setting(name, c.prior_blocks_kept, c.output_weight, c.output_blocks, np.flatnonzero(c.uniform),
-                   lambda n: relaxed_select(c, n)[0].index, misstated, c, machine, dof)
+                   plan, misstated, c, machine, dof)
 
 
 def height_setting(name, machine, seed, radius=60.0, spacing=7.5) -> Setting:
@@ -120,7 +124,7 @@ def height_setting(name, machine, seed, radius=60.0, spacing=7.5) -> Setting:
         return relaxed_relations(A * f, Q * f * f, n, np.eye(P))
 
     return Setting(name, A[:, None, :], Q, Gs, np.arange(A.shape[0]),
-                   lambda n: relaxed_relations(A, Q, n, np.eye(P)), misstated, None, machine, 1)
+                   lambda n: (relaxed_relations(A, Q, n, np.eye(P)), None), misstated, None, machine, 1)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -178,8 +182,8 @@ def run_setting(s: Setting, cfg: dict, seed: int, log) -> dict:
     t0 = time.process_time()
     plans, bounds = {}, {}
     for n in cfg["bound_n"]:
-        b = design_mse_bound(s.B, s.Q, n)
-        plans[n] = s.plan_i(n)
+        plans[n], b = s.plan_i(n)
+        b = design_mse_bound(s.B, s.Q, n) if b is None else b  # the plan's own bound when the library returns it
         bounds[n] = b
         r = np.sqrt(design_mse(s.B, s.Q, plans[n]))
         row = {"n": n, "plan_root_mse": float(r), "bound_root_mse": b.lower_root_mse,
@@ -193,7 +197,7 @@ def run_setting(s: Setting, cfg: dict, seed: int, log) -> dict:
             f"ratio {row['ratio']:.4f}, support {b.support}" + (f", greedy {row['greedy_ratio']:.4f}" if "greedy_ratio" in row else ""))
     for n in cfg["map_n"]:
         if n not in plans:
-            plans[n] = s.plan_i(n)
+            plans[n] = s.plan_i(n)[0]
     # exhaustive check where the plan misses the bound: every design (repeats allowed) on a pool of the relaxed
     # support and the largest d_i, as long as that enumeration is small
     for row in res["bound"]:
@@ -294,7 +298,7 @@ def nonlinear_check(s: Setting, trials: int, n_eval: int, seed: int, designs: di
 
 def nonlinear_targets(s: Setting, cfg: dict, seed: int, log) -> dict:
     c = s.cands
-    plan = {n: s.plan_i(n) for n in (N_MAX, N_MAP)}
+    plan = {n: s.plan_i(n)[0] for n in (N_MAX, N_MAP)}
     dplan = {n: select_from_candidates(c, n, "D").index for n in cfg["ls_n"]}
     rnd = random_designs(s, N_REF, seed, 3)
     designs = {f"map plan-{n}": (plan[n], "ridge") for n in plan}
@@ -325,7 +329,7 @@ def nonlinear_targets(s: Setting, cfg: dict, seed: int, log) -> dict:
 
 # ---------------------------------------------------------------------------------------------------------
 
-FULL = dict(trials=400, nl_trials=100, n_eval=200, bound_n=ALL_N, map_n=ALL_N, random_n=CURVE_N, greedy_n=[8, 12, 18, 24, 36],
+FULL = dict(trials=400, nl_trials=60, n_eval=200, bound_n=ALL_N, map_n=ALL_N, random_n=CURVE_N, greedy_n=[8, 12, 18, 24, 36],
             ls_n=[8, 10, 12], exhaustive_max_n=9, candidates={"prs3": 20000, "arm6": 5000})
 QUICK = dict(trials=40, nl_trials=3, n_eval=50, bound_n=[8, 18, 20, 36], map_n=[8, 18, 20, 36], random_n=[18, 36],
              greedy_n=[18], ls_n=[12], exhaustive_max_n=8, candidates={"prs3": 1000, "arm6": 500})
@@ -391,7 +395,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "pose_planning"))
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--trials", type=int, help="linear-Gaussian trials per setting (default 400)")
-    ap.add_argument("--nl-trials", type=int, help="nonlinear trials (3-PRS; default 100; 0 skips)")
+    ap.add_argument("--nl-trials", type=int, help="nonlinear trials (3-PRS; default 60; 0 skips)")
     ap.add_argument("--settings", default=",".join(SETTINGS), help=f"comma-separated, of {', '.join(SETTINGS)}")
     args = ap.parse_args(argv)
     cfg = dict(QUICK if args.quick else FULL)
