@@ -180,7 +180,7 @@ def run_setting(s: Setting, cfg: dict, seed: int, log) -> dict:
     """Bound, plans, linear-Gaussian trials and the targets 1-4 of one setting."""
     res = {"setting": s.name, "bound": [], "curve": [], "targets": []}
     t0 = time.process_time()
-    plans, bounds = {}, {}
+    plans, bounds, greedy = {}, {}, {}
     for n in cfg["bound_n"]:
         plans[n], b = s.plan_i(n)
         b = design_mse_bound(s.B, s.Q, n) if b is None else b  # the plan's own bound when the library returns it
@@ -190,7 +190,7 @@ def run_setting(s: Setting, cfg: dict, seed: int, log) -> dict:
                "relaxed_root_mse": b.relaxed_root_mse, "ratio": float(r / b.lower_root_mse), "support": b.support,
                "distinct_poses": int(len(set(plans[n].tolist())))}
         if s.cands is not None and n in cfg["greedy_n"]:
-            g = select_from_candidates(s.cands, n, "I").index
+            g = greedy[n] = select_from_candidates(s.cands, n, "I").index
             row["greedy_ratio"] = float(np.sqrt(design_mse(s.B, s.Q, g)) / b.lower_root_mse)
         res["bound"].append(row)
         log(f"  {s.name} n={n}: plan {1e3 * r:.4f} um, bound {1e3 * b.lower_root_mse:.4f} um, "
@@ -219,15 +219,16 @@ def run_setting(s: Setting, cfg: dict, seed: int, log) -> dict:
     designs = {f"plan-{n}": plans[n] for n in cfg["map_n"]}
     designs.update({f"random-{n}": random_designs(s, n, seed, 2) for n in cfg["random_n"]})
     designs.update({f"misstated-x{f:g}-{N_MIS}": s.plan_i_misstated(N_MIS, f) for f in (2.0, 0.5)})
+    designs.update({f"greedy-{n}": g for n, g in greedy.items()})  # the previous default (distinct poses), for comparison
     tr = linear_trials(s, designs, cfg["trials"], cfg["n_eval"], seed)
     res["trials"] = {k: v.tolist() for k, v in tr.items()}
     for n in sorted({int(k.split("-")[-1]) for k in designs}):
-        for kind in ("plan", "random"):
+        for kind in ("plan", "greedy", "random"):
             v = tr.get(f"{kind}-{n}")
             if v is None:
                 continue
             row = {"setting": s.name, "design": kind, "n": n,
-                   "root_mse": float(np.sqrt(np.mean([design_mse(s.B, s.Q, designs[f"plan-{n}"])]))) if kind == "plan" else np.nan,
+                   "root_mse": float(np.sqrt(design_mse(s.B, s.Q, designs[f"{kind}-{n}"]))) if kind != "random" else np.nan,
                    "rms_median": float(np.nanmedian(v[:, 0])), "rms_q25": float(np.nanquantile(v[:, 0], 0.25)),
                    "rms_q75": float(np.nanquantile(v[:, 0], 0.75)), "max_median": float(np.nanmedian(v[:, 1]))}
             res["curve"].append(row)
@@ -420,8 +421,8 @@ def main(argv=None) -> int:
         if name.startswith("prs3") and cfg["nl_trials"] > 0:
             nl[name] = nonlinear_targets(s, cfg, args.seed, log)
     seconds = time.perf_counter() - t0
-    rows = [{**c, "dof": c["setting"], "n_poses": c["n"], "design": "planned-I" if c["design"] == "plan" else "random"}
-            for r in results for c in r["curve"]]
+    names = {"plan": "planned-I", "greedy": "greedy-I (distinct)", "random": "random"}
+    rows = [{**c, "dof": c["setting"], "n_poses": c["n"], "design": names[c["design"]]} for r in results for c in r["curve"]]
     plot_error_vs_poses(rows, out / "pose_planning.png")
     write_json_atomic(out / "summary.json", {"config": {**cfg, "seed": args.seed, "settings": args.settings},
                                              "results": [{k: v for k, v in r.items() if k != "trials"} for r in results],

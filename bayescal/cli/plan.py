@@ -21,13 +21,17 @@ whitened, column-scaled identification Jacobian (docs/planning.md):
   O4   sL^2/s1 (Nahvi & Hollerbach)        O5   1/(1/s1+...+1/sL) (after Sun &
                                                 Hollerbach 2008; formula unverified, see docs)
   EIG  0.5 log det(I + S J^T J S): expected information gain under the tolerance prior
-  I    sqrt(trace(Q) / trace(Sigma Q)): expected RMS tool-point error over the
-       workspace before / after MAP calibration (I-optimality), with
+  I    sqrt(trace(Q) / trace(Sigma Q)): root expected mean squared tool-point
+       error, sqrt(E[MSE]), over the workspace before / after MAP calibration
+       (I-optimality, linearised), with
        Sigma = (I + S J^T J S)^-1 and Q = mean over workspace poses of G^T G
        (G: tool-point Jacobian, mm per tolerance); the one matched to
        'identify --method ridge --lam 1' (MAP) and to the output error
 
-Selection: greedy addition with rank-k updates, then DETMAX exchange.  The
+Selection: greedy addition with rank-k updates, then DETMAX exchange; for
+criterion I by default the Frank-Wolfe relaxed design, rounded and improved
+by exchanges (repeats allowed), with a certified bound on sqrt(E[MSE]) of
+every design from the candidates printed beside the plan's.  The
 output CSV holds the commanded actuator positions q1..qN and a pose_id
 (1-based measurement order): drive the machine there, measure, append the
 measured columns (x, y, z, ...), and it is a recording for 'bayescal identify'.
@@ -63,7 +67,8 @@ def register(sub) -> None:
     p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
     p.add_argument("--n", type=int, required=True, help="number of poses to plan")
     p.add_argument("--criterion", type=str.upper, choices=CRITERIA, default=None,
-                   help="what to maximise (default D for poses, EIG for heights and distances)")
+                   help="what to maximise (default D for poses, EIG for heights and distances; I for MAP and the "
+                        "tool-point error)")
     p.add_argument("--candidates", type=int, default=20000, help="candidate poses drawn (default 20000)")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), default=6, help="what the instrument measures (default 6)")
     p.add_argument("--scaling", choices=SCALINGS, default="tolerance",
