@@ -121,7 +121,7 @@ class PosePlan:
             f"  candidates      {self.n_candidates} usable ({self.n_rejected} rejected: no forward solution)",
             f"  parameters      {len(self.kept)} identifiable from the candidates"
             + (f"; not identifiable from any pose: {', '.join(self.fixed)}" if self.fixed else ""),
-            (f"  selection       Frank-Wolfe relaxed design, rounded, then exchanges on a pool"
+            (f"  selection       Frank-Wolfe relaxed design, rounded, then {self.swaps} exchanges on a pool"
              f"{', repeats allowed' if self.extras.get('repeats') else ''} ({self.seconds:.2f} s)"
              if self.extras.get("method") == "relaxed" else
              f"  selection       greedy then {self.swaps} exchange swaps"
@@ -224,7 +224,9 @@ def relaxed_select(cands: CandidateSet, n: int, *, repeats: bool = True, pool_si
     start = round_weights(bound.weights, n) if repeats else distinct_start(bound.weights, B, Q, n, pool)
     idx = local_search(B, Q, start, pool, repeats=repeats)
     u0, u = -design_mse(B, Q, start), -design_mse(B, Q, idx)
-    return Selection(index=idx, utility=u, greedy_utility=u0, swaps=-1, history=np.array([u0, u])), bound
+    # poses exchanged: the size of the multiset difference between the rounded start and the result
+    common = sum(min(a, b) for a, b in zip(*(np.bincount(x, minlength=cands.n) for x in (start, idx))))
+    return Selection(index=idx, utility=u, greedy_utility=u0, swaps=int(n - common), history=np.array([u0, u])), bound
 
 
 def select_from_candidates(
