@@ -57,7 +57,6 @@ sys.path.insert(0, str(ROOT))
 from bayescal.design import candidate_set_from_jacobian, design_mse, design_mse_bound, draw_candidates  # noqa: E402
 from bayescal.design import relaxed_select, select_from_candidates  # noqa: E402
 from bayescal.design.relations import grid_points, relation_candidates, relaxed_relations, _scaled_rows  # noqa: E402
-from bayescal.design.rounding import pool_from_bound  # noqa: E402
 from bayescal.identify import identify  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
 from bayescal.machines import load_machine  # noqa: E402
@@ -201,10 +200,14 @@ def run_setting(s: Setting, cfg: dict, seed: int, log) -> dict:
     # exhaustive check where the plan misses the bound: every design (repeats allowed) on a pool of the relaxed
     # support and the largest d_i, as long as that enumeration is small
     for row in res["bound"]:
-        if row["ratio"] > BOUND_RATIO and row["n"] <= cfg["exhaustive_max_n"] and row["support"] <= 12:
+        if row["ratio"] > BOUND_RATIO and row["n"] <= cfg["exhaustive_max_n"] and row["support"] < 12:
             n = row["n"]
-            pool = pool_from_bound(bounds[n].weights, s.B, s.Q, size=0)
-            pool = np.union1d(pool, pool_from_bound(bounds[n].weights, s.B, s.Q, size=12 - pool.size))[:12]
+            w = bounds[n].weights
+            sup = np.flatnonzero(w > 1e-9 * n)
+            Sg = np.linalg.inv(np.eye(s.B.shape[2]) + np.einsum("n,nki,nkj->ij", w, s.B, s.B, optimize=True))
+            d = np.einsum("nkj,nkj->n", (s.B.reshape(-1, s.B.shape[2]) @ (Sg @ s.Q @ Sg)).reshape(s.B.shape), s.B)
+            others = [i for i in np.argsort(-d, kind="stable") if i not in set(sup.tolist())][: 12 - sup.size]
+            pool = np.concatenate([sup, np.array(others, dtype=int)])
             best = np.inf
             combos = np.array(list(itertools.combinations_with_replacement(range(pool.size), n)))
             BB = np.einsum("nki,nkj->nij", s.B[pool], s.B[pool])
@@ -233,21 +236,25 @@ def run_setting(s: Setting, cfg: dict, seed: int, log) -> dict:
                    "rms_q75": float(np.nanquantile(v[:, 0], 0.75)), "max_median": float(np.nanmedian(v[:, 1]))}
             res["curve"].append(row)
     ref = tr[f"random-{N_REF}"]
-    # target 1: the fewest planned poses whose paired upper bound is <= 0
-    reach = None
+    # target 1: judged at N_MAP itself (a smaller n that happens to pass while N_MAP does not is noise)
     res["paired"] = []
     for n in cfg["map_n"]:
         d = tr[f"plan-{n}"][:, 0] - ref[:, 0]
-        ub = upper_median_bound(d)
-        res["paired"].append({"n": n, "median_diff": float(np.nanmedian(d)), "upper95": ub,
+        res["paired"].append({"n": n, "median_diff": float(np.nanmedian(d)), "upper95": upper_median_bound(d),
                               "plan_better": float(np.nanmean(d < 0))})
-        if reach is None and ub <= 0:
-            reach = n
+    reach = [p["n"] for p in res["paired"] if p["upper95"] <= 0 and all(q["upper95"] <= 0 for q in res["paired"] if q["n"] > p["n"])]
     p20 = next(p for p in res["paired"] if p["n"] == N_MAP)
+    # like with like: the bound on sqrt(E[MSE]) of every N_MAP-pose design against sqrt(E[MSE]) of the random sets
+    rnd = {n: [np.sqrt(design_mse(s.B, s.Q, designs[f"random-{n}"](t))) for t in range(cfg["trials"])] for n in (N_REF, N_MIS)}
+    res["random_root_mse_median"] = {n: float(np.median(v)) for n, v in rnd.items()}
+    b20 = next((b for b in res["bound"] if b["n"] == N_MAP), None)
+    b18 = next((b for b in res["bound"] if b["n"] == N_MIS), None)
     res["targets"].append({"target": f"MAP: <= {N_MAP} planned poses reach the median RMS of {N_REF} random",
-                           "pass": reach is not None and reach <= N_MAP,
-                           "value": f"fewest planned poses with upper bound <= 0: {reach}; at {N_MAP}: median difference "
-                                    f"{1e3 * p20['median_diff']:+.3f} um, one-sided 95 % upper bound {1e3 * p20['upper95']:+.3f} um"})
+                           "pass": p20["upper95"] <= 0,
+                           "value": f"at {N_MAP}: median difference {1e3 * p20['median_diff']:+.3f} um, one-sided 95 % upper "
+                                    f"bound {1e3 * p20['upper95']:+.3f} um; reached from n = {reach[0] if reach else None} on"
+                                    + (f"; sqrt(E[MSE]): every {N_MAP}-pose design >= {1e3 * b20['bound_root_mse']:.3f} um, "
+                                       f"random {N_REF} sets median {1e3 * res['random_root_mse_median'][N_REF]:.3f} um" if b20 else "")})
     worst = max(res["bound"], key=lambda r: r["ratio"])
     missed = [r["n"] for r in res["bound"] if r["ratio"] > BOUND_RATIO]
     ex = [r for r in res["bound"] if "exhaustive_ratio" in r]
@@ -256,15 +263,20 @@ def run_setting(s: Setting, cfg: dict, seed: int, log) -> dict:
                            "pass": not missed,
                            "value": f"worst ratio {worst['ratio']:.4f} at n={worst['n']}; above 1 % at n = {missed or 'none'}"
                                     + "".join(f"; n={r['n']}: the best of all {r['exhaustive_designs']} designs on the "
-                                              f"{r['exhaustive_pool']} best candidates is {r['exhaustive_ratio']:.4f}" for r in ex)})
+                                              f"{r['exhaustive_pool']} candidates of the relaxed support and largest d_i is "
+                                              f"{r['exhaustive_ratio']:.4f}" for r in ex)})
     mx = float(np.nanmedian(tr[f"plan-{N_MAX}"][:, 1]) / np.nanmedian(ref[:, 1]))
     res["targets"].append({"target": f"median max error of {N_MAX} planned <= {MAX_RATIO} x that of {N_REF} random",
                            "pass": mx <= MAX_RATIO, "value": f"ratio {mx:.3f}"})
     r18 = np.nanmedian(tr[f"random-{N_MIS}"][:, 0])
     for f in (2.0, 0.5):
         gain = 1 - float(np.nanmedian(tr[f"misstated-x{f:g}-{N_MIS}"][:, 0]) / r18)
+        allowed = (f"; correctly stated plan: {100 * (1 - float(np.nanmedian(tr[f'plan-{N_MIS}'][:, 0]) / r18)):.1f} %"
+                   + (f"; sqrt(E[MSE]): every {N_MIS}-pose design >= {1e3 * b18['bound_root_mse']:.3f} um against "
+                      f"{1e3 * res['random_root_mse_median'][N_MIS]:.3f} um for random sets (at most "
+                      f"{100 * (1 - b18['bound_root_mse'] / res['random_root_mse_median'][N_MIS]):.1f} % lower)" if b18 else ""))
         res["targets"].append({"target": f"tolerances x{f:g} in the planner: >= {100 * MIS_GAIN:.0f} % RMS gain over "
-                                         f"{N_MIS} random", "pass": gain >= MIS_GAIN, "value": f"gain {100 * gain:.1f} %"})
+                                         f"{N_MIS} random", "pass": gain >= MIS_GAIN, "value": f"gain {100 * gain:.1f} %" + allowed})
     res["cpu_s"] = time.process_time() - t0
     return res
 
