@@ -195,9 +195,10 @@ def default_method(criterion: str) -> str:
 
     Why: for I, the Frank-Wolfe relaxed design rounded and improved by
     exchanges (:func:`relaxed_select`) gave a lower ``E[MSE]`` than greedy
-    plus DETMAX exchange at every number of poses tried, on the 3-PRS (at
-    8-36 poses: 0.02-2.2 % above the bound against 0.7-2.6 % for greedy) and
-    on the 6R arm (20 % against 25 % at 8 poses), in a third of the time.
+    plus DETMAX exchange at every number of poses compared (8, 12, 18, 24,
+    36) in studies/pose_planning.py: on the 3-PRS 0.01-2.2 % above the
+    bound against 0.3-2.8 % for greedy, on the 6R arm 16.6 % against 25.1 %
+    at 8 poses and 0.7 % against 1.3 % at 36 (docs/planning.md).
     The other criteria have no relaxation here.
     """
     return "relaxed" if check_criterion(criterion) == "I" else "greedy"

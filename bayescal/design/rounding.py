@@ -14,9 +14,9 @@ is evaluated exactly (one batched ``L x L`` solve per pair).
 Why not only the greedy pass: greedy builds a design one pose at a time
 and cannot undo an early choice; DETMAX exchange (``select.exchange_refine``)
 adds the best candidate *before* removing one.  From the rounded relaxed
-optimum the exchange starts next to the continuous optimum, which on the
-3-PRS lands within 0.1-0.6 % of the bound where greedy plus DETMAX stays
-0.6-2.8 % above it (docs/planning.md).
+optimum the exchange starts next to the continuous optimum: on the 3-PRS
+(18-36 poses) it lands 0.01-0.6 % above the bound where greedy plus DETMAX
+stays 1.0-1.3 % above it (docs/planning.md).
 
 Reference: F. Pukelsheim and S. Rieder, "Efficient rounding of approximate
 designs", Biometrika 79 (1992) 763-770.
