@@ -21,13 +21,17 @@ whitened, column-scaled identification Jacobian (docs/planning.md):
   O4   sL^2/s1 (Nahvi & Hollerbach)        O5   1/(1/s1+...+1/sL) (after Sun &
                                                 Hollerbach 2008; formula unverified, see docs)
   EIG  0.5 log det(I + S J^T J S): expected information gain under the tolerance prior
-  I    sqrt(trace(Q) / trace(Sigma Q)): expected RMS tool-point error over the
-       workspace before / after MAP calibration (I-optimality), with
+  I    sqrt(trace(Q) / trace(Sigma Q)): root expected mean squared tool-point
+       error, sqrt(E[MSE]), over the workspace before / after MAP calibration
+       (I-optimality, linearised), with
        Sigma = (I + S J^T J S)^-1 and Q = mean over workspace poses of G^T G
        (G: tool-point Jacobian, mm per tolerance); the one matched to
        'identify --method ridge --lam 1' (MAP) and to the output error
 
-Selection: greedy addition with rank-k updates, then DETMAX exchange.  The
+Selection: greedy addition with rank-k updates, then DETMAX exchange; for
+criterion I by default the Frank-Wolfe relaxed design, rounded and improved
+by exchanges (repeats allowed), with a certified bound on sqrt(E[MSE]) of
+every design from the candidates printed beside the plan's.  The
 output CSV holds the commanded actuator positions q1..qN and a pose_id
 (1-based measurement order): drive the machine there, measure, append the
 measured columns (x, y, z, ...), and it is a recording for 'bayescal identify'.
@@ -63,7 +67,8 @@ def register(sub) -> None:
     p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
     p.add_argument("--n", type=int, required=True, help="number of poses to plan")
     p.add_argument("--criterion", type=str.upper, choices=CRITERIA, default=None,
-                   help="what to maximise (default D for poses, EIG for heights and distances)")
+                   help="what to maximise (default D for poses, EIG for heights and distances; I for MAP and the "
+                        "tool-point error)")
     p.add_argument("--candidates", type=int, default=20000, help="candidate poses drawn (default 20000)")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), default=6, help="what the instrument measures (default 6)")
     p.add_argument("--scaling", choices=SCALINGS, default="tolerance",
@@ -71,9 +76,14 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same plan (default 0)")
     p.add_argument("--random-sets", type=int, default=20, help="random selections to compare with (default 20)")
     p.add_argument("--no-exchange", action="store_true", help="greedy selection only")
-    p.add_argument("--repeats", action="store_true",
-                   help="allow a pose to be planned more than once (measure it again): optimal designs often "
-                        "repeat a few extreme poses")
+    p.add_argument("--repeats", nargs="?", const="yes", choices=("auto", "yes", "no"), default="auto",
+                   help="allow a pose (or relation) to be planned more than once (measure it again): optimal designs "
+                        "repeat a few extreme poses. auto (default): yes with --method relaxed, no otherwise; "
+                        "a bare --repeats means yes")
+    p.add_argument("--method", choices=("auto", "greedy", "relaxed"), default="auto",
+                   help="selection: greedy + exchange, or (criterion I) the Frank-Wolfe relaxed design rounded and "
+                        "improved by exchanges, which also reports the bound on sqrt(E[MSE]) of every design. "
+                        "auto (default): relaxed for I (it beat greedy at every size tried), greedy otherwise")
     p.add_argument("--no-box", action="store_true",
                    help="candidates only drawn uniformly; by default the corners, edge midpoints and face centres "
                         "of the q_limits box (and points 1 %% and 5 %% inside them) are candidates too")
@@ -107,6 +117,10 @@ def _vector(text: str) -> list[float]:
     return v
 
 
+def _repeats(args) -> bool | None:
+    return {"auto": None, "yes": True, "no": False}[args.repeats]
+
+
 def run_relations(args) -> int:
     from ..design.relations import plan_relations, relation_plan_csv
     from ..io import write_text_atomic
@@ -122,8 +136,8 @@ def run_relations(args) -> int:
     criterion = args.criterion or "EIG"
     plan = plan_relations(
         machine, args.n, measure=args.measure, given=given, centre=args.centre, radius=args.radius,
-        spacing=args.spacing, sigma=args.sigma, criterion=criterion, repeats=args.repeats,
-        min_distance=args.min_distance,
+        spacing=args.spacing, sigma=args.sigma, criterion=criterion, repeats=_repeats(args),
+        min_distance=args.min_distance, method=None if args.method == "auto" else args.method, seed=args.seed,
     )
     write_text_atomic(args.out, relation_plan_csv(plan))
     write_json(args, plan.to_dict())
@@ -154,7 +168,7 @@ def run(args) -> int:
     plan = plan_poses(
         machine, args.n, criterion=args.criterion or "D", dof=args.dof, n_candidates=args.candidates, seed=args.seed,
         scaling=args.scaling, n_random=args.random_sets, exchange=not args.no_exchange,
-        repeats=args.repeats, box=not args.no_box,
+        repeats=_repeats(args), box=not args.no_box, method=None if args.method == "auto" else args.method,
     )
     write_plan(args.out, plan)
     write_json(args, plan.to_dict())

@@ -3,25 +3,28 @@
 Candidate poses within ``q_limits``, their whitened and column-scaled
 identification Jacobian blocks, the criteria D, A, E, O1..O5, the
 Bayesian expected information gain and I-optimality (expected tool-point
-error), greedy selection with rank-k updates and DETMAX-style exchange.  Works for any machine kind through
+error), greedy selection with rank-k updates and DETMAX-style exchange, and for I the
+Frank-Wolfe relaxation: a certified bound on sqrt(E[MSE]) and a rounded design near it.  Works for any machine kind through
 :class:`bayescal.measurement.MeasurementModel`.
 """
 
-from .bound import OutputErrorBound, output_error_bound
+from .bound import DesignMSEBound, design_mse_bound
 from .candidates import SCALINGS, CandidateSet, candidate_set_from_jacobian, column_scale, draw_candidates
 from .criteria import CRITERIA, PRIOR_BASED, SPECTRAL, check_criterion, criteria_from_singular_values, criterion_value
 from .criteria import i_value, output_weight, utility
-from .plan import PosePlan, evaluate_selection, expected_output_rms, plan_poses, plan_to_csv, select_from_candidates
-from .plan import write_plan
+from .plan import METHODS, PosePlan, default_method, evaluate_selection, plan_poses, plan_to_csv, relaxed_select
+from .plan import root_expected_mse, select_from_candidates, write_plan
+from .rounding import design_mse, local_search, round_weights
 from .select import Selection, brute_force_greedy, candidate_gains, exchange_refine, greedy_select
 
 __all__ = [
     "CRITERIA",
+    "METHODS",
     "PRIOR_BASED",
     "SPECTRAL",
     "SCALINGS",
     "CandidateSet",
-    "OutputErrorBound",
+    "DesignMSEBound",
     "PosePlan",
     "Selection",
     "brute_force_greedy",
@@ -31,16 +34,21 @@ __all__ = [
     "column_scale",
     "criteria_from_singular_values",
     "criterion_value",
+    "default_method",
+    "design_mse",
     "draw_candidates",
     "evaluate_selection",
     "exchange_refine",
-    "expected_output_rms",
     "greedy_select",
     "i_value",
-    "output_error_bound",
+    "local_search",
+    "design_mse_bound",
     "output_weight",
     "plan_poses",
     "plan_to_csv",
+    "relaxed_select",
+    "root_expected_mse",
+    "round_weights",
     "select_from_candidates",
     "utility",
     "write_plan",

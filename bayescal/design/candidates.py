@@ -61,6 +61,9 @@ class CandidateSet:
         poses, for criterion I.
     output_blocks : ndarray, shape (n_e, 3, L), optional
         The same, identifiable columns, tolerance-scaled (mm per tolerance).
+    uniform : ndarray of bool, shape (N,), optional
+        Which candidates were drawn uniformly within ``q_limits`` (not box
+        points): what a random design draws from.
     """
 
     q: NDArray
@@ -76,6 +79,7 @@ class CandidateSet:
     kept_index: NDArray | None = None
     output_jacobian: NDArray | None = None
     output_blocks: NDArray | None = None
+    uniform: NDArray | None = None
 
     @property
     def n(self) -> int:
@@ -109,7 +113,7 @@ def column_scale(J_white: NDArray, tolerance: NDArray, scaling: str) -> NDArray:
 
 def candidate_set_from_jacobian(
     q: NDArray, J_white: NDArray, tolerance: NDArray, layout, *, scaling: str = "tolerance",
-    n_drawn: int | None = None, output_jacobian: NDArray | None = None,
+    n_drawn: int | None = None, output_jacobian: NDArray | None = None, uniform: NDArray | None = None,
 ) -> CandidateSet:
     """Build a :class:`CandidateSet` from whitened per-pose Jacobians (N, dof, P).
 
@@ -148,6 +152,7 @@ def candidate_set_from_jacobian(
         kept_index=kept,
         output_jacobian=G,
         output_blocks=None if G is None else G[:, :, kept] * tol[kept],
+        uniform=None if uniform is None else np.asarray(uniform, dtype=bool)[ok],
     )
 
 
@@ -243,4 +248,4 @@ def draw_candidates(
     G = machine.tool_jacobian(q_out, theta, machine.forward(q_out, theta))[:, :3, :]
     G = G[np.all(np.isfinite(G), axis=(1, 2))]
     return candidate_set_from_jacobian(q[ok], J, machine.tolerance, machine.layout, scaling=scaling, n_drawn=q.shape[0],
-                                       output_jacobian=G if G.shape[0] else None)
+                                       output_jacobian=G if G.shape[0] else None, uniform=uniform)

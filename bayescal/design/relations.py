@@ -35,7 +35,8 @@ from ..simulate_constraints import solve_q_for_points
 from .criteria import check_criterion
 from .select import greedy_select
 
-__all__ = ["RelationPlan", "grid_points", "relation_candidates", "plan_relations", "relation_plan_csv", "MEASURES"]
+__all__ = ["RelationPlan", "grid_points", "relation_candidates", "plan_relations", "relation_plan_csv", "MEASURES",
+           "relation_output_weight", "relaxed_relations"]
 
 MEASURES = ("height", "distance")
 
@@ -176,7 +177,8 @@ class RelationPlan:
 def plan_relations(
     machine: Machine, n: int, *, measure: str = "height", given: ConstraintRecording | None = None,
     centre: NDArray | None = None, radius: float = 50.0, spacing: float | None = None, sigma: float | None = None,
-    criterion: str = "EIG", repeats: bool = False, min_distance: float = 0.0,
+    criterion: str = "EIG", repeats: bool | None = None, min_distance: float = 0.0, method: str | None = None,
+    seed: int = 0, n_output: int = 2000,
 ) -> RelationPlan:
     """Choose ``n`` heights or distances on a horizontal grid that add the most information.
 
@@ -197,14 +199,29 @@ def plan_relations(
         One-sigma noise of a planned row, mm; default ``[measurement] sigma_position``.
     criterion : str
         Any of :data:`bayescal.design.criteria.CRITERIA`; log-det ones (EIG, D) work from the prior.
-    repeats : bool
-        Allow a relation to be planned twice.
+        ``I``: ``sqrt(E[MSE])`` of the tool point over the workspace after MAP
+        calibration with the given and the planned rows, ``Q`` from
+        ``n_output`` poses drawn uniformly within ``q_limits`` (``seed``).
+    repeats : bool, optional
+        Allow a relation to be planned twice (default: yes with the relaxed
+        method, no with greedy).
     min_distance : float
         Shortest distance candidate, mm.
+    method : {"greedy", "relaxed"}, optional
+        Default relaxed for I (the Frank-Wolfe relaxed design rounded, see
+        :func:`bayescal.design.plan.default_method`), greedy otherwise.
+    seed, n_output : int
+        Workspace poses for criterion I's output weight.
     """
+    from .plan import METHODS, default_method
+
     criterion = check_criterion(criterion)
-    if criterion == "I":
-        raise InputError("criterion I needs workspace tool-point weights; plan relations with EIG, D, A or E")
+    method = default_method(criterion) if method is None else method
+    if method not in METHODS:
+        raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    if method == "relaxed" and criterion != "I":
+        raise InputError(f"method 'relaxed': only for criterion I, got {criterion}")
+    repeats = (method == "relaxed") if repeats is None else bool(repeats)
     if n < 1:
         raise InputError(f"n: expected a positive number of measurements, got {n}")
     if centre is None:
@@ -219,7 +236,12 @@ def plan_relations(
     if given is not None:
         A_g, _ = _scaled_rows(machine, given, None)
         M0 = M0 + A_g.T @ A_g
-    idx, M = greedy_select(A_c[:, None, :], n, criterion, M0=M0, repeats=repeats)
+    Q = relation_output_weight(machine, n_output, np.random.default_rng(seed)) if criterion == "I" else None
+    if method == "relaxed":
+        idx = relaxed_relations(A_c, Q, n, M0, repeats=repeats)
+        M = M0 + A_c[idx].T @ A_c[idx]
+    else:
+        idx, M = greedy_select(A_c[:, None, :], n, criterion, M0=M0, repeats=repeats, Q=Q)
     planned = replace(cands.subset(idx), sigma=np.full(len(idx), float(s_new)))
     A_all = np.vstack([A_g, A_c[idx]])
     tol = machine.tolerance
@@ -237,6 +259,41 @@ def plan_relations(
         std_planned=tol * np.sqrt(np.diag(np.linalg.inv(M))), fixed_given=fixed(A_g), fixed_planned=fixed(A_all),
         criterion=criterion, utility_given=float(ld0), utility_planned=float(ld1),
     )
+
+
+def relation_output_weight(machine: Machine, n: int, rng: np.random.Generator) -> NDArray:
+    """``Q = mean_e G_e^T G_e`` (P, P) over ``n`` poses uniform within ``q_limits``, ``G_e`` the tolerance-scaled
+    tool-point Jacobian (mm per tolerance) of all parameters: criterion I for relations, where the prior covers
+    every parameter."""
+    from .criteria import output_weight
+
+    q = machine.sample_q(int(n), rng)
+    poses = machine.forward(q)
+    G = machine.tool_jacobian(q[poses.success], None, machine.forward(q[poses.success]))[:, :3, :]
+    G = G[np.all(np.isfinite(G), axis=(1, 2))]
+    if not G.shape[0]:
+        raise InputError(f"{machine.source}: no pose within q_limits can be solved for criterion I's output weight")
+    return output_weight(G * machine.tolerance[None, None, :])
+
+
+def relaxed_relations(A_c: NDArray, Q: NDArray, n: int, M0: NDArray, *, repeats: bool = True) -> NDArray:
+    """Criterion I from the prior-plus-given information ``M0``: the relaxed design rounded, then exchanges.
+
+    ``M0 = I + A_given^T A_given`` is folded in by whitening: with ``M0 = C C^T`` the rows ``a C^-T`` and the
+    weight ``C^-1 Q C^-T`` turn ``trace((M0 + A^T A)^-1 Q)`` into the prior-``I`` form the bound and the
+    rounding use.
+    """
+    from .bound import design_mse_bound
+    from .rounding import distinct_start, local_search, pool_from_bound, round_weights
+
+    C = np.linalg.cholesky(M0)
+    Ci = np.linalg.inv(C)
+    B = (A_c @ Ci.T)[:, None, :]
+    Qw = Ci @ Q @ Ci.T
+    b = design_mse_bound(B, Qw, int(n))
+    pool = pool_from_bound(b.weights, B, Qw)
+    start = round_weights(b.weights, n) if repeats else distinct_start(b.weights, B, Qw, n, pool)
+    return local_search(B, Qw, start, pool, repeats=repeats)
 
 
 def relation_plan_csv(plan: RelationPlan) -> str:

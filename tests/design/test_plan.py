@@ -80,7 +80,7 @@ def test_too_few_poses_for_the_parameters_is_an_input_error(prs3):
 
 def test_i_plan_predicts_the_map_output_error_it_minimises(prs3):
     p = plan_poses(prs3, 10, criterion="I", dof=5, n_candidates=300, seed=2, n_random=10)
-    assert p.values["I"] > p.random_median["I"] and "expected RMS tool-point error" in p.report()
+    assert p.values["I"] > p.random_median["I"] and "sqrt(E[MSE])" in p.report()
     # sqrt(trace(Sigma Q)) against a Monte Carlo of the linear-Gaussian model it assumes:
     # theta ~ N(0, I) (tolerance units), y = A theta + e, MAP theta_hat = Sigma A^T y, error G (theta_hat - theta)
     cands = draw_candidates(prs3, 300, dof=5, rng=np.random.default_rng(2))
@@ -92,7 +92,7 @@ def test_i_plan_predicts_the_map_output_error_it_minimises(prs3):
     d = y @ A @ Sigma - th
     err = np.einsum("sl,erl->ser", d, cands.output_blocks, optimize=True)  # (sample, workspace pose, xyz) mm
     mc = np.sqrt(np.mean(np.sum(err**2, axis=2)))
-    assert mc == pytest.approx(p.extras["expected_output_rms_mm"], rel=0.03)
+    assert mc == pytest.approx(p.extras["root_expected_mse_mm"], rel=0.03)
 
 
 def test_draw_candidates_rejects_nothing_inside_a_good_workspace(prs3):
@@ -113,4 +113,18 @@ def test_cli_plan_writes_the_csv_and_json(tmp_path, capsys):
     assert rc == 2
     rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "4", "--criterion", "I", "--candidates", "100",
                "--seed", "1", "--random-sets", "3", "--out", str(out), "--json", str(js)])
-    assert rc == 0 and '"criterion": "I"' in js.read_text() and '"expected_output_rms_mm"' in js.read_text()
+    assert rc == 0 and '"criterion": "I"' in js.read_text() and '"root_expected_mse_mm"' in js.read_text()
+
+
+def test_i_plan_defaults_to_the_relaxed_design_with_its_bound(prs3):
+    c = draw_candidates(prs3, 300, dof=6, rng=np.random.default_rng(5))
+    p = plan_poses(prs3, 12, criterion="I", candidates=c, n_random=0)
+    assert p.extras["method"] == "relaxed" and p.extras["repeats"] is True
+    # the plan is an exact 12-pose design, so the bound on every such design is below it
+    assert p.extras["bound_root_mse_mm"] <= p.extras["root_expected_mse_mm"]
+    g = plan_poses(prs3, 12, criterion="I", candidates=c, n_random=0, method="greedy")
+    assert g.extras["method"] == "greedy" and g.extras["root_expected_mse_mm"] >= p.extras["bound_root_mse_mm"]
+    with pytest.raises(InputError, match="only for criterion I"):
+        plan_poses(prs3, 12, criterion="D", candidates=c, n_random=0, method="relaxed")
+    d = plan_poses(prs3, 12, criterion="I", candidates=c, n_random=0, repeats=False)
+    assert len(set(d.candidate_index.tolist())) == 12

@@ -102,3 +102,29 @@ def test_cli_writes_a_recording_to_fill_in(delta, tmp_path, capsys):
     # a grid reaching outside the workspace is bad input, named
     assert main(["plan", "--machine", str(DELTA), "--measure", "height", "--n", "2", "--radius", "900", "--out", str(out)]) == 2
     assert "cannot be reached" in capsys.readouterr().err
+
+
+def test_criterion_i_folds_the_given_information_into_the_bound(delta):
+    """relaxed_relations whitens by M0 = C C^T: its design's E[MSE] is trace((M0 + A^T A)^-1 Q), checked directly."""
+    from bayescal.design import design_mse
+    from bayescal.design.relations import relaxed_relations
+
+    rng = np.random.default_rng(0)
+    P = 4
+    A = rng.normal(size=(30, P))
+    G = rng.normal(size=(50, 3, P))
+    Q = np.einsum("eki,ekj->ij", G, G) / 50
+    Ag = rng.normal(size=(3, P))
+    M0 = np.eye(P) + Ag.T @ Ag
+    idx = relaxed_relations(A, Q, 5, M0)
+    direct = np.trace(np.linalg.inv(M0 + A[idx].T @ A[idx]) @ Q)
+    Ci = np.linalg.inv(np.linalg.cholesky(M0))
+    assert design_mse((A @ Ci.T)[:, None, :], Ci @ Q @ Ci.T, idx) == pytest.approx(direct, rel=1e-10)
+    # and no single exchange of the result with any candidate lowers it
+    for i in range(5):
+        for j in range(30):
+            alt = idx.copy()
+            alt[i] = j
+            assert np.trace(np.linalg.inv(M0 + A[alt].T @ A[alt]) @ Q) >= direct * (1 - 1e-9)
+    plan = plan_relations(delta, 4, measure="height", criterion="I", radius=40.0)
+    assert plan.recording.n_rows == 4 and plan.criterion == "I"
