@@ -140,6 +140,15 @@ def simulate_ballbar(
         True geometric errors; drawn from the tolerances if omitted.
     sigma : float, optional
         Noise of a reading (mm); the machine's ``sigma_position`` by default, 0 for noise-free.
+
+    Raises
+    ------
+    InputError
+        If a circle point cannot be commanded by the nominal machine within
+        ``q_limits`` (unreachable, or actuator positions outside the limits):
+        a ballbar test runs the whole circle, so no point is dropped.  The
+        message names the radius, pivot and plane, how many points do not fit
+        and about the largest radius that does.
     """
     if not radius > 0:
         raise InputError(f"ballbar radius: expected a positive length in mm, got {radius!r}")
@@ -148,6 +157,7 @@ def simulate_ballbar(
         pivot = machine.forward(machine.home_q()[None]).position[0]
     pivot = np.asarray(pivot, dtype=float)
     pts = np.vstack([circle_points(pivot, radius, pl, n_points) for pl in planes])
+    _check_circles_fit(machine, pivot, radius, planes, n_points)
     q = solve_q_for_points(machine, pts)
     true = machine.forward(q, theta)
     if not true.success.all():
@@ -159,6 +169,72 @@ def simulate_ballbar(
         measure=("ballbar",) * n, qa=q, qb=np.full_like(q, np.nan), value=value, pivot=(DEFAULT_PIVOT,) * n,
     )
     return ConstraintSimulation(recording=rec, theta_true=theta, pivots={DEFAULT_PIVOT: pivot}, seed=seed)
+
+
+def _circle_status(machine: Machine, pivot: NDArray, radius: float, plane: str, n: int) -> tuple[int, int, str]:
+    """(points not reached, points reached outside ``q_limits``, first unreachable message) of one circle."""
+    pts = circle_points(pivot, radius, plane, n)
+    try:
+        q = solve_q_for_points(machine, pts)
+        unreached, why = np.zeros(n, dtype=bool), ""
+    except KinematicsError as exc:
+        # per point, to count them: the batch solve stops at the first pose that does not assemble
+        q, unreached, why = np.full((n, machine.n_actuators), np.nan), np.zeros(n, dtype=bool), str(exc)
+        for i in range(n):
+            try:
+                q[i] = solve_q_for_points(machine, pts[i : i + 1])[0]
+            except KinematicsError:
+                unreached[i] = True
+    outside = np.zeros(n, dtype=bool)
+    if machine.q_limits is not None:
+        lo, hi = machine.q_limits[:, 0], machine.q_limits[:, 1]
+        with np.errstate(invalid="ignore"):
+            outside = ~unreached & ((q < lo) | (q > hi)).any(axis=1)
+    return int(unreached.sum()), int(outside.sum()), why
+
+
+def _largest_radius(machine: Machine, pivot: NDArray, radius: float, plane: str, n: int) -> float:
+    """About the largest radius (mm, below ``radius``) whose ``n`` circle points all fit; 0 if none does.
+
+    Bisection: the fitting radii need not be an interval, so this is a
+    suggestion to try, not a bound.
+    """
+    lo, hi = 0.0, radius
+    for _ in range(14):  # radius / 16384: finer than a ballbar's length is chosen
+        mid = 0.5 * (lo + hi)
+        unreached, outside, _ = _circle_status(machine, pivot, mid, plane, n)
+        lo, hi = (mid, hi) if unreached + outside == 0 else (lo, mid)
+    return lo
+
+
+def _check_circles_fit(machine: Machine, pivot: NDArray, radius: float, planes: tuple[str, ...], n: int) -> None:
+    """Refuse circles any of whose points the nominal machine cannot command within ``q_limits``.
+
+    A real ballbar test runs the whole circle; a recording with readings the
+    machine cannot command would be refused by every reader of it, and
+    dropping those points would silently change the measurement plan.
+    """
+    problems = []
+    for pl in planes:
+        unreached, outside, why = _circle_status(machine, pivot, radius, pl, n)
+        if unreached + outside == 0:
+            continue
+        parts = []
+        if outside:
+            parts.append(f"{outside} of {n} points need actuator positions outside [workspace] q_limits")
+        if unreached:
+            parts.append(f"{unreached} of {n} points cannot be reached ({why})")
+        fit = _largest_radius(machine, pivot, radius, pl, n)
+        hint = (f"at most about {np.floor(fit * 10) / 10:g} mm fits at this pivot in plane {pl}" if fit >= 0.1
+                else "no circle fits about this pivot in this plane")
+        problems.append(f"plane {pl}: {'; '.join(parts)} ({hint})")
+    if problems:
+        centre = ", ".join(f"{v:g}" for v in np.round(pivot, 6) + 0.0)  # no -0 or 1e-14 in the message
+        raise InputError(
+            f"ballbar circle of radius {radius:g} mm about the pivot ({centre}) mm does not fit the workspace of "
+            f"{machine.source}: {'; '.join(problems)}. Choose a smaller radius (--ballbar), another pivot "
+            "(--pivot) or other planes (--planes)"
+        )
 
 
 def simulate_distances(

@@ -40,8 +40,10 @@ node): at each node the residual error (actual minus commanded) and its
 std.  --nc CSV writes it in the NC-loadable format (docs/formats.md: the BIC
 columns i,j,x,z,ex,ez,std_ex,std_ez for a planar machine such as the
 RASPM-2T1R, otherwise i,j,k,x,y,z,ex,ey,ez,std_ex,std_ey,std_ez).  The
-default space is 'tool' for a redundantly actuated machine (its actuators
-are not independent) and 'actuator' otherwise.  --range NAME=LO:HI narrows
+default space is 'actuator' where every actuator vector within q_limits
+assembles, and 'tool' for a machine that declares otherwise (a linear delta,
+whose q_limits box holds carriage positions the arms cannot join; a
+redundantly actuated machine, whose actuators are not independent).  --range NAME=LO:HI narrows
 an axis (q1..qN in actuator space, x, y, z in tool space; repeatable).
 """
 
@@ -77,8 +79,9 @@ def register(sub) -> None:
         "e.g. --aux payload_kg=5 --aux temp_C=25; a channel not given is absent (no payload)",
     )
     p.add_argument("--space", choices=("auto", "actuator", "tool"), default="auto",
-                   help="grid over actuator positions or over the tool point (default auto: tool for a redundantly "
-                   "actuated machine, actuator otherwise)")
+                   help="grid over actuator positions or over the tool point (default auto: tool for a machine whose "
+                   "q_limits box is not all reachable, e.g. a linear delta or a redundantly actuated machine; "
+                   "actuator otherwise)")
     p.add_argument("--range", action="append", default=[], metavar="NAME=LO:HI", dest="ranges",
                    help="narrow one grid axis (repeatable): q1..qN (actuator unit) or x, y, z (mm)")
     p.add_argument("--nc", metavar="CSV", help="tool space: write the NC-loadable grid CSV (docs/formats.md)")
@@ -133,7 +136,8 @@ def run(args) -> int:
     base, theta, free_mask, kw = base_frame_parts(model.machine, res.theta, res.free, kw)
     space = args.space
     if space == "auto":
-        space = "tool" if getattr(base, "redundant", ()) else "actuator"
+        # the machine says whether its whole q_limits box assembles (base.Machine.actuator_box_reachable)
+        space = "actuator" if base.actuator_box_reachable else "tool"
     ranges = _ranges(args.ranges, space, base.n_actuators)
     if space == "tool":
         from ..bayes.tool_grid import tool_grid

@@ -307,6 +307,19 @@ class Machine(ABC):
         """
         return None
 
+    @property
+    def actuator_box_reachable(self) -> bool:
+        """Whether every actuator vector within ``q_limits`` assembles (nominally).
+
+        True for a machine whose actuators move independently over their
+        whole strokes.  A kind whose ``q_limits`` box holds vectors that do
+        not assemble (a linear delta: the three carriages far apart pull the
+        arms past their length) or whose actuators are coupled (redundant
+        actuation) returns False, so that consumers spanning a grid over the
+        box (``bayescal grid``) span the tool point instead.
+        """
+        return True
+
     def home_q(self) -> NDArray:
         """A reference actuator vector: the middle of ``q_limits``."""
         if self.q_limits is None:

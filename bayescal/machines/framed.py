@@ -181,6 +181,10 @@ class InstrumentFrame(Machine):
         return self.machine.actuator_units
 
     @property
+    def actuator_box_reachable(self) -> bool:
+        return self.machine.actuator_box_reachable
+
+    @property
     def effects(self) -> tuple:  # type: ignore[override]
         """The inner machine's stored effects: they act on the actuators, whatever frame measures the tool."""
         return self.machine.effects

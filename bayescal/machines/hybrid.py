@@ -117,6 +117,11 @@ class Hybrid(Machine):
     def actuator_units(self) -> tuple[str, ...]:
         return tuple(u for m in self.modules for u in m.actuator_units)
 
+    @property
+    def actuator_box_reachable(self) -> bool:
+        """The box is the product of the modules' boxes: all reachable only if each module's is."""
+        return all(m.actuator_box_reachable for m in self.modules)
+
     # ----------------------------------------------------------------- set-up
     @classmethod
     def from_toml(cls, doc: TomlTable, path: str) -> "Hybrid":

@@ -343,6 +343,11 @@ class LinearDelta(Machine):
         with np.errstate(invalid="ignore"):
             return wu + np.sqrt(np.where(disc >= 0, disc, np.nan)) - g.z0
 
+    @property
+    def actuator_box_reachable(self) -> bool:
+        """False: carriages far apart within ``q_limits`` pull the arms past their length."""
+        return False
+
     def sample_q(self, n: int, rng: np.random.Generator) -> NDArray:
         """``n`` reachable actuator vectors within ``q_limits``.
 

@@ -178,6 +178,11 @@ class Raspm(Machine):
         """0-based actuators outside the non-redundant subset."""
         return tuple(k for k in range(self.n_actuators) if k not in self.nonredundant)
 
+    @property
+    def actuator_box_reachable(self) -> bool:
+        """False: the redundant actuators are fixed by the others, not free within ``q_limits``."""
+        return False
+
     def offset_index(self) -> NDArray:
         """Parameter indices whose change moves one rail origin along its rail (zero offsets), per actuator.
 

@@ -85,3 +85,18 @@ def test_write_klipper_needs_a_linear_delta(tmp_path, capsys):
     code = main(["identify", str(prs3 / "recording.csv"), "--machine", str(prs3 / "machine.toml"), "--write-klipper", str(tmp_path / "k.cfg")])
     assert code == 2 and "linear-delta" in capsys.readouterr().err
     assert not (tmp_path / "k.cfg").exists()
+
+
+def test_simulate_ballbar_circle_outside_q_limits_exit_2_and_a_fitting_one_round_trips(tmp_path, capsys):
+    prs3 = DELTA.parents[1] / "prs3" / "machine.toml"
+    out = tmp_path / "bb.csv"
+    args = ["simulate", "--machine", str(prs3), "--planes", "xz", "--poses", "24", "--seed", "1", "--out", str(out), "--quiet"]
+    assert main([*args, "--ballbar", "30"]) == 2
+    err = capsys.readouterr().err
+    assert "radius 30 mm" in err and "plane xz" in err and "q_limits" in err and "smaller radius" in err
+    assert not out.exists() and not out.with_suffix(".truth.json").exists()  # nothing written on refusal
+    assert main([*args, "--ballbar", "25"]) == 0
+    ans = tmp_path / "ident.json"
+    # every reading within q_limits: identify reads the recording (exit 0, or 1 for a fit it calls not plausible)
+    assert main(["identify", str(out), "--machine", str(prs3), "--method", "map", "--free", "all", "--json", str(ans), "--quiet"]) in (0, 1)
+    assert json.loads(ans.read_text())["parameters"]

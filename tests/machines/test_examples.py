@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bayescal.machines import check_machine, load_machine
@@ -14,3 +15,22 @@ FILES = sorted(p for p in (ROOT / "examples").glob("*/machine.toml"))
 def test_example_machine_passes_check_machine(path):
     m = load_machine(path)
     assert check_machine(m) == [], path
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: Path(p).parent.name)
+def test_actuator_box_reachable_is_truthful(path):
+    """A machine declaring its q_limits box all reachable assembles at the box's corners and inside it;
+    one declaring it not has somewhere in the box where it does not (else tool-space grids are imposed for nothing)."""
+    m = load_machine(path)
+    if m.q_limits is None:
+        pytest.skip("no q_limits")
+    lo, hi = m.q_limits[:, 0], m.q_limits[:, 1]
+    n = m.n_actuators
+    rng = np.random.default_rng(0)
+    corners = lo + (hi - lo) * (rng.random((64, n)) < 0.5)  # random corners (2**n of them can be many)
+    inner = lo + (hi - lo) * rng.random((64, n))
+    ok = np.concatenate([m.forward(corners).success, m.forward(inner).success])
+    if m.actuator_box_reachable:
+        assert ok.all(), f"{path}: declares its q_limits box reachable, but {np.sum(~ok)} of 128 vectors do not assemble"
+    else:
+        assert not ok.all(), f"{path}: declares its q_limits box not all reachable, yet every vector drawn assembles"
