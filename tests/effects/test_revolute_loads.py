@@ -138,3 +138,46 @@ def test_redundancy_preload_units_follow_the_drives():
     mixed = _with_units(raspm, ["mm", "rad", "mm", "mm"])
     why = eff.not_applicable(mixed, {})
     assert why and why.startswith("not applicable") and "not dimensionless" in why
+
+
+class _JointTorqueSag:
+    """Outside the library: each joint turns by ``c_i tau_i``, the torque from finite differences of the
+    potential of a platform weight (at ``com`` from the tool point, last-body frame) and the recorded payload."""
+
+    def __init__(self, machine, c_urad_per_nm, mass_kg, com_mm):
+        self.m, self.c, self.mass, self.com = machine, np.asarray(c_urad_per_nm), mass_kg, np.asarray(com_mm)
+
+    def transform(self, q, theta, aux, order):
+        n, k = q.shape
+        tau = np.zeros((n, k))  # N mm
+        for i in range(k):
+            e = np.zeros(k)
+            e[i] = 1e-6
+            for point, mass in ((self.com, np.full(n, self.mass)), (np.zeros(3), np.asarray(aux["payload_kg"]))):
+                up = self.m.forward(q + e, theta)
+                dn = self.m.forward(q - e, theta)
+                zu = up.position[:, 2] + np.einsum("nj,j->n", up.rotation[:, 2], point)
+                zd = dn.position[:, 2] + np.einsum("nj,j->n", dn.rotation[:, 2], point)
+                tau[:, i] -= mass * G * (zu - zd) / 2e-6  # gravity along -z
+        return q + 1e-9 * self.c[None, :] * tau, theta
+
+
+def test_diagnose_names_a_joint_torque_sag_in_urad_per_newton_metre():
+    # the positioner of test_revolute_units (better instrument), payloads of 0-25 kg recorded
+    from bayescal.diagnose import diagnose
+    from bayescal.simulate import draw_errors, measure
+    from tests.effects.test_revolute_units import _positioner
+
+    pos = _positioner()
+    rng = np.random.default_rng(4)
+    theta = draw_errors(pos, rng)
+    q = draw_poses(pos, 160, rng, theta)
+    aux = {"payload_kg": rng.uniform(0.0, 25.0, 160)}
+    c = np.array([30.0, 18.0])  # urad/(N m)
+    rec = measure(pos, q, theta, 6, rng, aux=aux, effects=[_JointTorqueSag(pos, c, 30.0, [0.0, 0.0, 0.0])])
+    d = diagnose(pos, rec, seed=1)
+    assert d.verdict == "joint_compliance"
+    got = {p.name: p for p in next(e for e in d.effects if e.name == "joint_compliance").parameters}
+    for i in (1, 2):
+        p = got[f"compliance.q{i}"]
+        assert p.unit == "urad/(N m)" and abs(p.value - c[i - 1]) < 4 * p.std, (i, p.value, p.std)
