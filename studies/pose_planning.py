@@ -347,6 +347,9 @@ FULL = dict(trials=400, nl_trials=60, n_eval=200, bound_n=ALL_N, map_n=ALL_N, ra
 QUICK = dict(trials=40, nl_trials=3, n_eval=50, bound_n=[8, 18, 20, 36], map_n=[8, 18, 20, 36], random_n=[18, 36],
              greedy_n=[18], ls_n=[12], exhaustive_max_n=8, candidates={"prs3": 1000, "arm6": 500})
 SETTINGS = ("prs3-6dof", "prs3-5dof", "arm6-6dof", "delta-height")
+#: Figure panel titles of the settings.
+TITLES = {"prs3-6dof": "3-PRS, 6-DOF measurement", "prs3-5dof": "3-PRS, 5-DOF measurement",
+          "arm6-6dof": "6R arm, 6-DOF measurement", "delta-height": "linear delta, probe heights"}
 
 
 def build(name: str, cfg: dict, seed: int) -> Setting:
@@ -434,7 +437,8 @@ def main(argv=None) -> int:
             nl[name] = nonlinear_targets(s, cfg, args.seed, log)
     seconds = time.perf_counter() - t0
     names = {"plan": "planned-I", "greedy": "greedy-I (distinct)", "random": "random"}
-    rows = [{**c, "dof": c["setting"], "n_poses": c["n"], "design": names[c["design"]]} for r in results for c in r["curve"]]
+    rows = [{**c, "dof": c["setting"], "title": TITLES.get(c["setting"], c["setting"]), "n_poses": c["n"], "design": names[c["design"]]}
+            for r in results for c in r["curve"]]
     plot_error_vs_poses(rows, out / "pose_planning.png")
     write_json_atomic(out / "summary.json", {"config": {**cfg, "seed": args.seed, "settings": args.settings},
                                              "results": [{k: v for k, v in r.items() if k != "trials"} for r in results],

@@ -24,7 +24,8 @@ reads with its noise ([measurement] sigma_position, sigma_angle).
 Physics beyond the geometric model can be concealed in the recording with
 --effect NAME[:magnitude] (several allowed; magnitudes in the effect's unit:
 joint_compliance um/N, thermal_expansion um/m/K, backlash um,
-screw_periodic_error um, redundancy_preload um of the redundant drive's
+screw_periodic_error um (on a revolute drive urad for um, urad/rad for um/m,
+urad/(N m) for um/N), redundancy_preload um of the redundant drive's
 offset, only on redundantly actuated machines such as the RASPM-2T1R: drive
 stiffnesses of 150-500 N/um turn that offset and the incompatibility the drawn
 geometric errors leave into internal forces and deflections),

@@ -6,10 +6,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from ..machines.base import Machine, ToolPoses
+from ..machines.base import ActuatorUnit, Machine, ToolPoses
 from .base import Effect, EffectParam, Features
 
-__all__ = ["JointCompliance", "actuator_loads", "gravity_direction", "GRAVITY", "DEFAULT_GRAVITY_DIRECTION"]
+__all__ = ["JointCompliance", "actuator_loads", "gravity_direction", "compliance_prior_scale", "GRAVITY", "DEFAULT_GRAVITY_DIRECTION"]
 
 #: Standard gravity, m/s^2.
 GRAVITY = 9.80665
@@ -22,6 +22,19 @@ def _unit(v, what: str) -> NDArray:
     if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
         raise InputError(f"{what}: expected a non-zero 3-vector, got {v.tolist()}")
     return v / np.linalg.norm(v)
+
+
+def compliance_prior_scale(unit: ActuatorUnit) -> float:
+    """A slider's compliance prior (um/N) to this drive's unit (``unit.compliance``): 1, or 100 on a joint.
+
+    The reference arm of :attr:`ActuatorUnit.per_um` is ``r = 1 / per_um`` m
+    (100 mm on a joint).  A force ``F`` there is a torque ``F r``, which
+    turns a joint of compliance ``c`` by ``c F r`` and moves the point by
+    ``c F r^2``; as compliant as a slider of ``c_s`` um/N when ``c = c_s /
+    r^2``, i.e. ``per_um ** 2`` urad/(N m) per um/N (um/m^2 = urad/m).
+    Weight deflections ``c m g`` scale alike.
+    """
+    return float(unit.per_um) ** 2
 
 
 def _tilt_basis(down: NDArray) -> NDArray:
@@ -63,7 +76,7 @@ def actuator_loads(
     machine: Machine, q: NDArray, theta: NDArray, poses: ToolPoses, mass_kg: NDArray, *, down=DEFAULT_GRAVITY_DIRECTION,
     point: str = "origin",
 ) -> NDArray:
-    """Actuator forces (N) of a weight ``m g`` at the platform origin (or the tool point), by virtual work.
+    """Generalised forces on the actuators of a weight ``m g`` at the platform origin (or the tool point), by virtual work.
 
     For every motion the actuators can make, ``f . dq = F . dx``, with ``dx``
     the displacement of the point the weight acts at (``J dq``, ``J`` from
@@ -83,9 +96,11 @@ def actuator_loads(
 
     Returns
     -------
-    ndarray, shape (n_poses, n_actuators), N
+    ndarray, shape (n_poses, n_actuators), N mm per ``q`` unit
         Generalised gravity force on each actuator coordinate (positive:
-        gravity pushes ``q_i`` up).
+        gravity pushes ``q_i`` up): a force in N on a slider (``q`` in mm),
+        a torque in N mm on a revolute joint (``q`` in rad; times
+        ``ActuatorUnit.load_scale`` gives N m).
     """
     J = machine.actuator_jacobian(q, theta, poses)
     F = np.asarray(mass_kg, float)[:, None] * GRAVITY * _unit(down, "down")[None, :]
@@ -119,6 +134,16 @@ class JointCompliance(Effect):
     direction in the base frame.  ``dq_i > 0`` when gravity pulls the slider
     towards larger ``q_i``.
 
+    Units follow the drive (:attr:`Machine.actuator_unit_info`).  The
+    generalised force ``m g d . dx/dq_i`` is a force (N) on a slider
+    (``dx/dq_i`` in mm/mm) and a torque on a revolute joint (``dx/dq_i`` in
+    mm/rad, so N mm, i.e. ``1e-3`` N m; ``ActuatorUnit.load_scale``): a
+    joint's compliance ``c_i`` is its deflection per joint torque, urad/(N m)
+    (``1 / c_i`` is its torsional stiffness), and ``dq_i = 1e-6 c_i tau_i``
+    rad with ``tau_i`` in N m.  The same formula thus holds for both, only
+    the numbers' units differ: ``dq_i [mm] = 1e-3 c_i [um/N] F_i [N]``;
+    ``dq_i [rad] = 1e-9 c_i [urad/(N m)] tau_i [N mm]``.
+
     What the data identify, hence the parameters (names, units), in two
     sets that depend only on whether the recording has a ``payload_kg``
     channel:
@@ -126,8 +151,13 @@ class JointCompliance(Effect):
     * without it: ``weight_deflection.q<i>`` (um, ``>= 0``), ``w_i = c_i
       m_p g``, how far drive ``i`` would give way under the whole platform
       weight on its axis (prior ``0 +- 300 um``): mass and compliance appear
-      only as this product;
-    * with it: ``compliance.q<i>`` (um/N, ``>= 0``, prior ``0 +- 1``) and
+      only as this product; on a revolute joint urad/m, its deflection per
+      metre of the weight's lever arm (prior ``0 +- 30,000 urad/m``, 3 mrad
+      at 100 mm);
+    * with it: ``compliance.q<i>`` (um/N, ``>= 0``, prior ``0 +- 1``; on a
+      revolute joint urad/(N m), prior ``0 +- 100``, a torsional stiffness of
+      1e4 N m/rad: the joint that lets a point 100 mm from its axis give way
+      1 um/N, as the slider's prior; ``ActuatorUnit.per_um`` squared) and
       ``platform_mass`` (kg, ``>= 0``, prior ``0 +- 100``, or centred on a
       stated mass with 2 % width), ``w_i = c_i m_p g`` (the payload's
       changing load fixes ``c_i``; the platform's then fixes ``m_p``);
@@ -183,17 +213,26 @@ class JointCompliance(Effect):
     forward kinematics reads.  Usual size on machine tools: ball-screw
     drives 0.002-0.02 um/N (50-500 N/um axial stiffness); with links,
     spherical joints and a lightweight frame the apparent compliance at the
-    actuator reaches 0.05-1 um/N; platforms of 10-200 kg.
+    actuator reaches 0.05-1 um/N; platforms of 10-200 kg.  Revolute
+    drives: robot and positioner joints 1-10 urad/(N m) (stiffness 1e5-1e6
+    N m/rad), harmonic-drive wrists 10-100 urad/(N m).  On a serial chain the
+    "platform" is the last body (what moves with the tool): the weight of the
+    links between the drives (an arm's upper arm, a positioner's turntable
+    housing) also loads the drives nearer the base and is left out; with a
+    ``payload_kg`` channel the compliances are still fixed by the payload's
+    changing torques, which the model states exactly.
     """
 
     name = "joint_compliance"
     summary = "actuators yield under the gravity load of platform (unknown mass and centre of mass) and payload (payload_kg)"
-    magnitude_unit = "um/N"
+    magnitude_unit = "um/N"  # urad/(N m) on a revolute drive (the parameter's own unit)
     default_magnitude = 0.5
     needs_poses = True
     settings_keys = ("gravity", "payload_offset", "platform_mass_kg", "platform_com_mm")
 
-    #: Prior one-sigma of a weight deflection (um), of a centre-of-mass coordinate (mm), of a gravity tilt.
+    #: Prior one-sigma of a weight deflection (um), a compliance (um/N), the platform mass (kg), a
+    #: centre-of-mass coordinate (mm), a gravity tilt; on a revolute drive the first two times
+    #: :func:`compliance_prior_scale` (urad/m, urad/(N m)).
     WEIGHT_PRIOR_UM = 300.0
     COMPLIANCE_PRIOR = 1.0
     MASS_PRIOR_KG = 100.0
@@ -264,15 +303,22 @@ class JointCompliance(Effect):
         # depends only on which channels a recording has, as machine-file effect tables need
         has_payload = "payload_kg" in aux
         mass = np.asarray(aux["payload_kg"], float) if has_payload else np.zeros(n)
+        # q units per (compliance unit x N mm per q unit): 1e-3 (um/N x N -> mm), 1e-9 (urad/(N m) x N mm -> rad)
+        units = machine.actuator_unit_info
+        scale = np.array([u.small_to_q * u.load_scale for u in units])
+        # a load per unit weight (mm/mm, or mm/rad: the lever arm) as the equivalent force at the reference arm
+        # 1 / per_um m (100 mm on a joint): what "no gravity load" compares with
+        arm = np.array([u.load_scale * u.per_um for u in units])
         return Features(
             {"Jt": J[:, :3], "w": J[:, 3:], "R": R, "origin_arm": origin_arm, "payload_arm": payload_arm, "payload_kg": mass},
-            {"down": self.down, "has_payload": has_payload},
+            {"down": self.down, "has_payload": has_payload, "scale": scale, "arm": arm},
         )
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
-        m = machine.n_actuators
+        units = machine.actuator_unit_info
         if features is not None and features.const["has_payload"]:
-            out = [EffectParam(f"compliance.q{i + 1}", "um/N", self.COMPLIANCE_PRIOR, lower=0.0) for i in range(m)]
+            out = [EffectParam(f"compliance.q{i + 1}", u.compliance, self.COMPLIANCE_PRIOR * compliance_prior_scale(u), lower=0.0)
+                   for i, u in enumerate(units)]
             # the mass starts at a typical platform's (the stated one, else 30 kg), not at zero: there the
             # platform's load c_i m_p g has no gradient in c_i nor m_p, and Gauss-Newton crawls out of that
             # saddle for tens of iterations or stops in it (studies/compliance_identifiability.py, docs/diagnose.md)
@@ -285,8 +331,9 @@ class JointCompliance(Effect):
             # likewise the weight deflections start at 0.5 um/N under 30 kg: at zero the centre of mass and
             # the tilt have no gradient
             start = self.default_magnitude * self.platform_mass_kg * GRAVITY
-            out = [EffectParam(f"weight_deflection.q{i + 1}", "um", self.WEIGHT_PRIOR_UM, lower=0.0, start=start)
-                   for i in range(m)]
+            out = [EffectParam(f"weight_deflection.q{i + 1}", u.weight, self.WEIGHT_PRIOR_UM * compliance_prior_scale(u), lower=0.0,
+                               start=start * compliance_prior_scale(u))
+                   for i, u in enumerate(units)]
         if self.stated_com is None:
             out += [EffectParam(f"com.{x}", "mm", self.COM_PRIOR_MM) for x in "xyz"]
         else:
@@ -302,7 +349,7 @@ class JointCompliance(Effect):
         m = Jt.shape[2]
         if features.const["has_payload"]:
             c, mp = eta[:m], eta[m]
-            W = c * mp * GRAVITY  # weight deflections c_i m_p g, um
+            W = c * mp * GRAVITY  # weight deflections c_i m_p g, um (urad/m)
             k = m + 1
         else:
             c, mp = np.zeros(m), 0.0
@@ -320,43 +367,48 @@ class JointCompliance(Effect):
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
         _, W, c, _, _, _, _, _, phi, psi, load = self._terms(features, eta)
-        return 1e-3 * (W[None, :] * phi + c[None, :] * load[:, None] * psi)
+        return features.const["scale"][None, :] * (W[None, :] * phi + c[None, :] * load[:, None] * psi)
 
     def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
         k, W, c, mp, d, dd, Jc, Jl, phi, psi, load = self._terms(features, eta)
         n, m = phi.shape
         J = np.zeros((n, m, len(np.asarray(eta))))
         ar = np.arange(m)
+        s = features.const["scale"]
         if features.const["has_payload"]:
-            J[:, ar, ar] = 1e-3 * (mp * GRAVITY * phi + load[:, None] * psi)
-            J[:, :, m] = 1e-3 * c[None, :] * GRAVITY * phi
+            J[:, ar, ar] = s[None, :] * (mp * GRAVITY * phi + load[:, None] * psi)
+            J[:, :, m] = s[None, :] * c[None, :] * GRAVITY * phi
         else:
-            J[:, ar, ar] = 1e-3 * phi
+            J[:, ar, ar] = s[None, :] * phi
         # d phi_i / d com = R^T (d x omega_i): d . (omega x R c) = c . R^T (d x omega)
         dxw = np.cross(d[None, :, None], features.per_pose["w"], axisa=1, axisb=1, axisc=1)  # (n, 3, m)
-        J[:, :, k : k + 3] = 1e-3 * W[None, :, None] * np.einsum("nji,njm->nmi", features.per_pose["R"], dxw)
+        J[:, :, k : k + 3] = (s * W)[None, :, None] * np.einsum("nji,njm->nmi", features.per_pose["R"], dxw)
         dphi = np.einsum("kt,nkm->nmt", dd, Jc)  # (n, m, 2)
         dpsi = np.einsum("kt,nkm->nmt", dd, Jl)
-        J[:, :, k + 3 : k + 5] = 1e-3 * (W[None, :, None] * dphi + (c[None, :] * load[:, None])[:, :, None] * dpsi)
+        J[:, :, k + 3 : k + 5] = s[None, :, None] * (W[None, :, None] * dphi + (c[None, :] * load[:, None])[:, :, None] * dpsi)
         return J
 
     def inadmissible(self, features: Features, eta: NDArray | None = None) -> str | None:
         # e.g. the RU-PUS-PRS: its platform origin is the centre of the passive post's universal joint, so
         # a weight there loads only the post; with a centre of mass off it the drives would carry its moment,
         # but that load is bilinear in the deflections and the offset and vanishes at the prior (no start
-        # for the fit).  Compare the dimensionless loads (actuator force per unit of weight) with 1e-3.
+        # for the fit).  Compare the dimensionless loads (actuator force per unit of weight; on a joint its
+        # torque per unit of weight over the reference arm, 100 mm) with 1e-3.
         m = features.per_pose["Jt"].shape[2]
         zero = np.zeros(m + 5 + (1 if features.const["has_payload"] else 0))
         phi, psi = self._terms(features, zero)[8:10]
+        arm = features.const["arm"][None, :]
+        phi, psi = phi * arm, psi * arm
         mass = features.per_pose["payload_kg"]
         payload = bool(mass.size and np.ptp(mass) > 0 and psi.size and np.max(np.abs(psi)) > 1e-3)
         if phi.size and np.max(np.abs(phi)) <= 1e-3 and not payload:
-            return ("the actuators carry no gravity load at any pose (under 0.1 % of the weight at the platform origin: "
-                    "it acts at a passive joint) and no changing payload_kg is recorded")
+            return ("the actuators carry no gravity load at any pose (under 0.1 % of the weight at the platform origin, "
+                    "or of its torque at 100 mm on a revolute joint: it acts at a passive joint or on the joint's axis) "
+                    "and no changing payload_kg is recorded")
         return None
 
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
-        """Compliances ``magnitude`` (um/N, +-40 %) under the platform mass and centre of mass of the constructor, no tilt."""
+        """Compliances ``magnitude`` (um/N, urad/(N m) on a revolute drive; +-40 %) under the platform mass and centre of mass of the constructor, no tilt."""
         m = machine.n_actuators
         c = magnitude * rng.uniform(0.6, 1.4, m)
         com = np.zeros(3) if self.stated_com is None else self.stated_com

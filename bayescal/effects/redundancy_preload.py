@@ -8,7 +8,8 @@ from numpy.typing import NDArray
 from ..machines.base import Machine, ToolPoses
 from .base import Effect, EffectParam, Features
 
-__all__ = ["RedundancyPreload", "machine_dof", "orient_directions", "RATIO_PRIOR", "RATIO_PRIOR_MEAN", "OFFSET_PRIOR_MM", "redundant_columns"]
+__all__ = ["RedundancyPreload", "machine_dof", "orient_directions", "RATIO_PRIOR", "RATIO_PRIOR_MEAN", "OFFSET_PRIOR_MM", "offset_prior",
+           "redundant_columns"]
 
 #: Prior centre and one-sigma of a compliance ratio ``c_s / c_r`` (dimensionless).  Drives of one module are
 #: of one size, so ratios of 0.3-3 are usual; zero (an infinitely compliant redundant drive) is "no preload".
@@ -17,8 +18,14 @@ __all__ = ["RedundancyPreload", "machine_dof", "orient_directions", "RATIO_PRIOR
 RATIO_PRIOR_MEAN = 1.0
 RATIO_PRIOR = 2.0
 #: Prior one-sigma of the redundant drive's offset from its compatible position, mm.  Wide on purpose: a
-#: redundant drive may be commanded a deliberate preload offset of tenths of a millimetre.
+#: redundant drive may be commanded a deliberate preload offset of tenths of a millimetre.  On a revolute
+#: drive (rad) it is scaled like every effect prior (``ActuatorUnit.per_um``): 0.01 rad.
 OFFSET_PRIOR_MM = 1.0
+
+
+def offset_prior(unit) -> float:
+    """One-sigma of the redundant drive's offset in its ``q`` unit (an :class:`ActuatorUnit`): 1 mm, or 0.01 rad."""
+    return OFFSET_PRIOR_MM * 1e3 * unit.per_um * unit.small_to_q
 
 
 def machine_dof(machine: Machine) -> int:
@@ -112,7 +119,8 @@ class RedundancyPreload(Effect):
     compliant redundant drive carries no force).
 
     Parameters: ``compliance_ratio.q<s>`` (``c_s / c_r``, dimensionless,
-    >= 0, prior ``1 +- 2``), ``offset.q<r>`` (mm, prior ``0 +- 1``) and
+    >= 0, prior ``1 +- 2``), ``offset.q<r>`` (the drive's ``q`` unit: mm,
+    prior ``0 +- 1``; rad on a revolute drive, prior ``0 +- 0.01``) and
     ``redundant.<parameter>`` (the redundant chain's geometric errors, mm or
     rad, priors their tolerances).  Usual size: 0.05 mm of tolerance errors
     leave incompatibilities of 0.1-0.5 mm, which drives of 150-500 N/um turn
@@ -120,12 +128,18 @@ class RedundancyPreload(Effect):
     of um.  Needs one redundant drive and the closed-form inverse
     kinematics of every drive (``ik_jacobian``, ``ik_parameter_jacobian``:
     the RASPM); not applicable to machines with as many actuators as
-    degrees of freedom (the 3-PRS).
+    degrees of freedom (the 3-PRS, serial arms and positioners).  Units follow
+    the drives (:attr:`Machine.actuator_unit_info`): the formula holds in
+    each drive's own ``q`` unit (``nu`` and ``c_k`` scale together), and on a
+    module of revolute drives (compliances urad/(N m)) the ratios are still
+    dimensionless; a module mixing sliders and revolute drives is not
+    applicable, since a ratio of um/N to urad/(N m) has a dimension
+    (1/m^2) and the "drives of one size" prior ``1 +- 2`` means nothing.
     """
 
     name = "redundancy_preload"
     summary = "position-controlled redundant drives preloaded against each other through the closed loops (redundant machines only)"
-    magnitude_unit = "um"  # the redundant drive's commanded offset
+    magnitude_unit = "um"  # the redundant drive's commanded offset (urad on a revolute drive)
     default_magnitude = 100.0
     needs_poses = True
     geometry_dependent = True
@@ -142,6 +156,13 @@ class RedundancyPreload(Effect):
             return (
                 f"not applicable: the restrained-preload model needs exactly one redundant drive and the closed-form inverse "
                 f"kinematics of every drive (the {machine.kind} has {m} actuators for {n} degrees of freedom)"
+            )
+        units = sorted(set(machine.actuator_units))
+        if len(units) > 1:
+            return (
+                f"not applicable: the {machine.kind}'s drives have different units ({', '.join(units)}): a compliance ratio "
+                f"between a slider (um/N) and a revolute drive (urad/(N m)) is not dimensionless, and the restrained-preload "
+                f"model's prior (drives of one size, ratio 1 +- 2) does not hold"
             )
         return None
 
@@ -174,10 +195,12 @@ class RedundancyPreload(Effect):
         s, r = features.const["nonredundant"], features.const["redundant"]
         out = [EffectParam(f"compliance_ratio.q{i + 1}", "1", RATIO_PRIOR, RATIO_PRIOR_MEAN, lower=0.0) for i in s]
         offset = int(inner.offset_index()[r]) if hasattr(inner, "offset_index") else -1
+        unit = machine.actuator_unit_info[r]
         for j in features.const["columns"]:
             spec = inner.layout.specs[j]
             if j == offset:
-                out.append(EffectParam(f"offset.q{r + 1}", "mm", OFFSET_PRIOR_MM))
+                # in the drive's q unit, as G_r = dIK_r / d offset (q per q) reads it
+                out.append(EffectParam(f"offset.q{r + 1}", unit.unit, offset_prior(unit)))
             else:
                 out.append(EffectParam("redundant." + spec.name.replace(".", "_"), spec.unit, float(inner.tolerance[j])))
         return tuple(out)
@@ -204,7 +227,7 @@ class RedundancyPreload(Effect):
         return w, nu, D, rho, g
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
-        """Deflections at the geometry the features were computed at (mm)."""
+        """Deflections at the geometry the features were computed at (mm, or rad on a revolute drive)."""
         _, _, _, rho, g = self._parts(features, eta, None)
         return rho * g[:, None]
 
@@ -241,7 +264,7 @@ class RedundancyPreload(Effect):
         return out
 
     def simulated_values(self, machine: Machine, features: Features, magnitude: float, rng) -> NDArray:
-        """Drive stiffnesses 150-500 N/um (ratios ``k_r / k_s``), the redundant drive ``magnitude`` um off (either sign).
+        """Drive stiffnesses 150-500 N/um (ratios ``k_r / k_s``), the redundant drive ``magnitude`` um (urad) off (either sign).
 
         The redundant chain's own geometric errors are left at zero here: a
         simulated machine carries them in its drawn geometry, which the
@@ -254,5 +277,5 @@ class RedundancyPreload(Effect):
         out[: len(s)] = k[r] / k[list(s)]
         names = [p.name for p in params]
         if f"offset.q{r + 1}" in names:
-            out[names.index(f"offset.q{r + 1}")] = rng.choice([-1.0, 1.0]) * magnitude * 1e-3
+            out[names.index(f"offset.q{r + 1}")] = rng.choice([-1.0, 1.0]) * magnitude * machine.actuator_unit_info[r].small_to_q
         return out

@@ -50,6 +50,18 @@ class ActuatorUnit:
         What carries the position, for messages: ``"screw or scale"`` or ``"gear or encoder"``.
     strain : str
         Unit of a relative change of ``q``'s own scale (1e-6): ``"um/m"`` or ``"urad/rad"``.
+    load : str
+        Unit of the generalised force on ``q`` (what does work ``load dq``): a
+        force ``"N"`` on a slider, a torque ``"N m"`` on a revolute joint.
+    load_scale : float
+        ``load`` units per N mm per ``q`` unit: a force ``F`` (N) whose point
+        moves by ``dx/dq`` (mm per ``q`` unit) does ``F . dx/dq`` N mm per ``q``
+        unit, which is 1 N on a slider (mm/mm) and 1e-3 N m on a joint (mm/rad).
+    compliance : str
+        Unit of a drive's compliance, ``small`` per ``load``: ``"um/N"`` or ``"urad/(N m)"``.
+    weight : str
+        Unit of a compliance times a weight in N: ``"um"``, or ``"urad/m"`` on a
+        joint (its deflection per metre of the weight's lever arm).
     """
 
     unit: str
@@ -58,12 +70,16 @@ class ActuatorUnit:
     per_um: float
     drive: str
     strain: str
+    load: str = "N"
+    load_scale: float = 1.0
+    compliance: str = "um/N"
+    weight: str = "um"
 
 
 #: The two actuator units of FORMATS.md (``q`` in mm for prismatic, rad for revolute joints).
 ACTUATOR_UNITS = {
-    "mm": ActuatorUnit("mm", "um", 1e-3, 1.0, "screw or scale", "um/m"),
-    "rad": ActuatorUnit("rad", "urad", 1e-6, 10.0, "gear or encoder", "urad/rad"),
+    "mm": ActuatorUnit("mm", "um", 1e-3, 1.0, "screw or scale", "um/m", "N", 1.0, "um/N", "um"),
+    "rad": ActuatorUnit("rad", "urad", 1e-6, 10.0, "gear or encoder", "urad/rad", "N m", 1e-3, "urad/(N m)", "urad/m"),
 }
 
 

@@ -18,9 +18,12 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
     Parameters
     ----------
     rows : list of dict
-        One per (dof, design, n_poses) with keys ``dof``, ``design``
-        (``random``, or ``planned``/``planned-<criterion>``), ``n_poses``, ``{metric}_median``,
-        ``{metric}_q25``, ``{metric}_q75`` (mm).
+        One per (dof, design, n_poses) with keys ``dof`` (one panel per
+        value: a measurement's degrees of freedom, or a setting's name),
+        ``design`` (``random``, or ``planned``/``planned-<criterion>``),
+        ``n_poses``, ``{metric}_median``, ``{metric}_q25``, ``{metric}_q75``
+        (mm), and optionally ``title``, the panel's title (default ``"<dof>-DOF
+        measurement"`` for an integer ``dof``, else ``dof`` itself).
     path : path
         PNG to write.
     """
@@ -48,10 +51,18 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
             ax.set_yscale("log")
         ax.set_xlabel("number of measured poses")
         ax.set_ylabel(f"{metric} position error after calibration [um]")
-        ax.set_title(f"{dof}-DOF measurement", fontsize=9)
+        ax.set_title(_panel_title(rows, dof), fontsize=9)
         ax.legend(fontsize=7)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     save(fig, path, dpi=110)
     return path
+
+
+def _panel_title(rows: list[dict], dof) -> str:
+    """A panel's ``title`` if its rows give one; "<n>-DOF measurement" for an integer ``dof``; else ``dof`` as it is."""
+    title = next((r["title"] for r in rows if r["dof"] == dof and r.get("title")), None)
+    if title is not None:
+        return str(title)
+    return f"{dof}-DOF measurement" if isinstance(dof, (int, np.integer)) else str(dof)

@@ -1,0 +1,13 @@
+"""Panel titles of the pose-planning figure."""
+
+import numpy as np
+
+from bayescal.plots.design import _panel_title
+
+
+def test_panel_titles_name_the_setting_not_a_setting_followed_by_dof():
+    rows = [{"dof": "prs3-6dof", "title": "3-PRS, 6-DOF measurement"}, {"dof": "delta-height"}, {"dof": 5}]
+    assert _panel_title(rows, "prs3-6dof") == "3-PRS, 6-DOF measurement"
+    assert _panel_title(rows, "delta-height") == "delta-height"  # never "delta-height-DOF measurement"
+    assert _panel_title(rows, 5) == "5-DOF measurement"
+    assert _panel_title([{"dof": np.int64(6)}], np.int64(6)) == "6-DOF measurement"
