@@ -222,7 +222,8 @@ def physics_recording(machine, case: dict, rng: np.random.Generator):
       top of the stroke), links and, in half the recordings, the base radii,
       all with coefficients around the magnitude (+-40 %); a warm-up of 2-8 K
       with a 15-50 minute time constant from a start within 1 K of 20 degC
-      (the time-only model assumes exactly 20), 0.02 K sensor noise, 20-40 s
+      (the time-only model assumes exactly 20; ``case["start_C"]`` fixes the
+      start, the other draws unchanged), 0.02 K sensor noise, 20-40 s
       per pose; half the recordings in serpentine order.
     * ``phys_backlash``: a stepwise nut and screw (``tests/physics/nut_screw.py``)
       with dead bands around the magnitude (+-40 %) and an unknown first
@@ -231,6 +232,7 @@ def physics_recording(machine, case: dict, rng: np.random.Generator):
     Returns
     -------
     recording, theta_true, info : Recording, ndarray, dict
+        ``info["transform"]`` is the simulator's pose transform.
     """
     from bayescal.simulate import draw_errors, draw_poses, measure
     from tests.physics.nut_screw import LostMotion
@@ -260,6 +262,8 @@ def physics_recording(machine, case: dict, rng: np.random.Generator):
         t = np.cumsum(rng.uniform(20.0, 40.0, n))
         t -= t[0]
         start, rise, tau = 20.0 + rng.uniform(-1.0, 1.0), rng.uniform(2.0, 8.0), rng.uniform(900.0, 3000.0)
+        if case.get("start_C") is not None:  # studies/thermal_written_geometry.py: the start known; same draws
+            start = float(case["start_C"])
         temp = start + rise * (1.0 - np.exp(-t / tau)) + rng.normal(0.0, 0.02, n)
         a_link = mag * rng.uniform(0.6, 1.4, machine.n_actuators)
         a_frame = mag * rng.uniform(0.6, 1.4) if rng.random() < 0.5 else 0.0
@@ -277,6 +281,7 @@ def physics_recording(machine, case: dict, rng: np.random.Generator):
         transform = LostMotion(per_drive, rng)
     else:
         raise ValueError(f"not a physics class: {cls}")
+    info["transform"] = transform
     rec = measure(machine, q, theta, case["dof"], rng, aux=aux, effects=[transform])
     return rec, theta, info
 
