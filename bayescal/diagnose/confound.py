@@ -142,21 +142,24 @@ def geometry_confound(machine: Machine, q: np.ndarray, final: EffectFit, geometr
         No pose assembles at the written geometry without the effects.
     """
     P = machine.n_params
+    # the fits' parameters: the machine's, then a model's own nuisance parameters (ballbar pivots), then the effects'
+    Pm = final.theta.size
+    theta = final.theta[:P]
     q = np.asarray(q, float) if keep is None else np.asarray(q, float)[keep]
     if q.shape[0] > MAX_POSES:
         # an RMS over the workspace: evenly spread poses of a tracker-size recording give it to a percent,
         # without a (n, 6, P) Jacobian of 50,000 poses
         q = q[np.linspace(0, q.shape[0] - 1, MAX_POSES).astype(int)]
-    poses = machine.forward(q, final.theta)
+    poses = machine.forward(q, theta)
     if not poses.success.all():
         # the fits solved the poses with the effects applied; without them a pose near the workspace's edge may
         # not assemble: average over those that do
         q = q[poses.success]
-        poses = machine.forward(q, final.theta)
+        poses = machine.forward(q, theta)
     n = q.shape[0]
     if n == 0:
         raise KinematicsError("no pose of the recording assembles at the written geometry without the effects")
-    G = machine.tool_jacobian(q, final.theta, poses)[:, :3, :].reshape(-1, P)
+    G = machine.tool_jacobian(q, theta, poses)[:, :3, :].reshape(-1, P)
     cov = final.covariance
     std = _tool_rms_um(G, cov[:P, :P], n, noise_scale2)
     std0 = _tool_rms_um(G, geometric.covariance[:P, :P], n, noise_scale2)
@@ -174,7 +177,7 @@ def geometry_confound(machine: Machine, q: np.ndarray, final: EffectFit, geometr
     names, units = machine.layout.names, machine.layout.units
     geo = tuple((names[j], float(sign * delta[j]), units[j]) for j in geo_rank)
     sd = np.array([p.prior_sd for p in final.params])
-    eff_rank = np.argsort(-np.abs(delta[P:]) / sd)[:top] if sd.size else np.zeros(0, int)
-    eff = tuple((final.params[k].name, float(sign * delta[P + k]), final.params[k].unit) for k in eff_rank)
+    eff_rank = np.argsort(-np.abs(delta[Pm:]) / sd)[:top] if sd.size else np.zeros(0, int)
+    eff = tuple((final.params[k].name, float(sign * delta[Pm + k]), final.params[k].unit) for k in eff_rank)
     note = " ".join(filter(None, (e.confound_note() for e in effects)))
     return GeometryConfound(std, std0, trade, geo, eff, note)

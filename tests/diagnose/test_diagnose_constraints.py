@@ -101,3 +101,30 @@ def test_clean_session_of_the_same_kind_is_none():
     rec, _ = _session(m, 70, 20, seed=8)
     d = diagnose(m, rec, seed=1, effects=["backlash"])
     assert d.verdict == "none", d.report()
+
+
+def test_ballbar_session_with_lost_motion_reports_the_written_geometry():
+    # a ballbar model carries its pivot's 3 coordinates after the machine's parameters: the written
+    # geometry's uncertainty is of the machine's parameters alone, and the trade-off's effect components
+    # are the effect's (before: machine.forward with the pivots' theta raised InputError)
+    from bayescal.simulate_constraints import circle_points, solve_q_for_points
+
+    m = load_machine(PRS3)
+    rng = np.random.default_rng(3)
+    theta = draw_errors(m, rng)
+    pivot = m.forward(m.home_q()[None]).position[0]
+    pts = np.vstack([c for pl in ("xy", "xz", "yz") for c in (circle_points(pivot, 15.0, pl, 24),) for c in (c, c[::-1])])
+    q = solve_q_for_points(m, pts)
+    band = np.array([60.0, 45.0, 75.0])
+    q_true = LostMotion(band, np.random.default_rng(9)).transform(q, np.broadcast_to(theta, (len(q), m.n_params)), {},
+                                                                   np.arange(len(q)))[0]
+    value = np.linalg.norm(m.forward(q_true, theta).position - pivot, axis=1) + m.noise.sigma_position * rng.normal(size=len(q))
+    rec = ConstraintRecording(measure=("ballbar",) * len(q), qa=q, qb=np.full_like(q, np.nan), value=value, pivot=("p",) * len(q))
+    d = diagnose(m, rec, seed=1, effects=["backlash"])
+    assert d.verdict == "backlash", d.report()
+    assert d.theta_final.shape == (m.n_params,)
+    c = d.confound
+    assert c is not None and np.isfinite(c.tool_std_um) and c.tool_std_um > 0
+    assert {name for name, _, _ in c.effect} <= {"backlash.q1", "backlash.q2", "backlash.q3"}
+    assert all(u == "um" for _, _, u in c.effect)
+    assert {name for name, _, _ in c.geometry} <= set(m.layout.names)
