@@ -293,8 +293,8 @@ def run_situation(machine, dof, q, q_eval, theta_true, noise, seed_set, *, n_lam
         f"LS{'' if ls_seed.success else ' (reduced set)'}": ls_hist.history / tol,
         f"RE lambda={lam_d:.3g}": re_d.history / tol,
         f"TSVD k={k_d}": ts_d.history / tol,
-        f"seed RE-increment": inc_re / tol,
-        f"seed TSVD-increment": inc_ts / tol,
+        "seed RE-increment": inc_re / tol,
+        "seed TSVD-increment": inc_ts / tol,
     }
     out["iterations"] = {
         "LS": ls_hist.iterations, "RE": re_d.iterations, "TSVD": ts_d.iterations,

@@ -242,7 +242,6 @@ class Prs3(Machine):
 
     def _initial_state(self, q: NDArray, g: _Geometry) -> _PlatformState:
         """A start for Newton on the machine's assembly branch."""
-        n = q.shape[0]
         C = g.B + q[:, :, None] * g.u
         cbar = C.mean(axis=1)
         abar = g.a.mean(axis=1)

@@ -81,7 +81,6 @@ def plot_win_rates(cmp, ax=None):
 
 def plot_comparison(cmp, out_dir: str | os.PathLike) -> list[Path]:
     """Write the three figures as PNG into ``out_dir``; returns their paths."""
-    plt = _plt()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []

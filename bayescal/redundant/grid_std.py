@@ -25,7 +25,7 @@ simulation in ``tests/redundant/test_grid_std.py``.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from ..compensation import CompensationGrid
 from ..errors import InputError

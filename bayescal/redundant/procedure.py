@@ -270,7 +270,7 @@ class Comparison:
         for meth in self.position:
             out.append(
                 f"{meth:9s} position peaks (mm): " + " ".join(f"{v:.4f}" for v in self.position[meth])
-                + f" | orientation peaks (deg): " + " ".join(f"{v:.4f}" for v in self.orientation[meth])
+                + " | orientation peaks (deg): " + " ".join(f"{v:.4f}" for v in self.orientation[meth])
                 + f" | steps to converge: position {self.steps_to_converge[meth]['position']}, "
                 f"orientation {self.steps_to_converge[meth]['orientation']}"
             )

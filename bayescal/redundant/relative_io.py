@@ -26,7 +26,6 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import RecordingError

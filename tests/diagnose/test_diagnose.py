@@ -7,7 +7,6 @@ from bayescal.cli import main
 from bayescal.diagnose import diagnose, distance_correlation, holm
 from bayescal.effects.simulate import simulate_with_effects
 from bayescal.errors import InputError
-from bayescal.io import write_recording
 from tests.conftest import PRS3_FILE
 
 CLEAR = [

@@ -8,7 +8,6 @@ from bayescal.effects import get_effect
 from bayescal.effects.joint_compliance import GRAVITY, gravity_direction
 from bayescal.machines import machine_from_text
 from bayescal.simulate import draw_poses, measure
-from tests.conftest import PRS3_FILE
 from tests.physics.statics_3prs import CompliantDrives, GravityLoad, deflected_q, link_forces, random_prs3_text, tilted_down
 
 UP = np.array([0.0, 0.0, -1.0])
