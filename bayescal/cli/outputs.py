@@ -123,7 +123,7 @@ def write_calibrated_machine(args: argparse.Namespace, machine, theta) -> Path |
     kept), except a hybrid machine, which is written in FORMATS.md section
     5's file-per-module form (``<stem>.m<k>.toml`` beside it, listed with
     ``file = ...``) so that any reader of that format reads it; its
-    ``[instrument]`` table, if any, goes into the main file.
+    ``[effect.*]`` and ``[instrument]`` tables, if any, go into the main file.
     """
     if not getattr(args, "write_machine", None):
         return None
@@ -137,8 +137,16 @@ def write_calibrated_machine(args: argparse.Namespace, machine, theta) -> Path |
     th = machine.check_theta(theta)
     framed = isinstance(machine, InstrumentFrame)
     paths = write_machine_files(args.write_machine, inner, th[machine.n_frame:] if framed else th)
+    # the main file carries what belongs to the whole machine: its [effect.*] tables and its [instrument] frame
+    extra = []
+    if machine.effects:
+        from ..effects.stored import effect_tables_toml
+
+        extra.append(effect_tables_toml(tuple(machine.effects)))
     if framed:
+        extra.append(instrument_toml(machine.frame_at(th)))
+    if extra:
         main = paths[0]
-        write_text_atomic(main, main.read_text().rstrip("\n") + "\n\n" + instrument_toml(machine.frame_at(th)))
+        write_text_atomic(main, "\n\n".join([main.read_text().rstrip("\n")] + [e.rstrip("\n") for e in extra]) + "\n")
     say(args, f"wrote {', '.join(str(p) for p in paths)} (calibrated hybrid machine: main file and one file per module)")
     return paths[0]

@@ -30,3 +30,23 @@ def test_hybrid_calibration_is_written_as_module_files_that_predict_like_the_fit
     assert a.success.all() and b.success.all()
     assert np.abs(a.position - b.position).max() < 1e-9
     assert np.abs(a.rotation - b.rotation).max() < 1e-12
+
+
+def test_hybrid_with_effect_tables_keeps_them_in_the_main_file(tmp_path):
+    # FORMATS.md section 7: a machine read with [effect.*] tables is written with them (before: the
+    # file-per-module form dropped them, and the calibrated hybrid predicted without its backlash)
+    import shutil
+
+    for name in ("machine.toml", "head.toml", "table.toml"):
+        shutil.copy(HYB / name, tmp_path / name)
+    machine = tmp_path / "machine.toml"
+    machine.write_text(machine.read_text() + '\n[effect.backlash]\n"backlash.q1" = 5.0\n"backlash.q2" = 6.0\n'
+                       '"backlash.q3" = 7.0\n"backlash.q4" = 50.0\n')
+    out = tmp_path / "out" / "cal.toml"
+    code = main(["identify", str(HYB / "recording.csv"), "--machine", str(machine), "--method", "map",
+                 "--write-machine", str(out), "--mkdir", "--quiet"])
+    assert code == 0
+    (eff,) = load_machine(out).effects
+    assert eff.name == "backlash"
+    assert dict(eff.values) == {"backlash.q1": 5.0, "backlash.q2": 6.0, "backlash.q3": 7.0, "backlash.q4": 50.0}
+    assert eff.units == ("um", "um", "um", "urad")
