@@ -116,7 +116,15 @@ def run(args) -> int:
     machine = load_machine(args.machine)
     q = None
     if args.poses_file:
+        if args.ballbar is not None:
+            raise InputError("--ballbar drives circles about its pivot; it does not take --poses-file (give --poses N, "
+                             "the readings per circle)")
         q = read_poses_file(args.poses_file, machine.n_actuators)
+        if machine.q_limits is not None:
+            # a recording outside q_limits is refused by every consumer: refuse it here, naming the line
+            from ..io.recording import check_q_limits
+
+            check_q_limits(args.poses_file, q, machine.q_limits, machine_path=args.machine)
         if args.poses is not None and args.poses != q.shape[0]:
             raise InputError(f"--poses {args.poses} but {args.poses_file} holds {q.shape[0]} poses; give one of them")
         if args.effect or args.aux:

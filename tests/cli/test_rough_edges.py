@@ -93,6 +93,20 @@ def test_simulate_at_planned_poses(tmp_path, capsys):
     assert "bad.csv" in err and "q3" in err
 
 
+def test_simulate_refuses_pose_files_it_cannot_honour(tmp_path, capsys):
+    # a pose outside q_limits made a recording that identify then refused; with --ballbar the file was ignored
+    poses, rec = tmp_path / "poses.csv", tmp_path / "rec.csv"
+    poses.write_text("q1,q2,q3,pose_id\n500,500,500,1\n560,500,500,2\n")
+    capsys.readouterr()
+    assert main(["simulate", "--machine", str(PRS3_FILE), "--poses-file", str(poses), "--seed", "1", "--out", str(rec)]) == 2
+    err = capsys.readouterr().err
+    assert "poses.csv: line 3, column 'q1'" in err and "q_limits" in err and not rec.exists()
+    poses.write_text("q1,q2,q3,pose_id\n500,500,500,1\n")
+    assert main(["simulate", "--machine", str(PRS3_FILE), "--poses-file", str(poses), "--ballbar", "10", "--seed", "1",
+                 "--out", str(rec)]) == 2
+    assert "--poses-file" in capsys.readouterr().err and not rec.exists()
+
+
 @pytest.fixture(scope="module")
 def raspm_rec(tmp_path_factory):
     rec = tmp_path_factory.mktemp("raspm") / "rec.csv"
