@@ -195,9 +195,19 @@ class ConstraintModel:
         A machine that carries effects (``[effect.<name>]`` tables) has them
         applied at their stored values to every pose the rows measure, as
         :meth:`bayescal.measurement.MeasurementModel.from_recording` does.
+        A machine file's ``[instrument]`` frame does not apply: heights are
+        measured along the base z axis and distances do not see a frame
+        (FORMATS.md section 6), so the model is of the machine in its base frame.
         """
         if dof not in (None, 1):
             raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
+        from .machines.framed import InstrumentFrame
+
+        if isinstance(machine, InstrumentFrame):
+            if machine.fit:
+                raise InputError("a constraint recording does not see an instrument frame (heights are along the base z "
+                                 "axis, FORMATS.md section 6): there is no frame to fit")
+            machine = machine.machine
         rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
         model = cls(
             base=machine, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot,

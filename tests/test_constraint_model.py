@@ -159,3 +159,24 @@ def test_ballbar_on_a_2t1r_machine_in_the_plane_it_moves_in():
     np.testing.assert_allclose([got[0], got[2]], pivot[[0, 2]], atol=1e-9)
     with pytest.raises(Exception, match="plane it moves in"):
         simulate_ballbar(m, 3.0, n_points=4, planes=("xy",), sigma=0.0)
+
+
+def test_a_machine_files_instrument_frame_does_not_move_heights():
+    # FORMATS.md section 6: a height is z of the tool point in the base frame; a machine file's [instrument]
+    # table (the pose recordings' frame) must not turn it into the instrument's z (before: heights were
+    # predicted 48-50 mm off with this frame, and identify fitted nonsense)
+    from bayescal.errors import InputError
+    from bayescal.machines import machine_from_text
+    from bayescal.machines.framed import Frame, InstrumentFrame
+
+    path = PRS3
+    m = load_machine(path)
+    framed = machine_from_text(path.read_text() + "\n[instrument]\norigin = [100.0, 0.0, 50.0]\n"
+                               "rotation_vector = [0.1, 0.0, 0.0]\n", "framed.toml")
+    assert isinstance(framed, InstrumentFrame)
+    rec = simulate_distances(m, 5, seed=1, heights=5, sigma=0.0, theta=np.zeros(m.n_params)).recording
+    model = ConstraintModel.from_recording(framed, rec)
+    np.testing.assert_allclose(model.residual(model.predict(None)), 0.0, atol=1e-9)
+    assert model.n_params == m.n_params
+    with pytest.raises(InputError, match="instrument frame"):
+        ConstraintModel.from_recording(InstrumentFrame(m, Frame.identity(), fit=True), rec)
