@@ -276,12 +276,16 @@ def compare_sections(result, **_) -> tuple[str, list[dict]]:
     from ..plots.compare import plot_comparison
 
     figs = _flatten([figure(lambda p: plot_comparison(result, p.parent), "comparison")])
+    from ..compare.result import _UNITS
+
+    # the metric's own display unit, as the text report (rms_angle in urad, not the positions' um)
+    unit, f = _UNITS.get(result.metric, ("", 1.0))
     summ = getattr(result, "summary", {})
-    rows = [[lab, s.get("n"), s.get("failures"), cell(1e3 * s["median"], ".4g") if s.get("median") is not None else "-",
-             cell(1e3 * s["mean"], ".4g") if s.get("mean") is not None else "-"] for lab, s in summ.items()]
+    rows = [[lab, s.get("n"), s.get("failures"), cell(f * s["median"], ".4g") if s.get("median") is not None else "-",
+             cell(f * s["mean"], ".4g") if s.get("mean") is not None else "-"] for lab, s in summ.items()]
     return f"Comparison of methods on '{d['config'].get('machine', '')}' ({d['n_trials']} trials)", [
-        section("Summary", id="summary", tables=[table(["method", "ok", "failed", f"median {result.metric} (um)",
-                                                        f"mean {result.metric} (um)"], rows, id="methods")]),
+        section("Summary", id="summary", tables=[table(["method", "ok", "failed", f"median {result.metric} ({unit})",
+                                                        f"mean {result.metric} ({unit})"], rows, id="methods")]),
         section("Figures", id="figures", figures=figs),
         section("Text report", id="text-report", pre=result.report()),
     ]

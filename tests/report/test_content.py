@@ -129,3 +129,21 @@ def test_cli_report_marks_the_gross_pose_and_states_plausibility(tmp_path):
     marked = [i for i, r in enumerate(res) if r[-1][0] == "outlier"]
     assert marked == [11]  # 0-based pose 11 = CSV line 13
     assert "Plausible: no machine parameter beyond 10 tolerances" in html and "down-weighted" in html
+
+
+def test_compare_summary_is_in_the_metrics_own_unit():
+    # rms_angle is in rad: the summary table says urad (as the text report), not the positions' um x 1e3
+    from bayescal.compare.result import comparison_from_records
+    from bayescal.compare.trial import CompareConfig
+    from tests.conftest import PRS3_FILE
+
+    config = CompareConfig(machine_text=PRS3_FILE.read_text(), methods="ls", trials=3)
+    values = [4e-5, 5e-5, 6e-5]
+    records = [{"trial": t, "nominal": {"rms_angle": 1e-3}, "n_free": 1,
+                "methods": {"ls": {"success": True, "message": "", "rms_angle": v}}} for t, v in enumerate(values)]
+    cmp = comparison_from_records(records, config, metric="rms_angle", n_resamples=10)
+    html = render_report("compare", cmp)
+    assert "median rms_angle (urad)" in html and "rms_angle (um)" not in html
+    (row,) = tables(html)["methods"]
+    assert row[3][1] == pytest.approx(1e6 * float(np.median(values)))
+    assert row[4][1] == pytest.approx(1e6 * float(np.mean(values)))
