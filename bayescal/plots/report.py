@@ -13,7 +13,7 @@ __all__ = ["plot_pose_residuals", "plot_correlation", "plot_plan", "plot_bic_gri
 
 
 def plot_pose_residuals(
-    pos_after, path: str | os.PathLike, *, pos_before=None, sigma: float | None = None, outliers=(),
+    pos_after, path: str | os.PathLike, *, pos_before=None, sigma: float | None = None, outliers=(), n_axes: int = 3,
 ) -> Path:
     """Position error norm per pose (um) after (and before) calibration; outliers marked in red.
 
@@ -22,7 +22,9 @@ def plot_pose_residuals(
     pos_after, pos_before : array_like, shape (n_poses,)
         Per-pose position error norms, mm.
     sigma : float, optional
-        Instrument one-sigma per axis, mm: the expected norm ``sigma sqrt(3)`` is drawn.
+        Instrument one-sigma per axis, mm: the expected norm ``sigma sqrt(n_axes)`` is drawn.
+    n_axes : int
+        Position components per row: 3 for a measured point, 1 for a distance or height.
     outliers : iterable of int
         0-based pose indices to mark.
     """
@@ -38,7 +40,8 @@ def plot_pose_residuals(
     if out:
         ax.bar(np.asarray(out) + 1, after[out], color="C3", label="outlier")
     if sigma:
-        ax.axhline(1e3 * sigma * np.sqrt(3), color="k", lw=1, ls="--", label="instrument noise, sigma sqrt(3)")
+        ax.axhline(1e3 * sigma * np.sqrt(n_axes), color="k", lw=1, ls="--",
+                   label="instrument noise, sigma" + (f" sqrt({n_axes})" if n_axes > 1 else ""))
     ax.set_xlabel("pose (row of the recording)")
     ax.set_ylabel("position error |y - h| (um)")
     if pos_before is not None:

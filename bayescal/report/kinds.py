@@ -115,6 +115,8 @@ def _residual_section(result, model, sigma) -> dict | None:
     if after is None:
         return None
     after = np.asarray(after, float)
+    # position components per row: 3 for a measured point, 1 for a distance or height (noise alone: sigma sqrt(k))
+    k = min(3, after.shape[1])
     pos_a = np.linalg.norm(after[:, :3], axis=1)
     pos_b = np.linalg.norm(np.asarray(before, float)[:, :3], axis=1) if before is not None else None
     ang = np.linalg.norm(after[:, 3:], axis=1) if after.shape[1] > 3 else None
@@ -133,10 +135,10 @@ def _residual_section(result, model, sigma) -> dict | None:
     cols += (["angle error after (rad)"] if ang is not None else []) + ["mark"]
     from ..plots.report import plot_pose_residuals
 
-    fig = figure(lambda p: plot_pose_residuals(pos_a, p, pos_before=pos_b, sigma=sigma, outliers=outliers),
+    fig = figure(lambda p: plot_pose_residuals(pos_a, p, pos_before=pos_b, sigma=sigma, outliers=outliers, n_axes=k),
                  "position error per pose before and after calibration; outliers in red")
     text = [f"RMS position error after calibration {1e3 * np.sqrt(np.mean(pos_a**2)):.2f} um over {pos_a.size} poses"
-            + (f"; instrument noise alone gives about {1e3 * sigma * np.sqrt(3):.2f} um." if sigma else ".")]
+            + (f"; instrument noise alone gives about {1e3 * sigma * np.sqrt(k):.2f} um." if sigma else ".")]
     if outliers:
         text.append(f"{len(outliers)} poses are marked as outliers: " + ", ".join(str(i + 1) for i in outliers) + ".")
     return section("Residuals per pose", id="residuals", text=text, figures=[fig],
@@ -191,7 +193,8 @@ def identify_sections(result, *, machine=None, model=None, choice=None, answer_e
     tol = getattr(result, "tolerance", None)
     if tol is None and machine is not None:
         tol = machine.tolerance
-    sigma = machine.noise.sigma_position if machine is not None else None
+    # a machine file without a [measurement] table states no noise (its sigmas are weights): nothing to compare with
+    sigma = machine.noise.sigma_position if machine is not None and machine.noise.given else None
     sections = [
         section("Fit", id="fit", tables=[table(["statistic", "value"], stats, id="fit-statistics")],
                 text=[] if ok else ["The identification did not succeed: its numbers are shown for diagnosis, not for use."]),

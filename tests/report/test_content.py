@@ -147,3 +147,26 @@ def test_compare_summary_is_in_the_metrics_own_unit():
     (row,) = tables(html)["methods"]
     assert row[3][1] == pytest.approx(1e6 * float(np.median(values)))
     assert row[4][1] == pytest.approx(1e6 * float(np.mean(values)))
+
+
+def test_noise_yardstick_of_a_distance_and_height_recording_is_sigma():
+    # one value per row: pure noise gives an RMS of sigma, not sigma sqrt(3) as for a measured point; a
+    # machine that states no noise gets no yardstick
+    from dataclasses import replace
+
+    from bayescal.constraint_model import ConstraintModel
+    from bayescal.identify import identify
+    from bayescal.machines import load_machine
+    from bayescal.machines.base import MeasurementNoise
+    from bayescal.simulate_constraints import simulate_distances
+    from tests.conftest import PRS3_FILE
+
+    m = load_machine(PRS3_FILE)
+    rec = simulate_distances(m, 20, seed=3, heights=15).recording
+    model = ConstraintModel.from_recording(m, rec)
+    res = identify(model, method="map")
+    html = render_report("identify", res, machine=m, model=model)
+    assert f"instrument noise alone gives about {1e3 * m.noise.sigma_position:.2f} um" in html
+    silent = replace(m, noise=MeasurementNoise())
+    assert not silent.noise.given
+    assert "instrument noise alone" not in render_report("identify", res, machine=silent, model=model)
