@@ -11,7 +11,7 @@ writing leaves the previous checkpoint intact.
 Resuming rebuilds the backend; :class:`emcee.EnsembleSampler` then
 continues from its last state and random state, so N steps, a kill and a
 resume to 2N give the draws of an uninterrupted 2N-step run bit for bit
-(tests/bayes/test_checkpoint.py).  A fingerprint of the run (seed,
+(tests/cli/test_rough_edges.py).  A fingerprint of the run (seed,
 walkers, parameters, data) is stored with the chain; resuming with
 another run's checkpoint is an error, never a silent mix.
 """
@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 
 import emcee
@@ -30,6 +31,9 @@ import numpy as np
 from ..errors import InputError
 
 __all__ = ["save_checkpoint", "load_checkpoint", "run_fingerprint"]
+
+#: What every checkpoint holds (blobs only when the chain has them).
+_KEYS = frozenset({"chain", "log_prob", "accepted", "iteration", "rs_keys", "rs_meta", "rs_cached", "rs_name", "fingerprint"})
 
 
 def run_fingerprint(model, names, *, seed: int, n_walkers: int, surrogate: str) -> dict:
@@ -78,10 +82,18 @@ def load_checkpoint(path: str | os.PathLike, fingerprint: dict) -> emcee.backend
     if not path.is_file():
         raise InputError(f"--resume: {path}: no checkpoint there (run once with --checkpoint {path})")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
+        # our own handle: np.load leaks its file when the zip is truncated (a ResourceWarning)
+        with open(path, "rb") as fh:
+            z = np.load(fh, allow_pickle=False)
+            if not hasattr(z, "files"):  # a single .npy array, not an .npz archive
+                raise ValueError("a single array, not an .npz archive")
+            with z:
+                data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:  # a truncated .npz is a bad zip file
         raise InputError(f"{path}: not a bayescal MCMC checkpoint ({exc})") from None
+    missing = sorted(_KEYS - set(data))
+    if missing:
+        raise InputError(f"{path}: not a bayescal MCMC checkpoint (no {', '.join(missing)})")
     saved = json.loads(str(data["fingerprint"]))
     mine = json.loads(json.dumps(fingerprint, sort_keys=True))
     diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
