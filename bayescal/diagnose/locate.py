@@ -11,8 +11,8 @@ coefficient misses.  Its p-value is from the exact permutation null
 of the distance covariance, summarised by the moment-matched gamma
 distribution (the usual approximation of distance-covariance and HSIC
 null distributions), so that p-values far below any ``1 / n_perm`` are
-resolved and survive the multiple-testing correction; from 2,000 poses on
-the test runs on seeded random blocks of 1,000-1,999 poses, so that its
+resolved and survive the multiple-testing correction; from 1,000 poses on
+the test runs on seeded random blocks of 500-999 poses, so that its
 cost grows linearly (:mod:`bayescal.diagnose.dependence`, which also says
 why not the ``dcor`` package).  The
 periodic channels use the Lomb-Scargle false-alarm probability instead
