@@ -93,8 +93,8 @@ def prs3_perturbed(m: Prs3, seed: int, scale: float = 1.0) -> Prs3:
     rng = np.random.default_rng(seed)
     chains = []
     for ch in m.chains:
-        u = np.asarray(ch.rail_direction) + rng.normal(0, 5e-4 * scale, 3)
-        r = np.asarray(ch.revolute_axis) + rng.normal(0, 5e-4 * scale, 3)
+        u = np.asarray(ch.rail_direction) + rng.normal(0, 2e-4 * scale, 3)
+        r = np.asarray(ch.revolute_axis) + rng.normal(0, 2e-4 * scale, 3)
         chains.append(
             Chain(
                 tuple(np.asarray(ch.rail_origin) + rng.normal(0, 0.05 * scale, 3)),
@@ -220,7 +220,7 @@ class Joint:
 @dataclass(frozen=True)
 class Serial:
     joints: tuple
-    tool_point: tuple
+    tool_point: tuple | None
     tool_rpy: tuple | None = None
     name: str = "two-axis positioner"
     q_limits: tuple = ()
@@ -264,10 +264,11 @@ def serial_transform(m: Serial, q) -> np.ndarray:
             t = t @ homogeneous(rotvec_to_matrix(ax * qi), np.zeros(3))
         else:
             t = t @ homogeneous(np.eye(3), ax * qi)
-    return t @ homogeneous(rpy_matrix(m.tool_rpy or (0.0, 0.0, 0.0)), m.tool_point)
+    return t @ homogeneous(rpy_matrix(m.tool_rpy or (0.0, 0.0, 0.0)), m.tool_point or (0.0, 0.0, 0.0))
 
 
-def serial_toml(m: Serial, *, variant: str = "plain", name: str | None = None) -> str:
+def serial_toml(m: Serial, *, variant: str = "plain", name: str | None = None, measurement: bool = True) -> str:
+    """The serial machine file of section 5; no [tool] table when ``m.tool_point`` is None."""
     lines = ['kind = "serial"', f'name = "{name or m.name}"', ""]
     for j in m.joints:
         keys = [("type", f'"{j.type}"'), ("origin", _v(j.origin, "{:.12g}")), ("rpy", _v(j.rpy, "{:.12g}")),
@@ -275,10 +276,13 @@ def serial_toml(m: Serial, *, variant: str = "plain", name: str | None = None) -
         if variant == "shuffled":
             keys = keys[::-1]
         lines += ["[[joint]]"] + [f"{k} = {v}" for k, v in keys] + [""]
-    lines += ["[tool]", f"point = {_v(m.tool_point, '{:.12g}')}"]
-    if m.tool_rpy is not None:
-        lines.append(f"rpy = {_v(m.tool_rpy, '{:.12g}')}")
-    lines += ["", "[measurement]", f"sigma_position = {m.sigma_position}", f"sigma_angle = {m.sigma_angle}", ""]
+    if m.tool_point is not None:
+        lines += ["[tool]", f"point = {_v(m.tool_point, '{:.12g}')}"]
+        if m.tool_rpy is not None:
+            lines.append(f"rpy = {_v(m.tool_rpy, '{:.12g}')}")
+        lines.append("")
+    if measurement:
+        lines += ["[measurement]", f"sigma_position = {m.sigma_position}", f"sigma_angle = {m.sigma_angle}", ""]
     if m.q_limits:
         lines += ["[workspace]", "q_limits = [" + ", ".join(_v(lim, "{:.12g}") for lim in m.q_limits) + "]", ""]
     return "\n".join(lines) + "\n"
