@@ -136,3 +136,19 @@ def test_bad_constraint_rows_are_named(tmp_path, capsys, bad, expect):
     assert rc == 2
     assert "c.csv" in err and all(e in err for e in expect), err
     assert not (tmp_path / "a.json").exists() and not (tmp_path / "cal.toml").exists()
+
+
+@pytest.mark.parametrize(("rename", "expect"), [
+    ({"value": "value_deg"}, ["value_deg", "length", "value_um"]),
+    ({"temp_C": "value_um"}, ["value_um", "same quantity", "'value'"]),
+    ({"sigma_position": "sigma_position_rad"}, ["sigma_position_rad", "length"]),
+])
+def test_bad_unit_suffixes_are_named(tmp_path, capsys, rename, expect):
+    (tmp_path / "m.toml").write_text(prs3_toml(NOM))
+    header, rows = _rows(9, pivots=False)
+    header = [rename.get(h, h) for h in header]
+    write_csv(tmp_path / "c.csv", header, rows)
+    rc, _, err = run(capsys, "identify", tmp_path / "c.csv", "--machine", tmp_path / "m.toml",
+                     "--json", tmp_path / "a.json")
+    assert rc == 2 and "c.csv" in err and "line 1" in err and all(e in err for e in expect), err
+    assert not (tmp_path / "a.json").exists()
