@@ -209,3 +209,69 @@ def test_hybrid_head_over_rotary_table(tmp_path, capsys, table_tool):
     assert a["rms_after"]["position"] < 2.5 * 0.005 and a["rms_before"]["position"] > 0.05
     names = {p["name"] for p in a["parameters"]}
     assert any(n.startswith("m1.joint1.") for n in names) and any(n.startswith("m2.chain") for n in names)
+    # the calibrated hybrid, read module by module with tomllib (section 5's file form),
+    # predicts the true tool-on-table pose with the spec's kinematics alone
+    d = tomllib.loads((tmp_path / "cal.toml").read_text())
+    assert d["kind"] == "hybrid" and [m["role"] for m in d["module"]] == ["table", "tool"]
+    table_cal, _ = read_serial(tmp_path / d["module"][0]["file"])
+    head_cal, _ = read_prs3(tmp_path / d["module"][1]["file"])
+    q_test = np.hstack([draw_q(((-3.0, 3.0),), 10, 24), draw_q(NOM.q_limits, 10, 25)])
+
+    def worst(head, table):
+        return max(np.linalg.norm(_hybrid_pose(head, table, np.r_[qi[1:], qi[:1]])[:3, 3]
+                                  - _hybrid_pose(TRUE, table_true, np.r_[qi[1:], qi[:1]])[:3, 3]) for qi in q_test)
+
+    assert worst(head_cal, table_cal) < 0.1 * worst(NOM, table_nom)
+
+
+
+URDF = """<?xml version="1.0"?>
+<robot name="positioner">
+  <link name="world"/> <link name="base"/> <link name="lift"/> <link name="tilt"/> <link name="adapter"/>
+  <link name="table"/> <link name="flange"/>
+  <joint name="mount" type="fixed"><parent link="world"/><child link="base"/>
+    <origin xyz="0 0 -1.0" rpy="0 0 0"/></joint>
+  <joint name="j1" type="prismatic"><parent link="base"/><child link="lift"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/>
+    <limit lower="0.0" upper="0.1" effort="100" velocity="0.1"/></joint>
+  <joint name="j2" type="revolute"><parent link="lift"/><child link="tilt"/>
+    <origin xyz="0 0 0.2" rpy="0 0 0"/><axis xyz="1 0 0"/>
+    <limit lower="-1.2" upper="1.2" effort="100" velocity="1"/></joint>
+  <joint name="spacer" type="fixed"><parent link="tilt"/><child link="adapter"/>
+    <origin xyz="0 0 0.03" rpy="0 0 0"/></joint>
+  <joint name="j3" type="revolute"><parent link="adapter"/><child link="table"/>
+    <origin xyz="0 0 0.05" rpy="0 0 0"/><axis xyz="0 0 1"/>
+    <limit lower="-3.0" upper="3.0" effort="100" velocity="1"/></joint>
+  <joint name="plate" type="fixed"><parent link="table"/><child link="flange"/>
+    <origin xyz="0 0 0.01" rpy="0 0 1.5707963267948966"/></joint>
+</robot>
+"""
+
+
+def test_urdf_stands_in_for_the_joint_tables(tmp_path, capsys):
+    """Section 5: urdf/base_link/tip_link; URDF's metres, fixed joints folded in, limits from the URDF."""
+    (tmp_path / "robot.urdf").write_text(URDF)
+    # tool given in tip_link's (flange) frame: flange = table frame moved 10 mm up and turned 90 deg about z
+    tool_flange = np.array([30.0, -120.0, 40.0])
+    (tmp_path / "m.toml").write_text(
+        'kind = "serial"\nname = "positioner from URDF"\nurdf = "robot.urdf"\nbase_link = "base"\n'
+        'tip_link = "flange"\n\n[tool]\npoint = [30.0, -120.0, 40.0]\n\n'
+        "[measurement]\nsigma_position = 0.005\nsigma_angle = 5e-5\n"
+    )
+    r_plate = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    nom = SER_NOM
+    true = Serial(SER_TRUE.joints, tuple(np.asarray(SER_TRUE.tool_point) - nom.tool_point
+                                         + np.array([0, 0, 10.0]) + r_plate @ tool_flange),
+                  None, q_limits=nom.q_limits)
+    assert np.allclose(np.array([0, 0, 10.0]) + r_plate @ tool_flange, (120.0, 30.0, 50.0))
+    q = draw_q(nom.q_limits, 40, 51)
+    t = np.array([serial_transform(true, qi) for qi in q])
+    cols = pose_rows(q, t[:, :3, 3], t[:, :3, :3], dof=3, sigma=0.005, seed=52)
+    header, rows = rows_of(cols)
+    write_csv(tmp_path / "r.csv", header, rows)
+    rc, _, err = run(capsys, "identify", tmp_path / "r.csv", "--machine", tmp_path / "m.toml", "--method", "map",
+                     "--json", tmp_path / "a.json", "--quiet")
+    assert rc == 0, err
+    a = answer(tmp_path / "a.json")
+    check_identify_answer(a, angle=False)
+    assert a["rms_after"]["position"] < 2.5 * 0.005 < 0.05 < a["rms_before"]["position"] < 1.0
