@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from .blind import answer, check_identify_answer, read_prs3, run
+from .blind import answer, check_diagnose_answer, check_identify_answer, read_prs3, run
 from .handwritten import (
     draw_q,
     pose_rows,
@@ -186,3 +186,22 @@ def test_outlier_is_named_by_its_csv_line(tmp_path, capsys, fmt):
     assert [o["line"] for o in a["outliers"]] == [14]
     assert a["outliers"][0]["p_value"] < 0.01
     assert isinstance(a["outlier_handling"], str) and a["outlier_handling"]
+
+
+def test_diagnose_names_one_gross_pose_and_says_none(tmp_path, capsys):
+    """Section 4 in diagnose: one 0.54 mm gross reading among 5 um ones is an outlier named by
+    its line, not "unexplained" structure (it used to drag the first fit so that 8 of 40 poses
+    stood out, and the screen gave up)."""
+    (tmp_path / "m.toml").write_text(prs3_toml(NOM))
+    pts = PTS.copy()
+    pts[12] += [0.4, -0.3, 0.2]
+    header, rows = rows_of(pose_rows(Q, pts, ROTS, dof=6, sigma=SIGMA, seed=6))
+    write_csv(tmp_path / "r.csv", header, rows, bom=True, crlf=True)
+    rc, _, err = run(capsys, "diagnose", tmp_path / "r.csv", "--machine", tmp_path / "m.toml",
+                     "--json", tmp_path / "d.json", "--quiet")
+    assert rc == 0, err
+    a = answer(tmp_path / "d.json")
+    check_diagnose_answer(a)
+    assert a["verdict"] == "none"
+    assert [o["line"] for o in a["outliers"]] == [14]
+    assert "excluded" in a["outlier_handling"]
