@@ -82,6 +82,11 @@ def test_backlash_diagnosed_written_and_applied_from_a_hand_written_table(tmp_pa
     # section 7: the written machine carries the effect, parameter names and units as in the answer
     d = tomllib.loads((tmp_path / "cal.toml").read_text())
     assert set(d["effect"]["backlash"]) == set(true_bl)
+    # ... and its geometry with that table predicts the recording to the noise (identify applies it)
+    rc, _, err = run(capsys, "identify", tmp_path / "bl.csv", "--machine", tmp_path / "cal.toml", "--method", "map",
+                     "--json", tmp_path / "cal.json", "--quiet")
+    assert rc in (0, 1), err
+    assert answer(tmp_path / "cal.json")["rms_before"]["position"] < 0.012
     # the same kind of table written by hand (keys in another order, comments), on the true geometry
     table = effect_table("backlash", dict(reversed(list(true_bl.items()))))
     (tmp_path / "with.toml").write_text(_true_geometry_file(tmp_path, "bl", table))
