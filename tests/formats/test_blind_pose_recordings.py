@@ -91,7 +91,8 @@ def test_identify_reads_variants_and_the_calibrated_machine_predicts_the_truth(
 
 
 def test_five_and_three_dof_recordings(tmp_path, capsys):
-    (tmp_path / "m.toml").write_text(prs3_toml(NOM))
+    # the machine file from a Windows editor: a byte-order mark and CRLF line ends
+    (tmp_path / "m.toml").write_bytes(b"\xef\xbb\xbf" + prs3_toml(NOM, variant="shuffled").replace("\n", "\r\n").encode())
     for dof in (5, 3):
         cols = pose_rows(Q, PTS, ROTS, dof=dof, sigma=SIGMA, seed=2)
         header, rows = rows_of(cols)
