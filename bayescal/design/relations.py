@@ -102,6 +102,29 @@ def _scaled_rows(machine: Machine, rec: ConstraintRecording, sigma: float | None
     return J * machine.tolerance[None, :] / s[:, None], model
 
 
+def _given_rows(machine: Machine, given: ConstraintRecording) -> NDArray:
+    """Whitened, tolerance-scaled rows of the measurements already taken, on the machine's parameters.
+
+    Ballbar rows (FORMATS.md section 6: every command that takes a recording takes this
+    one) bring their pivots as nuisance parameters under the pivot prior; their
+    information on the machine is the Schur complement of the pivot block, returned
+    as equivalent rows ``R`` with ``R^T R = M_mm - M_mp M_pp^-1 M_pm - I``.
+    """
+    if not any(m == "ballbar" for m in given.measure):
+        return _scaled_rows(machine, given, None)[0]
+    model = ConstraintModel.from_recording(machine, given)
+    pred = model.predict(None)
+    if not pred.success.all():
+        raise InputError(f"{int((~pred.success).sum())} measurement poses cannot be solved on the nominal machine")
+    J = model.jacobian(None, pred).reshape(given.n_rows, -1)
+    A = J * model.machine.tolerance[None, :] / model.row_sigma[:, 0][:, None]
+    P = machine.n_params
+    M = np.eye(A.shape[1]) + A.T @ A
+    info = M[:P, :P] - M[:P, P:] @ np.linalg.solve(M[P:, P:], M[P:, :P]) - np.eye(P)
+    w, V = np.linalg.eigh((info + info.T) / 2)
+    return (V * np.sqrt(np.clip(w, 0.0, None))).T
+
+
 @dataclass(frozen=True)
 class RelationPlan:
     """Planned heights or distances, and what they add to the measurements already taken.
@@ -234,7 +257,7 @@ def plan_relations(
     M0 = np.eye(P)
     A_g = np.zeros((0, P))
     if given is not None:
-        A_g, _ = _scaled_rows(machine, given, None)
+        A_g = _given_rows(machine, given)
         M0 = M0 + A_g.T @ A_g
     Q = relation_output_weight(machine, n_output, np.random.default_rng(seed)) if criterion == "I" else None
     if method == "relaxed":

@@ -24,9 +24,12 @@ final model (:func:`retest_with_effects`); if that names other poses, the
 diagnosis is run once more with those excluded (a warm-up's first poses are
 physics, not outliers, and a gross pose the geometric misfit hid is found).
 
-If more than :data:`MAX_FRACTION` of the poses would be flagged, the
-mismatch is not a few bad poses but structure: nothing is excluded and the
-diagnosis proceeds on every pose (the answer says so).
+If more than :data:`MAX_FRACTION` of the poses would be flagged, the most
+outlying of them alone is taken out and the screen looks again (at most
+:data:`MAX_STEPS` times): one gross pose can drag the fit so far that a
+tenth of the others stand out with it. If the many remain, the mismatch is
+not a few bad poses but structure: nothing is excluded and the diagnosis
+proceeds on every pose (the answer says so).
 """
 
 from __future__ import annotations
@@ -45,6 +48,8 @@ __all__ = ["OutlierScreen", "screen_outliers", "retest_with_effects", "EXCLUDE_F
 #: A flagged pose's sigma is multiplied by this (weight 1e-12): out of every fit.
 EXCLUDE_FACTOR = 1e6
 MAX_ROUNDS = 3
+#: Poses taken out one at a time when too many stand out at once (a gross pose swamping the fit).
+MAX_STEPS = 3
 
 
 @dataclass(frozen=True)
@@ -118,7 +123,8 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
     excluded = np.zeros(n, dtype=bool)
     free = np.ones(model.n_params, dtype=bool)
     test = fit = None
-    for _ in range(MAX_ROUNDS):
+    stepped = 0
+    for _ in range(MAX_ROUNDS + MAX_STEPS):
         weights = np.where(excluded, EXCLUDE_FACTOR**-2, 1.0)
         m = OutlierScreen(test=None, excluded=excluded, action="").weighted_model(model)
         fit = fit_map(m)
@@ -129,6 +135,17 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
         # they are released once it is out
         new = test.flagged.copy()
         if new.sum() > MAX_FRACTION * n:
+            # Too many to be a few bad poses, or one gross pose (0.5 mm among 5 um readings) that
+            # dragged the fit so far that a tenth of the others stand out with it. Take out the
+            # most outlying flagged pose alone and look again (sequential deletion); if the many
+            # remain, it is structure and nothing is excluded.
+            cand = np.flatnonzero(new & ~excluded)
+            if stepped < MAX_STEPS and cand.size:
+                excluded = excluded.copy()
+                excluded[cand[np.argmax(test.statistic[cand])]] = True
+                stepped += 1
+                fit = None
+                continue
             return OutlierScreen(
                 test=test, excluded=np.zeros(n, dtype=bool),
                 action=f"none excluded: {int(new.sum())} of {n} poses stand out, more than {MAX_FRACTION:.0%}; "

@@ -40,6 +40,10 @@ MEASURES = ("distance", "height", "ballbar")
 _AQ = re.compile(r"^a_q([1-9][0-9]*)$")
 _BQ = re.compile(r"^b_q([1-9][0-9]*)$")
 _PIVOT_ID = re.compile(r"^[A-Za-z0-9_-]+$")
+# FORMATS.md: millimetres "unless a column name says otherwise (_deg, _um)", and section 4's
+# suffixes (x_m, x_um): the measured length and its noise may carry a length unit.
+_LENGTH_COLUMN = re.compile(r"^(value|sigma_position)_(um|mm|m|deg|rad|mrad)$")
+_LENGTH_UNITS = {"mm": 1.0, "um": 1e-3, "m": 1e3}
 #: The pivot id ballbar rows get when the recording has no ``pivot`` column.
 DEFAULT_PIVOT = "1"
 
@@ -139,6 +143,34 @@ def _actuator_columns(path: str, seen: dict[str, int], pattern: re.Pattern, pref
     return nums
 
 
+def _length_columns(
+    path: str, header: list[str], seen: dict[str, int]
+) -> tuple[list[str], dict[str, int], dict[str, float], dict[str, str]]:
+    """Resolve ``value_um``, ``sigma_position_m``, ... to ``value`` / ``sigma_position``.
+
+    Returns the header and column index with the quantity names, the factor to mm
+    per quantity, and the file's column name per quantity (for messages).
+    """
+    orig, header, seen = header, list(header), dict(seen)
+    scale = {"value": 1.0, "sigma_position": 1.0}
+    file_col = {"value": "value", "sigma_position": "sigma_position"}
+    for h, j in list(seen.items()):
+        if not (m := _LENGTH_COLUMN.match(h)):
+            continue
+        name, unit = m.groups()
+        if unit not in _LENGTH_UNITS:
+            raise RecordingError(path, 1, h, f"{name} is a length; expected {name} (mm), {name}_mm, {name}_um or {name}_m")
+        if name in seen:
+            other = seen[name]
+            raise RecordingError(
+                path, 1, h, f"the same quantity as column {orig[other]!r} (columns {other + 1} and {j + 1}); expected one of them"
+            )
+        del seen[h]
+        seen[name], header[j] = j, name
+        scale[name], file_col[name] = _LENGTH_UNITS[unit], h
+    return header, seen, scale, file_col
+
+
 def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> ConstraintRecording:
     """Read a constraint recording CSV strictly (FORMATS.md section 6).
 
@@ -162,6 +194,7 @@ def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> Con
     """
     path = str(path)
     header, seen, rows = read_csv_rows(path, text, "a constraint recording (CSV)")
+    header, seen, unit_scale, file_col = _length_columns(path, header, seen)
     for col in ("measure", "value"):
         if col not in seen:
             raise RecordingError(path, 1, col, f"missing column; a constraint recording has measure, a_q1..a_qN, [b_q1..b_qN], value")
@@ -204,10 +237,10 @@ def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> Con
             for k in b_nums:
                 if cell(f"b_q{k}") != "":
                     raise RecordingError(path, line, f"b_q{k}", f"a {m} row has no pose b; expected an empty cell")
-        v = parse_number(cell("value"), path, line, "value")
+        v = parse_number(cell("value"), path, line, file_col["value"])
         if m != "height" and v <= 0:
-            raise RecordingError(path, line, "value", f"a {m} must be positive, got {v!r}")
-        value[i] = v
+            raise RecordingError(path, line, file_col["value"], f"a {m} must be positive, got {v!r}")
+        value[i] = v * unit_scale["value"]
         pid = cell("pivot") if "pivot" in seen else (DEFAULT_PIVOT if m == "ballbar" else "")
         if m == "ballbar":
             if not _PIVOT_ID.match(pid):
@@ -216,10 +249,11 @@ def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> Con
             raise RecordingError(path, line, "pivot", f"a {m} row has no pivot; expected an empty cell")
         pivot.append(pid if m == "ballbar" else "")
         if sigma is not None:
-            s = parse_number(cell("sigma_position"), path, line, "sigma_position")
+            col = file_col["sigma_position"]
+            s = parse_number(cell("sigma_position"), path, line, col)
             if s <= 0:
-                raise RecordingError(path, line, "sigma_position", f"expected a positive one-sigma noise in mm, got {s!r}")
-            sigma[i] = s
+                raise RecordingError(path, line, col, f"expected a positive one-sigma noise, got {s!r}")
+            sigma[i] = s * unit_scale["sigma_position"]
         for h in aux_cols:
             aux[h][i] = parse_number(cell(h), path, line, h)
     return ConstraintRecording(

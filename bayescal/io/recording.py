@@ -346,7 +346,7 @@ def _sigma_column(path: str, header: list[str], seen: dict[str, int], data: NDAr
     if bad.size:
         raise RecordingError(
             path, int(bad[0]) + 2, header[seen[name]],
-            f"{v[bad[0]]!r}; expected a positive one-sigma noise ({'mm' if name == 'sigma_position' else 'rad'})",
+            f"expected a positive one-sigma noise ({'mm' if name == 'sigma_position' else 'rad'}), got {float(v[bad[0]])!r}",
         )
     return v
 

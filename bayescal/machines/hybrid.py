@@ -70,6 +70,19 @@ def _compose(Rs: list[NDArray], ps: list[NDArray], n: int):
     return R, p, before, after
 
 
+def _table_tool_default(doc: TomlTable) -> TomlTable:
+    """A serial table module without ``[tool]``: its tool frame is its last joint frame.
+
+    FORMATS.md section 5 measures the tool "relative to the table's last frame"; bayescal
+    reads that as the table module's tool frame (``T_1 ... T_n Trans(tool.point)
+    Rot(tool.rpy)``). A table written with the other reading (the last joint frame) needs
+    no ``[tool]``, and with none the two readings agree, so it may be left out.
+    """
+    if doc.data.get("kind") != "serial" or doc.has("tool"):
+        return doc
+    return type(doc)({**doc.data, "tool": {"point": [0.0, 0.0, 0.0]}}, doc.path, doc.prefix)
+
+
 @dataclass(frozen=True, eq=False)
 class Hybrid(Machine):
     """Modules stacked with roles ``tool`` and ``table``.
@@ -140,9 +153,12 @@ class Hybrid(Machine):
             if mt.has("file"):
                 f = Path(mt.string("file"))
                 f = f if f.is_absolute() else Path(path).parent / f
-                modules.append(_build(read_toml(f), str(f)))
+                sub, sub_path = read_toml(f), str(f)
             else:
-                modules.append(_build(mt.table("machine"), path))
+                sub, sub_path = mt.table("machine"), path
+            if role == "table":
+                sub = _table_tool_default(sub)
+            modules.append(_build(sub, sub_path))
             roles.append(role)
         if "tool" not in roles:
             raise doc.error("module", "expected at least one module with role = \"tool\" (the one carrying the measured tool)")
