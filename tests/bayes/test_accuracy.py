@@ -93,3 +93,22 @@ def test_wrong_shapes_and_no_uncertainty_are_input_errors(prs3, case):
     # free defaults to all parameters
     with pytest.raises(InputError, match=rf"expected shape \({prs3.n_params}, {prs3.n_params}\)"):
         tool_point_std_at(prs3, q, theta, covariance=C)
+
+
+def assert_grid_std_is_direct(machine, make_grid, free, seed, caller):
+    """A grid's node std against the direct computations here, with a correlated C on ``free``.
+
+    ``make_grid(theta, **kw)`` builds the grid (``q``: node actuator vectors, ``std``: per node and axis, mm)
+    from ``covariance``/``samples``/``free``; ``caller`` is the function its message names.
+    """
+    rng = np.random.default_rng(seed)
+    theta = rng.normal(0.0, 0.5, machine.n_params) * machine.tolerance
+    C = correlated_covariance(int(free.sum()), 0.2 * machine.tolerance[free], rng)
+    lin = make_grid(theta, covariance=C, free=free)
+    np.testing.assert_allclose(lin.std.reshape(-1, 3), fd_tool_point_std(machine, lin.q, theta, free, C), rtol=1e-5)
+    draws = rng.multivariate_normal(theta[free], C, size=20)
+    smp = make_grid(theta, samples=draws, free=free)
+    np.testing.assert_allclose(smp.std.reshape(-1, 3), loop_draw_std(machine, smp.q, theta, free, draws), rtol=1e-8)
+    assert smp.source == "sample std over 20 posterior draws" and lin.source == "linearised G C G^T"
+    with pytest.raises(InputError, match=f"{caller}: give a covariance or posterior samples"):
+        make_grid(theta, free=free)

@@ -72,18 +72,7 @@ def test_grid_summary_against_hand_computed_values():
 def test_node_std_against_finite_differences_and_a_loop_over_draws(prs3):
     # the std at every node computed directly: G by central differences of the forward kinematics, G C G^T in
     # full with a correlated C on a subset of parameters; the sample std one draw at a time
-    from tests.bayes.test_accuracy import correlated_covariance, fd_tool_point_std, loop_draw_std
+    from tests.bayes.test_accuracy import assert_grid_std_is_direct
 
-    rng = np.random.default_rng(5)
-    theta = rng.normal(0.0, 0.5, prs3.n_params) * prs3.tolerance
-    free = np.zeros(prs3.n_params, bool)
-    free[::3] = True
-    C = correlated_covariance(int(free.sum()), 0.2 * prs3.tolerance[free], rng)
-    lin = compensation_grid(prs3, theta, covariance=C, free=free, n=2)
-    np.testing.assert_allclose(lin.std.reshape(-1, 3), fd_tool_point_std(prs3, lin.q, theta, free, C), rtol=1e-5)
-    draws = rng.multivariate_normal(theta[free], C, size=20)
-    smp = compensation_grid(prs3, theta, samples=draws, free=free, n=2)
-    np.testing.assert_allclose(smp.std.reshape(-1, 3), loop_draw_std(prs3, smp.q, theta, free, draws), rtol=1e-8)
-    assert smp.source == "sample std over 20 posterior draws" and lin.source == "linearised G C G^T"
-    with pytest.raises(InputError, match="compensation_grid: give a covariance or posterior samples"):
-        compensation_grid(prs3, theta, free=free, n=2)
+    free = np.arange(prs3.n_params) % 3 == 0
+    assert_grid_std_is_direct(prs3, lambda th, **kw: compensation_grid(prs3, th, n=2, **kw), free, 5, "compensation_grid")

@@ -51,22 +51,8 @@ def test_planar_module_gets_a_bic_grid():
 
 
 def test_node_std_against_finite_differences_and_a_loop_over_draws(prs3):
-    # at the commanded actuator positions of every node: G by central differences of the forward kinematics,
-    # G C G^T in full with a correlated C on a subset of parameters; the sample std one draw at a time
-    import pytest
+    # as for the actuator grid, at the commanded actuator positions of every node (ToolGrid.q)
+    from tests.bayes.test_accuracy import assert_grid_std_is_direct
 
-    from bayescal.errors import InputError
-    from tests.bayes.test_accuracy import correlated_covariance, fd_tool_point_std, loop_draw_std
-
-    rng = np.random.default_rng(6)
-    theta = rng.normal(0.0, 0.5, prs3.n_params) * prs3.tolerance
-    free = np.zeros(prs3.n_params, bool)
-    free[1::3] = True
-    C = correlated_covariance(int(free.sum()), 0.2 * prs3.tolerance[free], rng)
-    lin = tool_grid(prs3, theta, covariance=C, free=free, n=2)
-    np.testing.assert_allclose(lin.std.reshape(-1, 3), fd_tool_point_std(prs3, lin.q, theta, free, C), rtol=1e-5)
-    draws = rng.multivariate_normal(theta[free], C, size=20)
-    smp = tool_grid(prs3, theta, samples=draws, free=free, n=2)
-    np.testing.assert_allclose(smp.std.reshape(-1, 3), loop_draw_std(prs3, smp.q, theta, free, draws), rtol=1e-8)
-    with pytest.raises(InputError, match="tool_grid: give a covariance or posterior samples"):
-        tool_grid(prs3, theta, free=free, n=2)
+    free = np.arange(prs3.n_params) % 3 == 1
+    assert_grid_std_is_direct(prs3, lambda th, **kw: tool_grid(prs3, th, n=2, **kw), free, 6, "tool_grid")
