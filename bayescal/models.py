@@ -19,19 +19,21 @@ __all__ = ["read_any_recording", "model_from_recording"]
 def read_any_recording(path: str | os.PathLike, *, text: str | None = None) -> Recording | ConstraintRecording:
     """Read a recording CSV: a constraint recording (a ``measure`` column, FORMATS.md section 6) or measured poses.
 
+    Which of the two it is, :func:`~bayescal.io.constraints.is_constraint_recording` decides (from
+    the header, as CSV); the reader of that kind then reports any error with file, line and column.
+
     Parameters
     ----------
     path : path-like
-        The CSV file (for messages only when ``text`` is given).
+        The CSV file; with ``text``, only the name messages give.
     text : str, optional
-        The file's content.
+        The file's content, when it does not come from ``path`` (a comparison file holds it).
+
+    Returns
+    -------
+    Recording or ConstraintRecording
     """
-    if text is not None:
-        header = text.lstrip("\ufeff").split("\n", 1)[0]
-        constraint = "measure" in [h.strip() for h in header.split(",")]
-    else:
-        constraint = is_constraint_recording(path)
-    if constraint:
+    if is_constraint_recording(path, text=text):
         return read_constraints(path, text=text)
     return read_recording(path, text=text)
 

@@ -46,27 +46,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bayescal.bayes import kalman_filter, map_estimate  # noqa: E402
-from bayescal.bayes.accuracy import tool_point_jacobian, tool_point_std  # noqa: E402
+from bayescal.bayes.accuracy import tool_point_draws  # noqa: E402
 from bayescal.bayes.mcmc import sample_posterior  # noqa: E402
-from bayescal.identify import identify  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
 from bayescal.machines import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.simulate import draw_poses, simulate_recording  # noqa: E402
+from coverage_common import Z90, fit_methods, parameter_target, z_scores  # noqa: E402
 
-Z90 = 1.6448536269514722
 METHODS = ("ls", "map", "map_all", "kalman", "mcmc")
-
-
-def projected_truth(model: MeasurementModel, theta: np.ndarray, free: np.ndarray) -> np.ndarray:
-    """Reduced-model parameters equivalent to the full truth: theta[idx] + K theta[fixed]."""
-    idx, fix = np.flatnonzero(free), np.flatnonzero(~free)
-    if fix.size == 0:
-        return theta[idx]
-    J = (model.jacobian(None, model.predict(None)) / model.sigma[None, :, None]).reshape(-1, theta.size)
-    K = np.linalg.lstsq(J[:, idx], J[:, fix], rcond=None)[0]  # J_idx theta_eq = J_idx theta_idx + J_fix theta_fix
-    return theta[idx] + K @ theta[fix]
 
 
 def one_machine(
@@ -79,15 +67,10 @@ def one_machine(
     truth = sim.theta_true
     p_true = machine.forward(q_fresh, truth).position
     out: dict = {"seed": seed}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        fits = {
-            "ls": identify(model, method="ls"),
-            "map": map_estimate(model),
-            "map_all": map_estimate(model, free="all"),
-            "kalman": kalman_filter(model, eval_q=q_fresh[:2]),
-        }
-        if do_mcmc:
+    fits = fit_methods(model, ("ls", "map", "map_all", "kalman"), q_fresh)
+    if do_mcmc:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
             fits["mcmc"] = sample_posterior(model, n_steps=mcmc_steps, surrogate=surrogate, seed=seed)
     for name, res in fits.items():
         if not res.success:
@@ -95,31 +78,21 @@ def one_machine(
             continue
         if name == "mcmc":
             out["mcmc_seconds"] = res.seconds
-        free = res.free
-        idx = np.flatnonzero(free)
-        target = truth[idx] if name == "map_all" else projected_truth(model, truth, free)
-        est = res.theta[idx]
-        G = tool_point_jacobian(machine, q_fresh, res.theta, idx)
-        p_hat = machine.forward(q_fresh, res.theta).position
+        idx = np.flatnonzero(res.free)
+        target = parameter_target(model, truth, res.free, all_params=name == "map_all")
         if name == "mcmc":
             lo, hi = res.quantiles[0], res.quantiles[2]
             inside_p = (target >= lo) & (target <= hi)
             z_p = (target - res.mean) / np.sqrt(np.diag(res.covariance))
             # tool points: push thinned posterior draws through the kinematics (one vectorised call)
             draws = res.samples[:: max(1, res.samples.shape[0] // 300)]
-            th = np.tile(res.theta, (draws.shape[0], 1))
-            th[:, idx] = draws
-            pos = machine.forward(np.tile(q_fresh, (draws.shape[0], 1)), np.repeat(th, q_fresh.shape[0], axis=0))
-            pos = pos.position.reshape(draws.shape[0], q_fresh.shape[0], 3)
+            pos = tool_point_draws(machine, q_fresh, res.theta, idx, draws)
             qlo, qhi = np.quantile(pos, [0.05, 0.95], axis=0)
             inside_t = (p_true >= qlo) & (p_true <= qhi)
             z_t = (p_true - pos.mean(axis=0)) / pos.std(axis=0, ddof=1)
         else:
-            sd = np.sqrt(np.diag(res.covariance))
-            z_p = (est - target) / sd
+            z_p, z_t = z_scores(machine, res, target, q_fresh, p_true)
             inside_p = np.abs(z_p) <= Z90
-            st = tool_point_std(G, res.covariance)
-            z_t = (p_true - p_hat) / st
             inside_t = np.abs(z_t) <= Z90
         out[name] = {
             "param_inside": inside_p.astype(float).tolist(),

@@ -54,7 +54,6 @@ import argparse
 import os
 import sys
 import time
-import warnings
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -65,16 +64,14 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bayescal.bayes import map_estimate  # noqa: E402
-from bayescal.bayes.accuracy import tool_point_jacobian, tool_point_std  # noqa: E402
-from bayescal.identify import identify, resolve_free  # noqa: E402
+from bayescal.identify import resolve_free  # noqa: E402
 from bayescal.identify.choose import evidence_lambda  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
 from bayescal.machines import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.simulate import draw_poses, simulate_recording  # noqa: E402
+from coverage_common import Z90, fit_methods, parameter_target, z_scores  # noqa: E402
 
-Z90 = 1.6448536269514722
 TRUTHS = ("gauss 1", "gauss 0.5", "gauss 2", "gauss 4", "uniform 0.5", "uniform 1", "uniform 2", "uniform 4", "3sigma")
 EXACT_TRUTHS = ("gauss 0.5", "uniform 1", "gauss 2", "3sigma", "gauss 4")
 METHODS = ("ls", "map", "map_eb", "map_all", "map_all_eb")
@@ -182,31 +179,14 @@ def exact_case(machine, dof: int, truth: str, n: int, seed0: int, q_fresh) -> di
         p_true = machine.forward(q_fresh, theta).position
         if not machine.forward(q_fresh, theta).success.all():
             continue
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            fits = {
-                "ls": identify(model, method="ls"),
-                "map": map_estimate(model),
-                "map_eb": map_estimate(model, prior_scale="empirical"),
-                "map_all": map_estimate(model, free="all"),
-                "map_all_eb": map_estimate(model, free="all", prior_scale="empirical"),
-            }
-        J = (model.jacobian(None, model.predict(None)) / model.sigma[None, :, None]).reshape(-1, P)
+        fits = fit_methods(model, METHODS, q_fresh)
         for m, res in fits.items():
             if not res.success:
                 failed[m] += 1
                 continue
-            idx = np.flatnonzero(res.free)
-            fix = np.flatnonzero(~res.free)
-            if m.startswith("map_all") or fix.size == 0:
-                target = theta[idx]
-            else:
-                K = np.linalg.lstsq(J[:, idx], J[:, fix], rcond=None)[0]
-                target = theta[idx] + K @ theta[fix]
-            zp = (res.theta[idx] - target) / np.sqrt(np.diag(res.covariance))
-            G = tool_point_jacobian(machine, q_fresh, res.theta, idx)
-            zt = ((p_true - machine.forward(q_fresh, res.theta).position) / tool_point_std(G, res.covariance)).ravel()
-            record(stats, m, zp, zt)
+            target = parameter_target(model, theta, res.free, all_params=m.startswith("map_all"))
+            zp, zt = z_scores(machine, res, target, q_fresh, p_true)
+            record(stats, m, zp, zt.ravel())
     out = summarise(stats)
     for m in out:
         out[m]["failed"] = failed[m]

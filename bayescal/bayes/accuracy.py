@@ -1,4 +1,5 @@
-"""Predicted tool-point uncertainty: the parameter covariance pushed through the tool Jacobian."""
+"""Predicted tool-point uncertainty: the parameter covariance pushed through the tool Jacobian, or posterior draws
+pushed through the kinematics."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ from ..errors import InputError
 from ..machines.base import Machine
 from ..simulate import draw_poses
 
-__all__ = ["evaluation_poses", "tool_point_jacobian", "tool_point_std", "workspace_accuracy"]
+__all__ = [
+    "evaluation_poses", "tool_point_jacobian", "tool_point_std", "workspace_accuracy", "tool_point_draws",
+    "tool_point_std_at",
+]
 
 
 def evaluation_poses(machine: Machine, n: int = 50, *, seed: int = 0, fallback: NDArray | None = None) -> NDArray:
@@ -45,3 +49,91 @@ def workspace_accuracy(G: NDArray, cov: NDArray) -> NDArray:
     """RMS over poses of the 3-D tool-point std ``sqrt(trace(G C G^T))``, mm; scalar or (m,) for a stack."""
     s = tool_point_std(G, cov)
     return np.sqrt(np.mean(np.sum(s**2, axis=-1), axis=-1))
+
+
+def tool_point_draws(machine: Machine, q: ArrayLike, theta: ArrayLike, idx: ArrayLike, draws: ArrayLike) -> NDArray:
+    """The tool point at every pose for every draw of ``theta[idx]``, shape (S, n, 3), mm.
+
+    Parameters
+    ----------
+    machine : Machine
+    q : array_like, shape (n, n_actuators)
+        Actuator positions (mm or rad per actuator).
+    theta : array_like, shape (P,)
+        The parameters the draws leave as they are (those outside ``idx``).
+    idx : array_like of int, shape (k,)
+        The parameters the draws give.
+    draws : array_like, shape (S, k)
+        Draws of ``theta[idx]``, e.g. posterior samples.
+
+    Returns
+    -------
+    ndarray, shape (S, n, 3)
+        Tool points, mm, base frame.  Poses that cannot be solved are not
+        flagged here (the callers solved them at ``theta`` already).
+    """
+    q = np.asarray(q, dtype=float)
+    D = np.asarray(draws, dtype=float)
+    th = np.tile(theta, (D.shape[0], 1))
+    th[:, idx] = D
+    # one forward call for every draw at every pose
+    pos = machine.forward(np.tile(q, (D.shape[0], 1)), np.repeat(th, q.shape[0], axis=0)).position
+    return pos.reshape(D.shape[0], q.shape[0], 3)
+
+
+def tool_point_std_at(
+    machine: Machine,
+    q: ArrayLike,
+    theta: ArrayLike,
+    free: ArrayLike | None = None,
+    *,
+    covariance: ArrayLike | None = None,
+    samples: ArrayLike | None = None,
+    caller: str = "tool_point_std_at",
+) -> tuple[NDArray, str]:
+    """Per pose and axis the one-sigma std of the tool point, from posterior draws or a covariance.
+
+    What every compensation grid reports at its nodes: with ``samples`` the
+    sample std (``ddof=1``) of the exact forward kinematics over the draws
+    (:func:`tool_point_draws`); else with ``covariance`` the linearised
+    ``sqrt(diag(G C G^T))``, ``G = dp/dtheta[free]`` at ``theta``.
+
+    Parameters
+    ----------
+    machine, q
+        As for :func:`tool_point_draws`.
+    theta : array_like, shape (P,)
+        Identified errors (the linearisation point; the parameters outside ``free`` for the draws).
+    free : array_like of bool, shape (P,), optional
+        Which parameters ``covariance``/``samples`` refer to (default all).
+    covariance : array_like, shape (k, k), optional
+        Covariance of ``theta[free]``.
+    samples : array_like, shape (S, k), optional
+        Draws of ``theta[free]``; used instead of ``covariance`` when both are given.
+    caller : str
+        The function named in the message when neither is given.
+
+    Returns
+    -------
+    std : ndarray, shape (n, 3)
+        mm.
+    source : str
+        How it was obtained (for reports).
+
+    Raises
+    ------
+    InputError
+        ``samples`` or ``covariance`` of the wrong shape, or neither given.
+    """
+    idx = np.flatnonzero(np.ones(machine.n_params, bool) if free is None else np.asarray(free, dtype=bool))
+    if samples is not None:
+        S = np.asarray(samples, dtype=float)
+        if S.ndim != 2 or S.shape[1] != idx.size:
+            raise InputError(f"samples: expected shape (n_draws, {idx.size}), got {S.shape}")
+        return tool_point_draws(machine, q, theta, idx, S).std(axis=0, ddof=1), f"sample std over {S.shape[0]} posterior draws"
+    if covariance is not None:
+        C = np.asarray(covariance, dtype=float)
+        if C.shape != (idx.size, idx.size):
+            raise InputError(f"covariance: expected shape ({idx.size}, {idx.size}), got {C.shape}")
+        return tool_point_std(tool_point_jacobian(machine, q, theta, idx), C), "linearised G C G^T"
+    raise InputError(f"{caller}: give a covariance or posterior samples for the std")

@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from ..io import write_text_atomic
 from ..machines.base import Machine
-from .accuracy import tool_point_jacobian, tool_point_std
+from .accuracy import tool_point_std_at
 
 __all__ = ["CompensationGrid", "compensation_grid", "actuator_nodes"]
 
@@ -167,8 +167,6 @@ def compensation_grid(
     CompensationGrid
     """
     theta = machine.check_theta(theta)
-    free = np.ones(machine.n_params, bool) if free is None else np.asarray(free, dtype=bool)
-    idx = np.flatnonzero(free)
     if axes is None:
         if machine.q_limits is None:
             raise InputError(f"{machine.source}: no [workspace] q_limits to span a grid; give axes")
@@ -196,24 +194,7 @@ def compensation_grid(
             f"(one per actuator, q1..q{machine.n_actuators}), or span the tool point with --space tool"
         )
     correction = -(est.position - nominal.position)
-    if samples is not None:
-        S = np.asarray(samples, dtype=float)
-        if S.ndim != 2 or S.shape[1] != idx.size:
-            raise InputError(f"samples: expected shape (n_draws, {idx.size}), got {S.shape}")
-        th = np.tile(theta, (S.shape[0], 1))
-        th[:, idx] = S
-        stacked = np.repeat(th, q.shape[0], axis=0)  # one forward call for every draw at every node
-        pos = machine.forward(np.tile(q, (S.shape[0], 1)), stacked).position.reshape(S.shape[0], q.shape[0], 3)
-        std = pos.std(axis=0, ddof=1)
-        source = f"sample std over {S.shape[0]} posterior draws"
-    elif covariance is not None:
-        C = np.asarray(covariance, dtype=float)
-        if C.shape != (idx.size, idx.size):
-            raise InputError(f"covariance: expected shape ({idx.size}, {idx.size}), got {C.shape}")
-        std = tool_point_std(tool_point_jacobian(machine, q, theta, idx), C)
-        source = "linearised G C G^T"
-    else:
-        raise InputError("compensation_grid: give a covariance or posterior samples for the std")
+    std, source = tool_point_std_at(machine, q, theta, free, covariance=covariance, samples=samples, caller="compensation_grid")
     unit = "mm or rad per actuator"  # FORMATS.md: mm for prismatic, rad for revolute actuators
     return CompensationGrid(
         machine_name=machine.name,

@@ -38,7 +38,7 @@ from ..errors import InputError
 from ..geometry import so3_log
 from ..io import write_text_atomic
 from ..machines.base import Machine
-from .accuracy import tool_point_jacobian, tool_point_std
+from .accuracy import tool_point_std_at
 from .grid import grid_summary
 
 __all__ = ["ToolGrid", "tool_grid", "tool_box", "solve_tool_points", "NC_COLUMNS", "NC_COLUMNS_PLANAR"]
@@ -297,8 +297,6 @@ def tool_grid(
     ToolGrid
     """
     theta = machine.check_theta(theta)
-    free = np.ones(machine.n_params, bool) if free is None else np.asarray(free, dtype=bool)
-    idx = np.flatnonzero(free)
     if n < 2:
         raise InputError(f"n: expected at least 2 nodes per axis, got {n}")
     box = tool_box(machine)
@@ -339,22 +337,6 @@ def tool_grid(
     # against the nominal point actually commanded: equal to the node on the controlled axes, and the
     # right reference on an axis the actuators do not set (there the node coordinate is only a mean)
     error = est.position - nominal.position
-    if samples is not None:
-        S = np.asarray(samples, dtype=float)
-        if S.ndim != 2 or S.shape[1] != idx.size:
-            raise InputError(f"samples: expected shape (n_draws, {idx.size}), got {S.shape}")
-        th = np.tile(theta, (S.shape[0], 1))
-        th[:, idx] = S
-        pos = machine.forward(np.tile(q, (S.shape[0], 1)), np.repeat(th, q.shape[0], axis=0)).position
-        std = pos.reshape(S.shape[0], q.shape[0], 3).std(axis=0, ddof=1)
-        source = f"sample std over {S.shape[0]} posterior draws"
-    elif covariance is not None:
-        C = np.asarray(covariance, dtype=float)
-        if C.shape != (idx.size, idx.size):
-            raise InputError(f"covariance: expected shape ({idx.size}, {idx.size}), got {C.shape}")
-        std = tool_point_std(tool_point_jacobian(machine, q, theta, idx), C)
-        source = "linearised G C G^T"
-    else:
-        raise InputError("tool_grid: give a covariance or posterior samples for the std")
+    std, source = tool_point_std_at(machine, q, theta, free, covariance=covariance, samples=samples, caller="tool_grid")
     shape = tuple(a.size for a in axes) + (3,)
     return ToolGrid(machine.name, axes, q, error.reshape(shape), std.reshape(shape), source, nominal.position, ctrl)

@@ -125,13 +125,36 @@ class ConstraintRecording:
             check_q_limits(self.path, qb, q_limits, machine_path=machine_path, names=tuple(f"b_q{k + 1}" for k in range(n_actuators)))
 
 
-def is_constraint_recording(path: str | os.PathLike) -> bool:
-    """True when the CSV's header has a ``measure`` column (a constraint recording, not a pose recording)."""
+def is_constraint_recording(path: str | os.PathLike, *, text: str | None = None) -> bool:
+    """True when the CSV's header has a ``measure`` column (a constraint recording, not a pose recording).
+
+    The one place that tells the two kinds of recording apart, for a file on
+    disk and for a file's content alike (the header is parsed as CSV, as the
+    readers parse it, so a quoted ``"measure"`` counts).
+
+    Parameters
+    ----------
+    path : path-like
+        The CSV file (not read when ``text`` is given).
+    text : str, optional
+        The file's content.
+
+    Returns
+    -------
+    bool
+        False also for a file that cannot be read as CSV: the pose-recording
+        reader then reports what is wrong with it (file, line, column).
+    """
     try:
-        with open(path, encoding="utf-8-sig", newline="") as fh:
-            header = next(csv.reader(fh), [])
+        if text is None:
+            with open(path, encoding="utf-8-sig", newline="") as fh:
+                header = next(csv.reader(fh), [])
+        else:
+            # as read_csv_rows and the utf-8-sig file path: one byte-order mark dropped, any line end
+            body = text[1:] if text.startswith("\ufeff") else text
+            header = next(csv.reader(io.StringIO(body, newline="")), [])
     except (OSError, UnicodeDecodeError, csv.Error):
-        return False  # the pose-recording reader reports what is wrong with the file
+        return False
     return "measure" in [h.strip() for h in header]
 
 

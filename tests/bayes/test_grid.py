@@ -67,3 +67,12 @@ def test_grid_summary_against_hand_computed_values():
     s = grid_summary(corr, std)
     assert s == {"max_correction_mm": 5.0, "rms_correction_mm": np.sqrt(12.5), "max_std_mm": 3.0,
                  "rms_std_mm": np.sqrt(4.5)}
+
+
+def test_node_std_against_finite_differences_and_a_loop_over_draws(prs3):
+    # the std at every node computed directly: G by central differences of the forward kinematics, G C G^T in
+    # full with a correlated C on a subset of parameters; the sample std one draw at a time
+    from tests.bayes.test_accuracy import assert_grid_std_is_direct
+
+    free = np.arange(prs3.n_params) % 3 == 0
+    assert_grid_std_is_direct(prs3, lambda th, **kw: compensation_grid(prs3, th, n=2, **kw), free, 5, "compensation_grid")

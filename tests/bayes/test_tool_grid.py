@@ -48,3 +48,11 @@ def test_planar_module_gets_a_bic_grid():
     assert g.planar and g.shape == (3, 1, 3)
     np.testing.assert_allclose(g.error, 0.0, atol=1e-7)  # the nominal machine has no error
     assert g.to_nc_csv().splitlines()[0] == "i,j,x,z,ex,ez,std_ex,std_ez"
+
+
+def test_node_std_against_finite_differences_and_a_loop_over_draws(prs3):
+    # as for the actuator grid, at the commanded actuator positions of every node (ToolGrid.q)
+    from tests.bayes.test_accuracy import assert_grid_std_is_direct
+
+    free = np.arange(prs3.n_params) % 3 == 1
+    assert_grid_std_is_direct(prs3, lambda th, **kw: tool_grid(prs3, th, n=2, **kw), free, 6, "tool_grid")

@@ -40,6 +40,25 @@ def test_minimal_file_and_default_pivot(tmp_path):
     assert not is_constraint_recording(p2)
 
 
+
+@pytest.mark.parametrize("text, constraint", [
+    ("measure,a_q1,value\nheight,1,2\n", True),
+    ("\ufeffmeasure,a_q1,value\nheight,1,2\n", True),  # a byte-order mark
+    ("a_q1,value, measure \r\n1,2,height\r\n", True),  # spaces around the name, CRLF
+    ("measure,a_q1,value\rheight,1,2\r", True),  # lone CR line ends
+    ('"measure",a_q1,value\nheight,1,2\n', True),  # a quoted header cell, as CSV writers may quote
+    ("q1,q2,q3,x,y,z\n1,2,3,4,5,6\n", False),
+    ("q1,x\nmeasure,1\n", False),  # only the header counts
+    ("measured,a_q1\n", False),
+    ("", False),
+])
+def test_sniffing_a_file_and_its_content_agree(tmp_path, text, constraint):
+    p = tmp_path / "r.csv"
+    p.write_text(text, encoding="utf-8", newline="")
+    assert is_constraint_recording(p) is constraint
+    assert is_constraint_recording("ignored.csv", text=text) is constraint
+    assert not is_constraint_recording(tmp_path / "missing.csv")  # the reader then says the file is missing
+
 def test_round_trip(tmp_path):
     rec = read_constraints("c.csv", text=GOOD)
     path = write_constraints(tmp_path / "out.csv", rec)
