@@ -62,7 +62,7 @@ def test_priority_order_puts_declared_unknown_parameters_first():
 def test_priority_order_puts_nuisance_parameters_first():
     from bayescal.identifiability import priority_order
 
-    tol = np.array([0.05, 0.05, 1.0, 0.05, 0.05, 5.0, 1.0])
+    tol = np.array([0.2, 0.2, 1.0, 0.2, 0.2, 5.0, 1.0])
     units = ["mm"] * 7
     # 5 is declared unknown (>= 10 x the median); 2 and 6 are nuisance (pivots) below that ratio
     assert priority_order(tol, units, nuisance=np.array([6, 2])).tolist() == [2, 6, 5, 0, 1, 3, 4]
