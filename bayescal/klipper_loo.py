@@ -146,8 +146,10 @@ def loo_bayescal(
     rows : sequence of int, optional
         Rows to leave out (default all); ``loo_error`` is NaN for the others.
     free : {"all", "auto"}
-        All parameters under the prior (``--free all``), or only those the
-        data determines (``--free auto``; the others stay at nominal).
+        All parameters under the prior (``--free all``), or ``--free auto``:
+        for MAP the same except the parameters the recording does not see at
+        all, which stay at nominal (:func:`bayescal.identify.resolve_free`;
+        before, auto fixed the least-squares identifiable set).
     """
     n = rec.n_rows
     theta_all = _map_theta(machine, rec, prior_scale, noise, free)

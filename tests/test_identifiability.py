@@ -57,3 +57,13 @@ def test_priority_order_puts_declared_unknown_parameters_first():
     # 100 mm >= 10 x median(mm) and 1 rad >= 10 x median(rad) go first, the rest keep their order
     assert priority_order(tol, units).tolist() == [3, 5, 0, 1, 2, 4, 6]
     assert priority_order(np.full(4, 0.05), ["mm"] * 4).tolist() == [0, 1, 2, 3]
+
+
+def test_priority_order_puts_nuisance_parameters_first():
+    from bayescal.identifiability import priority_order
+
+    tol = np.array([0.2, 0.2, 1.0, 0.2, 0.2, 5.0, 1.0])
+    units = ["mm"] * 7
+    # 5 is declared unknown (>= 10 x the median); 2 and 6 are nuisance (pivots) below that ratio
+    assert priority_order(tol, units, nuisance=np.array([6, 2])).tolist() == [2, 6, 5, 0, 1, 3, 4]
+    assert priority_order(tol, units, nuisance=np.array([5])).tolist() == [5, 0, 1, 2, 3, 4, 6]

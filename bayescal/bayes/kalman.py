@@ -224,7 +224,7 @@ def kalman_filter(
         raise InputError("kalman_filter: the measurement model has no measured values")
     machine = model.machine
     prior = prior_from_machine(machine) if prior is None else prior
-    idx, ida = resolve_free(model, free, prior.mean)
+    idx, ida = resolve_free(model, free, prior.mean, prior=True)  # the filter starts from the prior
     n, dof = idx.size, model.dof
     qn = np.broadcast_to(np.asarray(process_noise, dtype=float), (n,)) * prior.std[idx]
     if np.any(qn < 0) or not np.all(np.isfinite(qn)):

@@ -64,7 +64,8 @@ def register(sub) -> None:
                    help="re-measure this recording's poses or relations (distances, heights, ballbar) in every trial")
     p.add_argument("--eval-poses", type=int, default=100, help="fresh poses for the output error (default 100)")
     p.add_argument("--free", choices=("auto", "all"), default="auto",
-                   help="auto: the identifiable set of each trial (default); all: every parameter")
+                   help="auto (default): each method resolves it as identify does (ls: the identifiable set of each "
+                        "trial; methods with a prior: every parameter the measurement sees); all: every parameter")
     p.add_argument("--metric", choices=METRICS, default="rms_position", help="error the statistics use")
     p.add_argument("--alpha", type=float, default=0.05, help="family-wise significance level (default 0.05)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

@@ -18,8 +18,10 @@ node the predicted tool-point correction (mm) and its one-sigma uncertainty
 with columns q1..qN, dx, dy, dz, sx, sy, sz, and optionally a heat map.
 
 With --free all (default) every parameter is estimated under its prior, so
-the std also carries what the measurement cannot separate; with --free auto
-only the identifiable set is, and the others are taken as exactly nominal.
+the std also carries what the measurement cannot separate; --free auto is the
+same except that parameters the measurement does not see at all are taken as
+exactly nominal (the prior decides what the data cannot separate; see
+docs/cli.md, identify --free).
 
 A machine file with [effect.<name>] tables (diagnose --write-machine) has
 them applied: in the identification, driven by the recording's channels,
@@ -115,7 +117,7 @@ def run(args) -> int:
         raise InputError(f"--aux {typo[0]}: unknown channel; expected one of: {', '.join(known)}")
     free = free_arg(args.free)
     if args.method == "mcmc" and free == "all":
-        free = "auto"  # sampling the unidentifiable directions only explores the prior
+        free = "auto"  # sampling parameters the measurement does not see only explores the prior
     if args.method == "map":
         res = map_estimate(model, free=free)
         ok, kw = res.success, {"covariance": res.covariance}

@@ -23,8 +23,12 @@ Identify the geometric errors of a machine from a recording of measured poses.
 The recording (CSV, see docs/formats.md) holds commanded actuator positions q1..qN
 and the measured tool point x, y, z, plus either a rotation vector rx, ry, rz
 (6-DOF) or a tool axis nx, ny, nz (5-DOF), or nothing more (position only).
-Unidentifiable parameters are found by SVD and fixed at nominal; the report
-names the combinations the measurement cannot separate.
+With --free auto (default) the combinations the measurement cannot separate
+are found by SVD and named in the report: ls fixes enough parameters at
+nominal to be well posed (ballbar pivots and other nuisance parameters kept);
+ridge, tsvd, map and kalman estimate every parameter the measurement sees and
+let the prior decide those combinations (fixing them made a MAP calibration
+from a ballbar worse than the nominal machine; docs/delta.md).
 
 Methods: ls (Gauss-Newton least squares), ridge (Tikhonov towards nominal;
 --lam 1 is the MAP estimate under the machine file's tolerance prior), tsvd
@@ -102,7 +106,8 @@ def register(sub) -> None:
     p.add_argument("--dof", type=int, choices=(6, 5, 3), help="use only this much of the measurement (default: all)")
     p.add_argument(
         "--free", default="auto",
-        help="parameters to identify: 'auto' (identifiable set, default), 'all', or comma-separated names",
+        help="parameters to identify: 'auto' (default: ls the identifiable set; methods with a prior every parameter "
+             "the measurement sees), 'all', or comma-separated names",
     )
     p.add_argument(
         "--prior-scale", choices=PRIOR_SCALES, default=None,

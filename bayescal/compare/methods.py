@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import InputError
-from ..identify import identify, whitened_system
+from ..identify import identify, resolve_free, whitened_system
 from ..measurement import MeasurementModel
 
 __all__ = ["Method", "METHODS", "MethodSpec", "register_method", "parse_methods", "tsvd_snr_rank"]
@@ -61,6 +61,7 @@ def tsvd_snr_rank(model: MeasurementModel, free) -> int:
     the tolerance prior; below 1 the noise dominates what the data say.
     """
     theta = np.zeros(model.n_params)
+    free = resolve_free(model, free, theta, prior=True)[0]  # "auto": as identify --method tsvd resolves it
     pred = model.predict(theta)
     _, J = whitened_system(model, theta, pred)
     s = np.linalg.svd(J[:, free] * model.machine.tolerance[free], compute_uv=False)

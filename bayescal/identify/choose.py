@@ -696,8 +696,8 @@ def choose_regularisation(
         raise InputError("identify: the measurement model has no measured values")
     theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float).reshape(P)
     S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
-    idx, _ = resolve_free(model, free, theta)
-    free_arg = free if free is not None else idx
+    idx, _ = resolve_free(model, free, theta, prior=True)  # ridge and tsvd: what identify does with them
+    free_arg = "auto" if free is None else free  # identify resolves it as here (and reports what it left)
     known = bool(machine.noise.given)
     kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed, hyperprior=hyperprior,
               output_map=_tool_output_map(machine, getattr(model, "q", None) if eval_q is None else eval_q, idx, S_all))

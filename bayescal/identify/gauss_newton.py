@@ -42,15 +42,42 @@ def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tupl
     return r, J
 
 
-def resolve_free(model: MeasurementModel, free, theta0: NDArray):
-    """Indices of the parameters to identify, and the identifiability analysis if automatic."""
+def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool = False):
+    """Indices of the parameters to identify, and the identifiability analysis if automatic.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+    free : "auto", "all", None (= "auto") or a sequence of names or indices
+    theta0 : ndarray, shape (P,)
+        Where the identifiability is analysed.
+    prior : bool
+        Whether the estimator has a prior that decides the directions the
+        data do not see (MAP, ridge with ``lam > 0``, TSVD in the
+        tolerance-scaled metric, the Kalman filter).  With ``prior`` and
+        ``"auto"`` only the parameters the measurement does not see at all
+        are fixed; the others are estimated and the prior decides their
+        confounded combinations (:meth:`Identifiability.with_prior` says
+        why).  Without, ``"auto"`` fixes enough parameters at ``theta0``
+        for least squares to be well posed, nuisance parameters (ballbar
+        pivots, a fitted instrument frame) kept in preference.
+
+    Returns
+    -------
+    (ndarray of int, Identifiability or None)
+    """
     layout = model.machine.layout
     if free is None or (isinstance(free, str) and free == "auto"):
         pred = model.predict(theta0)
         _, J = whitened_system(model, theta0, pred) if model.y_measured is not None else (None, None)
         if J is None:
             J = (model.jacobian(theta0, pred) / model.row_sigma[:, :, None]).reshape(-1, model.n_params)
-        ida = analyse_identifiability(J, layout, candidates=priority_order(model.machine.tolerance, layout.units))
+        geometry = model.machine.geometry_part[1]
+        nuisance = np.setdiff1d(np.arange(len(layout)), geometry)
+        order = priority_order(model.machine.tolerance, layout.units, nuisance=nuisance)
+        ida = analyse_identifiability(J, layout, candidates=order)
+        if prior:
+            ida = ida.with_prior(layout.names)
         return ida.kept_index, ida
     if isinstance(free, str) and free == "all":
         return np.arange(len(layout)), None
@@ -94,9 +121,12 @@ def identify(
     k : int, optional
         Number of singular values TSVD keeps.  Required for tsvd.
     free : sequence of str or int, "auto", "all" or None
-        Parameters to identify.  ``None``/"auto": the identifiable set found by
-        :func:`bayescal.identifiability.analyse_identifiability`; the others
-        stay at ``theta0``.
+        Parameters to identify.  ``None``/"auto": for LS (and ridge with
+        ``lam = 0``) the identifiable set found by
+        :func:`bayescal.identifiability.analyse_identifiability`, the others
+        staying at ``theta0``; for map, ridge and tsvd every parameter the
+        measurement sees, the prior (tolerance scaling) deciding what the
+        data do not separate (:func:`resolve_free` with ``prior=True``).
     theta0 : array_like, shape (P,), optional
         Start (and value of fixed parameters); zeros (nominal) by default.
     scale : array_like, shape (P,), optional
@@ -136,16 +166,21 @@ def identify(
     S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
     if np.any(S_all <= 0):
         raise InputError("scale: expected positive values")
-    idx, ida = resolve_free(model, free, theta)
+    # a prior (ridge, map) or a truncation in the tolerance-scaled metric (tsvd) decides the directions
+    # the data do not see, so "auto" leaves them to it instead of fixing parameters (resolve_free)
+    idx, ida = resolve_free(model, free, theta, prior=(solver == "ridge" and lam > 0) or solver == "tsvd")
     n_rows = model.n_poses * model.dof
-    # a prior (map, ridge with lam > 0) makes fewer rows than parameters well posed
-    if n_rows < idx.size and not (solver == "ridge" and lam > 0):
+    # a prior (map, ridge with lam > 0) makes fewer rows than parameters well posed, and so does
+    # TSVD's truncation to k <= n_rows directions (the others stay at the start, in the scaled metric)
+    if n_rows < idx.size and not (solver == "ridge" and lam > 0) and method != "tsvd":
         raise InputError(
             f"{model.n_poses} poses give {n_rows} measured components for {idx.size} parameters; "
             f"expected at least {idx.size // model.dof + 1} poses"
         )
-    if method == "tsvd" and (k is None or int(k) != k or not 1 <= k <= idx.size):
-        raise InputError(f"k: tsvd needs an integer from 1 to {idx.size} (identified parameters), got {k!r}")
+    k_max = min(idx.size, n_rows)
+    if method == "tsvd" and (k is None or int(k) != k or not 1 <= k <= k_max):
+        raise InputError(f"k: tsvd needs an integer from 1 to {k_max} (identified parameters, measured components), "
+                         f"got {k!r}")
     S = S_all[idx]
     # ridge/MAP solve for the deviation from the prior mean c (phi = c + x)
     c = np.zeros(idx.size) if prior_mean is None else np.asarray(prior_mean, dtype=float).reshape(P)[idx] / S
@@ -275,6 +310,7 @@ def identify(
         message=message,
         fixed=fixed,
         unidentifiable=() if ida is None else ida.combinations,
+        decided_by_prior=() if ida is None else ida.decided_by_prior,
         dof=model.dof,
         n_poses=model.n_poses,
         chi2=chi2,

@@ -87,6 +87,9 @@ class IdentificationResult:
     fixed : tuple of str
         Parameters held at nominal, and ``unidentifiable`` explains why.
     unidentifiable : tuple of str
+    decided_by_prior : tuple of str
+        Combinations the data do not separate that the prior decided (map,
+        ridge, tsvd with ``free="auto"``: estimated, not fixed), in words.
     dof : int
         6, 5 or 3.
     n_poses : int
@@ -122,6 +125,7 @@ class IdentificationResult:
     message: str
     fixed: tuple[str, ...] = ()
     unidentifiable: tuple[str, ...] = ()
+    decided_by_prior: tuple[str, ...] = ()
     dof: int = 6
     n_poses: int = 0
     chi2: float = float("nan")
@@ -199,6 +203,7 @@ class IdentificationResult:
             "covariance": covariance_dict(self.names, self.units, self.free, self.covariance),
             "fixed": list(self.fixed),
             "unidentifiable": list(self.unidentifiable),
+            "decided_by_prior": list(self.decided_by_prior),
             "strong_correlations": [{"a": a, "b": b, "correlation": c} for a, b, c in self.correlations()],
             "cost_history": self.cost_history,
             **self.extras,
@@ -254,4 +259,9 @@ class IdentificationResult:
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, fixed at nominal: {', '.join(self.fixed)}"]
             lines += [f"    - {c}" for c in self.unidentifiable[:max_combinations]]
+        if self.decided_by_prior:
+            lines += ["", f"  not separated by these poses, decided by the prior (estimated near nominal in proportion "
+                          f"to the tolerances; --method ls fixes them instead): "
+                          f"{', '.join(c.split(':', 1)[0] for c in self.decided_by_prior)}"]
+            lines += [f"    - {c}" for c in self.decided_by_prior[:max_combinations]]
         return "\n".join(lines)

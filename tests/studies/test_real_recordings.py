@@ -114,8 +114,10 @@ def test_tiago_registration_and_full_fit(quick):
     assert t["cli"]["identify map"]["rms_after"]["position"] < 3.0
     staged = t["cli"]["identify map, from the registered machine"]
     assert staged["exit"] == 0
-    # (the command line's MAP estimates the prior scale from the data: at least as close as the library's default)
-    assert staged["rms_after"]["position"] < t["in_sample"]["map"]["pos_rms"] + 0.05
+    # (the command line's MAP estimates the prior scale from the data and runs the robust pass, which down-weights
+    # lines 16, 20 and 31 and so raises the unweighted RMS: 2.68 mm against the library's plain MAP at 2.54 mm, which
+    # since free="auto" lets the prior decide what the data cannot separate estimates 81 parameters, not 33)
+    assert staged["rms_after"]["position"] < min(2.71, t["in_sample"]["map"]["pos_rms"] + 0.15)
 
 
 @pytest.mark.skipif(not HAVE_TIAGO, reason="shared TIAGo data absent")
