@@ -1,5 +1,7 @@
 """Link masses from a URDF's <inertial> elements, against yourdfpy's own kinematics of every link's centre of mass."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -103,3 +105,37 @@ def test_a_urdf_without_inertials_gives_no_masses(tmp_path):
     (tmp_path / "arm.urdf").write_text(URDF)
     (tmp_path / "m.toml").write_text(FROM_URDF)
     assert load_machine(tmp_path / "m.toml").body_inertials is None
+
+
+_ROOT = Path(__file__).resolve().parents[2]
+SHARED = next((p / "shared" / "data" / "real" / "tiago" for p in (_ROOT.parent, _ROOT.parent.parent)
+               if (p / "shared" / "data" / "real" / "tiago").is_dir()), _ROOT.parent / "shared" / "data" / "real" / "tiago")
+
+
+@pytest.mark.skipif(not (SHARED / "tiago.urdf").is_file(), reason="shared TIAGo URDF absent")
+def test_tiago_link_masses_are_everything_above_the_torso_lift(tmp_path):
+    """The TIAGo URDF (read in place, never copied): the moving links carry every mass hanging from the torso lift's
+    child link (head, arm, gripper), summed here from the XML with lxml, independently of yourdfpy."""
+    from lxml import etree
+
+    urdf = (SHARED / "tiago.urdf").resolve()
+    (tmp_path / "t.toml").write_text(f'kind = "serial"\nurdf = "{urdf.as_posix()}"\nbase_link = "base_footprint"\n'
+                                     'tip_link = "arm_7_link"\n[tool]\npoint = [0.0, 0.0, 0.0]\n')
+    m = load_machine(tmp_path / "t.toml")
+    known = m.body_inertials
+    assert known is not None and len(known.mass_kg) == m.n_actuators and np.all(known.mass_kg >= 0)
+    root = etree.parse(str(urdf)).getroot()
+    children = {}
+    first = None
+    for j in root.findall("joint"):
+        children.setdefault(j.find("parent").get("link"), []).append(j.find("child").get("link"))
+        if j.get("name") == "torso_lift_joint":
+            first = j.find("child").get("link")
+    mass = {ln.get("name"): float(ln.find("inertial/mass").get("value")) for ln in root.findall("link")
+            if ln.find("inertial/mass") is not None}
+    total, stack = 0.0, [first]
+    while stack:
+        link = stack.pop()
+        total += mass.get(link, 0.0)
+        stack += children.get(link, [])
+    assert known.mass_kg.sum() == pytest.approx(total, rel=1e-12)
