@@ -18,7 +18,6 @@ from bayescal.io.recording import write_recording
 from bayescal.machines import load_machine, machine_from_text
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import draw_errors, draw_poses, measure
-from tests.conftest import PRS3_FILE
 from tests.physics.serial_statics import Chain, CompliantJoints, Weights, gravity_torques
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -227,3 +226,27 @@ def test_machine_file_table_with_link_masses_round_trips(tmp_path):
     with pytest.raises(MachineFileError, match="weight bodies"):
         machine_from_text(text.replace("link_mass_kg = [3.7, 8.4, ", "link_mass_kg = [").replace("[[0, -20, 10], [0, 0, 210], ", "["),
                           "short.toml")
+
+
+# the effect's numbers before link weights existed (commit a06264c), on the 3-PRS example: platform only, no link masses
+_GOLDEN = [
+    ([147.09975, 147.09975, 147.09975, 20.0, -10.0, -40.0, 0.05, -0.03],
+     [[-0.06358996297587764, -0.035582486593080664, -0.047681285413188335], [-0.04364317849535599, -0.03764798553807184, -0.06555965913965983], [-0.05289491644240223, -0.02751211564303057, -0.06644470953374328]],
+     [[-0.00029669104465069446, 0.0, 0.0, -0.0005690947165411794, -4.303215468216463e-05, -0.0002212483346039061, 0.04167647561047581, -0.006795764379838698], [0.0, -0.0002559350749275362, 0.0, 0.00024262621655024433, -0.0006316758315587878, 8.375833596252672e-06, -0.023735023231224037, 0.012856276679211263], [0.0, 0.0, -0.00044568164894678494, 0.00032637328154155057, 0.0006746984024824773, 0.0002128351674961137, -0.010600273487823251, -0.010458329471189019]]),
+    ([0.3, 0.5, 0.7, 45.0, 20.0, -10.0, -40.0, 0.05, -0.03],
+     [[-0.05723096667828987, -0.053373729889621004, -0.10013069936769549], [-0.04400546048764274, -0.06735080186268405, -0.1628132767678473], [-0.0649521654881476, -0.060062703340045605, -0.20980610422283033]],
+     [[-0.1466848682921425, 0.0, 0.0, -0.0008728635699071197, -0.0005121852448870613, -3.8728939213948164e-05, -0.0001991235011435155, 0.04603261585001438, -0.00695396608098433], [0.0, -0.1347016037253681, 0.0, -0.0012549328512690612, 0.0003639393248253665, -0.0009475137473381817, 1.2563750394379008e-05, -0.04303657146417014, 0.027136132898445773], [0.0, 0.0, -0.23259039538263904, -0.0030594507598507917, 0.000685383891237256, 0.001416866645213202, 0.00044695385174183867, -0.02917138159985668, -0.032538075888785316]]),
+]
+
+
+def test_without_link_masses_the_3prs_numbers_are_those_of_before():
+    m = load_machine(ROOT / "examples" / "prs3" / "machine.toml")
+    rng = np.random.default_rng(21)
+    q = m.sample_q(3, rng)
+    theta = rng.normal(size=m.n_params) * m.tolerance
+    poses = m.forward(q, theta)
+    for aux, (eta, dq, jac1) in zip(({}, {"payload_kg": np.array([0.0, 7.5, 20.0])}), _GOLDEN):
+        eff = get_effect("joint_compliance", payload_offset=[10.0, -5.0, 30.0])
+        f = eff.features(m, q, theta, aux, None, poses)
+        np.testing.assert_allclose(eff.delta_q(f, np.array(eta)), dq, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(eff.delta_q_jacobian(f, np.array(eta))[1], jac1, rtol=1e-12, atol=1e-15)
