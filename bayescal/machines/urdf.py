@@ -156,7 +156,7 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
     if not types:
         raise MachineFileError(path, "tip_link", f"no revolute, continuous or prismatic joint between {base_link!r} and {tip_link!r}")
     ok = all(li is not None and li[0] < li[1] for li in lim)
-    mass, com = _link_inertials(robot, [j for j in chain if j.name in names])
+    mass, com = _link_inertials(robot, [j for j in chain if j.name in names], path, urdf_path)
     return UrdfChain(
         joint_type=tuple(types), origin=np.array(origin), rpy=np.array(rpy), axis=np.array(axis),
         tail=(pending[:3, :3], pending[:3, 3]), q_limits=np.array(lim, dtype=float) if ok else None, names=tuple(names),
@@ -170,7 +170,7 @@ def _transform_mm(origin) -> NDArray:
     return T
 
 
-def _link_inertials(robot, moving: list) -> tuple[NDArray | None, NDArray | None]:
+def _link_inertials(robot, moving: list, path: str, urdf_path: Path) -> tuple[NDArray | None, NDArray | None]:
     """Mass (kg) and centre of mass (mm, frame after moving joint k) of each moving link with what hangs from it."""
     chain_joints = {j.name for j in moving}
     by_parent: dict[str, list] = {}
@@ -183,6 +183,8 @@ def _link_inertials(robot, moving: list) -> tuple[NDArray | None, NDArray | None
         while stack:
             link, T = stack.pop()
             inertial = robot.link_map[link].inertial
+            if inertial is not None and inertial.mass is not None and not (np.isfinite(inertial.mass) and inertial.mass >= 0):
+                raise MachineFileError(path, "urdf", f"link {link!r} of {urdf_path.name} has mass {inertial.mass!r}; expected kg >= 0")
             if inertial is not None and inertial.mass:
                 c = T @ _transform_mm(inertial.origin)[:, 3]
                 mass[k] += float(inertial.mass)

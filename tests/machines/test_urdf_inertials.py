@@ -101,6 +101,15 @@ def test_the_effect_uses_the_urdf_masses_and_a_written_file_keeps_them(arm):
         get_effect("joint_compliance", platform_mass_kg=5.0).features(m, q, np.zeros(m.n_params), {}, None, None)
 
 
+def test_a_negative_mass_is_refused_by_name(tmp_path):
+    from bayescal.errors import MachineFileError
+
+    (tmp_path / "arm.urdf").write_text(_urdf_with_inertials().replace('<mass value="2.0"/>', '<mass value="-2.0"/>'))
+    (tmp_path / "m.toml").write_text(FROM_URDF)
+    with pytest.raises(MachineFileError, match="link 'l3' of arm.urdf has mass -2.0"):
+        load_machine(tmp_path / "m.toml")
+
+
 def test_a_urdf_without_inertials_gives_no_masses(tmp_path):
     (tmp_path / "arm.urdf").write_text(URDF)
     (tmp_path / "m.toml").write_text(FROM_URDF)
