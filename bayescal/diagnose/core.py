@@ -331,7 +331,8 @@ def diagnose(
         name = c.effect.name
         fit, ev, cv = single[name]
         params = _params(cur_fit if name in sel_names else fit, name)
-        note = "look-elsewhere penalty %.1f nats" % c.penalty if c.penalty else ""
+        note = "; ".join(filter(None, ["look-elsewhere penalty %.1f nats" % c.penalty if c.penalty else "",
+                                       c.effect.model_note(c.features)]))
         trials.append(EffectTrial(name, name in sel_names, float(ev), params, cv0, cv, note))
     trials.sort(key=lambda t: -t.evidence)  # FORMATS.md: most evident first
     return Diagnosis(

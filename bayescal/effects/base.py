@@ -152,6 +152,19 @@ class Effect(ABC):
         """
         return ""
 
+    def model_note(self, features: Features) -> str:
+        """What the model took as known or left out for these features, for the diagnosis' trial note, or ``""``."""
+        return ""
+
+    def implied_settings(self, machine: Machine) -> dict:
+        """Inputs the machine file gives implicitly (a URDF's link masses), to be written out with the effect, or ``{}``.
+
+        A calibrated machine file must predict alone: what the effect read
+        from elsewhere (a URDF the written file no longer names) is written
+        into its ``[effect.<name>]`` table as stated inputs.
+        """
+        return {}
+
     def not_applicable(self, machine: Machine, aux: dict) -> str | None:
         """Why the effect cannot be modelled for this machine and recording, or None."""
         return None

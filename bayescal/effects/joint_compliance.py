@@ -215,12 +215,33 @@ class JointCompliance(Effect):
     spherical joints and a lightweight frame the apparent compliance at the
     actuator reaches 0.05-1 um/N; platforms of 10-200 kg.  Revolute
     drives: robot and positioner joints 1-10 urad/(N m) (stiffness 1e5-1e6
-    N m/rad), harmonic-drive wrists 10-100 urad/(N m).  On a serial chain the
-    "platform" is the last body (what moves with the tool): the weight of the
-    links between the drives (an arm's upper arm, a positioner's turntable
-    housing) also loads the drives nearer the base and is left out; with a
-    ``payload_kg`` channel the compliances are still fixed by the payload's
-    changing torques, which the model states exactly.
+    N m/rad), harmonic-drive wrists 10-100 urad/(N m).
+
+    **Known loads: link weights.**  On a serial chain the links between the
+    drives (an arm's upper arm and forearm, a positioner's turntable housing)
+    weigh too, and load every drive nearer the base; on an arm they dominate
+    the shoulder and elbow torques.  The machine's weight bodies
+    (:meth:`Machine.weight_bodies`: on a serial chain link ``k`` in the frame
+    after joint ``k``; on other kinds the platform alone) carry them.  When
+    their masses are known, from the inputs ``link_mass_kg`` (kg, one per
+    body, base outward) and ``link_com_mm`` (mm, ``[[x, y, z], ...]``, each
+    in its body's frame from its origin; default: at the origins), or else
+    from the machine file (a URDF's ``<inertial>`` elements,
+    :attr:`Machine.body_inertials`), the gravity load on every drive is
+    computed exactly from all bodies and the payload,
+
+        tau_i = g d . (sum_b m_b dx_b / dq_i) + m_L g d . (dx_t / dq_i),
+        dx_b / dq_i = v_b,i + w_b,i x (R_b c_b),    dq_i = c_i tau_i,
+
+    and the parameters are ``compliance.q<i>`` (um/N or urad/(N m), as
+    above, starting at 0.5 um/N, 50 urad/(N m)) and ``gravity.tilt_1``,
+    ``gravity.tilt_2``, with or without a payload channel: the known loads
+    fix the compliances.  The last body is then the platform (its mass the
+    last entry of ``link_mass_kg``), so ``platform_mass_kg`` and
+    ``platform_com_mm`` are not stated with it.  Without known masses the
+    model is the platform-and-payload one above, and on a chain of several
+    links the trial's note says that the link weights are left out: their
+    loads then show as biased compliances and weight deflections.
     """
 
     name = "joint_compliance"
@@ -228,7 +249,7 @@ class JointCompliance(Effect):
     magnitude_unit = "um/N"  # urad/(N m) on a revolute drive (the parameter's own unit)
     default_magnitude = 0.5
     needs_poses = True
-    settings_keys = ("gravity", "payload_offset", "platform_mass_kg", "platform_com_mm")
+    settings_keys = ("gravity", "payload_offset", "platform_mass_kg", "platform_com_mm", "link_mass_kg", "link_com_mm")
 
     #: Prior one-sigma of a weight deflection (um), a compliance (um/N), the platform mass (kg), a
     #: centre-of-mass coordinate (mm), a gravity tilt; on a revolute drive the first two times
@@ -240,7 +261,7 @@ class JointCompliance(Effect):
     TILT_PRIOR = 0.5
 
     def __init__(self, *, gravity=None, payload_offset=(0.0, 0.0, 0.0), platform_mass_kg: float | None = None,
-                 platform_com_mm=None):
+                 platform_com_mm=None, link_mass_kg=None, link_com_mm=None):
         """
         Parameters
         ----------
@@ -259,6 +280,15 @@ class JointCompliance(Effect):
             Stated centre of mass of the platform (platform frame, from its
             origin), mm: prior centred on it, 5 mm wide.  None (default):
             unknown, prior ``0 +- 200 mm``.
+        link_mass_kg : (n_bodies,), optional
+            Stated mass of every weight body of the machine
+            (:meth:`Machine.weight_bodies`: a serial chain's links base
+            outward, the last one carrying the tool), kg.  None (default):
+            the machine file's (a URDF's ``<inertial>``), else unknown (the
+            platform-only model).
+        link_com_mm : (n_bodies, 3) or (3 n_bodies,), optional
+            Their centres of mass, each in its body's frame from its origin,
+            mm; only with ``link_mass_kg``.  None (default): at the origins.
         """
         self.gravity_stated = gravity is not None
         self.down = _unit(DEFAULT_GRAVITY_DIRECTION if gravity is None else gravity, "joint_compliance gravity")
@@ -277,21 +307,84 @@ class JointCompliance(Effect):
             raise InputError(f"joint_compliance platform_mass_kg: expected a positive mass in kg, got {platform_mass_kg!r}")
         self.stated_mass_kg = None if platform_mass_kg is None else float(platform_mass_kg)
         self.platform_mass_kg = 30.0 if platform_mass_kg is None else float(platform_mass_kg)
+        self.link_mass, self.link_com = None, None
+        if link_mass_kg is None:
+            if link_com_mm is not None:
+                raise InputError("joint_compliance link_com_mm: given without link_mass_kg; state the links' masses too")
+            return
+        mass = np.asarray(link_mass_kg, float).reshape(-1)
+        if not mass.size or not np.all(np.isfinite(mass)) or np.any(mass < 0) or not np.any(mass > 0):
+            raise InputError(f"joint_compliance link_mass_kg: expected masses in kg, >= 0 and not all zero, got {mass.tolist()}")
+        if platform_mass_kg is not None or platform_com_mm is not None:
+            raise InputError("joint_compliance: link_mass_kg and platform_mass_kg/platform_com_mm both given; with link masses "
+                             "the last body is the platform: give its mass and centre of mass as the last entries of "
+                             "link_mass_kg and link_com_mm")
+        com = np.zeros((mass.size, 3)) if link_com_mm is None else np.asarray(link_com_mm, float)
+        if com.size != 3 * mass.size or not np.all(np.isfinite(com)):
+            raise InputError(f"joint_compliance link_com_mm: expected {mass.size} centres of mass [x, y, z] in mm "
+                             f"(one per entry of link_mass_kg), got {np.asarray(link_com_mm).tolist()}")
+        self.link_mass, self.link_com = mass, com.reshape(-1, 3)
+
+    def known_inertials(self, machine: Machine) -> tuple[NDArray, NDArray, str] | None:
+        """Masses (kg), centres of mass (mm) of the machine's weight bodies and where they come from, or None (unknown).
+
+        Stated ``link_mass_kg`` first, else the machine file's
+        (:attr:`Machine.body_inertials`).  InputError when their number is
+        not the machine's number of weight bodies, or when platform inputs
+        are stated beside masses from the machine file.
+        """
+        names = machine.weight_body_names
+        if self.link_mass is not None:
+            mass, com, src = self.link_mass, self.link_com, "link_mass_kg, link_com_mm stated"
+        else:
+            known = machine.body_inertials
+            if known is None:
+                return None
+            if self.stated_mass_kg is not None or self.stated_com is not None:
+                raise InputError(f"joint_compliance: platform_mass_kg/platform_com_mm stated, but {known.source} gives every "
+                                 "moving link's mass (the last link is the platform); state link_mass_kg and link_com_mm instead")
+            mass, com, src = np.asarray(known.mass_kg, float), np.asarray(known.com_mm, float), known.source
+        if mass.size != len(names):
+            raise InputError(f"joint_compliance link_mass_kg: {mass.size} masses for the {len(names)} weight bodies of this "
+                             f"{machine.kind} machine ({', '.join(names)}); expected one per body, base outward")
+        return mass, com, src
+
+    def implied_settings(self, machine: Machine) -> dict:
+        """The link masses the machine file gives (a URDF's), as inputs, so that a file written without the URDF keeps them."""
+        if self.link_mass is not None or machine.body_inertials is None:
+            return {}
+        known = machine.body_inertials
+        return {"link_mass_kg": np.asarray(known.mass_kg, float).tolist(), "link_com_mm": np.asarray(known.com_mm, float).tolist()}
+
+    def model_note(self, features: Features) -> str:
+        """Which loads the model has: the links' (and from where) or the platform's only."""
+        if features.const.get("known"):
+            return f"gravity loads of all {features.const['n_bodies']} weight bodies known ({features.const['source']})"
+        if features.const.get("n_bodies", 1) > 1:
+            return ("link weights left out (only the last body's weight and the payload load the drives): state "
+                    "link_mass_kg and link_com_mm, or give a URDF with <inertial> elements")
+        return ""
 
     def confound_note(self) -> str:
         """The constant sag is a zero offset; which inputs, stated, would pin it."""
         head = ("joint_compliance: the pose-independent part of the sag is exactly an actuator zero offset "
                 "(rail_origin along the rail); the data fix it only through the sag's pose-dependent part")
+        if self.link_mass is not None:
+            return head + " and the stated link masses (link_mass_kg, link_com_mm), which fix every load."
         unstated = [k for k, v in (("platform_mass_kg", self.stated_mass_kg), ("platform_com_mm", self.stated_com),
                                    ("gravity", self.gravity_stated or None)) if v is None]
         if not unstated:
             return head + " and the stated platform_mass_kg, platform_com_mm and gravity (to 2 %, 5 mm and 0.02)."
         return (head + f". Stating {', '.join(unstated)} (inputs of [effect.joint_compliance], diagnose "
-                "--effect-input joint_compliance.KEY=VALUE) pins it.")
+                "--effect-input joint_compliance.KEY=VALUE) pins it; on a chain of moving links, link_mass_kg and "
+                "link_com_mm (or a URDF with <inertial> elements) state every load.")
 
     def features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, order, poses: ToolPoses | None) -> Features:
         if poses is None:
             poses = machine.forward(q, theta)
+        known = self.known_inertials(machine)
+        if known is not None:
+            return self._known_features(machine, q, theta, aux, poses, known)
         n = q.shape[0]
         J = machine.actuator_jacobian(q, theta, poses)
         R = np.asarray(poses.rotation, float)
@@ -311,11 +404,45 @@ class JointCompliance(Effect):
         arm = np.array([u.load_scale * u.per_um for u in units])
         return Features(
             {"Jt": J[:, :3], "w": J[:, 3:], "R": R, "origin_arm": origin_arm, "payload_arm": payload_arm, "payload_kg": mass},
-            {"down": self.down, "has_payload": has_payload, "scale": scale, "arm": arm},
+            {"down": self.down, "has_payload": has_payload, "scale": scale, "arm": arm, "known": False,
+             "n_bodies": len(machine.weight_body_names)},
+        )
+
+    def _known_features(self, machine: Machine, q: NDArray, theta: NDArray, aux: dict, poses: ToolPoses, known) -> Features:
+        """Features of the known-load model: ``K_i = sum_b m_b dx_b / dq_i`` (kg mm per q unit) and the payload's lever."""
+        mass, com, source = known
+        # gravity acts in the machine's base frame: a view with nuisance parameters (an instrument frame) is
+        # evaluated on the machine it wraps
+        inner, idx = machine.geometry_part
+        if inner is not machine:
+            theta = np.asarray(theta, float)[..., idx]
+            poses = inner.forward(q, theta)
+        wb = inner.weight_bodies(q, theta, poses)
+        Rc = np.einsum("nbij,bj->nbi", wb.rotation, com)
+        Jx = wb.jacobian[:, :, :3] + np.cross(wb.jacobian[:, :, 3:], Rc[:, :, :, None], axisa=2, axisb=2, axisc=2)
+        K = np.einsum("b,nbkm->nkm", mass, Jx)
+        J = inner.actuator_jacobian(q, theta, poses)
+        payload_arm = np.einsum("nij,j->ni", np.asarray(poses.rotation, float), self.payload_offset)
+        has_payload = "payload_kg" in aux
+        n = q.shape[0]
+        units = machine.actuator_unit_info
+        return Features(
+            {"K": K, "Jt": J[:, :3], "w": J[:, 3:], "payload_arm": payload_arm,
+             "payload_kg": np.asarray(aux["payload_kg"], float) if has_payload else np.zeros(n)},
+            {"down": self.down, "has_payload": has_payload, "known": True, "total_mass": float(mass.sum()),
+             "scale": np.array([u.small_to_q * u.load_scale for u in units]),
+             "arm": np.array([u.load_scale * u.per_um for u in units]), "n_bodies": len(mass), "source": source},
         )
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
         units = machine.actuator_unit_info
+        tilt_sd = 0.02 if self.gravity_stated else self.TILT_PRIOR
+        if features is not None and features.const.get("known"):
+            # the loads are known: the compliances (started off zero, where the tilts have no gradient) and the mounting
+            return tuple(
+                [EffectParam(f"compliance.q{i + 1}", u.compliance, self.COMPLIANCE_PRIOR * compliance_prior_scale(u), lower=0.0,
+                             start=self.default_magnitude * compliance_prior_scale(u)) for i, u in enumerate(units)]
+                + [EffectParam(f"gravity.tilt_{k}", "rad", tilt_sd) for k in (1, 2)])
         if features is not None and features.const["has_payload"]:
             out = [EffectParam(f"compliance.q{i + 1}", u.compliance, self.COMPLIANCE_PRIOR * compliance_prior_scale(u), lower=0.0)
                    for i, u in enumerate(units)]
@@ -338,7 +465,6 @@ class JointCompliance(Effect):
             out += [EffectParam(f"com.{x}", "mm", self.COM_PRIOR_MM) for x in "xyz"]
         else:
             out += [EffectParam(f"com.{x}", "mm", 5.0, prior_mean=float(v)) for x, v in zip("xyz", self.stated_com)]
-        tilt_sd = 0.02 if self.gravity_stated else self.TILT_PRIOR
         out += [EffectParam(f"gravity.tilt_{k}", "rad", tilt_sd) for k in (1, 2)]
         return tuple(out)
 
@@ -365,11 +491,35 @@ class JointCompliance(Effect):
         load = GRAVITY * features.per_pose["payload_kg"]  # N
         return k, W, c, mp, d, dd, Jc, Jl, phi, psi, load
 
+    def _known_terms(self, features: Features, eta: NDArray):
+        eta = np.asarray(eta, float)
+        K, Jt, w = features.per_pose["K"], features.per_pose["Jt"], features.per_pose["w"]
+        m = K.shape[2]
+        c = eta[:m]
+        d, dd = gravity_direction(features.const["down"], eta[m : m + 2])
+        Jl = Jt + np.cross(w, features.per_pose["payload_arm"][:, :, None], axisa=1, axisb=1, axisc=1)
+        load = GRAVITY * features.per_pose["payload_kg"]  # N
+        # generalised gravity force per drive, N mm per q unit: links and platform, then the payload
+        tau = GRAVITY * np.einsum("k,nkm->nm", d, K) + load[:, None] * np.einsum("k,nkm->nm", d, Jl)
+        dtau = GRAVITY * np.einsum("kt,nkm->nmt", dd, K) + load[:, None, None] * np.einsum("kt,nkm->nmt", dd, Jl)
+        return m, c, tau, dtau
+
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
+        if features.const.get("known"):
+            _, c, tau, _ = self._known_terms(features, eta)
+            return features.const["scale"][None, :] * c[None, :] * tau
         _, W, c, _, _, _, _, _, phi, psi, load = self._terms(features, eta)
         return features.const["scale"][None, :] * (W[None, :] * phi + c[None, :] * load[:, None] * psi)
 
     def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
+        if features.const.get("known"):
+            m, c, tau, dtau = self._known_terms(features, eta)
+            s = features.const["scale"]
+            J = np.zeros((tau.shape[0], m, m + 2))
+            ar = np.arange(m)
+            J[:, ar, ar] = s[None, :] * tau
+            J[:, :, m:] = (s * c)[None, :, None] * dtau
+            return J
         k, W, c, mp, d, dd, Jc, Jl, phi, psi, load = self._terms(features, eta)
         n, m = phi.shape
         J = np.zeros((n, m, len(np.asarray(eta))))
@@ -395,6 +545,14 @@ class JointCompliance(Effect):
         # for the fit).  Compare the dimensionless loads (actuator force per unit of weight; on a joint its
         # torque per unit of weight over the reference arm, 100 mm) with 1e-3.
         m = features.per_pose["Jt"].shape[2]
+        if features.const.get("known"):
+            # the loads per unit of the bodies' total weight (their lever arms), against the same 1e-3
+            tau = self._known_terms(features, np.concatenate([np.ones(m), np.zeros(2)]))[2]
+            lever = tau * features.const["arm"][None, :] / (GRAVITY * features.const["total_mass"])
+            mass = features.per_pose["payload_kg"]
+            if lever.size and np.max(np.abs(lever)) <= 1e-3 and not (mass.size and np.ptp(mass) > 0):
+                return "the actuators carry no gravity load at any pose (under 0.1 % of the bodies' weight) and no changing payload_kg is recorded"
+            return None
         zero = np.zeros(m + 5 + (1 if features.const["has_payload"] else 0))
         phi, psi = self._terms(features, zero)[8:10]
         arm = features.const["arm"][None, :]
@@ -411,6 +569,8 @@ class JointCompliance(Effect):
         """Compliances ``magnitude`` (um/N, urad/(N m) on a revolute drive; +-40 %) under the platform mass and centre of mass of the constructor, no tilt."""
         m = machine.n_actuators
         c = magnitude * rng.uniform(0.6, 1.4, m)
+        if features.const.get("known"):
+            return np.concatenate([c, np.zeros(2)])
         com = np.zeros(3) if self.stated_com is None else self.stated_com
         if features.const["has_payload"]:
             out = [c, [self.platform_mass_kg], com, np.zeros(2)]

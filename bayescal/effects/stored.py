@@ -37,6 +37,7 @@ corrections by about their relative size (1e-4), which is neglected.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass
@@ -136,6 +137,7 @@ def _probe_sets(effect: Effect, machine: Machine) -> list[tuple[EffectParam, ...
         return None
     theta = np.zeros(machine.n_params)
     sets: list[tuple[EffectParam, ...]] = []
+    errors: list[str] = []
     for k in range(len(PROBE_CHANNELS) + 1):
         for chans in itertools.combinations(PROBE_CHANNELS, k):
             aux = {c: np.array([20.0, 21.0]) for c in chans}
@@ -145,10 +147,13 @@ def _probe_sets(effect: Effect, machine: Machine) -> list[tuple[EffectParam, ...
             try:
                 f = effect.features(machine, q, theta, aux, None, poses if effect.needs_poses else None)
                 params = tuple(effect.params(machine, f))
-            except BayescalError:  # this combination of channels cannot drive it
+            except BayescalError as exc:  # this combination of channels cannot drive it
+                errors.append(str(exc))
                 continue
             if all(tuple(p.name for p in s) != tuple(p.name for p in params) for s in sets):
                 sets.append(params)
+    if not sets and errors:
+        raise InputError(errors[-1])
     return sets
 
 
@@ -164,11 +169,12 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
     for k in raw.keys():
         v = raw.data[k]
         if k in EFFECTS[name].settings_keys:
-            # a stated input (a number or a vector of numbers), not a fitted parameter
-            flat = v if isinstance(v, list) else [v]
+            # a stated input (a number, a vector of numbers or a list of vectors), not a fitted parameter
+            rows = v if isinstance(v, list) and v and all(isinstance(x, list) for x in v) else [v]
+            flat = [x for r in rows for x in (r if isinstance(r, list) else [r])]
             if not flat or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in flat):
-                raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number or a vector of numbers (an input of {name}), got {v!r}")
-            settings.append((k, [float(x) for x in v] if isinstance(v, list) else float(v)))
+                raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number, a vector of numbers or a list of vectors (an input of {name}), got {v!r}")
+            settings.append((k, _floats(v)))
             continue
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number (the parameter's value in its unit), got {v!r}")
@@ -180,7 +186,10 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
     why = eff.not_applicable(machine, {c: np.zeros(1) for c in PROBE_CHANNELS})
     if why is not None:
         raise MachineFileError(path, key, f"{name} cannot act on this {machine.kind} machine: {why}")
-    sets = _probe_sets(eff, machine)
+    try:
+        sets = _probe_sets(eff, machine)
+    except InputError as exc:
+        raise MachineFileError(path, key, f"{name} cannot be modelled on this {machine.kind} machine: {exc}") from exc
     units = {}
     if sets is not None:
         if not sets:
@@ -206,6 +215,15 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
                     "{" + ", ".join(p.name for p in s) + "}" for s in sets),
             )
     return StoredEffect(name, tuple(values), tuple(units.get(k, "") for k, _ in values), path, tuple(settings))
+
+
+def _floats(v):
+    """A number, or (nested) lists of numbers, as floats of the same shape."""
+    return [_floats(x) for x in v] if isinstance(v, (list, tuple, np.ndarray)) else float(v)
+
+
+def _toml_numbers(v) -> str:
+    return "[" + ", ".join(_toml_numbers(x) for x in v) + "]" if isinstance(v, (list, tuple, np.ndarray)) else format_toml_value(float(v))
 
 
 def read_effect_tables(doc: TomlTable, machine: Machine) -> tuple[StoredEffect, ...]:
@@ -239,8 +257,7 @@ def effect_tables_toml(effects: tuple[StoredEffect, ...]) -> str:
     for e in effects:
         out.append(f"[{TABLE}.{e.name}]")
         for k, v in e.settings:
-            val = "[" + ", ".join(format_toml_value(float(x)) for x in v) + "]" if isinstance(v, (list, tuple, np.ndarray)) else format_toml_value(float(v))
-            out.append(f"{format_toml_value(k)} = {val}")
+            out.append(f"{format_toml_value(k)} = {_toml_numbers(v)}")
         units = e.units or ("",) * len(e.values)
         for (k, v), u in zip(e.values, units):
             line = f"{format_toml_value(k)} = {format_toml_value(float(v))}"
@@ -259,6 +276,11 @@ def machine_file_text(machine: Machine, theta=None, effects: tuple[StoredEffect,
     text = machine.to_toml(theta)
     if not effects:
         return text
+    # inputs the machine gave implicitly (a URDF's link masses) are written out: the file must stand alone
+    effects = tuple(
+        dataclasses.replace(e, settings=e.settings + tuple(
+            (k, _floats(v)) for k, v in e.effect().implied_settings(machine).items() if k not in dict(e.settings)))
+        for e in effects)
     return text.rstrip("\n") + "\n\n" + effect_tables_toml(tuple(effects))
 
 

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from ..params import ParamLayout
 
-__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "map_state", "ActuatorUnit", "ACTUATOR_UNITS"]
+__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "map_state", "ActuatorUnit", "ACTUATOR_UNITS", "WeightBodies", "BodyInertials"]
 
 
 @dataclass(frozen=True)
@@ -132,6 +132,50 @@ class ToolPoses:
     def axis(self) -> NDArray:
         """Tool axis ``R e_z``, shape (n_poses, 3)."""
         return self.rotation[..., :, 2]
+
+
+@dataclass(frozen=True)
+class WeightBodies:
+    """The moving bodies that carry weight, per pose: each body's frame and its velocity per actuator.
+
+    Attributes
+    ----------
+    origin : ndarray, shape (n_poses, n_bodies, 3)
+        Origin of each body's frame, base frame, mm.
+    rotation : ndarray, shape (n_poses, n_bodies, 3, 3)
+        Orientation of each body's frame in the base frame.
+    jacobian : ndarray, shape (n_poses, n_bodies, 6, n_actuators)
+        Rows 0-2: velocity of the frame's origin (mm per unit of ``q_i``,
+        mm or rad); rows 3-5: angular velocity of the body (rad per unit of
+        ``q_i``), base frame.  A point ``x = origin + R c`` fixed to the body
+        moves by ``v + w x (R c)`` per unit of ``q_i``.
+    names : tuple of str
+        One per body, for messages (``"platform"``, ``"link3"``, ...).
+    """
+
+    origin: NDArray
+    rotation: NDArray
+    jacobian: NDArray
+    names: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class BodyInertials:
+    """Known masses and centres of mass of a machine's weight bodies (e.g. from a URDF's ``<inertial>``).
+
+    Attributes
+    ----------
+    mass_kg : ndarray, shape (n_bodies,)
+        kg, in the order of :meth:`Machine.weight_bodies`.
+    com_mm : ndarray, shape (n_bodies, 3)
+        Centre of mass in the body's frame, from its origin, mm.
+    source : str
+        Where they were read (named in notes).
+    """
+
+    mass_kg: NDArray
+    com_mm: NDArray
+    source: str = ""
 
 
 def map_state(fn, state, *others):
@@ -287,6 +331,42 @@ class Machine(ABC):
             J[:, :3, i] = (plus.position - minus.position) / (2 * h)
             J[:, 3:, i] = so3_log(plus.rotation @ np.swapaxes(minus.rotation, -1, -2)) / (2 * h)
         return J
+
+    @property
+    def weight_body_names(self) -> tuple[str, ...]:
+        """Names of the bodies :meth:`weight_bodies` returns, in order (the platform alone by default)."""
+        return ("platform",)
+
+    @property
+    def body_inertials(self) -> "BodyInertials | None":
+        """Masses and centres of mass of the weight bodies the machine file states, or None (unknown, the default)."""
+        return None
+
+    def weight_bodies(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> WeightBodies:
+        """The moving bodies that carry weight at each pose (see :class:`WeightBodies`).
+
+        The default is the platform alone: its frame's origin is the
+        platform origin of the kind's state (``poses.state.p``; the tool
+        point on kinds whose state has none), its orientation the measured
+        one (``poses.rotation``), and its velocity the tool twist of
+        :meth:`actuator_jacobian` moved to that origin.  Kinds whose
+        intermediate bodies move (serial chains: every link) override this
+        and :attr:`weight_body_names`.
+
+        Parameters
+        ----------
+        q : array_like, shape (n_poses, n_actuators)
+        theta : array_like, shape (P,) or (n_poses, P), optional
+        poses : ToolPoses
+            ``forward(q, theta)``.
+        """
+        J = self.actuator_jacobian(q, theta, poses)
+        p = getattr(poses.state, "p", None)
+        origin = np.asarray(p, float) if p is not None else np.asarray(poses.position, float)
+        w = J[:, 3:]
+        v = J[:, :3] + np.cross(w, (origin - poses.position)[:, :, None], axis=1)
+        return WeightBodies(origin[:, None], np.asarray(poses.rotation, float)[:, None],
+                            np.concatenate([v, w], axis=1)[:, None], self.weight_body_names)
 
     @abstractmethod
     def to_toml(self, theta: ArrayLike | None = None) -> str:

@@ -304,6 +304,20 @@ class InstrumentFrame(Machine):
         Rt = np.swapaxes(R, -1, -2)
         return np.concatenate([Rt @ Ja[:, :3], Rt @ Ja[:, 3:]], axis=1)
 
+    @property
+    def weight_body_names(self) -> tuple[str, ...]:
+        return self.machine.weight_body_names
+
+    @property
+    def body_inertials(self):
+        return self.machine.body_inertials
+
+    def weight_bodies(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses):
+        """The inner machine's weight bodies, in the base frame (gravity is stated in the base frame, not the instrument's)."""
+        q = self.check_q(q)
+        _, tm = self.split(theta, q.shape[0] if np.ndim(theta) == 2 else None)
+        return self.machine.weight_bodies(q, tm, self.to_base_poses(poses, theta))
+
     def guess_from_measurement(self, q, position, rotation=None, axis=None):
         """The inner machine's start from the measurement taken to the base frame with ``frame0``."""
         f = self.frame0

@@ -24,6 +24,12 @@ modules' own, prefixed ``m<k>.`` with ``k`` the module's position in the file
 module files.  ``[measurement]`` and ``[workspace]`` belong to the hybrid file
 (``q_limits`` defaults to the modules' own limits, concatenated).
 
+Weight bodies (:meth:`Machine.weight_bodies`, joint_compliance's loads): the
+default, the measured platform alone.  The modules' own bodies (a serial
+module's links) are not composed through the stack yet, so a hybrid's
+link masses cannot be stated; the platform's weight is taken in the measured
+(table) frame, as before.
+
 The Jacobian is the chain rule of the module Jacobians: a module's twist in
 its base frame is carried to the stack's base by the rotation of the modules
 below it, and a twist of a table module enters with the opposite sign.

@@ -40,7 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..geometry import skew, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
-from .base import Machine, MeasurementNoise, ToolPoses
+from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
 
 __all__ = ["Serial", "SERIAL_TOLERANCE_DEFAULTS", "JOINT_TYPES", "rpy_matrix", "rpy_from_matrix"]
@@ -128,6 +128,8 @@ class _Chain:
     daxis: NDArray  # (n, m, 3, 2) its derivative w.r.t. the two tilts
     qe: NDArray  # (n, m) q + offset
     R_end: NDArray  # (n, 3, 3) last joint frame (after the motion)
+    R_after: NDArray  # (n, m, 3, 3) frame after joint k's motion (link k's frame)
+    p_after: NDArray  # (n, m, 3) its origin, base frame
     tool_rpy: NDArray  # (n, 3)
     p_tool: NDArray  # (n, 3)
     R_tool: NDArray  # (n, 3, 3)
@@ -168,6 +170,10 @@ class Serial(Machine):
     q_limits: NDArray | None = None
     tolerance_groups: dict = field(default_factory=lambda: dict(SERIAL_TOLERANCE_DEFAULTS))
     source: str = "<memory>"
+    #: Known masses (kg, (m,)) and centres of mass (mm, (m, 3), link k's frame: the frame after joint k) of the
+    #: moving links, from a URDF's ``<inertial>`` elements; None when the machine file does not state them.
+    link_mass: NDArray | None = None
+    link_com: NDArray | None = None
 
     def __post_init__(self) -> None:
         m = len(self.joint_type)
@@ -201,6 +207,19 @@ class Serial(Machine):
     def actuator_units(self) -> tuple[str, ...]:
         return tuple("rad" if t == "revolute" else "mm" for t in self.joint_type)
 
+    @property
+    def weight_body_names(self) -> tuple[str, ...]:
+        """``link1`` ... ``link<m>``: link ``k`` is what joint ``k`` moves up to joint ``k + 1`` (the last one carries the tool)."""
+        return tuple(f"link{k + 1}" for k in range(self.n_actuators))
+
+    @property
+    def body_inertials(self) -> BodyInertials | None:
+        """The links' masses and centres of mass read from the URDF's ``<inertial>`` elements, or None."""
+        if self.link_mass is None:
+            return None
+        return BodyInertials(np.asarray(self.link_mass, float), np.asarray(self.link_com, float).reshape(-1, 3),
+                             f"{self.source} (URDF <inertial>)")
+
     @classmethod
     def from_toml(cls, doc: TomlTable, path: str) -> "Serial":
         """Read ``[[joint]]`` tables, or ``urdf``/``base_link``/``tip_link`` standing in for them."""
@@ -218,10 +237,12 @@ class Serial(Machine):
             chain = chain_from_urdf(urdf_path, doc.string("base_link"), doc.string("tip_link"), path=path)
             types, origin, rpy, axis = chain.joint_type, chain.origin, chain.rpy, chain.axis
             tail, limits = chain.tail, chain.q_limits
+            inertial = (chain.link_mass, chain.link_com) if chain.link_mass is not None else (None, None)
         else:
             for k in ("base_link", "tip_link"):
                 if doc.has(k):
                     raise doc.error(k, "only allowed together with urdf = \"...\"")
+            inertial = (None, None)
             joints = doc.array_of_tables("joint")
             types, origin, rpy, axis = [], [], [], []
             for jt in joints:
@@ -249,6 +270,7 @@ class Serial(Machine):
             joint_type=tuple(types), origin=np.array(origin), rpy=np.array(rpy), axis=np.array(axis),
             tool_point=tp, tool_rpy=tr, name=doc.string("name", "serial chain"), noise=read_noise(doc),
             q_limits=q_limits, tolerance_groups=read_tolerance(doc, SERIAL_TOLERANCE_DEFAULTS), source=path,
+            link_mass=inertial[0], link_com=inertial[1],
         )
 
     def _theta_rows(self, theta: ArrayLike | None, n: int) -> NDArray:
@@ -291,6 +313,8 @@ class Serial(Machine):
         R_parent = np.empty((n, m, 3, 3))
         R_joint = np.empty((n, m, 3, 3))
         p_joint = np.empty((n, m, 3))
+        R_after = np.empty((n, m, 3, 3))
+        p_after = np.empty((n, m, 3))
         R = np.broadcast_to(np.eye(3), (n, 3, 3))
         p = np.zeros((n, 3))
         for k in range(m):
@@ -302,11 +326,12 @@ class Serial(Machine):
                 R = R @ so3_exp(axis[:, k] * qe[:, k, None])
             else:
                 p = p + np.einsum("nij,nj->ni", R, axis[:, k] * qe[:, k, None])
+            R_after[:, k], p_after[:, k] = R, p
         tool_rpy = self.tool_rpy[None] + ttool[:, 3:]
         p_tool = p + np.einsum("nij,nj->ni", R, self.tool_point[None] + ttool[:, :3])
         return _Chain(
             R_parent=R_parent, R_joint=R_joint, p_joint=p_joint, rpy=rpy, axis=axis, daxis=daxis, qe=qe,
-            R_end=R, tool_rpy=tool_rpy, p_tool=p_tool, R_tool=R @ rpy_matrix(tool_rpy),
+            R_end=R, R_after=R_after, p_after=p_after, tool_rpy=tool_rpy, p_tool=p_tool, R_tool=R @ rpy_matrix(tool_rpy),
         )
 
     def forward(self, q: ArrayLike, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> ToolPoses:
@@ -375,6 +400,28 @@ class Serial(Machine):
         J[:, :3, t : t + 3] = c.R_end
         J[:, 3:, t + 3 : t + 6] = c.R_end @ rpy_rates(c.tool_rpy)
         return J
+
+    def weight_bodies(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> WeightBodies:
+        """Every moving link: link ``k`` in the frame after joint ``k``, moved by joints ``1 .. k`` (joint twists).
+
+        Joint ``j <= k`` turns link ``k`` about its base-frame axis ``a_j``
+        through the joint origin ``o_j`` (``v = a_j x (x_k - o_j)``, ``w =
+        a_j``) or slides it along ``a_j`` (``v = a_j``, ``w = 0``); joints
+        beyond ``k`` do not move it.
+        """
+        q = self.check_q(q)
+        n, m = q.shape
+        c = self._chain(q, self._theta_rows(theta, n))
+        J = np.zeros((n, m, 6, m))
+        for j in range(m):
+            a = np.einsum("nij,nj->ni", c.R_joint[:, j], c.axis[:, j])  # (n, 3) base frame
+            for k in range(j, m):
+                if self.joint_type[j] == "revolute":
+                    J[:, k, :3, j] = np.cross(a, c.p_after[:, k] - c.p_joint[:, j])
+                    J[:, k, 3:, j] = a
+                else:
+                    J[:, k, :3, j] = a
+        return WeightBodies(c.p_after, c.R_after, J, self.weight_body_names)
 
     def actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
         """Tool-pose derivative with respect to the joint positions, analytic (the joint twists)."""

@@ -8,10 +8,20 @@ Supported: ``revolute``, ``continuous`` (both revolute actuators, q in rad),
 into the next moving joint's origin and rpy, or into the tool after the last
 one).  Refused with a message naming the joint: ``floating`` and ``planar``
 joints (not one actuator each) and ``mimic`` joints (one actuator driving two
-joints is not a serial chain of independent actuators).  Ignored: visual,
-collision and inertial elements, ``dynamics``, ``safety_controller``,
-``calibration`` (the URDF ``calibration`` reference positions are not zero
-offsets), transmissions.
+joints is not a serial chain of independent actuators).  Ignored: visual and
+collision elements, ``dynamics``, ``safety_controller``, ``calibration`` (the
+URDF ``calibration`` reference positions are not zero offsets), transmissions.
+
+``<inertial>`` elements give the moving links' weights (joint_compliance's
+loads): link ``k`` of the chain (in the frame after moving joint ``k``, the
+URDF child link of that joint) carries its own mass and that of every link
+hanging from it through joints other than the chain's next moving joint:
+fixed joints (folded exactly), and moving joints off the chain (a gripper's
+fingers, a head on a torso) folded at their zero position.  Each centre of
+mass is the ``<inertial><origin>`` carried into link ``k``'s frame (m to mm),
+the link's the mass-weighted mean.  A link without ``<inertial>`` weighs
+nothing (URDF's convention); a chain none of whose moving links has a mass
+gives no inertials (unknown).
 """
 
 from __future__ import annotations
@@ -47,6 +57,11 @@ class UrdfChain:
         one (``continuous`` joints have none).
     names : tuple of str
         The URDF joint names, base outward.
+    link_mass : ndarray, shape (m,) or None
+        Mass of each moving link with what hangs from it (kg), None when no
+        moving link has an ``<inertial>`` mass.
+    link_com : ndarray, shape (m, 3) or None
+        Its centre of mass in the frame after moving joint ``k``, mm.
     """
 
     joint_type: tuple
@@ -56,6 +71,8 @@ class UrdfChain:
     tail: tuple
     q_limits: NDArray | None
     names: tuple
+    link_mass: NDArray | None = None
+    link_com: NDArray | None = None
 
 
 def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, path: str = "") -> UrdfChain:
@@ -139,7 +156,43 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
     if not types:
         raise MachineFileError(path, "tip_link", f"no revolute, continuous or prismatic joint between {base_link!r} and {tip_link!r}")
     ok = all(li is not None and li[0] < li[1] for li in lim)
+    mass, com = _link_inertials(robot, [j for j in chain if j.name in names], path, urdf_path)
     return UrdfChain(
         joint_type=tuple(types), origin=np.array(origin), rpy=np.array(rpy), axis=np.array(axis),
         tail=(pending[:3, :3], pending[:3, 3]), q_limits=np.array(lim, dtype=float) if ok else None, names=tuple(names),
+        link_mass=mass, link_com=com,
     )
+
+
+def _transform_mm(origin) -> NDArray:
+    T = np.array(origin if origin is not None else np.eye(4), dtype=float)
+    T[:3, 3] *= _M_TO_MM
+    return T
+
+
+def _link_inertials(robot, moving: list, path: str, urdf_path: Path) -> tuple[NDArray | None, NDArray | None]:
+    """Mass (kg) and centre of mass (mm, frame after moving joint k) of each moving link with what hangs from it."""
+    chain_joints = {j.name for j in moving}
+    by_parent: dict[str, list] = {}
+    for j in robot.joint_map.values():
+        by_parent.setdefault(j.parent, []).append(j)
+    mass = np.zeros(len(moving))
+    moment = np.zeros((len(moving), 3))
+    for k, joint in enumerate(moving):
+        stack = [(joint.child, np.eye(4))]  # link, its frame in link k's frame (mm)
+        while stack:
+            link, T = stack.pop()
+            inertial = robot.link_map[link].inertial
+            if inertial is not None and inertial.mass is not None and not (np.isfinite(inertial.mass) and inertial.mass >= 0):
+                raise MachineFileError(path, "urdf", f"link {link!r} of {urdf_path.name} has mass {inertial.mass!r}; expected kg >= 0")
+            if inertial is not None and inertial.mass:
+                c = T @ _transform_mm(inertial.origin)[:, 3]
+                mass[k] += float(inertial.mass)
+                moment[k] += float(inertial.mass) * c[:3]
+            for j in by_parent.get(link, []):
+                if j.name not in chain_joints:  # the next moving joint of the chain starts link k + 1
+                    stack.append((j.child, T @ _transform_mm(j.origin)))  # off-chain motion at its zero position
+    if not np.any(mass > 0):
+        return None, None
+    com = np.divide(moment, mass[:, None], out=np.zeros_like(moment), where=mass[:, None] > 0)
+    return mass, com
