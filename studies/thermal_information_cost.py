@@ -63,9 +63,12 @@ Claims (printed PASS / MISS; exit 1 if any is missed):
 4. the order matters: on the library class (exact model) serpentine order
    raises the median ``joint`` ratio by more than 20 % over random order.
 
-``--centred`` runs only :func:`centred_check` (the extrapolation test).
+``--centred`` runs only :func:`centred_check` (the extrapolation test);
+``--start20`` only the ``phys_thermal`` recordings with ``time_s`` alone,
+as drawn and with the session started at exactly 20 degC (the model's
+assumption), printing the noise-free joint fit's mismatch.
 
-Run: python studies/thermal_information_cost.py [--quick] [--centred] [--out DIR]
+Run: python studies/thermal_information_cost.py [--quick] [--centred] [--start20] [--out DIR]
 """
 
 from __future__ import annotations
@@ -371,11 +374,25 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=2026, help="the concealed study's seed (its default run: 2026)")
     ap.add_argument("--centred", action="store_true",
                     help="only the extrapolation check (centred_check) on the as-run recordings with temp_C")
+    ap.add_argument("--start20", action="store_true",
+                    help="only the start-temperature check on the phys_thermal recordings with time_s alone")
     ap.add_argument("--draws", type=int, default=None, help="noise draws per case (default 6; 1 with --quick)")
     args = ap.parse_args(argv)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     mod = _concealed()
     n_cases, n_range = (1, (60, 70)) if args.quick else (15, (60, 200))
+    if args.start20:
+        # the time-only model starts the warm-up at reference_C; the independent simulator within 1 K of it
+        for i in range(n_cases):
+            c = mod.make_case("phys_thermal", i, args.seed, n_range)
+            if c["aux"] != ["time_s"]:
+                continue
+            for start in (None, 20.0):
+                r = analyse(mod, {**c, "start_C": start}, 1)
+                print(f"phys_thermal {i:2d} time_s only, start {'as drawn' if start is None else '20 degC':8s}: mismatch "
+                      f"{r['mismatch_um']:5.2f} um, joint bias {r['bias_joint_um']:5.2f} um, pred {r['pred']:5.2f} "
+                      f"(variance only {r['pred_var']:5.2f})", flush=True)
+        return 0
     if args.centred:
         for cls in CLASSES:
             res = [centred_check(mod, mod.make_case(cls, i, args.seed, n_range)) for i in range(n_cases)]
