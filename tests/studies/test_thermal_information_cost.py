@@ -96,3 +96,20 @@ def test_quick_run_writes_the_table(tmp_path):
         if r["cls"] == "thermal_expansion":
             # the library's own simulator: the noise-free joint fit is off by the priors' linearised pull only
             assert float(r["mismatch_um"]) < 0.1 * float(r["pred_joint_um"])
+
+
+def test_physics_sequence_hook_keeps_the_other_draws():
+    from bayescal.machines import machine_from_text
+
+    st = _study()
+    mod = st._concealed()
+    case = mod.make_case("phys_thermal", 1, 2026, (60, 70))  # a serpentine recording of the concealed study
+    machine = machine_from_text(case["machine"], "m.toml")
+    rec, theta, info = mod.physics_recording(machine, case, np.random.default_rng(case["seed"]))
+    rec_r, theta_r, info_r = mod.physics_recording(machine, {**case, "sequence": st.sequence_of("random order")},
+                                                   np.random.default_rng(case["seed"]))
+    assert info["serpentine"] and not info_r["serpentine"]
+    np.testing.assert_array_equal(theta, theta_r)
+    np.testing.assert_array_equal(info["transform"].dT, info_r["transform"].dT)  # the same session temperatures
+    np.testing.assert_array_equal(np.sort(rec.q, axis=0), np.sort(rec_r.q, axis=0))  # the same poses, reordered
+    assert not np.array_equal(rec.q, rec_r.q)
