@@ -18,18 +18,18 @@ computes, on the 300 fresh poses of the study's scoring:
 * ``written``: the study's ratio (diagnose, its verdict decides whether the
   thermal effect is in the fit);
 * ``joint``: the thermal effect always fitted with the geometry
-  (fit_map, the diagnosis' priors), the mean over ``R`` noise draws of the
-  recording and of the clean recording (RMS over the draws; fewer noise
-  draws are behind ``written``);
-* ``pred``: the linearised (Laplace) prediction of ``joint``: the expected
-  error ``sqrt(tr(G Sigma_theta G^T) / n + bias^2)``, ``Sigma_theta`` the
-  posterior covariance of the geometry from the joint fit (effect columns
-  in) and from the clean fit (no effect columns), ``G`` the tool Jacobian at
-  the fresh poses, ``bias`` the error of the same fit on noise-free data
-  (model mismatch and prior pull; ~0 when the model matches);
-* ``pred var``: the same without the bias terms (sampling variance only,
-  ``S (H^-1 - H^-2) S`` in the fit's scaled coordinates); ``post``: the
-  Bayesian version, the posterior traces alone;
+  (fit_map, the diagnosis' priors); RMS error over ``R`` noise draws of the
+  recording against RMS over as many draws of the clean recording
+  (``joint1``: the first draw alone, the one behind ``written``);
+* ``pred``: the linearised prediction of ``joint``: the expected error
+  ``sqrt(tr(G Sigma_s G^T) / n + bias^2)`` of the joint fit against the
+  same for the clean fit, ``Sigma_s`` the sampling covariance of the MAP
+  geometry over noise draws, ``S (H^-1 - H^-2) S`` from the fit's Laplace
+  covariance ``S H^-1 S`` (effect columns in, resp. out), ``G`` the tool
+  Jacobian at the fresh poses, ``bias`` the error of the same fit on
+  noise-free data (the priors' pull plus any model mismatch);
+* ``pred var``: the same without the bias terms; ``post``: the Bayesian
+  version, the posterior traces ``tr(G S H^-1 S G^T)`` alone;
 * ``mismatch``: the noise-free joint fit's geometry against the truth moved
   by the linearised prior pull ``-S H^-1 (phi_true - mu)`` (model mismatch,
   nonlinearity or a fit defect; ~0 when the model matches);
@@ -292,18 +292,18 @@ def centred_check(mod, case: dict) -> tuple[float, float] | None:
     (fits of this recording, the temperature channel shifted); None for a
     recording without ``temp_C``.
     """
+    import dataclasses
+
     from bayescal.effects import get_effect
     from bayescal.effects.model import fit_map
-    from bayescal.io.recording import Recording  # noqa: F401  (the recording type dataclasses.replace copies)
     from bayescal.machines import machine_from_text
     from bayescal.measurement import MeasurementModel
     from bayescal.simulate import draw_poses, measure
-    import dataclasses
 
     if "temp_C" not in case["aux"]:
         return None
     machine = machine_from_text(case["machine"], "centred.toml")
-    rec, theta, physics, _ = recording(mod, machine, case)
+    rec, theta, _, _ = recording(mod, machine, case)
     qf = draw_poses(machine, 300, np.random.default_rng([case["seed"], 9]), theta)
     G = machine.tool_jacobian(qf, theta, machine.forward(qf, theta))[:, :3, :].reshape(-1, machine.n_params)
     eff = get_effect("thermal_expansion")
