@@ -224,7 +224,9 @@ def physics_recording(machine, case: dict, rng: np.random.Generator):
       with a 15-50 minute time constant from a start within 1 K of 20 degC
       (the time-only model assumes exactly 20; ``case["start_C"]`` fixes the
       start, the other draws unchanged), 0.02 K sensor noise, 20-40 s
-      per pose; half the recordings in serpentine order.
+      per pose; half the recordings in serpentine order (``case["sequence"]``,
+      a function of the drawn poses, replaces the order, the other draws
+      unchanged).
     * ``phys_backlash``: a stepwise nut and screw (``tests/physics/nut_screw.py``)
       with dead bands around the magnitude (+-40 %) and an unknown first
       gap, the poses measured in serpentine order.
@@ -256,9 +258,15 @@ def physics_recording(machine, case: dict, rng: np.random.Generator):
         info.update(platform_kg=mp, com_mm=com.tolist(), tilt_deg=tilt)
         transform = CompliantDrives(machine, per_drive, GravityLoad(mp, com, down), mass)
     elif cls == "phys_thermal":
+        drawn = q
         if rng.random() < 0.5:
             q = q[serpentine(machine, q, rng)]
             info["serpentine"] = True
+        if case.get("sequence") is not None:
+            # studies/thermal_information_cost.py: the poses measured in another sequence (a function of the
+            # drawn poses, e.g. random order or repeated reference poses); every other draw unchanged
+            q = case["sequence"](drawn)
+            info["serpentine"] = False
         t = np.cumsum(rng.uniform(20.0, 40.0, n))
         t -= t[0]
         start, rise, tau = 20.0 + rng.uniform(-1.0, 1.0), rng.uniform(2.0, 8.0), rng.uniform(900.0, 3000.0)
