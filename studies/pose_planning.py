@@ -35,7 +35,7 @@ Targets (PASS/MISS each; exit 1 on any MISS):
 5. least squares (3-PRS, nonlinear): D-planned poses reach the median RMS of
    36 random poses with at most 12.
 
-    python studies/pose_planning.py [--quick] [--out DIR] [--trials 400] [--nl-trials 60] [--settings ...]
+    python studies/pose_planning.py [--quick] [--out DIR] [--trials 400] [--nl-trials 400] [--settings ...]
 """
 
 from __future__ import annotations
@@ -342,7 +342,7 @@ def nonlinear_targets(s: Setting, cfg: dict, seed: int, log) -> dict:
 
 # ---------------------------------------------------------------------------------------------------------
 
-FULL = dict(trials=400, nl_trials=60, n_eval=200, bound_n=ALL_N, map_n=ALL_N, random_n=CURVE_N, greedy_n=[8, 12, 18, 24, 36],
+FULL = dict(trials=400, nl_trials=400, n_eval=200, bound_n=ALL_N, map_n=ALL_N, random_n=CURVE_N, greedy_n=[8, 12, 18, 24, 36],
             ls_n=[8, 10, 12], exhaustive_max_n=9, candidates={"prs3": 20000, "arm6": 5000})
 QUICK = dict(trials=40, nl_trials=3, n_eval=50, bound_n=[8, 18, 20, 36], map_n=[8, 18, 20, 36], random_n=[18, 36],
              greedy_n=[18], ls_n=[12], exhaustive_max_n=8, candidates={"prs3": 1000, "arm6": 500})
@@ -411,7 +411,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "pose_planning"))
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--trials", type=int, help="linear-Gaussian trials per setting (default 400)")
-    ap.add_argument("--nl-trials", type=int, help="nonlinear trials (3-PRS; default 60; 0 skips)")
+    ap.add_argument("--nl-trials", type=int, help="nonlinear trials (3-PRS; default 400; 0 skips)")
     ap.add_argument("--settings", default=",".join(SETTINGS), help=f"comma-separated, of {', '.join(SETTINGS)}")
     args = ap.parse_args(argv)
     cfg = dict(QUICK if args.quick else FULL)
