@@ -565,7 +565,10 @@ def tables(res: dict) -> str:
     t = res.get("tiago")
     if t:
         out.append("\n### TIAGo: in sample (34 postures, position only, frame and tool point fitted)\n")
-        rows = [[k, v["n_free"], v["pos_mean"], v["pos_rms"], v["pos_max"]] for k, v in t["in_sample"].items()]
+        # a refused fit (LS on the rank-deficient arm) has no calibration to judge: say so, not its last iterate's errors
+        rows = [[k, v["n_free"], v["pos_mean"], v["pos_rms"], v["pos_max"]] if v["success"]
+                else [k, v["n_free"], "refused: " + (v.get("message") or "not successful").split(":")[0], None, None]
+                for k, v in t["in_sample"].items()]
         s = t["scipy_registration"]
         rows.append(["registration, independent (yourdfpy + scipy, random starts)", 9, None, s["rms"], s["max"]])
         out.append(rc.fmt_table(["fit", "free", "mean mm", "RMS mm", "max mm"], rows))
