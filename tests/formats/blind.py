@@ -102,3 +102,14 @@ def read_serial(path: Path) -> tuple[Serial, dict]:
     )
     tool = d.get("tool", {})
     return Serial(joints, tuple(tool.get("point", (0, 0, 0))), tuple(tool["rpy"]) if "rpy" in tool else None), d
+
+
+def identify_map(capsys, recording, machine, json_path, *extra, ok=(0,)) -> dict:
+    """Run ``identify --method map --json json_path --quiet`` (plus ``extra`` options) and read its answer.
+
+    ``ok`` holds the exit codes the caller accepts (1 = computed but not plausible).
+    """
+    rc, _, err = run(capsys, "identify", recording, "--machine", machine, "--method", "map", *extra,
+                     "--json", json_path, "--quiet")
+    assert rc in ok, err
+    return answer(json_path)

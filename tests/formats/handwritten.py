@@ -144,6 +144,12 @@ def prs3_tool(m: Prs3, q) -> tuple[np.ndarray, np.ndarray]:
     return p + rot @ np.asarray(m.tool), rot
 
 
+def prs3_tool_poses(m: Prs3, q) -> tuple[np.ndarray, np.ndarray]:
+    """Tool points (n, 3; mm) and platform rotations (n, 3, 3) of ``m`` at each row of ``q``."""
+    poses = [prs3_tool(m, qi) for qi in q]
+    return np.array([p for p, _ in poses]), np.array([r for _, r in poses])
+
+
 def _v(x, fmt="{:.9g}") -> str:
     return "[" + ", ".join(fmt.format(float(c)) for c in x) + "]"
 

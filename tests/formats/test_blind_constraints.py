@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from .blind import answer, check_diagnose_answer, check_parameters, read_prs3, run
+from .blind import answer, check_diagnose_answer, check_parameters, identify_map, read_prs3, run
 from .handwritten import draw_q, prs3_nominal, prs3_perturbed, prs3_tool, prs3_toml, write_csv
 
 NOM = prs3_nominal()
@@ -79,10 +79,8 @@ def test_identify_constraint_recording(tmp_path, capsys, order, pivots, fmt, uni
     (tmp_path / "m.toml").write_text(prs3_toml(NOM, variant="shuffled"))
     header, rows = _rows(5, pivots=pivots, order=order, value_unit=unit)
     write_csv(tmp_path / "c.csv", header, rows, **fmt)
-    rc, _, err = run(capsys, "identify", tmp_path / "c.csv", "--machine", tmp_path / "m.toml", "--method", "map",
-                     "--json", tmp_path / "a.json", "--write-machine", tmp_path / "cal.toml", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "a.json")
+    a = identify_map(capsys, tmp_path / "c.csv", tmp_path / "m.toml", tmp_path / "a.json", "--write-machine",
+                     tmp_path / "cal.toml")
     assert isinstance(a["machine"], str) and a["method"] == "map"
     check_parameters(a["parameters"])
     assert a["outliers"] == []
@@ -112,9 +110,7 @@ def test_outlier_row_named_by_line(tmp_path, capsys):
     iv = header.index("value")
     rows[20][iv] = f"{float(rows[20][iv]) + 0.3:.9f}"  # line 22
     write_csv(tmp_path / "c.csv", header, rows, crlf=True)
-    rc, _, err = run(capsys, "identify", tmp_path / "c.csv", "--machine", tmp_path / "m.toml", "--method", "map",
-                     "--json", tmp_path / "a.json", "--quiet")
-    assert rc in (0, 1), err
+    identify_map(capsys, tmp_path / "c.csv", tmp_path / "m.toml", tmp_path / "a.json", ok=(0, 1))
     assert [o["line"] for o in answer(tmp_path / "a.json")["outliers"]] == [22]
 
 

@@ -17,7 +17,6 @@ from .handwritten import (
     pose_rows,
     positioner_nominal,
     prs3_nominal,
-    prs3_perturbed,
     prs3_tool,
     prs3_toml,
     rows_of,

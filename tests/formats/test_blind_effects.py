@@ -15,7 +15,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from .blind import answer, check_diagnose_answer, check_identify_answer, run
+from .blind import answer, check_diagnose_answer, check_identify_answer, identify_map, run
 from .handwritten import draw_q, effect_table, pose_rows, prs3_nominal, prs3_tool, prs3_toml, rows_of, write_csv
 
 NOM = prs3_nominal()
@@ -83,9 +83,7 @@ def test_backlash_diagnosed_written_and_applied_from_a_hand_written_table(tmp_pa
     d = tomllib.loads((tmp_path / "cal.toml").read_text())
     assert set(d["effect"]["backlash"]) == set(true_bl)
     # ... and its geometry with that table predicts the recording to the noise (identify applies it)
-    rc, _, err = run(capsys, "identify", tmp_path / "bl.csv", "--machine", tmp_path / "cal.toml", "--method", "map",
-                     "--json", tmp_path / "cal.json", "--quiet")
-    assert rc in (0, 1), err
+    identify_map(capsys, tmp_path / "bl.csv", tmp_path / "cal.toml", tmp_path / "cal.json", ok=(0, 1))
     assert answer(tmp_path / "cal.json")["rms_before"]["position"] < 0.012
     # the same kind of table written by hand (keys in another order, comments), on the true geometry
     table = effect_table("backlash", dict(reversed(list(true_bl.items()))))
@@ -113,9 +111,7 @@ def test_joint_compliance_table_with_and_without_optional_inputs(tmp_path, capsy
     params = {p["name"]: p["value"] for p in truth["effects"]["joint_compliance"]["parameters"]}
     table = effect_table("joint_compliance", params, extra=settings)
     (tmp_path / "with.toml").write_text(_true_geometry_file(tmp_path, "jc", table))
-    rc, _, err = run(capsys, "identify", tmp_path / "jc.csv", "--machine", tmp_path / "with.toml", "--method", "map",
-                     "--json", tmp_path / "a.json", "--quiet")
-    assert rc in (0, 1), err
+    identify_map(capsys, tmp_path / "jc.csv", tmp_path / "with.toml", tmp_path / "a.json", ok=(0, 1))
     assert answer(tmp_path / "a.json")["rms_before"]["position"] < 0.012
     # grid and simulate apply the hand-written table too
     rc, _, err = run(capsys, "grid", tmp_path / "jc.csv", "--machine", tmp_path / "with.toml", "--nodes", "3",
@@ -140,7 +136,5 @@ def test_thermal_table_with_and_without_reference(tmp_path, capsys, reference):
     table = effect_table("thermal_expansion", params, comments=False,
                          extra={} if reference is None else {"reference_C": reference})
     (tmp_path / "with.toml").write_text(_true_geometry_file(tmp_path, "th", table, variant="plain"))
-    rc, _, err = run(capsys, "identify", tmp_path / "th.csv", "--machine", tmp_path / "with.toml", "--method", "map",
-                     "--json", tmp_path / "a.json", "--quiet")
-    assert rc in (0, 1), err
+    identify_map(capsys, tmp_path / "th.csv", tmp_path / "with.toml", tmp_path / "a.json", ok=(0, 1))
     assert answer(tmp_path / "a.json")["rms_before"]["position"] < 0.012

@@ -10,7 +10,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from .blind import answer, check_diagnose_answer, check_identify_answer, read_prs3, read_serial, run
+from .blind import answer, check_diagnose_answer, check_identify_answer, identify_map, read_prs3, read_serial, run
 from .handwritten import (
     Joint,
     Serial,
@@ -22,6 +22,7 @@ from .handwritten import (
     prs3_nominal,
     prs3_perturbed,
     prs3_tool,
+    prs3_tool_poses,
     prs3_toml,
     rotvec_to_matrix,
     rows_of,
@@ -34,9 +35,7 @@ from .handwritten import (
 NOM = prs3_nominal()
 TRUE = prs3_perturbed(NOM, 2)
 Q = draw_q(NOM.q_limits, 40, 7)
-POSES = [prs3_tool(TRUE, q) for q in Q]
-PTS = np.array([p for p, _ in POSES])
-ROTS = np.array([r for _, r in POSES])
+PTS, ROTS = prs3_tool_poses(TRUE, Q)
 # a tracker 2.5 m away, turned 30 degrees about a tilted axis
 FRAME = (np.array([2500.0, -1200.0, 300.0]), np.array([0.1, -0.2, 0.5]))
 
@@ -55,11 +54,8 @@ def test_frame_fit_recovers_the_tracker_pose(tmp_path, capsys, dof):
     rc, out, err = run(capsys, "identify", tmp_path / "r.csv", "--machine", tmp_path / "m.toml",
                        "--json", tmp_path / "base.json")
     assert rc in (1, 2) and "--frame fit" in out + err
-    rc, _, err = run(capsys, "identify", tmp_path / "r.csv", "--machine", tmp_path / "m.toml", "--method", "map",
-                     "--frame", "fit", "--json", tmp_path / "a.json", "--write-machine", tmp_path / "cal.toml",
-                     "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "a.json")
+    a = identify_map(capsys, tmp_path / "r.csv", tmp_path / "m.toml", tmp_path / "a.json", "--frame", "fit",
+                     "--write-machine", tmp_path / "cal.toml")
     check_identify_answer(a, angle=dof == 6)
     fr = a["frame"]
     assert len(fr["origin"]) == 3 and len(fr["rotation_vector"]) == 3
@@ -83,9 +79,8 @@ def test_frame_fit_recovers_the_tracker_pose(tmp_path, capsys, dof):
         p_cal = r_inst.T @ (prs3_tool(cal, q)[0] - np.asarray(d["instrument"]["origin"]))
         assert np.linalg.norm(p_cal - p_tracker) < 0.03
     # --free all: the gauge is held by the tolerance prior, and the std covers the true frame
-    rc, _, err = run(capsys, "identify", tmp_path / "r.csv", "--machine", tmp_path / "m.toml", "--method", "map",
-                     "--frame", "fit", "--free", "all", "--json", tmp_path / "all.json", "--quiet")
-    assert rc == 0, err
+    identify_map(capsys, tmp_path / "r.csv", tmp_path / "m.toml", tmp_path / "all.json", "--frame", "fit", "--free",
+                 "all")
     fr = answer(tmp_path / "all.json")["frame"]
     z = np.r_[(np.array(fr["origin"]) - FRAME[0]) / fr["std"]["origin"],
               (np.array(fr["rotation_vector"]) - FRAME[1]) / fr["std"]["rotation_vector"]]
@@ -96,10 +91,7 @@ def test_known_instrument_table_is_applied(tmp_path, capsys):
     """Section 4: [instrument] in the machine file, no --frame: the recording is in that frame."""
     (tmp_path / "m.toml").write_text(prs3_toml(NOM, instrument=FRAME))
     _tracker_recording(tmp_path / "r.csv", crlf=True)
-    rc, _, err = run(capsys, "identify", tmp_path / "r.csv", "--machine", tmp_path / "m.toml", "--method", "map",
-                     "--json", tmp_path / "a.json", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "a.json")
+    a = identify_map(capsys, tmp_path / "r.csv", tmp_path / "m.toml", tmp_path / "a.json")
     assert a["rms_after"]["position"] < 2.5 * NOM.sigma_position
     assert a["rms_before"]["position"] > 10 * NOM.sigma_position
 
@@ -137,10 +129,8 @@ def test_serial_positioner(tmp_path, capsys, variant):
     cols = pose_rows(q, t[:, :3, 3], t[:, :3, :3], dof=6, sigma=nom.sigma_position, seed=12)
     header, rows = rows_of(cols, ["x", "y", "z", "rx", "ry", "rz", "q3", "q2", "q1"])
     write_csv(tmp_path / "r.csv", header, rows, bom=True)
-    rc, _, err = run(capsys, "identify", tmp_path / "r.csv", "--machine", tmp_path / "m.toml", "--method", "map",
-                     "--json", tmp_path / "a.json", "--write-machine", tmp_path / "cal.toml", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "a.json")
+    a = identify_map(capsys, tmp_path / "r.csv", tmp_path / "m.toml", tmp_path / "a.json", "--write-machine",
+                     tmp_path / "cal.toml")
     check_identify_answer(a)
     names = {p["name"] for p in a["parameters"]}
     assert {"joint1.offset", "joint2.origin.y", "joint3.rpy.r", "joint2.offset"} <= names | set(a.get("fixed", []))
@@ -201,10 +191,8 @@ def test_hybrid_head_over_rotary_table(tmp_path, capsys, table_tool):
     cols = pose_rows(q, t[:, :3, 3], t[:, :3, :3], dof=6, sigma=0.005, seed=23)
     header, rows = rows_of(cols)
     write_csv(tmp_path / "r.csv", header, rows, crlf=True)
-    rc, _, err = run(capsys, "identify", tmp_path / "r.csv", "--machine", tmp_path / "m.toml", "--method", "map",
-                     "--json", tmp_path / "a.json", "--write-machine", tmp_path / "cal.toml", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "a.json")
+    a = identify_map(capsys, tmp_path / "r.csv", tmp_path / "m.toml", tmp_path / "a.json", "--write-machine",
+                     tmp_path / "cal.toml")
     check_identify_answer(a)
     assert a["rms_after"]["position"] < 2.5 * 0.005 and a["rms_before"]["position"] > 0.05
     names = {p["name"] for p in a["parameters"]}
@@ -269,9 +257,6 @@ def test_urdf_stands_in_for_the_joint_tables(tmp_path, capsys):
     cols = pose_rows(q, t[:, :3, 3], t[:, :3, :3], dof=3, sigma=0.005, seed=52)
     header, rows = rows_of(cols)
     write_csv(tmp_path / "r.csv", header, rows)
-    rc, _, err = run(capsys, "identify", tmp_path / "r.csv", "--machine", tmp_path / "m.toml", "--method", "map",
-                     "--json", tmp_path / "a.json", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "a.json")
+    a = identify_map(capsys, tmp_path / "r.csv", tmp_path / "m.toml", tmp_path / "a.json")
     check_identify_answer(a, angle=False)
     assert a["rms_after"]["position"] < 2.5 * 0.005 < 0.05 < a["rms_before"]["position"] < 1.0

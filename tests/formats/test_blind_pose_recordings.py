@@ -18,6 +18,7 @@ from .handwritten import (
     prs3_nominal,
     prs3_perturbed,
     prs3_tool,
+    prs3_tool_poses,
     prs3_toml,
     rows_of,
     write_csv,
@@ -26,9 +27,7 @@ from .handwritten import (
 NOM = prs3_nominal()
 TRUE = prs3_perturbed(NOM, 1)
 Q = draw_q(NOM.q_limits, 40, 3)
-POSES = [prs3_tool(TRUE, q) for q in Q]
-PTS = np.array([p for p, _ in POSES])
-ROTS = np.array([r for _, r in POSES])
+PTS, ROTS = prs3_tool_poses(TRUE, Q)
 Q_TEST = draw_q(NOM.q_limits, 15, 99)
 PTS_TEST = np.array([prs3_tool(TRUE, q)[0] for q in Q_TEST])
 SIGMA = NOM.sigma_position
