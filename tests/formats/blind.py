@@ -113,3 +113,12 @@ def identify_map(capsys, recording, machine, json_path, *extra, ok=(0,)) -> dict
                      "--json", json_path, "--quiet")
     assert rc in ok, err
     return answer(json_path)
+
+
+def diagnose_checked(capsys, recording, machine, json_path, *extra) -> dict:
+    """Run ``diagnose --json json_path --quiet`` (plus ``extra`` options), expect exit 0, check the answer's keys."""
+    rc, _, err = run(capsys, "diagnose", recording, "--machine", machine, *extra, "--json", json_path, "--quiet")
+    assert rc == 0, err
+    a = answer(json_path)
+    check_diagnose_answer(a)
+    return a

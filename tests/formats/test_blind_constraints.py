@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from .blind import answer, check_diagnose_answer, check_parameters, identify_map, read_prs3, run
+from .blind import answer, check_parameters, diagnose_checked, identify_map, read_prs3, run
 from .handwritten import draw_q, prs3_nominal, prs3_perturbed, prs3_tool, prs3_toml, write_csv
 
 NOM = prs3_nominal()
@@ -95,11 +95,8 @@ def test_diagnose_clean_constraint_recording_says_none(tmp_path, capsys):
     (tmp_path / "m.toml").write_text(prs3_toml(NOM))
     header, rows = _rows(6, pivots=False)
     write_csv(tmp_path / "c.csv", header, rows)
-    rc, _, err = run(capsys, "diagnose", tmp_path / "c.csv", "--machine", tmp_path / "m.toml",
-                     "--json", tmp_path / "d.json", "--write-machine", tmp_path / "cal.toml", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "d.json")
-    check_diagnose_answer(a)
+    a = diagnose_checked(capsys, tmp_path / "c.csv", tmp_path / "m.toml", tmp_path / "d.json", "--write-machine",
+                         tmp_path / "cal.toml")
     assert a["verdict"] == "none"
     read_prs3(tmp_path / "cal.toml")
 

@@ -15,7 +15,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from .blind import answer, check_diagnose_answer, check_identify_answer, identify_map, run
+from .blind import answer, check_identify_answer, diagnose_checked, identify_map, run
 from .handwritten import draw_q, effect_table, pose_rows, prs3_nominal, prs3_tool, prs3_toml, rows_of, write_csv
 
 NOM = prs3_nominal()
@@ -56,11 +56,8 @@ def test_diagnose_clean_recording_with_idle_channels_says_none(tmp_path, capsys)
     cols["payload_kg"] = np.tile([0.0, 5.0, 10.0, 20.0], 15)
     header, rows = rows_of(cols, ["time_s"] + list(cols)[:-3] + ["payload_kg", "temp_C"])
     write_csv(tmp_path / "r.csv", header, rows, crlf=True, bom=True)
-    rc, _, err = run(capsys, "diagnose", tmp_path / "r.csv", "--machine", tmp_path / "m.toml",
-                     "--json", tmp_path / "d.json", "--write-machine", tmp_path / "cal.toml", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "d.json")
-    check_diagnose_answer(a)
+    a = diagnose_checked(capsys, tmp_path / "r.csv", tmp_path / "m.toml", tmp_path / "d.json", "--write-machine",
+                         tmp_path / "cal.toml")
     assert a["verdict"] == "none"
     assert not any(e["detected"] for e in a["effects"])
     d = tomllib.loads((tmp_path / "cal.toml").read_text())
@@ -70,11 +67,8 @@ def test_diagnose_clean_recording_with_idle_channels_says_none(tmp_path, capsys)
 def test_backlash_diagnosed_written_and_applied_from_a_hand_written_table(tmp_path, capsys):
     truth = _simulate(tmp_path, capsys, "bl", "--poses", "120", "--seed", "3", "--effect", "backlash:30")
     true_bl = {p["name"]: p["value"] for p in truth["effects"]["backlash"]["parameters"]}
-    rc, _, err = run(capsys, "diagnose", tmp_path / "bl.csv", "--machine", tmp_path / "nominal.toml",
-                     "--json", tmp_path / "d.json", "--write-machine", tmp_path / "cal.toml", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "d.json")
-    check_diagnose_answer(a)
+    a = diagnose_checked(capsys, tmp_path / "bl.csv", tmp_path / "nominal.toml", tmp_path / "d.json",
+                         "--write-machine", tmp_path / "cal.toml")
     assert a["verdict"] == "backlash" and a["effects"][0]["name"] == "backlash"
     assert a["located"]["channel"].endswith(("q1", "q2", "q3"))
     for p in a["effects"][0]["parameters"]:

@@ -10,7 +10,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from .blind import answer, check_diagnose_answer, check_identify_answer, identify_map, read_prs3, read_serial, run
+from .blind import answer, check_identify_answer, diagnose_checked, identify_map, read_prs3, read_serial, run
 from .handwritten import (
     Joint,
     Serial,
@@ -99,11 +99,8 @@ def test_known_instrument_table_is_applied(tmp_path, capsys):
 def test_diagnose_frame_fit_on_a_clean_tracker_recording(tmp_path, capsys):
     (tmp_path / "m.toml").write_text(prs3_toml(NOM))
     _tracker_recording(tmp_path / "r.csv")
-    rc, _, err = run(capsys, "diagnose", tmp_path / "r.csv", "--machine", tmp_path / "m.toml", "--frame", "fit",
-                     "--json", tmp_path / "d.json", "--write-machine", tmp_path / "cal.toml", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "d.json")
-    check_diagnose_answer(a)
+    a = diagnose_checked(capsys, tmp_path / "r.csv", tmp_path / "m.toml", tmp_path / "d.json", "--frame", "fit",
+                         "--write-machine", tmp_path / "cal.toml")
     assert a["verdict"] == "none"
     assert np.allclose(a["frame"]["origin"], FRAME[0], atol=5.0)
     assert len(a["frame"]["std"]["rotation_vector"]) == 3

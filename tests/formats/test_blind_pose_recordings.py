@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from .blind import answer, check_diagnose_answer, check_identify_answer, read_prs3, run
+from .blind import answer, check_identify_answer, diagnose_checked, read_prs3, run
 from .handwritten import (
     draw_q,
     pose_rows,
@@ -197,11 +197,7 @@ def test_diagnose_names_one_gross_pose_and_says_none(tmp_path, capsys):
     pts[12] += [0.4, -0.3, 0.2]
     header, rows = rows_of(pose_rows(Q, pts, ROTS, dof=6, sigma=SIGMA, seed=6))
     write_csv(tmp_path / "r.csv", header, rows, bom=True, crlf=True)
-    rc, _, err = run(capsys, "diagnose", tmp_path / "r.csv", "--machine", tmp_path / "m.toml",
-                     "--json", tmp_path / "d.json", "--quiet")
-    assert rc == 0, err
-    a = answer(tmp_path / "d.json")
-    check_diagnose_answer(a)
+    a = diagnose_checked(capsys, tmp_path / "r.csv", tmp_path / "m.toml", tmp_path / "d.json")
     assert a["verdict"] == "none"
     assert [o["line"] for o in a["outliers"]] == [14]
     assert "excluded" in a["outlier_handling"]
