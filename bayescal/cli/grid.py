@@ -144,9 +144,7 @@ def run(args) -> int:
     if space == "tool":
         from ..bayes.tool_grid import tool_grid
 
-        if base.effects and aux:
-            raise InputError("--aux goes with --space actuator (the tool-space grid does not yet apply [effect.*] tables)")
-        grid = tool_grid(base, theta, free=free_mask, n=args.nodes, ranges=ranges, **kw)
+        grid = tool_grid(base, theta, free=free_mask, n=args.nodes, ranges=ranges, aux=aux, **kw)
     else:
         if args.nc:
             raise InputError("--nc goes with --space tool (an NC system compensates tool points)")
