@@ -337,9 +337,41 @@ def effect_delta_q(
             f = eff.features(machine, q, theta, aux, order, poses if eff.needs_poses else None)
         except InputError as exc:
             raise InputError(f"{st.source}: [{st.key()}] cannot be applied{_channels(aux)}: {exc}") from exc
-        eta = st.vector(tuple(eff.params(machine, f)), _channels(aux))
+        try:
+            eta = st.vector(tuple(eff.params(machine, f)), _channels(aux))
+        except MachineFileError as exc:
+            need = _channels_for_table(st, eff, machine, q, theta, aux, order, poses)
+            if need is None:
+                raise
+            # the table's parameter set is that of a recording with other channels: say which to give
+            raise MachineFileError(
+                st.source, st.key(),
+                f"parametrised for a recording with channel(s) {', '.join(need)}; it cannot be applied{_channels(aux)}: "
+                f"record {', '.join(need)} (for a compensation grid: " + " ".join(f"--aux {c}=VALUE" for c in need)
+                + ("; payload_kg=0 is no payload" if "payload_kg" in need else "") + ")",
+            ) from exc
         dq = dq + eff.delta_q(f, eta)
     return dq
+
+
+def _channels_for_table(st: StoredEffect, eff: Effect, machine: Machine, q, theta, aux: dict, order, poses) -> list[str] | None:
+    """The fewest :data:`PROBE_CHANNELS` missing from ``aux`` whose presence gives the table's parameter set (None: none do)."""
+    have = {k for k, _ in st.values}
+    missing = [c for c in PROBE_CHANNELS if c not in aux]
+    n = q.shape[0]
+    for k in range(1, len(missing) + 1):
+        for chans in itertools.combinations(missing, k):
+            trial = {**aux, **{c: np.full(n, 20.0) for c in chans}}
+            if eff.not_applicable(machine, trial) is not None:
+                continue
+            try:
+                f = eff.features(machine, q, theta, trial, order, poses if eff.needs_poses else None)
+                names = {p.name for p in eff.params(machine, f)}
+            except BayescalError:
+                continue
+            if names == have:
+                return list(chans)
+    return None
 
 
 def predict_poses(machine: Machine, q: NDArray, aux: dict | None = None, *, theta=None, order: NDArray | None = None) -> ToolPoses:

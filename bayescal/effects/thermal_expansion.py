@@ -54,6 +54,8 @@ def _reference_link_factors(machine: Machine, q0: NDArray, theta: NDArray, K: ND
     mean) would lose the link growth altogether.
     """
     if machine.q_limits is not None:
+        if theta is not None and np.ndim(theta) == 2:  # per-pose geometry (a growing machine): its mean
+            theta = np.mean(theta, axis=0)
         home = machine.forward(q0[None], theta)
         if home.success.all():
             Kh = link_factors(machine, q0[None], theta, home)
