@@ -414,8 +414,14 @@ def static_effect_delta_q(machine: Machine, effects: tuple[StoredEffect, ...], q
     aux_n = {k: np.broadcast_to(np.asarray(v, float), (n,)) for k, v in (aux or {}).items()}
     # one session per node: the first pose of a session has no known approach (backlash: the centre of
     # the band) and no elapsed time; a node repeated in one session would keep the previous node's lag
-    return np.concatenate([effect_delta_q(machine, effects, q[j : j + 1], {k: v[j : j + 1] for k, v in aux_n.items()})
-                           for j in range(n)]) if n else np.zeros_like(q)
+    try:
+        return np.concatenate([effect_delta_q(machine, effects, q[j : j + 1], {k: v[j : j + 1] for k, v in aux_n.items()})
+                               for j in range(n)]) if n else np.zeros_like(q)
+    except MachineFileError:
+        raise  # already names the channels to give
+    except InputError as exc:  # a channel the effect needs and that has no default (temp_C): say where it goes
+        raise InputError(f"{exc}; a compensation grid takes the channels at its nodes as aux (bayescal grid --aux NAME=VALUE, "
+                         f"e.g. --aux temp_C=25)") from exc
 
 
 @dataclass(frozen=True, eq=False)

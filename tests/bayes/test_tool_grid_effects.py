@@ -161,7 +161,8 @@ def test_thermal_expansion_at_a_temperature_against_growing_parts(prs3_theta):
         _check_against_physics(m, prs3_theta, true_position, {"temp_C": temp}, rtol=0.03)
     # the temperature is a needed input with no default: a clear error naming the table
     with pytest.raises(InputError, match=r"cal.toml: \[effect.thermal_expansion\] cannot be applied for a recording "
-                                         r"without auxiliary channels: needs a temp_C or time_s channel"):
+                                         r"without auxiliary channels: needs a temp_C or time_s channel.*"
+                                         r"--aux NAME=VALUE, e.g. --aux temp_C=25"):
         _tg(m, prs3_theta, n=3)
 
 
