@@ -12,7 +12,10 @@ what a bilinear/trilinear compensation table subtracts from the command
 (the convention of :mod:`bayescal.compensation`).  Its std is the
 linearised ``sqrt(diag(G C G^T))`` with ``G = dp/dtheta[idx]`` at
 ``q(x)`` (covariance ``C`` of the identified parameters), or the sample std
-over posterior draws.
+over posterior draws.  A machine that carries effects (``[effect.*]``
+tables) has them applied at every node under the stated auxiliary channels
+(``aux``: a payload, a temperature): ``q(x)`` is then replaced by
+``q(x) + dq(q(x), aux)`` in ``p``, as in the actuator-space grid.
 
 The inverse kinematics is numerical, so it works for every kind: a
 task-priority Gauss-Newton on the nominal model (the tool point first, in
@@ -249,6 +252,9 @@ def solve_tool_points(
         # damp long steps: Newton from far away can jump to another assembly branch
         scale = np.minimum(1.0, 0.25 / np.maximum(np.max(np.abs(dq) / span, axis=1), 1e-300))
         q[idx[~done]] += (dq * scale[:, None])[~done]
+    # actuators the forward kinematics does not read (redundant drives) were left where they started:
+    # command what the pose requires of them, as a controller does, and check them against q_limits too
+    q = machine.compatible_q(q, None)
     if machine.q_limits is not None:
         lo, hi = machine.q_limits[:, 0], machine.q_limits[:, 1]
         ok &= np.all((q >= lo - 1e-9) & (q <= hi + 1e-9), axis=1)
@@ -275,6 +281,7 @@ def tool_grid(
     samples: ArrayLike | None = None,
     n: int = 5,
     ranges: dict | None = None,
+    aux: dict | None = None,
 ) -> ToolGrid:
     """The Cartesian grid of residual tool-point errors and their std for identified errors ``theta``.
 
@@ -291,6 +298,16 @@ def tool_grid(
         Nodes per axis (an axis the tool point does not move along gets one).
     ranges : dict, optional
         ``{"x": (lo, hi), ...}`` in mm narrowing the default box (:func:`tool_box`).
+    aux : dict of str to float, optional
+        Auxiliary channels at which the machine's stored effects
+        (``machine.effects``, ``[effect.*]`` tables) act at every node, e.g.
+        ``{"payload_kg": 5.0, "temp_C": 25.0}``, exactly as in
+        :func:`bayescal.bayes.grid.compensation_grid`: the drives commanded
+        to ``q(x)`` stand at ``q(x) + dq(q(x), aux)``
+        (:func:`bayescal.effects.stored.static_effect_delta_q`), so the
+        node's error includes the effects.  A channel not given is absent
+        (no payload); an effect that needs one (thermal expansion:
+        ``temp_C``) is an InputError naming the machine file's table.
 
     Returns
     -------
@@ -330,13 +347,19 @@ def tool_grid(
             + ", ".join(f"{c} {lo:.4g}:{hi:.4g}" for c, (lo, hi) in zip("xyz", box)) + ")"
         )
     nominal = machine.forward(q, None)
-    est = machine.forward(q, theta, guess=nominal)
+    q_act = q
+    if machine.effects:
+        # where the drives really stand at each node under the stated aux (the same rule as the actuator grid)
+        from ..effects.stored import static_effect_delta_q
+
+        q_act = q + static_effect_delta_q(machine, machine.effects, q, aux)
+    est = machine.forward(q_act, theta, guess=nominal)
     if not est.success.all():
         i = int(np.flatnonzero(~est.success)[0])
         raise InputError(f"grid node {i + 1} (q = {q[i].tolist()}) cannot be solved with the identified errors; narrow the grid with --range")
     # against the nominal point actually commanded: equal to the node on the controlled axes, and the
     # right reference on an axis the actuators do not set (there the node coordinate is only a mean)
     error = est.position - nominal.position
-    std, source = tool_point_std_at(machine, q, theta, free, covariance=covariance, samples=samples, caller="tool_grid")
+    std, source = tool_point_std_at(machine, q_act, theta, free, covariance=covariance, samples=samples, caller="tool_grid")
     shape = tuple(a.size for a in axes) + (3,)
     return ToolGrid(machine.name, axes, q, error.reshape(shape), std.reshape(shape), source, nominal.position, ctrl)

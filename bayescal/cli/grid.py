@@ -25,11 +25,13 @@ docs/cli.md, identify --free).
 
 A machine file with [effect.<name>] tables (diagnose --write-machine) has
 them applied: in the identification, driven by the recording's channels,
-and in the grid, under the channels stated with --aux NAME=VALUE (a
-compensation under a payload or temperature). A channel not given is
-absent, as in a recording without it: no payload; thermal expansion needs
---aux temp_C=... . Grid nodes have no approach direction, so backlash is
-not in the grid (compensate it on reversal).
+and in the grid (actuator or tool space), under the channels stated with
+--aux NAME=VALUE (a compensation under a payload or temperature). A
+channel not given is absent, as in a recording without it; a table fitted
+with a channel needs it: joint compliance fitted with a payload needs
+--aux payload_kg=... (0: no payload), thermal expansion --aux temp_C=... .
+Grid nodes have no approach direction, so backlash is not in the grid
+(compensate it on reversal).
 
 A constraint recording (distances, heights, ballbar readings; FORMATS.md
 section 6) gives the grid of the geometry it calibrates; ballbar pivots are
@@ -78,7 +80,8 @@ def register(sub) -> None:
     p.add_argument(
         "--aux", action="append", default=[], metavar="NAME=VALUE",
         help="auxiliary channel at which the machine file's [effect.*] tables act at every node (repeatable), "
-        "e.g. --aux payload_kg=5 --aux temp_C=25; a channel not given is absent (no payload)",
+        "e.g. --aux payload_kg=5 --aux temp_C=25; a channel not given is absent, and a table fitted with it "
+        "(payload_kg, temp_C) then asks for it",
     )
     p.add_argument("--space", choices=("auto", "actuator", "tool"), default="auto",
                    help="grid over actuator positions or over the tool point (default auto: tool for a machine whose "
@@ -144,9 +147,7 @@ def run(args) -> int:
     if space == "tool":
         from ..bayes.tool_grid import tool_grid
 
-        if base.effects and aux:
-            raise InputError("--aux goes with --space actuator (the tool-space grid does not yet apply [effect.*] tables)")
-        grid = tool_grid(base, theta, free=free_mask, n=args.nodes, ranges=ranges, **kw)
+        grid = tool_grid(base, theta, free=free_mask, n=args.nodes, ranges=ranges, aux=aux, **kw)
     else:
         if args.nc:
             raise InputError("--nc goes with --space tool (an NC system compensates tool points)")

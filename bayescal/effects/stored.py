@@ -337,9 +337,41 @@ def effect_delta_q(
             f = eff.features(machine, q, theta, aux, order, poses if eff.needs_poses else None)
         except InputError as exc:
             raise InputError(f"{st.source}: [{st.key()}] cannot be applied{_channels(aux)}: {exc}") from exc
-        eta = st.vector(tuple(eff.params(machine, f)), _channels(aux))
+        try:
+            eta = st.vector(tuple(eff.params(machine, f)), _channels(aux))
+        except MachineFileError as exc:
+            need = _channels_for_table(st, eff, machine, q, theta, aux, order, poses)
+            if need is None:
+                raise
+            # the table's parameter set is that of a recording with other channels: say which to give
+            raise MachineFileError(
+                st.source, st.key(),
+                f"parametrised for a recording with channel(s) {', '.join(need)}; it cannot be applied{_channels(aux)}: "
+                f"record {', '.join(need)} (for a compensation grid: " + " ".join(f"--aux {c}=VALUE" for c in need)
+                + ("; payload_kg=0 is no payload" if "payload_kg" in need else "") + ")",
+            ) from exc
         dq = dq + eff.delta_q(f, eta)
     return dq
+
+
+def _channels_for_table(st: StoredEffect, eff: Effect, machine: Machine, q, theta, aux: dict, order, poses) -> list[str] | None:
+    """The fewest :data:`PROBE_CHANNELS` missing from ``aux`` whose presence gives the table's parameter set (None: none do)."""
+    have = {k for k, _ in st.values}
+    missing = [c for c in PROBE_CHANNELS if c not in aux]
+    n = q.shape[0]
+    for k in range(1, len(missing) + 1):
+        for chans in itertools.combinations(missing, k):
+            trial = {**aux, **{c: np.full(n, 20.0) for c in chans}}
+            if eff.not_applicable(machine, trial) is not None:
+                continue
+            try:
+                f = eff.features(machine, q, theta, trial, order, poses if eff.needs_poses else None)
+                names = {p.name for p in eff.params(machine, f)}
+            except BayescalError:
+                continue
+            if names == have:
+                return list(chans)
+    return None
 
 
 def predict_poses(machine: Machine, q: NDArray, aux: dict | None = None, *, theta=None, order: NDArray | None = None) -> ToolPoses:
@@ -382,8 +414,14 @@ def static_effect_delta_q(machine: Machine, effects: tuple[StoredEffect, ...], q
     aux_n = {k: np.broadcast_to(np.asarray(v, float), (n,)) for k, v in (aux or {}).items()}
     # one session per node: the first pose of a session has no known approach (backlash: the centre of
     # the band) and no elapsed time; a node repeated in one session would keep the previous node's lag
-    return np.concatenate([effect_delta_q(machine, effects, q[j : j + 1], {k: v[j : j + 1] for k, v in aux_n.items()})
-                           for j in range(n)]) if n else np.zeros_like(q)
+    try:
+        return np.concatenate([effect_delta_q(machine, effects, q[j : j + 1], {k: v[j : j + 1] for k, v in aux_n.items()})
+                               for j in range(n)]) if n else np.zeros_like(q)
+    except MachineFileError:
+        raise  # already names the channels to give
+    except InputError as exc:  # a channel the effect needs and that has no default (temp_C): say where it goes
+        raise InputError(f"{exc}; a compensation grid takes the channels at its nodes as aux (bayescal grid --aux NAME=VALUE, "
+                         f"e.g. --aux temp_C=25)") from exc
 
 
 @dataclass(frozen=True, eq=False)

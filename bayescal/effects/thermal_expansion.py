@@ -45,6 +45,25 @@ def link_factors(machine: Machine, q: NDArray, theta: NDArray, poses: ToolPoses)
     return np.linalg.pinv(Jq) @ Jl
 
 
+def _reference_link_factors(machine: Machine, q0: NDArray, theta: NDArray, K: NDArray) -> NDArray:
+    """``K_bar``: the link factors at the home pose ``q0`` (mean of ``K`` over the poses if it cannot be had).
+
+    Why not the mean over the poses at hand: the link term's reference would
+    then move with the poses evaluated, so one stored parameter set would
+    predict differently on two recordings, and a lone grid node (its own
+    mean) would lose the link growth altogether.
+    """
+    if machine.q_limits is not None:
+        if theta is not None and np.ndim(theta) == 2:  # per-pose geometry (a growing machine): its mean
+            theta = np.mean(theta, axis=0)
+        home = machine.forward(q0[None], theta)
+        if home.success.all():
+            Kh = link_factors(machine, q0[None], theta, home)
+            if Kh is not None:
+                return Kh[0]
+    return K.mean(axis=0)
+
+
 class ThermalExpansion(Effect):
     """Lengths grow with temperature: actuator screws or scales, links, rails and frame.
 
@@ -65,8 +84,13 @@ class ThermalExpansion(Effect):
       does not depend on the pose, collected with the constant parts above
       in one drift per actuator.
 
-    With ``q0`` the middle of ``q_limits`` and ``K_bar`` the mean of ``K``
-    over the recording (both decorrelate the terms from the drift):
+    With ``q0`` the middle of ``q_limits`` and ``K_bar`` the value of ``K``
+    at the home pose ``q0`` (both decorrelate the terms from the drift, and
+    both are properties of the machine, not of the poses at hand, so a
+    stored ``[effect.thermal_expansion]`` table means the same on every
+    recording and at every node of a compensation grid; without
+    ``q_limits``, or if the home pose does not assemble, ``K_bar`` is the
+    mean of ``K`` over the poses):
 
         dq = dT (g + alpha (q - q0) + (K(x) - K_bar) lambda)      (channel ``temp_C``)
 
@@ -117,7 +141,7 @@ class ThermalExpansion(Effect):
         # drifts and shifts are small changes of q: um on a slider, urad on a revolute joint
         const = {"q0": q0, "links": K is not None, "to_q": np.array([u.small_to_q for u in machine.actuator_unit_info])}
         if K is not None:
-            per["K"] = K - K.mean(axis=0)[None]
+            per["K"] = K - _reference_link_factors(machine, q0, theta, K)[None]
         if "temp_C" in aux:
             per["x"] = np.asarray(aux["temp_C"], float) - self.reference_C
             return Features(per, {**const, "mode": "temperature"})

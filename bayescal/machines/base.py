@@ -416,6 +416,30 @@ class Machine(ABC):
         """
         return True
 
+    def compatible_q(self, q: ArrayLike, theta: ArrayLike | None = None) -> NDArray:
+        """The actuator vector that commands the pose ``forward(q, theta)`` with every actuator agreeing.
+
+        ``q`` itself for a machine whose actuators move independently (the
+        default).  A kind with coupled actuators (redundant actuation, whose
+        forward kinematics reads a non-redundant subset) overrides it to set
+        the others to what that pose requires, so that a consumer which
+        solves for actuator positions through ``forward`` (the tool-space
+        grid's inverse kinematics) commands a pose the machine can hold and
+        effects that act on all actuators (redundancy preload) see it.
+
+        Parameters
+        ----------
+        q : array_like, shape (n_poses, n_actuators)
+            Actuator positions, mm (or rad).
+        theta : array_like, optional
+            Geometric errors (the machine file's geometry if omitted).
+
+        Returns
+        -------
+        ndarray, shape (n_poses, n_actuators)
+        """
+        return self.check_q(q)
+
     def home_q(self) -> NDArray:
         """A reference actuator vector: the middle of ``q_limits``."""
         if self.q_limits is None:

@@ -221,6 +221,10 @@ class InstrumentFrame(Machine):
             raise AttributeError(name)
         return getattr(self.machine, name)
 
+    def compatible_q(self, q: ArrayLike, theta: ArrayLike | None = None) -> NDArray:
+        """The inner machine's :meth:`Machine.compatible_q` (the frame does not couple actuators)."""
+        return self.machine.compatible_q(q, None if theta is None else self.split(theta)[1])
+
     # --------------------------------------------------------------- frame
     def split(self, theta: ArrayLike | None, n_poses: int | None = None) -> tuple[NDArray, NDArray]:
         """``(frame correction (..., 6), machine errors (..., P_machine))`` of ``theta``."""

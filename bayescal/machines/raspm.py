@@ -387,6 +387,20 @@ class Raspm(Machine):
         """Planar pose from the non-redundant subset of actuators: ``(x (n, 3), ok (n,))``."""
         return self.fit_pose(q, theta, self.nonredundant_weights(), x0=x0)
 
+    def compatible_q(self, q: ArrayLike, theta: ArrayLike | None = None) -> NDArray:
+        """``q`` with the redundant drives set to the inverse kinematics of the non-redundant pose, mm.
+
+        What a controller commands for that pose: the redundant drives follow
+        the nominal model, they are not free (see :meth:`Machine.compatible_q`).
+        Rows whose pose cannot be solved are returned unchanged.
+        """
+        q = self.check_q(q)
+        x, ok = self.forward_planar(q, theta)
+        out = q.copy()
+        r = list(self.redundant)
+        out[np.ix_(ok, r)] = self.inverse_planar(x[ok], theta)[:, r] if ok.any() else out[np.ix_(ok, r)]
+        return out
+
     def compatibility(self, q: ArrayLike, theta: ArrayLike | None = None) -> NDArray:
         """What each actuator violates at the non-redundant pose: ``IK(x) - q``, shape (n, m), mm.
 

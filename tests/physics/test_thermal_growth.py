@@ -47,7 +47,8 @@ def test_effect_equals_the_grown_machine_to_second_order():
     poses = m.forward(q, theta)
     f = eff.features(m, q, theta, {"temp_C": temp}, None, poses)
     lam = 1e-3 * a_l * m.geometry_arrays(theta)["link_length"]  # um/K
-    Kbar = link_factors(m, q, theta, poses).mean(axis=0)
+    home = f.const["q0"][None]
+    Kbar = link_factors(m, home, theta, m.forward(home, theta))[0]  # the reference: K at the home pose
     drift = 1e-3 * a_s * (f.const["q0"] - bearing) + Kbar @ lam  # um/K
     model = m.forward(q + eff.delta_q(f, np.concatenate([drift, a_s, lam])), theta)
     moved = np.abs(truth.position - poses.position).max()
