@@ -55,6 +55,8 @@ for _p in (ROOT, ROOT / "studies"):
     if str(_p) not in sys.path:
         sys.path.insert(0, str(_p))
 
+from studies.targets import verdict  # noqa: E402
+
 from seed2_ls_re_tsvd import MACHINES, eval_grid, measurement_poses, seed_parameter_set, study_machine  # noqa: E402
 
 from bayescal.identify.ceiling import success_probabilities, within_best  # noqa: E402
@@ -265,7 +267,7 @@ def target_lines(summary: dict) -> list[str]:
                     if name == "p90" and not ok[name] and st["tail_floor"] > 0.10:
                         note = (f"; unattainable: every rule has P(ratio > {t['p90']}) >= "
                                 f"{100 * st['tail_floor']:.1f} % > 10 %")
-                    lines.append(f"- {'PASS' if ok[name] else 'MISS'} {key}, c = {c}, {method} {rule}: {name} {v} "
+                    lines.append(f"- {verdict(ok[name])} {key}, c = {c}, {method} {rule}: {name} {v} "
                                  f"(target {bound}){note}")
     return lines
 

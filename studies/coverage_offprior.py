@@ -64,6 +64,8 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from studies.targets import verdict  # noqa: E402
+
 from bayescal.identify import resolve_free  # noqa: E402
 from bayescal.identify.choose import evidence_lambda  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
@@ -238,7 +240,7 @@ def check_lines(checks: list[dict]) -> list[str]:
     """PASS / MISS per targeted check; the reference methods marked as such."""
     lines = []
     for c in checks:
-        tag = ("PASS" if c["ok"] else "MISS") if c["targeted"] else ("ref (in range)" if c["ok"] else "ref (out of range)")
+        tag = verdict(c["ok"]) if c["targeted"] else ("ref (in range)" if c["ok"] else "ref (out of range)")
         lines.append(
             f"{tag:<18} {c['part']:<7} {c['dof']}-DOF {c['method']:<11} parameters {100 * c['parameters'][0]:.1f}-"
             f"{100 * c['parameters'][1]:.1f} %, tool points {100 * c['tool_points'][0]:.1f}-{100 * c['tool_points'][1]:.1f} % "

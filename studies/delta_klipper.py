@@ -37,6 +37,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "studies"))
 
+from studies.targets import exit_code, verdict  # noqa: E402
+
 from bayescal.bayes.map_identify import identify_map  # noqa: E402
 from bayescal.constraint_model import ConstraintModel  # noqa: E402
 from bayescal.design.relations import plan_relations  # noqa: E402
@@ -255,7 +257,7 @@ def targets(res) -> list[dict]:
         "detail": f"largest gap {gaps[worst]:+.3f} ({worst})",
     })
     for t in out:
-        t["verdict"] = "PASS" if t["pass"] else "MISS"
+        t["verdict"] = verdict(t["pass"])
     return out
 
 
@@ -386,7 +388,7 @@ def main(argv=None) -> int:
         return 0
     for t in res["targets"]:
         print(f"{t['verdict']}: {t['name']}: {t['detail']}")
-    return 0 if all(t["pass"] for t in res["targets"]) else 1
+    return exit_code(t["pass"] for t in res["targets"])
 
 
 if __name__ == "__main__":

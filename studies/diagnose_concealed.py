@@ -50,6 +50,8 @@ from numpy.typing import NDArray
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from studies.targets import exit_code, verdict  # noqa: E402
+
 CLASSES = ("none", "joint_compliance", "thermal_expansion", "backlash", "screw_periodic_error", "outside_straightness", "outside_step",
            "raspm_none", "raspm_redundancy_preload", "phys_compliance", "phys_thermal", "phys_backlash")
 #: Classes simulated by the independent physics of tests/physics (full statics, growing parts, a stepwise nut and
@@ -485,8 +487,7 @@ def targets(rows: list[dict]) -> list[tuple[str, bool | None, str]]:
 
 def targets_text(checks) -> str:
     """PASS / MISS (or NOT TESTED) lines of :func:`targets`."""
-    word = {True: "PASS", False: "MISS", None: "NOT TESTED"}
-    return "\n".join(f"{word[m]:10s} {name}: {nums}" for name, m, nums in checks) + "\n"
+    return "\n".join(f"{verdict(m):10s} {name}: {nums}" for name, m, nums in checks) + "\n"
 
 
 def summarise(rows: list[dict], out: Path) -> str:
@@ -664,7 +665,7 @@ def write_outputs(rows: list[dict], out: Path, wall: float | None) -> int:
     plot_confusion(rows, out / "confusion.png")
     print(text)
     print(ttext)
-    return 1 if any(m is False for _, m, _ in checks) else 0
+    return exit_code(m for _, m, _ in checks)
 
 
 if __name__ == "__main__":

@@ -39,6 +39,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from studies.targets import exit_code, verdict  # noqa: E402
+
 #: (offset mm, seed, stiffness range N/um, alternate offset)
 CASES = [
     (0.05, 11, (150.0, 500.0), False),
@@ -145,7 +147,7 @@ def main(argv=None) -> int:
         ("its geometry within twice the clean calibration's error of the true geometry",
          all(r["true_written_um"] < 2 * r["true_clean_um"] for r in rows)),
     ]
-    lines += [f"- {'PASS' if ok else 'MISS'}: {what}" for what, ok in targets]
+    lines += [f"- {verdict(ok)}: {what}" for what, ok in targets]
     text = "\n".join(lines) + "\n"
     from bayescal.io import write_text_atomic
 
@@ -153,7 +155,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "summary.md", text)
     print(text)
-    return 0 if all(ok for _, ok in targets) else 1
+    return exit_code(ok for _, ok in targets)
 
 
 if __name__ == "__main__":

@@ -39,6 +39,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from studies.targets import exit_code, verdict  # noqa: E402
+
 from bayescal.bayes.kalman import kalman_filter  # noqa: E402
 from bayescal.bayes.map_identify import identify_map  # noqa: E402
 from bayescal.identify.choose import choose_regularisation  # noqa: E402
@@ -120,10 +122,10 @@ def main(argv=None) -> int:
                     (f"{method}: clean poses flagged = {false}", false == 0)]
     print()
     for text, ok in targets:
-        print(f"{'PASS' if ok else 'MISS'}  {text}")
+        print(f"{verdict(ok)}  {text}")
     n_miss = sum(not ok for _, ok in targets)
     print(f"{len(targets) - n_miss} of {len(targets)} targets met")
-    return 1 if n_miss else 0
+    return exit_code(ok for _, ok in targets)
 
 
 if __name__ == "__main__":

@@ -54,6 +54,8 @@ import scipy.stats
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from studies.targets import exit_code, verdict  # noqa: E402
+
 from bayescal.design import candidate_set_from_jacobian, design_mse, design_mse_bound, draw_candidates  # noqa: E402
 from bayescal.design import relaxed_select, select_from_candidates  # noqa: E402
 from bayescal.design.relations import grid_points, relation_candidates, relaxed_relations, _scaled_rows  # noqa: E402
@@ -370,7 +372,7 @@ def markdown(results: list[dict], nl: dict, cfg: dict, seed: int, seconds: float
           "| setting | target | result | |", "|---|---|---|---|"]
     for r in results:
         for t in r["targets"] + nl.get(r["setting"], {}).get("targets", []):
-            md.append(f"| {r['setting']} | {t['target']} | {t['value']} | {'PASS' if t['pass'] else 'MISS'} |")
+            md.append(f"| {r['setting']} | {t['target']} | {t['value']} | {verdict(t['pass'])} |")
     md += ["", "## sqrt(E[MSE]) of the plan against the bound (linearised, um)", "",
            "| setting | n | plan | bound (every n-pose design >=) | plan / bound | relaxed support | distinct poses in plan | greedy I / bound |",
            "|---|---|---|---|---|---|---|---|"]
@@ -449,9 +451,9 @@ def main(argv=None) -> int:
     targets = [t for r in results for t in r["targets"]] + [t for v in nl.values() for t in v["targets"]]
     for r in results:
         for t in r["targets"] + nl.get(r["setting"], {}).get("targets", []):
-            print(f"{'PASS' if t['pass'] else 'MISS'}  {r['setting']}: {t['target']}: {t['value']}")
+            print(f"{verdict(t['pass'])}  {r['setting']}: {t['target']}: {t['value']}")
     print(f"\nwrote {out} in {seconds:.0f} s")
-    return 0 if all(t["pass"] for t in targets) else 1
+    return exit_code(t["pass"] for t in targets)
 
 
 if __name__ == "__main__":

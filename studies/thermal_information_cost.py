@@ -86,6 +86,8 @@ from numpy.typing import NDArray
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from studies.targets import exit_code, verdict  # noqa: E402
+
 CLASSES = ("thermal_expansion", "phys_thermal")
 VARIANTS = ("as run", "random order", "serpentine", "reference poses")
 #: Every this many measurements repeat the reference pose (variant "reference poses").
@@ -419,8 +421,7 @@ def main(argv=None) -> int:
                       f"bias {r['bias_joint_um']:5.2f} (pull {r['pull_um']:5.2f}, mismatch {r['mismatch_um']:5.2f}) um clean {r['clean_um']:4.1f} (pred {r['pred_clean_um']:4.1f}) um", flush=True)
     lines = table(rows)
     checks = claims(rows)
-    word = {True: "PASS", False: "MISS"}
-    ctext = [f"{word[m]} {name}: {nums}" for name, m, nums in checks]
+    ctext = [f"{verdict(m)} {name}: {nums}" for name, m, nums in checks]
     print("\n".join(lines))
     print("\n".join(ctext))
     print(f"CPU {time.process_time() - t0:.0f} s")
@@ -440,7 +441,7 @@ def main(argv=None) -> int:
     w.writerows({"variant": v, **r} for (cls, v), rs in rows.items() for r in rs
                 if not (v == "random order" and cls == "thermal_expansion"))
     write_text_atomic(out / "results.csv", buf.getvalue())
-    return 1 if any(not m for _, m, _ in checks) else 0
+    return exit_code(m for _, m, _ in checks)
 
 
 if __name__ == "__main__":

@@ -20,15 +20,15 @@ from .outputs import add_output_options, write_calibrated_machine, write_json, w
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
 
-The recording (CSV, see docs/formats.md) holds commanded actuator positions q1..qN
-and the measured tool point x, y, z, plus either a rotation vector rx, ry, rz
-(6-DOF) or a tool axis nx, ny, nz (5-DOF), or nothing more (position only).
-With --free auto (default) the combinations the measurement cannot separate
-are found by SVD and named in the report: ls fixes enough parameters at
-nominal to be well posed (ballbar pivots and other nuisance parameters kept);
-ridge, tsvd, map and kalman estimate every parameter the measurement sees and
-let the prior decide those combinations (fixing them made a MAP calibration
-from a ballbar worse than the nominal machine; docs/delta.md).
+The recording (CSV, see docs/formats.md) holds commanded actuator positions
+q1..qN and the measured tool point x, y, z, plus either a rotation vector rx,
+ry, rz (6-DOF) or a tool axis nx, ny, nz (5-DOF), or nothing more (position
+only). With --free auto (default) the combinations the measurement cannot
+separate are found by SVD and named in the report: ls fixes enough parameters
+at nominal to be well posed (ballbar pivots and other nuisance parameters
+kept); ridge, tsvd, map and kalman estimate every parameter the measurement
+sees and let the prior decide those combinations (fixing them made a MAP
+calibration from a ballbar worse than the nominal machine; docs/delta.md).
 
 Methods: ls (Gauss-Newton least squares), ridge (Tikhonov towards nominal;
 --lam 1 is the MAP estimate under the machine file's tolerance prior), tsvd
@@ -46,17 +46,19 @@ keep the singular directions with s^2 > lambda_evidence), success (Bayes
 decision for "tool-point error within 10 % of the best candidate's", by
 Monte Carlo over the posterior, the prior scale integrated over a hyperprior:
 log-normal around the tolerances, sd ln 2, within 0.3-6 times them; the
-default for lambda and k).  See docs/regularisation.md.
+default for lambda and k).  The report prints the chosen value and what
+every other rule picks ("<- used" marks the rule applied); --figures DIR
+draws the rule curves.  See docs/regularisation.md.
 
 --method map multiplies every tolerance of the prior by one factor estimated
 from the data (the evidence), so that the intervals hold when the machine is
 better or worse than its tolerances say, when the recording has at least
 three measured components per parameter or the machine file states no
 noise (no [measurement] table: the sigmas are weights, and the factor sets
-the geometry's spread against the noise); otherwise the tolerances are
-used as they are, and the report says so; --prior-scale tolerance|empirical chooses explicitly
-(tolerance: MAP = ridge with --lam 1).  The report prints the chosen value and what
-every other rule picks; --figures DIR draws the rule curves.
+the geometry's spread against the noise); otherwise the tolerances are used
+as they are, and the report says so ("prior scale: ..." line).
+--prior-scale tolerance|empirical chooses explicitly (tolerance: MAP = ridge
+with --lam 1).
 
 A machine file with [effect.<name>] tables (written by diagnose
 --write-machine) has those effects applied at their stored values, driven by

@@ -266,6 +266,19 @@ def fit_map(
     Returns
     -------
     EffectFit
+
+    Notes
+    -----
+    The physical lower bounds :attr:`EffectParam.lower` are deliberately not
+    enforced here.  A parameter fitted significantly below its bound (a
+    negative compliance, a screw that shrinks when warmed) says that the
+    effect's shape fits some other mismatch; the diagnosis rejects such a fit
+    (:meth:`Effect.nonphysical`, docs/diagnose.md "Physical signs").  Clamped
+    at the bound the test could never fire, and the effect's other
+    parameters would pass as a detection of an effect that is not there
+    (tests/physics/test_thermal_growth.py, tests/diagnose/test_diagnose.py::
+    test_negative_compliance_is_not_reported_as_a_detection).  Values within
+    a few sigma below the bound are noise and reported as fitted (unbiased).
     """
     machine = model.machine
     P = machine.n_params

@@ -53,8 +53,17 @@ def fit_system(res) -> dict:
 
 
 def map_system(res) -> dict:
-    """MAP under the tolerance prior at the free set of any result (kalman, mcmc)."""
-    return {"free": np.asarray(res.free), "lam": 1.0, "k": None}
+    """MAP at the free set of any result (map, kalman, mcmc), under the prior the result was fitted with.
+
+    The tolerance prior (``lam = 1``), times the prior scale ``c`` when the
+    result estimated one (``extras["prior_scale"]``, ``identify --method
+    map``'s empirical Bayes): the tolerance-scaled system then has
+    ``lam = 1 / c^2``.  The pose test must judge the poses by the fit's own
+    hat matrix; with ``lam = 1`` it would use a prior the fit did not.
+    """
+    c = (res.extras or {}).get("prior_scale")
+    lam = 1.0 if c is None else 1.0 / float(c) ** 2
+    return {"free": np.asarray(res.free), "lam": lam, "k": None}
 
 
 @dataclass(frozen=True)

@@ -60,3 +60,26 @@ def test_identify_map_is_map_estimate_with_the_rule_and_the_command_agrees(tmp_p
     got = np.array([p["value"] for p in a["parameters"]])
     assert abs(a["prior_scale"] - res.extras["prior_scale"]) < 1e-12
     np.testing.assert_allclose(got[: m.n_params], res.theta[: m.n_params], atol=1e-9)
+
+
+def test_outlier_retest_uses_the_estimated_prior_scale():
+    # the pose test after an empirical-Bayes MAP must use that fit's prior (lam = 1 / c^2), not the tolerances'
+    from pathlib import Path
+
+    from bayescal.machines import load_machine
+    from bayescal.models import model_from_recording, read_any_recording
+    from bayescal.outliers import pose_test
+
+    ex = Path(__file__).resolve().parents[2] / "examples" / "delta"
+    m = load_machine(ex / "machine.toml")
+    model = model_from_recording(m, read_any_recording(ex / "recording.csv"))
+    res, handling = identify_map(model, "auto", robust="off")
+    c = res.extras["prior_scale"]
+    assert abs(np.log(c)) > np.log(1.5)  # far enough from the tolerances for the two tests to differ
+    t = handling.test
+    kw = dict(free=np.asarray(res.free), alpha=t.alpha, lines=t.lines)
+    same = pose_test(model, res.theta, lam=1.0 / c**2, **kw)
+    np.testing.assert_allclose(t.statistic, same.statistic, rtol=1e-12)
+    np.testing.assert_allclose(t.cooks_distance, same.cooks_distance, rtol=1e-12)
+    tol = pose_test(model, res.theta, lam=1.0, **kw)
+    assert np.max(np.abs(t.cooks_distance / tol.cooks_distance - 1)) > 0.05

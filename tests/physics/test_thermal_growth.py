@@ -70,3 +70,29 @@ def test_growing_screws_and_links_are_named_and_recovered(seed, alpha_frame):
         for name, truth in ((f"alpha.q{i + 1}", a_s[i]), (f"link.q{i + 1}", lam[i])):
             assert abs(got[name].value - truth) < 4 * got[name].std, (got[name], truth)
     assert d.p_final > 1e-3
+
+
+def test_map_fit_does_not_clamp_a_shrinking_screw_so_the_diagnosis_can_reject_it():
+    # fit_map leaves EffectParam.lower unenforced on purpose (docs/diagnose.md, "Physical signs"): a screw
+    # that shrinks when warmed (impossible for steel) must come out significantly negative, where
+    # Effect.nonphysical rejects it, not at the bound 0, where the rest of the effect would pass as a detection
+    from bayescal.effects import fit_map
+    from bayescal.measurement import MeasurementModel
+
+    m, theta, q, temp, a_s, a_l, bearing, _, rng = _case(4)
+    a_s = np.array([-60.0, a_s[1], a_s[2]])  # um/m/K, far outside any metal
+    growth = PartGrowth(m, temp, alpha_screw=a_s, bearing_mm=bearing, alpha_link=a_l)
+    rec = measure(m, q, theta, 6, rng, aux={"temp_C": temp}, effects=[growth])
+    model = MeasurementModel.from_recording(m, rec)
+    eff = get_effect("thermal_expansion")
+    zero = np.zeros(m.n_params)
+    f = eff.features(m, model.pose_q, zero, {"temp_C": temp}, model.pose_order, m.forward(model.pose_q, zero))
+    fit = fit_map(model, [(eff, f)])
+    names = [p.name for p in fit.params]
+    k = names.index("alpha.q1")
+    std = fit.std_eta()
+    assert next(p for p in fit.params if p.name == "alpha.q1").lower == 0.0
+    assert fit.eta[k] < -5 * std[k]  # below the bound, not clamped to it
+    assert abs(fit.eta[k] - a_s[0]) < 4 * std[k]  # and near the simulated value
+    why = eff.nonphysical(fit.params, fit.eta, std)
+    assert why is not None and "alpha.q1" in why and "alpha.q2" not in why and "alpha.q3" not in why

@@ -1,16 +1,10 @@
 """studies/compliance_identifiability.py: the conclusions docs/diagnose.md draws from it, on one machine."""
 
-import importlib.util
-from pathlib import Path
-
-SCRIPT = Path(__file__).resolve().parents[2] / "studies" / "compliance_identifiability.py"
+from tests.studies.conftest import load_study
 
 
 def _study():
-    spec = importlib.util.spec_from_file_location("compliance_identifiability", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_study("compliance_identifiability")
 
 
 def test_the_constant_sag_is_confounded_in_practice_and_stated_inputs_pin_it():

@@ -3,7 +3,6 @@ converter's output, the numbers round-trip to the source YAML, the URDF-style ma
 source's DH model, and after a rigid alignment the nominal machine explains the recording as
 nominal.md says it should."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +12,7 @@ from scipy.optimize import least_squares
 from bayescal.geometry import so3_exp, so3_log
 from bayescal.io.recording import read_recording
 from bayescal.machines import check_machine, load_machine
+from tests.studies.conftest import load_study
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "positioner"
@@ -25,10 +25,7 @@ needs_source = pytest.mark.skipif(not (SOURCE / "measurements.yaml").is_file(), 
 
 
 def _converter():
-    spec = importlib.util.spec_from_file_location("convert_positioner", ROOT / "studies" / "convert_positioner.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_study("convert_positioner")
 
 
 @pytest.fixture(scope="module")

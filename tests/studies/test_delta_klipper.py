@@ -1,23 +1,21 @@
 """studies/delta_klipper.py --quick on the FLSUN Q5 (GPL-3.0 data read from ../shared, skipped without it)."""
 
-import importlib.util
 import json
 import os
 from pathlib import Path
 
 import pytest
 
+from tests.studies.conftest import load_study
+
 ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = ROOT / "studies" / "delta_klipper.py"
 SHARED = Path(os.environ.get("BAYESCAL_SHARED", ROOT / ".." / "shared"))
 DATA = SHARED / "data" / "real" / "delta_flsun_q5"
 pytestmark = pytest.mark.skipif(not (DATA / "printer-post-calibration.cfg").exists(), reason="../shared data not present")
 
 
 def test_quick_run_writes_tables_and_figures(tmp_path):
-    spec = importlib.util.spec_from_file_location("delta_klipper", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_study("delta_klipper")
     assert mod.main(["--quick", "--out", str(tmp_path), "--data", str(DATA)]) == 0
     res = json.loads((tmp_path / "delta_klipper.json").read_text())
     ida = {(c["data"], c["parameters"]): c for c in res["identifiability"]}

@@ -1,20 +1,14 @@
 """The exact-design search of studies/exact_design_gap.py: exchanges checked by brute force, gradients by differences."""
 
-import importlib.util
 import sys
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.studies.conftest import load_study
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("exact_design_gap", ROOT / "studies" / "exact_design_gap.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_study("exact_design_gap")
 
 
 def test_full_exchange_is_a_local_optimum_by_brute_force():

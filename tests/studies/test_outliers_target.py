@@ -1,16 +1,10 @@
 """studies/outliers_target.py on one small seed: every gross pose named, none clean, and its PASS/MISS exit code."""
 
-import importlib.util
-from pathlib import Path
-
-STUDY = Path(__file__).resolve().parents[2] / "studies" / "outliers_target.py"
+from tests.studies.conftest import load_study
 
 
 def _study():
-    spec = importlib.util.spec_from_file_location("outliers_target", STUDY)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_study("outliers_target")
 
 
 def _rows(text):

@@ -1,18 +1,12 @@
 """The pose-planning study's --quick mode runs end to end, reports every target and exits 1 on a miss."""
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.studies.conftest import load_study
 
 
 def test_quick_study_writes_tables_and_reports_targets(tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("pose_planning", ROOT / "studies" / "pose_planning.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # the study's dataclass looks its module up
-    spec.loader.exec_module(mod)
+    mod = load_study("pose_planning")
     rc = mod.main(["--quick", "--settings", "delta-height", "--trials", "20", "--out", str(tmp_path)])
     for name in ("summary.json", "pose_planning.md", "pose_planning.png"):
         assert (tmp_path / name).exists(), name

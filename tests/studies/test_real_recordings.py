@@ -6,13 +6,14 @@ URDF, never copied) are read from ../shared, and those parts skip cleanly
 when it is absent.
 """
 
-import importlib.util
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.studies.conftest import load_study
 
 ROOT = Path(__file__).resolve().parents[2]
 STUDIES = ROOT / "studies"
@@ -28,10 +29,7 @@ pytest.importorskip("bayescal.instrument", reason="bayescal.instrument (--frame 
 
 def _study():
     sys.path.insert(0, str(STUDIES))
-    spec = importlib.util.spec_from_file_location("real_recordings", STUDIES / "real_recordings.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_study("real_recordings")
 
 
 @pytest.fixture(scope="module")

@@ -1,14 +1,10 @@
-import importlib.util
 import json
-from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[2] / "studies" / "rupus_prs_identifiability.py"
+from tests.studies.conftest import load_study
 
 
 def test_quick_run_writes_the_table(tmp_path):
-    spec = importlib.util.spec_from_file_location("rupus_prs_identifiability", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_study("rupus_prs_identifiability")
     assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
     res = json.loads((tmp_path / "rupus_prs_identifiability.json").read_text())
     ranks = {(c["geometry"], c["dof"]): c["rank"] for c in res["cases"]}

@@ -1,19 +1,14 @@
 """studies/thermal_information_cost.py: its linearised formulas, its recordings, its pose sequences and a --quick run."""
 
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
-SCRIPT = Path(__file__).resolve().parents[2] / "studies" / "thermal_information_cost.py"
+from tests.studies.conftest import load_study
 
 
 def _study():
-    spec = importlib.util.spec_from_file_location("thermal_information_cost", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_study("thermal_information_cost")
 
 
 def _linear_problem(seed=0, P=4, K=2, rows=30):

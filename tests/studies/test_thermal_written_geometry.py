@@ -1,18 +1,12 @@
 """studies/thermal_written_geometry.py: its variants, its truth at a temperature, and a --quick run."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
-SCRIPT = Path(__file__).resolve().parents[2] / "studies" / "thermal_written_geometry.py"
+from tests.studies.conftest import load_study
 
 
 def _study():
-    spec = importlib.util.spec_from_file_location("thermal_written_geometry", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_study("thermal_written_geometry")
 
 
 def test_variants_change_only_the_start_and_the_channels():
