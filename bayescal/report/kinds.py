@@ -191,8 +191,13 @@ def identify_sections(result, *, machine=None, model=None, choice=None, answer_e
         stats.append(["poses needed (within 10% of final accuracy)", d["poses_needed"]])
     poor = result.poorly_determined() if hasattr(result, "poorly_determined") else ()
     tol = getattr(result, "tolerance", None)
-    if tol is None and machine is not None:
-        tol = machine.tolerance
+    if tol is None:
+        # the answer's parameters are the model's (a ballbar model adds its pivots, a fitted frame its six):
+        # the model's machine has their tolerances, the machine file's only the geometry's
+        src = model.machine if model is not None else machine
+        tol = None if src is None else src.tolerance
+    if tol is not None and len(tol) != len(d["parameters"]):
+        tol = None  # not this answer's parameters: no column rather than a wrong one
     # a machine file without a [measurement] table states no noise (its sigmas are weights): nothing to compare with
     sigma = machine.noise.sigma_position if machine is not None and machine.noise.given else None
     sections = [
