@@ -196,3 +196,18 @@ def test_a_ballbar_kalman_report_lists_the_pivots_with_their_tolerance():
     assert rows["pivot.1.x"][4][1] == pytest.approx(model.machine.tolerance[model.machine.layout.names.index("pivot.1.x")])
     assert rows["tower1.radius"][4][1] == pytest.approx(m.tolerance[m.layout.names.index("tower1.radius")])
 
+
+@pytest.mark.parametrize("method", ["map", "kalman"])
+def test_combinations_the_prior_decides_are_in_the_report_and_the_answer(method):
+    # with free="auto" a method with a prior estimates the confounded parameters and the prior decides the
+    # split (docs/cli.md, identify --free): the report must name them, not say every parameter is identifiable
+    from bayescal.bayes.kalman import kalman_filter
+    from bayescal.identify import identify
+
+    m, model = _delta_ballbar()
+    res = identify(model, method="map") if method == "map" else kalman_filter(model)
+    assert res.decided_by_prior and res.to_dict()["decided_by_prior"] == list(res.decided_by_prior)
+    html = render_report("identify", res, machine=m, model=model)
+    assert "Every parameter that was asked for is identifiable" not in html
+    assert "decided by the prior" in html
+    assert [r[0][0] for r in tables(html)["decided-by-prior"]] == list(res.decided_by_prior)
