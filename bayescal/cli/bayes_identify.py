@@ -79,7 +79,8 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
     if may_write_machine(args, res, plaus):
-        write_calibrated_machine(args, machine, res.theta)  # [effect.*] and [instrument] kept
+        # [effect.*] and [instrument] kept; ballbar pivots (beyond the machine's parameters) left out, as identify does
+        write_calibrated_machine(args, machine, res.theta[: machine.n_params])
     write_report(args, "identify", res, machine=machine, model=base_model, answer_extra=extra)
     made = []
     if args.figures:
