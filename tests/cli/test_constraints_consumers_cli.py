@@ -149,3 +149,17 @@ def test_identify_writes_the_machine_of_a_ballbar_recording(tmp_path, method, in
     np.testing.assert_allclose(cal.forward(q).position, nominal.forward(q, theta).position, atol=1e-9)
     if instrument:
         assert answer["frame"]["fitted"] is False and answer["frame"]["origin"] == [10.0, 0.0, 0.0]
+
+
+def test_kalman_writes_klipper_keys_as_the_other_methods(tmp_path):
+    # --write-klipper was silently ignored by kalman and mcmc (exit 0, no file); the keys are the geometry's
+    from bayescal.klipper import klipper_text
+
+    delta = EX / "delta"
+    cfg = tmp_path / "k.cfg"
+    code = main(["identify", str(delta / "recording.csv"), "--machine", str(delta / "machine.toml"), "--method", "kalman",
+                 "--json", str(tmp_path / "a.json"), "--write-klipper", str(cfg), "--quiet"])
+    assert code == 0
+    m = load_machine(delta / "machine.toml")
+    theta = np.array([p["value"] for p in json.loads((tmp_path / "a.json").read_text())["parameters"]])
+    assert cfg.read_text() == klipper_text(m, theta)
