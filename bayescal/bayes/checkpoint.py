@@ -89,7 +89,7 @@ def load_checkpoint(path: str | os.PathLike, fingerprint: dict) -> emcee.backend
                 raise ValueError("a single array, not an .npz archive")
             with z:
                 data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:  # a truncated .npz is a bad zip file
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # truncated: a bad zip file; empty: EOFError
         raise InputError(f"{path}: not a bayescal MCMC checkpoint ({exc})") from None
     missing = sorted(_KEYS - set(data))
     if missing:

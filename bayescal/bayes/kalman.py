@@ -91,6 +91,8 @@ class FilterResult:
     message: str = ""
     fixed: tuple[str, ...] = ()
     unidentifiable: tuple[str, ...] = ()
+    #: Combinations the data do not separate that the prior decides (``free="auto"``: estimated, not fixed).
+    decided_by_prior: tuple[str, ...] = ()
     extras: dict = field(default_factory=dict)
 
     method = "kalman"
@@ -141,6 +143,7 @@ class FilterResult:
             "covariance": covariance_dict(self.names, self.units, self.free, self.covariance),
             "fixed": list(self.fixed),
             "unidentifiable": list(self.unidentifiable),
+            "decided_by_prior": list(self.decided_by_prior),
             "strong_correlations": [
                 {"a": a, "b": b, "correlation": c} for a, b, c in strong_correlations(self.covariance, self.free_names)
             ],
@@ -179,6 +182,9 @@ class FilterResult:
         lines += parameter_table(parameter_list(self.names, self.units, self.theta, self.std, self.free), pairs)
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, held at the prior mean: {', '.join(self.fixed)}"]
+        if self.decided_by_prior:
+            lines += ["", "  not separated by these poses, decided by the prior: "
+                      + ", ".join(c.split(":", 1)[0] for c in self.decided_by_prior)]
         return "\n".join(lines)
 
 
@@ -318,4 +324,5 @@ def kalman_filter(
         message=message,
         fixed=tuple(nm for nm, fr in zip(machine.layout.names, free_mask) if not fr),
         unidentifiable=() if ida is None else ida.combinations,
+        decided_by_prior=() if ida is None else ida.decided_by_prior,
     )

@@ -138,6 +138,8 @@ class PosteriorResult:
     seconds: float = float("nan")
     fixed: tuple[str, ...] = ()
     unidentifiable: tuple[str, ...] = ()
+    #: Combinations the data do not separate that the prior decides (``free="auto"``: sampled, not fixed).
+    decided_by_prior: tuple[str, ...] = ()
 
     method = "mcmc"
 
@@ -175,6 +177,7 @@ class PosteriorResult:
             "covariance_kind": "posterior sample covariance (emcee)" if ok else "none: posterior not converged",
             "fixed": list(self.fixed),
             "unidentifiable": list(self.unidentifiable),
+            "decided_by_prior": list(self.decided_by_prior),
             "convergence": {
                 "n_walkers": self.n_walkers,
                 "n_steps": self.n_steps,
@@ -225,6 +228,9 @@ class PosteriorResult:
         )
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, held at the prior mean: {', '.join(self.fixed)}"]
+        if self.decided_by_prior:
+            lines += ["", "  not separated by these poses, decided by the prior: "
+                      + ", ".join(c.split(":", 1)[0] for c in self.decided_by_prior)]
         return "\n".join(lines)
 
 
@@ -495,6 +501,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         seconds=seconds,
         fixed=start.fixed,
         unidentifiable=start.unidentifiable,
+        decided_by_prior=start.decided_by_prior,
     )
 
 

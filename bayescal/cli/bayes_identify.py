@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ..io import write_text_atomic
 from .outputs import write_calibrated_machine, write_json, write_report
 
 __all__ = ["add_arguments", "run_bayes", "METHODS"]
@@ -79,7 +80,15 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
     if may_write_machine(args, res, plaus):
-        write_calibrated_machine(args, machine, res.theta)  # [effect.*] and [instrument] kept
+        # [effect.*] and [instrument] kept; ballbar pivots (beyond the machine's parameters) left out, as identify does
+        write_calibrated_machine(args, machine, res.theta[: machine.n_params])
+    if getattr(args, "write_klipper", None) and res.success and plaus.plausible:
+        # as identify's other methods do (identify.run checked the machine is a linear delta)
+        from ..klipper import klipper_text
+        from .outputs import say
+
+        say(args, f"wrote {write_text_atomic(args.write_klipper, klipper_text(machine, res.theta[: machine.n_params]))} "
+            "(Klipper keys)")
     write_report(args, "identify", res, machine=machine, model=base_model, answer_extra=extra)
     made = []
     if args.figures:

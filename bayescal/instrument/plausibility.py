@@ -216,7 +216,8 @@ def frame_answer(machine: Machine, theta: NDArray, free: NDArray, covariance: ND
     """
     if not isinstance(machine, InstrumentFrame):
         return {}
-    f = machine.frame_at(theta)
+    # a model's own nuisance parameters (ballbar pivots) follow the machine's: the frame is the machine's
+    f = machine.frame_at(np.asarray(theta, dtype=float)[: machine.n_params])
     rv = f.rotation_vector
     out = {"origin": f.origin.tolist(), "rotation_vector": rv.tolist(), "fitted": bool(machine.fit), "std": None}
     if machine.fit and covariance is not None:

@@ -73,18 +73,25 @@ def _correlation_section(d: dict) -> dict:
 
 def _unidentifiable_section(d: dict) -> dict:
     fixed, combos = d.get("fixed") or [], d.get("unidentifiable") or []
-    if not fixed and not combos:
+    # free="auto" with a prior (map, ridge, tsvd, kalman, mcmc): confounded parameters are estimated, the prior
+    # deciding their split (bayescal.identify.resolve_free); they are not identifiable from the data either
+    prior = d.get("decided_by_prior") or []
+    if not fixed and not combos and not prior:
         return section("What the measurement cannot separate", id="unidentifiable",
                        text=["Every parameter that was asked for is identifiable from these poses."])
-    text = []
+    text, tables = [], []
     if fixed:
         text.append(f"{len(fixed)} parameters cannot be identified from these poses and were held at nominal: "
                     + ", ".join(fixed) + ".")
     if combos:
         text.append("The measurement cannot tell apart the parameters in each of these combinations "
                     "(moving along one of them changes no measured value to first order):")
-    return section("What the measurement cannot separate", id="unidentifiable", text=text,
-                   tables=[table(["combination the data cannot see"], [[c] for c in combos], id="combinations")] if combos else [])
+        tables.append(table(["combination the data cannot see"], [[c] for c in combos], id="combinations"))
+    if prior:
+        text.append(f"{len(prior)} combinations are not separated by these poses and were decided by the prior "
+                    "(estimated near nominal in proportion to the tolerances, not fixed; --method ls fixes them instead):")
+        tables.append(table(["combination decided by the prior"], [[c] for c in prior], id="decided-by-prior"))
+    return section("What the measurement cannot separate", id="unidentifiable", text=text, tables=tables)
 
 
 def _outlier_indices(result) -> list[int]:
@@ -191,8 +198,13 @@ def identify_sections(result, *, machine=None, model=None, choice=None, answer_e
         stats.append(["poses needed (within 10% of final accuracy)", d["poses_needed"]])
     poor = result.poorly_determined() if hasattr(result, "poorly_determined") else ()
     tol = getattr(result, "tolerance", None)
-    if tol is None and machine is not None:
-        tol = machine.tolerance
+    if tol is None:
+        # the answer's parameters are the model's (a ballbar model adds its pivots, a fitted frame its six):
+        # the model's machine has their tolerances, the machine file's only the geometry's
+        src = model.machine if model is not None else machine
+        tol = None if src is None else src.tolerance
+    if tol is not None and len(tol) != len(d["parameters"]):
+        tol = None  # not this answer's parameters: no column rather than a wrong one
     # a machine file without a [measurement] table states no noise (its sigmas are weights): nothing to compare with
     sigma = machine.noise.sigma_position if machine is not None and machine.noise.given else None
     sections = [

@@ -32,3 +32,11 @@ def test_a_single_array_file_is_refused(tmp_path):
         np.save(fh, np.ones(3))
     with pytest.raises(InputError, match="one.npz: not a bayescal MCMC checkpoint"):
         load_checkpoint(path, {})
+
+
+def test_an_empty_file_is_refused(tmp_path):
+    # np.load raises EOFError on an empty file (a `touch`ed path): an InputError (exit 2), not a traceback
+    path = tmp_path / "empty.npz"
+    path.write_bytes(b"")
+    with pytest.raises(InputError, match="empty.npz: not a bayescal MCMC checkpoint"):
+        load_checkpoint(path, {})

@@ -118,3 +118,48 @@ def test_diagnose_figures_report_and_calibrated_machine(tmp_path):
     assert (figs / "residuals_vs_channels.png").stat().st_size > 0 and report.stat().st_size > 0
     assert load_machine(cal).n_params == load_machine(machine).n_params  # the geometry, not the pivot
     assert main(["identify", str(rec), "--machine", str(cal), "--method", "map", "--quiet"]) in (0, 1)
+
+
+@pytest.mark.parametrize("method", ["map", "kalman"])
+@pytest.mark.parametrize("instrument", [False, True], ids=["plain", "instrument"])
+def test_identify_writes_the_machine_of_a_ballbar_recording(tmp_path, method, instrument):
+    # the answer's theta has the pivots after the machine's parameters: the written machine is the geometry
+    # alone (kalman and mcmc passed the whole theta: exit 2 "theta: expected shape (21,)"), and a machine
+    # file's [instrument] table (which a constraint recording does not see) is kept, not fitted
+    machine = tmp_path / "m.toml"
+    text = (EX / "delta" / "machine.toml").read_text()
+    if instrument:
+        text += "\n[instrument]\norigin = [10.0, 0.0, 0.0]\nrotation_vector = [0.0, 0.0, 0.1]\n"
+    machine.write_text(text)
+    rec = tmp_path / "bb.csv"
+    assert main(["simulate", "--machine", str(machine), "--ballbar", "40", "--planes", "xy,xz", "--poses", "12",
+                 "--pivot", "1,2,80", "--seed", "3", "--out", str(rec), "--quiet"]) == 0
+    out = tmp_path / "cal.toml"
+    code = main(["identify", str(rec), "--machine", str(machine), "--method", method, "--json", str(tmp_path / "a.json"),
+                 "--write-machine", str(out), "--force", "--quiet"])
+    assert code in (0, 1)
+    answer = json.loads((tmp_path / "a.json").read_text())
+    nominal = load_machine(machine)
+    P = nominal.n_params
+    names = [p["name"] for p in answer["parameters"]]
+    assert names[:P] == list(nominal.layout.names) and all(n.startswith("pivot.") for n in names[P:])
+    theta = np.array([p["value"] for p in answer["parameters"]])[:P]
+    cal = load_machine(out)
+    q = nominal.sample_q(8, np.random.default_rng(1))
+    np.testing.assert_allclose(cal.forward(q).position, nominal.forward(q, theta).position, atol=1e-9)
+    if instrument:
+        assert answer["frame"]["fitted"] is False and answer["frame"]["origin"] == [10.0, 0.0, 0.0]
+
+
+def test_kalman_writes_klipper_keys_as_the_other_methods(tmp_path):
+    # --write-klipper was silently ignored by kalman and mcmc (exit 0, no file); the keys are the geometry's
+    from bayescal.klipper import klipper_text
+
+    delta = EX / "delta"
+    cfg = tmp_path / "k.cfg"
+    code = main(["identify", str(delta / "recording.csv"), "--machine", str(delta / "machine.toml"), "--method", "kalman",
+                 "--json", str(tmp_path / "a.json"), "--write-klipper", str(cfg), "--quiet"])
+    assert code == 0
+    m = load_machine(delta / "machine.toml")
+    theta = np.array([p["value"] for p in json.loads((tmp_path / "a.json").read_text())["parameters"]])
+    assert cfg.read_text() == klipper_text(m, theta)

@@ -50,3 +50,28 @@ def test_hybrid_with_effect_tables_keeps_them_in_the_main_file(tmp_path):
     assert eff.name == "backlash"
     assert dict(eff.values) == {"backlash.q1": 5.0, "backlash.q2": 6.0, "backlash.q3": 7.0, "backlash.q4": 50.0}
     assert eff.units == ("um", "um", "um", "urad")
+
+
+def test_diagnose_writes_a_hybrid_in_the_file_per_module_form_with_its_effects(tmp_path):
+    # FORMATS.md section 5: [[module]] tables each name a file; diagnose --write-machine wrote the modules
+    # inline ([module.machine]), which only bayescal reads, while identify wrote the contract's form
+    rec = tmp_path / "rec.csv"
+    assert main(["simulate", "--machine", str(HYB / "machine.toml"), "--poses", "40", "--seed", "3", "--effect",
+                 "backlash", "--out", str(rec), "--quiet"]) == 0
+    out = tmp_path / "cal.toml"
+    code = main(["diagnose", str(rec), "--machine", str(HYB / "machine.toml"), "--effects", "backlash",
+                 "--json", str(tmp_path / "d.json"), "--write-machine", str(out), "--quiet"])
+    assert code == 0
+    answer = json.loads((tmp_path / "d.json").read_text())
+    doc = tomllib.loads(out.read_text())
+    assert doc["kind"] == "hybrid"
+    assert all("file" in m and "machine" not in m for m in doc["module"])
+    assert all((tmp_path / m["file"]).is_file() for m in doc["module"])
+    assert out.read_text().startswith("# calibrated by bayescal diagnose")
+    cal = load_machine(out)
+    assert [e.name for e in cal.effects] == answer["written_machine"]["effects"]
+    # the module files hold the fitted geometry, not the nominal one
+    nominal = load_machine(HYB / "machine.toml")
+    q = nominal.sample_q(10, np.random.default_rng(4))
+    a, b = cal.forward(q), nominal.forward(q)
+    assert a.success.all() and 1e-6 < np.abs(a.position - b.position).max() < 1.0

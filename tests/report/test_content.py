@@ -170,3 +170,44 @@ def test_noise_yardstick_of_a_distance_and_height_recording_is_sigma():
     silent = replace(m, noise=MeasurementNoise())
     assert not silent.noise.given
     assert "instrument noise alone" not in render_report("identify", res, machine=silent, model=model)
+
+
+def _delta_ballbar():
+    from bayescal.constraint_model import ConstraintModel
+    from bayescal.machines import load_machine
+    from bayescal.simulate_constraints import simulate_ballbar
+    from tests.conftest import ROOT
+
+    m = load_machine(ROOT / "examples" / "delta" / "machine.toml")
+    rec = simulate_ballbar(m, 40.0, n_points=12, planes=("xy", "xz"), pivot=[1.0, 2.0, 80.0], seed=3).recording
+    return m, ConstraintModel.from_recording(m, rec)
+
+
+def test_a_ballbar_kalman_report_lists_the_pivots_with_their_tolerance():
+    # the filter's answer has the model's parameters (geometry, then the pivots); the report's tolerance
+    # column must be the model's too, not the machine file's (which has no pivots: an IndexError before)
+    from bayescal.bayes.kalman import kalman_filter
+
+    m, model = _delta_ballbar()
+    res = kalman_filter(model)
+    html = render_report("identify", res, machine=m, model=model)
+    rows = {r[0][0]: r for r in tables(html)["parameters"]}
+    assert len(rows) == model.n_params > m.n_params
+    assert rows["pivot.1.x"][4][1] == pytest.approx(model.machine.tolerance[model.machine.layout.names.index("pivot.1.x")])
+    assert rows["tower1.radius"][4][1] == pytest.approx(m.tolerance[m.layout.names.index("tower1.radius")])
+
+
+@pytest.mark.parametrize("method", ["map", "kalman"])
+def test_combinations_the_prior_decides_are_in_the_report_and_the_answer(method):
+    # with free="auto" a method with a prior estimates the confounded parameters and the prior decides the
+    # split (docs/cli.md, identify --free): the report must name them, not say every parameter is identifiable
+    from bayescal.bayes.kalman import kalman_filter
+    from bayescal.identify import identify
+
+    m, model = _delta_ballbar()
+    res = identify(model, method="map") if method == "map" else kalman_filter(model)
+    assert res.decided_by_prior and res.to_dict()["decided_by_prior"] == list(res.decided_by_prior)
+    html = render_report("identify", res, machine=m, model=model)
+    assert "Every parameter that was asked for is identifiable" not in html
+    assert "decided by the prior" in html
+    assert [r[0][0] for r in tables(html)["decided-by-prior"]] == list(res.decided_by_prior)
