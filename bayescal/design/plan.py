@@ -212,7 +212,9 @@ def relaxed_select(cands: CandidateSet, n: int, *, repeats: bool = True, pool_si
     (``CandidateSet.uniform`` false: the corners, edges and faces of
     ``q_limits``, where the optimal poses of few-pose designs sit).  Two
     starts (the rounded relaxed design and the greedy design on the pool)
-    are improved by exchanges on the pool, and the better one again by
+    are improved by exchanges on the pool; with at most 12 distinct poses,
+    by two-pose exchanges with the relaxed support, the 64 largest ``d_i``
+    and (if at most 256) the box points; and then by
     exchanges with every candidate (or, with ``widen``, the pool plus that
     many candidates with the largest ``d_i`` at the design;
     :func:`~bayescal.design.rounding.multistart_search`).
@@ -232,9 +234,14 @@ def relaxed_select(cands: CandidateSet, n: int, *, repeats: bool = True, pool_si
         raise InputError("criterion I: the candidate set has no workspace tool-point Jacobian")
     bound = design_mse_bound(B, Q, int(n))
     pool = pool_from_bound(bound.weights, B, Q, size=pool_size)
+    near = pool_from_bound(bound.weights, B, Q, size=64)
     if cands.uniform is not None:
-        pool = np.union1d(pool, np.flatnonzero(~np.asarray(cands.uniform, dtype=bool)))
-    idx, start = multistart_search(B, Q, bound.weights, int(n), pool, repeats=repeats, widen=widen)
+        box = np.flatnonzero(~np.asarray(cands.uniform, dtype=bool))
+        pool = np.union1d(pool, box)
+        # the two-pose exchanges cost O(n^2) local searches: the box points join them only when few (3-PRS: 81;
+        # a 6-axis arm has 2,187)
+        near = np.union1d(near, box) if box.size <= 256 else near
+    idx, start = multistart_search(B, Q, bound.weights, int(n), pool, repeats=repeats, widen=widen, pair_pool=near)
     u0, u = -design_mse(B, Q, start), -design_mse(B, Q, idx)
     # poses exchanged: the size of the multiset difference between the start and the result
     common = sum(min(a, b) for a, b in zip(*(np.bincount(x, minlength=cands.n) for x in (start, idx))))

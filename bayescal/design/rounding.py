@@ -167,7 +167,7 @@ def d_at(blocks: NDArray, Q: NDArray, M: NDArray) -> NDArray:
 
 def multistart_search(
     blocks: NDArray, Q: NDArray, weights: NDArray, n: int, pool: NDArray, *, repeats: bool = True,
-    widen: int | None = None, pair_max: int = 12,
+    widen: int | None = None, pair_max: int = 12, pair_pool: NDArray | None = None,
 ) -> tuple[NDArray, NDArray]:
     """The best exact design from several starts, each improved by exchanges on a pool, then on a wider one.
 
@@ -177,7 +177,9 @@ def multistart_search(
     :func:`local_search` on ``pool``; if the better one has at most
     ``pair_max`` distinct poses (few-pose designs, where a single exchange
     most often stalls), :func:`pair_restarts` tries to leave its local
-    optimum by exchanging two poses at a time; the result is then improved by
+    optimum by exchanging two poses at a time with the candidates
+    ``pair_pool`` (default: the relaxed support and the 64 candidates of
+    largest ``d_i``, :func:`pool_from_bound`); the result is then improved by
     exchanges with every candidate (``widen=None``, default) or with the
     pool plus the ``widen`` candidates with the largest ``d_i`` at that
     design.  Why the last pass: a pose that improves the exact design need
@@ -201,7 +203,10 @@ def multistart_search(
     found = [(design_mse(blocks, Q, x), s, x) for _, s, x in found]
     f, start, idx = min(found, key=lambda t: t[0])
     if np.unique(idx).size <= int(pair_max):
-        idx, f = pair_restarts(blocks, Q, idx, pool, repeats=repeats)
+        # a narrower pool for the O(n^2) local searches: by default the relaxed support and the 64 largest d_i
+        near = pool_from_bound(weights, blocks, Q, size=64) if pair_pool is None else np.unique(pair_pool)
+        if repeats or near.size >= n:
+            idx, f = pair_restarts(blocks, Q, idx, near, repeats=repeats)
     if widen is None or int(widen) >= blocks.shape[0]:
         wide = np.arange(blocks.shape[0])
     else:
