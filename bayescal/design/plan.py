@@ -204,8 +204,20 @@ def default_method(criterion: str) -> str:
     return "relaxed" if check_criterion(criterion) == "I" else "greedy"
 
 
-def relaxed_select(cands: CandidateSet, n: int, *, repeats: bool = True, pool_size: int = 64):
-    """Criterion I: the Frank-Wolfe relaxed design, rounded, then exchanges on a pool (bayescal.design.rounding).
+def relaxed_select(cands: CandidateSet, n: int, *, repeats: bool = True, pool_size: int = 256, widen: int | None = None):
+    """Criterion I: the Frank-Wolfe relaxed design, rounded, then exchanges (bayescal.design.rounding).
+
+    The exchange pool is the relaxed support, the ``pool_size`` candidates
+    with the largest ``d_i`` at the relaxed optimum and every box point
+    (``CandidateSet.uniform`` false: the corners, edges and faces of
+    ``q_limits``, where the optimal poses of few-pose designs sit).  Two
+    starts (the rounded relaxed design and the greedy design on the pool)
+    are improved by exchanges on the pool; with at most 12 distinct poses,
+    by two-pose exchanges with the relaxed support, the 64 largest ``d_i``
+    and (if at most 256) the box points; and then by
+    exchanges with every candidate (or, with ``widen``, the pool plus that
+    many candidates with the largest ``d_i`` at the design;
+    :func:`~bayescal.design.rounding.multistart_search`).
 
     Returns
     -------
@@ -215,17 +227,23 @@ def relaxed_select(cands: CandidateSet, n: int, *, repeats: bool = True, pool_si
         The certified bound on ``E[MSE]`` of every ``n``-pose design, and the relaxed design.
     """
     from .bound import design_mse_bound
-    from .rounding import design_mse, distinct_start, local_search, pool_from_bound, round_weights
+    from .rounding import design_mse, multistart_search, pool_from_bound
 
     B, Q = cands.prior_blocks_kept, cands.output_weight
     if Q is None:
         raise InputError("criterion I: the candidate set has no workspace tool-point Jacobian")
     bound = design_mse_bound(B, Q, int(n))
     pool = pool_from_bound(bound.weights, B, Q, size=pool_size)
-    start = round_weights(bound.weights, n) if repeats else distinct_start(bound.weights, B, Q, n, pool)
-    idx = local_search(B, Q, start, pool, repeats=repeats)
+    near = pool_from_bound(bound.weights, B, Q, size=64)
+    if cands.uniform is not None:
+        box = np.flatnonzero(~np.asarray(cands.uniform, dtype=bool))
+        pool = np.union1d(pool, box)
+        # the two-pose exchanges cost O(n^2) local searches: the box points join them only when few (3-PRS: 81;
+        # a 6-axis arm has 2,187)
+        near = np.union1d(near, box) if box.size <= 256 else near
+    idx, start = multistart_search(B, Q, bound.weights, int(n), pool, repeats=repeats, widen=widen, pair_pool=near)
     u0, u = -design_mse(B, Q, start), -design_mse(B, Q, idx)
-    # poses exchanged: the size of the multiset difference between the rounded start and the result
+    # poses exchanged: the size of the multiset difference between the start and the result
     common = sum(min(a, b) for a, b in zip(*(np.bincount(x, minlength=cands.n) for x in (start, idx))))
     return Selection(index=idx, utility=u, greedy_utility=u0, swaps=int(n - common), history=np.array([u0, u])), bound
 

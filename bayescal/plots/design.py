@@ -30,9 +30,9 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
     plt = pyplot()
     dofs = sorted({r["dof"] for r in rows}, reverse=True)
     fig, axes = plt.subplots(1, len(dofs), figsize=(4.2 * len(dofs), 3.6), squeeze=False)
+    colors = _design_colors(rows)
     for ax, dof in zip(axes[0], dofs):
         designs = sorted({r["design"] for r in rows if r["dof"] == dof and r["design"] != "random"}) + ["random"]
-        colors = {d: f"C{3 + i}" for i, d in enumerate(designs[:-1])} | {"random": "C0"}
         for design in designs:
             color = colors[design]
             rr = sorted((r for r in rows if r["dof"] == dof and r["design"] == design
@@ -58,6 +58,13 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
     path.parent.mkdir(parents=True, exist_ok=True)
     save(fig, path, dpi=110)
     return path
+
+
+def _design_colors(rows: list[dict]) -> dict:
+    """One matplotlib colour per design across every panel: a design's colour must not depend on which other
+    designs a panel shows (planned-I was red in a panel without planned-D and purple beside it)."""
+    planned = sorted({r["design"] for r in rows if r["design"] != "random"})
+    return {d: f"C{3 + i}" for i, d in enumerate(planned)} | {"random": "C0"}
 
 
 def _panel_title(rows: list[dict], dof) -> str:
