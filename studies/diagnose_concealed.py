@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import sys
 import time
@@ -595,6 +596,8 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=1, help="dask worker processes (default 1: run in this process)")
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--classes", default=",".join(CLASSES), help="comma-separated subset of: " + ", ".join(CLASSES))
+    ap.add_argument("--resume", action="store_true",
+                    help="keep the recordings an interrupted run of the same settings finished (OUT/partial.jsonl)")
     ap.add_argument("--summarise", metavar="CSV", default=None,
                     help="only rewrite the tables and targets from the results.csv of an earlier run (into --out)")
     args = ap.parse_args(argv)
@@ -611,19 +614,12 @@ def main(argv=None) -> int:
     cases = [make_case(c, i, args.seed, n_range) for c in classes for i in range(per_raspm if c in RASPM_CLASSES else per)]
     for c in cases:
         c["n_perm"] = 49 if args.quick else 199
-    if args.workers > 1:
-        from dask.distributed import Client, LocalCluster
-
-        with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-                Client(cluster) as client:
-            rows = client.gather(client.map(run_case, cases, pure=False))
-    else:
-        rows = [run_case(c) for c in cases]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = run_cases(cases, out / "partial.jsonl", workers=args.workers, resume=args.resume)
     wall = time.perf_counter() - t_start
     from bayescal.io import write_text_atomic
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     keys = list(rows[0])
     import io
 
@@ -632,7 +628,68 @@ def main(argv=None) -> int:
     w.writeheader()
     w.writerows(rows)
     write_text_atomic(out / "results.csv", buf.getvalue())
+    (out / "partial.jsonl").unlink(missing_ok=True)  # the run is complete: results.csv holds every row
     return write_outputs(rows, out, wall)
+
+
+def _plain(o):
+    """numpy scalars as the Python numbers and flags they hold (so a resumed row reads as a fresh one)."""
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not a number or flag: {o!r}")
+
+
+def _case_key(case: dict) -> str:
+    """What makes a finished row reusable: the recording's class, index, seed, size and test permutations."""
+    return f"{case['cls']}/{case['i']}/{case['seed']}/{case['n']}/{case['n_perm']}"
+
+
+def run_cases(cases: list[dict], partial: Path, *, workers: int = 1, resume: bool = False) -> list[dict]:
+    """Run every case (progress bar on stderr), appending each finished row to ``partial`` as it comes.
+
+    A killed run loses at most the recordings in progress: ``resume`` reuses the rows of ``partial``
+    whose key (:func:`_case_key`) matches a case; without it ``partial`` is started afresh.  Rows are
+    returned in the order of ``cases``.
+    """
+    from tqdm import tqdm
+
+    done: dict[str, dict] = {}
+    if resume and partial.exists():
+        for line in partial.read_text(encoding="utf-8").splitlines():
+            if line.strip():  # a line cut by the kill is not valid JSON; it is run again
+                try:
+                    rec = json.loads(line)
+                except json.JSONDecodeError:
+                    continue
+                done[rec["key"]] = rec["row"]
+    keep = {_case_key(c) for c in cases}
+    done = {k: r for k, r in done.items() if k in keep}
+    todo = [c for c in cases if _case_key(c) not in done]
+    with partial.open("w", encoding="utf-8") as fh:  # rewritten: only the reused rows, then each new one
+        def record(key: str, row: dict) -> None:
+            done[key] = row
+            fh.write(json.dumps({"key": key, "row": row}, default=_plain) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+
+        for k, r in done.items():
+            fh.write(json.dumps({"key": k, "row": r}, default=_plain) + "\n")
+        bar = tqdm(total=len(cases), initial=len(cases) - len(todo), desc="recordings", unit="rec", file=sys.stderr)
+        if workers > 1:
+            from dask.distributed import Client, LocalCluster, as_completed
+
+            with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
+                    Client(cl) as client:
+                futs = {client.submit(run_case, c, pure=False): _case_key(c) for c in todo}
+                for f in as_completed(futs):
+                    record(futs[f], f.result())
+                    bar.update()
+        else:
+            for c in todo:
+                record(_case_key(c), run_case(c))
+                bar.update()
+        bar.close()
+    return [done[_case_key(c)] for c in cases]
 
 
 def read_rows(path: Path) -> list[dict]:

@@ -122,3 +122,41 @@ def test_targets_say_pass_miss_and_not_tested():
     assert checks == {"none": True, "backlash": True, "phys_backlash": None, "phys_backlash/cal": False, "outside_step": False}
     text = study.targets_text(study.targets(rows))
     assert "MISS" in text and "PASS" in text and "NOT TESTED" in text
+
+
+def test_a_killed_run_resumes_from_its_partial_rows(tmp_path, monkeypatch):
+    """Each finished recording is appended at once; --resume reruns only what was missing or cut by the kill."""
+    import numpy as np
+
+    study = _study()
+    cases = [study.make_case(c, 0, 2026, (60, 70)) for c in ("none", "backlash", "thermal_expansion")]
+    for c in cases:
+        c["n_perm"] = 49
+    calls = []
+
+    def fake(case):
+        calls.append(case["cls"])
+        return {"cls": case["cls"], "i": case["i"], "rms": np.float64(len(calls)), "flag": np.bool_(True), "n": np.nan}
+
+    monkeypatch.setattr(study, "run_case", fake)
+    partial = tmp_path / "partial.jsonl"
+    first = study.run_cases(cases, partial)
+    assert calls == ["none", "backlash", "thermal_expansion"]
+    lines = partial.read_text().splitlines()
+    assert len(lines) == 3
+    # killed while writing the third row: the first two are kept, the cut line is run again
+    partial.write_text(lines[0] + "\n" + lines[1] + "\n" + lines[2][:20])
+    calls.clear()
+    again = study.run_cases(cases, partial, resume=True)
+    assert calls == ["thermal_expansion"]
+    assert [r["cls"] for r in again] == ["none", "backlash", "thermal_expansion"]
+    assert again[0]["rms"] == first[0]["rms"] and again[0]["flag"] is True and np.isnan(again[0]["n"])
+    # another seed is another recording: nothing reused
+    calls.clear()
+    other = [dict(c, seed=c["seed"] + 1) for c in cases]
+    study.run_cases(other, partial, resume=True)
+    assert len(calls) == 3
+    # without --resume a run starts afresh
+    calls.clear()
+    study.run_cases(cases, partial)
+    assert len(calls) == 3
