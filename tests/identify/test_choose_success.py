@@ -136,9 +136,14 @@ def test_success_rule_with_the_prior_scale_integrated_out(rng, hyperprior, log_h
     assert exact[ch.value - 1] >= exact.max() - 0.01
 
 
-def test_hyperprior_changes_the_ridge_decision_as_the_exact_integral_does(rng):
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_hyperprior_changes_the_ridge_decision_as_the_exact_integral_does(seed):
     """Ridge, few weak rows, one output row: the exact Bayes decision under the flat and under the log-normal
-    hyperprior differ, and the rule follows the exact decision in both cases (each within 0.01 of the exact best)."""
+    hyperprior differ, and the rule follows the exact decision in both cases (each within 0.01 of the exact best).
+
+    Its own generator: with the session's, the problem drawn depended on which tests ran before, and some
+    problems have no data set among the six where the two hyperpriors decide differently."""
+    rng = np.random.default_rng(seed)
     N, p = 8, 5
     A = rng.normal(size=(N, p)) * np.logspace(0.3, -0.9, p)
     g = rng.normal(size=(1, p))
