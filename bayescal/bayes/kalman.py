@@ -35,7 +35,7 @@ from ..errors import InputError
 from ..identify import resolve_free
 from .accuracy import evaluation_poses, tool_point_jacobian, workspace_accuracy
 from .priors import GaussianPrior, prior_from_machine
-from ..identify.result import covariance_dict
+from ..identify.result import covariance_dict, decided_by_prior_lines
 from .summary import parameter_list, parameter_table, strong_correlations
 
 __all__ = ["FilterResult", "kalman_filter"]
@@ -182,9 +182,7 @@ class FilterResult:
         lines += parameter_table(parameter_list(self.names, self.units, self.theta, self.std, self.free), pairs)
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, held at the prior mean: {', '.join(self.fixed)}"]
-        if self.decided_by_prior:
-            lines += ["", "  not separated by these poses, decided by the prior: "
-                      + ", ".join(c.split(":", 1)[0] for c in self.decided_by_prior)]
+        lines += decided_by_prior_lines(self.decided_by_prior)
         return "\n".join(lines)
 
 

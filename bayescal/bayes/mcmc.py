@@ -59,7 +59,7 @@ from ..errors import InputError
 from .linear import linearisation_error, linearise
 from .moves import default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
-from ..identify.result import covariance_dict
+from ..identify.result import covariance_dict, decided_by_prior_lines
 from .summary import parameter_list, parameter_table, strong_correlations
 
 __all__ = ["PosteriorResult", "sample_posterior", "log_posterior_function", "write_posterior"]
@@ -228,9 +228,7 @@ class PosteriorResult:
         )
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, held at the prior mean: {', '.join(self.fixed)}"]
-        if self.decided_by_prior:
-            lines += ["", "  not separated by these poses, decided by the prior: "
-                      + ", ".join(c.split(":", 1)[0] for c in self.decided_by_prior)]
+        lines += decided_by_prior_lines(self.decided_by_prior)
         return "\n".join(lines)
 
 

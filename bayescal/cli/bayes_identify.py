@@ -7,8 +7,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from ..io import write_text_atomic
-from .outputs import write_calibrated_machine, write_json, write_report
+from .outputs import write_json, write_report
 
 __all__ = ["add_arguments", "run_bayes", "METHODS"]
 
@@ -45,7 +44,7 @@ def add_arguments(p) -> None:
 def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
     """Run kalman or mcmc; ``outliers`` (an OutlierHandling of a robust MAP pass) weights the poses and is reported."""
     from . import EXIT_FAILED, EXIT_OK
-    from .instrument import instrument_report, judge, may_write_machine, refusal_note
+    from .instrument import instrument_report, judge, refusal_note, write_calibrated_files
     from ..bayes.kalman import kalman_filter
     from ..bayes.mcmc import sample_posterior, write_posterior
 
@@ -79,16 +78,7 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
     write_json(args, answer)  # before printing: a closed stdout (`| head`) must not cost the answer
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
-    if may_write_machine(args, res, plaus):
-        # [effect.*] and [instrument] kept; ballbar pivots (beyond the machine's parameters) left out, as identify does
-        write_calibrated_machine(args, machine, res.theta[: machine.n_params])
-    if getattr(args, "write_klipper", None) and res.success and plaus.plausible:
-        # as identify's other methods do (identify.run checked the machine is a linear delta)
-        from ..klipper import klipper_text
-        from .outputs import say
-
-        say(args, f"wrote {write_text_atomic(args.write_klipper, klipper_text(machine, res.theta[: machine.n_params]))} "
-            "(Klipper keys)")
+    write_calibrated_files(args, machine, res, plaus)
     write_report(args, "identify", res, machine=machine, model=base_model, answer_extra=extra)
     made = []
     if args.figures:

@@ -10,12 +10,11 @@ from ..bayes.priors import PRIOR_SCALES
 from ..errors import InputError
 from ..identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from ..identify.robust import fit_system, identify_with_outliers, robust_map_weights
-from ..io import write_text_atomic
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .inputs import add_frame_argument, free_arg, instrument_inputs
-from .instrument import add_force_argument, instrument_report, judge, may_write_machine, refusal_note
+from .instrument import add_force_argument, instrument_report, judge, refusal_note, write_calibrated_files
 from .outlier_options import add_outlier_arguments, outlier_kwargs
-from .outputs import add_output_options, write_calibrated_machine, write_json, write_report
+from .outputs import add_output_options, write_json, write_report
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -199,15 +198,7 @@ def run(args) -> int:
     # instrument frame and plausibility (docs/real-instruments.md)
     extra, plaus = judge(machine, model, res, check)
     write_json(args, {**res.to_dict(), **extra})
-    if may_write_machine(args, res, plaus):
-        # [effect.*] and [instrument] kept; ballbar pivots (beyond the machine's parameters) left out
-        write_calibrated_machine(args, machine, res.theta[: machine.n_params])
-    if args.write_klipper and res.success and plaus.plausible:
-        from ..klipper import klipper_text
-        from .outputs import say
-
-        say(args, f"wrote {write_text_atomic(args.write_klipper, klipper_text(machine, res.theta[: machine.n_params]))} "
-            "(Klipper keys)")
+    write_calibrated_files(args, machine, res, plaus)
     write_report(args, "identify", res, machine=machine, model=model, choice=choice, answer_extra=extra)
     path = None
     if choice is not None and args.figures:

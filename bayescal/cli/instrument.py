@@ -53,6 +53,25 @@ def may_write_machine(args, res, plaus: Plausibility) -> bool:
     return bool(args.write_machine) and bool(res.success) and (plaus.plausible or bool(getattr(args, "force", False)))
 
 
+def write_calibrated_files(args, machine, res, plaus: Plausibility) -> None:
+    """``--write-machine`` and ``--write-klipper`` of a fit, for every method.
+
+    The machine file only for a successful fit that is plausible (or ``--force``); the Klipper keys only
+    for a plausible one.  ``res.theta`` may hold more than the machine's parameters (a ballbar
+    recording's pivots): only the machine's part is written.
+    """
+    from .outputs import say, write_calibrated_machine
+
+    theta = res.theta[: machine.n_params]
+    if may_write_machine(args, res, plaus):
+        write_calibrated_machine(args, machine, theta)  # [effect.*] and [instrument] kept
+    if getattr(args, "write_klipper", None) and res.success and plaus.plausible:
+        from ..io import write_text_atomic
+        from ..klipper import klipper_text
+
+        say(args, f"wrote {write_text_atomic(args.write_klipper, klipper_text(machine, theta))} (Klipper keys)")
+
+
 def refusal_note(args, res, plaus: Plausibility) -> str | None:
     """The line printed when ``--write-machine`` was asked for but not written."""
     if not args.write_machine or not res.success or plaus.plausible or getattr(args, "force", False):

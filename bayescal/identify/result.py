@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["IdentificationResult", "ParameterEstimate", "covariance_dict"]
+__all__ = ["IdentificationResult", "ParameterEstimate", "covariance_dict", "decided_by_prior_lines"]
 
 STRONG_CORRELATION = 0.95
 POORLY_DETERMINED = 10.0  # std above this many tolerances: the value is not a physical error
@@ -259,9 +259,20 @@ class IdentificationResult:
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, fixed at nominal: {', '.join(self.fixed)}"]
             lines += [f"    - {c}" for c in self.unidentifiable[:max_combinations]]
-        if self.decided_by_prior:
-            lines += ["", f"  not separated by these poses, decided by the prior (estimated near nominal in proportion "
-                          f"to the tolerances; --method ls fixes them instead): "
-                          f"{', '.join(c.split(':', 1)[0] for c in self.decided_by_prior)}"]
-            lines += [f"    - {c}" for c in self.decided_by_prior[:max_combinations]]
+        lines += decided_by_prior_lines(
+            self.decided_by_prior, " (estimated near nominal in proportion to the tolerances; --method ls fixes them instead)",
+            max_combinations)
         return "\n".join(lines)
+
+
+def decided_by_prior_lines(combinations, how: str = "", max_combinations: int = 0) -> list[str]:
+    """Report lines naming the combinations the data do not separate and the prior decides (none: no lines).
+
+    ``how`` follows "decided by the prior" (how the method treats them); the first ``max_combinations``
+    combinations are then listed in full.
+    """
+    if not combinations:
+        return []
+    names = ", ".join(c.split(":", 1)[0] for c in combinations)
+    return ["", f"  not separated by these poses, decided by the prior{how}: {names}"] + [
+        f"    - {c}" for c in combinations[:max_combinations]]

@@ -151,3 +151,15 @@ def test_tsvd_runs_with_fewer_rows_than_parameters(prs3):
     assert res.success and res.free.sum() > model.n_poses
     with pytest.raises(InputError, match="from 1 to 12"):
         identify(model, method="tsvd", k=13)
+
+
+def test_decided_by_prior_lines_name_each_combination_once():
+    from bayescal.identify.result import decided_by_prior_lines
+
+    combos = ("tool.point.x: a change of 1 mm looks like ...", "tool.point.y: likewise")
+    assert decided_by_prior_lines(()) == []
+    assert decided_by_prior_lines(combos) == [
+        "", "  not separated by these poses, decided by the prior: tool.point.x, tool.point.y"]
+    lines = decided_by_prior_lines(combos, " (how)", 1)
+    assert lines[1] == "  not separated by these poses, decided by the prior (how): tool.point.x, tool.point.y"
+    assert lines[2:] == ["    - " + combos[0]]
