@@ -4,11 +4,13 @@ Candidate poses within ``q_limits``, their whitened and column-scaled
 identification Jacobian blocks, the criteria D, A, E, O1..O5, the
 Bayesian expected information gain and I-optimality (expected tool-point
 error), greedy selection with rank-k updates and DETMAX-style exchange, and for I the
-Frank-Wolfe relaxation: a certified bound on sqrt(E[MSE]) and a rounded design near it.  Works for any machine kind through
+Frank-Wolfe relaxation: a certified bound on sqrt(E[MSE]) and a rounded design near it, and a
+bound for designs of whole poses by branch and bound on orthant counts.  Works for any machine kind through
 :class:`bayescal.measurement.MeasurementModel`.
 """
 
 from .bound import DesignMSEBound, design_mse_bound
+from .exact_bound import ExactDesignBound, exact_design_bound, orthant_cells
 from .candidates import SCALINGS, CandidateSet, candidate_set_from_jacobian, column_scale, draw_candidates
 from .criteria import CRITERIA, PRIOR_BASED, SPECTRAL, check_criterion, criteria_from_singular_values, criterion_value
 from .criteria import i_value, output_weight, utility
@@ -25,6 +27,7 @@ __all__ = [
     "SCALINGS",
     "CandidateSet",
     "DesignMSEBound",
+    "ExactDesignBound",
     "PosePlan",
     "Selection",
     "brute_force_greedy",
@@ -43,6 +46,8 @@ __all__ = [
     "i_value",
     "local_search",
     "design_mse_bound",
+    "exact_design_bound",
+    "orthant_cells",
     "output_weight",
     "plan_poses",
     "plan_to_csv",

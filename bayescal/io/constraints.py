@@ -220,7 +220,7 @@ def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> Con
     header, seen, unit_scale, file_col = _length_columns(path, header, seen)
     for col in ("measure", "value"):
         if col not in seen:
-            raise RecordingError(path, 1, col, f"missing column; a constraint recording has measure, a_q1..a_qN, [b_q1..b_qN], value")
+            raise RecordingError(path, 1, col, "missing column; a constraint recording has measure, a_q1..a_qN, [b_q1..b_qN], value")
     a_nums = _actuator_columns(path, seen, _AQ, "a_q")
     if not a_nums:
         raise RecordingError(path, 1, None, "no actuator columns; expected a_q1, a_q2, ...")

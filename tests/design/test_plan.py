@@ -1,5 +1,7 @@
 """plan_poses on the 3-PRS: reproducible, better than random, invariant to parameter units; the CSV."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -128,3 +130,19 @@ def test_i_plan_defaults_to_the_relaxed_design_with_its_bound(prs3):
         plan_poses(prs3, 12, criterion="D", candidates=c, n_random=0, method="relaxed")
     d = plan_poses(prs3, 12, criterion="I", candidates=c, n_random=0, repeats=False)
     assert len(set(d.candidate_index.tolist())) == 12
+
+
+def test_cli_plan_exact_bound(tmp_path, capsys):
+    out, js = tmp_path / "poses.csv", tmp_path / "plan.json"
+    rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "8", "--criterion", "I", "--candidates", "300",
+               "--seed", "3", "--random-sets", "0", "--exact-bound", "--out", str(out), "--json", str(js)])
+    assert rc == 0
+    ex = json.loads(js.read_text())
+    # relaxed bound <= bound for whole poses <= the plan (itself a design of whole poses)
+    assert ex["bound_root_mse_mm"] <= ex["exact_bound_root_mse_mm"] * (1 + 1e-9)
+    assert ex["exact_bound_root_mse_mm"] <= ex["root_expected_mse_mm"] * (1 + 1e-9)
+    assert ex["exact_bound_cells"] == 8 and ex["exact_bound_nodes"] >= 1
+    assert "every design of 8 whole poses" in capsys.readouterr().out
+    rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "8", "--criterion", "D", "--candidates", "100",
+               "--exact-bound", "--out", str(out)])
+    assert rc == 2 and "exact_bound: only for criterion I" in capsys.readouterr().err
