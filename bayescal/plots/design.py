@@ -49,6 +49,13 @@ def plot_error_vs_poses(rows: list[dict], path: str | os.PathLike, *, metric: st
                 ax.axhline(med[list(n).index(36)], color=color, ls=":", lw=1, label="random, 36 poses")
         if ax.has_data():
             ax.set_yscale("log")
+            # plain numbers in um on the log axis ("3", not "3 x 10^0"), minor ticks labelled too: the
+            # range of a panel is often less than a decade
+            from matplotlib.ticker import FormatStrFormatter
+
+            ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+            ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
+            ax.tick_params(axis="y", which="minor", labelsize=7)
         ax.set_xlabel("number of measured poses")
         ax.set_ylabel(f"{metric} position error after calibration [um]")
         ax.set_title(_panel_title(rows, dof), fontsize=9)
