@@ -37,6 +37,20 @@ regret and tail.  Monte Carlo draws bias ``max p`` up and ``min e`` and the
 per-data-set minimum down alike, as in choice_rules.py; the targets are
 judged on the same draws.
 
+*Rules that do not know the scale.*  A real rule sees only the data, and
+must meet the targets at every truth scale of a situation at once (12
+constraints).  Data sets are drawn at each scale in equal numbers; each is
+valued under the posterior of every scale, and ``w_c(z) = p(z | c) /
+p_mix(z)`` reweights the pooled data sets to scale ``c`` (Gaussian
+densities of ``U^T z``; the weights are at most the number of scales).
+A rule meets constraint ``k = (c, target)`` when the mean over data sets
+of ``w_c(z) psi_k(z, v(z))`` is at most 0, so the same duality holds with
+12 weights, now chosen by a linear programme (HiGHS) on the even data
+sets and tested on the odd ones.  ``D > 0`` then means no rule that sees
+only the data meets every target at every scale; ``D <= 0`` means one
+exists (possibly randomised), and the argmin rule of the weights found
+("compromise") is reported per scale on the test data sets.
+
 Writes ``choice_frontier.md`` and ``choice_frontier.json``; exit code 0.
 """
 
