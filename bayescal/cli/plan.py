@@ -87,7 +87,7 @@ def register(sub) -> None:
     p.add_argument("--exact-bound", action="store_true",
                    help="criterion I: also certify a lower bound for designs of whole poses (branch and bound on "
                    "the poses in each orthant of the actuator box; tighter than the relaxed bound at few poses; "
-                   "about a minute with 3 actuators at 8-10 poses, and far longer with many actuators)")
+                   "about a minute with 3 actuators at 8-10 poses; refused above 4 actuators)")
     p.add_argument("--no-box", action="store_true",
                    help="candidates only drawn uniformly; by default the corners, edge midpoints and face centres "
                         "of the q_limits box (and points 1 %% and 5 %% inside them) are candidates too")

@@ -282,6 +282,10 @@ def select_from_candidates(
                            Q=Q, repeats=repeats)
 
 
+#: ``exact_bound`` branches on the poses in each of the ``2^m`` orthants of the actuator box.
+EXACT_BOUND_MAX_ACTUATORS = 4
+
+
 def plan_poses(
     machine: Machine,
     n_poses: int,
@@ -364,6 +368,11 @@ def plan_poses(
     if exact_bound and not (method == "relaxed" and criterion == "I" and cands.output_weight is not None):
         raise InputError("exact_bound: only for criterion I with the relaxed selection (the bound is on E[MSE]), "
                          f"got criterion {criterion}, method {method}")
+    if exact_bound and cands.q.shape[1] > EXACT_BOUND_MAX_ACTUATORS:
+        # 2^m orthant cells; on the 6R arm (relaxed optimum on about 200 candidates) even the orthants of three
+        # of its joints (8 cells) did not finish in 10 minutes
+        raise InputError(f"exact_bound: the search over the 2^m orthants of the actuator box is practical up to "
+                         f"{EXACT_BOUND_MAX_ACTUATORS} actuators; this machine has {cands.q.shape[1]}")
     if method == "relaxed" and criterion == "I":
         sel, bound = relaxed_select(cands, int(n_poses), repeats=repeats)
         if exact_bound:

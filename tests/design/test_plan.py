@@ -146,3 +146,11 @@ def test_cli_plan_exact_bound(tmp_path, capsys):
     rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "8", "--criterion", "D", "--candidates", "100",
                "--exact-bound", "--out", str(out)])
     assert rc == 2 and "exact_bound: only for criterion I" in capsys.readouterr().err
+
+
+def test_exact_bound_refuses_many_actuators():
+    from bayescal.machines import load_machine
+
+    arm = load_machine("examples/arm6/machine.toml")
+    with pytest.raises(InputError, match="practical up to 4 actuators; this machine has 6"):
+        plan_poses(arm, 8, criterion="I", n_candidates=60, n_random=0, exact_bound=True)
