@@ -7,7 +7,6 @@ import sys
 
 from ..effects import EFFECTS
 from ..errors import InputError
-from ..io import write_text_atomic
 from .inputs import add_frame_argument, name_list, recording_model
 from .outputs import add_output_options, write_json, write_report
 
@@ -176,24 +175,7 @@ def effect_inputs(machine, items: list[str]) -> dict[str, dict]:
 
 
 def _write_calibrated(args, machine, result, calibrated) -> None:
-    """Write the calibrated machine: one file, or a hybrid in FORMATS.md section 5's file-per-module form.
-
-    A hybrid's calibrated text holds its modules inline (``[module.machine]``), which bayescal reads but
-    the contract does not specify; it is written as ``identify --write-machine`` writes a hybrid (module
-    files beside the main file, which keeps the ``[effect.*]`` and ``[instrument]`` tables), from the
-    machine read back from that text, with the diagnosis' header comment.
-    """
-    from ..diagnose.calibrated import _header
-    from ..machines.framed import InstrumentFrame
-    from ..machines.hybrid import Hybrid
-    from .outputs import write_calibrated_machine
-
-    cal = calibrated.machine
-    inner = cal.machine if isinstance(cal, InstrumentFrame) else cal
-    if not isinstance(inner, Hybrid):
-        write_text_atomic(args.write_machine, calibrated.text)
-        return
-    quiet = argparse.Namespace(**{**vars(args), "quiet": True})  # diagnose prints its own summary of the file
-    main = write_calibrated_machine(quiet, cal, None)
-    write_text_atomic(main, _header(result) + main.read_text())
+    """Write the calibrated machine: one file, or a hybrid in FORMATS.md section 5's file-per-module form
+    (:meth:`bayescal.diagnose.calibrated.CalibratedMachine.write`)."""
+    calibrated.write(args.write_machine)
 

@@ -127,26 +127,11 @@ def write_calibrated_machine(args: argparse.Namespace, machine, theta) -> Path |
     """
     if not getattr(args, "write_machine", None):
         return None
-    from ..effects.stored import machine_file_text
-    from ..machines.framed import InstrumentFrame, instrument_toml
-    from ..machines.hybrid import Hybrid, write_machine_files
+    from ..machines.files import write_calibrated_machine_files
 
-    inner = machine.machine if isinstance(machine, InstrumentFrame) else machine
-    if not isinstance(inner, Hybrid):
-        return write_machine(args, machine_file_text(machine, theta))
-    th = machine.check_theta(theta)
-    framed = isinstance(machine, InstrumentFrame)
-    paths = write_machine_files(args.write_machine, inner, th[machine.n_frame:] if framed else th)
-    # the main file carries what belongs to the whole machine: its [effect.*] tables and its [instrument] frame
-    extra = []
-    if machine.effects:
-        from ..effects.stored import effect_tables_toml
-
-        extra.append(effect_tables_toml(tuple(machine.effects)))
-    if framed:
-        extra.append(instrument_toml(machine.frame_at(th)))
-    if extra:
-        main = paths[0]
-        write_text_atomic(main, "\n\n".join([main.read_text().rstrip("\n")] + [e.rstrip("\n") for e in extra]) + "\n")
+    paths = write_calibrated_machine_files(args.write_machine, machine, theta)
+    if len(paths) == 1:
+        say(args, f"wrote {paths[0]} (calibrated machine file)")
+        return paths[0]
     say(args, f"wrote {', '.join(str(p) for p in paths)} (calibrated hybrid machine: main file and one file per module)")
     return paths[0]

@@ -51,6 +51,31 @@ class CalibratedMachine:
     effects: tuple[str, ...]
     warning: str = ""
 
+    def write(self, path) -> list:
+        """Write the calibrated machine to ``path``: one file, or a hybrid in FORMATS.md section 5's form.
+
+        A hybrid's ``text`` holds its modules inline (``[module.machine]``),
+        which bayescal reads but the format contract does not specify; it is
+        written as every ``--write-machine`` writes a hybrid, from
+        :attr:`machine` (module files beside the main file, which keeps the
+        ``[effect.*]`` and ``[instrument]`` tables and the header comment).
+
+        Returns
+        -------
+        list of Path
+            The files written, the main file first.
+        """
+        from ..io.answers import write_text_atomic
+        from ..machines.files import write_calibrated_machine_files
+        from ..machines.framed import InstrumentFrame
+        from ..machines.hybrid import Hybrid
+
+        inner = self.machine.machine if isinstance(self.machine, InstrumentFrame) else self.machine
+        if not isinstance(inner, Hybrid):
+            return [write_text_atomic(path, self.text)]
+        header = self.text.split("\n", 1)[0] + "\n" if self.text.startswith("#") else ""  # where it came from
+        return write_calibrated_machine_files(path, self.machine, None, header=header)
+
     def summary(self, path: str) -> str:
         """One line saying what was written to ``path``."""
         if self.effects:

@@ -85,3 +85,33 @@ def test_stored_effects_of_the_input_machine_are_fitted_afresh(prs3):
     assert again.verdict == "backlash"
     cal = calibrated_machine(with_tables, again)
     assert [e.name for e in cal.machine.effects] == ["backlash"]  # replaced, not doubled
+
+
+def test_write_puts_a_hybrid_in_module_files_and_keeps_its_header(tmp_path):
+    # the library object wrote its inline text ([module.machine]) where the command line wrote the
+    # FORMATS.md section 5 form; both now go through one writer
+    import tomllib
+
+    from bayescal.diagnose.calibrated import CalibratedMachine
+    from bayescal.machines import load_machine
+    from tests.conftest import ROOT
+
+    nominal = load_machine(ROOT / "examples" / "hybrid_table" / "machine.toml")
+    theta = 1e-3 * np.random.default_rng(2).normal(size=nominal.n_params)
+    text = "# calibrated by a test\n" + machine_file_text(nominal, theta)
+    cm = CalibratedMachine(text=text, machine=machine_from_text(text, path="<test>"), effects=())
+    paths = cm.write(tmp_path / "cal.toml")
+    assert len(paths) > 1 and all(p.is_file() for p in paths)
+    main_text = paths[0].read_text()
+    assert main_text.startswith("# calibrated by a test\n")
+    assert all("file" in m and "machine" not in m for m in tomllib.loads(main_text)["module"])
+    q = nominal.sample_q(10, np.random.default_rng(3))
+    a, b = load_machine(paths[0]).forward(q), nominal.forward(q, theta)
+    assert a.success.all() and np.abs(a.position - b.position).max() < 1e-9
+    # any other kind: the text itself, one file
+    from tests.conftest import PRS3_FILE
+
+    prs = load_machine(PRS3_FILE)
+    one = CalibratedMachine(text="# x\n" + machine_file_text(prs, None), machine=prs, effects=())
+    (p,) = one.write(tmp_path / "prs.toml")
+    assert p.read_text() == one.text

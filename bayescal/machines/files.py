@@ -1,0 +1,65 @@
+"""Write a calibrated machine as machine files: one file, or a hybrid in FORMATS.md section 5's file-per-module form.
+
+One place for what ``--write-machine`` of every command and
+:meth:`bayescal.diagnose.calibrated.CalibratedMachine.write` write, so that
+a library user and the command line produce the same files: every kind is
+one file with its ``[effect.*]`` and ``[instrument]`` tables; a hybrid
+machine puts each module in ``<stem>.m<k>.toml`` beside the main file (the
+form any reader of FORMATS.md reads; bayescal's own inline form is not in
+the contract), and its ``[effect.*]`` and ``[instrument]`` tables go into
+the main file.  Every file is written atomically.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from numpy.typing import ArrayLike
+
+from ..io.answers import write_text_atomic
+from .base import Machine
+
+__all__ = ["write_calibrated_machine_files"]
+
+
+def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | None = None, *,
+                                   header: str = "") -> list[Path]:
+    """Write ``nominal + theta`` of ``machine`` (its effects and instrument frame kept) to ``path``.
+
+    Parameters
+    ----------
+    path : path
+        The machine file (TOML) to write; module files of a hybrid go beside it.
+    machine : Machine
+        Any kind, possibly in an instrument frame or with effects.
+    theta : array_like, shape (P,), optional
+        Geometric errors (mm, rad) to fold in; zeros if omitted.
+    header : str
+        Comment lines (each starting with ``#``) put at the top of the main file.
+
+    Returns
+    -------
+    list of Path
+        The files written, the main file first.
+    """
+    from ..effects.stored import effect_tables_toml, machine_file_text
+    from .framed import InstrumentFrame, instrument_toml
+    from .hybrid import Hybrid, write_machine_files
+
+    inner = machine.machine if isinstance(machine, InstrumentFrame) else machine
+    if not isinstance(inner, Hybrid):
+        return [write_text_atomic(path, header + machine_file_text(machine, theta))]
+    th = machine.check_theta(theta)
+    framed = isinstance(machine, InstrumentFrame)
+    paths = write_machine_files(path, inner, th[machine.n_frame:] if framed else th)
+    # the main file carries what belongs to the whole machine: its [effect.*] tables and its [instrument] frame
+    extra = []
+    if machine.effects:
+        extra.append(effect_tables_toml(tuple(machine.effects)))
+    if framed:
+        extra.append(instrument_toml(machine.frame_at(th)))
+    if extra or header:
+        main = paths[0]
+        write_text_atomic(main, header + "\n\n".join([main.read_text().rstrip("\n")] + [e.rstrip("\n") for e in extra])
+                          + "\n")
+    return paths
