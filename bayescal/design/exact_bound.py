@@ -34,7 +34,7 @@ design of ``n`` poses from the candidates, repeats allowed.  With one cell
 per candidate it is the exact optimum (tested by enumeration).
 
 Cost: one relaxation per node of the search, each a few passes over all
-candidates; on the 3-PRS (20,081 candidates, 33 parameters, 8 orthants)
+candidates; on the 3-PRS (20,081 candidates, 32-33 parameters, 8 orthants)
 at 8-10 poses 56-145 nodes and 12-40 CPU s (docs/planning.md).  The
 number of cell-count vectors grows as ``C(n + K - 1, K - 1)`` with ``K``
 cells, so machines with many actuators need coarser cells.
