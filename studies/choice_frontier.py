@@ -47,9 +47,10 @@ A rule meets constraint ``k = (c, target)`` when the mean over data sets
 of ``w_c(z) psi_k(z, v(z))`` is at most 0, so the same duality holds with
 12 weights, now chosen by a linear programme (HiGHS) on the even data
 sets and tested on the odd ones.  ``D > 0`` then means no rule that sees
-only the data meets every target at every scale; ``D <= 0`` means one
-exists (possibly randomised), and the argmin rule of the weights found
-("compromise") is reported per scale on the test data sets.
+only the data meets every target at every scale; ``D <= 0`` only means
+"not excluded".  Whether a rule does meet them is shown by the argmin
+rule of the weights found ("compromise"), fitted on the even data sets
+and reported per scale on the odd ones (held out).
 
 Writes ``choice_frontier.md`` and ``choice_frontier.json``; exit code 0.
 """

@@ -69,11 +69,12 @@ class ExactDesignBound:
         Certified lower bound on ``E[MSE] = trace(Sigma Q)`` (mm^2) of every
         design of ``n_poses`` whole poses from the candidates, repeats allowed.
     cell_counts : tuple of int
-        The cell-count vector whose relaxation gave ``lower_mse``.
+        The cell-count vector whose relaxation gave ``lower_mse``, indexed
+        by the caller's cell labels (0 for labels without candidates).
     nodes : int
         Relaxations solved (nodes of the search).
     cells : int
-        Number of cells.
+        Number of cells that hold candidates.
     """
 
     n_poses: int
@@ -155,6 +156,8 @@ def _pairwise(BB: NDArray, groups: NDArray, Q: NDArray, M0: NDArray, w: NDArray,
             St = np.linalg.inv(M + t * D)
             return -float(np.trace(St @ D @ St @ Q))
 
+        if slope(0.0) >= 0:  # the pair's difference is rounding: no descent left along it
+            break
         t = w[a] if slope(w[a]) <= 0 else brentq(slope, 0.0, w[a], xtol=1e-13 * max(w[a], 1.0))
         w[a] -= t
         w[b] += t
@@ -276,14 +279,22 @@ def exact_design_bound(
     Q = np.asarray(Q, dtype=float)
     N, k, L = blocks.shape
     cells = np.asarray(cells)
-    if not 1 <= int(n):
-        raise InputError(f"n: expected a positive number of poses, got {n}")
+    if int(n) != n or n < 1:
+        raise InputError(f"n: expected a positive whole number of poses, got {n}")
+    if not rtol >= 0:
+        raise InputError(f"rtol: expected >= 0, got {rtol}")
     if Q.shape != (L, L):
         raise InputError(f"Q: expected shape ({L}, {L}), got {Q.shape}")
     if cells.shape != (N,) or not np.issubdtype(cells.dtype, np.integer) or cells.min() < 0:
         raise InputError(f"cells: expected {N} non-negative integer labels, got shape {cells.shape}")
-    # only the non-empty cells take poses; relabel them 0 .. K-1
-    _, cells = np.unique(cells, return_inverse=True)
+    # only the non-empty cells take poses; relabel them 0 .. K-1 (and report counts by the caller's labels)
+    labels, cells = np.unique(cells, return_inverse=True)
+
+    def by_label(counts) -> tuple:
+        out = np.zeros(int(labels.max()) + 1, dtype=int)
+        out[labels] = counts
+        return tuple(int(c) for c in out)
+
     K = int(cells.max()) + 1
     BB = np.einsum("nki,nkj->nij", blocks, blocks)
     best = [np.inf, ()]
@@ -302,7 +313,7 @@ def exact_design_bound(
         if lower >= best[0]:
             return
         if leaf:
-            best[0], best[1] = lower, tuple(prefix + [rest])
+            best[0], best[1] = lower, by_label(prefix + [rest])
             if progress is not None:
                 progress(f"cells {best[1]}: every design >= {lower:.6g} mm^2 ({nodes[0]} nodes)")
             return

@@ -353,6 +353,11 @@ def plan_poses(
         raise InputError(f"n_poses: expected a positive integer, got {n_poses!r}")
     method = default_method(criterion) if method is None else method
     repeats = (method == "relaxed") if repeats is None else bool(repeats)
+    if exact_bound and machine.n_actuators > EXACT_BOUND_MAX_ACTUATORS:
+        # refused before drawing candidates: 2^m orthant cells; on the 6R arm (relaxed optimum on about 200
+        # candidates) even the orthants of three of its joints (8 cells) did not finish in 10 minutes
+        raise InputError(f"exact_bound: the search over the 2^m orthants of the actuator box is practical up to "
+                         f"{EXACT_BOUND_MAX_ACTUATORS} actuators; this machine has {machine.n_actuators}")
     rng = np.random.default_rng(seed)
     cands = candidates if candidates is not None else draw_candidates(machine, n_candidates, dof=dof, rng=rng, scaling=scaling,
                                                                        box=box)
@@ -368,11 +373,6 @@ def plan_poses(
     if exact_bound and not (method == "relaxed" and criterion == "I" and cands.output_weight is not None):
         raise InputError("exact_bound: only for criterion I with the relaxed selection (the bound is on E[MSE]), "
                          f"got criterion {criterion}, method {method}")
-    if exact_bound and cands.q.shape[1] > EXACT_BOUND_MAX_ACTUATORS:
-        # 2^m orthant cells; on the 6R arm (relaxed optimum on about 200 candidates) even the orthants of three
-        # of its joints (8 cells) did not finish in 10 minutes
-        raise InputError(f"exact_bound: the search over the 2^m orthants of the actuator box is practical up to "
-                         f"{EXACT_BOUND_MAX_ACTUATORS} actuators; this machine has {cands.q.shape[1]}")
     if method == "relaxed" and criterion == "I":
         sel, bound = relaxed_select(cands, int(n_poses), repeats=repeats)
         if exact_bound:

@@ -97,3 +97,21 @@ def test_orthant_cells_and_errors():
     lower, _, _ = cell_relaxation(np.einsum("nki,nkj->nij", blocks, blocks), Q, np.zeros(len(blocks), int),
                                   np.array([2.0, 1.0]))
     assert lower == np.inf  # a cell that must take a pose but has no candidate: no design has these counts
+
+
+def test_counts_by_the_callers_labels_and_bad_arguments():
+    blocks, Q, q, lim = problem(1)
+    cells = 10 * orthant_cells(q, lim) + 3  # sparse labels: 3, 13, 23, 33
+    b = exact_design_bound(blocks, Q, 3, cells)
+    assert len(b.cell_counts) == 34 and sum(b.cell_counts) == 3
+    assert all(c == 0 for i, c in enumerate(b.cell_counts) if i % 10 != 3)
+    assert b.lower_mse == pytest.approx(exact_design_bound(blocks, Q, 3, orthant_cells(q, lim)).lower_mse, rel=1e-9)
+    with pytest.raises(InputError, match="whole number"):
+        exact_design_bound(blocks, Q, 2.5, cells)
+    with pytest.raises(InputError, match="rtol"):
+        exact_design_bound(blocks, Q, 2, cells, rtol=-1.0)
+    # rtol = 0 runs to the iteration limits without failing: where the best pair's difference is rounding the
+    # line search has no descent to find (brentq raised before)
+    BB = np.einsum("nki,nkj->nij", blocks, blocks)
+    lower, f, _ = cell_relaxation(BB, Q, np.zeros(len(blocks), int), np.array([2.0]), rtol=0.0, outer=20, inner=400)
+    assert lower <= all_designs(blocks, Q, 2).min() * (1 + 1e-9) and f >= lower
