@@ -240,9 +240,13 @@ def certify_agnostic(phi: np.ndarray, w: np.ndarray, regret: float, scales) -> d
     for j, c in enumerate(scales):  # the compromise rule at each scale (self-normalised density weights)
         q = pt[:, j]
         ww = wt[:, j] / wt[:, j].sum()
-        per_scale.append({"scale": c, "gap": float(ww @ (q[:, :, 0].max(axis=1) - q[d, choice, 0])),
-                          "regret": float(ww @ (q[d, choice, 1] - q[:, :, 1].min(axis=1))),
-                          "tail": float(ww @ q[d, choice, 2])})
+        row = {"scale": c}
+        for key, x in (("gap", q[:, :, 0].max(axis=1) - q[d, choice, 0]),
+                       ("regret", q[d, choice, 1] - q[:, :, 1].min(axis=1)), ("tail", q[d, choice, 2])):
+            row[key] = float(ww @ x)
+            # standard error of a self-normalised weighted mean (delta method)
+            row[key + "_se"] = float(np.sqrt(np.sum(ww**2 * (x - row[key]) ** 2)))
+        per_scale.append(row)
     K = lam.size
     return {"weights": {f"{scales[k // 3]:g}:{('gap', 'regret', 'tail')[k % 3]}": float(lam[k]) for k in range(K)
                         if lam[k] > 1e-6},
@@ -329,7 +333,8 @@ def main(argv=None) -> int:
            "|---|---|---|---|---|---|"]
     for r in agnostic:
         wts = ", ".join(f"{k} {v:.2f}" for k, v in r["weights"].items())
-        comp = "; ".join(f"{c['scale']:g}: {100 * c['gap']:.1f} / {c['regret']:.4f} / {100 * c['tail']:.1f} %"
+        comp = "; ".join(f"{c['scale']:g}: {100 * c['gap']:.1f} / {c['regret']:.4f} / {100 * c['tail']:.1f} % "
+                         f"(SE {100 * c['gap_se']:.1f} / {c['regret_se']:.4f} / {100 * c['tail_se']:.1f})"
                          for c in r["compromise"])
         md.append(f"| {r['situation']} | {r['method']} | {r['D']:.4f} ({r['D_se']:.4f}) | "
                   f"{'yes' if r['certified'] else 'not shown'} | {wts} | {comp} |")
