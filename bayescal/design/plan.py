@@ -355,7 +355,8 @@ def plan_poses(
     repeats = (method == "relaxed") if repeats is None else bool(repeats)
     if exact_bound and machine.n_actuators > EXACT_BOUND_MAX_ACTUATORS:
         # refused before drawing candidates: 2^m orthant cells; on the 6R arm (relaxed optimum on about 200
-        # candidates) even the orthants of three of its joints (8 cells) had not reached one complete count vector after 4 minutes (stopped there)
+        # candidates) even the orthants of three of its joints (8 cells) had not reached one complete count
+        # vector after 4 minutes (stopped there)
         raise InputError(f"exact_bound: the search over the 2^m orthants of the actuator box is practical up to "
                          f"{EXACT_BOUND_MAX_ACTUATORS} actuators; this machine has {machine.n_actuators}")
     rng = np.random.default_rng(seed)
