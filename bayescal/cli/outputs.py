@@ -1,7 +1,7 @@
 """What every command does with its output files: --report, --mkdir, and saying what it wrote.
 
 One call per command: :func:`add_output_options` adds ``--report PATH.html``
-and ``--mkdir``; :func:`write_json`, :func:`write_machine` and
+and ``--mkdir``; :func:`write_json`, :func:`write_calibrated_machine` and
 :func:`write_report` write atomically and say on stderr what they wrote
 (stdout stays the report text, so it can be piped).  :func:`check_output_folders`
 runs before any command: an answer file into a folder that does not exist
@@ -19,7 +19,7 @@ from pathlib import Path
 from ..errors import InputError
 from ..io import write_json_atomic, write_text_atomic
 
-__all__ = ["add_output_options", "check_output_folders", "say", "write_json", "write_machine", "write_report", "run_inputs"]
+__all__ = ["add_output_options", "check_output_folders", "say", "write_json", "write_calibrated_machine", "write_report", "run_inputs"]
 
 #: Options naming one output file whose folder must exist (or --mkdir).
 FILE_OUTPUTS = ("json", "report", "write_machine", "truth", "nc", "out_csv", "posterior", "figure")
@@ -65,15 +65,6 @@ def write_json(args: argparse.Namespace, data, path: str | None = None) -> Path 
         return None
     out = write_json_atomic(path, data)
     say(args, f"wrote {out} (JSON answer)")
-    return out
-
-
-def write_machine(args: argparse.Namespace, text: str) -> Path | None:
-    """Write the calibrated machine file to ``args.write_machine`` and say so."""
-    if not getattr(args, "write_machine", None):
-        return None
-    out = write_text_atomic(args.write_machine, text)
-    say(args, f"wrote {out} (calibrated machine file)")
     return out
 
 

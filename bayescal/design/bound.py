@@ -56,8 +56,19 @@ from ..errors import InputError
 __all__ = ["DesignMSEBound", "design_mse_bound"]
 
 
+class _RootOfLowerMse:
+    """``lower_root_mse`` of a bound that holds ``lower_mse`` (mm^2)."""
+
+    lower_mse: float
+
+    @property
+    def lower_root_mse(self) -> float:
+        """The bound on ``sqrt(E[MSE])`` (mm)."""
+        return float(np.sqrt(max(self.lower_mse, 0.0)))
+
+
 @dataclass(frozen=True)
-class DesignMSEBound:
+class DesignMSEBound(_RootOfLowerMse):
     """Lower bound on the expected mean squared tool-point error of every ``n``-pose design from a candidate set.
 
     All values are of the linear-Gaussian model of criterion I
@@ -87,11 +98,6 @@ class DesignMSEBound:
     start_mse: float
     iterations: int
     weights: NDArray
-
-    @property
-    def lower_root_mse(self) -> float:
-        """The bound on ``sqrt(E[MSE])`` (mm)."""
-        return float(np.sqrt(max(self.lower_mse, 0.0)))
 
     @property
     def relaxed_root_mse(self) -> float:

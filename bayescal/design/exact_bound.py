@@ -54,12 +54,13 @@ from numpy.typing import NDArray
 from scipy.optimize import brentq
 
 from ..errors import InputError
+from .bound import _RootOfLowerMse
 
 __all__ = ["ExactDesignBound", "exact_design_bound", "orthant_cells", "cell_relaxation"]
 
 
 @dataclass(frozen=True)
-class ExactDesignBound:
+class ExactDesignBound(_RootOfLowerMse):
     """Lower bound on ``E[MSE]`` (mm^2) of every exact ``n``-pose design from a candidate set.
 
     Attributes
@@ -82,11 +83,6 @@ class ExactDesignBound:
     cell_counts: tuple
     nodes: int
     cells: int
-
-    @property
-    def lower_root_mse(self) -> float:
-        """The bound on ``sqrt(E[MSE])`` (mm)."""
-        return float(np.sqrt(max(self.lower_mse, 0.0)))
 
     def to_dict(self) -> dict:
         return {"n_poses": self.n_poses, "lower_mse_mm2": self.lower_mse, "lower_root_mse_mm": self.lower_root_mse,

@@ -66,12 +66,9 @@ class CalibratedMachine:
             The files written, the main file first.
         """
         from ..io.answers import write_text_atomic
-        from ..machines.files import write_calibrated_machine_files
-        from ..machines.framed import InstrumentFrame
-        from ..machines.hybrid import Hybrid
+        from ..machines.files import write_calibrated_machine_files, written_as_modules
 
-        inner = self.machine.machine if isinstance(self.machine, InstrumentFrame) else self.machine
-        if not isinstance(inner, Hybrid):
+        if not written_as_modules(self.machine):
             return [write_text_atomic(path, self.text)]
         header = self.text.split("\n", 1)[0] + "\n" if self.text.startswith("#") else ""  # where it came from
         return write_calibrated_machine_files(path, self.machine, None, header=header)

@@ -19,7 +19,15 @@ from numpy.typing import ArrayLike
 from ..io.answers import write_text_atomic
 from .base import Machine
 
-__all__ = ["write_calibrated_machine_files"]
+__all__ = ["write_calibrated_machine_files", "written_as_modules"]
+
+
+def written_as_modules(machine: Machine) -> bool:
+    """Whether ``machine`` (possibly in an instrument frame) is written as a main file plus module files."""
+    from .framed import InstrumentFrame
+    from .hybrid import Hybrid
+
+    return isinstance(machine.machine if isinstance(machine, InstrumentFrame) else machine, Hybrid)
 
 
 def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | None = None, *,
@@ -44,13 +52,13 @@ def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | No
     """
     from ..effects.stored import effect_tables_toml, machine_file_text
     from .framed import InstrumentFrame, instrument_toml
-    from .hybrid import Hybrid, write_machine_files
+    from .hybrid import write_machine_files
 
-    inner = machine.machine if isinstance(machine, InstrumentFrame) else machine
-    if not isinstance(inner, Hybrid):
+    if not written_as_modules(machine):
         return [write_text_atomic(path, header + machine_file_text(machine, theta))]
     th = machine.check_theta(theta)
     framed = isinstance(machine, InstrumentFrame)
+    inner = machine.machine if framed else machine
     paths = write_machine_files(path, inner, th[machine.n_frame:] if framed else th)
     # the main file carries what belongs to the whole machine: its [effect.*] tables and its [instrument] frame
     extra = []
