@@ -45,7 +45,9 @@ p_mix(z)`` reweights the pooled data sets to scale ``c`` (Gaussian
 densities of ``U^T z``; the weights are at most the number of scales).
 A rule meets constraint ``k = (c, target)`` when the mean over data sets
 of ``w_c(z) psi_k(z, v(z))`` is at most 0, so the same duality holds with
-12 weights, now chosen by a linear programme (HiGHS) on the even data
+12 weights, now chosen by a linear programme (HiGHS;
+:func:`bayescal.identify.target_rule.minimax_weights`, the ``targets``
+rule's calibration grew out of this study) on the even data
 sets and tested on the odd ones.  ``D > 0`` then means no rule that sees
 only the data meets every target at every scale; ``D <= 0`` only means
 "not excluded".  Whether a rule does meet them is shown by the argmin
@@ -77,6 +79,7 @@ from seed2_ls_re_tsvd import MACHINES, study_machine  # noqa: E402
 
 from bayescal.identify.ceiling import within_best  # noqa: E402
 from bayescal.identify.choose import lambda_grid  # noqa: E402
+from bayescal.identify.target_rule import RuleTargets, constraint_rows, minimax_weights, scale_log_densities  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
 from bayescal.machines import KINDS  # noqa: E402
 
@@ -112,13 +115,6 @@ def posterior_values(A_svd, R, beta: np.ndarray, c: float, method: str, rng, n_d
 def candidate_values(A_svd, R, c: float, method: str, rng, n_draws: int) -> np.ndarray:
     """:func:`posterior_values` of a data set drawn at scale ``c``, under the true posterior."""
     return posterior_values(A_svd, R, draw_beta(A_svd, c, rng), c, method, rng, n_draws)
-
-
-def log_density(A_svd, beta: np.ndarray, c: float) -> float:
-    """``log p(z | c)`` up to a constant that does not depend on ``c``: ``beta_i ~ N(0, c^2 s_i^2 + 1)``."""
-    s = A_svd[1]
-    v = c**2 * s**2 + 1.0
-    return float(-0.5 * np.sum(np.log(v) + beta[: s.size] ** 2 / v))
 
 
 def simplex_grid(steps: int) -> np.ndarray:
@@ -182,53 +178,14 @@ def certify(phi: np.ndarray, regret: float, steps: int = 60) -> dict:
 
 
 def agnostic_rows(phi: np.ndarray, w: np.ndarray, regret: float) -> np.ndarray:
-    """``a[z, v, k]``: constraint ``k = (scale, target)`` of choosing ``v`` on data set ``z``, density-weighted.
-
-    A rule that does not know the scale meets every target at every scale
-    exactly when ``mean_z a[z, v(z), k] <= 0`` for every ``k`` (the data sets
-    drawn from the equal mixture of the scales; ``w[z, c] = p(z | c) / p_mix(z)``).
-
-    Parameters
-    ----------
-    phi : ndarray, shape (n, S, V, 3)
-        ``p, e, t`` of every candidate under the posterior of each scale.
-    w : ndarray, shape (n, S)
-    regret : float
-
-    Returns
-    -------
-    ndarray, shape (n, V, 3 S)
-    """
-    gap = phi[..., 0].max(axis=2, keepdims=True) - phi[..., 0] - 0.03
-    reg = phi[..., 1] - phi[..., 1].min(axis=2, keepdims=True) - regret
-    tail = phi[..., 2] - TAIL_SHARE
-    a = np.stack([gap, reg, tail], axis=-1) * w[:, :, None, None]
-    n, S, V, _ = a.shape
-    return a.transpose(0, 2, 1, 3).reshape(n, V, 3 * S)
-
-
-def dual_lp(a: np.ndarray) -> np.ndarray:
-    """The weights ``lam >= 0`` (sum 1) maximising ``mean_z min_v a[z, v] . lam``: one linear programme (HiGHS)."""
-    import scipy.optimize
-    import scipy.sparse
-
-    n, V, K = a.shape
-    rows = np.arange(n * V)
-    lam_part = scipy.sparse.csr_matrix(-a.reshape(n * V, K))
-    u_part = scipy.sparse.csr_matrix((np.ones(n * V), (rows, np.repeat(np.arange(n), V))), shape=(n * V, n))
-    res = scipy.optimize.linprog(np.concatenate([np.zeros(K), -np.ones(n) / n]),
-                                 A_ub=scipy.sparse.hstack([lam_part, u_part]).tocsr(), b_ub=np.zeros(n * V),
-                                 A_eq=np.concatenate([np.ones(K), np.zeros(n)])[None, :], b_eq=[1.0],
-                                 bounds=[(0, None)] * K + [(None, None)] * n, method="highs")
-    if not res.success:
-        raise RuntimeError(f"dual LP: {res.message}")
-    return np.maximum(res.x[:K], 0.0) / np.maximum(res.x[:K], 0.0).sum()
+    """:func:`bayescal.identify.target_rule.constraint_rows` with this study's targets (gap 0.03, tail 10 %)."""
+    return constraint_rows(phi, w, RuleTargets(gap=0.03, regret=regret, tail_share=TAIL_SHARE))
 
 
 def certify_agnostic(phi: np.ndarray, w: np.ndarray, regret: float, scales) -> dict:
     """Weights by LP on the even data sets, ``D`` and its standard error on the odd ones (module docstring)."""
     a = agnostic_rows(phi, w, regret)
-    lam = dual_lp(a[0::2])
+    lam = minimax_weights(a[0::2])[0]
     test = a[1::2] @ lam
     terms = test.min(axis=1)
     D, se = float(terms.mean()), float(terms.std(ddof=1) / np.sqrt(terms.size))
@@ -285,7 +242,7 @@ def main(argv=None) -> int:
                     for _ in range(n_data):
                         beta = draw_beta(svd, c, rng)
                         phi_all.append([posterior_values(svd, R, beta, cc, method, rng, args.draws) for cc in scales])
-                        logd.append([log_density(svd, beta, cc) for cc in scales])
+                        logd.append(scale_log_densities(svd[1], beta[: svd[1].size], scales))
                 phi_all, logd = np.array(phi_all), np.array(logd)
                 for j, c in enumerate(scales):  # one cell: its own data sets under the true posterior
                     if args.quick and c != 0.5:

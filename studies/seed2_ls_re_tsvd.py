@@ -69,6 +69,7 @@ from bayescal.identify import filtered_solve, identify, whitened_system  # noqa:
 from bayescal.identify.ceiling import choice_ceiling  # noqa: E402
 from bayescal.identify.choose import (  # noqa: E402
     DEFAULT_RULE,
+    RULE_NAMES,
     RULES,
     choose_linear,
     choose_regularisation,
@@ -360,7 +361,7 @@ def run_repetition(machine, dof, q, q_eval, seed_set, seed, lam_grid):
     ridge["prior (lambda=1)"] = float(e_r[-1] / best_r)
     return {
         "ridge": ridge,
-        "tsvd": {**{r: float(e_k[ch_k.choices[r] - 1] / best_k) for r in RULES},
+        "tsvd": {**{r: float(e_k[ch_k.choices[r] - 1] / best_k) for r in RULE_NAMES if r in ch_k.choices},
                  # Bayes-optimal k in expectation for machines drawn from the tolerance prior: keep s_i > 1
                  "prior (k = #{s > 1})": float(e_k[max(int(np.sum(ch_k.singular_values > 1.0)), 1) - 1] / best_k)},
         "best_lam": float(lams[np.argmin(e_r)]), "best_k": int(ks[np.argmin(e_k)]),

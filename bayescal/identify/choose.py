@@ -50,8 +50,15 @@ through the SVD ``A = U diag(s) V^T``, ``beta = U^T z``:
   posterior expected ratio).  So it is the Bayes decision for the success
   event in the hierarchical model ``c ~ hyperprior``, ``x ~ N(0, c^2 I)``.
   ``G`` is the output map (tool-point Jacobians, tolerance-scaled); without
-  one, the scaled parameter error ``|x_v - x|``.  The default for lambda and
-  k (``studies/choice_rules.py``, docs/regularisation.md).
+  one, the scaled parameter error ``|x_v - x|``.  The default for lambda
+  (``studies/choice_rules.py``, docs/regularisation.md).
+* ``targets``: the Lagrangian compromise of :mod:`.target_rule`, calibrated
+  on the problem's own design to keep the success probability within 3
+  points of the ceiling, the regret on the expected ratio and the tail
+  ``P(ratio > T)`` within their targets at truth scales 0.5-4 times the
+  tolerances at once.  Its calibration simulates data sets from ``A``
+  (about ten seconds), so it is computed only when asked for (``rule`` or
+  ``target_rule``); once per design, then cached.  The default for k.
 
 Where the problem is linearised (see :func:`choose_regularisation`): ridge
 iterates rule and Gauss-Newton to a fixed point (linearise at the converged
@@ -80,9 +87,12 @@ from .ceiling import success_probabilities
 from .gauss_newton import identify, resolve_free, whitened_system
 from .result import IdentificationResult
 from .scale_prior import DEFAULT_HYPERPRIOR, ScaleHyperprior
+from .target_rule import TargetRule, calibrate_target_rule, rule_design
 
 __all__ = [
     "RULES",
+    "CALIBRATED_RULES",
+    "RULE_NAMES",
     "DEFAULT_RULE",
     "RegularisationChoice",
     "choose_linear",
@@ -93,14 +103,22 @@ __all__ = [
     "lambda_posterior",
 ]
 
-#: Rule names, in the order reports list them.
+#: Rules every call computes, in the order reports list them.
 RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence", "risk", "success")
+
+#: Rules that first calibrate on the problem's design (computed only when asked for).
+CALIBRATED_RULES: tuple[str, ...] = ("targets",)
+
+#: Every rule name a caller may ask for.
+RULE_NAMES: tuple[str, ...] = RULES + CALIBRATED_RULES
 
 #: Default rule per method, chosen by ``studies/choice_rules.py`` (400
 #: linear-Gaussian data sets per situation and truth scale; docs/regularisation.md, "Which rule"):
-#: the Bayes decision for the success event, the prior scale integrated over
-#: :data:`bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`, for both.
-DEFAULT_RULE: dict[str, str] = {"ridge": "success", "tsvd": "success"}
+#: for lambda the Bayes decision for the success event, the prior scale
+#: integrated over :data:`bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`;
+#: for k the ``targets`` compromise (success alone leaves a long tail of
+#: the ratio where truths are better than the tolerances).
+DEFAULT_RULE: dict[str, str] = {"ridge": "success", "tsvd": "targets"}
 
 #: Posterior draws of the ``success`` rule.  With 400 the rule's own Monte
 #: Carlo noise cost 0.3-0.6 point of success probability against the ceiling
@@ -147,6 +165,10 @@ class RegularisationChoice:
         Where the linear problem was taken.
     rounds : int
         Rule + Gauss-Newton rounds (ridge fixed point).
+    folds : int
+        Cross-validation folds used.
+    target_rule : dict, optional
+        The ``targets`` rule's calibration (:meth:`~bayescal.identify.target_rule.TargetRule.to_dict`), when it ran.
     """
 
     method: str
@@ -162,6 +184,7 @@ class RegularisationChoice:
     linearisation: str = ""
     rounds: int = 1
     folds: int = 0
+    target_rule: dict | None = None
 
     @property
     def symbol(self) -> str:
@@ -176,7 +199,7 @@ class RegularisationChoice:
             f"regularisation: {self.method} {self.symbol} = {self._fmt(self.value)} chosen by '{self.rule}' "
             f"({self.n_rows} rows, {self.n_params} parameters; {self.linearisation})",
         ]
-        for r in RULES:
+        for r in RULE_NAMES:
             if r in self.choices:
                 mark = "  <- used" if r == self.rule else ""
                 lines.append(f"    {r:<12} {self.symbol} = {self._fmt(self.choices[r])}{mark}")
@@ -199,7 +222,7 @@ class RegularisationChoice:
             "linearisation": self.linearisation,
             "rounds": self.rounds,
             "folds": self.folds,
-        }
+        } | ({} if self.target_rule is None else {"target_rule": self.target_rule})
 
 
 # ------------------------------------------------------------ linear algebra
@@ -486,6 +509,7 @@ def choose_linear(
     n_posterior: int = N_POSTERIOR,
     integrate_scale: bool = True,
     hyperprior: ScaleHyperprior | None = None,
+    target_rule: TargetRule | None = None,
 ) -> RegularisationChoice:
     """Apply every rule to the linear problem ``A x ~ z`` (rows whitened).
 
@@ -529,16 +553,24 @@ def choose_linear(
         evidence, gives the posterior of ``lam`` (default
         :data:`bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`;
         :data:`~bayescal.identify.scale_prior.FLAT_HYPERPRIOR` for flat in ``log lam``).
+    target_rule : TargetRule, optional
+        ``targets``: the rule calibrated for this design (for example by
+        :func:`bayescal.identify.target_rule.calibrate_target_rule`, when
+        many data sets share one design); by default calibrated here (and
+        cached), which it is only when ``rule`` is ``"targets"``.
 
     Returns
     -------
     RegularisationChoice
+        With ``rule="targets"`` (or ``target_rule``), ``curves["targets_score"]``
+        holds the rule's Lagrangian per candidate and ``target_rule`` its
+        calibration (weights, relaxations, what it achieved on its sample).
     """
     if method not in ("ridge", "tsvd"):
         raise InputError(f"method: automatic choice is for 'ridge' or 'tsvd', got {method!r}")
     rule = DEFAULT_RULE[method] if rule is None else rule
-    if rule not in RULES:
-        raise InputError(f"rule: expected one of {', '.join(RULES)}, got {rule!r}")
+    if rule not in RULE_NAMES:
+        raise InputError(f"rule: expected one of {', '.join(RULE_NAMES)}, got {rule!r}")
     A = np.asarray(A, dtype=float)
     z = np.asarray(z, dtype=float).reshape(-1)
     if A.ndim != 2 or A.shape[0] != z.size:
@@ -602,6 +634,12 @@ def choose_linear(
         # largest probability; ties (common for neighbouring lambdas) to the smaller expected ratio
         "success": int(np.lexsort((exp_ratio, -succ))[0]),
     }
+    if rule == "targets" or target_rule is not None:
+        picks["targets"], extras["targets_score"], extras["target_rule"] = _targets_pick(
+            A, z, d, method, grid, output_map, noise_known, target_rule, seed)
+        calibration = extras.pop("target_rule")
+    else:
+        calibration = None
     cast = float if method == "ridge" else int
     choices = {r: cast(grid[i]) for r, i in picks.items() if i is not None}
     if rule not in choices:
@@ -622,7 +660,39 @@ def choose_linear(
     return RegularisationChoice(
         method=method, rule=rule, value=choices[rule], choices=choices, grid=np.asarray(grid), curves=curves,
         singular_values=d.s, n_rows=N, n_params=p, noise_known=noise_known, linearisation=linearisation, folds=K,
+        target_rule=calibration,
     )
+
+
+# the calibration of ``targets`` depends only on the design: keep the last few
+_TARGET_RULES: dict = {}
+
+
+def _targets_pick(A, z, d, method, grid, output_map, noise_known, target_rule, seed):
+    """The ``targets`` rule's pick, its scores and its calibration (calibrated here if not given)."""
+    sigma = 1.0
+    if not noise_known:  # whiten by the noise scale of the unregularised fit
+        dof = d.n_rows - int(np.sum(d.s > 1e-12 * d.s[0]))
+        if dof < 1 or d.c_perp <= 0:
+            raise InputError("rule 'targets': without an instrument sigma in the machine file it needs more "
+                             f"rows than parameters and a non-zero residual ({d.n_rows} rows, {d.s.size} parameters)")
+        sigma = float(np.sqrt(d.c_perp / dof))
+    design = rule_design(A / sigma, method, grid, output_map)
+    if target_rule is None:
+        import hashlib
+
+        key = hashlib.sha1(b"".join(np.ascontiguousarray(x, dtype=float).tobytes() for x in
+                                    (A / sigma, np.asarray(grid, dtype=float),
+                                     np.zeros(0) if output_map is None else output_map))
+                           + method.encode()).hexdigest()
+        if key not in _TARGET_RULES:
+            while len(_TARGET_RULES) >= 8:
+                _TARGET_RULES.pop(next(iter(_TARGET_RULES)))
+            # a property of the design, so its own fixed seed; ``seed`` seeds the draws for these data
+            _TARGET_RULES[key] = calibrate_target_rule(A / sigma, method, grid, output_map=output_map)
+        target_rule = _TARGET_RULES[key]
+    i, scores = target_rule.choose(design, design.U.T @ (z / sigma), seed=[seed, 2])
+    return i, scores, target_rule.to_dict()
 
 
 # ------------------------------------------------------- nonlinear problems

@@ -17,7 +17,7 @@ from ._backend import save
 __all__ = ["plot_choice", "plot_output_error", "plot_histories", "plot_ratio_spread", "RULE_COLOURS"]
 
 RULE_COLOURS = {"cv": "tab:blue", "lcurve": "tab:orange", "gcv": "tab:green", "discrepancy": "tab:red", "evidence": "tab:purple",
-                "risk": "tab:brown", "success": "tab:pink"}
+                "risk": "tab:brown", "success": "tab:pink", "targets": "tab:olive"}
 
 
 

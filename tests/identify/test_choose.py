@@ -235,6 +235,10 @@ def test_ridge_choice_is_a_fixed_point_and_report(prs3, sim6):
 def test_tsvd_choice_uses_start_geometry(prs3, sim6):
     model = MeasurementModel.from_recording(prs3, sim6.recording)
     choice, res = choose_regularisation(model, "tsvd")
-    assert res.success and res.k == choice.value == choice.choices["success"]  # the TSVD default
+    assert res.success and res.k == choice.value == choice.choices["targets"]  # the TSVD default
     d = choice.to_dict()
     assert d["method"] == "tsvd" and len(d["curves"]["gcv"]) == choice.n_params
+    # the calibration travels with the choice, and its scores pick the value
+    assert d["target_rule"]["method"] == "tsvd" and set(d["target_rule"]["relaxed"]) == {"0.5", "1", "2", "4"}
+    assert choice.grid[int(np.argmin(d["curves"]["targets_score"]))] == choice.value
+    assert "targets" in choice.report() and "<- used" in choice.report()

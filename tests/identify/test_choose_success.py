@@ -184,7 +184,7 @@ def test_success_rule_realises_its_prediction(rng):
     for t in range(150):
         x = rng.normal(size=p)
         z = A @ x + rng.normal(size=N)
-        ch = choose_linear(A, z, "tsvd", output_map=G, n_posterior=300, seed=t)
+        ch = choose_linear(A, z, "tsvd", rule="success", output_map=G, n_posterior=300, seed=t)
         xs = {}
         U, s, Vt = np.linalg.svd(A, full_matrices=False)
         coef = (U.T @ z) / s
