@@ -49,7 +49,7 @@ default for lambda), targets (the default for k: a compromise calibrated on
 the recording's own design, by simulating data sets from it at 0.5-4 times
 the tolerances, so that the success probability stays within 3 points of
 the attainable, the mean ratio to the best near its least and the ratio
-above 1.40 in at most 10 % of cases; about ten seconds).  The report
+above 1.40 in at most 10 % of cases; a few seconds).  The report
 prints the chosen value and what every other rule picks ("<- used" marks
 the rule applied); --figures DIR draws the rule curves.  See
 docs/regularisation.md.

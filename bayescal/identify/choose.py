@@ -57,8 +57,10 @@ through the SVD ``A = U diag(s) V^T``, ``beta = U^T z``:
   points of the ceiling, the regret on the expected ratio and the tail
   ``P(ratio > T)`` within their targets at truth scales 0.5-4 times the
   tolerances at once.  Its calibration simulates data sets from ``A``
-  (about ten seconds), so it is computed only when asked for (``rule`` or
-  ``target_rule``); once per design, then cached.  The default for k.
+  (a few seconds), so it is computed only when asked for (``rule`` or
+  ``target_rule``); once per design, then cached (without an instrument
+  sigma the design is whitened by each data set's residual scale, so the
+  calibration is redone for every data set).  The default for k.
 
 Where the problem is linearised (see :func:`choose_regularisation`): ridge
 iterates rule and Gauss-Newton to a fixed point (linearise at the converged
@@ -415,7 +417,10 @@ def _success_curve(
     sd = np.sqrt(sigma2[:, None] / g)
     p, r = A.shape[1], d.s.size
     if p > r:  # directions A does not see: estimates stay 0 there, the posterior is the prior
-        V = np.linalg.svd(A, full_matrices=True)[2].T
+        # an orthonormal complement of the same V: a second SVD call may flip the signs of its vectors
+        import scipy.linalg
+
+        V = np.hstack([d.V, scipy.linalg.null_space(d.V.T)])
         m = np.hstack([m, np.zeros((n_posterior, p - r))])
         sd = np.hstack([sd, np.repeat(np.sqrt(sigma2 / lam)[:, None], p - r, axis=1)])
     else:
@@ -668,23 +673,29 @@ def choose_linear(
 _TARGET_RULES: dict = {}
 
 
+def _residual_sigma(d: _Svd) -> float:
+    """The noise scale of the unregularised fit: its residual over ``N - rank`` degrees of freedom."""
+    seen = d.s > 1e-12 * d.s[0]
+    dof = d.n_rows - int(np.sum(seen))
+    # what U^T z leaves, plus the directions A does not reach (zero singular values)
+    resid = d.c_perp + float(np.sum(d.beta[~seen] ** 2))
+    if dof < 1 or resid <= 0:
+        raise InputError("rule 'targets': without an instrument sigma in the machine file it needs more "
+                         f"rows than parameters and a non-zero residual ({d.n_rows} rows, {d.s.size} parameters)")
+    return float(np.sqrt(resid / dof))
+
+
 def _targets_pick(A, z, d, method, grid, output_map, noise_known, target_rule, seed):
     """The ``targets`` rule's pick, its scores and its calibration (calibrated here if not given)."""
-    sigma = 1.0
-    if not noise_known:  # whiten by the noise scale of the unregularised fit
-        dof = d.n_rows - int(np.sum(d.s > 1e-12 * d.s[0]))
-        if dof < 1 or d.c_perp <= 0:
-            raise InputError("rule 'targets': without an instrument sigma in the machine file it needs more "
-                             f"rows than parameters and a non-zero residual ({d.n_rows} rows, {d.s.size} parameters)")
-        sigma = float(np.sqrt(d.c_perp / dof))
+    sigma = 1.0 if noise_known else _residual_sigma(d)  # else whiten by the unregularised fit's noise scale
     design = rule_design(A / sigma, method, grid, output_map)
     if target_rule is None:
         import hashlib
 
-        key = hashlib.sha1(b"".join(np.ascontiguousarray(x, dtype=float).tobytes() for x in
-                                    (A / sigma, np.asarray(grid, dtype=float),
-                                     np.zeros(0) if output_map is None else output_map))
-                           + method.encode()).hexdigest()
+        h = hashlib.sha1(method.encode())
+        for x in (A / sigma, np.asarray(grid, dtype=float), output_map):  # shapes too: equal bytes, other arrays
+            h.update(b"|none" if x is None else repr(np.shape(x)).encode() + np.ascontiguousarray(x, dtype=float).tobytes())
+        key = h.hexdigest()
         if key not in _TARGET_RULES:
             while len(_TARGET_RULES) >= 8:
                 _TARGET_RULES.pop(next(iter(_TARGET_RULES)))

@@ -75,9 +75,9 @@ __all__ = [
 #: better than the machine file says (0.5) up to four times worse.
 DEFAULT_SCALES: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0)
 
-# a hard constraint's Lagrange weight at this bound (the soft ones sum to 1) means the
-# hard constraints cannot all be met on the sample (the dual is unbounded)
-_HARD_BOUND = 1e3
+# the bound on a hard constraint's Lagrange weight (the soft ones sum to 1); feasibility is
+# checked first, so the bound only has to exceed the largest multiplier a feasible problem needs
+_HARD_BOUND = 1e7
 
 
 @dataclass(frozen=True)
@@ -181,8 +181,12 @@ def rule_design(A: ArrayLike, method: str, grid: ArrayLike, output_map: ArrayLik
     r = int(np.sum(s > 1e-12 * s[0])) if s.size and s[0] > 0 else 0
     if r == 0:
         raise InputError("A: no direction is observed (all singular values zero)")
-    if r < p:  # the unseen directions complete V (their estimates stay zero)
-        Vt = np.linalg.svd(A, full_matrices=True)[2]
+    if Vt.shape[0] < p:  # fewer rows than parameters: the unseen directions complete V (estimates stay zero);
+        # an orthonormal complement of the same V keeps U, s and V from one factorisation (a second
+        # SVD call may flip signs)
+        import scipy.linalg
+
+        Vt = np.vstack([Vt, scipy.linalg.null_space(Vt).T])
     U, s = U[:, :r], s[:r]
     G = np.eye(p) if output_map is None else np.asarray(output_map, dtype=float)
     if G.ndim != 2 or G.shape[1] != p:
@@ -298,7 +302,7 @@ def minimax_weights(a: NDArray, soft: NDArray | None = None) -> tuple[NDArray, f
         ``lam`` shape (K,), the soft part summing to 1; ``value`` the least
         largest soft constraint (``<= 0``: some rule meets them all on this
         sample).  None when the hard constraints cannot all be met on this
-        sample (a hard weight reaches its bound: the dual is unbounded).
+        sample (checked first, by this programme on the hard rows alone).
     """
     import scipy.optimize
     import scipy.sparse
@@ -307,6 +311,8 @@ def minimax_weights(a: NDArray, soft: NDArray | None = None) -> tuple[NDArray, f
     soft = np.ones(K, bool) if soft is None else np.asarray(soft, bool)
     if soft.shape != (K,) or not soft.any():
         raise InputError(f"soft: expected {K} flags, at least one True")
+    if not soft.all() and minimax_weights(a[:, :, ~soft])[1] > 1e-12:
+        return None
     rows = np.arange(n * V)
     lam_part = scipy.sparse.csr_matrix(-a.reshape(n * V, K))
     u_part = scipy.sparse.csr_matrix((np.ones(n * V), (rows, np.repeat(np.arange(n), V))), shape=(n * V, n))
@@ -318,7 +324,7 @@ def minimax_weights(a: NDArray, soft: NDArray | None = None) -> tuple[NDArray, f
     if not res.success:
         raise RuntimeError(f"minimax_weights: the linear programme failed: {res.message}")
     lam = np.maximum(res.x[:K], 0.0)
-    if np.any(lam[~soft] > 0.99 * _HARD_BOUND):
+    if np.any(lam[~soft] > 0.99 * _HARD_BOUND):  # feasible only at the edge: no usable weights
         return None
     return lam, float(-res.fun)
 
@@ -340,16 +346,21 @@ class TargetRule:
     relaxed : tuple of float
         Per scale, how far its tail target was relaxed: the least
         ``P(ratio > T)`` a rule knowing the scale has on the calibration
-        sample, minus ``tail_share`` (0 where the target is attainable).
+        sample (reweighted to the scale), minus ``tail_share`` (0 where the
+        target is attainable).
     shortfall : float
         The programme's value: the largest excess over the (relaxed)
         targets on the calibration sample (<= 0: every one met there).
     calibration : dict
         Per scale, the argmin rule's ``gap``, ``regret`` and ``tail`` on its
-        own calibration sample, and ``n_data`` (per scale), ``n_draws``, ``seed``.
+        own calibration sample; which ``programme`` gave the weights; and
+        ``n_data`` (per scale), ``n_draws``, ``margin``, ``seed``.
     n_draws : int
         Posterior draws per scale (the rule uses as many as it was calibrated with).
     seed : int
+    fingerprint : tuple
+        The design it was calibrated on (singular values, output Gram
+        matrix): :meth:`choose` refuses another.
     """
 
     method: str
@@ -360,8 +371,9 @@ class TargetRule:
     relaxed: tuple[float, ...]
     shortfall: float
     calibration: dict = field(compare=False)
-    n_draws: int = 1000
+    n_draws: int = 600
     seed: int = 0
+    fingerprint: tuple = field(default=(), compare=False, repr=False)
 
     def scores(self, phi: NDArray, logd: NDArray) -> NDArray:
         """The Lagrangian of every candidate (smaller is better) from :func:`candidate_values` and the log densities."""
@@ -370,8 +382,12 @@ class TargetRule:
     def choose(self, design: RuleDesign, beta: NDArray, seed=None) -> tuple[int, NDArray]:
         """Index into ``grid`` of the chosen candidate for the data ``beta = U^T z``, and the scores."""
         if design.method != self.method or design.grid.shape != self.grid.shape or \
-                not np.allclose(design.grid, self.grid, rtol=1e-12):
+                not np.allclose(design.grid, self.grid, rtol=1e-12, atol=0.0):
             raise InputError("target_rule: calibrated for another method or candidate grid")
+        if self.fingerprint and not _same_design(self.fingerprint, _fingerprint(design)):
+            raise InputError("target_rule: calibrated for another design (singular values or output map differ; "
+                             "without an instrument sigma the design is whitened by the data's residual scale, "
+                             "so a rule calibrated beforehand cannot apply)")
         phi = candidate_values(design, beta, self.scales, self.targets, self.n_draws,
                                [self.seed, 2] if seed is None else seed)
         sc = self.scores(phi, scale_log_densities(design.s, beta, self.scales))
@@ -386,6 +402,16 @@ class TargetRule:
                             "ratio": self.targets.ratio},
                 "relaxed": dict(zip((f"{c:g}" for c in self.scales), self.relaxed)), "shortfall": self.shortfall,
                 "calibration": self.calibration}
+
+
+def _fingerprint(design: RuleDesign) -> tuple:
+    """What identifies a design up to the signs of its singular vectors: ``s`` and the output map's Gram matrix."""
+    return (design.s.copy(), design.RV.T @ design.RV)
+
+
+def _same_design(a: tuple, b: tuple) -> bool:
+    return all(x.shape == y.shape and np.allclose(x, y, rtol=1e-6, atol=1e-9 * max(float(np.abs(x).max()), 1e-300))
+               for x, y in zip(a, b))
 
 
 def _lagrangian(weights: NDArray, w: NDArray, phi: NDArray) -> NDArray:
@@ -412,8 +438,8 @@ def calibrate_target_rule(
     output_map: ArrayLike | None = None,
     scales=DEFAULT_SCALES,
     targets: RuleTargets | None = None,
-    n_data: int = 300,
-    n_draws: int = 1000,
+    n_data: int = 200,
+    n_draws: int = 600,
     margin: float = 0.004,
     seed: int = 0,
 ) -> TargetRule:
@@ -484,12 +510,13 @@ def calibrate_target_rule(
         phi[i] = candidate_values(design, beta, scales, targets, n_draws, [seed, 3, i])
         logd[i] = scale_log_densities(s, beta, scales)
     w = _density_weights(logd)
-    # the least tail any rule can have at each scale, knowing it (E[min_v t_cv] on that scale's own
-    # data sets): where it is above the target, that target is relaxed to it, so an impossible target
-    # does not drag the others down (gap and regret alone are always attainable: the success and
-    # the least-expected-ratio choices have zero gap and zero regret)
-    relax = np.array([max(float(phi[drawn_at == j, j, :, 2].min(axis=1).mean()) - targets.tail_share, 0.0)
-                      for j in range(S)])
+    # the least tail any rule can have at each scale, knowing it (E_c[min_v t_cv], estimated like the
+    # constraint rows: the pooled data sets reweighted to scale c): where it is above the target, that
+    # target is relaxed to it, so an impossible target does not drag the others down (gap and regret
+    # alone are always attainable: the success and the least-expected-ratio choices have zero gap and
+    # zero regret)
+    floor = (w * phi[:, :, :, 2].min(axis=2)).mean(axis=0) / w.mean(axis=0)
+    relax = np.maximum(floor - targets.tail_share, 0.0)
     a = constraint_rows(phi, w, targets)
     a[:, :, 2::3] -= (relax[None, :] * w)[:, None, :]
     # every target tightened by the margin (density-weighted like the rows).  In the plain minimax a
@@ -498,16 +525,21 @@ def calibrate_target_rule(
     # hold about half the time
     a += float(margin) * np.repeat(w, 3, axis=1)[:, None, :]
     lam, value = minimax_weights(a)
-    if value > 0 and np.any(relax > 0):
+    programme = "minimax over every target"
+    if value > 0 and np.any(relax > 0) and not np.all(relax > 0):
         # the scales still conflict: meet the targets of the scales where a rule knowing the scale
         # can, and minimise the excess at the others
-        lam, value = minimax_weights(a, np.repeat(relax > 0, 3)) or (lam, value)
+        second = minimax_weights(a, np.repeat(relax > 0, 3))
+        if second is None:
+            programme = "minimax over every target (the scales not relaxed cannot all be met together)"
+        else:
+            (lam, value), programme = second, "targets of the scales not relaxed met first"
     rule = TargetRule(method=method, grid=np.asarray(design.grid), scales=scales, weights=lam.reshape(S, 3),
                       targets=targets, relaxed=tuple(float(x) for x in relax), shortfall=value, calibration={},
-                      n_draws=int(n_draws), seed=int(seed))
+                      n_draws=int(n_draws), seed=int(seed), fingerprint=_fingerprint(design))
     choice = np.argmin(_lagrangian(rule.weights, w, phi), axis=1)
     per_scale = {f"{c:g}": _achieved(phi[:, j], choice, w[:, j]) for j, c in enumerate(scales)}
-    calibration = {"per_scale": per_scale, "n_data": int(n_data), "n_draws": int(n_draws), "margin": float(margin),
-                   "seed": int(seed)}
+    calibration = {"per_scale": per_scale, "programme": programme, "n_data": int(n_data), "n_draws": int(n_draws),
+                   "margin": float(margin), "seed": int(seed)}
     return TargetRule(**{**rule.__dict__, "calibration": calibration})
 

@@ -92,13 +92,15 @@ def test_candidate_values_match_integrals_over_the_posterior():
         assert np.allclose(phi[j][:, [0, 2]], want[:, [0, 2]], atol=0.004), (phi[j], want)
 
 
-def test_candidate_values_match_a_direct_simulation_in_parameter_space():
+@pytest.mark.parametrize("rows", [6, 1])
+def test_candidate_values_match_a_direct_simulation_in_parameter_space(rows):
     """Two parameters, three outputs: the posterior N(S A^T z, S), S = (A^T A + I / c^2)^-1, sampled in x itself
-    and the ridge estimates solved directly (no SVD): the same three values within Monte Carlo error."""
+    and the ridge estimates solved directly (no SVD): the same three values within Monte Carlo error.  With one
+    row, one direction is unseen (its estimate zero, its posterior the prior)."""
     rng = np.random.default_rng(8)
-    A = rng.normal(size=(6, 2)) * [1.5, 0.2]
+    A = rng.normal(size=(rows, 2)) * [1.5, 0.2]
     G = rng.normal(size=(3, 2))
-    z = A @ [0.4, -1.0] + rng.normal(size=6)
+    z = A @ [0.4, -1.0] + rng.normal(size=rows)
     grid = np.array([0.01, 0.3, 2.0, 20.0])
     targets = default_targets("tsvd")
     n = 200_000
@@ -196,3 +198,48 @@ def test_choose_linear_runs_the_rule_and_validates():
     r1 = choose_linear(A, z, "tsvd", output_map=G, noise_known=False, rule="targets")
     r2 = choose_linear(10 * A, 10 * z, "tsvd", output_map=G, noise_known=False, rule="targets")
     assert r1.value == r2.value
+
+
+def test_hard_constraints_with_a_large_multiplier_are_met_not_refused():
+    """Meeting a hard constraint with little slack needs a large Lagrange weight: still feasible, still solved."""
+    for eps in (1e-3, 5e-4, 1e-6):
+        a = np.zeros((4, 2, 2))
+        a[:, 0] = [-eps, 0.5]  # choice 0 meets the hard constraint by eps, costs 0.5 on the soft one
+        a[:, 1] = [eps, -0.5]  # choice 1 breaks it
+        got = minimax_weights(a, np.array([False, True]))
+        assert got is not None and np.isclose(got[1], _primal(a, np.array([False, True])), atol=1e-6), eps
+
+
+def test_a_rule_calibrated_elsewhere_or_cached_for_another_shape_is_not_applied():
+    A, G = _small_problem()
+    grid = np.arange(1, 9)
+    rule = calibrate_target_rule(A, "tsvd", grid, output_map=G, n_data=20, n_draws=100)
+    other = rule_design(2 * A, "tsvd", grid, G)
+    with pytest.raises(InputError, match="another design"):
+        rule.choose(other, other.U.T @ np.ones(A.shape[0]))
+    other = rule_design(A, "tsvd", grid, 2 * G)
+    with pytest.raises(InputError, match="another design"):
+        rule.choose(other, other.U.T @ np.ones(A.shape[0]))
+    # the cache tells arrays of the same bytes and another shape apart
+    rng = np.random.default_rng(5)
+    B = rng.normal(size=(6, 4))
+    z = rng.normal(size=6)
+    c1 = choose_linear(B, z, "tsvd", rule="targets", grid=[1, 2])
+    c2 = choose_linear(B.reshape(8, 3), rng.normal(size=8), "tsvd", rule="targets", grid=[1, 2])
+    assert c1.target_rule["weights"] != c2.target_rule["weights"] or \
+        c1.target_rule["calibration"] != c2.target_rule["calibration"]
+
+
+def test_without_a_sigma_the_residual_scale_counts_the_unreached_directions():
+    """A rank-deficient A (two equal columns): the whitening scale is the residual of the unregularised fit over
+    N - rank degrees of freedom, which averages to the true noise variance (2.0 here, 3000 data sets)."""
+    from bayescal.identify.choose import _residual_sigma, _svd
+
+    rng = np.random.default_rng(6)
+    A = rng.normal(size=(30, 8))
+    A[:, 7] = A[:, 6]
+    s2 = []
+    for _ in range(3000):
+        z = A @ rng.normal(size=8) + np.sqrt(2.0) * rng.normal(size=30)
+        s2.append(_residual_sigma(_svd(A, z)) ** 2)
+    assert abs(np.mean(s2) - 2.0) < 4 * np.std(s2) / np.sqrt(3000), np.mean(s2)
