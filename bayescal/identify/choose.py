@@ -78,6 +78,7 @@ D. J. C. MacKay, "Bayesian interpolation", Neural Computation 4 (1992).
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -690,8 +691,6 @@ def _targets_pick(A, z, d, method, grid, output_map, noise_known, target_rule, s
     sigma = 1.0 if noise_known else _residual_sigma(d)  # else whiten by the unregularised fit's noise scale
     design = rule_design(A / sigma, method, grid, output_map)
     if target_rule is None:
-        import hashlib
-
         h = hashlib.sha1(method.encode())
         for x in (A / sigma, np.asarray(grid, dtype=float), output_map):  # shapes too: equal bytes, other arrays
             h.update(b"|none" if x is None else repr(np.shape(x)).encode() + np.ascontiguousarray(x, dtype=float).tobytes())
