@@ -198,7 +198,8 @@ def meets(st: dict, method: str) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="3-PRS 6-DOF only, 12 data sets per scale (for the tests)")
+    ap.add_argument("--quick", action="store_true",
+                    help="3-PRS 6-DOF only, 12 data sets per scale, a coarse targets calibration (for the tests)")
     ap.add_argument("--n-data", type=int, default=None, help="data sets per situation and truth scale (default 400)")
     ap.add_argument("--n-posterior", type=int, default=N_POSTERIOR, help=f"success rule's draws (default {N_POSTERIOR})")
     ap.add_argument("--hyperprior", choices=sorted(HYPERPRIORS), default="default",
@@ -235,8 +236,10 @@ def main(argv=None) -> int:
             # the targets rule, calibrated once per design as the library does (its own seed, its own
             # simulated data sets: none of the data sets below)
             tc = time.perf_counter()
-            target_rules = {"ridge": calibrate_target_rule(A, "ridge", lam_grid, output_map=R),
-                            "tsvd": calibrate_target_rule(A, "tsvd", np.arange(1, s.size + 1), output_map=R)}
+            # (--quick, for the tests: a coarse calibration, 30 data sets per scale and 200 draws)
+            cal = {"n_data": 30, "n_draws": 200} if args.quick else {}
+            target_rules = {"ridge": calibrate_target_rule(A, "ridge", lam_grid, output_map=R, **cal),
+                            "tsvd": calibrate_target_rule(A, "tsvd", np.arange(1, s.size + 1), output_map=R, **cal)}
             summary.setdefault("target_rules", {})[key] = {m: r.to_dict() for m, r in target_rules.items()}
             print(f"{key}: targets rule calibrated in {time.perf_counter() - tc:.0f} s", file=sys.stderr, flush=True)
             for j, c in enumerate(args.scales or SCALES):

@@ -61,7 +61,9 @@ def fit(model: MeasurementModel, method: str, *, free="auto", seed: int = 0, qui
 
 def _fit(model, method, *, free, seed, quick, theta0):
     if method in ("ridge", "tsvd"):
-        return choose_regularisation(model, method, free=free, theta0=theta0)[1]
+        # --quick (the tests' mode): the targets rule's calibration coarse, 30 data sets per scale, 200 draws
+        calibration = {"n_data": 30, "n_draws": 200} if quick else None
+        return choose_regularisation(model, method, free=free, theta0=theta0, target_calibration=calibration)[1]
     if method in ("ls", "map"):
         return identify(model, method=method, free=free, theta0=theta0)
     if method == "registration":  # frame and tool only: the nominal machine placed and its tool point found

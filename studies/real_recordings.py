@@ -384,7 +384,7 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
             ("ls", "ls", "auto", reg.theta), ("map", "map", "auto", reg.theta),
             ("ridge --lam auto", "ridge", "auto", reg.theta), ("tsvd --k auto", "tsvd", "auto", reg.theta),
         ):
-            res = rc.fit(model, method, free=free, theta0=start)
+            res = rc.fit(model, method, free=free, theta0=start, quick=quick)
             pos, _, _ = rc.pose_errors(model, res.theta)
             ins[key] = rc.summary(pos, None) | {"n_free": int(np.count_nonzero(res.free)), "success": bool(res.success),
                                                 "message": res.message, "k": getattr(res, "k", None)}
@@ -424,7 +424,7 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
             r0 = rc.fit(mtr, "registration", free=REG)
             for key, method, free in (("registration", "registration", REG), ("map", "map", "auto"),
                                       ("tsvd --k auto", "tsvd", "auto")):
-                res = r0 if method == "registration" else rc.fit(mtr, method, free=free, theta0=r0.theta)
+                res = r0 if method == "registration" else rc.fit(mtr, method, free=free, theta0=r0.theta, quick=quick)
                 p, _, _ = rc.pose_errors(mte, res.theta)
                 held.setdefault(key, np.full(rec.n_poses, np.nan))[te] = p
         result["cv"] = {k: rc.summary(v, None) for k, v in held.items()}

@@ -99,6 +99,10 @@ STUDY_Q_LIMITS = {"3-PRS": [[400.0, 600.0]] * 3}
 
 
 # ----------------------------------------------------------------- set-up
+#: Options of the ``targets`` rule's calibration (k); ``--quick`` makes it coarse (the tests' mode).
+TARGET_CALIBRATION: dict = {}
+
+
 def appendix_noise() -> np.ndarray:
     """The seed's Appendix 1 measurement errors, shape (36, 6): mm, mm, mm, rad, rad, rad."""
     rows = [ln for ln in APPENDIX.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
@@ -238,7 +242,7 @@ def run_situation(machine, dof, q, q_eval, theta_true, noise, seed_set, *, n_lam
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         ch_r, re_auto = choose_regularisation(model, "ridge", free=seed_set)
-        ch_k, ts_auto = choose_regularisation(model, "tsvd", free=seed_set)
+        ch_k, ts_auto = choose_regularisation(model, "tsvd", free=seed_set, target_calibration=TARGET_CALIBRATION)
     out["choice_ridge"], out["choice_tsvd"], out["re_auto"], out["ts_auto"] = ch_r, ch_k, re_auto, ts_auto
 
     # output error against lambda: warm-started from large lambda (near nominal) down
@@ -348,7 +352,7 @@ def run_repetition(machine, dof, q, q_eval, seed_set, seed, lam_grid):
          * tol[seed_set]).reshape(-1, seed_set.size)
     ch_r = choose_linear(A, z, "ridge", groups=groups, seed=seed, output_map=G)
     A0, z0, groups0 = linearised_problem(model, np.zeros(P), seed_set, tol)
-    ch_k = choose_linear(A0, z0, "tsvd", groups=groups0, seed=seed, output_map=G)
+    ch_k = choose_linear(A0, z0, "tsvd", groups=groups0, seed=seed, output_map=G, target_calibration=TARGET_CALIBRATION)
     # the grid, every rule's lambda, and lambda = 1 (MAP under the tolerance prior: the yardstick)
     lams = np.concatenate([lam_grid, [ch_r.choices[r] for r in RULES], [1.0]])
     ks = np.arange(1, seed_set.size + 1)
@@ -484,6 +488,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     reps = args.reps if args.reps is not None else (2 if args.quick else 50)
+    if args.quick:  # the targets rule's calibration, coarse: 30 data sets per scale, 200 draws
+        TARGET_CALIBRATION.update(n_data=30, n_draws=200)
     n_lam = 7 if args.quick else 29
     t_start = time.perf_counter()
     notes, summary, md = [], {"quick": args.quick, "reps": reps, "situations": {}}, []

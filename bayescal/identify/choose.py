@@ -516,6 +516,7 @@ def choose_linear(
     integrate_scale: bool = True,
     hyperprior: ScaleHyperprior | None = None,
     target_rule: TargetRule | None = None,
+    target_calibration: dict | None = None,
 ) -> RegularisationChoice:
     """Apply every rule to the linear problem ``A x ~ z`` (rows whitened).
 
@@ -564,6 +565,10 @@ def choose_linear(
         :func:`bayescal.identify.target_rule.calibrate_target_rule`, when
         many data sets share one design); by default calibrated here (and
         cached), which it is only when ``rule`` is ``"targets"``.
+    target_calibration : dict, optional
+        Keyword arguments of the calibration done here
+        (:func:`~bayescal.identify.target_rule.calibrate_target_rule`: ``n_data``,
+        ``n_draws``, ``margin``, ``scales``, ``targets``, ``seed``); default its defaults.
 
     Returns
     -------
@@ -642,7 +647,7 @@ def choose_linear(
     }
     if rule == "targets" or target_rule is not None:
         picks["targets"], extras["targets_score"], extras["target_rule"] = _targets_pick(
-            A, z, d, method, grid, output_map, noise_known, target_rule, seed)
+            A, z, d, method, grid, output_map, noise_known, target_rule, seed, target_calibration or {})
         calibration = extras.pop("target_rule")
     else:
         calibration = None
@@ -686,12 +691,12 @@ def _residual_sigma(d: _Svd) -> float:
     return float(np.sqrt(resid / dof))
 
 
-def _targets_pick(A, z, d, method, grid, output_map, noise_known, target_rule, seed):
+def _targets_pick(A, z, d, method, grid, output_map, noise_known, target_rule, seed, calibration):
     """The ``targets`` rule's pick, its scores and its calibration (calibrated here if not given)."""
     sigma = 1.0 if noise_known else _residual_sigma(d)  # else whiten by the unregularised fit's noise scale
     design = rule_design(A / sigma, method, grid, output_map)
     if target_rule is None:
-        h = hashlib.sha1(method.encode())
+        h = hashlib.sha1((method + repr(sorted(calibration.items()))).encode())
         for x in (A / sigma, np.asarray(grid, dtype=float), output_map):  # shapes too: equal bytes, other arrays
             h.update(b"|none" if x is None else repr(np.shape(x)).encode() + np.ascontiguousarray(x, dtype=float).tobytes())
         key = h.hexdigest()
@@ -699,7 +704,7 @@ def _targets_pick(A, z, d, method, grid, output_map, noise_known, target_rule, s
             while len(_TARGET_RULES) >= 8:
                 _TARGET_RULES.pop(next(iter(_TARGET_RULES)))
             # a property of the design, so its own fixed seed; ``seed`` seeds the draws for these data
-            _TARGET_RULES[key] = calibrate_target_rule(A / sigma, method, grid, output_map=output_map)
+            _TARGET_RULES[key] = calibrate_target_rule(A / sigma, method, grid, output_map=output_map, **calibration)
         target_rule = _TARGET_RULES[key]
     i, scores = target_rule.choose(design, design.U.T @ (z / sigma), seed=[seed, 2])
     return i, scores, target_rule.to_dict()
@@ -750,6 +755,7 @@ def choose_regularisation(
     max_iter: int = 50,
     eval_q: ArrayLike | None = None,
     hyperprior: ScaleHyperprior | None = None,
+    target_calibration: dict | None = None,
 ) -> tuple[RegularisationChoice, IdentificationResult]:
     """Choose ``lam`` (ridge) or ``k`` (TSVD) for a measurement model, and identify with it.
 
@@ -764,6 +770,8 @@ def choose_regularisation(
     actuator positions ``eval_q`` (default: the measured poses), through the
     tool-point Jacobians at nominal, with the prior scale integrated over
     ``hyperprior`` (default :data:`~bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`).
+    The ``targets`` rule judges them the same way; ``target_calibration``
+    passes options to its calibration (see :func:`choose_linear`).
 
     Returns
     -------
@@ -780,6 +788,7 @@ def choose_regularisation(
     free_arg = "auto" if free is None else free  # identify resolves it as here (and reports what it left)
     known = bool(machine.noise.given)
     kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed, hyperprior=hyperprior,
+              target_calibration=target_calibration,
               output_map=_tool_output_map(machine, getattr(model, "q", None) if eval_q is None else eval_q, idx, S_all))
     if method == "tsvd":
         A, z, groups = linearised_problem(model, theta, idx, S_all)
