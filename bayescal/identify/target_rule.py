@@ -154,6 +154,7 @@ class RuleDesign:
 
     @property
     def p(self) -> int:
+        """Number of parameters (the right singular coordinates, unseen ones included)."""
         return int(self.RV.shape[1])
 
     def estimates(self, beta: NDArray) -> NDArray:
@@ -394,6 +395,7 @@ class TargetRule:
         return int(np.argmin(sc)), sc
 
     def to_dict(self) -> dict:
+        """JSON-ready: weights per scale and target, the targets, relaxations, shortfall and calibration."""
         return {"method": self.method, "scales": list(self.scales),
                 "weights": {f"{c:g}": dict(zip(("gap", "regret", "tail"), map(float, self.weights[j])))
                             for j, c in enumerate(self.scales)},
