@@ -43,6 +43,7 @@ examples:
   bayescal plan --machine examples/prs3/machine.toml --n 36 --out poses.csv
   bayescal plan --machine m.toml --n 24 --criterion EIG --dof 5 --seed 3 --out poses.csv --json plan.json
   bayescal plan --machine m.toml --n 18 --criterion I --out poses.csv
+  bayescal plan --machine m.toml --n 10 --criterion I --certify 1 --out poses.csv
   bayescal plan --machine m.toml --n 40 --criterion O4 --candidates 5000 --scaling candidates --out p.csv
   bayescal plan --machine calib/machine.toml --measure height --given calib/recording.csv --n 6 \
       --centre 0,0,0 --radius 80 --sigma 0.02 --out heights.csv
@@ -88,6 +89,13 @@ def register(sub) -> None:
                    help="criterion I: also certify a lower bound for designs of whole poses (branch and bound on "
                    "the poses in each orthant of the actuator box; tighter than the relaxed bound at few poses; "
                    "about a minute with 3 actuators at 8-10 poses; refused above 4 actuators)")
+    p.add_argument("--certify", type=float, metavar="PCT",
+                   help="criterion I: prove that no design of N whole poses (repeats allowed) has sqrt(E[MSE]) more "
+                        "than PCT %% below the plan's (branch and bound on cells of the actuator box; a better design "
+                        "it finds replaces the plan). Seconds to minutes with 3 actuators; with many actuators it may "
+                        "stop at --certify-nodes without an answer")
+    p.add_argument("--certify-nodes", type=int, default=5000, metavar="K",
+                   help="relaxations allowed per --certify search (default 5000)")
     p.add_argument("--no-box", action="store_true",
                    help="candidates only drawn uniformly; by default the corners, edge midpoints and face centres "
                         "of the q_limits box (and points 1 %% and 5 %% inside them) are candidates too")
@@ -161,6 +169,10 @@ def run(args) -> int:
         raise InputError(f"--n: expected a positive number of poses, got {args.n}")
     if args.candidates < args.n:
         raise InputError(f"--candidates: expected at least --n = {args.n}, got {args.candidates}")
+    if args.certify is not None and not 0 <= args.certify < 100:
+        raise InputError(f"--certify: expected a percentage in [0, 100), got {args.certify}")
+    if args.certify_nodes < 1:
+        raise InputError(f"--certify-nodes: expected >= 1, got {args.certify_nodes}")
     if args.random_sets < 0:
         raise InputError(f"--random-sets: expected >= 0, got {args.random_sets}")
     machine = load_machine(args.machine)
@@ -173,7 +185,8 @@ def run(args) -> int:
         machine, args.n, criterion=args.criterion or "D", dof=args.dof, n_candidates=args.candidates, seed=args.seed,
         scaling=args.scaling, n_random=args.random_sets, exchange=not args.no_exchange,
         repeats=_repeats(args), box=not args.no_box, method=None if args.method == "auto" else args.method,
-        exact_bound=args.exact_bound,
+        exact_bound=args.exact_bound, certify=None if args.certify is None else args.certify / 100,
+        certify_nodes=args.certify_nodes,
     )
     write_plan(args.out, plan)
     write_json(args, plan.to_dict())

@@ -149,6 +149,16 @@ class PosePlan:
                          f"each of {self.extras['exact_bound_cells']} orthants of the actuator box, "
                          f"{self.extras['exact_bound_nodes']} relaxations; the plan is "
                          f"{100 * (self.extras['root_expected_mse_mm'] / self.extras['exact_bound_root_mse_mm'] - 1):.2f} % above it)")
+        if "certified" in self.extras:
+            pct = 100 * self.extras["certified_within"]
+            found = (f"; {self.extras['certify_replaced']} better design(s) found by the search replaced the plan"
+                     if self.extras["certify_replaced"] else "")
+            lines.append({True: f"  no design of {self.n_poses} whole poses has sqrt(E[MSE]) more than {pct:g} % below "
+                                f"the plan's (proved, {self.extras['certify_nodes']} relaxations{found})",
+                          False: f"  not certified: the search kept finding designs more than {pct:g} % better "
+                                 f"({self.extras['certify_nodes']} relaxations{found})",
+                          None: f"  not certified within {pct:g} %: the search stopped at its node budget "
+                                f"({self.extras['certify_nodes']} relaxations{found})"}[self.extras["certified"]])
         return "\n".join(lines)
 
 
@@ -302,6 +312,8 @@ def plan_poses(
     box: bool = True,
     method: str | None = None,
     exact_bound: bool = False,
+    certify: float | None = None,
+    certify_nodes: int = 5000,
 ) -> PosePlan:
     """Plan ``n_poses`` measurement poses that maximise an information criterion.
 
@@ -341,6 +353,18 @@ def plan_poses(
         (:func:`bayescal.design.exact_bound.exact_design_bound`, orthant
         cells), tighter than the relaxed bound at few poses; seconds to
         minutes with 3 actuators, and its cost grows with ``2^m`` cells.
+    certify : float, optional
+        Criterion I only: prove that no design of ``n_poses`` whole poses
+        from the candidates has ``sqrt(E[MSE])`` more than this fraction
+        (e.g. 0.01) below the plan's, by branch and bound
+        (:func:`bayescal.design.exact_decision.exact_design_below`, cells in
+        fractions of each actuator's stroke).  If the search finds such a
+        design, it becomes the plan and the question is asked again (up to
+        :data:`CERTIFY_ROUNDS` times).  The answer is in ``extras``
+        (``certified``: true, false when the rounds ran out, null when the
+        node budget did).
+    certify_nodes : int
+        Relaxations allowed per search (``certify``).
 
     Returns
     -------
@@ -374,8 +398,18 @@ def plan_poses(
     if exact_bound and not (method == "relaxed" and criterion == "I" and cands.output_weight is not None):
         raise InputError("exact_bound: only for criterion I with the relaxed selection (the bound is on E[MSE]), "
                          f"got criterion {criterion}, method {method}")
+    if certify is not None and not (method == "relaxed" and criterion == "I" and cands.output_weight is not None):
+        raise InputError("certify: only for criterion I with the relaxed selection (it compares E[MSE]), "
+                         f"got criterion {criterion}, method {method}")
+    if certify is not None and not (0 <= certify < 1):
+        raise InputError(f"certify: expected a fraction in [0, 1) (0.01 for 1 %), got {certify}")
+    if certify is not None and not repeats:
+        raise InputError("certify: the search covers designs with repeated poses; plan with repeats allowed")
+    certificate = None
     if method == "relaxed" and criterion == "I":
         sel, bound = relaxed_select(cands, int(n_poses), repeats=repeats)
+        if certify is not None:
+            sel, certificate = certify_selection(cands, machine.q_limits, sel, certify, certify_nodes)
         if exact_bound:
             from .exact_bound import exact_design_bound, orthant_cells
 
@@ -414,8 +448,44 @@ def plan_poses(
                    if cands.output_blocks is not None else {}),
                 **({"bound_root_mse_mm": bound.lower_root_mse} if bound is not None else {}),
                 **({"exact_bound_root_mse_mm": exact.lower_root_mse, "exact_bound_nodes": exact.nodes,
-                    "exact_bound_cells": exact.cells} if exact is not None else {})},
+                    "exact_bound_cells": exact.cells} if exact is not None else {}),
+                **(certificate or {})},
     )
+
+
+#: Searches ``certify`` runs at most: each design it finds replaces the plan and is questioned again.
+CERTIFY_ROUNDS = 5
+
+
+def certify_selection(cands: CandidateSet, q_limits: NDArray, sel: Selection, within: float,
+                      max_nodes: int) -> tuple[Selection, dict]:
+    """Prove no exact design beats ``sel`` by more than ``within`` in ``sqrt(E[MSE])``, or replace it by one that does.
+
+    Returns the (possibly replaced) selection and the ``extras`` entries
+    ``certified`` (bool or None), ``certified_within``, ``certify_nodes``
+    (relaxations, all rounds) and ``certify_replaced`` (designs adopted).
+    """
+    from .exact_decision import exact_design_below
+    from .rounding import design_mse
+
+    lim = np.asarray(q_limits, dtype=float)
+    coords = (cands.q - lim[:, 0]) / (lim[:, 1] - lim[:, 0])  # strokes: each actuator's range counts alike
+    B, Q = cands.prior_blocks_kept, cands.output_weight
+    nodes = replaced = 0
+    answer = False
+    for _ in range(CERTIFY_ROUNDS):
+        f = design_mse(B, Q, sel.index)
+        dec = exact_design_below(B, Q, len(sel.index), f / (1 + within) ** 2, coords, max_nodes=max_nodes)
+        nodes += dec.nodes
+        if dec.below is not True:
+            answer = None if dec.below is None else True
+            break
+        replaced += 1
+        u = -dec.design_mse
+        sel = Selection(index=np.asarray(dec.design, dtype=int), utility=u, greedy_utility=sel.greedy_utility,
+                        swaps=sel.swaps, history=np.append(sel.history, u))
+    return sel, {"certified": answer, "certified_within": float(within), "certify_nodes": int(nodes),
+                 "certify_replaced": int(replaced)}
 
 
 def plan_to_csv(plan: PosePlan) -> str:

@@ -154,3 +154,48 @@ def test_exact_bound_refuses_many_actuators():
     arm = load_machine("examples/arm6/machine.toml")
     with pytest.raises(InputError, match="practical up to 4 actuators; this machine has 6"):
         plan_poses(arm, 8, criterion="I", n_candidates=60, n_random=0, exact_bound=True)
+
+
+def test_certify_proves_the_plan_or_replaces_it(prs3):
+    from bayescal.design.exact_decision import exact_design_below
+    from bayescal.design.plan import certify_selection
+    from bayescal.design.rounding import design_mse
+    from bayescal.design.select import Selection
+
+    c = draw_candidates(prs3, 150, dof=6, rng=np.random.default_rng(2))
+    B, Q = c.prior_blocks_kept, c.output_weight
+    lim = np.asarray(prs3.q_limits, dtype=float)
+    coords = (c.q - lim[:, 0]) / (lim[:, 1] - lim[:, 0])
+    # a poor start (the first 8 candidates): the search must find better designs and adopt them
+    start = np.arange(8)
+    u0 = -design_mse(B, Q, start)
+    sel, cert = certify_selection(c, prs3.q_limits, Selection(index=start, utility=u0, greedy_utility=u0, swaps=0,
+                                                              history=np.array([u0])), 0.01, 5000)
+    assert cert["certify_replaced"] >= 1
+    f = design_mse(B, Q, sel.index)
+    assert f < design_mse(B, Q, start) / 1.01**2
+    assert sel.utility == pytest.approx(-f, rel=1e-12)
+    if cert["certified"] is True:
+        # what "certified" means, asked again independently of the rounds
+        assert exact_design_below(B, Q, 8, f / 1.01**2, coords).below is False
+    p = plan_poses(prs3, 8, criterion="I", candidates=c, n_random=0, certify=0.01)
+    assert p.extras["certified"] in (True, False, None) and p.extras["certified_within"] == 0.01
+    assert p.extras["root_expected_mse_mm"] >= p.extras["bound_root_mse_mm"]
+    with pytest.raises(InputError, match="certify: only for criterion I"):
+        plan_poses(prs3, 8, criterion="D", candidates=c, n_random=0, certify=0.01)
+    with pytest.raises(InputError, match="certify: expected a fraction"):
+        plan_poses(prs3, 8, criterion="I", candidates=c, n_random=0, certify=1.5)
+
+
+def test_cli_plan_certify(tmp_path, capsys):
+    out, js = tmp_path / "poses.csv", tmp_path / "plan.json"
+    rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "8", "--criterion", "I", "--candidates", "300",
+               "--seed", "3", "--random-sets", "0", "--certify", "1.5", "--out", str(out), "--json", str(js)])
+    assert rc == 0
+    ex = json.loads(js.read_text())
+    assert ex["certified_within"] == 0.015 and ex["certify_nodes"] >= 1
+    text = capsys.readouterr().out
+    assert ("proved" in text) == (ex["certified"] is True)
+    rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "8", "--criterion", "I", "--candidates", "300",
+               "--certify", "120", "--out", str(out)])
+    assert rc == 2 and "--certify: expected a percentage" in capsys.readouterr().err
