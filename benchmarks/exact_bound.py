@@ -1,4 +1,4 @@
-"""Benchmark: the whole-pose bound (branch and bound on orthant counts) against enumerating every design.
+"""Benchmark: the whole-pose bound and the yes/no search for exact designs, against enumerating every design.
 
 Question both answer: how low can ``E[MSE]`` of a design of ``n`` whole
 poses from a candidate set go (criterion I, linearised)?  Enumeration
@@ -7,7 +7,12 @@ n)`` designs, batched ``L x L`` solves with numpy) and gives the exact
 optimum; :func:`bayescal.design.exact_bound.exact_design_bound` gives a
 certified lower bound.  Reported per size: CPU time of each, their ratio,
 how close the bound is to the exact optimum (the price of the speed), and
-the growth exponent of each time with the number of candidates.  At the
+the growth exponent of each time with the number of candidates.  The
+yes/no search (:func:`bayescal.design.exact_decision.exact_design_below`)
+is timed on the two questions closest to the exact optimum: "is any design
+below 0.9999 times the optimum" (it must prove none) and "below 1.0001
+times" (it must find one); its answers are checked against the
+enumeration.  At the
 size the planning study uses (20,081 candidates) only the bound runs; the
 enumeration time is extrapolated from its per-design cost (stated).
 
@@ -38,6 +43,7 @@ sys.path.insert(0, str(ROOT))
 
 from bayescal.design import draw_candidates  # noqa: E402
 from bayescal.design.exact_bound import exact_design_bound, orthant_cells  # noqa: E402
+from bayescal.design.exact_decision import exact_design_below  # noqa: E402
 from bayescal.io import write_json_atomic  # noqa: E402
 from bayescal.machines import load_machine  # noqa: E402
 
@@ -80,15 +86,28 @@ def main(argv=None) -> int:
         t = time.process_time()
         eb = exact_design_bound(B, Q, n, orthant_cells(big.q[idx], lim))
         t_bb = time.process_time() - t
+        coords = (big.q[idx] - lim[:, 0]) / (lim[:, 1] - lim[:, 0])
+        dec = {}
+        for word, factor, expected in (("none", 1 - 1e-4, False), ("some", 1 + 1e-4, True)):
+            t = time.process_time()
+            d = exact_design_below(B, Q, n, factor * exact, coords, max_nodes=100000)
+            dec[word] = (time.process_time() - t, d.nodes)
+            if d.below is not expected:  # the search contradicts the enumeration: a bug, not a timing
+                raise SystemExit(f"N={N}: exact_design_below at {factor} x the optimum answered {d.below}")
         rows.append({"candidates": N, "poses": n, "designs": designs, "enumerate_cpu_s": t_enum, "bound_cpu_s": t_bb,
                      "ratio": t_enum / t_bb, "bound_over_optimum": float(np.sqrt(eb.lower_mse / exact)),
-                     "nodes": eb.nodes})
+                     "nodes": eb.nodes, "decide_none_cpu_s": dec["none"][0], "decide_none_nodes": dec["none"][1],
+                     "decide_some_cpu_s": dec["some"][0], "decide_some_nodes": dec["some"][1]})
         print(f"N={N:6d} n={n}: enumeration {designs} designs {t_enum:8.2f} s, bound {t_bb:6.2f} s "
               f"({eb.nodes} relaxations), ratio {t_enum / t_bb:8.1f}; sqrt(bound / optimum) = "
-              f"{rows[-1]['bound_over_optimum']:.4f}", flush=True)
+              f"{rows[-1]['bound_over_optimum']:.4f}; search: none below 0.9999 x optimum {dec['none'][0]:.2f} s "
+              f"({dec['none'][1]} relaxations, ratio {t_enum / dec['none'][0]:.1f}), one below 1.0001 x "
+              f"{dec['some'][0]:.2f} s ({dec['some'][1]})", flush=True)
     logN = np.log([r["candidates"] for r in rows])
-    growth = {k: float(np.polyfit(logN, np.log([r[k] for r in rows]), 1)[0]) for k in ("enumerate_cpu_s", "bound_cpu_s")}
-    print(f"growth exponent with N: enumeration {growth['enumerate_cpu_s']:.2f}, bound {growth['bound_cpu_s']:.2f}")
+    growth = {k: float(np.polyfit(logN, np.log([r[k] for r in rows]), 1)[0])
+              for k in ("enumerate_cpu_s", "bound_cpu_s", "decide_none_cpu_s")}
+    print(f"growth exponent with N: enumeration {growth['enumerate_cpu_s']:.2f}, bound {growth['bound_cpu_s']:.2f}, "
+          f"search (none below) {growth['decide_none_cpu_s']:.2f}")
     full = None
     if not args.quick:
         per_design = rows[-1]["enumerate_cpu_s"] / rows[-1]["designs"]

@@ -5,12 +5,14 @@ identification Jacobian blocks, the criteria D, A, E, O1..O5, the
 Bayesian expected information gain and I-optimality (expected tool-point
 error), greedy selection with rank-k updates and DETMAX-style exchange, and for I the
 Frank-Wolfe relaxation: a certified bound on sqrt(E[MSE]) and a rounded design near it, and a
-bound for designs of whole poses by branch and bound on orthant counts.  Works for any machine kind through
+bound for designs of whole poses by branch and bound on orthant counts, and a yes/no search for a design of
+whole poses below a threshold (cells split where the relaxed weight lies).  Works for any machine kind through
 :class:`bayescal.measurement.MeasurementModel`.
 """
 
 from .bound import DesignMSEBound, design_mse_bound
 from .exact_bound import ExactDesignBound, exact_design_bound, orthant_cells
+from .exact_decision import ExactDesignDecision, exact_design_below
 from .candidates import SCALINGS, CandidateSet, candidate_set_from_jacobian, column_scale, draw_candidates
 from .criteria import CRITERIA, PRIOR_BASED, SPECTRAL, check_criterion, criteria_from_singular_values, criterion_value
 from .criteria import i_value, output_weight, utility
@@ -28,6 +30,7 @@ __all__ = [
     "CandidateSet",
     "DesignMSEBound",
     "ExactDesignBound",
+    "ExactDesignDecision",
     "PosePlan",
     "Selection",
     "brute_force_greedy",
@@ -46,6 +49,7 @@ __all__ = [
     "i_value",
     "local_search",
     "design_mse_bound",
+    "exact_design_below",
     "exact_design_bound",
     "orthant_cells",
     "output_weight",
