@@ -41,6 +41,11 @@ Items 1-3 are searches (a design they do not find may exist); items 4 and 5
 are certificates.
 
     python studies/exact_design_gap.py [--quick] [--starts 20] [--out DIR]
+    python studies/exact_design_gap.py --decide arm6-6dof:8 [--nodes 3000]
+
+``--decide SETTING:N ...`` runs item 5 alone on any setting of
+``studies/pose_planning.py`` (the 6R arm has 64 orthants, too many for
+item 4) and writes ``decide.json``.
 """
 
 from __future__ import annotations
@@ -287,14 +292,45 @@ def run_case(s: pp.Setting, n: int, starts: int, seed: int, log) -> dict:
     return row
 
 
+def decide_only(args, cfg: dict) -> int:
+    """Item 5 alone: is any design of n whole poses within 1 % of the relaxed bound, for each SETTING:N."""
+    rows, built = [], {}
+    for spec in args.decide:
+        name, _, n = spec.partition(":")
+        if name not in pp.SETTINGS or not n.isdigit():
+            raise SystemExit(f"--decide: expected SETTING:N with SETTING one of {pp.SETTINGS}, got {spec!r}")
+        s = built[name] = built.get(name) or pp.build(name, cfg, args.seed)
+        if s.cands is None:
+            raise SystemExit(f"--decide: {name} has no candidate poses (its measurements are relations)")
+        n = int(n)
+        plan, bound = s.plan_i(n)
+        lim = np.asarray(s.machine.q_limits, dtype=float)
+        t0 = time.process_time()
+        dec = exact_design_below(s.B, s.Q, n, 1.01 ** 2 * bound.lower_mse, (s.cands.q - lim[:, 0]) / (lim[:, 1] - lim[:, 0]),
+                                 max_nodes=args.nodes, progress=lambda m: print(f"    {name} n={n}: {m}", flush=True))
+        row = {"setting": name, "n": n, "plan_ratio": float(np.sqrt(design_mse(s.B, s.Q, plan) / bound.lower_mse)),
+               "decision": dec.to_dict(), "cpu_s": time.process_time() - t0}
+        rows.append(row)
+        print(f"{name} n={n}: plan {row['plan_ratio']:.4f} x the bound; a design within 1 %: "
+              + {True: "yes", False: "none (proved)", None: f"no answer after {dec.nodes} relaxations"}[dec.below]
+              + f" ({dec.closed} closed, depth {dec.max_depth}, {row['cpu_s']:.0f} CPU s)", flush=True)
+    write_json_atomic(Path(args.out) / "decide.json", {"seed": args.seed, "nodes": args.nodes, "rows": rows})
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="1,000 candidates, 4 random starts, 6-DOF n = 8 only")
     ap.add_argument("--starts", type=int, default=20, help="random starts per case (default 20)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "exact_design_gap"))
+    ap.add_argument("--decide", nargs="+", metavar="SETTING:N",
+                    help="only ask whether a design within 1 %% exists, e.g. arm6-6dof:8 (settings of pose_planning.py)")
+    ap.add_argument("--nodes", type=int, default=20000, help="relaxations allowed per question (default 20000)")
     args = ap.parse_args(argv)
     cfg = dict(pp.QUICK if args.quick else pp.FULL)
+    if args.decide:
+        return decide_only(args, cfg)
     cases = {"prs3-6dof": (8,)} if args.quick else CASES
     starts = 4 if args.quick else args.starts
     t0 = time.perf_counter()

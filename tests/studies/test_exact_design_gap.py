@@ -1,8 +1,10 @@
 """The exact-design search of studies/exact_design_gap.py: exchanges checked by brute force, gradients by differences."""
 
+import json
 import sys
 
 import numpy as np
+import pytest
 
 from tests.studies.conftest import load_study
 
@@ -56,3 +58,15 @@ def test_continuous_gradient_matches_differences_of_the_objective():
         e[i, a] = step[a]
         fd = (f(q + e) - f(q - e)) / (2 * step[a])
         assert np.isclose(g[i, a], fd, rtol=1e-3, atol=1e-4 * abs(f(q)) / (hi - lo)[a]), (i, a, g[i, a], fd)
+
+
+def test_decide_only_writes_its_answer_and_refuses_bad_specs(tmp_path, capsys):
+    study = load_study("exact_design_gap")
+    assert study.main(["--quick", "--decide", "prs3-6dof:8", "--nodes", "1", "--out", str(tmp_path)]) == 0
+    (row,) = json.loads((tmp_path / "decide.json").read_text())["rows"]
+    # one relaxation cannot close the question at 8 poses (the plan is 1.7 % above the relaxed bound)
+    assert row["decision"]["below"] is None and row["decision"]["nodes"] == 1
+    assert row["plan_ratio"] > 1.01
+    assert "no answer after 1 relaxations" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="SETTING:N"):
+        study.main(["--quick", "--decide", "prs3-6dof", "--out", str(tmp_path)])
