@@ -59,6 +59,10 @@ def fit(model: MeasurementModel, method: str, *, free="auto", seed: int = 0, qui
         return _fit(model, method, free=free, seed=seed, quick=quick, theta0=theta0)
 
 
+#: The longest chain the studies run when the sampler asks for more steps (steps per walker).
+MCMC_MAX_STEPS = 6000
+
+
 def _fit(model, method, *, free, seed, quick, theta0):
     if method in ("ridge", "tsvd"):
         # --quick (the tests' mode): the targets rule's calibration coarse, 30 data sets per scale, 200 draws
@@ -75,9 +79,20 @@ def _fit(model, method, *, free, seed, quick, theta0):
             model = model.subset(np.random.default_rng(seed).permutation(model.n_poses))
         return kalman_filter(model, free=free)
     if method == "mcmc":
+        import tempfile
+
         from bayescal.bayes.mcmc import sample_posterior
 
-        return sample_posterior(model, free=free, n_steps=300 if quick else 1500, seed=seed, progress=False)
+        steps = 300 if quick else 1500
+        with tempfile.TemporaryDirectory() as tmp:
+            ck = Path(tmp) / "chain.npz"
+            res = sample_posterior(model, free=free, n_steps=steps, seed=seed, progress=False, checkpoint=ck)
+            # the sampler's own advice, followed as a user would (--resume: the same draws as one longer run),
+            # up to MCMC_MAX_STEPS; quick mode stops at 300
+            while not quick and not res.success and res.more_steps > 0 and res.n_steps < MCMC_MAX_STEPS:
+                res = sample_posterior(model, free=free, n_steps=min(res.n_steps + res.more_steps, MCMC_MAX_STEPS),
+                                       seed=seed, progress=False, checkpoint=ck, resume=True)
+        return res
     raise ValueError(method)
 
 

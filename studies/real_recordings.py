@@ -106,6 +106,8 @@ def positioner(out: Path, *, quick: bool, seed: int, folds: int, t0: float) -> d
         res = rc.fit(model, method, seed=seed, quick=quick)
         pos, ang, _ = rc.pose_errors(model, res.theta)
         row = rc.summary(pos, ang) | {"success": bool(res.success), "n_free": int(np.count_nonzero(res.free))}
+        if method == "mcmc":  # how long the chain ran (the sampler's advice followed up to rc.MCMC_MAX_STEPS)
+            row |= {"steps": int(res.n_steps), "message": res.message}
         result["in_sample"][method] = row
         thetas[method] = res.theta
         _stamp(f"positioner {method}: {row['pos_mean']:.3f} mm mean, {row.get('ang_mean', 0):.3f} mrad", t0)
