@@ -61,6 +61,8 @@ def fit(model: MeasurementModel, method: str, *, free="auto", seed: int = 0, qui
 
 #: The longest chain the studies run when the sampler asks for more steps (steps per walker).
 MCMC_MAX_STEPS = 6000
+#: Resumed runs at most, after the first.
+MCMC_MAX_PASSES = 4
 
 
 def _fit(model, method, *, free, seed, quick, theta0):
@@ -88,10 +90,14 @@ def _fit(model, method, *, free, seed, quick, theta0):
             ck = Path(tmp) / "chain.npz"
             res = sample_posterior(model, free=free, n_steps=steps, seed=seed, progress=False, checkpoint=ck)
             # the sampler's own advice, followed as a user would (--resume: the same draws as one longer run),
-            # up to MCMC_MAX_STEPS; quick mode stops at 300
-            while not quick and not res.success and res.more_steps > 0 and res.n_steps < MCMC_MAX_STEPS:
-                res = sample_posterior(model, free=free, n_steps=min(res.n_steps + res.more_steps, MCMC_MAX_STEPS),
-                                       seed=seed, progress=False, checkpoint=ck, resume=True)
+            # up to MCMC_MAX_STEPS; each pass at least a quarter longer (the ESS check can ask for a few steps,
+            # and every pass repeats the MAP start and the summaries); quick mode stops at 300
+            for _ in range(MCMC_MAX_PASSES):
+                if quick or res.success or res.more_steps <= 0 or res.n_steps >= MCMC_MAX_STEPS:
+                    break
+                steps = min(res.n_steps + max(res.more_steps, res.n_steps // 4), MCMC_MAX_STEPS)
+                res = sample_posterior(model, free=free, n_steps=steps, seed=seed, progress=False, checkpoint=ck,
+                                       resume=True)
         return res
     raise ValueError(method)
 

@@ -368,6 +368,7 @@ def sample_posterior(
     n_walkers = 2 * n + 2 if n_walkers is None else int(n_walkers)
     if n_walkers < n + 2 or n_walkers % 2:
         raise InputError(f"n_walkers: expected an even number >= {n + 2}, got {n_walkers}")
+    burn_default = burn is None
     burn = n_steps // 5 if burn is None else int(burn)
     if not 0 <= burn < n_steps:
         raise InputError(f"burn: expected 0 <= burn < n_steps = {n_steps}, got {burn}")
@@ -403,7 +404,8 @@ def sample_posterior(
     if checkpoint is not None:
         save_checkpoint(checkpoint, sampler.backend, fingerprint)
     seconds = time.perf_counter() - t0
-    res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor)
+    res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor,
+                     burn_grows=burn_default)
     if surrogate == "linear":
         draws = res.samples[rng.choice(res.samples.shape[0], size=min(200, res.samples.shape[0]), replace=False)]
         full = np.tile(start.theta, (draws.shape[0], 1))
@@ -423,7 +425,8 @@ def sample_posterior(
     return res
 
 
-def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor) -> PosteriorResult:
+def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor, *,
+               burn_grows: bool = False) -> PosteriorResult:
     machine = model.machine
     names = tuple(machine.layout.names[i] for i in idx)
     chain = sampler.get_chain(discard=burn)
@@ -460,6 +463,10 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         more = max(more, kept)  # R-hat falls roughly with 1/sqrt(length): try twice as long
         problems.append(f"R-hat {np.max(rhat):.3f} > {max_rhat}")
     success = not problems
+    if more and burn_grows:
+        # ``more`` is for the kept chain; with the default burn-in (a fifth of n_steps) a longer run also
+        # discards more, so the advice is the n_steps whose kept part is ``kept + more``
+        more = int(np.ceil((kept + more) / 0.8)) + 1 - n_steps
     message = "" if success else (
         f"not converged ({'; '.join(problems)}): run about {more} more steps (n_steps >= {n_steps + more})"
     )

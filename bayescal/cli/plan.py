@@ -90,10 +90,10 @@ def register(sub) -> None:
                    "the poses in each orthant of the actuator box; tighter than the relaxed bound at few poses; "
                    "about a minute with 3 actuators at 8-10 poses; refused above 4 actuators)")
     p.add_argument("--certify", type=float, metavar="PCT",
-                   help="criterion I: prove that no design of N whole poses (repeats allowed) has sqrt(E[MSE]) more "
-                        "than PCT %% below the plan's (branch and bound on cells of the actuator box; a better design "
-                        "it finds replaces the plan). Seconds to minutes with 3 actuators; with many actuators it may "
-                        "stop at --certify-nodes without an answer")
+                   help="criterion I: prove the plan's sqrt(E[MSE]) within PCT %% of every design of N whole poses "
+                        "(repeats allowed), by branch and bound on cells of the actuator box; a better design it finds "
+                        "replaces the plan. Seconds to minutes with 3 actuators; with many actuators it may stop at "
+                        "--certify-nodes without an answer")
     p.add_argument("--certify-nodes", type=int, default=5000, metavar="K",
                    help="relaxations allowed per --certify search (default 5000)")
     p.add_argument("--no-box", action="store_true",
@@ -141,6 +141,9 @@ def run_relations(args) -> int:
 
     if args.n < 1:
         raise InputError(f"--n: expected a positive number of measurements, got {args.n}")
+    for flag, value in (("--certify", args.certify), ("--exact-bound", args.exact_bound or None)):
+        if value is not None:
+            raise InputError(f"{flag}: only for poses (criterion I); not with --measure {args.measure}")
     machine = load_machine(args.machine)
     given = read_constraints(args.given) if args.given else None
     if given is not None:
@@ -169,8 +172,8 @@ def run(args) -> int:
         raise InputError(f"--n: expected a positive number of poses, got {args.n}")
     if args.candidates < args.n:
         raise InputError(f"--candidates: expected at least --n = {args.n}, got {args.candidates}")
-    if args.certify is not None and not 0 <= args.certify < 100:
-        raise InputError(f"--certify: expected a percentage in [0, 100), got {args.certify}")
+    if args.certify is not None and not 0 < args.certify < 100:
+        raise InputError(f"--certify: expected a percentage in (0, 100), got {args.certify}")
     if args.certify_nodes < 1:
         raise InputError(f"--certify-nodes: expected >= 1, got {args.certify_nodes}")
     if args.random_sets < 0:

@@ -30,9 +30,13 @@ duality gap.  Then:
 
 Every exact design lies in exactly one child, so when all nodes are closed
 *no* design of ``n`` poses from the candidates (repeats allowed) has
-``E[MSE]`` below the threshold.  A cell of identical candidates is never
-split; a node whose cells all are single points is an exact design and
-is decided by its own value.  Small problems are checked against
+``E[MSE]`` below the threshold.  A cell of identical candidates (equal
+blocks) is never split; a node whose cells with poses each hold one pose
+is an exact design and is decided by its own value.  Candidates the
+coordinates cannot tell apart are split by their order in the cell, so
+the coordinates decide only how fast the answer comes, never the answer.
+A node is closed only when its bound clears the threshold by a relative
+``1e-9`` (the bound's rounding).  Small problems are checked against
 exhaustive enumeration (tests/design/test_exact_decision.py).
 
 Cost: one relaxation per node.  On the 3-PRS (20,081 candidates, 32
@@ -102,8 +106,13 @@ def _design_mse(BB: NDArray, Q: NDArray, design: NDArray) -> float:
     return float(np.trace(np.linalg.solve(M, Q)))
 
 
-def _split(idx: NDArray, coords: NDArray, w: NDArray) -> tuple[NDArray, NDArray] | None:
-    """Two non-empty halves of the cell ``idx``: at the weighted mean across the most spread coordinate, else the widest."""
+def _split(idx: NDArray, coords: NDArray, w: NDArray, BB: NDArray) -> tuple[NDArray, NDArray] | None:
+    """Two non-empty halves of the cell ``idx``, or None if all its candidates are the same pose.
+
+    At the weighted mean across the most spread coordinate; else at the
+    middle of the widest coordinate; else (candidates with equal
+    coordinates, which need not be equal poses) by position in the cell.
+    """
     X, ww = coords[idx], w[idx]
     total = float(ww.sum())
     if total > 0:
@@ -117,10 +126,13 @@ def _split(idx: NDArray, coords: NDArray, w: NDArray) -> tuple[NDArray, NDArray]
                 return idx[left], idx[~left]
     lo, hi = X.min(axis=0), X.max(axis=0)
     dim = int(np.argmax(hi - lo))
-    if hi[dim] <= lo[dim]:
-        return None  # identical candidates: one point
-    left = X[:, dim] < 0.5 * (lo[dim] + hi[dim])
-    return idx[left], idx[~left]
+    if hi[dim] > lo[dim]:
+        left = X[:, dim] < 0.5 * (lo[dim] + hi[dim])
+        if 0 < left.sum() < idx.size:  # (adjacent floats can put every candidate on one side)
+            return idx[left], idx[~left]
+    if idx.size > 1 and not np.all(BB[idx] == BB[idx[0]]):
+        return idx[: idx.size // 2], idx[idx.size // 2:]
+    return None  # one pose (or copies of it): its relaxation is exact
 
 
 def _spread(idx: NDArray, coords: NDArray, w: NDArray) -> float:
@@ -192,6 +204,8 @@ def exact_design_below(
                                    design_mse=float(mse), nodes=stats["nodes"], closed=stats["closed"],
                                    max_depth=stats["depth"])
 
+    # a node is closed only with a little room above the threshold: its bound carries rounding (~1e-13)
+    closing = float(threshold_mse) * (1 + 1e-9)
     # depth first on an explicit stack of (cells, counts, parent's relaxed weights, depth)
     stack = [([np.arange(N)], [n], None, 0)]
     while stack:
@@ -205,9 +219,9 @@ def exact_design_below(
         groups = np.empty(N, dtype=np.int64)
         for g, idx in enumerate(cells):
             groups[idx] = g
-        lower, _, w = cell_relaxation(BB, Q, groups, np.array(counts, dtype=float), stop_above=threshold_mse,
+        lower, _, w = cell_relaxation(BB, Q, groups, np.array(counts, dtype=float), stop_above=closing,
                                       stop_below=threshold_mse, start=start)
-        if lower >= threshold_mse:
+        if lower >= closing:
             stats["closed"] += 1
             continue
         # each cell's poses on its heaviest candidate: an exact design, often the answer once the cells are small
@@ -220,12 +234,12 @@ def exact_design_below(
         order = sorted(range(len(live)), key=lambda i: (-spread[i], -cells[live[i]].size))
         parts = None
         for i in order:
-            parts = _split(cells[live[i]], coords, w)
+            parts = _split(cells[live[i]], coords, w, BB)
             if parts is not None:
                 g = live[i]
                 break
         if parts is None:
-            # every cell with poses is one point: the node is the exact design ``rounded``, already above the threshold
+            # every cell with poses is one pose: the node is the exact design ``rounded``, already above the threshold
             stats["closed"] += 1
             continue
         a, b = parts

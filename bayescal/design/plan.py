@@ -153,12 +153,13 @@ class PosePlan:
             pct = 100 * self.extras["certified_within"]
             found = (f"; {self.extras['certify_replaced']} better design(s) found by the search replaced the plan"
                      if self.extras["certify_replaced"] else "")
-            lines.append({True: f"  no design of {self.n_poses} whole poses has sqrt(E[MSE]) more than {pct:g} % below "
-                                f"the plan's (proved, {self.extras['certify_nodes']} relaxations{found})",
-                          False: f"  not certified: the search kept finding designs more than {pct:g} % better "
-                                 f"({self.extras['certify_nodes']} relaxations{found})",
-                          None: f"  not certified within {pct:g} %: the search stopped at its node budget "
-                                f"({self.extras['certify_nodes']} relaxations{found})"}[self.extras["certified"]])
+            work = f"{self.extras['certify_relaxations']} relaxations{found}"
+            lines.append({True: f"  the plan's sqrt(E[MSE]) is within {pct:g} % of every design of {self.n_poses} whole "
+                                f"poses (proved, {work})",
+                          False: f"  not certified within {pct:g} %: each search found a design more than "
+                                 f"{pct:g} % better in sqrt(E[MSE]) ratio ({work})",
+                          None: f"  not certified within {pct:g} %: the search stopped at its node budget ({work})"
+                          }[self.extras["certified"]])
         return "\n".join(lines)
 
 
@@ -354,9 +355,10 @@ def plan_poses(
         cells), tighter than the relaxed bound at few poses; seconds to
         minutes with 3 actuators, and its cost grows with ``2^m`` cells.
     certify : float, optional
-        Criterion I only: prove that no design of ``n_poses`` whole poses
-        from the candidates has ``sqrt(E[MSE])`` more than this fraction
-        (e.g. 0.01) below the plan's, by branch and bound
+        Criterion I only: prove that the plan's ``sqrt(E[MSE])`` is at most
+        ``1 + certify`` times that of every design of ``n_poses`` whole
+        poses from the candidates (e.g. 0.01: within 1 % of the best), by
+        branch and bound
         (:func:`bayescal.design.exact_decision.exact_design_below`, cells in
         fractions of each actuator's stroke).  If the search finds such a
         design, it becomes the plan and the question is asked again (up to
@@ -401,8 +403,8 @@ def plan_poses(
     if certify is not None and not (method == "relaxed" and criterion == "I" and cands.output_weight is not None):
         raise InputError("certify: only for criterion I with the relaxed selection (it compares E[MSE]), "
                          f"got criterion {criterion}, method {method}")
-    if certify is not None and not (0 <= certify < 1):
-        raise InputError(f"certify: expected a fraction in [0, 1) (0.01 for 1 %), got {certify}")
+    if certify is not None and not (0 < certify < 1):
+        raise InputError(f"certify: expected a fraction in (0, 1) (0.01 for 1 %), got {certify}")
     if certify is not None and not repeats:
         raise InputError("certify: the search covers designs with repeated poses; plan with repeats allowed")
     certificate = None
@@ -459,11 +461,18 @@ CERTIFY_ROUNDS = 5
 
 def certify_selection(cands: CandidateSet, q_limits: NDArray, sel: Selection, within: float,
                       max_nodes: int) -> tuple[Selection, dict]:
-    """Prove no exact design beats ``sel`` by more than ``within`` in ``sqrt(E[MSE])``, or replace it by one that does.
+    """Prove ``sel`` within a factor ``1 + within`` of every exact design in ``sqrt(E[MSE])``, or replace it.
+
+    Each round asks :func:`~bayescal.design.exact_decision.exact_design_below`
+    for a design with ``E[MSE]`` below ``E[MSE](sel) / (1 + within)^2``; a
+    design found becomes ``sel`` (as it is: no exchanges) and is asked
+    about again.
 
     Returns the (possibly replaced) selection and the ``extras`` entries
-    ``certified`` (bool or None), ``certified_within``, ``certify_nodes``
-    (relaxations, all rounds) and ``certify_replaced`` (designs adopted).
+    ``certified`` (True: proved; False: every round found a better design;
+    None: a search ran out of nodes), ``certified_within``,
+    ``certify_relaxations`` (all rounds) and ``certify_replaced`` (designs
+    adopted).
     """
     from .exact_decision import exact_design_below
     from .rounding import design_mse
@@ -471,12 +480,12 @@ def certify_selection(cands: CandidateSet, q_limits: NDArray, sel: Selection, wi
     lim = np.asarray(q_limits, dtype=float)
     coords = (cands.q - lim[:, 0]) / (lim[:, 1] - lim[:, 0])  # strokes: each actuator's range counts alike
     B, Q = cands.prior_blocks_kept, cands.output_weight
-    nodes = replaced = 0
+    relaxations = replaced = 0
     answer = False
     for _ in range(CERTIFY_ROUNDS):
         f = design_mse(B, Q, sel.index)
         dec = exact_design_below(B, Q, len(sel.index), f / (1 + within) ** 2, coords, max_nodes=max_nodes)
-        nodes += dec.nodes
+        relaxations += dec.nodes
         if dec.below is not True:
             answer = None if dec.below is None else True
             break
@@ -484,7 +493,7 @@ def certify_selection(cands: CandidateSet, q_limits: NDArray, sel: Selection, wi
         u = -dec.design_mse
         sel = Selection(index=np.asarray(dec.design, dtype=int), utility=u, greedy_utility=sel.greedy_utility,
                         swaps=sel.swaps, history=np.append(sel.history, u))
-    return sel, {"certified": answer, "certified_within": float(within), "certify_nodes": int(nodes),
+    return sel, {"certified": answer, "certified_within": float(within), "certify_relaxations": int(relaxations),
                  "certify_replaced": int(replaced)}
 
 

@@ -101,6 +101,12 @@ def test_refuses_unconverged(problem, tmp_path):
     res = sample_posterior(lin, free=FREE, n_walkers=16, n_steps=30, seed=1)
     assert not res.success
     assert "more steps" in res.message and res.more_steps > 0
+    # the advice holds for the default burn-in, which grows with n_steps: following it keeps a chain of
+    # at least TAU_FACTOR autocorrelation times (the tau estimate held fixed)
+    from bayescal.bayes.mcmc import TAU_FACTOR
+
+    advised = res.n_steps + res.more_steps
+    assert advised - advised // 5 >= TAU_FACTOR * np.nanmax(res.tau) or not np.all(np.isfinite(res.tau))
     assert np.all(np.isnan(res.std))
     assert "NOT CONVERGED" in res.report()
     with pytest.raises(InputError, match="not converged"):

@@ -90,3 +90,23 @@ def test_bad_arguments_are_named(kwargs, word):
     args = dict(blocks=blocks, Q=Q, n=3, threshold_mse=1.0, coords=q) | kwargs
     with pytest.raises(InputError, match=word):
         exact_design_below(**args)
+
+
+@pytest.mark.parametrize("coords", ["zeros", "coarse"])
+def test_coordinates_that_tie_still_give_the_right_answer(coords):
+    # candidates with equal coordinates are different poses: the search must still tell them apart
+    blocks, Q, q, _ = problem(0, N=12)
+    X = np.zeros((12, 1)) if coords == "zeros" else (q[:, :1] > 0).astype(float)
+    best = all_designs(blocks, Q, 3).min()
+    assert exact_design_below(blocks, Q, 3, best * (1 + 1e-6), X).below is True
+    assert exact_design_below(blocks, Q, 3, best * (1 - 1e-6), X).below is False
+
+
+def test_copies_of_one_pose_are_one_pose():
+    # a cell of identical candidates is not split, and the search still ends
+    blocks, Q, q, _ = problem(3, N=12)
+    blocks = np.concatenate([blocks, blocks[:4]])
+    q = np.concatenate([q, q[:4]])
+    best = all_designs(blocks, Q, 3).min()
+    assert exact_design_below(blocks, Q, 3, best * (1 - 1e-6), q).below is False
+    assert exact_design_below(blocks, Q, 3, best * (1 + 1e-6), q).below is True

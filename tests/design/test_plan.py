@@ -193,9 +193,12 @@ def test_cli_plan_certify(tmp_path, capsys):
                "--seed", "3", "--random-sets", "0", "--certify", "1.5", "--out", str(out), "--json", str(js)])
     assert rc == 0
     ex = json.loads(js.read_text())
-    assert ex["certified_within"] == 0.015 and ex["certify_nodes"] >= 1
+    assert ex["certified_within"] == 0.015 and ex["certify_relaxations"] >= 1
     text = capsys.readouterr().out
-    assert ("proved" in text) == (ex["certified"] is True)
+    assert ("(proved" in text) == (ex["certified"] is True)
     rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "8", "--criterion", "I", "--candidates", "300",
                "--certify", "120", "--out", str(out)])
     assert rc == 2 and "--certify: expected a percentage" in capsys.readouterr().err
+    rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "8", "--measure", "height", "--certify", "1",
+               "--out", str(out)])
+    assert rc == 2 and "--certify: only for poses" in capsys.readouterr().err
