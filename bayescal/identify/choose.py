@@ -78,7 +78,6 @@ D. J. C. MacKay, "Bayesian interpolation", Neural Computation 4 (1992).
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -675,8 +674,12 @@ def choose_linear(
     )
 
 
-# the calibration of ``targets`` depends only on the design: keep the last few
-_TARGET_RULES: dict = {}
+# the calibration of ``targets`` depends only on the design (and the calibration options): keep the last few.
+# Looked up by the design's fingerprint (singular values, output Gram matrix, within 1e-6), not by the bytes
+# of A: a recording's Jacobian recomputed for another data set (a forward solve started elsewhere) differs
+# in the last digits, and a byte key missed it every time
+_TARGET_RULES: list = []
+_TARGET_RULES_KEPT = 8
 
 
 def _residual_sigma(d: _Svd) -> float:
@@ -696,16 +699,13 @@ def _targets_pick(A, z, d, method, grid, output_map, noise_known, target_rule, s
     sigma = 1.0 if noise_known else _residual_sigma(d)  # else whiten by the unregularised fit's noise scale
     design = rule_design(A / sigma, method, grid, output_map)
     if target_rule is None:
-        h = hashlib.sha1((method + repr(sorted(calibration.items()))).encode())
-        for x in (A / sigma, np.asarray(grid, dtype=float), output_map):  # shapes too: equal bytes, other arrays
-            h.update(b"|none" if x is None else repr(np.shape(x)).encode() + np.ascontiguousarray(x, dtype=float).tobytes())
-        key = h.hexdigest()
-        if key not in _TARGET_RULES:
-            while len(_TARGET_RULES) >= 8:
-                _TARGET_RULES.pop(next(iter(_TARGET_RULES)))
+        options = repr(sorted(calibration.items()))
+        target_rule = next((r for o, r in reversed(_TARGET_RULES) if o == options and r.fits(design)), None)
+        if target_rule is None:
             # a property of the design, so its own fixed seed; ``seed`` seeds the draws for these data
-            _TARGET_RULES[key] = calibrate_target_rule(A / sigma, method, grid, output_map=output_map, **calibration)
-        target_rule = _TARGET_RULES[key]
+            target_rule = calibrate_target_rule(A / sigma, method, grid, output_map=output_map, **calibration)
+            _TARGET_RULES.append((options, target_rule))
+            del _TARGET_RULES[:-_TARGET_RULES_KEPT]
     i, scores = target_rule.choose(design, design.U.T @ (z / sigma), seed=[seed, 2])
     return i, scores, target_rule.to_dict()
 

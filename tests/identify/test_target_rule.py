@@ -243,3 +243,37 @@ def test_without_a_sigma_the_residual_scale_counts_the_unreached_directions():
         z = A @ rng.normal(size=8) + np.sqrt(2.0) * rng.normal(size=30)
         s2.append(_residual_sigma(_svd(A, z)) ** 2)
     assert abs(np.mean(s2) - 2.0) < 4 * np.std(s2) / np.sqrt(3000), np.mean(s2)
+
+
+def test_the_cache_serves_the_same_design_recomputed_and_not_another(monkeypatch):
+    # a Jacobian recomputed for another data set differs in its last digits: one calibration must serve both;
+    # a design that differs beyond the fingerprint's tolerance (or other calibration options) gets its own
+    import bayescal.identify.choose as choose_mod
+
+    calls = []
+    real = choose_mod.calibrate_target_rule
+    monkeypatch.setattr(choose_mod, "calibrate_target_rule", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(choose_mod, "_TARGET_RULES", [])
+    rng = np.random.default_rng(8)
+    A = rng.normal(size=(12, 4))
+    opts = dict(rule="targets", grid=[1, 2, 3, 4], target_calibration={"n_data": 10, "n_draws": 50})
+    choose_linear(A, rng.normal(size=12), "tsvd", **opts)
+    choose_linear(A * (1 + 1e-13 * rng.normal(size=A.shape)), rng.normal(size=12), "tsvd", **opts)
+    assert len(calls) == 1
+    choose_linear(A * 1.01, rng.normal(size=12), "tsvd", **opts)
+    assert len(calls) == 2
+    choose_linear(A, rng.normal(size=12), "tsvd", **(opts | {"target_calibration": {"n_data": 12, "n_draws": 50}}))
+    assert len(calls) == 3
+
+
+def test_designs_equal_to_a_millionth_of_their_scale_are_the_same():
+    from bayescal.identify.target_rule import _same_design
+
+    s = np.array([3.0, 1.0, 1e-3])
+    gram = np.array([[1.0, 0.0], [0.0, 2.0]])
+    off = np.array([[0.0, 1.0], [1.0, 0.0]])
+    # near-zero entries moved by 1e-8 of the largest (seed2's repetitions): the same design
+    assert _same_design((s, gram), (s * (1 + 1e-8), gram + 2e-8 * off))
+    # by 1e-4 of the largest, or a singular value by 1e-4 of itself: another design
+    assert not _same_design((s, gram), (s, gram + 2e-4 * off))
+    assert not _same_design((s, gram), (s * np.array([1, 1, 1 + 1e-4]), gram))
