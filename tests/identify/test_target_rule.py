@@ -260,20 +260,22 @@ def test_the_cache_serves_the_same_design_recomputed_and_not_another(monkeypatch
     choose_linear(A, rng.normal(size=12), "tsvd", **opts)
     choose_linear(A * (1 + 1e-13 * rng.normal(size=A.shape)), rng.normal(size=12), "tsvd", **opts)
     assert len(calls) == 1
-    choose_linear(A * 1.01, rng.normal(size=12), "tsvd", **opts)
+    choose_linear(A * 1.01, rng.normal(size=12), "tsvd", **opts)  # another design: its own calibration
     assert len(calls) == 2
     choose_linear(A, rng.normal(size=12), "tsvd", **(opts | {"target_calibration": {"n_data": 12, "n_draws": 50}}))
     assert len(calls) == 3
 
 
-def test_designs_equal_to_a_millionth_of_their_scale_are_the_same():
+def test_designs_equal_to_1e4_of_their_scale_are_the_same():
     from bayescal.identify.target_rule import _same_design
 
     s = np.array([3.0, 1.0, 1e-3])
     gram = np.array([[1.0, 0.0], [0.0, 2.0]])
     off = np.array([[0.0, 1.0], [1.0, 0.0]])
-    # near-zero entries moved by 1e-8 of the largest (seed2's repetitions): the same design
-    assert _same_design((s, gram), (s * (1 + 1e-8), gram + 2e-8 * off))
-    # by 1e-4 of the largest, or a singular value by 1e-4 of itself: another design
-    assert not _same_design((s, gram), (s, gram + 2e-4 * off))
-    assert not _same_design((s, gram), (s * np.array([1, 1, 1 + 1e-4]), gram))
+    # near-zero entries moved by 1e-6 of the largest, singular values by 1e-6 (seed2's repetitions): the same
+    assert _same_design((s, gram), (s * (1 + 1e-6), gram + 2e-6 * off))
+    # by 1e-3 of the largest, or the smallest singular value by 1e-3 of itself: another design
+    assert not _same_design((s, gram), (s, gram + 2e-3 * off))
+    assert not _same_design((s, gram), (s * np.array([1, 1, 1 + 1e-3]), gram))
+    # numerical zeros of a rank-deficient design (below 1e-9 of the largest) are equal whatever their digits
+    assert _same_design((np.r_[s, 1e-14], gram), (np.r_[s, 3e-13], gram))
