@@ -246,6 +246,20 @@ def cell_relaxation(
     return float(lower), f, w
 
 
+def checked_design_problem(blocks: NDArray, Q: NDArray, n: int) -> tuple[NDArray, NDArray]:
+    """``blocks`` (N, k, L) and ``Q`` (L, L) as float arrays, and ``n`` a positive whole number, or InputError."""
+    blocks = np.asarray(blocks, dtype=float)
+    Q = np.asarray(Q, dtype=float)
+    if blocks.ndim != 3:
+        raise InputError(f"blocks: expected shape (N, k, L), got {blocks.shape}")
+    L = blocks.shape[2]
+    if int(n) != n or n < 1:
+        raise InputError(f"n: expected a positive whole number of poses, got {n}")
+    if Q.shape != (L, L):
+        raise InputError(f"Q: expected shape ({L}, {L}), got {Q.shape}")
+    return blocks, Q
+
+
 def exact_design_bound(
     blocks: NDArray, Q: NDArray, n: int, cells: NDArray, *, rtol: float = 1e-7, progress=None,
 ) -> ExactDesignBound:
@@ -271,16 +285,11 @@ def exact_design_bound(
     -------
     ExactDesignBound
     """
-    blocks = np.asarray(blocks, dtype=float)
-    Q = np.asarray(Q, dtype=float)
-    N, k, L = blocks.shape
+    blocks, Q = checked_design_problem(blocks, Q, n)
+    N = blocks.shape[0]
     cells = np.asarray(cells)
-    if int(n) != n or n < 1:
-        raise InputError(f"n: expected a positive whole number of poses, got {n}")
     if not rtol >= 0:
         raise InputError(f"rtol: expected >= 0, got {rtol}")
-    if Q.shape != (L, L):
-        raise InputError(f"Q: expected shape ({L}, {L}), got {Q.shape}")
     if cells.shape != (N,) or not np.issubdtype(cells.dtype, np.integer) or cells.min() < 0:
         raise InputError(f"cells: expected {N} non-negative integer labels, got shape {cells.shape}")
     # only the non-empty cells take poses; relabel them 0 .. K-1 (and report counts by the caller's labels)

@@ -53,7 +53,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from .exact_bound import cell_relaxation
+from .exact_bound import cell_relaxation, checked_design_problem
 
 __all__ = ["ExactDesignDecision", "exact_design_below"]
 
@@ -154,12 +154,8 @@ def exact_design_below(
 
     Parameters
     ----------
-    blocks : ndarray, shape (N, k, L)
-        Whitened, tolerance-scaled Jacobian blocks (``CandidateSet.prior_blocks_kept``).
-    Q : ndarray, shape (L, L)
-        Output weight (``CandidateSet.output_weight``), mm^2 per scaled unit^2.
-    n : int
-        Number of poses.
+    blocks, Q, n
+        As for :func:`bayescal.design.exact_bound.exact_design_bound`.
     threshold_mse : float
         Threshold on ``E[MSE]`` (mm^2), e.g. ``1.01**2`` times the relaxed
         bound to ask whether any design is within 1 % of it in
@@ -178,16 +174,9 @@ def exact_design_below(
     -------
     ExactDesignDecision
     """
-    blocks = np.asarray(blocks, dtype=float)
-    Q = np.asarray(Q, dtype=float)
+    blocks, Q = checked_design_problem(blocks, Q, n)
     coords = np.asarray(coords, dtype=float)
-    if blocks.ndim != 3:
-        raise InputError(f"blocks: expected shape (N, k, L), got {blocks.shape}")
-    N, _, L = blocks.shape
-    if int(n) != n or n < 1:
-        raise InputError(f"n: expected a positive whole number of poses, got {n}")
-    if Q.shape != (L, L):
-        raise InputError(f"Q: expected shape ({L}, {L}), got {Q.shape}")
+    N = blocks.shape[0]
     if not (np.isfinite(threshold_mse) and threshold_mse > 0):
         raise InputError(f"threshold_mse: expected a positive finite E[MSE] in mm^2, got {threshold_mse}")
     if coords.ndim != 2 or coords.shape[0] != N or not np.all(np.isfinite(coords)):
