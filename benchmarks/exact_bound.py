@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT))
 
 from bayescal.design import draw_candidates  # noqa: E402
 from bayescal.design.exact_bound import exact_design_bound, orthant_cells  # noqa: E402
-from bayescal.design.exact_decision import exact_design_below  # noqa: E402
+from bayescal.design.exact_decision import exact_design_below, stroke_fractions  # noqa: E402
 from bayescal.io import write_json_atomic  # noqa: E402
 from bayescal.machines import load_machine  # noqa: E402
 
@@ -86,7 +86,7 @@ def main(argv=None) -> int:
         t = time.process_time()
         eb = exact_design_bound(B, Q, n, orthant_cells(big.q[idx], lim))
         t_bb = time.process_time() - t
-        coords = (big.q[idx] - lim[:, 0]) / (lim[:, 1] - lim[:, 0])
+        coords = stroke_fractions(big.q[idx], lim)
         dec = {}
         for word, factor, expected in (("none", 1 - 1e-4, False), ("some", 1 + 1e-4, True)):
             t = time.process_time()

@@ -64,7 +64,7 @@ sys.path.insert(0, str(ROOT))
 
 from bayescal.design import design_mse  # noqa: E402
 from bayescal.design.exact_bound import exact_design_bound, orthant_cells  # noqa: E402
-from bayescal.design.exact_decision import exact_design_below  # noqa: E402
+from bayescal.design.exact_decision import exact_design_below, stroke_fractions  # noqa: E402
 from bayescal.design.rounding import local_search, pool_from_bound  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
@@ -238,8 +238,7 @@ def run_case(s: pp.Setting, n: int, starts: int, seed: int, log) -> dict:
     row["best_exact_ratio"] = ratio(best_f)
     row["best_exact_design"] = best_S.tolist()
     row["best_exact_distinct"] = int(np.unique(best_S).size)
-    lim = np.asarray(s.machine.q_limits, dtype=float)
-    u = (s.cands.q[best_S] - lim[:, 0]) / (lim[:, 1] - lim[:, 0])
+    u = stroke_fractions(s.cands.q[best_S], s.machine.q_limits)
     row["best_exact_q_in_stroke_units"] = np.round(u, 4).tolist()  # 0 and 1: the ends of each actuator's stroke
     row["best_exact_in_pool12"] = bool(np.isin(best_S, np.concatenate([np.flatnonzero(bound.weights > 1e-9 * n),
                                                                       pool_from_bound(bound.weights, B, Q, 12)])).all())
@@ -253,8 +252,7 @@ def run_case(s: pp.Setting, n: int, starts: int, seed: int, log) -> dict:
     row["exact_bound_cpu_s"] = time.process_time() - t0
     # the target's own question: is any design within 1 % (branch and bound on cells split where the weight lies)
     t0 = time.process_time()
-    lim = np.asarray(s.machine.q_limits, dtype=float)
-    dec = exact_design_below(B, Q, n, 1.01 ** 2 * lb, (s.cands.q - lim[:, 0]) / (lim[:, 1] - lim[:, 0]),
+    dec = exact_design_below(B, Q, n, 1.01 ** 2 * lb, stroke_fractions(s.cands.q, s.machine.q_limits),
                              max_nodes=20000)
     row["decision"] = dec.to_dict()
     row["decision_cpu_s"] = time.process_time() - t0
@@ -304,9 +302,8 @@ def decide_only(args, cfg: dict) -> int:
             raise SystemExit(f"--decide: {name} has no candidate poses (its measurements are relations)")
         n = int(n)
         plan, bound = s.plan_i(n)
-        lim = np.asarray(s.machine.q_limits, dtype=float)
         t0 = time.process_time()
-        dec = exact_design_below(s.B, s.Q, n, 1.01 ** 2 * bound.lower_mse, (s.cands.q - lim[:, 0]) / (lim[:, 1] - lim[:, 0]),
+        dec = exact_design_below(s.B, s.Q, n, 1.01 ** 2 * bound.lower_mse, stroke_fractions(s.cands.q, s.machine.q_limits),
                                  max_nodes=args.nodes, progress=lambda m: print(f"    {name} n={n}: {m}", flush=True))
         row = {"setting": name, "n": n, "plan_ratio": float(np.sqrt(design_mse(s.B, s.Q, plan) / bound.lower_mse)),
                "decision": dec.to_dict(), "cpu_s": time.process_time() - t0}

@@ -63,7 +63,7 @@ from studies.targets import exit_code, verdict  # noqa: E402
 from bayescal.design import candidate_set_from_jacobian, design_mse, design_mse_bound, draw_candidates  # noqa: E402
 from bayescal.design import relaxed_select, select_from_candidates  # noqa: E402
 from bayescal.design.exact_bound import exact_design_bound, orthant_cells  # noqa: E402
-from bayescal.design.exact_decision import exact_design_below  # noqa: E402
+from bayescal.design.exact_decision import exact_design_below, stroke_fractions  # noqa: E402
 from bayescal.design.relations import grid_points, relation_candidates, relaxed_relations, _scaled_rows  # noqa: E402
 from bayescal.identify import identify  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
@@ -222,9 +222,8 @@ def run_setting(s: Setting, cfg: dict, seed: int, log) -> dict:
                 f"({eb.nodes} relaxations, {time.process_time() - t1:.0f} CPU s)")
             # the yes/no question the target asks, decided by splitting cells where the relaxed weight lies
             t1 = time.process_time()
-            lim = np.asarray(s.machine.q_limits, dtype=float)
             dec = exact_design_below(s.B, s.Q, n, BOUND_RATIO ** 2 * bounds[n].lower_mse,
-                                     (s.cands.q - lim[:, 0]) / (lim[:, 1] - lim[:, 0]), max_nodes=cfg["decision_nodes"])
+                                     stroke_fractions(s.cands.q, s.machine.q_limits), max_nodes=cfg["decision_nodes"])
             row["within_1pct"] = dec.below
             row["decision_nodes"] = dec.nodes
             if dec.below:

@@ -55,7 +55,31 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from .exact_bound import cell_relaxation, checked_design_problem
 
-__all__ = ["ExactDesignDecision", "exact_design_below"]
+__all__ = ["ExactDesignDecision", "exact_design_below", "stroke_fractions"]
+
+
+def stroke_fractions(q: NDArray, q_limits: NDArray) -> NDArray:
+    """Each actuator's position as a fraction of its stroke (0 at the lower limit, 1 at the upper): coordinates
+    in which every actuator's range counts alike, for splitting cells.
+
+    Parameters
+    ----------
+    q : ndarray, shape (N, m)
+        Actuator positions (mm or rad, as ``q_limits``).
+    q_limits : ndarray, shape (m, 2)
+        Lower and upper limit per actuator.
+
+    Returns
+    -------
+    ndarray, shape (N, m)
+        Dimensionless.
+    """
+    q = np.asarray(q, dtype=float)
+    lim = np.asarray(q_limits, dtype=float)
+    if q.ndim != 2 or lim.shape != (q.shape[1], 2) or not np.all(lim[:, 1] > lim[:, 0]):
+        raise InputError(f"q_limits: expected shape ({q.shape[-1]}, 2) with upper > lower for positions of shape "
+                         f"{q.shape}, got {lim.tolist()}")
+    return (q - lim[:, 0]) / (lim[:, 1] - lim[:, 0])
 
 
 @dataclass(frozen=True)

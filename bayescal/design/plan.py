@@ -474,11 +474,10 @@ def certify_selection(cands: CandidateSet, q_limits: NDArray, sel: Selection, wi
     ``certify_relaxations`` (all rounds) and ``certify_replaced`` (designs
     adopted).
     """
-    from .exact_decision import exact_design_below
+    from .exact_decision import exact_design_below, stroke_fractions
     from .rounding import design_mse
 
-    lim = np.asarray(q_limits, dtype=float)
-    coords = (cands.q - lim[:, 0]) / (lim[:, 1] - lim[:, 0])  # strokes: each actuator's range counts alike
+    coords = stroke_fractions(cands.q, q_limits)
     B, Q = cands.prior_blocks_kept, cands.output_weight
     relaxations = replaced = 0
     answer = False

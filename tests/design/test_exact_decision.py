@@ -110,3 +110,13 @@ def test_copies_of_one_pose_are_one_pose():
     best = all_designs(blocks, Q, 3).min()
     assert exact_design_below(blocks, Q, 3, best * (1 - 1e-6), q).below is False
     assert exact_design_below(blocks, Q, 3, best * (1 + 1e-6), q).below is True
+
+
+def test_stroke_fractions_are_zero_and_one_at_the_limits():
+    from bayescal.design.exact_decision import stroke_fractions
+
+    lim = np.array([[400.0, 600.0], [-1.0, 1.0]])
+    u = stroke_fractions(np.array([[400.0, 1.0], [500.0, -0.5]]), lim)
+    assert np.allclose(u, [[0.0, 1.0], [0.5, 0.25]])
+    with pytest.raises(InputError, match="q_limits"):
+        stroke_fractions(np.zeros((2, 2)), np.array([[1.0, 0.0], [0.0, 1.0]]))
