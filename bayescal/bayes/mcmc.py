@@ -56,6 +56,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
+from .bent_laplace import bent_laplace, log_posterior_gradient
 from .linear import linearisation_error, linearise
 from .moves import default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
@@ -375,8 +376,12 @@ def sample_posterior(
     rng = np.random.default_rng(seed)
     map_pred = model.predict(start.theta)
     log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses)
-    p0 = rng.multivariate_normal(start.theta[idx], start.covariance, size=n_walkers)
-    moves = default_moves(start.theta[idx], start.covariance) if moves is None else moves
+    # the Laplace approximation bent along what the prior decides (bent_laplace.py): the walkers start on it
+    # and the independence move proposes from it
+    bend = bent_laplace(log_posterior_gradient(model, prior, idx), start.theta[idx], start.covariance,
+                        prior.std[idx])
+    p0 = bend.to_x(rng.standard_normal((n_walkers, n)))
+    moves = default_moves(start.theta[idx], start.covariance, bend=bend) if moves is None else moves
     if resume and checkpoint is None:
         raise InputError("resume: give the checkpoint to resume from")
     fingerprint = None

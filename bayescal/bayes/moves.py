@@ -18,7 +18,11 @@ accepts it with the Hastings factor ``log g(x) - log g(x')``.  When the
 posterior is close to its Laplace approximation (the 3-PRS at its
 tolerances: linearisation errors of 0.01 sigma) most proposals are accepted
 and consecutive draws are nearly independent, whatever the dimension, where
-the DE moves need a random walk of ~100 steps through 30+ dimensions.  The
+the DE moves need a random walk of ~100 steps through 30+ dimensions.  Given a
+:class:`~bayescal.bayes.bent_laplace.BentLaplace` map, the t draws are
+pushed through it instead of the straight Laplace map, so the proposal
+follows the curved valley of the directions the prior decides (the map's
+Jacobian is constant, so the Hastings factor is the t's).  The
 t's heavy tails keep the importance weights ``pi / g`` bounded for a
 posterior with Gaussian tails (a uniformly ergodic chain).  When the
 posterior is far from Gaussian its acceptance falls and the DE moves mixed
@@ -32,6 +36,8 @@ import numpy as np
 from emcee.moves import DEMove, DESnookerMove, MHMove
 from numpy.typing import ArrayLike
 from scipy import special
+
+from .bent_laplace import BentLaplace
 
 __all__ = ["SnookerMove", "IndependenceMove", "default_moves"]
 
@@ -98,11 +104,17 @@ class IndependenceMove(MHMove):
     log-probability call per step).
     """
 
-    def __init__(self, mean: ArrayLike, cov: ArrayLike, *, df: float = T_DOF, scale: float = 1.0):
+    def __init__(self, mean: ArrayLike, cov: ArrayLike, *, df: float = T_DOF, scale: float = 1.0,
+                 bend: BentLaplace | None = None):
         self.mean = np.asarray(mean, dtype=float).ravel()
         d = self.mean.size
         cov = np.asarray(cov, dtype=float).reshape(d, d)
-        self.chol = np.linalg.cholesky(0.5 * (cov + cov.T)) * float(scale)
+        self.chol = np.linalg.cholesky(0.5 * (cov + cov.T))
+        # the proposal is t(0, scale^2 I) pushed through x = map(w): linear, or bent along the prior-decided directions
+        self.map = BentLaplace.linear(self.mean, self.chol) if bend is None else bend
+        if self.map.x0.size != d:
+            raise ValueError(f"bend: expected a map of {d} parameters, got {self.map.x0.size}")
+        self.scale = float(scale)
         self.df = float(df)
         if not self.df > 0:
             raise ValueError(f"df: expected > 0, got {df}")
@@ -111,9 +123,9 @@ class IndependenceMove(MHMove):
     def log_density(self, x: np.ndarray) -> np.ndarray:
         """Log proposal density at points ``x`` (k, d), including its constant."""
         d = self.mean.size
-        z = np.linalg.solve(self.chol, (np.atleast_2d(x) - self.mean).T)
-        m2 = np.sum(z**2, axis=0)
-        logdet = np.sum(np.log(np.diag(self.chol)))
+        z = self.map.to_w(x) / self.scale
+        m2 = np.sum(z**2, axis=1)
+        logdet = self.map.log_det + d * np.log(self.scale)  # the bend's Jacobian is that of its linear part
         if np.isinf(self.df):
             return -0.5 * m2 - logdet - 0.5 * d * np.log(2 * np.pi)
         nu = self.df
@@ -125,17 +137,20 @@ class IndependenceMove(MHMove):
         z = random.standard_normal((k, d))
         if not np.isinf(self.df):
             z *= np.sqrt(self.df / random.chisquare(self.df, size=k))[:, None]
-        new = self.mean + z @ self.chol.T
+        new = self.map.to_x(self.scale * z)
         return new, self.log_density(x0) - self.log_density(new)
 
 
-def default_moves(mean: ArrayLike | None = None, cov: ArrayLike | None = None) -> list:
+def default_moves(mean: ArrayLike | None = None, cov: ArrayLike | None = None, *,
+                  bend: BentLaplace | None = None) -> list:
     """The sampler's moves.
 
     Without a Laplace approximation: ``DEMove`` 0.8 and the corrected snooker
     move 0.2.  With ``mean`` and ``cov`` (the MAP and its Laplace covariance):
-    :class:`IndependenceMove` 0.6, ``DEMove`` 0.3, snooker 0.1.
+    :class:`IndependenceMove` (through ``bend`` if given) ``IMH_WEIGHT``,
+    ``DEMove`` ``DE_WEIGHT``, snooker ``SNOOKER_WEIGHT``.
     """
     if mean is None or cov is None:
         return [(DEMove(), 0.8), (SnookerMove(), 0.2)]
-    return [(IndependenceMove(mean, cov), IMH_WEIGHT), (DEMove(), DE_WEIGHT), (SnookerMove(), SNOOKER_WEIGHT)]
+    return [(IndependenceMove(mean, cov, bend=bend), IMH_WEIGHT), (DEMove(), DE_WEIGHT),
+            (SnookerMove(), SNOOKER_WEIGHT)]
