@@ -10,12 +10,14 @@ with one likelihood term per pose ``i``.  It is sampled with
 
 * vectorised: the walkers' parameter vectors are stacked into ONE call of
   the measurement model's ``predict`` (``n_walkers * n_poses`` rows);
-* started from the MAP estimate and its Laplace covariance (so burn-in is
-  short);
+* started from the MAP estimate and its Laplace approximation, bent along
+  the directions the prior decides (:mod:`bayescal.bayes.bent_laplace`; so
+  burn-in is short);
 * with a mixture of moves (see :mod:`bayescal.bayes.moves`): an
   independence Metropolis-Hastings move proposing from a multivariate t
-  around the MAP with the Laplace covariance (0.9; nearly independent
-  draws when the posterior is close to Gaussian, in any dimension) and the
+  around the MAP with the Laplace covariance, pushed through that bent map
+  (0.9; nearly independent draws when the posterior is close to Gaussian
+  or curved only along prior-decided directions, in any dimension) and the
   differential-evolution moves ``DEMove`` (0.07) and the corrected DE
   snooker move (0.03), which keep the chain moving where the Laplace
   approximation is poor.  The integrated autocorrelation time is about 2.6

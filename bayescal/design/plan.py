@@ -465,8 +465,9 @@ def certify_selection(cands: CandidateSet, q_limits: NDArray, sel: Selection, wi
 
     Each round asks :func:`~bayescal.design.exact_decision.exact_design_below`
     for a design with ``E[MSE]`` below ``E[MSE](sel) / (1 + within)^2``; a
-    design found becomes ``sel`` (as it is: no exchanges) and is asked
-    about again.
+    design found is improved by single exchanges over all candidates
+    (:func:`~bayescal.design.rounding.local_search`, repeats allowed), becomes
+    ``sel`` and is asked about again.
 
     Returns the (possibly replaced) selection and the ``extras`` entries
     ``certified`` (True: proved; False: every round found a better design;
@@ -475,7 +476,7 @@ def certify_selection(cands: CandidateSet, q_limits: NDArray, sel: Selection, wi
     adopted).
     """
     from .exact_decision import exact_design_below, stroke_fractions
-    from .rounding import design_mse
+    from .rounding import design_mse, local_search
 
     coords = stroke_fractions(cands.q, q_limits)
     B, Q = cands.prior_blocks_kept, cands.output_weight
@@ -489,8 +490,10 @@ def certify_selection(cands: CandidateSet, q_limits: NDArray, sel: Selection, wi
             answer = None if dec.below is None else True
             break
         replaced += 1
-        u = -dec.design_mse
-        sel = Selection(index=np.asarray(dec.design, dtype=int), utility=u, greedy_utility=sel.greedy_utility,
+        # the search stops at the first design below the threshold, not at a good one: exchanges polish it
+        index = local_search(B, Q, np.asarray(dec.design, dtype=int), np.arange(B.shape[0]), repeats=True)
+        u = -design_mse(B, Q, index)
+        sel = Selection(index=np.sort(index), utility=u, greedy_utility=sel.greedy_utility,
                         swaps=sel.swaps, history=np.append(sel.history, u))
     return sel, {"certified": answer, "certified_within": float(within), "certify_relaxations": int(relaxations),
                  "certify_replaced": int(replaced)}
