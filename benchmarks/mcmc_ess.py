@@ -201,10 +201,10 @@ def main(argv=None) -> int:
         r = run_case(name.strip(), out, args.steps, args.base_steps, args.seed, args.linearised, args.vectorised_stretch)
         print(f"\n{r['case']}: {r['description']}; posterior: {r['posterior']}; {r['n']} parameters, {r['walkers']} walkers"
               + ("" if r["success"] else f"  [bayescal's convergence checks: {r['message']}]"))
-        print(f"  {'sampler':<62}{'steps':>6}{'seconds':>9}{'accept':>8}{'min bulk ESS':>14}{'min tail ESS':>14}"
+        print(f"  {'sampler':<68}{'steps':>6}{'seconds':>9}{'accept':>8}{'min bulk ESS':>14}{'min tail ESS':>14}"
               f"{'growth':>8}{'ESS/s':>10}")
         for row in r["rows"]:
-            print(f"  {row['sampler']:<62}{row['steps']:6d}{row['seconds']:9.1f}{row['acceptance']:8.2f}"
+            print(f"  {row['sampler']:<68}{row['steps']:6d}{row['seconds']:9.1f}{row['acceptance']:8.2f}"
                   f"{row['ess_bulk']:14.0f}{row['ess_tail']:14.0f}{row['growth']:8.2f}{row['ess_per_s']:10.2f}")
         ratio = r["rows"][0]["ess_per_s"] / r["rows"][2]["ess_per_s"]
         bent = r["rows"][0]["ess_per_s"] / r["rows"][1]["ess_per_s"]

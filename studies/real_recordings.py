@@ -107,7 +107,10 @@ def positioner(out: Path, *, quick: bool, seed: int, folds: int, t0: float) -> d
         pos, ang, _ = rc.pose_errors(model, res.theta)
         row = rc.summary(pos, ang) | {"success": bool(res.success), "n_free": int(np.count_nonzero(res.free))}
         if method == "mcmc":  # how long the chain ran (the sampler's advice followed up to rc.MCMC_MAX_STEPS)
-            row |= {"steps": int(res.n_steps), "message": res.message}
+            row |= {"steps": int(res.n_steps), "message": res.message, "acceptance": float(res.acceptance),
+                    "max_tau": float(np.max(res.tau))}
+            if res.success:  # the chain against importance sampling of the same posterior (no chain to trust)
+                result["mcmc_check"] = rc.importance_check(model, res, seed=seed)
         result["in_sample"][method] = row
         thetas[method] = res.theta
         _stamp(f"positioner {method}: {row['pos_mean']:.3f} mm mean, {row.get('ang_mean', 0):.3f} mrad", t0)
@@ -534,6 +537,15 @@ def tables(res: dict) -> str:
         rows += [[f"source 2020 (PR #79), {k}", "-", m, None, None, a, None, "-"] for k, (m, a) in SOURCE_REPORTED.items()]
         out.append(rc.fmt_table(["method", "free", "pos mean mm", "pos RMS mm", "pos max mm", "ang mean mrad",
                                  "ang RMS mrad", "success"], rows))
+        mc = p["in_sample"].get("mcmc")
+        if mc:
+            out.append(f"\nmcmc: {mc['steps']} steps, acceptance {mc.get('acceptance', float('nan')):.2f}, "
+                       f"largest autocorrelation time {mc.get('max_tau', float('nan')):.1f} steps; {mc['message'] or 'converged'}")
+        if "mcmc_check" in p:
+            k = p["mcmc_check"]
+            out.append(f"\nmcmc against importance sampling ({k['draws']} independent draws, ESS {k['ess']:.0f}): marginal "
+                       f"means within {k['max_mean_diff_in_std']:.3f} posterior std, stds within "
+                       f"{100 * k['max_std_ratio_diff']:.1f} %")
         out.append(f"\n### Positioner: held out ({p['folds']}-fold cross-validation by observation)\n")
         rows = [[k, v["pos_mean"], v["pos_rms"], v["pos_max"], v["ang_mean"], v["ang_rms"]] for k, v in p["cv"].items()]
         rows += [[f"(c) source 2020, {k} (in sample)", m, None, None, a, None] for k, (m, a) in SOURCE_REPORTED.items()]

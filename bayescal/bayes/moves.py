@@ -132,12 +132,15 @@ class IndependenceMove(MHMove):
         return (special.gammaln(0.5 * (nu + d)) - special.gammaln(0.5 * nu) - 0.5 * d * np.log(nu * np.pi)
                 - logdet - 0.5 * (nu + d) * np.log1p(m2 / nu))
 
-    def _propose(self, x0: np.ndarray, random) -> tuple[np.ndarray, np.ndarray]:
-        k, d = x0.shape
-        z = random.standard_normal((k, d))
+    def draw(self, k: int, random) -> np.ndarray:
+        """``k`` independent draws (k, d) of the proposal; ``random`` a ``numpy.random.RandomState``."""
+        z = random.standard_normal((k, self.mean.size))
         if not np.isinf(self.df):
             z *= np.sqrt(self.df / random.chisquare(self.df, size=k))[:, None]
-        new = self.map.to_x(self.scale * z)
+        return self.map.to_x(self.scale * z)
+
+    def _propose(self, x0: np.ndarray, random) -> tuple[np.ndarray, np.ndarray]:
+        new = self.draw(x0.shape[0], random)
         return new, self.log_density(x0) - self.log_density(new)
 
 
