@@ -23,7 +23,7 @@ tolerance prior.  Three recordings of the bundled 3-PRS
 
 Per recording, on the same target density, from the same start (walkers
 drawn from the MAP and its Laplace covariance; bayescal's defaults from its
-bent version) and with the same number of walkers (``2 n + 2``, ``n``
+bent version, part of what is measured) and with the same number of walkers (``2 n + 2``, ``n``
 sampled parameters):
 
 * bayescal: :func:`bayescal.bayes.mcmc.sample_posterior` with its defaults

@@ -41,8 +41,9 @@ def run_fingerprint(model, names, *, seed: int, n_walkers: int, surrogate: str) 
     h = hashlib.sha256()
     for a in (model.y_measured, np.asarray(model.q), np.asarray(model.row_sigma)):
         h.update(np.ascontiguousarray(np.asarray(a, dtype=float)).tobytes())
+    # the sampler's proposal changed (bent Laplace map, 24 November 2026): a chain of the old one must not continue
     return {"seed": int(seed), "n_walkers": int(n_walkers), "names": list(names), "surrogate": str(surrogate),
-            "data_sha256": h.hexdigest()}
+            "data_sha256": h.hexdigest(), "proposal": "bent-laplace-t"}
 
 
 def save_checkpoint(path: str | os.PathLike, backend: emcee.backends.Backend, fingerprint: dict) -> Path:

@@ -58,7 +58,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from .bent_laplace import bent_laplace, log_posterior_gradient
+from .bent_laplace import BentLaplace, bent_laplace, log_posterior_gradient
 from .linear import linearisation_error, linearise
 from .moves import default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
@@ -143,6 +143,8 @@ class PosteriorResult:
     unidentifiable: tuple[str, ...] = ()
     #: Combinations the data do not separate that the prior decides (``free="auto"``: sampled, not fixed).
     decided_by_prior: tuple[str, ...] = ()
+    #: Prior-decided directions the independence proposal is bent along (bent_laplace.py; 0: straight).
+    bent_directions: int = 0
 
     method = "mcmc"
 
@@ -192,6 +194,7 @@ class PosteriorResult:
                 "max_tau_steps": float(np.max(self.tau)),
                 "more_steps": self.more_steps,
                 "seconds": self.seconds,
+                "proposal_bent_directions": self.bent_directions,
             },
         }
         if ok:
@@ -211,7 +214,8 @@ class PosteriorResult:
             f"bayescal posterior of '{self.machine_name}' ({self.kind})",
             f"  method          mcmc (emcee, Laplace-t independence + DE + snooker moves): {status}",
             f"  sampler         {self.n_walkers} walkers x {self.n_steps} steps ({self.burn} burn-in), "
-            f"acceptance {self.acceptance:.2f}, {self.seconds:.1f} s",
+            f"acceptance {self.acceptance:.2f}, {self.seconds:.1f} s; proposal bent along {self.bent_directions} "
+            f"prior-decided direction(s)",
             f"  convergence     max R-hat {np.max(self.rhat):.4f} (<= {MAX_RHAT}), min ESS bulk "
             f"{np.min(self.ess_bulk):.0f} / tail {np.min(self.ess_tail):.0f} (>= {MIN_ESS:.0f}), "
             f"max autocorrelation time {np.max(self.tau):.0f} steps",
@@ -378,12 +382,15 @@ def sample_posterior(
     rng = np.random.default_rng(seed)
     map_pred = model.predict(start.theta)
     log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses)
-    # the Laplace approximation bent along what the prior decides (bent_laplace.py): the walkers start on it
-    # and the independence move proposes from it
-    bend = bent_laplace(log_posterior_gradient(model, prior, idx), start.theta[idx], start.covariance,
-                        prior.std[idx])
+    if moves is None:
+        # the Laplace approximation bent along what the prior decides (bent_laplace.py): the walkers start on
+        # it and the independence move proposes from it
+        bend = bent_laplace(log_posterior_gradient(model, prior, idx, guess=map_pred.poses), start.theta[idx],
+                            start.covariance, prior.std[idx])
+        moves = default_moves(start.theta[idx], start.covariance, bend=bend)
+    else:  # the caller's moves: the walkers start on the plain Laplace approximation
+        bend = BentLaplace.linear(start.theta[idx], np.linalg.cholesky(start.covariance))
     p0 = bend.to_x(rng.standard_normal((n_walkers, n)))
-    moves = default_moves(start.theta[idx], start.covariance, bend=bend) if moves is None else moves
     if resume and checkpoint is None:
         raise InputError("resume: give the checkpoint to resume from")
     fingerprint = None
@@ -413,6 +420,7 @@ def sample_posterior(
     seconds = time.perf_counter() - t0
     res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor,
                      burn_grows=burn_default)
+    res = dataclasses.replace(res, bent_directions=bend.bent)
     if surrogate == "linear":
         draws = res.samples[rng.choice(res.samples.shape[0], size=min(200, res.samples.shape[0]), replace=False)]
         full = np.tile(start.theta, (draws.shape[0], 1))

@@ -94,6 +94,10 @@ class IndependenceMove(MHMove):
         Degrees of freedom of the t (``inf``: a Gaussian).
     scale : float
         Factor on the scale matrix's square root (> 1 inflates the proposal).
+    bend : BentLaplace, optional
+        The Laplace approximation at ``mean`` bent along the prior-decided
+        directions (:func:`~bayescal.bayes.bent_laplace.bent_laplace`): the t
+        draws go through it instead of ``mean + chol(cov) z``.
 
     Notes
     -----
@@ -112,8 +116,8 @@ class IndependenceMove(MHMove):
         self.chol = np.linalg.cholesky(0.5 * (cov + cov.T))
         # the proposal is t(0, scale^2 I) pushed through x = map(w): linear, or bent along the prior-decided directions
         self.map = BentLaplace.linear(self.mean, self.chol) if bend is None else bend
-        if self.map.x0.size != d:
-            raise ValueError(f"bend: expected a map of {d} parameters, got {self.map.x0.size}")
+        if self.map.x0.shape != (d,) or not np.allclose(self.map.x0, self.mean, rtol=1e-12, atol=0.0):
+            raise ValueError("bend: expected a map centred at mean (the MAP the bend was fitted at)")
         self.scale = float(scale)
         self.df = float(df)
         if not self.df > 0:

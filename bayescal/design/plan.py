@@ -491,7 +491,8 @@ def certify_selection(cands: CandidateSet, q_limits: NDArray, sel: Selection, wi
             break
         replaced += 1
         # the search stops at the first design below the threshold, not at a good one: exchanges polish it
-        index = local_search(B, Q, np.asarray(dec.design, dtype=int), np.arange(B.shape[0]), repeats=True)
+        index = local_search(B, Q, np.asarray(dec.design, dtype=int), np.arange(B.shape[0]), repeats=True,
+                             max_moves=50 * len(sel.index))  # until no exchange improves (the cap is a safeguard)
         u = -design_mse(B, Q, index)
         sel = Selection(index=np.sort(index), utility=u, greedy_utility=sel.greedy_utility,
                         swaps=sel.swaps, history=np.append(sel.history, u))

@@ -68,6 +68,39 @@ def test_a_gaussian_proposal_through_the_exact_bend_is_the_banana_itself():
     assert s2.acceptance_fraction.mean() < 0.3
 
 
+def test_a_scaled_t_through_the_bend_has_the_closed_form_density():
+    # x = (u, v) = T(s z), z ~ N(0, I): u ~ N(0, s^2), v | u ~ N(b u^2, (s sigma)^2)
+    b, sigma, sc = 0.7, 0.05, 1.3
+    _, grad = _banana(b, sigma)
+    bend = bent_laplace(grad, [0.0, 0.0], np.diag([1.0, sigma**2]), [1.0, 100 * sigma])
+    move = IndependenceMove([0.0, 0.0], np.diag([1.0, sigma**2]), df=np.inf, scale=sc, bend=bend)
+    X = move.draw(200, np.random.RandomState(4))
+    u, v = X[:, 0], X[:, 1]
+    ref = -0.5 * (u / sc) ** 2 - 0.5 * ((v - b * u**2) / (sc * sigma)) ** 2 - np.log(2 * np.pi * sc**2 * sigma)
+    np.testing.assert_allclose(move.log_density(X), ref, rtol=1e-10, atol=1e-10)
+    assert abs(np.std(u) / sc - 1) < 0.2
+    with pytest.raises(ValueError, match="centred at mean"):
+        IndependenceMove([0.1, 0.0], np.diag([1.0, sigma**2]), bend=bend)
+
+
+def test_an_unsolvable_difference_point_loses_only_its_own_bend():
+    # two prior-decided directions u1, u2 bending v; the gradient fails wherever u2 is pushed far: G keeps u1's bend
+    b, sigma = 0.7, 0.05
+
+    def grad(x):
+        u1, u2, v = x
+        if abs(u2) > 0.5:
+            return np.full(3, np.nan)
+        r = (v - b * u1**2) / sigma**2
+        return np.array([-u1 + r * 2 * b * u1, -u2 / 0.8, -r])
+
+    # distinct variances, so the eigenbasis is the parameter axes
+    bend = bent_laplace(grad, np.zeros(3), np.diag([1.0, 0.8, sigma**2]), [1.0, 1.0, 100 * sigma])
+    assert bend.prior_decided.size == 2 and np.all(np.isfinite(bend.G))
+    assert bend.bent == 1
+    np.testing.assert_allclose(np.abs(bend.G).max(), 2 * b / sigma, rtol=1e-9)
+
+
 def _ensemble_after(move, logp, X0, steps, seed):
     s = emcee.EnsembleSampler(X0.shape[0], 2, logp, vectorize=True, moves=[(move, 1.0)])
     s.random_state = np.random.RandomState(seed).get_state()
@@ -112,6 +145,10 @@ def test_to_w_inverts_to_x_and_no_prior_decided_direction_means_no_bend():
     bend = BentLaplace(rng.normal(size=d), A @ A.T + np.eye(d), np.array([0, 2]), np.array([1, 3]), G)
     W = rng.normal(size=(20, d))
     np.testing.assert_allclose(bend.to_w(bend.to_x(W)), W, atol=1e-10)
+    with pytest.raises(InputError, match="splitting"):
+        BentLaplace(np.zeros(d), np.eye(d), np.array([0, 2]), np.array([1, 2]), G)
+    with pytest.raises(InputError, match="G expected shape"):
+        BentLaplace(np.zeros(d), np.eye(d), np.array([0, 2]), np.array([1, 3]), G[:1])
     # every direction decided by the data: the plain Laplace map
     _, grad = _banana(0.7, 0.05)
     plain = bent_laplace(grad, [0.0, 0.0], np.diag([0.01, 0.05**2]), [1.0, 1.0])
