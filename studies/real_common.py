@@ -112,18 +112,15 @@ def importance_check(model: MeasurementModel, res, *, draws: int = 30000, seed: 
     its effective sample size and the largest differences of the marginal
     means (in posterior std) and stds (relative) from the chain's.
     """
-    from bayescal.bayes.bent_laplace import bent_laplace, log_posterior_gradient
     from bayescal.bayes.mcmc import log_posterior_function
     from bayescal.bayes.moves import IndependenceMove
-    from bayescal.bayes.priors import map_estimate, prior_from_machine
+    from bayescal.bayes.priors import prior_from_machine
 
-    prior = prior_from_machine(model.machine)
-    names = model.machine.layout.names
-    start = map_estimate(model, prior=prior, free=[names[i] for i in np.flatnonzero(res.free)])
-    idx = np.flatnonzero(start.free)
-    lp = log_posterior_function(model, prior, idx, guess=model.predict(start.theta).poses)
-    bend = bent_laplace(log_posterior_gradient(model, prior, idx), start.theta[idx], start.covariance, prior.std[idx])
-    g = IndependenceMove(start.theta[idx], start.covariance, df=5.0, scale=1.2, bend=bend)
+    bend = res.bend  # the sampler's own bent Laplace map at its MAP
+    idx = np.flatnonzero(res.free)
+    lp = log_posterior_function(model, prior_from_machine(model.machine), idx,
+                                guess=model.predict(res.theta_map).poses)
+    g = IndependenceMove(bend.x0, bend.basis @ bend.basis.T, df=5.0, scale=1.2, bend=bend)
     rs = np.random.RandomState(seed)
     chunk = 2000
     X = np.vstack([g.draw(chunk, rs) for _ in range(-(-draws // chunk))])

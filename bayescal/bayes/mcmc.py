@@ -143,10 +143,15 @@ class PosteriorResult:
     unidentifiable: tuple[str, ...] = ()
     #: Combinations the data do not separate that the prior decides (``free="auto"``: sampled, not fixed).
     decided_by_prior: tuple[str, ...] = ()
-    #: Prior-decided directions the independence proposal is bent along (bent_laplace.py; 0: straight).
-    bent_directions: int = 0
+    #: The Laplace approximation the walkers started on and the independence move proposed from (bent_laplace.py).
+    bend: BentLaplace | None = field(default=None, repr=False)
 
     method = "mcmc"
+
+    @property
+    def bent_directions(self) -> int:
+        """Prior-decided directions the independence proposal was bent along (0: straight)."""
+        return 0 if self.bend is None else self.bend.bent
 
     @property
     def free_names(self) -> tuple[str, ...]:
@@ -420,7 +425,7 @@ def sample_posterior(
     seconds = time.perf_counter() - t0
     res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor,
                      burn_grows=burn_default)
-    res = dataclasses.replace(res, bent_directions=bend.bent)
+    res = dataclasses.replace(res, bend=bend)
     if surrogate == "linear":
         draws = res.samples[rng.choice(res.samples.shape[0], size=min(200, res.samples.shape[0]), replace=False)]
         full = np.tile(start.theta, (draws.shape[0], 1))

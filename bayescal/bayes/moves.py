@@ -113,9 +113,8 @@ class IndependenceMove(MHMove):
         self.mean = np.asarray(mean, dtype=float).ravel()
         d = self.mean.size
         cov = np.asarray(cov, dtype=float).reshape(d, d)
-        self.chol = np.linalg.cholesky(0.5 * (cov + cov.T))
         # the proposal is t(0, scale^2 I) pushed through x = map(w): linear, or bent along the prior-decided directions
-        self.map = BentLaplace.linear(self.mean, self.chol) if bend is None else bend
+        self.map = BentLaplace.linear(self.mean, np.linalg.cholesky(0.5 * (cov + cov.T))) if bend is None else bend
         if self.map.x0.shape != (d,) or not np.allclose(self.map.x0, self.mean, rtol=1e-12, atol=0.0):
             raise ValueError("bend: expected a map centred at mean (the MAP the bend was fitted at)")
         self.scale = float(scale)
