@@ -60,7 +60,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from .bent_laplace import BentLaplace, bent_laplace, log_posterior_gradient
 from .linear import linearisation_error, linearise
-from .moves import default_moves
+from .moves import choose_proposal, default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
 from ..identify.result import covariance_dict, decided_by_prior_lines
 from .summary import parameter_list, parameter_table, strong_correlations
@@ -145,6 +145,9 @@ class PosteriorResult:
     decided_by_prior: tuple[str, ...] = ()
     #: The Laplace approximation the walkers started on and the independence move proposed from (bent_laplace.py).
     bend: BentLaplace | None = field(default=None, repr=False)
+    #: Importance-sampling ESS fractions of the straight and the bent proposal (``{"draws", "straight",
+    #: "bent"}``), by which the bend was kept or dropped; None when no bend was fitted or tried.
+    proposal_check: dict | None = field(default=None, repr=False)
 
     method = "mcmc"
 
@@ -200,6 +203,7 @@ class PosteriorResult:
                 "more_steps": self.more_steps,
                 "seconds": self.seconds,
                 "proposal_bent_directions": self.bent_directions,
+                "proposal_check": self.proposal_check,
             },
         }
         if ok:
@@ -213,6 +217,14 @@ class PosteriorResult:
             ]
         return out
 
+    def _check_note(self) -> str:
+        c = self.proposal_check
+        if c is None:
+            return ""
+        kept = "kept" if self.bent_directions else "dropped"
+        return (f" (bend {kept}: importance efficiency {c['bent']:.2f} bent, {c['straight']:.2f} straight, "
+                f"{c['draws']} draws)")
+
     def report(self) -> str:
         status = "converged" if self.success else "NOT CONVERGED: posterior not reported"
         lines = [
@@ -220,7 +232,7 @@ class PosteriorResult:
             f"  method          mcmc (emcee, Laplace-t independence + DE + snooker moves): {status}",
             f"  sampler         {self.n_walkers} walkers x {self.n_steps} steps ({self.burn} burn-in), "
             f"acceptance {self.acceptance:.2f}, {self.seconds:.1f} s; proposal bent along {self.bent_directions} "
-            f"prior-decided direction(s)",
+            f"prior-decided direction(s)" + self._check_note(),
             f"  convergence     max R-hat {np.max(self.rhat):.4f} (<= {MAX_RHAT}), min ESS bulk "
             f"{np.min(self.ess_bulk):.0f} / tail {np.min(self.ess_tail):.0f} (>= {MIN_ESS:.0f}), "
             f"max autocorrelation time {np.max(self.tau):.0f} steps",
@@ -321,6 +333,7 @@ def sample_posterior(
     checkpoint: str | os.PathLike | None = None,
     checkpoint_every: int = 100,
     resume: bool = False,
+    theta0: ArrayLike | None = None,
 ) -> PosteriorResult:
     """Sample the posterior of the identifiable errors with emcee and check convergence.
 
@@ -357,6 +370,9 @@ def sample_posterior(
     resume : bool
         Continue the chain saved in ``checkpoint`` up to ``n_steps``: the
         same draws as an uninterrupted run with the same arguments.
+    theta0 : array_like, shape (P,), optional
+        Where the MAP search starts (:func:`~bayescal.bayes.priors.map_estimate`);
+        the prior mean by default.
 
     Returns
     -------
@@ -367,7 +383,7 @@ def sample_posterior(
         raise InputError("sample_posterior: the measurement model has no measured values")
     machine = model.machine
     prior = prior_from_machine(machine) if prior is None else prior
-    start = map_estimate(model, prior=prior, free=free)
+    start = map_estimate(model, prior=prior, free=free, theta0=theta0)
     if start.covariance is None:
         raise InputError(f"sample_posterior: the MAP start failed ({start.message})")
     idx = np.flatnonzero(start.free)
@@ -389,13 +405,31 @@ def sample_posterior(
     log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses)
     if moves is None:
         # the Laplace approximation bent along what the prior decides (bent_laplace.py): the walkers start on
-        # it and the independence move proposes from it
+        # it and the independence move proposes from it, if it matches the posterior better than the straight
+        # one.  A valley that is not quadratic (an effect's mass times its compliances) can make the bend's
+        # extrapolation far worse than no bend: importance weights of draws from both decide (one call each).
         bend = bent_laplace(log_posterior_gradient(model, prior, idx, guess=map_pred.poses), start.theta[idx],
                             start.covariance, prior.std[idx])
+        proposal_check = None
+        if bend.bent:
+            check = np.random.RandomState(np.random.SeedSequence([seed, 7]).generate_state(1)[0])
+            bend, proposal_check = choose_proposal(lambda X: log_prob(X)[:, 0], start.theta[idx], start.covariance,
+                                                   bend, max(4 * n_walkers, 200), check)
         moves = default_moves(start.theta[idx], start.covariance, bend=bend)
     else:  # the caller's moves: the walkers start on the plain Laplace approximation
         bend = BentLaplace.linear(start.theta[idx], np.linalg.cholesky(start.covariance))
+        proposal_check = None
     p0 = bend.to_x(rng.standard_normal((n_walkers, n)))
+    for _ in range(20):
+        # a start outside the support (below a physical bound of the prior, a pose that does not assemble)
+        # would stay stuck there: draw it again
+        bad = ~np.isfinite(log_prob(p0)[:, 0])
+        if not bad.any():
+            break
+        p0[bad] = bend.to_x(rng.standard_normal((int(bad.sum()), n)))
+    else:
+        raise InputError(f"sample_posterior: {int(bad.sum())} of {n_walkers} starting points keep a zero posterior density "
+                         "(below a bound of the prior or not assembled)")
     if resume and checkpoint is None:
         raise InputError("resume: give the checkpoint to resume from")
     fingerprint = None
@@ -425,7 +459,7 @@ def sample_posterior(
     seconds = time.perf_counter() - t0
     res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor,
                      burn_grows=burn_default)
-    res = dataclasses.replace(res, bend=bend)
+    res = dataclasses.replace(res, bend=bend, proposal_check=proposal_check)
     if surrogate == "linear":
         draws = res.samples[rng.choice(res.samples.shape[0], size=min(200, res.samples.shape[0]), replace=False)]
         full = np.tile(start.theta, (draws.shape[0], 1))

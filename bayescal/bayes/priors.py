@@ -53,11 +53,18 @@ class GaussianPrior:
         mm or rad, per the layout's units.
     std : ndarray, shape (P,)
         One-sigma, same units.
+    lower : ndarray, shape (P,), optional
+        Physical lower bounds (``-inf``: none), e.g. a compliance or a mass
+        that cannot be negative: the density is the Gaussian truncated there.
+        Only :meth:`logpdf` (what samplers see) applies them; the MAP and its
+        Laplace covariance are the untruncated Gaussian's (a diagnosis must be
+        able to see a fit beyond a bound, docs/diagnose.md).
     """
 
     names: tuple[str, ...]
     mean: NDArray
     std: NDArray
+    lower: NDArray | None = None
 
     @property
     def covariance(self) -> NDArray:
@@ -66,16 +73,34 @@ class GaussianPrior:
     def subset(self, idx: ArrayLike) -> "GaussianPrior":
         """The marginal prior of parameters ``idx`` (independent, so just a selection)."""
         idx = np.asarray(idx, dtype=int)
-        return GaussianPrior(tuple(self.names[i] for i in idx), self.mean[idx], self.std[idx])
+        return GaussianPrior(tuple(self.names[i] for i in idx), self.mean[idx], self.std[idx],
+                             None if self.lower is None else self.lower[idx])
 
     def logpdf(self, theta: ArrayLike) -> NDArray:
-        """Log density at ``theta`` of shape (..., P) (normalised)."""
-        z = (np.asarray(theta, dtype=float) - self.mean) / self.std
-        return -0.5 * np.sum(z**2, axis=-1) - np.sum(np.log(self.std)) - 0.5 * self.std.size * np.log(2 * np.pi)
+        """Log density at ``theta`` of shape (..., P): normalised without :attr:`lower`; ``-inf`` below it.
+
+        With bounds the normalisation of the truncation (a constant) is left
+        out: samplers use only differences.
+        """
+        theta = np.asarray(theta, dtype=float)
+        z = (theta - self.mean) / self.std
+        lp = -0.5 * np.sum(z**2, axis=-1) - np.sum(np.log(self.std)) - 0.5 * self.std.size * np.log(2 * np.pi)
+        if self.lower is not None:
+            lp = np.where(np.any(theta < self.lower, axis=-1), -np.inf, lp)
+        return lp
 
     def sample(self, n: int, rng: np.random.Generator) -> NDArray:
-        """``n`` draws, shape (n, P)."""
-        return self.mean + rng.normal(size=(n, self.std.size)) * self.std
+        """``n`` draws, shape (n, P) (of the truncated Gaussian where :attr:`lower` is set: redrawn until above it)."""
+        out = self.mean + rng.normal(size=(n, self.std.size)) * self.std
+        if self.lower is not None:
+            for _ in range(1000):
+                bad = out < self.lower
+                if not bad.any():
+                    break
+                out[bad] = (self.mean + rng.normal(size=out.shape) * self.std)[bad]
+            else:
+                raise InputError("GaussianPrior.sample: a lower bound lies too far above the mean to sample by redrawing")
+        return out
 
 
 def prior_from_machine(machine: Machine, *, mean: ArrayLike | None = None, scale: float = 1.0) -> GaussianPrior:
@@ -86,17 +111,25 @@ def prior_from_machine(machine: Machine, *, mean: ArrayLike | None = None, scale
     machine : Machine
         Its ``tolerance`` (from ``[tolerance]`` or the kind's defaults) are the prior std.
     mean : array_like, shape (P,), optional
-        Prior mean of the errors (e.g. a previous calibration); zeros by default.
+        Prior mean of the errors (e.g. a previous calibration); by default
+        the machine's ``prior_mean`` where a view states one (effect
+        parameters centred on their prior, :mod:`bayescal.effects.joint_model`),
+        else zeros.  Likewise the lower bounds are the view's ``prior_lower``
+        (the effects' physical bounds), else none.
     scale : float
         Multiplies every std (e.g. to test prior sensitivity).
     """
     P = machine.n_params
+    if mean is None:
+        mean = getattr(machine, "prior_mean", None)
     mu = np.zeros(P) if mean is None else np.asarray(mean, dtype=float)
     if mu.shape != (P,):
         raise InputError(f"mean: expected shape ({P},), got {mu.shape}")
     if not scale > 0:
         raise InputError(f"scale: expected a positive number, got {scale!r}")
-    return GaussianPrior(machine.layout.names, mu, np.asarray(machine.tolerance, dtype=float) * scale)
+    lower = getattr(machine, "prior_lower", None)
+    return GaussianPrior(machine.layout.names, mu, np.asarray(machine.tolerance, dtype=float) * scale,
+                         None if lower is None else np.asarray(lower, dtype=float))
 
 
 def map_estimate(
@@ -106,6 +139,7 @@ def map_estimate(
     free: ArrayLike | str | None = None,
     max_iter: int = 50,
     prior_scale: str = "tolerance",
+    theta0: ArrayLike | None = None,
 ) -> IdentificationResult:
     """Maximum a posteriori errors under a Gaussian prior (Gauss-Newton, Laplace covariance).
 
@@ -122,6 +156,12 @@ def map_estimate(
         "empirical": multiply every prior std by one factor estimated from
         the data (:func:`empirical_bayes_map`), for when the tolerances may
         be too tight or too loose.
+    theta0 : array_like, shape (P,), optional
+        Where Gauss-Newton starts; by default the model's ``theta_start``
+        where it has one, else the prior mean.  A model whose
+        parameters enter as products (an effect's mass times its
+        compliances, :mod:`bayescal.effects.joint_model`) needs a start off
+        the prior mean, where their gradient vanishes.
 
     Returns
     -------
@@ -129,12 +169,17 @@ def map_estimate(
         ``method == "map"``, covariance ``(J^T R^-1 J + P0^-1)^-1`` at the MAP.
     """
     prior = prior_from_machine(model.machine) if prior is None else prior
+    if theta0 is None:
+        theta0 = getattr(model, "theta_start", None)
+    start = prior.mean if theta0 is None else np.asarray(theta0, dtype=float)
+    if start.shape != prior.mean.shape:
+        raise InputError(f"theta0: expected shape {prior.mean.shape}, got {start.shape}")
     if prior_scale == "empirical":
-        return empirical_bayes_map(model, prior=prior, free=free, max_iter=max_iter)
+        return empirical_bayes_map(model, prior=prior, free=free, max_iter=max_iter, theta0=start)
     if prior_scale != "tolerance":
         raise InputError(f"prior_scale: expected one of {', '.join(PRIOR_SCALES)}, got {prior_scale!r}")
     return identify(
-        model, method="map", free=free, theta0=prior.mean, scale=prior.std, prior_mean=prior.mean, max_iter=max_iter
+        model, method="map", free=free, theta0=start, scale=prior.std, prior_mean=prior.mean, max_iter=max_iter
     )
 
 
@@ -146,6 +191,7 @@ def empirical_bayes_map(
     max_iter: int = 50,
     max_rounds: int = 4,
     scale_bounds: tuple[float, float] = (0.05, 20.0),
+    theta0: ArrayLike | None = None,
 ) -> IdentificationResult:
     """MAP and Laplace covariance with the prior's scale estimated from the data (empirical Bayes).
 
@@ -175,6 +221,8 @@ def empirical_bayes_map(
     scale_bounds : (float, float)
         ``c`` is kept within these factors (dimensionless): a handful of
         parameters cannot tell a scale of 1e-3 from 1e-4.
+    theta0 : array_like, shape (P,), optional
+        Where the first MAP starts (:func:`map_estimate`); the prior mean by default.
 
     Returns
     -------
@@ -193,7 +241,7 @@ def empirical_bayes_map(
         return identify(model, method="map", free=free_now, theta0=start, scale=std, prior_mean=prior.mean,
                         max_iter=max_iter)
 
-    res = first = fit(1.0, prior.mean, free)
+    res = first = fit(1.0, prior.mean if theta0 is None else np.asarray(theta0, dtype=float), free)
     c, rounds = 1.0, 0
     while res.success and rounds < max_rounds:
         rounds += 1

@@ -44,6 +44,7 @@ def add_arguments(p) -> None:
 def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
     """Run kalman or mcmc; ``outliers`` (an OutlierHandling of a robust MAP pass) weights the poses and is reported."""
     from . import EXIT_FAILED, EXIT_OK
+    from .effect_options import with_fitted_effects
     from .instrument import instrument_report, judge, refusal_note, write_calibrated_files
     from ..bayes.kalman import kalman_filter
     from ..bayes.mcmc import sample_posterior, write_posterior
@@ -78,7 +79,7 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
     write_json(args, answer)  # before printing: a closed stdout (`| head`) must not cost the answer
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
-    write_calibrated_files(args, machine, res, plaus)
+    write_calibrated_files(args, with_fitted_effects(machine, base_model, res), res, plaus)
     write_report(args, "identify", res, machine=machine, model=base_model, answer_extra=extra)
     made = []
     if args.figures:

@@ -11,6 +11,7 @@ from ..errors import InputError
 from ..identify.choose import DEFAULT_RULE, RULE_NAMES, choose_regularisation
 from ..identify.robust import fit_system, identify_with_outliers, robust_map_weights
 from .bayes_identify import METHODS, add_arguments, run_bayes
+from .effect_options import joint_effects_model, with_fitted_effects
 from .inputs import add_frame_argument, free_arg, instrument_inputs
 from .instrument import add_force_argument, instrument_report, judge, refusal_note, write_calibrated_files
 from .outlier_options import add_outlier_arguments, outlier_kwargs
@@ -68,6 +69,11 @@ A machine file with [effect.<name>] tables (written by diagnose
 --write-machine) has those effects applied at their stored values, driven by
 the recording's auxiliary channels and measurement order: only the geometry
 is identified, and --write-machine keeps the tables (FORMATS.md section 7).
+With --fit-effects (--method map or mcmc) the effects' parameters are
+unknowns too, under the effects' own priors, started at the stored values:
+the MAP and its covariance, or the posterior, are joint, so the geometry's
+intervals carry the effects' uncertainty; --write-machine writes the
+refitted tables (docs/bayes.md, "Effects sampled with the geometry").
 
 Every pose is tested for being an outlier (a gross error no model of the
 machine explains: a beam break, a mistyped value), with a test that accounts
@@ -121,6 +127,11 @@ def register(sub) -> None:
              "data) or 'tolerance' (the tolerances as they are); default: empirical with at least 3 measured "
              "components per parameter or with no stated noise (no [measurement] table), else tolerance",
     )
+    p.add_argument(
+        "--fit-effects", action="store_true",
+        help="map, mcmc: fit the machine file's [effect.*] parameters jointly with the geometry, under the effects' "
+             "priors, instead of holding them at their stored values",
+    )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
@@ -167,6 +178,8 @@ def run(args) -> int:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
     if args.method == "tsvd" and args.k is None:
         raise InputError("--k is required with --method tsvd (a number, or --k auto)")
+    if args.fit_effects:
+        model = joint_effects_model(args, machine, rec, model)
     okw = outlier_kwargs(args, rec, model.n_poses)
     if args.method != "mcmc" and (args.checkpoint or args.resume):
         raise InputError("--checkpoint and --resume go with --method mcmc")
@@ -183,7 +196,14 @@ def run(args) -> int:
     choice = None
     if args.method == "map":
         # the prior-scale rule and the robust pass live in one function the studies call too (bayescal.bayes.map_identify)
-        res, handling = identify_map(model, free, prior_scale=args.prior_scale, max_iter=args.max_iter, **okw)
+        scale = args.prior_scale
+        if args.fit_effects:
+            # one factor estimated for every prior would rescale the effects' priors with the geometry's tolerances
+            if scale == "empirical":
+                raise InputError("--prior-scale empirical does not go with --fit-effects: the effects' priors are not "
+                                 "the machine file's tolerances (use --prior-scale tolerance)")
+            scale = "tolerance"
+        res, handling = identify_map(model, free, prior_scale=scale, max_iter=args.max_iter, **okw)
     elif auto:
         # the rules see the recording with the weights of a robust MAP pass: one gross pose must not choose lambda or k
         handling = robust_map_weights(model, free, max_iter=args.max_iter, **okw)
@@ -203,7 +223,7 @@ def run(args) -> int:
     # instrument frame and plausibility (docs/real-instruments.md)
     extra, plaus = judge(machine, model, res, check)
     write_json(args, {**res.to_dict(), **extra})
-    write_calibrated_files(args, machine, res, plaus)
+    write_calibrated_files(args, with_fitted_effects(machine, model, res), res, plaus)
     write_report(args, "identify", res, machine=machine, model=model, choice=choice, answer_extra=extra)
     path = None
     if choice is not None and args.figures:
@@ -215,7 +235,8 @@ def run(args) -> int:
         print(handling.report())
         print(instrument_report(extra, plaus))
         if machine.effects:
-            print(f"\neffects applied at their stored values ({args.machine}): {', '.join(e.name for e in machine.effects)}")
+            how = "fitted with the geometry (--fit-effects)" if args.fit_effects else "applied at their stored values"
+            print(f"\neffects {how} ({args.machine}): {', '.join(e.name for e in machine.effects)}")
         if "prior_scale_note" in res.extras:
             print("\n" + res.extras["prior_scale_note"])
         if "prior_scale" in res.extras:

@@ -128,12 +128,16 @@ def identify(
         measurement sees, the prior (tolerance scaling) deciding what the
         data do not separate (:func:`resolve_free` with ``prior=True``).
     theta0 : array_like, shape (P,), optional
-        Start (and value of fixed parameters); zeros (nominal) by default.
+        Start (and value of fixed parameters); by default the model's
+        ``theta_start`` where it has one (:mod:`bayescal.effects.joint_model`),
+        else zeros (nominal).
     scale : array_like, shape (P,), optional
         Column scaling, in parameter units; defaults to the machine's tolerances.
         For ridge and MAP this is the prior standard deviation.
     prior_mean : array_like, shape (P,), optional
-        Where ridge and MAP shrink to (the prior mean); nominal (zeros) by default.
+        Where ridge and MAP shrink to (the prior mean); by default the
+        machine's ``prior_mean`` where a view states one (effect
+        parameters), else nominal (zeros).
     max_iter : int
         Gauss-Newton iterations at most.
     xtol : float
@@ -160,6 +164,11 @@ def identify(
         raise InputError(f"lam: ridge needs a number >= 0, got {lam!r}")
     if int(max_iter) != max_iter or max_iter < 1:
         raise InputError(f"max_iter: expected a whole number >= 1, got {max_iter!r}")
+    if theta0 is None:
+        # a model may say where its search must start (effect parameters that enter as products: off zero)
+        theta0 = getattr(model, "theta_start", None)
+    if prior_mean is None:
+        prior_mean = getattr(machine, "prior_mean", None)  # a view's parameters centred elsewhere (effects)
     theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float)
     if theta.shape != (P,):
         raise InputError(f"theta0: expected shape ({P},), got {theta.shape}")

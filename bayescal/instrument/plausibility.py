@@ -122,7 +122,9 @@ def assess_plausibility(
     free = np.asarray(free, dtype=bool)
     tol = np.asarray(machine.tolerance, dtype=float)
     is_frame = np.array([n in FRAME_NAMES for n in names])
-    ratio = np.abs(theta) / tol
+    # from the prior's centre: zero for the geometry, an effect parameter's prior mean (a stated mass)
+    centre = getattr(machine, "prior_mean", None)
+    ratio = np.abs(theta - (0.0 if centre is None else np.asarray(centre, dtype=float))) / tol
     flagged = np.flatnonzero(free & ~is_frame & (ratio > PLAUSIBLE_SIGMAS))
     reasons, causes, params = [], [], []
     n_rows, n_free = model.n_poses * model.dof, int(free.sum())
@@ -221,7 +223,7 @@ def frame_answer(machine: Machine, theta: NDArray, free: NDArray, covariance: ND
     rv = f.rotation_vector
     out = {"origin": f.origin.tolist(), "rotation_vector": rv.tolist(), "fitted": bool(machine.fit), "std": None}
     if machine.fit and covariance is not None:
-        P = machine.n_params
+        P = np.asarray(free).size  # the model's parameters: the machine's, then its own (pivots, effects)
         C = np.full((P, P), np.nan)
         idx = np.flatnonzero(free)
         C[np.ix_(idx, idx)] = covariance

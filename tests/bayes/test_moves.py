@@ -6,7 +6,10 @@ import emcee
 import numpy as np
 from scipy import stats
 
-from bayescal.bayes.moves import IndependenceMove, SnookerMove, default_moves
+import pytest
+
+from bayescal.bayes.bent_laplace import bent_laplace
+from bayescal.bayes.moves import IndependenceMove, SnookerMove, choose_proposal, default_moves, importance_efficiency
 
 
 def _run(moves, d=8, walkers=20, steps=1500, seed=0):
@@ -94,3 +97,33 @@ def test_default_mix_with_laplace_samples_a_banana():
     np.testing.assert_allclose(flat[:, 2:].std(axis=0), 1.0, atol=0.06)
     # skewness of x2: E[(b(x1^2 - a^2))^3] / var^1.5 = 8 b^3 a^6 / var^1.5 = 0.44 (the proposal's: 0)
     np.testing.assert_allclose(stats.skew(x2), 8 * b**3 * a**6 / var2**1.5, atol=0.15)
+
+
+def test_importance_efficiency_of_a_wide_gaussian_is_its_closed_form():
+    # p = N(0, I_d), g = N(0, s^2 I_d): E_g[(p/g)^2] = (s^2 / sqrt(2 s^2 - 1))^d, so the ESS fraction tends to its inverse
+    d, s = 3, 1.5
+    move = IndependenceMove(np.zeros(d), s**2 * np.eye(d), df=np.inf)
+    eff = importance_efficiency(lambda X: -0.5 * np.sum(X**2, axis=1), move, 200_000, np.random.RandomState(0))
+    assert abs(eff - (np.sqrt(2 * s**2 - 1) / s**2) ** d) < 0.01
+    # a proposal that is the target: every weight equal
+    exact = IndependenceMove(np.zeros(d), np.eye(d), df=np.inf)
+    assert importance_efficiency(lambda X: -0.5 * np.sum(X**2, axis=1), exact, 1000, np.random.RandomState(0)) == pytest.approx(1.0)
+    # draws of zero density weigh nothing: half the space cut away halves the efficiency of the exact proposal
+    cut = importance_efficiency(lambda X: np.where(X[:, 0] > 0, -0.5 * np.sum(X**2, axis=1), -np.inf), exact, 100_000,
+                                np.random.RandomState(1))
+    assert abs(cut - 0.5) < 0.01
+
+
+def test_choose_proposal_keeps_a_bend_only_where_it_helps():
+    from tests.bayes.test_bent_laplace import _banana
+
+    b, sigma = 0.7, 0.05
+    cov = np.diag([1.0, sigma**2])
+    banana, grad = _banana(b, sigma)
+    bend = bent_laplace(grad, [0.0, 0.0], cov, [1.0, 100 * sigma])
+    kept, check = choose_proposal(banana, [0.0, 0.0], cov, bend, 2000, np.random.RandomState(0))
+    assert kept is bend and check["bent"] > 0.5 > 0.2 > check["straight"]
+    # the same bend on a target with a straight valley (b = 0) is worse than none: the straight map is chosen
+    straight_target, _ = _banana(0.0, sigma)
+    chosen, check = choose_proposal(straight_target, [0.0, 0.0], cov, bend, 2000, np.random.RandomState(0))
+    assert chosen is not bend and chosen.bent == 0 and check["straight"] > 0.5 > 0.2 > check["bent"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
+from scipy import stats
 
 from bayescal.bayes import kalman_filter, linearise, map_estimate, prior_from_machine
 from bayescal.bayes.priors import GaussianPrior
@@ -134,3 +135,18 @@ def test_prior_object(prs3):
     with pytest.raises(InputError, match="mean"):
         prior_from_machine(prs3, mean=np.zeros(3))
     assert isinstance(p, GaussianPrior)
+
+
+def test_prior_lower_bounds_truncate_the_density_and_the_draws(prs3):
+    assert prior_from_machine(prs3).lower is None  # a plain machine's geometry has no bounds
+    names = ("a", "b", "c")
+    plain = GaussianPrior(names, np.array([0.0, 1.0, 2.0]), np.array([1.0, 2.0, 0.5]))
+    cut = GaussianPrior(names, plain.mean, plain.std, np.array([-np.inf, 0.0, -np.inf]))
+    x = np.array([[0.3, 0.5, 2.1], [0.3, -0.5, 2.1]])
+    assert cut.logpdf(x)[0] == plain.logpdf(x)[0] and cut.logpdf(x)[1] == -np.inf
+    assert cut.subset([1, 2]).lower.tolist() == [0.0, -np.inf]
+    draws = cut.sample(20000, np.random.default_rng(0))
+    assert draws[:, 1].min() >= 0.0
+    # a normal truncated at mean - sd/2: mean mu + sd phi(-1/2) / (1 - Phi(-1/2))
+    expect = 1.0 + 2.0 * stats.norm.pdf(-0.5) / stats.norm.sf(-0.5)
+    assert abs(draws[:, 1].mean() - expect) < 4 * draws[:, 1].std() / np.sqrt(draws.shape[0])

@@ -1,0 +1,306 @@
+"""A measurement model whose unknowns are the geometry *and* the parameters of the machine file's effects.
+
+Why.  A machine file's ``[effect.*]`` tables (FORMATS.md section 7) hold
+values fitted by ``diagnose``; every command applies them as fixed
+(:mod:`bayescal.effects.stored`).  A posterior of the geometry alone then
+treats a compliance or a thermal coefficient as known exactly, while the
+data determine it about as well as a geometric parameter, and often in
+trade with one (a joint compliance against a link length under a constant
+payload): the intervals of the geometry, and of a compensation grid built
+from it, come out too narrow.  :class:`EffectModel` makes the effects'
+parameters unknowns like the geometry, with the effects' own priors
+(:class:`~bayescal.effects.EffectParam`), so that the MAP, its Laplace
+covariance and the MCMC posterior are joint.
+
+How.  The parameter vector is ``(theta, eta)``: the geometric model's
+parameters (the machine's, then any nuisance ones it has) followed by every
+effect parameter, named ``effect.<effect>.<parameter>`` (the machine file's
+key) in the parameter's own unit.  The prediction is
+``h(q + sum_e dq_e(features_e, eta_e), theta)`` with the features computed
+once from the commanded poses, as the stored effects are applied
+(:func:`bayescal.effects.stored.effect_delta_q`), and ``dq`` at ``theta``
+for an effect whose ``dq`` depends on the geometry.  The Jacobian's effect
+columns are ``(d h / d q) (d dq / d eta)`` (:func:`.model.effect_columns`,
+the columns of the diagnosis' joint fit).  :class:`EffectAugmented` is the
+machine view consumers read the layout, tolerances (the effects' prior
+std) and prior means from, so identification, the MAP, Kalman filters and
+the MCMC sampler work on it unchanged; ``stored_effects(theta)`` turns a
+fitted vector back into ``[effect.*]`` tables.
+
+Scope: pose recordings (:class:`~bayescal.measurement.MeasurementModel`).
+A stacked prediction (one block per walker) solves every block's own
+actuator positions in one kinematics call.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import InputError
+from ..machines.base import Machine, ToolPoses
+from ..measurement import MeasurementModel, Prediction
+from ..params import ParamLayout, ParamSpec
+from .base import Effect, EffectParam, Features
+from .model import _dq, _effect_theta, _slices, effect_columns
+from .stored import StoredEffect
+
+__all__ = ["EffectAugmented", "EffectModel", "effect_model"]
+
+#: Tolerance group of the effect parameters in the layout.
+EFFECT_GROUP = "effect"
+
+
+@dataclass(frozen=True, eq=False)
+class EffectAugmented:
+    """A machine's parameter layout extended by effect parameters.
+
+    ``base`` is the geometric model's machine (possibly a view with nuisance
+    parameters); ``params`` the effect parameters in layout order and
+    ``effect_names`` the effect each belongs to.  Everything but the layout,
+    tolerances, prior means and the geometry's place is the base machine's.
+    """
+
+    base: Machine
+    params: tuple[EffectParam, ...]
+    effect_names: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        specs = [ParamSpec(f"effect.{e}.{p.name}", p.unit, EFFECT_GROUP) for e, p in zip(self.effect_names, self.params)]
+        object.__setattr__(self, "layout", self.base.layout + ParamLayout(tuple(specs)))
+        object.__setattr__(self, "tolerance", np.concatenate([self.base.tolerance, [p.prior_sd for p in self.params]]))
+        base_mean = getattr(self.base, "prior_mean", None)
+        base_mean = np.zeros(self.base.n_params) if base_mean is None else np.asarray(base_mean, float)
+        object.__setattr__(self, "prior_mean", np.concatenate([base_mean, [p.prior_mean for p in self.params]]))
+        # the effects' physical bounds (a compliance, a mass): the sampled prior is truncated there
+        low = [-np.inf if p.lower is None else p.lower for p in self.params]
+        object.__setattr__(self, "prior_lower", np.concatenate([np.full(self.base.n_params, -np.inf), low]))
+
+    def __getattr__(self, name):
+        # everything else (name, kind, noise, q_limits, source, effects, ...) is the base machine's
+        if name == "base" or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.layout)
+
+    @property
+    def n_base(self) -> int:
+        """Number of geometric (and nuisance) parameters before the effects'."""
+        return self.base.n_params
+
+    def check_theta(self, theta, n_poses=None) -> NDArray:
+        if theta is None:
+            return np.zeros(self.n_params)
+        theta = np.asarray(theta, dtype=float)
+        if theta.ndim not in (1, 2) or theta.shape[-1] != self.n_params:
+            raise InputError(f"theta: expected shape ({self.n_params},) or (n, {self.n_params}), got {theta.shape}")
+        return theta
+
+    def _base_theta(self, theta):
+        return None if theta is None else np.asarray(theta, dtype=float)[..., : self.n_base]
+
+    def forward(self, q, theta=None, *, guess=None) -> ToolPoses:
+        """The base machine's poses at ``q`` as given (the effects act through the model's features, not here)."""
+        return self.base.forward(q, self._base_theta(theta), guess=guess)
+
+    def tool_jacobian(self, q, theta, poses) -> NDArray:
+        """The base machine's tool Jacobian with zero columns for the effect parameters."""
+        J = self.base.tool_jacobian(q, self._base_theta(theta), poses)
+        return np.concatenate([J, np.zeros(J.shape[:2] + (len(self.params),))], axis=2)
+
+    def actuator_jacobian(self, q, theta, poses) -> NDArray:
+        return self.base.actuator_jacobian(q, self._base_theta(theta), poses)
+
+    @property
+    def geometry_part(self) -> tuple[Machine, NDArray]:
+        """The machine whose geometry the parameters describe, and their indices (effects are not geometry)."""
+        return self.base.geometry_part
+
+    def to_toml(self, theta: ArrayLike | None = None) -> str:
+        """The geometry's machine file (the effect tables: :meth:`EffectModel.stored_effects`)."""
+        return self.base.to_toml(self._base_theta(self.check_theta(theta)))
+
+
+def _sub_model(model: MeasurementModel, q: NDArray, guess: ToolPoses | None) -> MeasurementModel:
+    """``model`` at the actuator positions ``q`` (a multiple of its poses: stacked blocks), without measured values."""
+    return dataclasses.replace(model, q=q, y_measured=None, pose_sigma=None, aux=None, guess=guess)
+
+
+@dataclass(frozen=True, eq=False)
+class EffectModel:
+    """``h(q + dq(eta), theta)`` with ``(theta, eta)`` the unknowns (see the module docstring).
+
+    Attributes
+    ----------
+    geo : MeasurementModel
+        The geometric model at the *commanded* actuator positions (its
+        machine carries no stored effects).
+    effects : tuple of (Effect, Features)
+        The effects and their features for ``geo``'s poses.
+    stored : tuple of StoredEffect
+        The machine file's tables the effects came from (their settings and
+        units are kept when new values are written).
+    """
+
+    geo: MeasurementModel
+    effects: tuple[tuple[Effect, Features], ...]
+    stored: tuple[StoredEffect, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.geo, MeasurementModel):
+            raise InputError(f"EffectModel: expected a pose recording's MeasurementModel, got {type(self.geo).__name__}")
+        if self.geo.machine.effects:
+            raise InputError("EffectModel: the geometric model's machine must not apply stored effects itself")
+        params, owners = [], []
+        for eff, f in self.effects:
+            ps = tuple(eff.params(self.geo.machine, f))
+            params += ps
+            owners += [eff.name] * len(ps)
+        object.__setattr__(self, "machine", EffectAugmented(self.geo.machine, tuple(params), tuple(owners)))
+        object.__setattr__(self, "_slices", _slices(list(self.effects), self.geo))
+
+    # everything a consumer reads of a measurement model that the effects do not change
+    def __getattr__(self, name):
+        if name in ("geo", "effects", "stored", "machine", "_slices") or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.geo, name)
+
+    @property
+    def n_params(self) -> int:
+        return self.machine.n_params
+
+    @property
+    def effect_params(self) -> tuple[EffectParam, ...]:
+        return self.machine.params
+
+    def _split(self, theta: NDArray) -> tuple[NDArray, NDArray]:
+        P = self.machine.n_base
+        return theta[..., :P], theta[..., P:]
+
+    def delta_q(self, theta: ArrayLike) -> NDArray:
+        """``sum_e dq_e`` of every solved pose at the parameters ``theta`` (P + K,), mm (or rad)."""
+        th, eta = self._split(self.machine.check_theta(theta))
+        return _dq(list(self.effects), self._slices, eta, self.geo.pose_q.shape, _effect_theta(self.geo, th))
+
+    def at(self, theta: ArrayLike) -> MeasurementModel:
+        """The geometric model at the actuator positions the effects make at ``theta`` (measured values kept)."""
+        return self.geo.with_pose_q(self.geo.pose_q + self.delta_q(theta))
+
+    def predict(self, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> Prediction:
+        """``h`` at ``theta`` of shape (P + K,) or (n_sets * n_poses, P + K) (one block of equal rows per set)."""
+        theta = self.machine.check_theta(theta)
+        th, _ = self._split(theta)
+        if theta.ndim == 1:
+            return self.at(theta).predict(th, guess=guess)
+        n = self.geo.n_poses
+        if theta.shape[0] % n:
+            raise InputError(f"theta: {theta.shape[0]} rows is not a multiple of {n} poses")
+        blocks = theta.reshape(-1, n, theta.shape[1])
+        if not np.all(blocks == blocks[:, :1]):
+            raise InputError("theta: the effects take one parameter vector per block of poses, not per pose")
+        q = np.concatenate([self.geo.pose_q + self.delta_q(b[0]) for b in blocks])
+        g = guess if guess is not None else self.geo.guess
+        return _sub_model(self.geo, q, g).predict(th)
+
+    def jacobian(self, theta: ArrayLike | None, prediction: Prediction) -> NDArray:
+        """``d h / d (theta, eta)``, shape (n_poses, dof, P + K): geometric columns at ``q + dq``, then the effects'."""
+        theta = self.machine.check_theta(theta)
+        th, eta = self._split(theta)
+        sub = self.at(theta)
+        Jg = sub.jacobian(th, prediction)
+        if not self.effects:
+            return Jg
+        cols, extra = effect_columns(sub, th, prediction, list(self.effects), self._slices, eta)
+        if extra is not None:
+            Jg = Jg + extra
+        return np.concatenate([Jg] + cols, axis=2)
+
+    def subset(self, idx) -> "EffectModel":
+        """The model of poses ``idx`` (features subset with them)."""
+        return EffectModel(self.geo.subset(idx), tuple((e, f.subset(idx)) for e, f in self.effects), self.stored)
+
+    def with_pose_sigma(self, pose_sigma: NDArray | None) -> "EffectModel":
+        return dataclasses.replace(self, geo=self.geo.with_pose_sigma(pose_sigma))
+
+    @property
+    def theta_start(self) -> NDArray:
+        """Where searches start: zero geometry and the stored tables' values (each effect's prior mean where none is stored).
+
+        Not the prior mean: there a product of parameters (a mass times its
+        compliances) has no gradient (:attr:`EffectParam.start`).
+        """
+        x = np.concatenate([np.zeros(self.machine.n_base), [p.prior_mean for p in self.machine.params]])
+        kept = {s.name: dict(s.values) for s in self.stored}
+        for (eff, _), sl in zip(self.effects, self._slices):
+            vals = kept.get(eff.name, {})
+            for j, p in zip(range(sl.start, sl.stop), self.machine.params[sl]):
+                x[self.machine.n_base + j] = vals.get(p.name, x[self.machine.n_base + j])
+        return x
+
+    def stored_effects(self, theta: ArrayLike) -> tuple[StoredEffect, ...]:
+        """The ``[effect.*]`` tables at the effect parameters of ``theta`` (settings and sources of :attr:`stored`)."""
+        _, eta = self._split(self.machine.check_theta(theta))
+        kept = {s.name: s for s in self.stored}
+        out = []
+        for (eff, _), sl in zip(self.effects, self._slices):
+            ps = self.machine.params[sl]
+            old = kept.get(eff.name)
+            out.append(StoredEffect(
+                eff.name, tuple((p.name, float(v)) for p, v in zip(ps, eta[sl])), tuple(p.unit for p in ps),
+                old.source if old else "<fitted>", old.settings if old else ()))
+        return tuple(out)
+
+
+def effect_model(machine: Machine, rec, *, dof: int | None = None) -> EffectModel:
+    """The joint model of a recording on a machine whose file carries ``[effect.*]`` tables.
+
+    Parameters
+    ----------
+    machine : Machine
+        The machine as the recording's model sees it (possibly a fitted
+        instrument frame around the file's machine), with the stored effects
+        (``machine.effects``); they become unknowns under their library priors.
+    rec : Recording
+        A pose recording (FORMATS.md section 2).
+    dof : int, optional
+        As in :meth:`MeasurementModel.from_recording`.
+
+    Returns
+    -------
+    EffectModel
+        Searches start at the stored values (:attr:`EffectModel.theta_start`).
+    """
+    from ..machines.framed import InstrumentFrame, base_machine
+
+    if not machine.effects:
+        raise InputError(f"{machine.source}: the machine file has no [effect.*] tables to fit")
+    geo = MeasurementModel.from_recording(machine.with_effects(()), rec, dof=dof)
+    aux = dict(rec.aux)
+    q = geo.q
+    # features where the stored effects are applied (MeasurementModel.from_recording): loads and growth
+    # live in the base frame, so a machine seen from an instrument frame is evaluated on its base machine
+    if isinstance(machine, InstrumentFrame):
+        fm = base_machine(machine).with_effects(())
+        poses = fm.forward(q, None)
+    else:
+        fm = geo.machine
+        poses = fm.forward(q, None, guess=geo.guess)
+    poses = poses if poses.success.all() else None
+    effects = []
+    for st in machine.effects:
+        eff = st.effect()
+        why = eff.not_applicable(fm, aux)
+        if why is not None:
+            raise InputError(f"{st.source}: [{st.key()}] cannot be fitted to {rec.path}: {why}")
+        if eff.needs_poses and poses is None:
+            raise InputError(f"{st.source}: [{st.key()}] needs every pose of {rec.path} solved at the nominal geometry")
+        f = eff.features(fm, q, np.zeros(fm.n_params), aux, None, poses if eff.needs_poses else None)
+        st.vector(tuple(eff.params(fm, f)), f" for {rec.path}")  # the table's parameters are the set this recording calls for
+        effects.append((eff, f))
+    return EffectModel(geo, tuple(effects), tuple(machine.effects))
