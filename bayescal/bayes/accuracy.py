@@ -51,7 +51,8 @@ def workspace_accuracy(G: NDArray, cov: NDArray) -> NDArray:
     return np.sqrt(np.mean(np.sum(s**2, axis=-1), axis=-1))
 
 
-def tool_point_draws(machine: Machine, q: ArrayLike, theta: ArrayLike, idx: ArrayLike, draws: ArrayLike) -> NDArray:
+def tool_point_draws(machine: Machine, q: ArrayLike, theta: ArrayLike, idx: ArrayLike, draws: ArrayLike,
+                     dq_dtheta: NDArray | None = None) -> NDArray:
     """The tool point at every pose for every draw of ``theta[idx]``, shape (S, n, 3), mm.
 
     Parameters
@@ -65,6 +66,11 @@ def tool_point_draws(machine: Machine, q: ArrayLike, theta: ArrayLike, idx: Arra
         The parameters the draws give.
     draws : array_like, shape (S, k)
         Draws of ``theta[idx]``, e.g. posterior samples.
+    dq_dtheta : ndarray, shape (n, n_actuators, P), optional
+        How the drives at ``q`` move with the parameters (effect parameters,
+        :meth:`Machine.node_actuators`): each draw's ``q`` moves by
+        ``dq_dtheta (draw - theta)``, linearised (the effects' ``dq`` are
+        microns), its tool point from the exact kinematics.
 
     Returns
     -------
@@ -76,8 +82,13 @@ def tool_point_draws(machine: Machine, q: ArrayLike, theta: ArrayLike, idx: Arra
     D = np.asarray(draws, dtype=float)
     th = np.tile(theta, (D.shape[0], 1))
     th[:, idx] = D
+    qs = np.tile(q, (D.shape[0], 1))
+    if dq_dtheta is not None:
+        idx = np.asarray(idx, dtype=int)
+        shift = np.einsum("nak,sk->sna", np.asarray(dq_dtheta)[:, :, idx], D - np.asarray(theta, dtype=float)[idx])
+        qs = qs + shift.reshape(qs.shape)
     # one forward call for every draw at every pose
-    pos = machine.forward(np.tile(q, (D.shape[0], 1)), np.repeat(th, q.shape[0], axis=0)).position
+    pos = machine.forward(qs, np.repeat(th, q.shape[0], axis=0)).position
     return pos.reshape(D.shape[0], q.shape[0], 3)
 
 
@@ -90,6 +101,7 @@ def tool_point_std_at(
     covariance: ArrayLike | None = None,
     samples: ArrayLike | None = None,
     caller: str = "tool_point_std_at",
+    dq_dtheta: NDArray | None = None,
 ) -> tuple[NDArray, str]:
     """Per pose and axis the one-sigma std of the tool point, from posterior draws or a covariance.
 
@@ -112,6 +124,10 @@ def tool_point_std_at(
         Draws of ``theta[free]``; used instead of ``covariance`` when both are given.
     caller : str
         The function named in the message when neither is given.
+    dq_dtheta : ndarray, shape (n, n_actuators, P), optional
+        How the drives at ``q`` move with the parameters (effect parameters
+        of a grid's nodes, :meth:`Machine.node_actuators`): their columns add
+        ``(dp/dq) dq_dtheta`` to ``G`` (draws: :func:`tool_point_draws`).
 
     Returns
     -------
@@ -130,10 +146,16 @@ def tool_point_std_at(
         S = np.asarray(samples, dtype=float)
         if S.ndim != 2 or S.shape[1] != idx.size:
             raise InputError(f"samples: expected shape (n_draws, {idx.size}), got {S.shape}")
-        return tool_point_draws(machine, q, theta, idx, S).std(axis=0, ddof=1), f"sample std over {S.shape[0]} posterior draws"
+        return (tool_point_draws(machine, q, theta, idx, S, dq_dtheta).std(axis=0, ddof=1),
+                f"sample std over {S.shape[0]} posterior draws")
     if covariance is not None:
         C = np.asarray(covariance, dtype=float)
         if C.shape != (idx.size, idx.size):
             raise InputError(f"covariance: expected shape ({idx.size}, {idx.size}), got {C.shape}")
-        return tool_point_std(tool_point_jacobian(machine, q, theta, idx), C), "linearised G C G^T"
+        G = tool_point_jacobian(machine, q, theta, idx)
+        if dq_dtheta is not None:
+            poses = machine.forward(machine.check_q(q), theta)
+            Ja = machine.actuator_jacobian(machine.check_q(q), theta, poses)[:, :3]
+            G = G + np.einsum("nia,nak->nik", Ja, np.asarray(dq_dtheta)[:, :, idx])
+        return tool_point_std(G, C), "linearised G C G^T"
     raise InputError(f"{caller}: give a covariance or posterior samples for the std")

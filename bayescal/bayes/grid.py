@@ -179,12 +179,9 @@ def compensation_grid(
     q_cmd = actuator_nodes(axes)
     shape = tuple(a.size for a in axes) + (3,)
     nominal = machine.forward(q_cmd, None)
-    q = q_cmd
-    if machine.effects:
-        # where the drives really are at each node under the stated aux (the correction includes the effects)
-        from ..effects.stored import static_effect_delta_q
-
-        q = q_cmd + static_effect_delta_q(machine, machine.effects, q_cmd, aux)
+    # where the drives really are at each node under the stated aux (the correction includes the effects,
+    # and, where the parameters hold effect parameters, how they move the drives)
+    q, dq_dtheta = machine.node_actuators(q_cmd, theta, aux)
     est = machine.forward(q, theta, guess=nominal)
     bad = ~(nominal.success & est.success)
     if bad.any():
@@ -194,7 +191,8 @@ def compensation_grid(
             f"(one per actuator, q1..q{machine.n_actuators}), or span the tool point with --space tool"
         )
     correction = -(est.position - nominal.position)
-    std, source = tool_point_std_at(machine, q, theta, free, covariance=covariance, samples=samples, caller="compensation_grid")
+    std, source = tool_point_std_at(machine, q, theta, free, covariance=covariance, samples=samples, caller="compensation_grid",
+                                    dq_dtheta=dq_dtheta)
     unit = "mm or rad per actuator"  # FORMATS.md: mm for prismatic, rad for revolute actuators
     return CompensationGrid(
         machine_name=machine.name,

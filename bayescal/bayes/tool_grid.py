@@ -347,12 +347,8 @@ def tool_grid(
             + ", ".join(f"{c} {lo:.4g}:{hi:.4g}" for c, (lo, hi) in zip("xyz", box)) + ")"
         )
     nominal = machine.forward(q, None)
-    q_act = q
-    if machine.effects:
-        # where the drives really stand at each node under the stated aux (the same rule as the actuator grid)
-        from ..effects.stored import static_effect_delta_q
-
-        q_act = q + static_effect_delta_q(machine, machine.effects, q, aux)
+    # where the drives really stand at each node under the stated aux (the same rule as the actuator grid)
+    q_act, dq_dtheta = machine.node_actuators(q, theta, aux)
     est = machine.forward(q_act, theta, guess=nominal)
     if not est.success.all():
         i = int(np.flatnonzero(~est.success)[0])
@@ -360,6 +356,7 @@ def tool_grid(
     # against the nominal point actually commanded: equal to the node on the controlled axes, and the
     # right reference on an axis the actuators do not set (there the node coordinate is only a mean)
     error = est.position - nominal.position
-    std, source = tool_point_std_at(machine, q_act, theta, free, covariance=covariance, samples=samples, caller="tool_grid")
+    std, source = tool_point_std_at(machine, q_act, theta, free, covariance=covariance, samples=samples, caller="tool_grid",
+                                    dq_dtheta=dq_dtheta)
     shape = tuple(a.size for a in axes) + (3,)
     return ToolGrid(machine.name, axes, q, error.reshape(shape), std.reshape(shape), source, nominal.position, ctrl)

@@ -31,7 +31,9 @@ channel not given is absent, as in a recording without it; a table fitted
 with a channel needs it: joint compliance fitted with a payload needs
 --aux payload_kg=... (0: no payload), thermal expansion --aux temp_C=... .
 Grid nodes have no approach direction, so backlash is not in the grid
-(compensate it on reversal).
+(compensate it on reversal).  With --fit-effects (map, mcmc) the tables'
+parameters are identified with the geometry (identify --fit-effects), the
+grid applies the fitted values, and its std carries their uncertainty.
 
 A constraint recording (distances, heights, ballbar readings; FORMATS.md
 section 6) gives the grid of the geometry it calibrates; ballbar pivots are
@@ -94,6 +96,9 @@ def register(sub) -> None:
     p.add_argument("--figure", metavar="PNG", help="draw correction and std heat maps")
     p.add_argument("--json", metavar="PATH", help="write a summary as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    p.add_argument("--fit-effects", action="store_true",
+                   help="map, mcmc: identify the machine file's [effect.*] parameters with the geometry; the grid's "
+                   "std then carries their uncertainty")
     add_frame_argument(p)
     add_output_options(p)
     p.set_defaults(func=run)
@@ -118,6 +123,10 @@ def run(args) -> int:
     typo = [k for k in aux if k not in known]
     if typo:  # a misspelt channel would silently leave the effect at its default
         raise InputError(f"--aux {typo[0]}: unknown channel; expected one of: {', '.join(known)}")
+    if args.fit_effects:
+        from .effect_options import joint_effects_model
+
+        model = joint_effects_model(args, machine, rec, model)
     free = free_arg(args.free)
     if args.method == "mcmc" and free == "all":
         free = "auto"  # sampling parameters the measurement does not see only explores the prior
@@ -171,14 +180,16 @@ def run(args) -> int:
 
         plot_grid(grid, args.figure, units=base.actuator_units if space == "actuator" else None)
         say(args, f"wrote {args.figure} (figure)")
-    extra = {"effects": [e.name for e in machine.effects], "aux": aux} if machine.effects else {}
+    extra = ({"effects": [e.name for e in machine.effects], "aux": aux, "effects_fitted": bool(args.fit_effects)}
+             if machine.effects else {})
     write_json(args, {**grid.to_dict(), "method": args.method, **extra})
     write_report(args, "grid", grid, identification=res, machine=machine)
     if not args.quiet:
         print(grid.report())
         if machine.effects:
             at = ", ".join(f"{k} = {v:g}" for k, v in aux.items()) or "no auxiliary channel"
-            print(f"  effects         {', '.join(e.name for e in machine.effects)} applied at {at}")
+            how = "fitted with the geometry, " if args.fit_effects else ""
+            print(f"  effects         {', '.join(e.name for e in machine.effects)} {how}applied at {at}")
     return EXIT_OK
 
 

@@ -67,6 +67,8 @@ class EffectAugmented:
     base: Machine
     params: tuple[EffectParam, ...]
     effect_names: tuple[str, ...]
+    #: The machine file's tables the effects came from (settings, units and source kept in :meth:`tables`).
+    stored: tuple[StoredEffect, ...] = ()
 
     def __post_init__(self) -> None:
         specs = [ParamSpec(f"effect.{e}.{p.name}", p.unit, EFFECT_GROUP) for e, p in zip(self.effect_names, self.params)]
@@ -119,8 +121,46 @@ class EffectAugmented:
 
     @property
     def geometry_part(self) -> tuple[Machine, NDArray]:
-        """The machine whose geometry the parameters describe, and their indices (effects are not geometry)."""
-        return self.base.geometry_part
+        """The base machine's geometry part with the effect parameters kept after it.
+
+        A grid or an output error drops nuisance parameters (a fitted frame,
+        pivots) but not the effects: they move the drives at every node
+        (:meth:`node_actuators`).
+        """
+        inner, idx = self.base.geometry_part
+        view = EffectAugmented(inner, self.params, self.effect_names, self.stored)
+        return view, np.concatenate([idx, np.arange(self.n_base, self.n_params)])
+
+    def tables(self, theta: ArrayLike) -> tuple[StoredEffect, ...]:
+        """The ``[effect.*]`` tables at the effect parameters of ``theta`` (P + K,), in the order of the effects."""
+        eta = self.check_theta(theta)[self.n_base :]
+        kept = {s.name: s for s in self.stored}
+        out: dict[str, list] = {}
+        for name, p, v in zip(self.effect_names, self.params, eta):
+            out.setdefault(name, []).append((p, float(v)))
+        return tuple(
+            StoredEffect(name, tuple((p.name, v) for p, v in pv), tuple(p.unit for p, _ in pv),
+                         kept[name].source if name in kept else "<fitted>", kept[name].settings if name in kept else ())
+            for name, pv in out.items())
+
+    def node_actuators(self, q: NDArray, theta: NDArray | None = None, aux: dict | None = None) -> tuple[NDArray, NDArray]:
+        """Drives at grid nodes under the effects at ``theta``'s values, and ``d q / d (theta, eta)`` (effect columns).
+
+        As :meth:`bayescal.machines.base.Machine.node_actuators` with the
+        effects at the parameters' values; the derivative is analytic in the
+        effect parameters (:func:`bayescal.effects.stored.static_effect_delta_q_and_jacobian`)
+        and zero in the geometry (the loads' dependence on the geometric
+        corrections, of their relative size, is neglected as in every stored
+        application).
+        """
+        from .stored import static_effect_delta_q_and_jacobian
+
+        theta = self.check_theta(theta)
+        m = self.base.with_effects(self.tables(theta))
+        dq, J = static_effect_delta_q_and_jacobian(m, m.effects, q, aux)
+        full = np.zeros(J.shape[:2] + (self.n_params,))
+        full[:, :, self.n_base :] = J
+        return q + dq, full
 
     def to_toml(self, theta: ArrayLike | None = None) -> str:
         """The geometry's machine file (the effect tables: :meth:`EffectModel.stored_effects`)."""
@@ -162,7 +202,7 @@ class EffectModel:
             ps = tuple(eff.params(self.geo.machine, f))
             params += ps
             owners += [eff.name] * len(ps)
-        object.__setattr__(self, "machine", EffectAugmented(self.geo.machine, tuple(params), tuple(owners)))
+        object.__setattr__(self, "machine", EffectAugmented(self.geo.machine, tuple(params), tuple(owners), self.stored))
         object.__setattr__(self, "_slices", _slices(list(self.effects), self.geo))
 
     # everything a consumer reads of a measurement model that the effects do not change
@@ -245,16 +285,7 @@ class EffectModel:
 
     def stored_effects(self, theta: ArrayLike) -> tuple[StoredEffect, ...]:
         """The ``[effect.*]`` tables at the effect parameters of ``theta`` (settings and sources of :attr:`stored`)."""
-        _, eta = self._split(self.machine.check_theta(theta))
-        kept = {s.name: s for s in self.stored}
-        out = []
-        for (eff, _), sl in zip(self.effects, self._slices):
-            ps = self.machine.params[sl]
-            old = kept.get(eff.name)
-            out.append(StoredEffect(
-                eff.name, tuple((p.name, float(v)) for p, v in zip(ps, eta[sl])), tuple(p.unit for p in ps),
-                old.source if old else "<fitted>", old.settings if old else ()))
-        return tuple(out)
+        return self.machine.tables(theta)
 
 
 def effect_model(machine: Machine, rec, *, dof: int | None = None) -> EffectModel:

@@ -52,7 +52,7 @@ from .base import Effect, EffectParam
 
 __all__ = [
     "StoredEffect", "PROBE_CHANNELS", "read_effect_tables", "effect_tables_toml", "effect_delta_q",
-    "static_effect_delta_q", "StoredEffectsTransform", "machine_file_text", "parse_aux_values", "predict_poses",
+    "static_effect_delta_q", "effect_delta_q_jacobian", "static_effect_delta_q_and_jacobian", "StoredEffectsTransform", "machine_file_text", "parse_aux_values", "predict_poses",
 ]
 
 #: Auxiliary channels whose presence can change an effect's parameter set (FORMATS.md section 2).
@@ -323,9 +323,38 @@ def effect_delta_q(
         The table's parameters are not the set the recording's channels call for.
     """
     q = machine.check_q(q)
+    dq = np.zeros_like(q)
+    for _, eff, f, eta in _effect_terms(machine, effects, q, aux, theta, order, poses):
+        dq = dq + eff.delta_q(f, eta)
+    return dq
+
+
+def effect_delta_q_jacobian(
+    machine: Machine,
+    effects: tuple[StoredEffect, ...],
+    q: NDArray,
+    aux: dict | None = None,
+    *,
+    theta: NDArray | None = None,
+    order: NDArray | None = None,
+    poses: ToolPoses | None = None,
+) -> NDArray:
+    """``d (sum_e delta_q_e) / d eta`` at the tables' values, shape (n_poses, n_actuators, K).
+
+    ``K`` counts every table's parameters, tables in order, each table's
+    parameters in the effect's order (:meth:`Effect.params`); analytic
+    (:meth:`Effect.delta_q_jacobian`).  Arguments and errors as
+    :func:`effect_delta_q`.
+    """
+    q = machine.check_q(q)
+    cols = [eff.delta_q_jacobian(f, eta) for _, eff, f, eta in _effect_terms(machine, effects, q, aux, theta, order, poses)]
+    return np.concatenate(cols, axis=2) if cols else np.zeros(q.shape + (0,))
+
+
+def _effect_terms(machine: Machine, effects, q: NDArray, aux, theta, order, poses):
+    """Per stored table: ``(table, effect, features, values)`` for the poses ``q``, every check of :func:`effect_delta_q` made."""
     aux = {} if aux is None else dict(aux)
     theta = np.zeros(machine.n_params) if theta is None else np.asarray(theta, float)
-    dq = np.zeros_like(q)
     for st in effects:
         eff = st.effect()
         why = eff.not_applicable(machine, aux)
@@ -350,8 +379,7 @@ def effect_delta_q(
                 f"record {', '.join(need)} (for a compensation grid: " + " ".join(f"--aux {c}=VALUE" for c in need)
                 + ("; payload_kg=0 is no payload" if "payload_kg" in need else "") + ")",
             ) from exc
-        dq = dq + eff.delta_q(f, eta)
-    return dq
+        yield st, eff, f, eta
 
 
 def _channels_for_table(st: StoredEffect, eff: Effect, machine: Machine, q, theta, aux: dict, order, poses) -> list[str] | None:
@@ -409,19 +437,34 @@ def static_effect_delta_q(machine: Machine, effects: tuple[StoredEffect, ...], q
     (the first pose: unknown approach, no elapsed time).  ``aux`` holds
     constants or per-node arrays.
     """
+    return static_effect_delta_q_and_jacobian(machine, effects, q, aux)[0]
+
+
+def static_effect_delta_q_and_jacobian(machine: Machine, effects: tuple[StoredEffect, ...], q: NDArray,
+                                       aux: dict | None = None) -> tuple[NDArray, NDArray]:
+    """:func:`static_effect_delta_q` and its derivative in the tables' values, shapes (n, N) and (n, N, K).
+
+    Each node's features are computed once for both; the ``K`` columns are
+    ordered as in :func:`effect_delta_q_jacobian`.
+    """
     q = machine.check_q(q)
     n = q.shape[0]
     aux_n = {k: np.broadcast_to(np.asarray(v, float), (n,)) for k, v in (aux or {}).items()}
+    dq, jac = [np.zeros((0, q.shape[1]))], [np.zeros((0, q.shape[1], sum(len(st.values) for st in effects)))]
     # one session per node: the first pose of a session has no known approach (backlash: the centre of
     # the band) and no elapsed time; a node repeated in one session would keep the previous node's lag
     try:
-        return np.concatenate([effect_delta_q(machine, effects, q[j : j + 1], {k: v[j : j + 1] for k, v in aux_n.items()})
-                               for j in range(n)]) if n else np.zeros_like(q)
+        for j in range(n):
+            terms = list(_effect_terms(machine, effects, q[j : j + 1], {k: v[j : j + 1] for k, v in aux_n.items()},
+                                       None, None, None))
+            dq.append(sum((eff.delta_q(f, eta) for _, eff, f, eta in terms), np.zeros((1, q.shape[1]))))
+            jac.append(np.concatenate([eff.delta_q_jacobian(f, eta) for _, eff, f, eta in terms], axis=2))
     except MachineFileError:
         raise  # already names the channels to give
     except InputError as exc:  # a channel the effect needs and that has no default (temp_C): say where it goes
         raise InputError(f"{exc}; a compensation grid takes the channels at its nodes as aux (bayescal grid --aux NAME=VALUE, "
                          f"e.g. --aux temp_C=25)") from exc
+    return np.concatenate(dq), np.concatenate(jac)
 
 
 @dataclass(frozen=True, eq=False)

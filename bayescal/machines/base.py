@@ -393,6 +393,34 @@ class Machine(ABC):
         object.__setattr__(out, "effects", tuple(effects))
         return out
 
+    def node_actuators(self, q: NDArray, theta: NDArray | None = None, aux: dict | None = None) -> tuple[NDArray, NDArray | None]:
+        """Where the drives stand at grid nodes commanded to ``q``, and how that moves with the parameters.
+
+        Parameters
+        ----------
+        q : ndarray, shape (n, n_actuators)
+            Commanded actuator positions of the nodes (mm or rad).
+        theta : ndarray, shape (P,), optional
+            The parameters (a view may hold effect parameters among them).
+        aux : dict, optional
+            Auxiliary channels at the nodes (``{"payload_kg": 5.0}``).
+
+        Returns
+        -------
+        q_actual : ndarray, shape (n, n_actuators)
+            ``q`` plus the stored effects' ``dq`` under ``aux``, each node a
+            session of its own (:func:`bayescal.effects.stored.static_effect_delta_q`).
+        dq_dtheta : ndarray, shape (n, n_actuators, P), or None
+            None here: stored effects are fixed values, not parameters.  A
+            view whose parameters include effect parameters gives their
+            columns, so that a grid's std carries them.
+        """
+        if not self.effects:
+            return q, None
+        from ..effects.stored import static_effect_delta_q
+
+        return q + static_effect_delta_q(self, self.effects, q, aux), None
+
     def guess_from_measurement(
         self, q: NDArray, position: NDArray, rotation: NDArray | None = None, axis: NDArray | None = None
     ) -> ToolPoses | None:

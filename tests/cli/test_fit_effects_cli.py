@@ -89,3 +89,15 @@ def test_fit_effects_needs_tables(files, capsys):
     _, rec = files
     assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--method", "map", "--fit-effects"]) == 2
     assert "has no [effect.*] tables" in capsys.readouterr().err
+
+
+def test_grid_fits_the_tables_and_refuses_kalman(files, tmp_path, capsys):
+    machine, rec = files
+    code = main(["grid", str(rec), "--machine", str(machine), "--fit-effects", "--nodes", "2", "--json", str(tmp_path / "g.json")])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "backlash fitted with the geometry, applied at no auxiliary channel" in out
+    answer = json.loads((tmp_path / "g.json").read_text())
+    assert answer["effects_fitted"] is True and answer["effects"] == ["backlash"]
+    assert main(["grid", str(rec), "--machine", str(machine), "--fit-effects", "--method", "kalman"]) == 2
+    assert "--fit-effects goes with --method map or mcmc" in capsys.readouterr().err

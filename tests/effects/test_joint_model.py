@@ -169,3 +169,43 @@ def test_effect_model_refuses_what_it_cannot_fit(prs3, backlash_case):
         effect_model(prs3, rec)
     with pytest.raises(InputError, match="must not apply stored effects"):
         EffectModel(MeasurementModel.from_recording(prs3.with_effects((BACKLASH,)), rec), em.effects)
+
+
+def test_grid_std_carries_the_effect_parameters(compliance_case):
+    """A compensation grid from the joint fit: correction and std against central differences of the nodes' tool points.
+
+    ``p(x) = forward(q + dq_nodes(eta), theta)`` at every node under a stated payload, differentiated by
+    central differences in every parameter (geometry and effect), gives ``sqrt(diag(G C G^T))``; the
+    grid's linearised std must equal it, and exceed the std with the effect held at its values.
+    """
+    from bayescal.bayes.grid import actuator_nodes, compensation_grid
+
+    m, rec, em = compliance_case
+    res = map_estimate(em, free="all")
+    view, idx = em.machine.geometry_part
+    assert idx.size == em.n_params and view.n_params == em.n_params  # nothing is nuisance here, the effects are kept
+    axes = tuple(np.linspace(lo, hi, 2) for lo, hi in m.q_limits)
+    aux = {"payload_kg": 12.0}
+    grid = compensation_grid(view, res.theta, covariance=res.covariance, axes=axes, aux=aux)
+    q_cmd = actuator_nodes(axes)
+
+    def tool(x):
+        return view.forward(view.node_actuators(q_cmd, x, aux)[0], x).position
+
+    # the correction is the fitted machine's, with the fitted effect applied under the payload
+    fitted = m.with_effects(em.stored_effects(res.theta))
+    from bayescal.effects.stored import static_effect_delta_q
+
+    direct = fitted.forward(q_cmd + static_effect_delta_q(fitted, fitted.effects, q_cmd, aux), res.theta[:m.n_params]).position
+    np.testing.assert_allclose(-grid.correction.reshape(-1, 3), direct - m.forward(q_cmd, None).position, atol=1e-12)
+    h = 1e-4 * em.machine.tolerance
+    G = np.stack([(tool(res.theta + h[k] * np.eye(em.n_params)[k]) - tool(res.theta - h[k] * np.eye(em.n_params)[k]))
+                  / (2 * h[k]) for k in range(em.n_params)], axis=2)
+    std_fd = np.sqrt(np.einsum("nak,kl,nal->na", G, res.covariance, G))
+    np.testing.assert_allclose(grid.std.reshape(-1, 3), std_fd, rtol=1e-4, atol=1e-9)
+    # held at the fitted values (identify without --fit-effects: the geometry's covariance given the effect),
+    # the std is smaller at every node
+    held_fit = map_estimate(MeasurementModel.from_recording(fitted, rec), free="all")
+    held = compensation_grid(fitted, held_fit.theta, covariance=held_fit.covariance, axes=axes, aux=aux)
+    ratio = np.linalg.norm(grid.std, axis=-1) / np.linalg.norm(held.std, axis=-1)
+    assert np.all(ratio > 1.0), ratio
