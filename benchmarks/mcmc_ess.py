@@ -19,7 +19,12 @@ tolerance prior.  Three recordings of the bundled 3-PRS
 * ``positioner``: the bundled REAL recording of the two-axis positioner
   (``examples/positioner``, 205 poses, 6-DOF, instrument frame fitted) with
   ``free="auto"``: 30 parameters, 16 of them decided by the prior, whose
-  posterior valley is curved (:mod:`bayescal.bayes.bent_laplace`).
+  posterior valley is curved (:mod:`bayescal.bayes.bent_laplace`);
+* ``effect-joint``: 60 poses simulated with a concealed backlash
+  (``--effect backlash:8``, seed 3, 6-DOF), diagnosed, and the backlash
+  parameters sampled *with* the geometry
+  (:class:`bayescal.effects.joint_model.EffectModel`, what
+  ``identify --fit-effects`` samples; the prior truncated at zero backlash).
 
 Per recording, on the same target density, from the same start (walkers
 drawn from the MAP and its Laplace covariance; bayescal's defaults from its
@@ -50,7 +55,7 @@ anything, overestimated (its growth is then far from 2) and the ratio
 understated.  Nothing is asserted about times; the script prints the
 ratios and exits 0.
 
-Run: ``python benchmarks/mcmc_ess.py [--steps 1000] [--base-steps 500] [--cases 6dof,5dof,effect]``
+Run: ``python benchmarks/mcmc_ess.py [--steps 1000] [--base-steps 500] [--cases 6dof,5dof,effect,positioner,effect-joint]``
 (about 25 minutes on one free core; ``--linearised`` samples the models
 linearised at the MAP instead, the figure of earlier versions of this file).
 """
@@ -83,7 +88,7 @@ from bayescal.machines import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 
 MACHINE = ROOT / "examples" / "prs3" / "machine.toml"
-CASES = ("6dof", "5dof", "effect", "positioner")
+CASES = ("6dof", "5dof", "effect", "positioner", "effect-joint")
 
 
 def ess(chain: np.ndarray, method: str = "bulk") -> float:
@@ -133,6 +138,18 @@ def build_case(name: str, out: Path):
                            for (k, v), u in zip(e.values, e.units))
         desc = f"simulated, 60 poses, 6-DOF, fitted joint_compliance ({values})"
         return desc, MeasurementModel.from_recording(with_effect, rec), None
+    if name == "effect-joint":
+        from bayescal.diagnose import diagnose
+        from bayescal.diagnose.calibrated import calibrated_machine
+        from bayescal.effects.joint_model import effect_model
+
+        path = _simulate(out / "mcmc_rec_backlash.csv", "--poses", "60", "--seed", "3", "--effect", "backlash:8")
+        rec = read_recording(path)
+        cal = calibrated_machine(machine, diagnose(machine, rec, effects=["backlash"], seed=1))
+        if not cal.effects:
+            raise SystemExit("the diagnosis selected no effect; cannot benchmark the joint effect case")
+        desc = "simulated, 60 poses, 6-DOF, backlash diagnosed and sampled with the geometry (identify --fit-effects)"
+        return desc, effect_model(machine.with_effects(cal.machine.effects), rec), None
     raise SystemExit(f"unknown case {name!r}; expected some of {', '.join(CASES)}")
 
 
@@ -156,7 +173,13 @@ def run_case(name, out, steps, base_steps, seed, linearised, vectorised_stretch)
                  straight.tree["posterior"]["theta"].values.swapaxes(0, 1), float(straight.acceptance), steps))
 
     lp = log_posterior_function(model, prior_from_machine(machine), idx, guess=model.predict(start.theta).poses)
-    p0 = np.random.default_rng(seed).multivariate_normal(start.theta[idx], start.covariance, size=walkers)
+    rng = np.random.default_rng(seed)
+    p0 = rng.multivariate_normal(start.theta[idx], start.covariance, size=walkers)
+    for _ in range(20):  # a start of zero density (below an effect's physical bound) would never move: redraw it
+        bad = ~np.isfinite(lp(p0)[:, 0])
+        if not bad.any():
+            break
+        p0[bad] = rng.multivariate_normal(start.theta[idx], start.covariance, size=int(bad.sum()))
     contestants = [("emcee defaults (stretch, one call per walker)", False)]
     if vectorised_stretch:
         contestants.append(("emcee stretch, vectorised call", True))

@@ -131,8 +131,8 @@ class BentLaplace:
         return float(np.linalg.slogdet(self.basis)[1])
 
 
-def log_posterior_gradient(model, prior, idx: ArrayLike, *, guess=None) -> Callable[[NDArray], NDArray]:
-    """``x (d,) -> d log p(x | y) / dx`` for the free parameters ``idx`` (the others at the prior mean).
+def log_posterior_gradient(model, prior, idx: ArrayLike, *, guess=None, base: ArrayLike | None = None) -> Callable[[NDArray], NDArray]:
+    """``x (d,) -> d log p(x | y) / dx`` for the free parameters ``idx`` (the others at ``base``, default the prior mean).
 
     The same posterior as :func:`bayescal.bayes.mcmc.log_posterior_function`:
     Gaussian rows with the model's ``row_sigma`` and the independent
@@ -144,7 +144,7 @@ def log_posterior_gradient(model, prior, idx: ArrayLike, *, guess=None) -> Calla
     idx = np.asarray(idx, dtype=int)
     sig2 = model.row_sigma ** 2
     y = model.y_measured
-    base = prior.mean.copy()
+    base = prior.mean.copy() if base is None else np.array(base, dtype=float)
     mean, var = prior.mean[idx], prior.std[idx] ** 2
 
     def grad(x: NDArray) -> NDArray:

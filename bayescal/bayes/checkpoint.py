@@ -36,14 +36,18 @@ __all__ = ["save_checkpoint", "load_checkpoint", "run_fingerprint"]
 _KEYS = frozenset({"chain", "log_prob", "accepted", "iteration", "rs_keys", "rs_meta", "rs_cached", "rs_name", "fingerprint"})
 
 
-def run_fingerprint(model, names, *, seed: int, n_walkers: int, surrogate: str) -> dict:
+def run_fingerprint(model, names, *, seed: int, n_walkers: int, surrogate: str, held=None) -> dict:
     """What must match between a checkpoint and the run resuming it."""
     h = hashlib.sha256()
     for a in (model.y_measured, np.asarray(model.q), np.asarray(model.row_sigma)):
         h.update(np.ascontiguousarray(np.asarray(a, dtype=float)).tobytes())
-    # the sampler's proposal changed (bent Laplace map, 24 November 2026): a chain of the old one must not continue
+    # the parameters not sampled are held where the MAP started (a machine file's effect values): part of the target
+    if held is not None:
+        h.update(np.ascontiguousarray(np.asarray(held, dtype=float)).tobytes())
+    # the sampler's proposal changed (bent Laplace map, then the bend kept only where importance weights say it
+    # helps, 24 November 2026): a chain of an older one must not continue
     return {"seed": int(seed), "n_walkers": int(n_walkers), "names": list(names), "surrogate": str(surrogate),
-            "data_sha256": h.hexdigest(), "proposal": "bent-laplace-t"}
+            "data_sha256": h.hexdigest(), "proposal": "bent-laplace-t-checked"}
 
 
 def save_checkpoint(path: str | os.PathLike, backend: emcee.backends.Backend, fingerprint: dict) -> Path:

@@ -88,8 +88,9 @@ class PosteriorResult:
     free : ndarray of bool, shape (P,)
         The sampled (identifiable) parameters.
     theta : ndarray, shape (P,)
-        Posterior mean (sampled parameters; the others at the prior mean),
-        or the MAP start when the posterior is refused.
+        Posterior mean (sampled parameters; the others where the MAP held
+        them: the prior mean, or a model's ``theta_start`` such as a machine
+        file's effect values), or the MAP start when the posterior is refused.
     theta_map : ndarray, shape (P,)
     mean : ndarray, shape (n_free,)
     covariance : ndarray, shape (n_free, n_free)
@@ -256,16 +257,18 @@ class PosteriorResult:
         return "\n".join(lines)
 
 
-def log_posterior_function(model, prior: GaussianPrior, idx: NDArray, *, guess=None):
+def log_posterior_function(model, prior: GaussianPrior, idx: NDArray, *, guess=None, base: ArrayLike | None = None):
     """Vectorised ``X (n_walkers, n_free) -> (n_walkers, 1 + n_poses)``: log posterior, then per-pose log-likelihood.
 
     All walkers go through one ``model.predict`` call (stacked theta).
-    Poses that cannot be solved give ``-inf``.
+    Poses that cannot be solved give ``-inf``.  The parameters outside
+    ``idx`` are held at ``base`` (default the prior mean; the sampler holds
+    them where its MAP did, :func:`sample_posterior`).
     """
     n_poses, dof = model.n_poses, model.dof
     sig = model.row_sigma
     y = model.y_measured
-    base = prior.mean.copy()
+    base = prior.mean.copy() if base is None else np.array(base, dtype=float)
     pri = prior.subset(idx)
     const = -np.sum(np.log(sig), axis=1) - 0.5 * dof * np.log(2 * np.pi)  # per pose
 
@@ -402,13 +405,15 @@ def sample_posterior(
         raise InputError(f"burn: expected 0 <= burn < n_steps = {n_steps}, got {burn}")
     rng = np.random.default_rng(seed)
     map_pred = model.predict(start.theta)
-    log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses)
+    # the parameters not sampled stay where the MAP held them (its start: the model's theta_start, e.g. a
+    # machine file's effect values, else the prior mean), the same values the answer reports
+    log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses, base=start.theta)
     if moves is None:
         # the Laplace approximation bent along what the prior decides (bent_laplace.py): the walkers start on
         # it and the independence move proposes from it, if it matches the posterior better than the straight
         # one.  A valley that is not quadratic (an effect's mass times its compliances) can make the bend's
         # extrapolation far worse than no bend: importance weights of draws from both decide (one call each).
-        bend = bent_laplace(log_posterior_gradient(model, prior, idx, guess=map_pred.poses), start.theta[idx],
+        bend = bent_laplace(log_posterior_gradient(model, prior, idx, guess=map_pred.poses, base=start.theta), start.theta[idx],
                             start.covariance, prior.std[idx])
         proposal_check = None
         if bend.bent:
@@ -420,16 +425,23 @@ def sample_posterior(
         bend = BentLaplace.linear(start.theta[idx], np.linalg.cholesky(start.covariance))
         proposal_check = None
     p0 = bend.to_x(rng.standard_normal((n_walkers, n)))
+    # a start outside the support (below a physical bound of the prior, a pose that does not assemble) would
+    # stay stuck there: draw it again
+    bad = ~np.isfinite(log_prob(p0)[:, 0])
     for _ in range(20):
-        # a start outside the support (below a physical bound of the prior, a pose that does not assemble)
-        # would stay stuck there: draw it again
-        bad = ~np.isfinite(log_prob(p0)[:, 0])
         if not bad.any():
             break
         p0[bad] = bend.to_x(rng.standard_normal((int(bad.sum()), n)))
-    else:
+        bad = ~np.isfinite(log_prob(p0)[:, 0])
+    if bad.any():
+        names = [machine.layout.names[i] for i in idx]
+        low = prior.subset(idx).lower
+        below = [f"{nm} = {v:.4g} (bound {b:g})" for nm, v, b in zip(names, start.theta[idx], low)] if low is not None else []
+        below = [t for t, v, b in zip(below, start.theta[idx], low if low is not None else []) if v < b]
+        why = (f"the MAP lies below the prior's bound: {', '.join(below)}" if below else
+               "the MAP's Laplace approximation puts them where poses do not assemble or the prior is zero")
         raise InputError(f"sample_posterior: {int(bad.sum())} of {n_walkers} starting points keep a zero posterior density "
-                         "(below a bound of the prior or not assembled)")
+                         f"after 20 redraws; {why}" + ("" if start.success else f" (the MAP did not converge: {start.message})"))
     if resume and checkpoint is None:
         raise InputError("resume: give the checkpoint to resume from")
     fingerprint = None
@@ -439,7 +451,8 @@ def sample_posterior(
         if checkpoint_every < 1:
             raise InputError(f"checkpoint_every: expected a positive number of steps, got {checkpoint_every}")
         names = tuple(machine.layout.names[i] for i in idx)
-        fingerprint = run_fingerprint(model, names, seed=seed, n_walkers=n_walkers, surrogate=surrogate)
+        fingerprint = run_fingerprint(model, names, seed=seed, n_walkers=n_walkers, surrogate=surrogate,
+                                      held=start.theta[~start.free])
     backend = load_checkpoint(checkpoint, fingerprint) if resume else None
     if backend is not None and backend.iteration > n_steps:
         raise InputError(f"--resume: {checkpoint} holds {backend.iteration} steps, more than n_steps = {n_steps}")
@@ -470,13 +483,19 @@ def sample_posterior(
         if not ok:
             note += " (>= 0.1: sample the full model instead)"
         msg = "; ".join(m for m in (res.message, note) if m)
-        before = exact.residual(exact.predict(prior.mean))
+        before = exact.residual(exact.predict(_reference(exact, prior)))
         after = exact.residual(exact.predict(res.theta))
         res = dataclasses.replace(
             res, success=res.success and ok, message=msg, rms_before=exact.rms(before), rms_after=exact.rms(after),
             theta=res.theta if ok else start.theta,
         )
     return res
+
+
+def _reference(model, prior) -> NDArray:
+    """What "before" means: the machine file as given (a model's ``theta_start``: its stored effect values), else the prior mean."""
+    ref = getattr(model, "theta_start", None)
+    return prior.mean if ref is None else np.asarray(ref, dtype=float)
 
 
 def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor, *,
@@ -527,7 +546,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
     theta = start.theta.copy()
     if success:
         theta[idx] = mean
-    before = model.residual(model.predict(prior.mean))
+    before = model.residual(model.predict(_reference(model, prior)))
     pred = model.predict(theta)
     after = model.residual(pred) if pred.success.all() else np.full_like(before, np.nan)
     return PosteriorResult(

@@ -27,7 +27,12 @@ std) and prior means from, so identification, the MAP, Kalman filters and
 the MCMC sampler work on it unchanged; ``stored_effects(theta)`` turns a
 fitted vector back into ``[effect.*]`` tables.
 
-Scope: pose recordings (:class:`~bayescal.measurement.MeasurementModel`).
+Scope: pose recordings (:class:`~bayescal.measurement.MeasurementModel`),
+and effects whose table alone defines them: not one whose ``dq`` depends on
+the geometry (a table is applied at the file's geometry, a joint fit would
+evaluate it at the fitted one) nor one whose prior the diagnosis derives
+from the residuals (:meth:`Effect.refine`: a screw's pitch).  Those are
+refused with the reason.
 A stacked prediction (one block per walker) solves every block's own
 actuator positions in one kinematics call.
 """
@@ -288,6 +293,20 @@ class EffectModel:
         return self.machine.tables(theta)
 
 
+def _not_refittable(eff: Effect) -> str | None:
+    """Why a stored table of ``eff`` cannot be refitted from a machine file alone (None: it can)."""
+    if eff.geometry_dependent:
+        # every command applies a table's dq at the file's geometry (bayescal.effects.stored); a joint fit
+        # evaluates it at the fitted geometry, so what it wrote would predict otherwise than what it fitted
+        return ("its actuator displacement depends on the geometry, and a machine file's table is applied at the "
+                "file's geometry; refit it with bayescal diagnose")
+    if type(eff).refine is not Effect.refine:
+        # the prior of such an effect (a screw's pitch) comes from the diagnosis' search on the residuals,
+        # which the table does not keep
+        return "its prior comes from the diagnosis' search of the residuals, which a table does not keep; refit it with bayescal diagnose"
+    return None
+
+
 def effect_model(machine: Machine, rec, *, dof: int | None = None) -> EffectModel:
     """The joint model of a recording on a machine whose file carries ``[effect.*]`` tables.
 
@@ -326,7 +345,7 @@ def effect_model(machine: Machine, rec, *, dof: int | None = None) -> EffectMode
     effects = []
     for st in machine.effects:
         eff = st.effect()
-        why = eff.not_applicable(fm, aux)
+        why = eff.not_applicable(fm, aux) or _not_refittable(eff)
         if why is not None:
             raise InputError(f"{st.source}: [{st.key()}] cannot be fitted to {rec.path}: {why}")
         if eff.needs_poses and poses is None:

@@ -458,7 +458,8 @@ def static_effect_delta_q_and_jacobian(machine: Machine, effects: tuple[StoredEf
             terms = list(_effect_terms(machine, effects, q[j : j + 1], {k: v[j : j + 1] for k, v in aux_n.items()},
                                        None, None, None))
             dq.append(sum((eff.delta_q(f, eta) for _, eff, f, eta in terms), np.zeros((1, q.shape[1]))))
-            jac.append(np.concatenate([eff.delta_q_jacobian(f, eta) for _, eff, f, eta in terms], axis=2))
+            jac.append(np.concatenate([eff.delta_q_jacobian(f, eta) for _, eff, f, eta in terms], axis=2) if terms
+                       else np.zeros((1, q.shape[1], 0)))
     except MachineFileError:
         raise  # already names the channels to give
     except InputError as exc:  # a channel the effect needs and that has no default (temp_C): say where it goes

@@ -122,10 +122,11 @@ def assess_plausibility(
     free = np.asarray(free, dtype=bool)
     tol = np.asarray(machine.tolerance, dtype=float)
     is_frame = np.array([n in FRAME_NAMES for n in names])
-    # from the prior's centre: zero for the geometry, an effect parameter's prior mean (a stated mass)
-    centre = getattr(machine, "prior_mean", None)
-    ratio = np.abs(theta - (0.0 if centre is None else np.asarray(centre, dtype=float))) / tol
-    flagged = np.flatnonzero(free & ~is_frame & (ratio > PLAUSIBLE_SIGMAS))
+    ratio = np.abs(theta) / tol
+    # effect parameters (identify --fit-effects, group joint_model.EFFECT_GROUP) have priors, not tolerances:
+    # a large backlash is no wrong geometry
+    is_effect = np.array([g == "effect" for g in (sp.group for sp in machine.layout.specs)])
+    flagged = np.flatnonzero(free & ~is_frame & ~is_effect & (ratio > PLAUSIBLE_SIGMAS))
     reasons, causes, params = [], [], []
     n_rows, n_free = model.n_poses * model.dof, int(free.sum())
     n_eff = float(n_free) if effective_params is None else float(effective_params)

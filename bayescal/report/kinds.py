@@ -118,7 +118,9 @@ def _residual_section(result, model, sigma) -> dict | None:
     if after is None and model is not None:
         pred = model.predict(result.theta)
         after = model.residual(pred) if pred.success.all() else None
-        before = model.residual(model.predict(np.zeros(model.machine.n_params)))
+        # "before": the machine file as given (a model's theta_start: its stored effect values), else nominal
+        ref = getattr(model, "theta_start", None)
+        before = model.residual(model.predict(np.zeros(model.machine.n_params) if ref is None else ref))
     if after is None:
         return None
     after = np.asarray(after, float)

@@ -209,3 +209,37 @@ def test_grid_std_carries_the_effect_parameters(compliance_case):
     held = compensation_grid(fitted, held_fit.theta, covariance=held_fit.covariance, axes=axes, aux=aux)
     ratio = np.linalg.norm(grid.std, axis=-1) / np.linalg.norm(held.std, axis=-1)
     assert np.all(ratio > 1.0), ratio
+
+
+def test_parameters_not_sampled_stay_where_the_answer_holds_them(prs3):
+    """With an effect parameter left out of ``free``, the sampler's target holds it at the stored value, as the MAP does."""
+    m = prs3.with_effects((BACKLASH,))
+    em = effect_model(m, _recording(m, 30, seed=14, theta_true=np.zeros(prs3.n_params)).recording)
+    names = ["chain1.rail_origin.z", "effect.backlash.backlash.q1", "effect.backlash.backlash.q2"]
+    res = sample_posterior(em, free=names, n_steps=40, seed=1)  # a short chain: only its target is looked at
+    q3 = em.machine.layout.names.index("effect.backlash.backlash.q3")
+    assert res.theta[q3] == res.theta_map[q3] == 25.0  # the table's value, not the prior's mean (0)
+    prior = prior_from_machine(em.machine)
+    idx = np.flatnonzero(res.free)
+    draws = res.tree["posterior"]["theta"].values.reshape(-1, idx.size)[:20]
+    lp = res.tree["sample_stats"]["lp"].values.reshape(-1)[:20]
+    held = log_posterior_function(em, prior, idx, base=res.theta_map)(draws)[:, 0]
+    np.testing.assert_allclose(lp, held, rtol=1e-10)
+    at_prior_mean = log_posterior_function(em, prior, idx)(draws)[:, 0]
+    assert np.all(at_prior_mean < held - 10)  # holding q3 at 0 would be another, far worse, target
+
+
+@pytest.mark.parametrize("kind,name,mag,why", [
+    ("raspm", "redundancy_preload", 300.0, "depends on the geometry"),
+    ("prs3", "screw_periodic_error", 3.0, "search of the residuals"),
+])
+def test_tables_a_machine_file_cannot_define_alone_are_refused(kind, name, mag, why):
+    from bayescal.effects.simulate import simulate_with_effects
+    from bayescal.machines import load_machine
+    from tests.conftest import ROOT
+
+    m = load_machine(ROOT / "examples" / kind / "machine.toml")
+    sim = simulate_with_effects(m, 30, seed=1, effects=[(name, mag)])
+    st = StoredEffect(name, tuple((p["name"], p["value"]) for p in sim.info["effects"][name]["parameters"]))
+    with pytest.raises(InputError, match=why):
+        effect_model(m.with_effects((st,)), sim.recording)
