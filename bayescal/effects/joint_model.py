@@ -102,12 +102,8 @@ class EffectAugmented:
         return self.base.n_params
 
     def check_theta(self, theta, n_poses=None) -> NDArray:
-        if theta is None:
-            return np.zeros(self.n_params)
-        theta = np.asarray(theta, dtype=float)
-        if theta.ndim not in (1, 2) or theta.shape[-1] != self.n_params:
-            raise InputError(f"theta: expected shape ({self.n_params},) or (n, {self.n_params}), got {theta.shape}")
-        return theta
+        # the machines' own check, against this view's parameter count
+        return Machine.check_theta(self, theta, n_poses)
 
     def _base_theta(self, theta):
         return None if theta is None else np.asarray(theta, dtype=float)[..., : self.n_base]
