@@ -59,7 +59,7 @@ def test_mcmc_samples_effects_with_the_geometry(files, tmp_path, capsys):
     machine, rec = files
     out = tmp_path / "cal.toml"
     code = main(["identify", str(rec), "--machine", str(machine), "--method", "mcmc", "--fit-effects", "--free",
-                 ",".join(NAMES), "--steps", "1000", "--seed", "3", "--json", str(tmp_path / "p.json"),
+                 ",".join(NAMES), "--steps", "600", "--seed", "3", "--json", str(tmp_path / "p.json"),
                  "--write-machine", str(out), "--quiet"])
     assert code == 0
     answer = json.loads((tmp_path / "p.json").read_text())
