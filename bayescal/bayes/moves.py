@@ -168,14 +168,11 @@ def importance_efficiency(log_prob, move: IndependenceMove, k: int, random) -> f
     ``(sum w)^2 / (k sum w^2)`` with ``w = pi(x) / g(x)`` for ``x`` drawn
     from ``g`` (1: the proposal is the posterior; about the independence
     sampler's acceptance rate in practice).  ``log_prob`` is the vectorised
-    ``(k, d) -> (k,)`` or ``(k, 1 + n)`` log posterior; ``random`` a
-    ``numpy.random.RandomState``.  Draws of zero posterior density count
-    as weight 0.
+    ``(k, d) -> (k,)`` log posterior; ``random`` a ``numpy.random.RandomState``.
+    Draws of zero posterior density count as weight 0.
     """
     x = move.draw(int(k), random)
-    lp = np.asarray(log_prob(x), dtype=float)
-    lp = lp[:, 0] if lp.ndim == 2 else lp
-    lw = lp - move.log_density(x)
+    lw = np.asarray(log_prob(x), dtype=float) - move.log_density(x)
     lw = np.where(np.isfinite(lw), lw, -np.inf)
     if not np.isfinite(lw).any():
         return 0.0

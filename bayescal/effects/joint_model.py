@@ -276,13 +276,9 @@ class EffectModel:
         Not the prior mean: there a product of parameters (a mass times its
         compliances) has no gradient (:attr:`EffectParam.start`).
         """
-        x = np.concatenate([np.zeros(self.machine.n_base), [p.prior_mean for p in self.machine.params]])
         kept = {s.name: dict(s.values) for s in self.stored}
-        for (eff, _), sl in zip(self.effects, self._slices):
-            vals = kept.get(eff.name, {})
-            for j, p in zip(range(sl.start, sl.stop), self.machine.params[sl]):
-                x[self.machine.n_base + j] = vals.get(p.name, x[self.machine.n_base + j])
-        return x
+        eta = [kept.get(name, {}).get(p.name, p.prior_mean) for name, p in zip(self.machine.effect_names, self.machine.params)]
+        return np.concatenate([np.zeros(self.machine.n_base), eta])
 
     def stored_effects(self, theta: ArrayLike) -> tuple[StoredEffect, ...]:
         """The ``[effect.*]`` tables at the effect parameters of ``theta`` (settings and sources of :attr:`stored`)."""
