@@ -5,11 +5,11 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
-from ..bayes.map_identify import identify_map
 from ..bayes.priors import PRIOR_SCALES
 from ..errors import InputError
-from ..identify.choose import DEFAULT_RULE, RULE_NAMES, choose_regularisation
-from ..identify.robust import fit_system, identify_with_outliers, robust_map_weights
+from ..identify.calibrate import calibrate
+from ..identify.choose import DEFAULT_RULE, RULE_NAMES
+from ..identify.robust import robust_map_weights
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .effect_options import joint_effects_model, with_fitted_effects
 from .inputs import add_frame_argument, free_arg, instrument_inputs
@@ -132,6 +132,12 @@ def register(sub) -> None:
         help="map, mcmc: fit the machine file's [effect.*] parameters jointly with the geometry, under the effects' "
              "priors, instead of holding them at their stored values",
     )
+    p.add_argument(
+        "--noise", choices=("auto", "stated"), default="auto",
+        help="the instrument noise: 'auto' (default) tests the stated sigma by the fit's chi-square and, where the "
+             "data contradict it, uses the estimated scale (intervals widen for residuals larger than stated; a sigma "
+             "stated far too large no longer leaves the calibration to the prior); 'stated' tests and reports only",
+    )
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
@@ -193,29 +199,19 @@ def run(args) -> int:
         raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
     if args.prior_scale is not None and args.method != "map":
         raise InputError("--prior-scale goes with --method map")
-    choice = None
-    if args.method == "map":
-        # the prior-scale rule and the robust pass live in one function the studies call too (bayescal.bayes.map_identify)
-        scale = args.prior_scale
-        if args.fit_effects:
-            # one factor estimated for every prior would rescale the effects' priors with the geometry's tolerances
-            if scale == "empirical":
-                raise InputError("--prior-scale empirical does not go with --fit-effects: the effects' priors are not "
-                                 "the machine file's tolerances (use --prior-scale tolerance)")
-            scale = "tolerance"
-        res, handling = identify_map(model, free, prior_scale=scale, max_iter=args.max_iter, **okw)
-    elif auto:
-        # the rules see the recording with the weights of a robust MAP pass: one gross pose must not choose lambda or k
-        handling = robust_map_weights(model, free, max_iter=args.max_iter, **okw)
-        choice, res = choose_regularisation(
-            handling.weighted_model(model), args.method, rule=args.rule, free=free, max_iter=args.max_iter,
-        )
-        handling = handling.retested(model, res, fit_system(res))
-        res = replace(res, extras={**res.extras, **handling.to_dict()})
-    else:
-        res, handling = identify_with_outliers(
-            model, method=args.method, lam=args.lam, k=args.k, free=free, max_iter=args.max_iter, **okw,
-        )
+    if args.lam is not None and args.method != "ridge":
+        raise InputError(f"--lam goes with --method ridge (got --method {args.method})")
+    if args.k is not None and args.method != "tsvd":
+        raise InputError(f"--k goes with --method tsvd (got --method {args.method})")
+    if args.fit_effects and args.prior_scale == "empirical":
+        # one factor estimated for every prior would rescale the effects' priors with the geometry's tolerances
+        raise InputError("--prior-scale empirical does not go with --fit-effects: the effects' priors are not "
+                         "the machine file's tolerances (use --prior-scale tolerance)")
+    # method dispatch, outliers, the prior scale and the noise check: one library call (bayescal.identify.calibrate)
+    cal = calibrate(model, method=args.method, lam=args.lam, k=args.k, free=free, rule=args.rule,
+                    prior_scale=args.prior_scale, max_iter=args.max_iter, noise=args.noise,
+                    fit_effects=args.fit_effects, **okw)
+    res, handling, choice = cal.result, cal.handling, cal.choice
     if hasattr(model, "pivot_positions"):  # a constraint recording's fitted ballbar pivots
         res = replace(res, extras={**res.extras, "pivots": model.pivot_positions(res.theta)})
     # the answers are written before anything is printed, so that a reader of stdout that
@@ -232,6 +228,7 @@ def run(args) -> int:
         path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
     if not args.quiet:
         print(res.report())
+        print(cal.noise_report())
         print(handling.report())
         print(instrument_report(extra, plaus))
         if machine.effects:

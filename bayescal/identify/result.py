@@ -38,13 +38,21 @@ def covariance_dict(names, units, free, covariance) -> dict | None:
 
 @dataclass(frozen=True)
 class ParameterEstimate:
-    """One identified error (actual minus nominal)."""
+    """One identified error (actual minus nominal).
+
+    ``estimated``: the method gave it a value (it was free); ``identified``:
+    the data determine it alone, without the prior (its direction lies in
+    the row space of the identification matrix).  A free parameter of a
+    gauge, or one no row sees, is estimated but not identified: its value
+    and std are the prior's.
+    """
 
     name: str
     value: float
     std: float | None
     unit: str
     identified: bool
+    estimated: bool = True
 
 
 @dataclass(frozen=True)
@@ -98,6 +106,14 @@ class IdentificationResult:
     noise_given : bool
         Whether the instrument sigma came from the machine file; if not, the
         covariance was scaled by the reduced chi-square.
+    condition_number : float
+        Of the whitened, tolerance-scaled matrix on the subspace the data
+        determine (largest over smallest singular value above the structural
+        threshold), so gauges do not show as 1e16.
+    determined : ndarray of bool, shape (P,), optional
+        Which free parameters the data determine alone (no prior needed:
+        :func:`bayescal.identify.gauss_newton.data_determined`); None: all
+        free ones (methods without a prior identify an identifiable set).
     """
 
     machine_name: str
@@ -132,6 +148,8 @@ class IdentificationResult:
     noise_given: bool = True
     extras: dict = field(default_factory=dict)
     tolerance: NDArray | None = None
+    determined: NDArray | None = None
+    condition_number: float = float("nan")
 
     def poorly_determined(self, factor: float = POORLY_DETERMINED) -> tuple[str, ...]:
         """Identified parameters whose std exceeds ``factor`` times their tolerance.
@@ -154,11 +172,34 @@ class IdentificationResult:
         return out
 
     @property
+    def identified(self) -> NDArray:
+        """Which parameters the data determine alone, shape (P,) bool (see ``determined``)."""
+        if self.determined is None:
+            return np.asarray(self.free, dtype=bool)
+        return np.asarray(self.free, dtype=bool) & np.asarray(self.determined, dtype=bool)
+
+    @property
+    def effective_params(self) -> float:
+        """Effective number of fitted parameters: the filter factors summed (the trace of the hat matrix)."""
+        return float(np.sum(self.filter_factors)) if np.size(self.filter_factors) else float(np.sum(self.free))
+
+    @property
+    def dof_fit(self) -> float:
+        """Residual degrees of freedom: measured components less :attr:`effective_params` (at least 1)."""
+        return max(self.n_poses * self.dof - self.effective_params, 1.0)
+
+    @property
+    def reduced_chi2(self) -> float:
+        """Chi-square per residual degree of freedom (about 1 when the stated noise fits)."""
+        return self.chi2 / self.dof_fit
+
+    @property
     def parameters(self) -> tuple[ParameterEstimate, ...]:
         std = self.std
+        ident = self.identified
         return tuple(
-            ParameterEstimate(n, float(v), None if not np.isfinite(s) else float(s), u, bool(f))
-            for n, v, s, u, f in zip(self.names, self.theta, std, self.units, self.free)
+            ParameterEstimate(n, float(v), None if not np.isfinite(s) else float(s), u, bool(i), bool(f))
+            for n, v, s, u, i, f in zip(self.names, self.theta, std, self.units, ident, self.free)
         )
 
     @property
@@ -188,7 +229,8 @@ class IdentificationResult:
             "success": self.success,
             "message": self.message,
             "parameters": [
-                {"name": p.name, "value": p.value, "std": p.std, "unit": p.unit, "identified": p.identified}
+                {"name": p.name, "value": p.value, "std": p.std, "unit": p.unit, "identified": p.identified,
+                 "estimated": p.estimated}
                 for p in self.parameters
             ],
             "rms_before": self.rms_before,
@@ -198,6 +240,12 @@ class IdentificationResult:
             "iterations": self.iterations,
             "chi2": self.chi2,
             "rank": self.rank,
+            "condition_number": self.condition_number,
+            "n_identified": int(self.identified.sum()),
+            "n_estimated": int(np.sum(self.free)),
+            "effective_params": self.effective_params,
+            "dof_fit": self.dof_fit,
+            "reduced_chi2": self.reduced_chi2,
             "singular_values": self.singular_values,
             "covariance_kind": self.covariance_kind,
             "covariance": covariance_dict(self.names, self.units, self.free, self.covariance),
@@ -214,6 +262,7 @@ class IdentificationResult:
         reg = f" (lambda = {self.lam:.4g})" if self.lam is not None else f" (k = {self.k})" if self.k is not None else ""
         status = "converged" if self.success else "FAILED"
         nfree = int(self.free.sum())
+        nident = int(self.identified.sum())
         rows = self.n_poses * self.dof
         lines = [
             f"bayescal identification of '{self.machine_name}' ({self.kind})",
@@ -221,9 +270,12 @@ class IdentificationResult:
         ]
         if self.message:
             lines.append(f"  message         {self.message}")
+        counted = (f"{nident} parameters identified by the data" if nident == nfree else
+                   f"{nfree} parameters estimated: {nident} identified by the data, {nfree - nident} decided by the prior")
         lines += [
-            f"  measurement     {self.dof}-DOF, {self.n_poses} poses, {rows} residuals, {nfree} parameters identified",
-            f"  chi-square      {self.chi2:.4g} (reduced {self.chi2 / max(rows - nfree, 1):.4g}); "
+            f"  measurement     {self.dof}-DOF, {self.n_poses} poses, {rows} residuals, {counted}",
+            f"  chi-square      {self.chi2:.4g} (reduced {self.reduced_chi2:.4g} on {self.dof_fit:.1f} degrees of freedom, "
+            f"{self.effective_params:.1f} effective parameters); "
             f"noise sigma {'from the machine file' if self.noise_given else 'default, covariance scaled by reduced chi-square'}",
             f"  RMS position    {self.rms_before['position']:.6f} mm before, {self.rms_after['position']:.6f} mm after",
         ]
@@ -231,17 +283,17 @@ class IdentificationResult:
             lines.append(
                 f"  RMS angle       {self.rms_before['angle']:.3e} rad before, {self.rms_after['angle']:.3e} rad after"
             )
-        if self.singular_values.size:
-            s = self.singular_values
-            lines.append(f"  identification matrix: rank {self.rank}, condition number {s[0] / s[-1]:.3g}")
+        if self.rank:
+            lines.append(f"  identification matrix: rank {self.rank} of {nfree}, condition number {self.condition_number:.3g} "
+                         "on the subspace the data determine")
         lines.append(f"  covariance      {self.covariance_kind}")
         poor = set(self.poorly_determined())
         lines += ["", f"  {'parameter':<36}{'value':>14}{'std':>12}  unit"]
         for p in self.parameters:
-            if not p.identified:
+            if not p.estimated:
                 continue
             std = f"{p.std:12.3e}" if p.std is not None else f"{'-':>12}"
-            flag = " !" if p.name in poor else ""
+            flag = " !" if p.name in poor else "" if p.identified else " (prior)"
             lines.append(f"  {p.name:<36}{p.value:14.6g}{std}  {p.unit}{flag}")
         if poor:
             lines += [

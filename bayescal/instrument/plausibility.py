@@ -5,8 +5,9 @@ The rule (docs/real-instruments.md): a calibration is **not plausible** when
 1. any identified machine parameter (frame parameters excluded) lies more
    than :data:`PLAUSIBLE_SIGMAS` = 10 prior sigmas (tolerances) from
    nominal, ``|value| > 10 tolerance``; or
-2. the fit has no residual degrees of freedom: measured components
-   ``n_poses * dof <= `` identified parameters (for a regularised fit,
+2. the fit has no residual degrees of freedom: distinct measured
+   components (rows that exactly repeat another row's ``q`` and measured
+   values add none) ``n_distinct * dof <= `` identified parameters (for a regularised fit,
    ridge, TSVD or MAP, the *effective* number of parameters, the sum of
    its filter factors: a prior keeps what the data cannot determine near
    nominal, so 19 probe rows can carry 21 parameters under a prior but not
@@ -37,6 +38,7 @@ from numpy.typing import NDArray
 from ..geometry import left_jacobian_inverse
 from ..machines.base import Machine
 from ..machines.framed import FRAME_NAMES, InstrumentFrame, _left_jacobian
+from ..identify.noise import distinct_rows
 from ..measurement import MeasurementModel
 from .alignment import FrameCheck
 
@@ -128,7 +130,9 @@ def assess_plausibility(
     is_effect = np.array([g == "effect" for g in (sp.group for sp in machine.layout.specs)])
     flagged = np.flatnonzero(free & ~is_frame & ~is_effect & (ratio > PLAUSIBLE_SIGMAS))
     reasons, causes, params = [], [], []
-    n_rows, n_free = model.n_poses * model.dof, int(free.sum())
+    # copied rows add no information: count the measured components that are not repeats
+    n_distinct = distinct_rows(model.q, model.y_measured)
+    n_rows, n_free = n_distinct * model.dof, int(free.sum())
     n_eff = float(n_free) if effective_params is None else float(effective_params)
     if flagged.size:
         order = flagged[np.argsort(-ratio[flagged])]
@@ -139,11 +143,13 @@ def assess_plausibility(
             {"name": names[j], "value": float(theta[j]), "unit": units[j], "tolerance": float(tol[j]), "sigmas": float(ratio[j])}
             for j in order
         ]
-    if n_rows <= n_eff:
+    if n_rows - n_eff < 1.0:  # less than one residual degree of freedom (a prior fits ~n_rows effective parameters)
         what = (f"{n_free} identified parameters" if effective_params is None
-                else f"{n_eff:.1f} effective parameters (filter factors summed, {n_free} identified)")
+                else f"{n_eff:.1f} effective parameters (filter factors summed, {n_free} estimated)")
+        repeats = (f" ({model.n_poses - n_distinct} of {model.n_poses} rows repeat another row exactly)"
+                   if n_distinct < model.n_poses else "")
         reasons.append(
-            f"no residual degrees of freedom: {n_rows} measured components for {what}; "
+            f"no residual degrees of freedom: {n_rows} distinct measured components{repeats} for {what}; "
             "the fit reproduces any recording, noise included"
         )
     if not reasons:

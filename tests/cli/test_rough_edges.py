@@ -67,7 +67,7 @@ def test_outputs_are_announced_and_missing_folders_refused(tmp_path, capsys):
     ans = json.loads((missing / "a.json").read_text())
     # the full covariance over the identified parameters, named, with units
     cov = ans["covariance"]
-    free = [p for p in ans["parameters"] if p["identified"]]
+    free = [p for p in ans["parameters"] if p["estimated"]]
     assert cov["names"] == [p["name"] for p in free] and cov["units"] == [p["unit"] for p in free]
     C = np.array(cov["matrix"])
     assert C.shape == (len(free), len(free)) and np.allclose(C, C.T)
