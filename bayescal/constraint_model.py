@@ -27,6 +27,8 @@ tolerances plus the pivots'.
 
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,6 +73,14 @@ class PivotAugmented:
     @property
     def n_params(self) -> int:
         return len(self.layout)
+
+    def for_poses(self, idx) -> "PivotAugmented":
+        """This view over the base machine bound to the poses ``idx`` (stations: :meth:`Machine.for_poses`)."""
+        inner = self.base.for_poses(idx)
+        return self if inner is self.base else dataclasses.replace(self, base=inner)
+
+    def measurement_rotation(self, q, theta):
+        return self.base.measurement_rotation(q, None if theta is None else np.asarray(theta, dtype=float)[..., : self.base.n_params])
 
     def check_theta(self, theta, n_poses=None) -> NDArray:
         if theta is None:

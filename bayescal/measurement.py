@@ -222,7 +222,7 @@ class MeasurementModel:
             sub_state = map_state(lambda a: a[idx], g.state)
             g = ToolPoses(g.position[idx], g.rotation[idx], g.success[idx], tuple(np.asarray(g.message, dtype=object)[idx]), sub_state)
         return MeasurementModel(
-            machine=self.machine,
+            machine=self.machine.for_poses(idx),
             q=self.q[idx],
             dof=self.dof,
             y_measured=None if self.y_measured is None else self.y_measured[idx],

@@ -81,7 +81,7 @@ def refusal_note(args, res, plaus: Plausibility) -> str | None:
 
 def instrument_report(extra: dict, plaus: Plausibility) -> str:
     """The report's lines on the instrument frame (if any) and on plausibility."""
-    lines = [instrument_frame_line(extra)] if extra.get("frame") else []
+    lines = [instrument_frame_line(extra)] if extra.get("frame") or extra.get("frames") else []
     lines.append(plaus.report())
     return "\n".join(lines)
 
@@ -89,11 +89,13 @@ def instrument_report(extra: dict, plaus: Plausibility) -> str:
 def instrument_frame_line(extra: dict) -> str:
     """Two report lines: the instrument frame and its std."""
     lines = []
-    f = extra.get("frame")
-    if f is not None:
+    frames = {"": extra["frame"]} if extra.get("frame") is not None else extra.get("frames") or {}
+    for label, f in frames.items():
         fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"  # noqa: E731
         word = "fitted" if f["fitted"] else "known, from the machine file"
-        lines.append(f"  instrument      frame {word}: origin {fmt(f['origin'])} mm, rotation vector {fmt(f['rotation_vector'])} rad")
+        which = f"station {label!r} " if label else ""
+        lines.append(f"  instrument      {which}frame {word}: origin {fmt(f['origin'])} mm, rotation vector "
+                     f"{fmt(f['rotation_vector'])} rad")
         if f.get("std"):
             std = lambda v: "[" + ", ".join("-" if x is None else f"{x:.2g}" for x in v) + "]"  # noqa: E731
             lines.append(f"                  std origin {std(f['std']['origin'])} mm, rotation vector {std(f['std']['rotation_vector'])} rad")

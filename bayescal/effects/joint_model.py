@@ -96,6 +96,14 @@ class EffectAugmented:
     def n_params(self) -> int:
         return len(self.layout)
 
+    def for_poses(self, idx) -> "EffectAugmented":
+        """This view over the base machine bound to the poses ``idx`` (stations: :meth:`Machine.for_poses`)."""
+        inner = self.base.for_poses(idx)
+        return self if inner is self.base else dataclasses.replace(self, base=inner)
+
+    def measurement_rotation(self, q, theta):
+        return self.base.measurement_rotation(q, None if theta is None else np.asarray(theta, dtype=float)[..., : self.base.n_params])
+
     @property
     def n_base(self) -> int:
         """Number of geometric (and nuisance) parameters before the effects'."""

@@ -274,6 +274,7 @@ def machine_file_text(machine: Machine, theta=None, effects: tuple[StoredEffect,
     """
     effects = machine.effects if effects is None else effects
     text = machine.to_toml(theta)
+    text = text.rstrip("\n") + "\n" + calibration_tables_toml(machine)
     if not effects:
         return text
     # inputs the machine gave implicitly (a URDF's link masses) are written out: the file must stand alone
@@ -282,6 +283,20 @@ def machine_file_text(machine: Machine, theta=None, effects: tuple[StoredEffect,
             (k, _floats(v)) for k, v in e.effect().implied_settings(machine).items() if k not in dict(e.settings)))
         for e in effects)
     return text.rstrip("\n") + "\n\n" + effect_tables_toml(tuple(effects))
+
+
+def calibration_tables_toml(machine: Machine) -> str:
+    """The ``[discrepancy]`` and ``[calibration]`` tables a calibrated machine carries ("" for none)."""
+    parts = []
+    if machine.discrepancy is not None:
+        from ..discrepancy.table import discrepancy_toml
+
+        parts.append(discrepancy_toml(machine.discrepancy))
+    if machine.calibration is not None:
+        from ..predict.record import calibration_toml
+
+        parts.append(calibration_toml(machine.calibration))
+    return "".join("\n" + p.rstrip("\n") + "\n" for p in parts)
 
 
 def _channels(aux: dict) -> str:

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from ..geometry import left_jacobian_inverse
 from ..machines.base import Machine
-from ..machines.framed import FRAME_NAMES, InstrumentFrame, _left_jacobian
+from ..machines.framed import InstrumentFrame, _left_jacobian, is_frame_parameter
 from ..identify.noise import distinct_rows
 from ..measurement import MeasurementModel
 from .alignment import FrameCheck
@@ -123,7 +123,7 @@ def assess_plausibility(
     theta = np.asarray(theta, dtype=float)
     free = np.asarray(free, dtype=bool)
     tol = np.asarray(machine.tolerance, dtype=float)
-    is_frame = np.array([n in FRAME_NAMES for n in names])
+    is_frame = np.array([is_frame_parameter(n) for n in names])
     ratio = np.abs(theta) / tol
     # effect parameters (identify --fit-effects, group joint_model.EFFECT_GROUP) have priors, not tolerances:
     # a large backlash is no wrong geometry
@@ -217,28 +217,38 @@ def _outlier_cause(model, residuals, line_offset, dof_left) -> str | None:
 
 
 def frame_answer(machine: Machine, theta: NDArray, free: NDArray, covariance: NDArray | None) -> dict:
-    """The ``"frame"`` block of the JSON answer (FORMATS.md section 4), or ``{}`` without an instrument frame.
+    """The ``"frame"`` block of the JSON answer (FORMATS.md section 4), ``"frames"`` for several stations (section 8).
 
-    ``std`` is that of the composed frame: the origin's is the correction's,
-    the rotation vector's ``r = log(exp(d_phi) R0)`` is propagated through
-    ``dr/de = J_l^-1(r) J_l(d_phi)``.
+    ``{}`` without an instrument frame.  ``std`` is that of the composed
+    frame: the origin's is the correction's, the rotation vector's
+    ``r = log(exp(d_phi) R0)`` is propagated through ``dr/de = J_l^-1(r) J_l(d_phi)``.
     """
     if not isinstance(machine, InstrumentFrame):
         return {}
-    # a model's own nuisance parameters (ballbar pivots) follow the machine's: the frame is the machine's
-    f = machine.frame_at(np.asarray(theta, dtype=float)[: machine.n_params])
-    rv = f.rotation_vector
-    out = {"origin": f.origin.tolist(), "rotation_vector": rv.tolist(), "fitted": bool(machine.fit), "std": None}
+    theta = np.asarray(theta, dtype=float)
+    C = None
     if machine.fit and covariance is not None:
         P = np.asarray(free).size  # the model's parameters: the machine's, then its own (pivots, effects)
         C = np.full((P, P), np.nan)
         idx = np.flatnonzero(free)
         C[np.ix_(idx, idx)] = covariance
-        Cf = C[:6, :6]
+    blocks = [_one_frame(machine, theta, C, k) for k in range(machine.n_stations)]
+    if machine.n_stations == 1:
+        return {"frame": blocks[0]}
+    return {"frames": dict(zip(machine.stations, blocks))}
+
+
+def _one_frame(machine: InstrumentFrame, theta: NDArray, C: NDArray | None, k: int) -> dict:
+    # a model's own nuisance parameters (ballbar pivots) follow the machine's: the frame is the machine's
+    f = machine.frame_at(theta[: machine.n_params], k)
+    rv = f.rotation_vector
+    out = {"origin": f.origin.tolist(), "rotation_vector": rv.tolist(), "fitted": bool(machine.fit), "std": None}
+    if C is not None:
+        Cf = C[6 * k: 6 * k + 6, 6 * k: 6 * k + 6]
         std_o = np.sqrt(np.clip(np.diag(Cf[:3, :3]), 0, None))
         with np.errstate(all="ignore"):
-            M = left_jacobian_inverse(rv) @ _left_jacobian(np.asarray(theta, dtype=float)[3:6])
+            M = left_jacobian_inverse(rv) @ _left_jacobian(theta[6 * k + 3: 6 * k + 6])
             std_r = np.sqrt(np.clip(np.diag(M @ Cf[3:, 3:] @ M.T), 0, None))
         clean = lambda v: [float(x) if np.isfinite(x) else None for x in v]  # noqa: E731
         out["std"] = {"origin": clean(std_o), "rotation_vector": clean(std_r)}
-    return {"frame": out}
+    return out

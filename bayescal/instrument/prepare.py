@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..errors import InputError, RecordingError
 from ..io.recording import Recording
 from ..machines.base import Machine
@@ -10,7 +12,7 @@ from ..measurement import MeasurementModel, check_recording_solves
 from .alignment import FrameCheck, check_frame, frame_start
 from .units import check_recording_units
 
-__all__ = ["FRAMES", "prepare_model"]
+__all__ = ["FRAMES", "prepare_model", "station_frames"]
 
 #: ``--frame`` choices: the recording is in the base frame (or the machine file's known
 #: ``[instrument]`` frame), or in an unknown instrument frame fitted with the geometry.
@@ -61,7 +63,7 @@ def prepare_model(
     check_recording_units(machine, rec)
     check = None
     if frame == "fit":
-        machine = InstrumentFrame(base_machine(machine), frame_start(machine, rec, dof=dof), fit=True)
+        machine = station_frames(machine, rec, dof=dof)
     else:
         check = check_frame(machine, rec)
         if check is not None and check.refuses:
@@ -76,3 +78,33 @@ def prepare_model(
         # started from poses measured in another frame, the kinematics land nowhere: say why
         raise RecordingError(rec.path, None, None, check.message()) from exc
     return machine, model, check
+
+
+def station_frames(machine: Machine, rec: Recording, *, dof: int | None = None) -> InstrumentFrame:
+    """A fitted instrument frame per station of ``rec`` (FORMATS.md section 8), each started by its own alignment.
+
+    One station (no ``station`` column, or one label) gives the single frame
+    of section 4 (parameters ``frame.origin.x`` ...); several give six
+    parameters each (``frame.<station>.origin.x`` ...), bound to the
+    recording's poses.
+
+    Raises
+    ------
+    RecordingError
+        A station with too few poses to align a frame (at least 3 points, or
+        2 with orientations), naming the station.
+    """
+    base = base_machine(machine)
+    stations = rec.stations
+    idx = rec.station_index
+    need = 3 if rec.dof == 3 else 2
+    frames = []
+    for k, label in enumerate(stations):
+        rows = np.flatnonzero(idx == k)
+        if rows.size < need:
+            raise RecordingError(rec.path, int(rec.lines[rows[0]]) if rows.size else None, "station",
+                                 f"station {label!r} has {rows.size} pose(s); at least {need} are needed to fit its frame")
+        frames.append(frame_start(machine, rec.subset(rows), dof=dof))
+    if len(stations) == 1:
+        return InstrumentFrame(base, frames[0], fit=True)
+    return InstrumentFrame(base, frames[0], fit=True, stations=stations, frames0=tuple(frames), pose_station=idx)

@@ -67,6 +67,16 @@ class Recording:
         The unit suffix each measured column carried (``{"x": "m"}``); a
         quantity without suffix is absent.  Used to judge unsuffixed columns
         whose numbers look like another unit.
+    station : tuple of str or None
+        The optional ``station`` column (FORMATS.md section 8): which set-up
+        of the instrument took each row (any label); None when absent.
+    role : tuple of str or None
+        The optional ``role`` column: ``"fit"`` (used to identify) or
+        ``"check"`` (held out: only predicted and scored); None when absent
+        (every row ``fit``).
+    line_numbers : ndarray of int, shape (n_poses,), optional
+        CSV line of every row (header = line 1) when the recording is a
+        subset of a file's rows; None: lines 2, 3, ... in order.
     """
 
     q: NDArray
@@ -81,6 +91,9 @@ class Recording:
     sigma_position: NDArray | None = None
     sigma_angle: NDArray | None = None
     declared_units: dict = field(default_factory=dict)
+    station: tuple[str, ...] | None = None
+    role: tuple[str, ...] | None = None
+    line_numbers: NDArray | None = None
 
     @property
     def n_poses(self) -> int:
@@ -114,7 +127,39 @@ class Recording:
             sigma_position=None if self.sigma_position is None else self.sigma_position[idx],
             sigma_angle=None if self.sigma_angle is None else self.sigma_angle[idx],
             declared_units=self.declared_units,
+            station=None if self.station is None else tuple(np.asarray(self.station, dtype=object)[idx].tolist()),
+            role=None if self.role is None else tuple(np.asarray(self.role, dtype=object)[idx].tolist()),
+            line_numbers=self.lines[idx],
         )
+
+    @property
+    def lines(self) -> NDArray:
+        """CSV line of every row (header = line 1), shape (n_poses,)."""
+        if self.line_numbers is None:
+            return np.arange(2, self.n_poses + 2)
+        return np.asarray(self.line_numbers, dtype=int)
+
+    @property
+    def is_check(self) -> NDArray:
+        """Which rows are held out (``role = check``), shape (n_poses,) bool."""
+        if self.role is None:
+            return np.zeros(self.n_poses, dtype=bool)
+        return np.array([r == "check" for r in self.role], dtype=bool)
+
+    @property
+    def stations(self) -> tuple[str, ...]:
+        """The station labels in order of first appearance (one unnamed station when there is no column)."""
+        if self.station is None:
+            return ("",)
+        return tuple(dict.fromkeys(self.station))
+
+    @property
+    def station_index(self) -> NDArray:
+        """Index into :attr:`stations` of every row, shape (n_poses,) int."""
+        if self.station is None:
+            return np.zeros(self.n_poses, dtype=int)
+        pos = {s: i for i, s in enumerate(self.stations)}
+        return np.array([pos[s] for s in self.station], dtype=int)
 
     def check_machine(
         self,
@@ -287,6 +332,7 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
     """
     path = str(path)
     header, seen, data_rows = read_csv_rows(path, text, "a recording (CSV)")
+    header, seen, data_rows, labels = split_label_columns(path, header, seen, data_rows)
     seen, scale, q_unit = _unit_columns(path, header, seen)
     qnums = sorted(int(m.group(1)) for h in seen if (m := _Q.match(h)))
     if not qnums:
@@ -334,7 +380,48 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         q=q, position=col(_POS), rotvec=rotvec, axis=axis, aux=aux, path=path,
         q_columns=tuple(header[seen[f"q{k}"]] for k in qnums), q_units=tuple(q_unit.get(f"q{k}", "") for k in qnums),
         sigma_position=sig["sigma_position"], sigma_angle=sig["sigma_angle"], declared_units=declared,
+        station=labels.get("station"), role=labels.get("role"),
     )
+
+
+#: Columns of labels, not numbers (FORMATS.md section 8): which instrument set-up took a row, and its role.
+LABEL_COLUMNS = ("station", "role")
+#: The values of ``role``.
+ROLES = ("fit", "check")
+
+
+def split_label_columns(path: str, header: list[str], seen: dict[str, int], rows: list[list[str]]):
+    """Take the ``station`` and ``role`` label columns out of a CSV table before its numbers are parsed.
+
+    Returns the remaining header, column index, data rows and ``{name: tuple of labels}``.
+    RecordingError (line and column named) for an empty label, a ``role`` other
+    than ``fit`` or ``check``, or a recording whose rows are all ``check``.
+    """
+    present = [c for c in LABEL_COLUMNS if c in seen]
+    if not present:
+        return header, seen, rows, {}
+    labels: dict[str, tuple[str, ...]] = {}
+    for name in present:
+        j = seen[name]
+        vals = []
+        for i, row in enumerate(rows):
+            if len(row) != len(header):
+                raise RecordingError(path, i + 2, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
+            v = row[j].strip()
+            if v == "":
+                raise RecordingError(path, i + 2, name, f"empty cell; expected a {name} label"
+                                     + (" (fit or check)" if name == "role" else ""))
+            if name == "role" and v not in ROLES:
+                raise RecordingError(path, i + 2, name, f"expected 'fit' or 'check', got {v!r}")
+            vals.append(v)
+        labels[name] = tuple(vals)
+    if "role" in labels and all(v == "check" for v in labels["role"]):
+        raise RecordingError(path, None, "role", "every row is 'check'; expected at least one 'fit' row to fit with")
+    drop = {seen[c] for c in present}
+    keep = [j for j in range(len(header)) if j not in drop]
+    header2 = [header[j] for j in keep]
+    rows2 = [[row[j] for j in keep] for row in rows]
+    return header2, {h: i for i, h in enumerate(header2)}, rows2, labels
 
 
 def _sigma_column(path: str, header: list[str], seen: dict[str, int], data: NDArray, name: str) -> NDArray | None:
@@ -403,12 +490,13 @@ def recording_to_csv(rec: Recording, *, precision: int | None = None) -> str:
         cols += [(c, rec.axis[:, k]) for k, c in enumerate(_AXIS)]
     cols += [(c, v) for c, v in (("sigma_position", rec.sigma_position), ("sigma_angle", rec.sigma_angle)) if v is not None]
     cols += list(rec.aux.items())
+    labels = [(c, v) for c, v in (("station", rec.station), ("role", rec.role)) if v is not None]
     out = io.StringIO()
     w = csv.writer(out, lineterminator="\n")
-    w.writerow([c for c, _ in cols])
+    w.writerow([c for c, _ in cols] + [c for c, _ in labels])
     fmt = repr if precision is None else f"{{:.{precision}g}}".format
     for i in range(rec.n_poses):
-        w.writerow([fmt(float(v[i])) for _, v in cols])
+        w.writerow([fmt(float(v[i])) for _, v in cols] + [v[i] for _, v in labels])
     return out.getvalue()
 
 

@@ -36,12 +36,22 @@ def _build(doc, path: str) -> Machine:
     # FORMATS.md section 4: an optional [instrument] table (the recordings' frame) for every kind;
     # [effect.<name>] tables (section 7) are read for every kind alike, after the geometry
     frame = read_instrument(doc, path)
-    geometry = type(doc)({k: v for k, v in doc.data.items() if k not in ("effect", "instrument")}, doc.path, doc.prefix)
+    extra = ("effect", "instrument", "calibration", "discrepancy")
+    geometry = type(doc)({k: v for k, v in doc.data.items() if k not in extra}, doc.path, doc.prefix)
     machine = KINDS[kind].from_toml(geometry, path)
     if "effect" in doc.data:
         from ..effects.stored import read_effect_tables
 
         machine = machine.with_effects(read_effect_tables(doc, machine))
+    if "calibration" in doc.data or "discrepancy" in doc.data:
+        # the calibration's uncertainty and model discrepancy, for bayescal predict (FORMATS.md section 8)
+        from ..discrepancy.table import read_discrepancy
+        from ..predict.record import check_record, read_calibration
+
+        record = read_calibration(doc, path)
+        if record is not None:
+            check_record(record, path)
+        machine = machine.with_calibration(record, read_discrepancy(doc, path, machine))
     return machine if frame is None else InstrumentFrame(machine, frame, fit=False)
 
 

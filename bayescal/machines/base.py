@@ -228,6 +228,12 @@ class Machine(ABC):
     #: (FORMATS.md section 7; tuple of :class:`bayescal.effects.stored.StoredEffect`).  Not a
     #: dataclass field of the kinds: :meth:`with_effects` attaches them to a copy.
     effects: tuple = ()
+    #: What a calibrated machine file keeps of its calibration (``[calibration]``: the parameters'
+    #: covariance and the noise scale, :class:`bayescal.predict.record.CalibrationRecord`) and its
+    #: model discrepancy (``[discrepancy]``, :class:`bayescal.discrepancy.Discrepancy`); None when
+    #: the file has none.  Attached by :meth:`with_calibration`, like the effects.
+    calibration = None
+    discrepancy = None
 
     name: str
     layout: ParamLayout
@@ -280,6 +286,25 @@ class Machine(ABC):
         if theta.ndim == 2 and n_poses is not None and theta.shape[0] != n_poses:
             raise InputError(f"theta: {theta.shape[0]} rows for {n_poses} poses")
         return theta
+
+    def for_poses(self, idx) -> "Machine":
+        """The machine bound to a subset ``idx`` of the poses it is bound to (stations of a recording).
+
+        A plain machine is bound to no poses: itself.  A view whose frames
+        differ per pose (an instrument with several stations) rebinds.
+        """
+        return self
+
+    def measurement_rotation(self, q: ArrayLike, theta: ArrayLike | None) -> NDArray:
+        """Rotation taking base-frame vectors into the frame each pose is measured in, shape (n, 3, 3).
+
+        The identity for a machine measured in its base frame; an instrument
+        frame gives each pose its station's ``R^T``.  A quantity defined on
+        the machine (a model discrepancy of the tool pose) reaches the
+        measured rows through it.
+        """
+        n = self.check_q(q).shape[0]
+        return np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
 
     def check_q(self, q: ArrayLike) -> NDArray:
         q = np.atleast_2d(np.asarray(q, dtype=float))
@@ -391,6 +416,20 @@ class Machine(ABC):
 
         out = copy.copy(self)
         object.__setattr__(out, "effects", tuple(effects))
+        return out
+
+    def with_calibration(self, calibration=None, discrepancy=None) -> "Machine":
+        """A copy carrying a calibration record and a model discrepancy (None: none).
+
+        ``bayescal predict`` holds a calibrated machine fixed with the
+        uncertainty the record gives; the discrepancy adds to every
+        prediction.  Writing the machine writes both tables.
+        """
+        import copy
+
+        out = copy.copy(self)
+        object.__setattr__(out, "calibration", calibration)
+        object.__setattr__(out, "discrepancy", discrepancy)
         return out
 
     def node_actuators(self, q: NDArray, theta: NDArray | None = None, aux: dict | None = None) -> tuple[NDArray, NDArray | None]:

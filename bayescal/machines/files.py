@@ -50,7 +50,7 @@ def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | No
     list of Path
         The files written, the main file first.
     """
-    from ..effects.stored import effect_tables_toml, machine_file_text
+    from ..effects.stored import calibration_tables_toml, effect_tables_toml, machine_file_text
     from .framed import InstrumentFrame, instrument_toml
     from .hybrid import write_machine_files
 
@@ -64,8 +64,10 @@ def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | No
     extra = []
     if machine.effects:
         extra.append(effect_tables_toml(tuple(machine.effects)))
-    if framed:
+    if framed and machine.n_stations == 1:
         extra.append(instrument_toml(machine.frame_at(th)))
+    if tables := calibration_tables_toml(machine).strip("\n"):
+        extra.append(tables)
     if extra or header:
         main = paths[0]
         write_text_atomic(main, header + "\n\n".join([main.read_text().rstrip("\n")] + [e.rstrip("\n") for e in extra])

@@ -34,6 +34,17 @@ more, towards least squares' rank-deficiency threshold (1e-10).
 
 With ``fit=False`` the frame is known (read from a machine file's
 ``[instrument]`` table) and adds no parameters.
+
+**Stations** (FORMATS.md section 8).  A recording may come from several
+set-ups of the instrument (a tracker moved to see another part of the
+workspace, another day's session): ``stations`` names them and every
+station has its own frame, six parameters each,
+``frame.<station>.origin.x`` ... (with one station the names stay
+``frame.origin.x`` ...).  Which station measured which pose is bound to the
+poses the machine is evaluated on (``pose_station``, one index per pose;
+:meth:`for_poses` rebinds it for a subset), so ``forward`` and
+``tool_jacobian`` give each pose its own station's frame and the columns of
+the other stations' frames are zero.  One geometry is shared by all.
 """
 
 from __future__ import annotations
@@ -50,7 +61,8 @@ from ..io.machine_file import format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, ToolPoses
 
-__all__ = ["Frame", "InstrumentFrame", "FRAME_NAMES", "FRAME_TOLERANCE", "base_machine", "instrument_toml"]
+__all__ = ["Frame", "InstrumentFrame", "FRAME_NAMES", "FRAME_TOLERANCE", "base_machine", "instrument_toml",
+           "frame_names", "is_frame_parameter"]
 
 #: The frame parameters, in layout order (first in a fitted frame's layout).
 FRAME_NAMES = (
@@ -107,10 +119,22 @@ def instrument_toml(frame: Frame) -> str:
     )
 
 
-def _frame_layout() -> ParamLayout:
-    groups = ["frame_origin"] * 3 + ["frame_rotation"] * 3
-    units = ["mm"] * 3 + ["rad"] * 3
-    return ParamLayout(tuple(ParamSpec(n, u, g) for n, u, g in zip(FRAME_NAMES, units, groups)))
+def frame_names(stations: tuple[str, ...] = ("",)) -> tuple[str, ...]:
+    """The frame parameters of ``stations``: :data:`FRAME_NAMES` for one, ``frame.<station>.origin.x`` ... for several."""
+    if len(stations) == 1:
+        return FRAME_NAMES
+    return tuple(n.replace("frame.", f"frame.{s}.", 1) for s in stations for n in FRAME_NAMES)
+
+
+def is_frame_parameter(name: str) -> bool:
+    """Whether a parameter name is an instrument frame's (one station's or several's)."""
+    return name.startswith("frame.")
+
+
+def _frame_layout(stations: tuple[str, ...] = ("",)) -> ParamLayout:
+    groups = (["frame_origin"] * 3 + ["frame_rotation"] * 3) * len(stations)
+    units = (["mm"] * 3 + ["rad"] * 3) * len(stations)
+    return ParamLayout(tuple(ParamSpec(n, u, g) for n, u, g in zip(frame_names(stations), units, groups)))
 
 
 def _left_jacobian(phi: NDArray) -> NDArray:
@@ -146,10 +170,62 @@ class InstrumentFrame(Machine):
     frame0: Frame = field(default_factory=Frame.identity)
     fit: bool = True
     frame_tolerance: dict | None = None
+    stations: tuple[str, ...] = ("",)
+    frames0: tuple[Frame, ...] = ()
+    pose_station: NDArray | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.machine, InstrumentFrame):
             raise InputError("InstrumentFrame: the machine already has an instrument frame; wrap its base machine")
+        stations = tuple(str(s) for s in self.stations)
+        if not stations or len(set(stations)) != len(stations):
+            raise InputError(f"stations: expected distinct labels, got {self.stations!r}")
+        frames0 = tuple(self.frames0) or (self.frame0,) * len(stations)
+        if len(frames0) != len(stations):
+            raise InputError(f"frames0: expected one start frame per station ({len(stations)}), got {len(frames0)}")
+        if len(stations) > 1 and not self.fit:
+            raise InputError("InstrumentFrame: several stations are fitted frames (fit=True); a known frame is one")
+        object.__setattr__(self, "stations", stations)
+        object.__setattr__(self, "frames0", frames0)
+        object.__setattr__(self, "frame0", frames0[0])
+        if self.pose_station is not None:
+            ps = np.asarray(self.pose_station, dtype=int).reshape(-1)
+            if ps.size and (ps.min() < 0 or ps.max() >= len(stations)):
+                raise InputError(f"pose_station: expected indices 0..{len(stations) - 1}")
+            object.__setattr__(self, "pose_station", ps)
+        o0 = np.array([f.origin for f in frames0])
+        R0 = np.array([f.rotation for f in frames0])
+        object.__setattr__(self, "_o0", o0)
+        object.__setattr__(self, "_R0", R0)
+
+    @property
+    def n_stations(self) -> int:
+        return len(self.stations)
+
+    def for_poses(self, idx) -> "InstrumentFrame":
+        """The same frames bound to the poses ``idx`` of the current binding (a subset of the poses)."""
+        if self.pose_station is None:
+            return self
+        from dataclasses import replace
+
+        return replace(self, pose_station=self.pose_station[np.asarray(idx)])
+
+    def with_pose_station(self, pose_station) -> "InstrumentFrame":
+        """The same frames bound to other poses (``pose_station``: station index per pose)."""
+        from dataclasses import replace
+
+        return replace(self, pose_station=None if pose_station is None else np.asarray(pose_station, dtype=int))
+
+    def _station_of(self, n: int) -> NDArray | None:
+        """Station index of each of ``n`` poses (the binding tiled for stacked parameter sets), or None for one station."""
+        if self.n_stations == 1:
+            return None
+        ps = self.pose_station
+        if ps is None:
+            raise InputError("InstrumentFrame: several stations, but no station is bound to the poses (pose_station)")
+        if ps.size == 0 or n % ps.size:
+            raise InputError(f"InstrumentFrame: {n} poses, but stations are bound to {ps.size}")
+        return ps if n == ps.size else np.tile(ps, n // ps.size)
 
     # ----------------------------------------------------------- delegation
     @property
@@ -195,9 +271,23 @@ class InstrumentFrame(Machine):
         return replace(self, machine=self.machine.with_effects(effects))
 
     @property
+    def calibration(self):  # type: ignore[override]
+        """The inner machine's calibration record: it describes the machine, whatever frame measures it."""
+        return self.machine.calibration
+
+    @property
+    def discrepancy(self):  # type: ignore[override]
+        return self.machine.discrepancy
+
+    def with_calibration(self, calibration=None, discrepancy=None) -> "InstrumentFrame":
+        from dataclasses import replace
+
+        return replace(self, machine=self.machine.with_calibration(calibration, discrepancy))
+
+    @property
     def n_frame(self) -> int:
-        """Number of frame parameters: 6 when fitted, 0 when known."""
-        return 6 if self.fit else 0
+        """Number of frame parameters: 6 per station when fitted, 0 when known."""
+        return 6 * self.n_stations if self.fit else 0
 
     @property
     def geometry_part(self) -> tuple[Machine, NDArray]:
@@ -206,18 +296,20 @@ class InstrumentFrame(Machine):
 
     @property
     def layout(self) -> ParamLayout:  # type: ignore[override]
-        return _frame_layout() + self.machine.layout if self.fit else self.machine.layout
+        return _frame_layout(self.stations) + self.machine.layout if self.fit else self.machine.layout
 
     @property
     def tolerance(self) -> NDArray:  # type: ignore[override]
         if not self.fit:
             return self.machine.tolerance
         t = dict(FRAME_TOLERANCE, **(self.frame_tolerance or {}))
-        return np.concatenate([[t["frame_origin"]] * 3, [t["frame_rotation"]] * 3, self.machine.tolerance])
+        one = [t["frame_origin"]] * 3 + [t["frame_rotation"]] * 3
+        return np.concatenate([one * self.n_stations, self.machine.tolerance])
 
     def __getattr__(self, name):
         # kind-specific attributes (tolerance_groups, pose_range, ...) are the inner machine's
-        if name.startswith("__") or name in ("machine", "frame0", "fit", "frame_tolerance"):
+        if name.startswith("__") or name.startswith("_") or name in (
+                "machine", "frame0", "fit", "frame_tolerance", "stations", "frames0", "pose_station"):
             raise AttributeError(name)
         return getattr(self.machine, name)
 
@@ -232,24 +324,44 @@ class InstrumentFrame(Machine):
         k = self.n_frame
         return th[..., :k], th[..., k:]
 
-    def frame_at(self, theta: ArrayLike | None = None) -> Frame:
-        """The instrument frame at parameters ``theta`` (P,): ``frame0`` with the correction applied."""
+    def frame_at(self, theta: ArrayLike | None = None, station: int = 0) -> Frame:
+        """The instrument frame of ``station`` (index) at parameters ``theta`` (P,): its start with the correction applied."""
         th = self.check_theta(theta)
         if th.ndim != 1:
             raise InputError("frame_at: expected one parameter vector (P,)")
-        o, R = self._frame_arrays(th[: self.n_frame])
-        return Frame(o, R)
+        if not 0 <= int(station) < self.n_stations:
+            raise InputError(f"station: expected an index 0..{self.n_stations - 1}, got {station!r}")
+        st = int(station)
+        if not self.fit:
+            return self.frames0[st]
+        tf = th[6 * st: 6 * st + 6]
+        return Frame(self._o0[st] + tf[:3], so3_exp(tf[3:]) @ self._R0[st])
 
-    def _frame_arrays(self, tf: NDArray) -> tuple[NDArray, NDArray]:
-        """Origin (..., 3) and rotation (..., 3, 3) for frame corrections (..., 6) (or none)."""
+    def _pose_frame_params(self, tf: NDArray, n: int) -> tuple[NDArray | None, NDArray | None]:
+        """Each pose's own frame correction (n, 6) from all stations' (..., 6 S), and its station (n,) or None."""
+        st = self._station_of(n)
+        if st is None:
+            return tf, None
+        tf = np.asarray(tf)
+        cols = 6 * st[:, None] + np.arange(6)[None, :]
+        if tf.ndim == 1:
+            return tf[cols], st
+        return np.take_along_axis(tf, cols, axis=-1), st
+
+    def _frame_arrays(self, tf: NDArray, n: int | None = None) -> tuple[NDArray, NDArray]:
+        """Origin (..., 3) and rotation (..., 3, 3) of every pose's frame, from the frame corrections (..., 6 S) (or none)."""
         if not self.fit:
             return self.frame0.origin, self.frame0.rotation
-        return self.frame0.origin + tf[..., :3], so3_exp(tf[..., 3:]) @ self.frame0.rotation
+        if self.n_stations == 1:
+            return self.frame0.origin + tf[..., :3], so3_exp(tf[..., 3:]) @ self.frame0.rotation
+        tfp, st = self._pose_frame_params(tf, n)
+        return self._o0[st] + tfp[..., :3], so3_exp(tfp[..., 3:]) @ self._R0[st]
 
     def to_base_poses(self, poses: ToolPoses, theta: ArrayLike | None) -> ToolPoses:
         """The same poses in the base frame (``p_base = R p_inst + o``), state kept."""
-        tf, _ = self.split(theta, poses.position.shape[0] if np.ndim(theta) == 2 else None)
-        o, R = self._frame_arrays(tf)
+        n = poses.position.shape[0]
+        tf, _ = self.split(theta, n if np.ndim(theta) == 2 else None)
+        o, R = self._frame_arrays(tf, n)
         p = np.einsum("...ij,...j->...i", R, poses.position) + o
         Rb = R @ poses.rotation
         return ToolPoses(p, Rb, poses.success, poses.message, poses.state)
@@ -269,7 +381,7 @@ class InstrumentFrame(Machine):
             # the inner kinds warm-start from guess.state; the pose is handed over in base coordinates
             g = ToolPoses(guess.position, guess.rotation, guess.success, guess.message, guess.state)
         poses = self.machine.forward(q, tm, guess=g)
-        o, R = self._frame_arrays(tf)
+        o, R = self._frame_arrays(tf, q.shape[0])
         return self._to_instrument(poses, o, R)
 
     def tool_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
@@ -283,27 +395,35 @@ class InstrumentFrame(Machine):
         q = self.check_q(q)
         n = q.shape[0]
         tf, tm = self.split(theta, n if np.ndim(theta) == 2 else None)
-        o, R = self._frame_arrays(tf)
+        o, R = self._frame_arrays(tf, n)
         base = self.to_base_poses(poses, theta)
         Jm = self.machine.tool_jacobian(q, tm, base)
         Rt = np.broadcast_to(np.swapaxes(R, -1, -2), (n, 3, 3))
-        J = np.empty((n, 6, self.n_params))
+        J = np.zeros((n, 6, self.n_params))
         k = self.n_frame
         J[:, :3, k:] = Rt @ Jm[:, :3]
         J[:, 3:, k:] = Rt @ Jm[:, 3:]
         if self.fit:
-            Jl = np.broadcast_to(_left_jacobian(tf[..., 3:]), (n, 3, 3))
-            J[:, :3, :3] = -Rt
-            J[:, :3, 3:6] = Rt @ skew(base.position - o) @ Jl
-            J[:, 3:, :3] = 0.0
-            J[:, 3:, 3:6] = -Rt @ Jl
+            tfp, st = self._pose_frame_params(tf, n)
+            Jl = np.broadcast_to(_left_jacobian(tfp[..., 3:]), (n, 3, 3))
+            Jf = np.zeros((n, 6, 6))
+            Jf[:, :3, :3] = -Rt
+            Jf[:, :3, 3:6] = Rt @ skew(base.position - o) @ Jl
+            Jf[:, 3:, 3:6] = -Rt @ Jl
+            if st is None:
+                J[:, :, :6] = Jf
+            else:
+                # each pose sees only its own station's frame columns
+                rows = np.arange(n)
+                for c in range(6):
+                    J[rows, :, 6 * st + c] = Jf[:, :, c]
         return J
 
     def actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
         """The inner machine's actuator Jacobian rotated into the instrument frame, (n, 6, n_actuators)."""
         q = self.check_q(q)
         tf, tm = self.split(theta, q.shape[0] if np.ndim(theta) == 2 else None)
-        _, R = self._frame_arrays(tf)
+        _, R = self._frame_arrays(tf, q.shape[0])
         Ja = self.machine.actuator_jacobian(q, tm, self.to_base_poses(poses, theta))
         Rt = np.swapaxes(R, -1, -2)
         return np.concatenate([Rt @ Ja[:, :3], Rt @ Ja[:, 3:]], axis=1)
@@ -323,20 +443,35 @@ class InstrumentFrame(Machine):
         return self.machine.weight_bodies(q, tm, self.to_base_poses(poses, theta))
 
     def guess_from_measurement(self, q, position, rotation=None, axis=None):
-        """The inner machine's start from the measurement taken to the base frame with ``frame0``."""
-        f = self.frame0
-        pb = f.to_base(position)
-        Rb = None if rotation is None else f.rotation @ rotation
-        ab = None if axis is None else axis @ f.rotation.T
+        """The inner machine's start from the measurement taken to the base frame with each pose's start frame."""
+        n = np.asarray(position).shape[0]
+        st = self._station_of(n) if self.n_stations > 1 else np.zeros(n, dtype=int)
+        o0, R0 = self._o0[st], self._R0[st]
+        pb = np.einsum("nij,nj->ni", R0, np.asarray(position, dtype=float)) + o0
+        Rb = None if rotation is None else R0 @ rotation
+        ab = None if axis is None else np.einsum("nij,nj->ni", R0, np.asarray(axis, dtype=float))
         g = self.machine.guess_from_measurement(q, pb, Rb, ab)
         if g is None:
             return None
-        return self._to_instrument(g, f.origin, f.rotation)
+        return self._to_instrument(g, o0, R0)
+
+    def measurement_rotation(self, q: ArrayLike, theta: ArrayLike | None) -> NDArray:
+        """Rotation taking base-frame vectors into each pose's instrument frame, (n, 3, 3): ``R^T``."""
+        q = self.check_q(q)
+        n = q.shape[0]
+        tf, _ = self.split(theta, n if np.ndim(theta) == 2 else None)
+        _, R = self._frame_arrays(tf, n)
+        return np.broadcast_to(np.swapaxes(R, -1, -2), (n, 3, 3)).copy()
 
     def to_toml(self, theta: ArrayLike | None = None) -> str:
-        """The inner machine's file of ``nominal + theta`` (base frame) plus the ``[instrument]`` table."""
+        """The inner machine's file of ``nominal + theta`` (base frame), plus the ``[instrument]`` table of one station.
+
+        Several stations belong to the session, not the machine (FORMATS.md section 8): no table then.
+        """
         th = self.check_theta(theta)
         text = self.machine.to_toml(th[self.n_frame :])
+        if self.n_stations > 1:
+            return text
         return text.rstrip("\n") + "\n\n" + instrument_toml(self.frame_at(th))
 
     @classmethod

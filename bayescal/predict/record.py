@@ -1,0 +1,172 @@
+"""What a calibrated machine file keeps of its calibration: the parameters' covariance and the noise scale.
+
+``bayescal predict`` holds a calibrated machine fixed *with its
+uncertainty* (FORMATS.md section 8), so the machine file written by
+``identify``, ``diagnose`` and ``grid`` carries a ``[calibration]`` table (a
+bayescal extension; other readers ignore it):
+
+.. code-block:: toml
+
+    [calibration]
+    method = "map"
+    noise_scale = 1.0                      # factor on the [measurement] sigma the data supported
+    parameters = ["chain1.link_length", ...]  # the file's own parameter names (perturbations of this geometry)
+    std = [0.012, ...]                     # their one-sigma uncertainty, unit of each parameter
+    covariance_f64le_b64 = "..."           # the full covariance, float64 little-endian, row-major, base64
+
+The parameters are perturbations of the *calibrated* geometry in the file
+(the same names and units as the identification answer); to first order
+the covariance of the errors about the nominal is that of the calibrated
+geometry's perturbations.  A model-discrepancy term (``[discrepancy]``,
+:mod:`bayescal.discrepancy`) appends its weights ``discrepancy.w<k>`` to
+``parameters``, so that the covariance is the joint one.
+"""
+
+from __future__ import annotations
+
+import base64
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import MachineFileError
+from ..io.machine_file import TomlTable, format_toml_value
+
+__all__ = ["CalibrationRecord", "calibration_toml", "read_calibration"]
+
+#: Largest covariance a machine file may carry (parameters): 4,000 gives 128 MB of float64.
+MAX_PARAMETERS = 4000
+
+
+@dataclass(frozen=True)
+class CalibrationRecord:
+    """The covariance of a calibrated machine's parameters and the noise scale it was fitted with.
+
+    Attributes
+    ----------
+    names : tuple of str
+        Parameter names (the machine's layout names, then ``discrepancy.w<k>``).
+    covariance : ndarray, shape (n, n)
+        In the parameters' units (mm, rad; products for off-diagonal entries).
+    noise_scale : float
+        Factor on the machine file's ``[measurement]`` sigma that the
+        calibration's residuals supported (1: the stated noise fits).
+    method : str
+    """
+
+    names: tuple[str, ...]
+    covariance: NDArray
+    noise_scale: float = 1.0
+    method: str = ""
+
+    @property
+    def std(self) -> NDArray:
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    def covariance_for(self, names) -> NDArray:
+        """The covariance over ``names`` (any order); names the record does not hold get zero variance."""
+        pos = {n: i for i, n in enumerate(self.names)}
+        idx = np.array([pos.get(n, -1) for n in names])
+        out = np.zeros((len(idx), len(idx)))
+        have = idx >= 0
+        out[np.ix_(have, have)] = self.covariance[np.ix_(idx[have], idx[have])]
+        return out
+
+    def missing(self, names) -> tuple[str, ...]:
+        """Which of ``names`` the record does not hold."""
+        have = set(self.names)
+        return tuple(n for n in names if n not in have)
+
+
+def calibration_toml(record: CalibrationRecord) -> str:
+    """The ``[calibration]`` table of a machine file (module docstring)."""
+    C = np.ascontiguousarray(np.asarray(record.covariance, dtype="<f8"))
+    f = format_toml_value
+    return "\n".join([
+        "[calibration]",
+        "# the calibration's uncertainty, for bayescal predict: covariance of the parameters below (perturbations",
+        "# of this file's geometry), float64 little-endian row-major, base64",
+        f"method = {f(record.method)}",
+        f"noise_scale = {f(float(record.noise_scale))}",
+        f"parameters = {f(list(record.names))}",
+        f"std = {f(record.std)}",
+        f"covariance_f64le_b64 = {f(base64.b64encode(C.tobytes()).decode('ascii'))}",
+        "",
+    ])
+
+
+def read_calibration(doc: TomlTable, path: str) -> CalibrationRecord | None:
+    """The optional ``[calibration]`` table, checked (MachineFileError naming the key)."""
+    t = doc.table("calibration", required=False)
+    if t is None:
+        return None
+    t.reject_unknown({"method", "noise_scale", "parameters", "std", "covariance_f64le_b64"})
+    names = t.data.get("parameters")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or not names:
+        raise t.error("parameters", "expected a non-empty list of parameter names")
+    if len(set(names)) != len(names):
+        raise t.error("parameters", "expected distinct names")
+    n = len(names)
+    if n > MAX_PARAMETERS:
+        raise t.error("parameters", f"{n} parameters; at most {MAX_PARAMETERS} are read")
+    raw = t.data.get("covariance_f64le_b64")
+    if not isinstance(raw, str):
+        raise t.error("covariance_f64le_b64", "expected a base64 string of n x n float64 values")
+    try:
+        buf = base64.b64decode(raw.encode("ascii"), validate=True)
+    except (ValueError, UnicodeEncodeError):
+        raise t.error("covariance_f64le_b64", "not valid base64") from None
+    if len(buf) != 8 * n * n:
+        raise t.error("covariance_f64le_b64", f"{len(buf)} bytes; expected {8 * n * n} ({n} x {n} float64 values)")
+    C = np.frombuffer(buf, dtype="<f8").reshape(n, n).astype(float)
+    if not np.all(np.isfinite(C)) or not np.allclose(C, C.T, rtol=1e-9, atol=1e-300) or np.any(np.diag(C) < 0):
+        raise t.error("covariance_f64le_b64", "expected a finite, symmetric covariance with non-negative variances")
+    scale = t.number("noise_scale", default=1.0, positive=True)
+    if not math.isfinite(scale) or not 1e-6 <= scale <= 1e6:
+        raise t.error("noise_scale", f"expected a factor between 1e-6 and 1e6, got {scale!r}")
+    method = t.string("method", default="")
+    return CalibrationRecord(tuple(names), C, float(scale), method)
+
+
+def record_from_result(machine, names_all, free, covariance, *, noise_scale: float = 1.0, method: str = "",
+                       extra_names=(), extra_cov=None) -> CalibrationRecord | None:
+    """The record of an identification: the covariance of the machine's own parameters among the free ones.
+
+    Parameters
+    ----------
+    machine : Machine
+        The machine written (its layout names are those kept: frames, pivots and effect parameters drop out).
+    names_all : sequence of str
+        The model's parameter names (layout order).
+    free : ndarray of bool
+    covariance : ndarray, shape (n_free, n_free) or None
+    extra_names, extra_cov :
+        A joint covariance to use instead (discrepancy weights appended): ``extra_cov`` over
+        ``[free names..., extra_names...]``.
+    """
+    if covariance is None:
+        return None
+    keep_names = set(machine.layout.names)
+    free_names = [n for n, f in zip(names_all, np.asarray(free, dtype=bool)) if f]
+    C = np.asarray(covariance if extra_cov is None else extra_cov, dtype=float)
+    all_names = free_names + list(extra_names)
+    sel = [i for i, n in enumerate(all_names) if n in keep_names or n in set(extra_names)]
+    if not sel or not np.all(np.isfinite(C[np.ix_(sel, sel)])):
+        return None
+    return CalibrationRecord(tuple(all_names[i] for i in sel), C[np.ix_(sel, sel)], float(noise_scale), method)
+
+
+def unknown_parameters_message(path: str, missing) -> str:
+    """Why a calibration record that lacks some parameters is read anyway (those are taken as exact)."""
+    shown = ", ".join(list(missing)[:5]) + (" ..." if len(missing) > 5 else "")
+    return f"{path}: [calibration] holds no uncertainty for {len(missing)} parameter(s) ({shown}); taken as exact"
+
+
+def check_record(record: CalibrationRecord, path: str) -> None:
+    """Refuse a record whose covariance is not positive semi-definite (to rounding)."""
+    w = np.linalg.eigvalsh(0.5 * (record.covariance + record.covariance.T))
+    if w.size and w[0] < -1e-9 * max(w[-1], 1e-300):
+        raise MachineFileError(path, "calibration.covariance_f64le_b64",
+                               f"not positive semi-definite (smallest eigenvalue {w[0]:.3g})")
