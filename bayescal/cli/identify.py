@@ -147,6 +147,11 @@ def register(sub) -> None:
         help="linear-delta only: write the calibrated geometry in Klipper's keys (delta_radius, angle, arm_length, "
         "position_endstop) for printer.cfg",
     )
+    p.add_argument(
+        "--write-urdf", metavar="PATH",
+        help="serial machines only: write the calibrated chain as a URDF file (metres, radians; mimic joints kept), "
+        "written when --write-machine would be",
+    )
     add_frame_argument(p)
     add_force_argument(p)
     add_arguments(p)
@@ -179,6 +184,10 @@ def run(args) -> int:
     machine, rec, model, check = instrument_inputs(args, constraints=True)
     if args.write_klipper and machine.kind != "linear-delta":
         raise InputError(f"--write-klipper: Klipper's delta keys describe a linear-delta machine; {args.machine} is a {machine.kind}")
+    if args.write_urdf:
+        from ..machines.urdf_write import serial_part
+
+        serial_part(machine, what="--write-urdf: a URDF")  # InputError (exit 2) for other kinds, before any fit
     free = free_arg(args.free)
     if args.method == "ridge" and args.lam is None:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
@@ -249,4 +258,6 @@ def run(args) -> int:
             print("\n" + note)
         if args.write_klipper and not (res.success and plaus.plausible):
             print(f"\nnot writing {args.write_klipper}: the identification did not succeed or is not plausible")
+        if args.write_urdf and not (res.success and (plaus.plausible or args.force)):
+            print(f"\nnot writing {args.write_urdf}: the identification did not succeed or is not plausible (--force)")
     return EXIT_OK if res.success and plaus.plausible else EXIT_FAILED

@@ -54,10 +54,10 @@ def may_write_machine(args, res, plaus: Plausibility) -> bool:
 
 
 def write_calibrated_files(args, machine, res, plaus: Plausibility) -> None:
-    """``--write-machine`` and ``--write-klipper`` of a fit, for every method.
+    """``--write-machine``, ``--write-urdf`` and ``--write-klipper`` of a fit, for every method.
 
-    The machine file only for a successful fit that is plausible (or ``--force``); the Klipper keys only
-    for a plausible one.  ``res.theta`` may hold more than the machine's parameters (a ballbar
+    The machine file and the URDF only for a successful fit that is plausible (or ``--force``); the Klipper
+    keys only for a plausible one.  ``res.theta`` may hold more than the machine's parameters (a ballbar
     recording's pivots): only the machine's part is written.
     """
     from .outputs import say, write_calibrated_machine
@@ -70,6 +70,10 @@ def write_calibrated_files(args, machine, res, plaus: Plausibility) -> None:
         from ..klipper import klipper_text
 
         say(args, f"wrote {write_text_atomic(args.write_klipper, klipper_text(machine, theta))} (Klipper keys)")
+    if getattr(args, "write_urdf", None) and res.success and (plaus.plausible or getattr(args, "force", False)):
+        from ..machines.urdf_write import write_calibrated_urdf
+
+        say(args, f"wrote {write_calibrated_urdf(args.write_urdf, machine, theta)} (calibrated URDF)")
 
 
 def refusal_note(args, res, plaus: Plausibility) -> str | None:

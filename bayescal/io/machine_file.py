@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,12 @@ def read_toml(path: str | os.PathLike) -> "TomlTable":
     """Parse a TOML file; a missing file or a syntax error raises MachineFileError."""
     path = Path(path)
     try:
+        # a FIFO blocks the reader and a device (/dev/zero) never ends: only regular files are read
+        mode = path.stat().st_mode
+        if stat.S_ISDIR(mode):
+            raise IsADirectoryError(str(path))
+        if not stat.S_ISREG(mode):
+            raise MachineFileError(str(path), "", "is not a regular file (a FIFO, socket or device); expected a machine file (TOML)")
         # utf-8-sig: a byte-order mark (some Windows editors write one) is not part of the TOML
         text = path.read_bytes().decode("utf-8-sig")
         doc = tomllib.loads(text)
@@ -37,6 +44,8 @@ def read_toml(path: str | os.PathLike) -> "TomlTable":
         raise MachineFileError(str(path), "", f"not a UTF-8 text file ({exc}); TOML files are UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise MachineFileError(str(path), "", f"not valid TOML ({exc})") from exc
+    except OSError as exc:  # permission denied, a path through a file, ...
+        raise MachineFileError(str(path), "", f"cannot be read ({exc.strerror or exc})") from None
     return TomlTable(doc, str(path), "")
 
 

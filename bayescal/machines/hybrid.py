@@ -18,6 +18,10 @@ the module's tool frame in its own base frame), the measured pose is
 
     M = (B_1 ... B_c)^-1 (T_1 ... T_a).
 
+A module may itself be a hybrid machine, down to :data:`MAX_NESTING` levels;
+a module file that includes itself, directly or through other module files,
+is refused naming the cycle.
+
 Actuators are numbered through the modules in file order.  Parameters are the
 modules' own, prefixed ``m<k>.`` with ``k`` the module's position in the file
 (``m1.chain1.link_length``, ``m2.joint1.offset``); tolerances are those of the
@@ -37,8 +41,10 @@ below it, and a twist of a table module enters with the opposite sign.
 
 from __future__ import annotations
 
+import os
 import re
 import tomllib
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -50,9 +56,17 @@ from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
 from .common import common_toml, read_noise, read_q_limits
 
-__all__ = ["Hybrid", "ROLES", "write_machine_files"]
+__all__ = ["Hybrid", "ROLES", "MAX_NESTING", "write_machine_files"]
 
 ROLES = ("tool", "table")
+
+#: Hybrid machines nested deeper than this (a hybrid module holding a hybrid module ...) are refused:
+#: no real machine stacks that many, and each level costs every prediction a composition.
+MAX_NESTING = 32
+
+#: The hybrid files being read, outermost first, as (real path, path as given): a module file
+#: already on this stack includes itself, which would recurse without end.
+_READING: ContextVar[tuple] = ContextVar("bayescal_hybrid_reading", default=())
 
 
 @dataclass(frozen=True)
@@ -87,6 +101,43 @@ def _table_tool_default(doc: TomlTable) -> TomlTable:
     if doc.data.get("kind") != "serial" or doc.has("tool"):
         return doc
     return type(doc)({**doc.data, "tool": {"point": [0.0, 0.0, 0.0]}}, doc.path, doc.prefix)
+
+
+def _refuse_cycle(mt: TomlTable, f: Path) -> None:
+    """MachineFileError (key ``file``) when module file ``f`` is one of the hybrid files being read."""
+    stack = _READING.get()
+    real = os.path.realpath(f)
+    for i, (r, _) in enumerate(stack):
+        if r == real:
+            loop = " -> ".join([shown for _, shown in stack[i:]] + [str(f)])
+            what = "includes itself" if i == len(stack) - 1 else "is part of a cycle of module files"
+            raise mt.error("file", f"{f} {what} ({loop}); expected a module file that is not one of the files including it")
+
+
+def _read_modules(doc: TomlTable, path: str) -> tuple[list, list]:
+    """The modules and roles of the ``[[module]]`` tables, each module built by its own kind."""
+    from . import _build
+
+    modules, roles = [], []
+    for mt in doc.array_of_tables("module"):
+        mt.reject_unknown({"file", "role", "machine"})
+        role = mt.string("role")
+        if role not in ROLES:
+            raise mt.error("role", f"expected \"tool\" or \"table\", got {role!r}")
+        if mt.has("file") == mt.has("machine"):
+            raise mt.error("file", "expected either file = \"module.toml\" or an inline [module.machine] table")
+        if mt.has("file"):
+            f = Path(mt.string("file"))
+            f = f if f.is_absolute() else Path(path).parent / f
+            _refuse_cycle(mt, f)
+            sub, sub_path = read_toml(f), str(f)
+        else:
+            sub, sub_path = mt.table("machine"), path
+        if role == "table":
+            sub = _table_tool_default(sub)
+        modules.append(_build(sub, sub_path))
+        roles.append(role)
+    return modules, roles
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,28 +195,21 @@ class Hybrid(Machine):
     # ----------------------------------------------------------------- set-up
     @classmethod
     def from_toml(cls, doc: TomlTable, path: str) -> "Hybrid":
-        """Read ``[[module]]`` tables (``file`` relative to this file, or inline ``[module.machine]``)."""
-        from . import _build
+        """Read ``[[module]]`` tables (``file`` relative to this file, or inline ``[module.machine]``).
 
+        Raises MachineFileError for a module file that includes itself (the
+        cycle named) and for hybrid machines nested deeper than :data:`MAX_NESTING`.
+        """
         doc.reject_unknown({"kind", "name", "module", "measurement", "workspace"})
-        modules, roles = [], []
-        for mt in doc.array_of_tables("module"):
-            mt.reject_unknown({"file", "role", "machine"})
-            role = mt.string("role")
-            if role not in ROLES:
-                raise mt.error("role", f"expected \"tool\" or \"table\", got {role!r}")
-            if mt.has("file") == mt.has("machine"):
-                raise mt.error("file", "expected either file = \"module.toml\" or an inline [module.machine] table")
-            if mt.has("file"):
-                f = Path(mt.string("file"))
-                f = f if f.is_absolute() else Path(path).parent / f
-                sub, sub_path = read_toml(f), str(f)
-            else:
-                sub, sub_path = mt.table("machine"), path
-            if role == "table":
-                sub = _table_tool_default(sub)
-            modules.append(_build(sub, sub_path))
-            roles.append(role)
+        stack = _READING.get()
+        if len(stack) >= MAX_NESTING:
+            raise doc.error("module", f"hybrid machines nested more than {MAX_NESTING} levels deep (from "
+                                      f"{stack[0][1]}); expected at most {MAX_NESTING}")
+        token = _READING.set(stack + ((os.path.realpath(path), path),))
+        try:
+            modules, roles = _read_modules(doc, path)
+        finally:
+            _READING.reset(token)
         if "tool" not in roles:
             raise doc.error("module", "expected at least one module with role = \"tool\" (the one carrying the measured tool)")
         n_act = sum(m.n_actuators for m in modules)

@@ -10,11 +10,22 @@ Kinematics (FORMATS.md section 5), lengths in mm and angles in rad: joint
 and the tool (measured) frame is ``T_1 ... T_n Trans(tool.point) Rot(tool.rpy)``;
 its origin is the tool point and its orientation the measured orientation.
 
+Mimic joints (FORMATS.md section 8; URDF ``<mimic>``): joint ``i`` with
+``mimic = d`` moves by ``multiplier * q_d + offset`` (``q_d`` the position of
+joint ``d``, which is no mimic joint itself).  A mimic joint is no actuator:
+the actuators ``q_1 ... q_N`` are the non-mimic joints in order, and the
+recordings have one ``q`` column each.  Every joint, mimic or not, keeps its
+error parameters below; a mimic joint's ``joint<i>.offset`` is a zero offset
+added to its position like any joint's.  The multiplier has no error
+parameter: it is a transmission ratio, like the drives' own ratios, which
+the geometric model takes as exact (a ratio error of the driving actuator,
+e.g. a screw-pitch effect, reaches the mimic joint through the multiplier).
+
 Error parameters, per joint ``i`` in this order (the order is the priority of
 the automatic identifiable subset: earlier parameters are kept in
 preference), then the tool:
 
-* ``joint<i>.offset``: zero offset added to ``q_i`` (rad or mm);
+* ``joint<i>.offset``: zero offset added to joint ``i``'s position (rad or mm);
 * ``joint<i>.axis.tilt_<a>``, ``joint<i>.axis.tilt_<b>``: the unit axis tilted
   by two small rotations about the joint-frame axes ``a``, ``b`` it is most
   perpendicular to (``z`` axis: ``tilt_x``, ``tilt_y``), see
@@ -37,13 +48,14 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..errors import InputError
 from ..geometry import skew, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
 
-__all__ = ["Serial", "SERIAL_TOLERANCE_DEFAULTS", "JOINT_TYPES", "rpy_matrix", "rpy_from_matrix"]
+__all__ = ["Serial", "SERIAL_TOLERANCE_DEFAULTS", "JOINT_TYPES", "rpy_matrix", "rpy_from_matrix", "mimic_problem"]
 
 #: Documented one-sigma defaults of the ``[tolerance]`` table (mm or rad).
 SERIAL_TOLERANCE_DEFAULTS: dict[str, float] = {
@@ -105,6 +117,35 @@ def rpy_from_matrix(R: ArrayLike) -> NDArray:
     return np.stack([r, p, y], axis=-1)
 
 
+def mimic_problem(mimic: tuple, i: int) -> str | None:
+    """Why joint ``i``'s mimic entry cannot be used, or None when it can.
+
+    Parameters
+    ----------
+    mimic : tuple
+        Per joint: None (an actuator) or ``(d, multiplier, offset)``, ``d`` the
+        0-based index of the driving joint (offset mm or rad).
+    i : int
+        The joint (0-based) to check; messages number joints from 1, as the
+        machine file does.
+    """
+    if mimic[i] is None:
+        return None
+    d, k, o = mimic[i]
+    m = len(mimic)
+    if isinstance(d, bool) or not isinstance(d, (int, np.integer)) or not 0 <= d < m:
+        shown = d + 1 if isinstance(d, (int, np.integer)) and not isinstance(d, bool) else repr(d)
+        return f"joint {i + 1} mimics joint {shown}; expected the index of another joint, 1..{m}"
+    if d == i:
+        return f"joint {i + 1} mimics itself; expected the index of the joint that drives it"
+    if mimic[d] is not None:
+        return (f"joint {i + 1} mimics joint {d + 1}, which mimics joint {mimic[d][0] + 1}; the driving joint must be "
+                f"an actuator (no mimic joint itself)")
+    if not (np.isfinite(k) and np.isfinite(o)):
+        return f"joint {i + 1}: mimic multiplier and offset must be finite numbers, got {k!r} and {o!r}"
+    return None
+
+
 def _left_jacobian(phi: NDArray) -> NDArray:
     """Left Jacobian of SO(3): ``exp(phi + d) = exp([J_l(phi) d]x) exp(phi) + O(d^2)``."""
     th = np.linalg.norm(phi, axis=-1)[..., None, None]
@@ -135,6 +176,45 @@ class _Chain:
     R_tool: NDArray  # (n, 3, 3)
 
 
+def _read_joint_tables(joints: list[TomlTable]) -> tuple[list, list, list, list, list, tuple | None]:
+    """Types, origins (mm), rpy (rad), unit axes, mimic entries and names of ``[[joint]]`` tables."""
+    types, origin, rpy, axis, mimic, names = [], [], [], [], [], []
+    for jt in joints:
+        jt.reject_unknown({"type", "origin", "rpy", "axis", "name", "mimic", "multiplier", "offset"})
+        t = jt.string("type")
+        if t not in JOINT_TYPES:
+            raise jt.error("type", f"expected \"revolute\" or \"prismatic\", got {t!r}")
+        types.append(t)
+        origin.append(jt.vector("origin", default=np.zeros(3)))  # URDF: a missing origin is the identity
+        rpy.append(jt.vector("rpy", default=np.zeros(3)))
+        axis.append(jt.vector("axis", unit=True))
+        names.append(jt.string("name") if jt.has("name") else None)
+        if not jt.has("mimic"):
+            for k in ("multiplier", "offset"):
+                if jt.has(k):
+                    raise jt.error(k, "only allowed together with mimic = <index of the driving joint>")
+            mimic.append(None)
+            continue
+        d = jt.data["mimic"]
+        if isinstance(d, bool) or not isinstance(d, int):
+            raise jt.error("mimic", f"expected the index (1-based integer) of the driving joint, got {d!r}")
+        mimic.append((d - 1, jt.number("multiplier", 1.0), jt.number("offset", 0.0)))
+    for i, jt in enumerate(joints):
+        if (why := mimic_problem(tuple(mimic), i)) is not None:
+            raise jt.error("mimic", why)
+    if all(n is None for n in names):
+        return types, origin, rpy, axis, mimic, None
+    # with any name given, an unnamed joint i is named joint<i>; the names must stay distinct
+    full = tuple(n if n is not None else f"joint{i + 1}" for i, n in enumerate(names))
+    for i, n in enumerate(full):
+        if n in full[:i]:
+            k = full.index(n)
+            this = f"joint name {n!r}" if names[i] is not None else f"the default name {n!r} of this unnamed joint"
+            that = f"joint {k + 1}'s name" if names[k] is not None else f"the default name of unnamed joint {k + 1}"
+            raise joints[i].error("name", f"{this} is also {that}; expected distinct names")
+    return types, origin, rpy, axis, mimic, full
+
+
 @dataclass(frozen=True, eq=False)
 class Serial(Machine):
     """A serial chain of revolute and prismatic joints with URDF joint semantics.
@@ -154,7 +234,13 @@ class Serial(Machine):
     tool_rpy : ndarray, shape (3,)
         Orientation of the measured frame in the last joint frame, rad.
     name, noise, q_limits, tolerance_groups, source
-        As for the other kinds.
+        As for the other kinds; ``q_limits`` has one row per actuator (per non-mimic joint).
+    mimic : tuple, optional
+        Per joint: None (an actuator) or ``(d, multiplier, offset)``: the joint
+        moves by ``multiplier * q_d + offset`` with ``d`` the 0-based index of its
+        driving joint (no mimic itself); offset mm or rad.  Empty: no mimic joints.
+    joint_names : tuple of str, optional
+        The joints' names (a URDF's, or ``[[joint]] name``); None: ``joint1`` ...
     """
 
     kind = "serial"
@@ -174,9 +260,12 @@ class Serial(Machine):
     #: moving links, from a URDF's ``<inertial>`` elements; None when the machine file does not state them.
     link_mass: NDArray | None = None
     link_com: NDArray | None = None
+    mimic: tuple = ()
+    joint_names: tuple | None = None
 
     def __post_init__(self) -> None:
         m = len(self.joint_type)
+        self._set_mimic(m)
         for key, arr in (("origin", self.origin), ("rpy", self.rpy), ("axis", self.axis)):
             object.__setattr__(self, key, np.asarray(arr, dtype=float).reshape(m, 3))
         object.__setattr__(self, "axis", self.axis / np.linalg.norm(self.axis, axis=1, keepdims=True))
@@ -198,19 +287,76 @@ class Serial(Machine):
         object.__setattr__(self, "layout", ParamLayout(tuple(specs)))
         object.__setattr__(self, "tolerance", np.array([self.tolerance_groups[s.group] for s in specs]))
 
+    def _set_mimic(self, m: int) -> None:
+        """Check the mimic entries and build the joint positions' map ``q_joint = A q + b`` from the actuators."""
+        mimic = tuple(self.mimic) or (None,) * m
+        if len(mimic) != m:
+            raise InputError(f"mimic: expected one entry per joint ({m}), got {len(mimic)}")
+        mimic = tuple(None if x is None else (x[0], float(x[1]), float(x[2])) for x in mimic)
+        for i in range(m):
+            if (why := mimic_problem(mimic, i)) is not None:
+                raise InputError(f"mimic: {why}")
+        mimic = tuple(None if x is None else (int(x[0]), x[1], x[2]) for x in mimic)
+        act = [i for i in range(m) if mimic[i] is None]
+        A, b = np.zeros((m, len(act))), np.zeros(m)
+        for i in range(m):
+            if mimic[i] is None:
+                A[i, act.index(i)] = 1.0
+            else:
+                A[i, act.index(mimic[i][0])], b[i] = mimic[i][1], mimic[i][2]
+        if self.joint_names is not None:
+            names = tuple(self.joint_names)
+            if len(names) != m or len(set(names)) != m or not all(isinstance(x, str) and x for x in names):
+                raise InputError(f"joint_names: expected {m} distinct non-empty names, got {names!r}")
+            object.__setattr__(self, "joint_names", names)
+        object.__setattr__(self, "mimic", mimic)
+        object.__setattr__(self, "_actuated", tuple(act))
+        object.__setattr__(self, "_q_map", A)
+        object.__setattr__(self, "_q_shift", b)
+
     # ----------------------------------------------------------------- set-up
     @property
-    def n_actuators(self) -> int:
+    def n_joints(self) -> int:
+        """Moving joints, mimic joints included."""
         return len(self.joint_type)
 
     @property
+    def n_actuators(self) -> int:
+        """Non-mimic joints: one actuator (one ``q`` column) each."""
+        return len(self._actuated)
+
+    @property
+    def actuated_joints(self) -> tuple[int, ...]:
+        """The joint (0-based) of each actuator, in actuator order."""
+        return self._actuated
+
+    @property
     def actuator_units(self) -> tuple[str, ...]:
-        return tuple("rad" if t == "revolute" else "mm" for t in self.joint_type)
+        return tuple("rad" if self.joint_type[i] == "revolute" else "mm" for i in self._actuated)
+
+    def joint_positions(self, q: ArrayLike) -> NDArray:
+        """Every joint's position (mimic joints included) for actuator positions ``q``.
+
+        Parameters
+        ----------
+        q : array_like, shape (n_poses, n_actuators)
+            Actuator positions, rad or mm.
+
+        Returns
+        -------
+        ndarray, shape (n_poses, n_joints)
+            rad (revolute) or mm (prismatic); a mimic joint's is ``multiplier * q_driver + offset``.
+        """
+        return self.check_q(q) @ self._q_map.T + self._q_shift
 
     @property
     def weight_body_names(self) -> tuple[str, ...]:
-        """``link1`` ... ``link<m>``: link ``k`` is what joint ``k`` moves up to joint ``k + 1`` (the last one carries the tool)."""
-        return tuple(f"link{k + 1}" for k in range(self.n_actuators))
+        """``link1`` ... ``link<m>``: link ``k`` is what joint ``k`` moves up to joint ``k + 1`` (the last one carries the tool).
+
+        One link per joint, mimic joints included; each link's velocity per
+        actuator sums the motions of the joints that actuator drives.
+        """
+        return tuple(f"link{k + 1}" for k in range(self.n_joints))
 
     @property
     def body_inertials(self) -> BodyInertials | None:
@@ -236,24 +382,14 @@ class Serial(Machine):
             urdf_path = Path(urdf) if Path(urdf).is_absolute() else Path(path).parent / urdf
             chain = chain_from_urdf(urdf_path, doc.string("base_link"), doc.string("tip_link"), path=path)
             types, origin, rpy, axis = chain.joint_type, chain.origin, chain.rpy, chain.axis
-            tail, limits = chain.tail, chain.q_limits
+            tail, limits, mimic, names = chain.tail, chain.q_limits, chain.mimic, chain.names
             inertial = (chain.link_mass, chain.link_com) if chain.link_mass is not None else (None, None)
         else:
             for k in ("base_link", "tip_link"):
                 if doc.has(k):
                     raise doc.error(k, "only allowed together with urdf = \"...\"")
             inertial = (None, None)
-            joints = doc.array_of_tables("joint")
-            types, origin, rpy, axis = [], [], [], []
-            for jt in joints:
-                jt.reject_unknown({"type", "origin", "rpy", "axis"})
-                t = jt.string("type")
-                if t not in JOINT_TYPES:
-                    raise jt.error("type", f"expected \"revolute\" or \"prismatic\", got {t!r}")
-                types.append(t)
-                origin.append(jt.vector("origin", default=np.zeros(3)))  # URDF: a missing origin is the identity
-                rpy.append(jt.vector("rpy", default=np.zeros(3)))
-                axis.append(jt.vector("axis", unit=True))
+            types, origin, rpy, axis, mimic, names = _read_joint_tables(doc.array_of_tables("joint"))
             tail = None
         tool = doc.table("tool")
         tool.reject_unknown({"point", "rpy"})
@@ -263,14 +399,14 @@ class Serial(Machine):
             # tip_link's frame is carried into the last moving joint's frame
             R_tail, p_tail = tail
             tp, tr = p_tail + R_tail @ tp, rpy_from_matrix(R_tail @ rpy_matrix(tr))
-        q_limits = read_q_limits(doc, len(types))
+        q_limits = read_q_limits(doc, sum(x is None for x in mimic))  # one row per actuator: mimic joints have none
         if q_limits is None and limits is not None:
             q_limits = limits
         return cls(
             joint_type=tuple(types), origin=np.array(origin), rpy=np.array(rpy), axis=np.array(axis),
             tool_point=tp, tool_rpy=tr, name=doc.string("name", "serial chain"), noise=read_noise(doc),
             q_limits=q_limits, tolerance_groups=read_tolerance(doc, SERIAL_TOLERANCE_DEFAULTS), source=path,
-            link_mass=inertial[0], link_com=inertial[1],
+            link_mass=inertial[0], link_com=inertial[1], mimic=tuple(mimic), joint_names=names,
         )
 
     def _theta_rows(self, theta: ArrayLike | None, n: int) -> NDArray:
@@ -280,7 +416,7 @@ class Serial(Machine):
     def geometry_arrays(self, theta: ArrayLike | None = None) -> dict[str, NDArray]:
         """The machine-file arrays of ``nominal + theta`` with the zero offsets folded in (theta of shape (P,))."""
         th = self.check_theta(theta)
-        m = self.n_actuators
+        m = self.n_joints
         tj = th[: _PER_JOINT * m].reshape(m, _PER_JOINT)
         origin = self.origin + tj[:, 3:6]
         rpy = self.rpy + tj[:, 6:9]
@@ -299,7 +435,8 @@ class Serial(Machine):
 
     # ------------------------------------------------------------ kinematics
     def _chain(self, q: NDArray, theta: NDArray) -> _Chain:
-        n, m = q.shape
+        """The chain's frames for actuator positions ``q`` (n, N); mimic joints follow their drivers."""
+        n, m = q.shape[0], self.n_joints
         tj = theta[:, : _PER_JOINT * m].reshape(n, m, _PER_JOINT)
         ttool = theta[:, _PER_JOINT * m :]
         origin = self.origin[None] + tj[:, :, 3:6]
@@ -308,7 +445,7 @@ class Serial(Machine):
         daxis = np.empty((n, m, 3, 2))
         for k in range(m):
             axis[:, k], daxis[:, k] = tilted_direction(self.axis[k], self._tilt[k], tj[:, k, 1:3])
-        qe = q + tj[:, :, 0]
+        qe = q @ self._q_map.T + self._q_shift + tj[:, :, 0]
         R_fix = rpy_matrix(rpy)
         R_parent = np.empty((n, m, 3, 3))
         R_joint = np.empty((n, m, 3, 3))
@@ -339,8 +476,8 @@ class Serial(Machine):
 
         Parameters
         ----------
-        q : array_like, shape (n_poses, n_joints)
-            Joint positions, rad (revolute) or mm (prismatic).
+        q : array_like, shape (n_poses, n_actuators)
+            Actuator positions (the non-mimic joints'), rad (revolute) or mm (prismatic).
         theta : array_like, shape (P,) or (n_poses, P), optional
             Geometric errors; zeros if omitted.
 
@@ -374,10 +511,12 @@ class Serial(Machine):
         joint's own motion, an axis tilt ``J_l(q a) q da`` (revolute; ``J_l``
         the left Jacobian of SO(3)) or ``q da`` (prismatic).  A rotation ``w``
         about a point ``c`` moves the tool point by ``w x (p - c)``.
+        A mimic joint's columns are those of its own motion: its offset
+        moves it, whatever drives it.
         Returns shape (n_poses, 6, P); see :meth:`Machine.tool_jacobian`.
         """
         q = self.check_q(q)
-        n, m = q.shape
+        n, m = q.shape[0], self.n_joints
         c = self._chain(q, self._theta_rows(theta, n))
         J = np.zeros((n, 6, self.n_params))
         W = rpy_rates(c.rpy)  # (n, m, 3, 3), columns in the parent frame
@@ -407,10 +546,12 @@ class Serial(Machine):
         Joint ``j <= k`` turns link ``k`` about its base-frame axis ``a_j``
         through the joint origin ``o_j`` (``v = a_j x (x_k - o_j)``, ``w =
         a_j``) or slides it along ``a_j`` (``v = a_j``, ``w = 0``); joints
-        beyond ``k`` do not move it.
+        beyond ``k`` do not move it.  Per actuator the joints' columns are
+        summed through the mimic map (a driver moves its mimic joints by
+        ``multiplier`` per unit).
         """
         q = self.check_q(q)
-        n, m = q.shape
+        n, m = q.shape[0], self.n_joints
         c = self._chain(q, self._theta_rows(theta, n))
         J = np.zeros((n, m, 6, m))
         for j in range(m):
@@ -421,32 +562,40 @@ class Serial(Machine):
                     J[:, k, 3:, j] = a
                 else:
                     J[:, k, :3, j] = a
-        return WeightBodies(c.p_after, c.R_after, J, self.weight_body_names)
+        return WeightBodies(c.p_after, c.R_after, J @ self._q_map, self.weight_body_names)
 
     def actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
-        """Tool-pose derivative with respect to the joint positions, analytic (the joint twists)."""
+        """Tool-pose derivative with respect to the actuator positions, analytic (the joint twists).
+
+        Shape (n_poses, 6, n_actuators): each joint's twist, summed per actuator through the mimic map.
+        """
         q = self.check_q(q)
-        n, m = q.shape
+        n, m = q.shape[0], self.n_joints
         c = self._chain(q, self._theta_rows(theta, n))
         J = np.empty((n, 6, m))
         for k in range(m):
             J[:, :3, k], J[:, 3:, k] = self._motion_columns(c, k)
-        return J
+        return J @ self._q_map
 
     # ------------------------------------------------------------------ output
     def to_toml(self, theta: ArrayLike | None = None) -> str:
         """Machine file of ``nominal + theta`` as ``[[joint]]`` tables (zero offsets folded into rpy/origin).
 
         A chain read from a URDF file is written out as ``[[joint]]`` tables
-        (fixed joints already folded in), so the file stands alone.
+        (fixed joints already folded in, the URDF joint names kept as
+        ``name``), so the file stands alone.  Mimic joints keep ``mimic``,
+        ``multiplier`` and ``offset``; their zero offsets are folded like any
+        joint's.
         """
         g = self.geometry_arrays(theta)
         f = format_toml_value
         out = ['kind = "serial"', f"name = {f(self.name)}", ""]
         for i, t in enumerate(self.joint_type):
-            out += [
-                "[[joint]]", f'type = "{t}"', f"origin = {f(g['origin'][i])}", f"rpy = {f(g['rpy'][i])}",
-                f"axis = {f(g['axis'][i])}", "",
-            ]
+            out += ["[[joint]]"] + ([f"name = {f(self.joint_names[i])}"] if self.joint_names is not None else [])
+            out += [f'type = "{t}"', f"origin = {f(g['origin'][i])}", f"rpy = {f(g['rpy'][i])}", f"axis = {f(g['axis'][i])}"]
+            if self.mimic[i] is not None:
+                d, k, o = self.mimic[i]
+                out += [f"mimic = {d + 1}", f"multiplier = {f(k)}", f"offset = {f(o)}"]
+            out.append("")
         out += ["[tool]", f"point = {f(g['tool_point'])}", f"rpy = {f(g['tool_rpy'])}", ""]
         return "\n".join(out) + common_toml(self, self.tolerance_groups)

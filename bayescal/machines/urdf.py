@@ -6,11 +6,16 @@ walks the joints between two links and converts them to bayescal's units.
 Supported: ``revolute``, ``continuous`` (both revolute actuators, q in rad),
 ``prismatic`` (q in mm; URDF's metres are converted) and ``fixed`` joints (folded
 into the next moving joint's origin and rpy, or into the tool after the last
-one).  Refused with a message naming the joint: ``floating`` and ``planar``
-joints (not one actuator each) and ``mimic`` joints (one actuator driving two
-joints is not a serial chain of independent actuators).  Ignored: visual and
-collision elements, ``dynamics``, ``safety_controller``, ``calibration`` (the
-URDF ``calibration`` reference positions are not zero offsets), transmissions.
+one).  ``<mimic joint="..." multiplier="..." offset="..."/>`` is honoured: the
+joint moves by ``multiplier * q_driver + offset`` and is no actuator (the
+multiplier and offset are converted to mm where a prismatic joint is
+involved); its driver must be a moving joint of the same chain and no mimic
+joint itself.  Refused with a message naming the joint: ``floating`` and
+``planar`` joints (not one actuator each), a mimic joint whose driver is off
+the chain, and files that are no tree (a link that is the child of two
+joints, joints forming a cycle).  Ignored: visual and collision elements,
+``dynamics``, ``safety_controller``, ``calibration`` (the URDF
+``calibration`` reference positions are not zero offsets), transmissions.
 
 ``<inertial>`` elements give the moving links' weights (joint_compliance's
 loads): link ``k`` of the chain (in the frame after moving joint ``k``, the
@@ -57,6 +62,10 @@ class UrdfChain:
         one (``continuous`` joints have none).
     names : tuple of str
         The URDF joint names, base outward.
+    mimic : tuple
+        Per moving joint: None (an actuator) or ``(d, multiplier, offset)``
+        in bayescal's units (``d`` the 0-based index of the driving joint in
+        the chain; offset mm or rad), as :class:`~bayescal.machines.serial.Serial` takes it.
     link_mass : ndarray, shape (m,) or None
         Mass of each moving link with what hangs from it (kg), None when no
         moving link has an ``<inertial>`` mass.
@@ -73,6 +82,7 @@ class UrdfChain:
     names: tuple
     link_mass: NDArray | None = None
     link_com: NDArray | None = None
+    mimic: tuple = ()
 
 
 def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, path: str = "") -> UrdfChain:
@@ -93,51 +103,20 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
         Naming the machine file, the key (``urdf``, ``base_link``, ``tip_link``)
         and, for an unsupported joint, its URDF name and type.
     """
-    import yourdfpy
-
     from .serial import rpy_from_matrix
 
     urdf_path = Path(urdf_path)
-    if not urdf_path.is_file():
-        raise MachineFileError(path, "urdf", f"file not found: {urdf_path}")
-    try:
-        # yourdfpy recovers from malformed XML (and only logs it); a machine description must be
-        # well-formed, so the file is first parsed strictly by lxml (which yourdfpy builds on)
-        from lxml import etree
-
-        etree.parse(str(urdf_path), etree.XMLParser(recover=False))
-        robot = yourdfpy.URDF.load(
-            str(urdf_path), build_scene_graph=False, load_meshes=False,
-            build_collision_scene_graph=False, load_collision_meshes=False,
-        )
-    except Exception as exc:  # yourdfpy raises lxml, ValueError, KeyError... for malformed files
-        raise MachineFileError(path, "urdf", f"{urdf_path} is not a readable URDF file ({type(exc).__name__}: {exc})") from exc
-    links = set(robot.link_map)
-    for key, link in (("base_link", base_link), ("tip_link", tip_link)):
-        if link not in links:
-            raise MachineFileError(path, key, f"link {link!r} not in {urdf_path.name}; links: {', '.join(sorted(links))}")
-    by_child = {j.child: j for j in robot.joint_map.values()}
-    chain = []
-    link = tip_link
-    while link != base_link:
-        if link not in by_child:
-            raise MachineFileError(path, "base_link", f"{base_link!r} is not an ancestor of tip_link {tip_link!r} in {urdf_path.name}")
-        j = by_child[link]
-        chain.append(j)
-        link = j.parent
-    chain.reverse()
-    types, origin, rpy, axis, lim, names = [], [], [], [], [], []
+    robot = _load(urdf_path, path)
+    chain = _joints_between(robot, base_link, tip_link, urdf_path, path)
+    types, origin, rpy, axis, lim, moving = [], [], [], [], [], []
     pending = np.eye(4)  # fixed transforms not yet folded into a moving joint (mm)
     for j in chain:
-        T = np.array(j.origin if j.origin is not None else np.eye(4), dtype=float)
-        T[:3, 3] *= _M_TO_MM
+        T = _transform_mm(j.origin)
         if j.type == "fixed":
             pending = pending @ T
             continue
         if j.type not in _REVOLUTE + ("prismatic",):
             raise MachineFileError(path, "urdf", f"joint {j.name!r} is of type {j.type!r}; supported: revolute, continuous, prismatic, fixed")
-        if j.mimic is not None:
-            raise MachineFileError(path, "urdf", f"joint {j.name!r} mimics {j.mimic.joint!r}; mimic joints are not supported")
         T = pending @ T
         pending = np.eye(4)
         a = np.array(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=float)  # URDF default axis is x
@@ -147,7 +126,7 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
         origin.append(T[:3, 3])
         rpy.append(rpy_from_matrix(T[:3, :3]))
         axis.append(a / np.linalg.norm(a))
-        names.append(j.name)
+        moving.append(j)
         scale = _M_TO_MM if j.type == "prismatic" else 1.0
         if j.type == "continuous" or j.limit is None or j.limit.lower is None or j.limit.upper is None:
             lim.append(None)
@@ -155,16 +134,107 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
             lim.append((scale * float(j.limit.lower), scale * float(j.limit.upper)))
     if not types:
         raise MachineFileError(path, "tip_link", f"no revolute, continuous or prismatic joint between {base_link!r} and {tip_link!r}")
+    mimic = _mimic_entries(moving, path)
+    lim = [li for li, mi in zip(lim, mimic) if mi is None]  # limits per actuator: mimic joints have none
     ok = all(li is not None and li[0] < li[1] for li in lim)
-    mass, com = _link_inertials(robot, [j for j in chain if j.name in names], path, urdf_path)
+    mass, com = _link_inertials(robot, moving, path, urdf_path)
     return UrdfChain(
         joint_type=tuple(types), origin=np.array(origin), rpy=np.array(rpy), axis=np.array(axis),
-        tail=(pending[:3, :3], pending[:3, 3]), q_limits=np.array(lim, dtype=float) if ok else None, names=tuple(names),
-        link_mass=mass, link_com=com,
+        tail=(pending[:3, :3], pending[:3, 3]), q_limits=np.array(lim, dtype=float) if ok else None,
+        names=tuple(j.name for j in moving), link_mass=mass, link_com=com, mimic=mimic,
     )
 
 
+def _load(urdf_path: Path, path: str):
+    """The parsed URDF (yourdfpy), after a strict XML parse; MachineFileError (key ``urdf``) otherwise."""
+    import yourdfpy
+
+    if not urdf_path.exists():
+        raise MachineFileError(path, "urdf", f"file not found: {urdf_path}")
+    if not urdf_path.is_file():  # a folder, a FIFO or a device (/dev/zero) would block or never end
+        raise MachineFileError(path, "urdf", f"{urdf_path} is not a regular file; expected a URDF file")
+    try:
+        # yourdfpy recovers from malformed XML (and only logs it); a machine description must be
+        # well-formed, so the file is first parsed strictly by lxml (which yourdfpy builds on)
+        from lxml import etree
+
+        etree.parse(str(urdf_path), etree.XMLParser(recover=False))
+        return yourdfpy.URDF.load(
+            str(urdf_path), build_scene_graph=False, load_meshes=False,
+            build_collision_scene_graph=False, load_collision_meshes=False,
+        )
+    except Exception as exc:  # yourdfpy raises lxml, ValueError, KeyError... for malformed files
+        raise MachineFileError(path, "urdf", f"{urdf_path} is not a readable URDF file ({type(exc).__name__}: {exc})") from exc
+
+
+def _joints_between(robot, base_link: str, tip_link: str, urdf_path: Path, path: str) -> list:
+    """The URDF joints from ``base_link`` down to ``tip_link``, base outward.
+
+    The walk goes up from the tip by each link's parent joint; a URDF is a
+    tree, so a link with two parent joints or a cycle of joints (which would
+    make the walk endless) is refused by name.
+    """
+    links = set(robot.link_map)
+    for key, link in (("base_link", base_link), ("tip_link", tip_link)):
+        if link not in links:
+            raise MachineFileError(path, key, f"link {link!r} not in {urdf_path.name}; links: {', '.join(sorted(links))}")
+    by_child: dict = {}
+    for j in robot.joint_map.values():
+        if j.child in by_child:
+            raise MachineFileError(path, "urdf", f"link {j.child!r} of {urdf_path.name} is the child of two joints "
+                                                 f"({by_child[j.child].name!r}, {j.name!r}); a URDF is a tree")
+        by_child[j.child] = j
+    chain, seen, link = [], [tip_link], tip_link
+    while link != base_link:
+        if link not in by_child:
+            raise MachineFileError(path, "base_link", f"{base_link!r} is not an ancestor of tip_link {tip_link!r} in {urdf_path.name}")
+        j = by_child[link]
+        chain.append(j)
+        link = j.parent
+        if link in seen:
+            loop = seen[seen.index(link):]
+            names = [by_child[x].name for x in loop]
+            raise MachineFileError(
+                path, "urdf", f"the joints {', '.join(repr(n) for n in names)} of {urdf_path.name} form a cycle "
+                f"(links {' <- '.join(loop + [link])}) with tip_link {tip_link!r} on it or below it; a URDF is a tree")
+        seen.append(link)
+    chain.reverse()
+    return chain
+
+
+def _mimic_entries(moving: list, path: str) -> tuple:
+    """``(driver index, multiplier, offset)`` per moving joint in bayescal's units (mm, rad), None for actuators."""
+    index = {j.name: k for k, j in enumerate(moving)}
+    scale = [_M_TO_MM if j.type == "prismatic" else 1.0 for j in moving]
+    out = []
+    for k, j in enumerate(moving):
+        if j.mimic is None:
+            out.append(None)
+            continue
+        if j.mimic.joint not in index:
+            raise MachineFileError(path, "urdf", f"joint {j.name!r} mimics {j.mimic.joint!r}, which is not a moving joint "
+                                                 f"between base_link and tip_link; expected one of {', '.join(index)}")
+        d = index[j.mimic.joint]
+        mult = 1.0 if j.mimic.multiplier is None else float(j.mimic.multiplier)
+        off = 0.0 if j.mimic.offset is None else float(j.mimic.offset)
+        # q_k[urdf] = mult q_d[urdf] + off, and q[bayescal] = scale q[urdf] (mm for prismatic joints)
+        out.append((d, mult * scale[k] / scale[d], off * scale[k]))
+    for k, j in enumerate(moving):
+        if out[k] is None:
+            continue
+        d = out[k][0]
+        if d == k:
+            raise MachineFileError(path, "urdf", f"joint {j.name!r} mimics itself; expected the joint that drives it")
+        if out[d] is not None:
+            raise MachineFileError(path, "urdf", f"joint {j.name!r} mimics {moving[d].name!r}, which mimics "
+                                                 f"{moving[out[d][0]].name!r}; the driving joint must be no mimic joint itself")
+        if not np.all(np.isfinite(out[k][1:])):
+            raise MachineFileError(path, "urdf", f"joint {j.name!r}: mimic multiplier and offset must be finite numbers")
+    return tuple(out)
+
+
 def _transform_mm(origin) -> NDArray:
+    """A URDF ``<origin>`` (4x4, metres) in mm; the identity when absent."""
     T = np.array(origin if origin is not None else np.eye(4), dtype=float)
     T[:3, 3] *= _M_TO_MM
     return T

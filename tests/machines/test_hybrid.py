@@ -213,3 +213,81 @@ def test_write_machine_files_uses_module_files(table, tmp_path):
     a, b = table.forward(q, theta), again.forward(q)
     assert np.allclose(a.position, b.position, atol=1e-9) and np.allclose(a.rotation, b.rotation, atol=1e-12)
     assert again.noise == table.noise and np.array_equal(again.q_limits, table.q_limits)
+
+
+# ----------------------------------------------------------------- files that used to hang or recurse
+_WRIST_FILE = ROOT / "examples" / "hybrid_wrist" / "wrist.toml"
+
+
+def _hybrid_of(path, *modules):
+    path.write_text('kind = "hybrid"\n' + "".join(f'[[module]]\nfile = "{m}"\nrole = "tool"\n' for m in modules))
+    return path
+
+
+def test_a_module_file_that_includes_itself_is_refused_naming_the_cycle(tmp_path):
+    _hybrid_of(tmp_path / "self.toml", "self.toml")
+    with pytest.raises(MachineFileError, match=r"self.toml includes itself \(.*self.toml -> .*self.toml\)") as err:
+        load_machine(tmp_path / "self.toml")
+    assert err.value.key == "module[1].file"
+    (tmp_path / "wrist.toml").write_text(_WRIST_FILE.read_text())
+    _hybrid_of(tmp_path / "a.toml", "b.toml")
+    _hybrid_of(tmp_path / "b.toml", "wrist.toml", "./c.toml")
+    _hybrid_of(tmp_path / "c.toml", "a.toml")
+    with pytest.raises(MachineFileError, match=r"a.toml is part of a cycle of module files \(.*a.toml -> .*b.toml -> .*c.toml -> .*a.toml\)") as err:
+        load_machine(tmp_path / "a.toml")
+    assert err.value.key == "module[1].file" and str(tmp_path / "c.toml") in str(err.value)
+
+
+def test_the_same_module_file_twice_side_by_side_is_no_cycle(tmp_path):
+    (tmp_path / "wrist.toml").write_text(_WRIST_FILE.read_text())
+    m = load_machine(_hybrid_of(tmp_path / "h.toml", "wrist.toml", "wrist.toml"))
+    assert m.n_actuators == 4
+
+
+def test_nesting_is_allowed_to_the_stated_depth_and_refused_beyond(tmp_path):
+    from bayescal.machines.hybrid import MAX_NESTING
+
+    (tmp_path / "wrist.toml").write_text(_WRIST_FILE.read_text())
+    prev = "wrist.toml"
+    for k in range(MAX_NESTING + 1):
+        prev = _hybrid_of(tmp_path / f"n{k}.toml", prev).name
+    deepest = load_machine(tmp_path / f"n{MAX_NESTING - 1}.toml")  # MAX_NESTING hybrids around the wrist
+    assert deepest.n_actuators == 2 and deepest.layout.names[0] == "m1." * MAX_NESTING + "joint1.offset"
+    with pytest.raises(MachineFileError, match=f"nested more than {MAX_NESTING} levels deep") as err:
+        load_machine(tmp_path / f"n{MAX_NESTING}.toml")
+    assert err.value.key == "module"
+
+
+def _unblock_fifo_later(path):
+    """If a reader ever blocks on the FIFO (the bug), a writer opens and closes it after a few seconds so
+    that the test fails instead of hanging."""
+    import os
+    import threading
+
+    def later():
+        import time
+
+        time.sleep(5.0)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+            os.close(fd)
+        except OSError:  # no reader: nothing was blocked
+            pass
+
+    threading.Thread(target=later, daemon=True).start()
+
+
+def test_a_fifo_or_device_module_file_is_refused_unread(tmp_path):
+    import os
+
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)
+    _unblock_fifo_later(fifo)
+    with pytest.raises(MachineFileError, match="is not a regular file") as err:
+        load_machine(_hybrid_of(tmp_path / "h.toml", "fifo.toml"))
+    assert err.value.path == str(fifo)
+    with pytest.raises(MachineFileError, match="is not a regular file"):
+        load_machine(fifo)
+    if os.path.exists("/dev/null"):  # a character device (reading /dev/zero instead never ended)
+        with pytest.raises(MachineFileError, match="is not a regular file"):
+            load_machine(_hybrid_of(tmp_path / "d.toml", "/dev/null"))

@@ -1,5 +1,5 @@
 """A serial chain from a URDF file: the same predictions as the [[joint]] description and as
-yourdfpy's own forward kinematics; unsupported joints refused by name."""
+yourdfpy's own forward kinematics; unsupported joints, cycles and files that are no tree refused by name."""
 
 import numpy as np
 import pytest
@@ -142,7 +142,9 @@ def test_q_limits_from_urdf_limits(tmp_path):
         (None, ('base_link = "base_link"', 'base_link = "camera"'), "base_link", "not an ancestor"),
         (None, ('urdf = "arm.urdf"', 'urdf = "none.urdf"'), "urdf", "file not found"),
         (('type="continuous"', 'type="floating"'), None, "urdf", "'j3' is of type 'floating'"),
-        (('<axis xyz="0 1 0"/>', '<axis xyz="0 1 0"/><mimic joint="j1"/>'), None, "urdf", "mimic"),
+        (('<axis xyz="0 1 0"/>', '<axis xyz="0 1 0"/><mimic joint="camera_mount"/>'), None, "urdf",
+         "'j3' mimics 'camera_mount', which is not a moving joint between base_link and tip_link"),
+        (('<child link="camera"/>', '<child link="l2"/>'), None, "urdf", "link 'l2' of arm.urdf is the child of two joints"),
         (("<robot", "<robt"), None, "urdf", "not a readable URDF"),
     ],
 )
@@ -152,3 +154,38 @@ def test_bad_urdf_input_is_named(tmp_path, urdf_edit, toml_edit, key, match):
     with pytest.raises(MachineFileError, match=match) as err:
         load_machine(tmp_path / "m.toml")
     assert err.value.key == key
+
+
+# joints j1 -> j2 -> j3 -> j1 form a cycle; walking up from a tip on it never reached the base (memory grew forever)
+CYCLE = """<?xml version="1.0"?>
+<robot name="loop">
+  <link name="base"/><link name="a"/><link name="b"/><link name="c"/><link name="d"/>
+  <joint name="j1" type="revolute"><parent link="a"/><child link="b"/><axis xyz="0 0 1"/>
+    <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+  <joint name="j2" type="revolute"><parent link="b"/><child link="c"/><axis xyz="0 0 1"/>
+    <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+  <joint name="j3" type="revolute"><parent link="c"/><child link="a"/><axis xyz="0 0 1"/>
+    <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+  <joint name="j4" type="fixed"><parent link="c"/><child link="d"/></joint>
+</robot>
+"""
+
+
+@pytest.mark.parametrize("tip", ["c", "d"])
+def test_a_cycle_of_joints_is_refused_naming_it(tmp_path, tip):
+    (tmp_path / "loop.urdf").write_text(CYCLE)
+    (tmp_path / "m.toml").write_text(f'kind = "serial"\nurdf = "loop.urdf"\nbase_link = "base"\ntip_link = "{tip}"\n'
+                                     '[tool]\npoint = [0.0, 0.0, 0.0]\n')
+    with pytest.raises(MachineFileError, match=r"the joints 'j2', 'j1', 'j3' of loop.urdf form a cycle \(links c <- b <- a <- c\)") as err:
+        load_machine(tmp_path / "m.toml")
+    assert err.value.key == "urdf"
+
+
+def test_a_urdf_that_is_no_regular_file_is_refused_unread(tmp_path):
+    import os
+
+    os.mkfifo(tmp_path / "arm.urdf")
+    (tmp_path / "m.toml").write_text(FROM_URDF)
+    with pytest.raises(MachineFileError, match="arm.urdf is not a regular file") as err:
+        load_machine(tmp_path / "m.toml")
+    assert err.value.key == "urdf"
