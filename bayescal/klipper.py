@@ -1,4 +1,4 @@
-"""Klipper's linear-delta printers: geometry and saved calibration data in, calibrated keys out.
+"""Klipper's linear-delta printers: a config's geometry and saved calibration as a machine and a recording.
 
 Klipper's delta model (``klippy/kinematics/delta.py``, described in our own
 words; docs/delta.md): tower ``i`` at angle ``angle_i`` and the common radius
@@ -13,25 +13,26 @@ carriage is below its endstop, so that the carriage height is
 bayescal's linear-delta machine with ``zero_i = E_i`` and actuator
 ``q_i = -s_i step_dist_i`` (mm, carriage travel from the endstop, positive
 up) is the same model; the stored heights and distances become a constraint
-recording (FORMATS.md section 6).
+recording (docs/formats.md section 6).  The calibrated geometry goes back
+into Klipper's keys with :mod:`bayescal.klipper_keys`.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import InputError
 from .io.constraints import ConstraintRecording
 from .io.klipper_cfg import KlipperConfig
 from .machines.base import MeasurementNoise
 from .machines.linear_delta import LinearDelta
 
 __all__ = [
-    "KlipperDelta", "read_klipper_delta", "klipper_recording", "klipper_machine", "klipper_text",
-    "KLIPPER_TOLERANCE", "STEPPERS",
+    "KlipperDelta", "read_klipper_delta", "klipper_recording", "klipper_machine", "saved_counts",
+    "KLIPPER_TOLERANCE", "STEPPERS", "MAX_LENGTH", "SAVED_MARGIN",
 ]
 
 STEPPERS = ("stepper_a", "stepper_b", "stepper_c")
@@ -83,6 +84,14 @@ class KlipperDelta:
         return -np.asarray(stable, dtype=float) * self.step_dist
 
 
+#: Lengths beyond this (mm) are no printer's: a value past it is a typo or a broken file.
+MAX_LENGTH = 1.0e4
+#: How far (mm) a saved point may lie outside the printer's travel as this config states it: the
+#: measurements were taken under the geometry in force then, which calibration has since changed.
+SAVED_MARGIN = 50.0
+_ARM_WHY = "Klipper: longer than [printer] delta_radius"
+
+
 def _gear_ratio(cfg: KlipperConfig, sec: str) -> float:
     if not cfg.has(sec, "gear_ratio"):
         return 1.0
@@ -92,11 +101,33 @@ def _gear_ratio(cfg: KlipperConfig, sec: str) -> float:
         try:
             a, b = (float(x) for x in part.split(":"))
         except ValueError:
-            raise cfg.error(sec, "gear_ratio", f"expected ratios such as '80:16, 48:16', got {text!r}") from None
-        if a <= 0 or b <= 0:
-            raise cfg.error(sec, "gear_ratio", f"expected positive ratios, got {text!r}")
+            raise cfg.error(sec, "gear_ratio", f"expected ratios such as '80:16, 48:16', got {text[:40]!r}") from None
+        if not (0 < a <= MAX_LENGTH and 0 < b <= MAX_LENGTH):
+            raise cfg.error(sec, "gear_ratio", f"expected positive finite ratios, got {text[:40]!r}")
         ratio *= a / b
     return ratio
+
+
+def _whole(cfg: KlipperConfig, sec: str, key: str, default: float | None) -> float:
+    v = cfg.getfloat(sec, key, default, lo=1.0, hi=65536.0)
+    if v != int(v):
+        raise cfg.error(sec, key, f"expected a whole number, got {cfg.get(sec, key)[:40]!r}")
+    return v
+
+
+def _stepper(cfg: KlipperConfig, k: int, R: float, arm_a: float, pe_a: float) -> tuple[float, float, float, float]:
+    """Angle (deg), arm (mm), position_endstop (mm) and step distance (mm) of stepper ``k``, checked as Klipper does."""
+    sec = STEPPERS[k]
+    if not cfg.has(sec):
+        raise cfg.error(sec, "", "missing section; a delta printer has [stepper_a], [stepper_b] and [stepper_c] "
+                                 f"({cfg.sources_note()})")
+    angle = cfg.getfloat(sec, "angle", _DEFAULT_ANGLES[k], lo=-720.0, hi=720.0)
+    arm = cfg.getfloat(sec, "arm_length", arm_a, above=R, hi=MAX_LENGTH, why=_ARM_WHY)
+    pe = cfg.getfloat(sec, "position_endstop", pe_a, lo=-MAX_LENGTH, hi=MAX_LENGTH)
+    rd = cfg.getfloat(sec, "rotation_distance", above=0.0, hi=MAX_LENGTH)
+    micro = _whole(cfg, sec, "microsteps", None)
+    full = _whole(cfg, sec, "full_steps_per_rotation", 200.0)
+    return angle, arm, pe, rd / (full * micro * _gear_ratio(cfg, sec))
 
 
 def read_klipper_delta(cfg: KlipperConfig) -> KlipperDelta:
@@ -105,36 +136,87 @@ def read_klipper_delta(cfg: KlipperConfig) -> KlipperDelta:
     Raises
     ------
     KlipperConfigError
-        Naming the section and key of a missing or bad value.
+        Naming the file, line, section and key of a missing, malformed,
+        non-finite or out-of-range value (lengths within :data:`MAX_LENGTH`,
+        angles within +-720 deg, arms longer than ``delta_radius`` as Klipper requires).
     """
     kin = cfg.get("printer", "kinematics").strip()
     if kin != "delta":
-        raise cfg.error("printer", "kinematics", f"expected 'delta' (a linear delta printer), got {kin!r}")
-    R = cfg.getfloat("printer", "delta_radius", positive=True)
-    arm_a = cfg.getfloat("stepper_a", "arm_length", positive=True)
-    pe_a = cfg.getfloat("stepper_a", "position_endstop")
-    ang, arms, pes, sd = [], [], [], []
-    for k, sec in enumerate(STEPPERS):
-        if not cfg.has(sec):
-            raise cfg.error(sec, "", "missing section; a delta printer has [stepper_a], [stepper_b] and [stepper_c]")
-        ang.append(cfg.getfloat(sec, "angle", _DEFAULT_ANGLES[k]))
-        L = cfg.getfloat(sec, "arm_length", arm_a, positive=True)
-        if L <= R:
-            raise cfg.error(sec, "arm_length", f"expected an arm longer than [printer] delta_radius = {R}, got {L}")
-        arms.append(L)
-        pes.append(cfg.getfloat(sec, "position_endstop", pe_a))
-        rd = cfg.getfloat(sec, "rotation_distance", positive=True)
-        micro = cfg.getfloat(sec, "microsteps", positive=True)
-        full = cfg.getfloat(sec, "full_steps_per_rotation", 200.0, positive=True)
-        if micro != int(micro) or full != int(full):
-            key = "microsteps" if micro != int(micro) else "full_steps_per_rotation"
-            raise cfg.error(sec, key, "expected a whole number")
-        sd.append(rd / (full * micro * _gear_ratio(cfg, sec)))
+        raise cfg.error("printer", "kinematics", f"expected 'delta' (a linear delta printer), got {kin[:40]!r}")
+    R = cfg.getfloat("printer", "delta_radius", above=0.0, hi=MAX_LENGTH)
+    arm_a = cfg.getfloat("stepper_a", "arm_length", above=R, hi=MAX_LENGTH, why=_ARM_WHY)
+    pe_a = cfg.getfloat("stepper_a", "position_endstop", lo=-MAX_LENGTH, hi=MAX_LENGTH)
+    ang, arms, pes, sd = zip(*(_stepper(cfg, k, R, arm_a, pe_a) for k in range(3)))
     return KlipperDelta(
         delta_radius=R, angle_deg=np.array(ang), arm_length=np.array(arms), position_endstop=np.array(pes),
-        step_dist=np.array(sd), print_radius=cfg.getfloat("printer", "print_radius", R, positive=True),
-        minimum_z=cfg.getfloat("printer", "minimum_z_position", 0.0), path=cfg.path,
+        step_dist=np.array(sd), print_radius=cfg.getfloat("printer", "print_radius", R, above=0.0, hi=MAX_LENGTH),
+        minimum_z=cfg.getfloat("printer", "minimum_z_position", 0.0, lo=-MAX_LENGTH, hi=float(min(pes)),
+                               why="Klipper: at most the lowest position_endstop"), path=cfg.path,
     )
+
+
+_SAVED = "delta_calibrate"
+_SAVED_KEY = re.compile(r"^(manual_height|height|distance)([0-9]+)(_pos[12]?)?$")
+#: The keys DELTA_CALIBRATE's SAVE_CONFIG writes per entry <N> of each kind.
+_SUFFIXES = {"manual_height": ("", "_pos"), "height": ("", "_pos"), "distance": ("", "_pos1", "_pos2")}
+_MAX_SAVED = 999  # Klipper reads entries 0 .. 998 of each kind (at most 3 digits)
+_MIN_PROBED = 3  # DELTA_CALIBRATE's least number of probe points
+
+
+def _indices(cfg: KlipperConfig) -> dict:
+    """The entry numbers present per (kind, suffix); keys of the saved kinds' form SAVE_CONFIG does not write are refused."""
+    found = {(kind, suf): set() for kind, sufs in _SUFFIXES.items() for suf in sufs}
+    for key in cfg.sections[_SAVED]:
+        mo = _SAVED_KEY.match(key)
+        if not mo:
+            continue
+        kind, idx, suf = mo.group(1), mo.group(2), mo.group(3) or ""
+        if suf not in _SUFFIXES[kind] or len(idx) > 3 or idx != str(int(idx)) or int(idx) >= _MAX_SAVED:
+            pos = " and ".join(f"{kind}<N>{s}" for s in _SUFFIXES[kind][1:])
+            raise cfg.error(_SAVED, key, f"not a key SAVE_CONFIG writes; expected {kind}<N> and {pos} with N = 0, 1, 2, "
+                                         "... (below 999)")
+        found[(kind, suf)].add(int(idx))
+    return found
+
+
+def saved_counts(cfg: KlipperConfig) -> dict[str, int]:
+    """How many ``manual_height``, ``height`` and ``distance`` entries the saved calibration holds.
+
+    Klipper reads ``height0``, ``height1``, ... up to the first missing one;
+    SAVE_CONFIG writes them without gaps, each with its stable positions.  A
+    gap, or a position without its value (or the reverse), is refused: Klipper
+    would silently read only the entries before it.
+    """
+    found, counts = _indices(cfg), {}
+    for kind, sufs in _SUFFIXES.items():
+        have = found[(kind, "")]
+        n = max(have) + 1 if have else 0
+        if (gap := next((i for i in range(n) if i not in have), None)) is not None:
+            raise cfg.error_near(_SAVED, f"{kind}{gap}", f"{kind}{max(have)}", (
+                f"missing, but {kind}{max(have)} is present: SAVE_CONFIG writes {kind}0, {kind}1, ... without gaps "
+                f"(Klipper would read only the {gap} before the gap); the block is incomplete"))
+        for suf in sufs[1:]:
+            idx = found[(kind, suf)]
+            if (lack := next((i for i in range(n) if i not in idx), None)) is not None:
+                raise cfg.error_near(_SAVED, f"{kind}{lack}{suf}", f"{kind}{lack}",
+                                     f"missing; expected 3 stable positions with {kind}{lack}")
+            if extra := sorted(i for i in idx if i >= n):
+                raise cfg.error(_SAVED, f"{kind}{extra[0]}{suf}", f"present without {kind}{extra[0]}; the block is incomplete")
+        counts[kind] = n
+    return counts
+
+
+def _stable(cfg: KlipperConfig, kd: KlipperDelta, key: str) -> list[float]:
+    """A stable position (microsteps below each endstop), checked to lie within the carriages' travel."""
+    steps = cfg.getfloats(_SAVED, key, 3)
+    travel = np.asarray(steps) * kd.step_dist
+    top = kd.endstop_height + SAVED_MARGIN
+    if np.any(travel < -SAVED_MARGIN) or np.any(travel > top):
+        raise cfg.error(_SAVED, key, (
+            f"expected 3 stable positions (microsteps below each endstop) within the carriages' travel of 0 to "
+            f"{', '.join(f'{e:.0f}' for e in kd.endstop_height)} mm (+-{SAVED_MARGIN:g} mm), got "
+            f"{', '.join(f'{t:.4g}' for t in travel)} mm"))
+    return steps
 
 
 def klipper_recording(
@@ -144,52 +226,61 @@ def klipper_recording(
 
     Rows: ``manual_height<i>`` and ``height<i>`` (probe heights: nozzle z at the
     stable position ``..._pos``), then ``distance<i>`` (between ``_pos1`` and
-    ``_pos2``), in Klipper's order.  Aux channel ``klipper_index`` is ``i``.
+    ``_pos2``), in Klipper's order.  Aux channel ``klipper_index`` is ``i``;
+    with manual heights, ``klipper_manual`` is 1 on their rows (Klipper's
+    weight of heights against distances counts the probed ones only).
 
     Raises
     ------
     KlipperConfigError
         When the config has no saved calibration (``[delta_calibrate]
-        height0``) or a saved entry is incomplete.
+        height0``) or fewer than 3 probed heights (DELTA_CALIBRATE probes at
+        least 3 points), when the saved entries are not complete and consecutive
+        (:func:`saved_counts`), or a value is not finite or out of range:
+        heights within ``minimum_z_position`` and the highest
+        ``position_endstop`` (+- :data:`SAVED_MARGIN`), distances up to the
+        print diameter (+ the margin), stable positions within the travel.
     """
-    sec = "delta_calibrate"
-    if not cfg.has(sec):
-        raise cfg.error(sec, "", "missing section; expected the [delta_calibrate] block SAVE_CONFIG writes after DELTA_CALIBRATE")
-    if not cfg.has(sec, "height0") and not cfg.has(sec, "manual_height0"):
-        raise cfg.error(
-            sec, "height0",
+    if not cfg.has(_SAVED):
+        raise cfg.error(_SAVED, "", "missing section; expected the [delta_calibrate] block SAVE_CONFIG writes after "
+                                    f"DELTA_CALIBRATE ({cfg.sources_note()})")
+    counts = saved_counts(cfg)
+    if not counts["height"] and not counts["manual_height"]:
+        raise cfg.error(_SAVED, "height0", (
             "missing; the config holds no saved calibration (run DELTA_CALIBRATE and SAVE_CONFIG, which store "
-            "height0, height0_pos, ... in the SAVE_CONFIG block at the end of printer.cfg)",
-        )
-    measure, qa, qb, value, sig, idx = [], [], [], [], [], []
+            f"height0, height0_pos, ... in the SAVE_CONFIG block at the end of printer.cfg; {cfg.sources_note()})"))
+    if counts["height"] < _MIN_PROBED:
+        n = counts["height"]
+        raise cfg.error_near(_SAVED, f"height{n}", f"height{n - 1}" if n else "manual_height0", (
+            f"missing; DELTA_CALIBRATE probes at least {_MIN_PROBED} points and SAVE_CONFIG stores each as "
+            f"height<N> and height<N>_pos, N = 0, 1, 2, ...; this block holds {n}"))
+    z_lo, z_hi = kd.minimum_z - SAVED_MARGIN, float(kd.position_endstop.max()) + SAVED_MARGIN
+    d_hi = 2.0 * max(kd.print_radius, kd.delta_radius) + SAVED_MARGIN
+    measure, qa, qb, value, sig, idx, manual = [], [], [], [], [], [], []
     nan3 = [np.nan] * 3
-    for prefix in ("manual_height", "height"):
-        for i in range(999):
-            if not cfg.has(sec, f"{prefix}{i}"):
-                break
-            measure.append("height")
-            value.append(cfg.getfloat(sec, f"{prefix}{i}"))
-            qa.append(cfg.getfloats(sec, f"{prefix}{i}_pos", 3))
-            qb.append(nan3)
-            sig.append(sigma_height)
+    for kind in ("manual_height", "height", "distance"):
+        for i in range(counts[kind]):
+            key = f"{kind}{i}"
+            if kind == "distance":
+                value.append(cfg.getfloat(_SAVED, key, above=0.0, hi=d_hi))
+                qa.append(_stable(cfg, kd, f"{key}_pos1"))
+                qb.append(_stable(cfg, kd, f"{key}_pos2"))
+            else:
+                value.append(cfg.getfloat(_SAVED, key, lo=z_lo, hi=z_hi))
+                qa.append(_stable(cfg, kd, f"{key}_pos"))
+                qb.append(nan3)
+            measure.append("distance" if kind == "distance" else "height")
+            sig.append(sigma_distance if kind == "distance" else sigma_height)
             idx.append(i)
-    for i in range(999):
-        if not cfg.has(sec, f"distance{i}"):
-            break
-        d = cfg.getfloat(sec, f"distance{i}")
-        if d <= 0:
-            raise cfg.error(sec, f"distance{i}", f"expected a positive distance in mm, got {d}")
-        measure.append("distance")
-        value.append(d)
-        qa.append(cfg.getfloats(sec, f"distance{i}_pos1", 3))
-        qb.append(cfg.getfloats(sec, f"distance{i}_pos2", 3))
-        sig.append(sigma_distance)
-        idx.append(i)
+            manual.append(float(kind == "manual_height"))
     dist = np.array([m == "distance" for m in measure])
     qb_mm = np.where(dist[:, None], kd.carriage_q(np.where(dist[:, None], qb, 0.0)), np.nan)
+    aux = {"klipper_index": np.array(idx, dtype=float)}
+    if counts["manual_height"]:
+        aux["klipper_manual"] = np.array(manual)
     return ConstraintRecording(
         measure=tuple(measure), qa=kd.carriage_q(qa), qb=qb_mm, value=np.array(value),
-        sigma=np.array(sig), aux={"klipper_index": np.array(idx, dtype=float)}, path=cfg.path,
+        sigma=np.array(sig), aux=aux, path=cfg.path,
     )
 
 
@@ -214,64 +305,3 @@ def klipper_machine(kd: KlipperDelta, *, name: str | None = None, q_span: ArrayL
         noise=MeasurementNoise(),
         q_limits=np.column_stack([low, np.zeros(3)]), tolerance_groups=dict(KLIPPER_TOLERANCE), source=kd.path,
     )
-
-
-def klipper_values(machine: LinearDelta, theta: ArrayLike | None = None) -> tuple[dict, list[str]]:
-    """Klipper's keys for the geometry ``nominal + theta``, and what they cannot represent.
-
-    The nozzle offset ``t`` moves the towers by ``t`` (the effector only
-    translates), so ``E_i + t_z`` is the endstop height; the horizontal part
-    shifts the whole print on the bed, which Klipper's keys cannot hold and
-    no height or distance sees.  Klipper has one radius: the mean of the
-    towers' is written.  Tower tilts have no Klipper key.
-
-    Returns
-    -------
-    values : dict
-        ``{"delta_radius": R, "stepper_a": {"angle": deg, "arm_length": mm,
-        "position_endstop": mm}, ...}``.
-    notes : list of str
-        What was approximated, with sizes.
-    """
-    if machine.kind != "linear-delta" or machine.n_actuators != 3:
-        raise InputError(f"Klipper's delta keys describe a three-tower linear delta; got a {machine.kind} with {machine.n_actuators} actuators")
-    g = machine.geometry_arrays(theta)
-    notes = []
-    tilt = np.degrees(np.arccos(np.clip(g["direction"][:, 2], -1, 1)))
-    if np.any(tilt > 1e-9):
-        notes.append(f"tower tilts of {', '.join(f'{v:.4f}' for v in tilt)} deg are not representable in Klipper; written as vertical")
-    t = g["tool_point"]
-    if np.hypot(t[0], t[1]) > 1e-9:
-        notes.append(f"a horizontal nozzle offset of ({t[0]:.4f}, {t[1]:.4f}) mm shifts prints on the bed; Klipper has no key for it")
-    R = float(np.mean(g["radius"]))
-    spread = float(np.ptp(g["radius"]))
-    if spread > 1e-9:
-        notes.append(f"the towers' radii differ by {spread:.4f} mm; Klipper has one delta_radius, their mean is written")
-    # direction is vertical up to the tilts reported above: E_i is the zero's height
-    E = g["zero"] * g["direction"][:, 2] + t[2]
-    L = g["arm_length"]
-    out = {"delta_radius": R}
-    for k, sec in enumerate(STEPPERS):
-        out[sec] = {
-            "angle": float(np.degrees(g["angle"][k]) % 360.0),
-            "arm_length": float(L[k]),
-            "position_endstop": float(E[k] - np.sqrt(L[k] ** 2 - R**2)),
-        }
-    return out, notes
-
-
-def klipper_text(machine: LinearDelta, theta: ArrayLike | None = None) -> str:
-    """The calibrated geometry as Klipper config sections, for the user to paste into printer.cfg."""
-    values, notes = klipper_values(machine, theta)
-    lines = [
-        f"# Calibrated geometry of '{machine.name}' written by bayescal, in Klipper's keys.",
-        "# Paste into printer.cfg: replace these keys in their sections, and in the SAVE_CONFIG block",
-        "# at the end of the file if it holds them (that block overrides the sections above).",
-    ]
-    lines += [f"# note: {n}" for n in notes]
-    lines += ["", "[printer]", f"delta_radius: {values['delta_radius']!r}", ""]
-    for sec in STEPPERS:
-        lines.append(f"[{sec}]")
-        lines += [f"{k}: {v!r}" for k, v in values[sec].items()]
-        lines.append("")
-    return "\n".join(lines)

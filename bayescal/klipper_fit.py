@@ -8,7 +8,9 @@ own words) minimises
 over ``delta_radius``, ``angle_a``, ``angle_b`` and the three
 ``position_endstop`` (``angle_c`` is the reference), plus the three
 ``arm_length`` when distances exist ("enhanced" calibration).  The heights'
-weight is ``w = n_distances / (0.5 n_heights)`` with distances, else 1.
+weight is ``w = n_distances / (0.5 n_probed)`` with distances, else 1, where
+``n_probed`` counts the probed heights (not the manual ones: aux channel
+``klipper_manual``).
 Klipper searches by coordinate descent; the minimum of the same objective is
 found here with ``scipy.optimize.least_squares`` on the residual vector
 whose sum of squares is that objective (the team's check reproduced
@@ -79,15 +81,21 @@ def klipper_residuals(kd: KlipperDelta, rec: ConstraintRecording) -> NDArray:
     """Residuals whose sum of squares is Klipper's objective: ``sqrt(w) (z - height)`` then ``d - distance``, mm.
 
     Rows in the recording's order; a geometry that cannot assemble a pose
-    gives a large residual, as Klipper's error function does.
+    (or has no positive radius, or an arm not longer than it) gives a large residual, as
+    Klipper's error function does.
     """
+    if not (kd.delta_radius > 0 and np.all(kd.arm_length > kd.delta_radius)):
+        return np.full(rec.n_rows, 1e5)  # no printer (Klipper's error function fails there too): the same penalty
     m = klipper_machine(kd, q_span=np.vstack([rec.qa, rec.qb[np.isfinite(rec.qb).all(axis=1)]]))
     model = ConstraintModel(base=m, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot)
     pred = model.predict(None)
     r = pred.y[:, 0] - rec.value
     r = np.where(pred.success, r, 1e5)
     heights = np.array([mm == "height" for mm in rec.measure])
-    n_d, n_h = int((~heights).sum()), int(heights.sum())
+    n_d = int((~heights).sum())
+    # Klipper divides by the number of probed heights; manual heights (DELTA_ANALYZE MANUAL_HEIGHT) do not count
+    manual = rec.aux.get("klipper_manual")
+    n_h = int(heights.sum() - (np.sum(manual[heights] > 0) if manual is not None else 0)) or int(heights.sum())
     w = n_d / (MEASURE_WEIGHT * n_h) if n_d and n_h else 1.0
     return np.where(heights, np.sqrt(w) * r, r)
 

@@ -78,6 +78,11 @@ def _rows_without(n: int, i: int) -> NDArray:
     return np.delete(np.arange(n), i)
 
 
+def _check_rows(rec: ConstraintRecording) -> None:
+    if rec.n_rows < 2:
+        raise InputError(f"{rec.path}: leave-one-out needs at least 2 measurements, got {rec.n_rows}")
+
+
 def noise_scale_map(machine: Machine, rec: ConstraintRecording, *, prior_scale: float = 1.0, iterations: int = 20):
     """MAP with the rows' noise scaled by a factor estimated from the residuals; the result and the factor.
 
@@ -151,6 +156,7 @@ def loo_bayescal(
         all, which stay at nominal (:func:`bayescal.identify.resolve_free`;
         before, auto fixed the least-squares identifiable set).
     """
+    _check_rows(rec)
     n = rec.n_rows
     theta_all = _map_theta(machine, rec, prior_scale, noise, free)
     in_sample = rec.value - _predict(machine, rec, theta_all)
@@ -169,6 +175,7 @@ def klipper_predict(kd: KlipperDelta, rec: ConstraintRecording) -> NDArray:
 
 def loo_klipper(kd: KlipperDelta, rec: ConstraintRecording, *, rows=None) -> LooResult:
     """Klipper's ``DELTA_CALIBRATE`` fit (from the geometry ``kd``) left out one row at a time (``rows``: which)."""
+    _check_rows(rec)
     n = rec.n_rows
     full = fit_klipper(kd, rec)
     in_sample = rec.value - klipper_predict(full.delta, rec)

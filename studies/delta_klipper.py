@@ -43,8 +43,9 @@ from bayescal.bayes.map_identify import identify_map  # noqa: E402
 from bayescal.constraint_model import ConstraintModel  # noqa: E402
 from bayescal.design.relations import plan_relations  # noqa: E402
 from bayescal.identifiability import analyse_identifiability  # noqa: E402
-from bayescal.io.klipper_cfg import parse_klipper_text, read_klipper_config  # noqa: E402
-from bayescal.klipper import klipper_machine, klipper_recording, klipper_values, read_klipper_delta  # noqa: E402
+from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, parse_klipper_text, read_klipper_config  # noqa: E402
+from bayescal.klipper import klipper_machine, klipper_recording, read_klipper_delta  # noqa: E402
+from bayescal.klipper_keys import klipper_values  # noqa: E402
 from bayescal.klipper_fit import KLIPPER_PARAMS, _values, _with  # noqa: E402
 from bayescal.klipper_loo import klipper_predict, loo_bayescal, loo_klipper, rms  # noqa: E402
 from bayescal.params import ParamLayout, ParamSpec  # noqa: E402
@@ -71,7 +72,7 @@ def load(data: Path = DATA):
     kd = read_klipper_delta(cfg)
     rec = klipper_recording(cfg, kd)
     post = post_path.read_text()
-    block = "#*# <---------------------- SAVE_CONFIG ---------------------->\n#*#\n" + post[post.index("#*# [delta_calibrate]"):]
+    block = "\n" + AUTOSAVE_HEADER + post[post.index("#*# [delta_calibrate]"):]
     pre = (data / "printer-pre-calibration.cfg").read_text().replace("#delta_radius: 105", "delta_radius: 105")
     kd_design = read_klipper_delta(parse_klipper_text(pre + "\n" + block, "printer-pre-calibration.cfg + saved measurements"))
     return kd, kd_design, rec

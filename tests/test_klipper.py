@@ -1,5 +1,7 @@
-"""Klipper delta printers: the real FLSUN Q5 config (GPL-3.0, read from ../shared, never copied),
-step-to-millimetre conversion, nominal geometry, the README's independent checks, --write-klipper."""
+"""Klipper delta printers: the real FLSUN Q5 config (GPL-3.0, read from ../shared, never copied; those tests
+skip without it), step-to-millimetre conversion, nominal geometry, the README's independent checks; and a
+synthetic config: the saved measurements against closed-form stable positions, refusals of incomplete or
+absurd saved data."""
 
 import json
 import os
@@ -11,22 +13,23 @@ import pytest
 from bayescal.cli import main
 from bayescal.constraint_model import ConstraintModel
 from bayescal.io.constraints import read_constraints
-from bayescal.io.klipper_cfg import KlipperConfigError, parse_klipper_text, read_klipper_config
-from bayescal.klipper import klipper_machine, klipper_recording, klipper_text, klipper_values, read_klipper_delta
+from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, KlipperConfigError, parse_klipper_text, read_klipper_config
+from bayescal.klipper import klipper_machine, klipper_recording, read_klipper_delta
 from bayescal.machines import check_machine, load_machine
+from tests import klipper_configs as synth
 
 # the checkout sits beside shared/ (<clone>/../shared); BAYESCAL_SHARED points elsewhere (a git worktree)
 SHARED = Path(os.environ.get("BAYESCAL_SHARED", Path(__file__).resolve().parents[1] / ".." / "shared"))
 DATA = SHARED / "data" / "real" / "delta_flsun_q5"
 POST = DATA / "printer-post-calibration.cfg"
 PRE = DATA / "printer-pre-calibration.cfg"
-pytestmark = pytest.mark.skipif(not POST.exists(), reason="../shared/data/real/delta_flsun_q5 not present")
+q5 = pytest.mark.skipif(not POST.exists(), reason="../shared/data/real/delta_flsun_q5 not present")
 
 
 def _saved_calibration_block() -> str:
+    """The FLSUN Q5's saved measurements alone, under Klipper's SAVE_CONFIG header."""
     text = POST.read_text()
-    block = text[text.index("#*# [delta_calibrate]"):]
-    return "#*# <---------------------- SAVE_CONFIG ---------------------->\n#*#\n" + block
+    return "\n" + AUTOSAVE_HEADER + text[text.index("#*# [delta_calibrate]"):]
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +38,7 @@ def post():
     return cfg, read_klipper_delta(cfg)
 
 
+@q5
 def test_step_distance_and_nominal_geometry(post):
     cfg, kd = post
     np.testing.assert_allclose(kd.step_dist, 40.0 / (200 * 16))  # 0.0125 mm, 80 microsteps per mm
@@ -55,6 +59,7 @@ def test_step_distance_and_nominal_geometry(post):
     assert check_machine(m) == []
 
 
+@q5
 def test_nominal_printer_maps_stable_positions_back_to_the_probe_points():
     # README check 2: with the nominal parameters (R = 105, L = 216, endstops 219) in force while
     # probing, every height_pos maps back to its probe point within 0.005 mm; nozzle 24.450 at the centre
@@ -72,6 +77,7 @@ def test_nominal_printer_maps_stable_positions_back_to_the_probe_points():
     assert np.all((x[1:, 2] > 22.80) & (x[1:, 2] < 23.13))
 
 
+@q5
 def test_residuals_and_klipper_objective_of_the_final_config(post):
     # README check 4: the final cfg gives height RMS 0.068, distance RMS 0.212, objective 0.647657
     cfg, kd = post
@@ -85,6 +91,7 @@ def test_residuals_and_klipper_objective_of_the_final_config(post):
     assert abs(w * np.sum(h**2) + np.sum(d**2) - 0.647657) < 1e-5
 
 
+@q5
 def test_cli_writes_machine_and_recording(tmp_path, capsys):
     assert main(["klipper", str(POST), "--out", str(tmp_path / "k"), "--json", str(tmp_path / "k.json")]) == 0
     summary = json.loads((tmp_path / "k.json").read_text())
@@ -112,30 +119,7 @@ def test_cli_writes_machine_and_recording(tmp_path, capsys):
                  "--method", "ls", "--free", "all", "--quiet"]) == 2
 
 
-def test_write_klipper_round_trip(post):
-    cfg, kd = post
-    rec = klipper_recording(cfg, kd)
-    m = klipper_machine(kd, q_span=rec.qa)
-    theta = np.zeros(m.n_params)
-    names = m.layout.names
-    for k, v in {"tower1.angle": 0.004, "tower2.angle": -0.003, "tower1.radius": 0.7, "tower2.radius": 0.7,
-                 "tower3.radius": 0.7, "tower1.zero": -0.4, "tower3.zero": 0.9, "tower2.arm_length": 1.1,
-                 "tower3.arm_length": -0.6, "tool.point.z": -0.25}.items():
-        theta[names.index(k)] = v
-    values, notes = klipper_values(m, theta)
-    assert notes == []
-    back = cfg.merged(parse_klipper_text(klipper_text(m, theta), "snippet.cfg"))
-    m2 = klipper_machine(read_klipper_delta(back), q_span=rec.qa)
-    q = np.vstack([rec.qa, rec.qb[7:]])
-    np.testing.assert_allclose(m2.forward(q).position, m.forward(q, theta).position, atol=1e-9)
-    # what Klipper cannot hold is reported, not silently dropped
-    theta[names.index("tower1.direction.tilt_x")] = 1e-3
-    theta[names.index("tower2.radius")] = 0.2
-    theta[names.index("tool.point.x")] = 0.3
-    notes = klipper_values(m, theta)[1]
-    assert any("tilt" in n for n in notes) and any("radii" in n for n in notes) and any("horizontal" in n for n in notes)
-
-
+@q5
 @pytest.mark.parametrize(
     "edit, section, key",
     [
@@ -154,6 +138,109 @@ def test_errors_name_section_and_key(edit, section, key):
     assert f"[{section}] {key}" in str(exc.value) and "printer.cfg" in str(exc.value)
 
 
+@q5
 def test_cli_error_exit_2(capsys):
     assert main(["klipper", str(PRE), "--out", "/nonexistent/never"]) == 2
     assert "[printer] delta_radius" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- a synthetic config (no ../shared data needed)
+def test_saved_measurements_of_a_synthetic_config_match_closed_form_positions(tmp_path):
+    cfg = read_klipper_config(synth.write_config(tmp_path))
+    kd = read_klipper_delta(cfg)
+    rec = klipper_recording(cfg, kd)
+    assert rec.measure == ("height",) * 8 + ("distance",) * 6
+    np.testing.assert_array_equal(rec.aux["klipper_manual"], [1] + [0] * 13)
+    np.testing.assert_array_equal(rec.aux["klipper_index"], [0, 0, 1, 2, 3, 4, 5, 6, 0, 1, 2, 3, 4, 5])
+    # Klipper's stable positions (written with 3 decimals: 6e-6 mm of carriage) map back to the nozzle points
+    m = klipper_machine(kd, q_span=np.vstack([rec.qa, rec.qb[8:]]))
+    pts = np.vstack([synth.MANUAL, synth.probe_points()])
+    np.testing.assert_allclose(m.forward(rec.qa[:8]).position, pts, atol=1e-4)
+    np.testing.assert_allclose(rec.value[:8], pts[:, 2])
+    a, b = synth.distance_pairs()
+    np.testing.assert_allclose(m.forward(rec.qa[8:]).position, a, atol=1e-4)
+    np.testing.assert_allclose(m.forward(rec.qb[8:]).position, b, atol=1e-4)
+    np.testing.assert_allclose(rec.value[8:], np.linalg.norm(b - a, axis=1), atol=5e-4)
+
+
+def _edited(tmp_path, edit):
+    lines = synth.calibration_block()
+    return read_klipper_config(synth.write_config(tmp_path, block=edit(lines)))
+
+
+def _drop(key):
+    return lambda lines: [ln for ln in lines if not ln.startswith(f"{key} =")]
+
+
+def _set(key, value):
+    return lambda lines: [f"{key} = {value}" if ln.startswith(f"{key} =") else ln for ln in lines]
+
+
+@pytest.mark.parametrize("edit, key, words", [
+    (_drop("height3"), "height3", "missing, but height6 is present"),
+    (lambda lines: [ln for ln in lines if not ln.startswith(tuple(f"height{i}" for i in range(2, 7)))], "height2",
+     "at least 3 points"),
+    (_drop("distance1"), "distance1", "without gaps"),
+    (_drop("height2_pos"), "height2_pos", "missing; expected 3 stable positions with height2"),
+    (_drop("distance4_pos2"), "distance4_pos2", "missing"),
+    (lambda lines: lines + ["height7_pos = 1,2,3"], "height7_pos", "present without height7"),
+    (lambda lines: lines + ["height01 = 1"], "height01", "not a key SAVE_CONFIG writes"),
+    (lambda lines: lines + ["height999 = 1"], "height999", "below 999"),
+    pytest.param(lambda lines: lines + ["height" + "9" * 5000 + " = 1"], "height" + "9" * 5000, "not a key",
+                 id="no-int-of-5000-digits"),
+    (lambda lines: lines + ["height2_pos1 = 1,2,3"], "height2_pos1", "not a key SAVE_CONFIG writes"),
+    (_set("height1_pos", "nan,20000,20000"), "height1_pos", "finite"),
+    (_set("height1_pos", "1e300,20000,20000"), "height1_pos", "within the carriages' travel"),
+    (_set("height1_pos", "-1e6,20000,20000"), "height1_pos", "within the carriages' travel"),
+    (_set("height1_pos", "20000,20000"), "height1_pos", "3 comma-separated numbers"),
+    (_set("height1_pos", "inf,1,1"), "height1_pos", "finite"),
+    (_set("height1", "1e300"), "height1", "expected a number from"),
+    (_set("height1", "nan"), "height1", "finite"),
+    (_set("distance0", "0"), "distance0", "above 0"),
+    (_set("distance0", "1e6"), "distance0", "at most"),
+    (_set("delta_radius", "nan"), "delta_radius", "finite"),
+    (_set("arm_length", "1e300"), "arm_length", "at most 10000"),
+    (_set("arm_length", "90"), "arm_length", "above 100.123"),
+    (_set("angle", "1e9"), "angle", "from -720 to 720"),
+    (_set("position_endstop", "-inf"), "position_endstop", "finite"),
+])
+def test_incomplete_or_absurd_saved_data_is_refused_with_the_key(tmp_path, edit, key, words):
+    cfg = _edited(tmp_path, edit)
+    with pytest.raises(KlipperConfigError) as exc:
+        klipper_recording(cfg, read_klipper_delta(cfg))
+    msg = str(exc.value)
+    assert exc.value.key == key and words in msg and "\n" not in msg
+    # placed at the line that set the key (or, for a missing key, the line of its neighbour), in the block
+    assert "(SAVE_CONFIG block)" in msg and exc.value.line is not None
+    line = (tmp_path / "printer.cfg").read_text().split("\n")[exc.value.line - 1]
+    assert line.startswith("#*# ")
+
+
+@pytest.mark.parametrize("section, key, value, words", [
+    ("stepper_a", "microsteps", "16.5", "whole number"),
+    ("stepper_b", "rotation_distance", "0", "above 0"),
+    ("stepper_b", "gear_ratio", "0:20", "positive finite ratios"),
+    ("printer", "print_radius", "1e12", "at most"),
+    ("printer", "minimum_z_position", "300", "at most the lowest position_endstop"),
+])
+def test_absurd_regular_values_are_refused_at_their_file_and_line(tmp_path, section, key, value, words):
+    path = synth.write_config(tmp_path)
+    steppers = tmp_path / "steppers.cfg"
+    target = steppers if section.startswith("stepper") else path
+    # a repeated section at the end of the regular text: its value is the one Klipper uses
+    text, at = target.read_text(), "\n" + AUTOSAVE_HEADER
+    extra = f"\n[{section}]\n{key}: {value}\n"
+    target.write_text(text.replace(at, extra + at) if at in text else text + extra)
+    cfg = read_klipper_config(path)
+    with pytest.raises(KlipperConfigError) as exc:
+        read_klipper_delta(cfg)
+    assert (exc.value.section, exc.value.key) == (section, key) and words in str(exc.value)
+    assert exc.value.path == str(target) and target.read_text().split("\n")[exc.value.line - 1] == f"{key}: {value}"
+
+
+def test_cli_refuses_a_block_with_a_gap_in_one_line(tmp_path, capsys):
+    path = synth.write_config(tmp_path, block=_drop("height3")(synth.calibration_block()))
+    assert main(["klipper", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "[delta_calibrate] height3: missing, but height6 is present" in err
+    assert not (tmp_path / "out").exists()

@@ -1,4 +1,5 @@
-"""Leave-one-out of Klipper's fit and bayescal's MAP on a simulated Klipper printer (no ../shared data needed)."""
+"""Leave-one-out of Klipper's fit and bayescal's MAP on a simulated Klipper printer and on synthetic configs as
+the reader reads them (no ../shared data needed)."""
 
 from dataclasses import replace
 
@@ -10,8 +11,11 @@ from bayescal.bayes.priors import map_estimate
 from bayescal.constraint_model import ConstraintModel
 from bayescal.design.relations import grid_points, relation_candidates
 from bayescal.io.constraints import ConstraintRecording
-from bayescal.klipper import KlipperDelta, klipper_machine
+from bayescal.errors import InputError
+from bayescal.io.klipper_cfg import read_klipper_config
+from bayescal.klipper import KlipperDelta, klipper_machine, klipper_recording, read_klipper_delta
 from bayescal.klipper_loo import loo_bayescal, loo_klipper, noise_scale_map, rms
+from tests import klipper_configs as synth
 
 NOMINAL = KlipperDelta(
     delta_radius=105.0, angle_deg=np.array([210.0, 330.0, 90.0]), arm_length=np.full(3, 216.0),
@@ -76,3 +80,35 @@ def test_noise_scale_is_estimated_and_floored_at_one(exact):
     assert 3.0 < s < 12.0
     _, s1 = noise_scale_map(m, exact)
     assert s1 == 1.0
+
+
+# ---------------------------------------------------------------- on configs as the reader reads them
+def _from_config(tmp_path, block):
+    cfg = read_klipper_config(synth.write_config(tmp_path, block=block))
+    kd = read_klipper_delta(cfg)
+    rec = klipper_recording(cfg, kd)
+    return kd, rec, klipper_machine(kd, q_span=np.vstack([rec.qa, rec.qb[np.isfinite(rec.qb).all(axis=1)]]))
+
+
+@pytest.mark.parametrize("keep", [
+    None,  # manual height, 7 probed heights, 6 distances, includes, every saved section
+    ("height0", "height1", "height2"),  # the least DELTA_CALIBRATE saves: 3 probed heights, nothing else
+])
+def test_loo_runs_on_configs_that_read(tmp_path, keep):
+    block = synth.calibration_block()
+    if keep is not None:
+        block = [ln for ln in block if not ln.startswith(("height", "distance", "manual")) or ln.startswith(keep)]
+    kd, rec, m = _from_config(tmp_path, block)
+    rows = [0, 1, rec.n_rows - 1]
+    # Klipper's fit started away from the truth (the saved points are exact for kd, to Klipper's 3 decimals)
+    start = replace(kd, delta_radius=kd.delta_radius + 1.5, arm_length=kd.arm_length + 1.0)
+    for r in (loo_klipper(start, rec, rows=rows), loo_bayescal(m, rec, rows=rows)):
+        assert np.all(np.isfinite(r.loo_error[rows])) and np.all(np.isfinite(r.in_sample))
+        assert np.isnan(r.loo_error[np.setdiff1d(np.arange(rec.n_rows), rows)]).all()
+    if keep is None:  # enough rows for Klipper's nine parameters: its refits predict the left-out rows
+        assert rms(loo_klipper(start, rec, rows=rows).loo_error) < 1e-3
+
+
+def test_loo_refuses_a_recording_without_two_rows(exact):
+    with pytest.raises(InputError, match="at least 2 measurements"):
+        loo_klipper(NOMINAL, exact.subset([0]))

@@ -145,7 +145,7 @@ def register(sub) -> None:
     p.add_argument(
         "--write-klipper", metavar="PATH",
         help="linear-delta only: write the calibrated geometry in Klipper's keys (delta_radius, angle, arm_length, "
-        "position_endstop) for printer.cfg",
+        "position_endstop) as a block to paste into printer.cfg above its SAVE_CONFIG block",
     )
     p.add_argument(
         "--write-urdf", metavar="PATH",

@@ -18,7 +18,15 @@ the end of the file) and write
                       ([printer] delta_radius, [stepper_a/b/c] angle,
                       arm_length, position_endstop), kind = "linear-delta";
   DIR/recording.csv   the probe heights and the printed-object distances as
-                      a constraint recording (FORMATS.md section 6).
+                      a constraint recording (docs/formats.md section 6).
+
+The config is read as Klipper reads it: [include ...] files and globs
+relative to the including file, '#' and ';' comments, values continued on
+indented lines, the SAVE_CONFIG block (a key set above it wins). An include
+that names no file is skipped with a note. Errors name the file, line,
+section and key: include cycles, include trees beyond 200 files or 12
+levels, text that is not UTF-8, files that are not regular, saved entries
+with gaps, values that are not finite or plausible.
 
 Stable positions (microsteps below each endstop) become carriage travel in
 mm with step_dist = rotation_distance / (full_steps_per_rotation *
@@ -27,8 +35,8 @@ noise ([measurement] table left out): the rows' sigmas weight heights
 against distances, and identify --method map estimates the noise and prior
 scales from the data.  Then run
 `bayescal identify DIR/recording.csv --machine DIR/machine.toml --method map --free all`
-and, to paste the result into printer.cfg, add --write-klipper PATH.  See
-docs/delta-printers.md.
+and add --write-klipper PATH for a block of Klipper's keys to paste into
+printer.cfg above its SAVE_CONFIG block.  See docs/delta-printers.md.
 """
 
 EXAMPLES = """\
@@ -50,7 +58,7 @@ def register(sub) -> None:
                         "scale is estimated by identify")
     p.add_argument("--sigma-distance", type=float, default=None,
                    help="one-sigma noise of a caliper distance, mm (default 0.05); a weight against the heights")
-    p.add_argument("--json", metavar="PATH", help="write a summary (geometry read, step distances, counts, files) as JSON")
+    p.add_argument("--json", metavar="PATH", help="write a summary (geometry read, step distances, counts, files read, notes) as JSON")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
 
@@ -91,11 +99,13 @@ def run(args) -> int:
     write_text_atomic(out / "machine.toml", _TOLERANCE_NOTE + machine.to_toml())
     write_text_atomic(out / "recording.csv", constraints_to_csv(rec))
     n_h = sum(m == "height" for m in rec.measure)
+    notes = cfg.notes()
     if args.json:
         write_json_atomic(args.json, {
             "machine": machine.name, "config": str(args.config), "delta_radius": kd.delta_radius,
             "angle_deg": kd.angle_deg, "arm_length": kd.arm_length, "position_endstop": kd.position_endstop,
             "step_dist": kd.step_dist, "n_heights": n_h, "n_distances": rec.n_rows - n_h,
+            "files_read": list(cfg.files), "notes": notes,
             "files": {"machine": str(out / "machine.toml"), "recording": str(out / "recording.csv")},
         })
     if not args.quiet:
@@ -104,4 +114,6 @@ def run(args) -> int:
             f"{', '.join(f'{s:g}' for s in kd.step_dist)} mm) and {out / 'recording.csv'} "
             f"({n_h} heights, {rec.n_rows - n_h} distances)"
         )
+        for note in notes:
+            print(f"note: {note}")
     return EXIT_OK

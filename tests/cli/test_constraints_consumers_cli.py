@@ -153,7 +153,7 @@ def test_identify_writes_the_machine_of_a_ballbar_recording(tmp_path, method, in
 
 def test_kalman_writes_klipper_keys_as_the_other_methods(tmp_path):
     # --write-klipper was silently ignored by kalman and mcmc (exit 0, no file); the keys are the geometry's
-    from bayescal.klipper import klipper_text
+    from bayescal.klipper_keys import klipper_text
 
     delta = EX / "delta"
     cfg = tmp_path / "k.cfg"
