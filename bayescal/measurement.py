@@ -390,7 +390,7 @@ def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:
     if not pred.success.all():
         i = int(np.flatnonzero(~pred.success)[0])
         raise RecordingError(
-            rec.path, i + 2, None,
+            rec.path, int(rec.lines[i]), None,
             f"the machine {model.machine.source} cannot assemble this pose (q = {model.q[i].tolist()}): "
             f"{pred.poses.message[i]}; expected a pose of this machine, in its units",
         )

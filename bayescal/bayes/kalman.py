@@ -33,6 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
 from ..identify import resolve_free
+from ..identify.gauss_newton import determined_at
 from .accuracy import evaluation_poses, tool_point_jacobian, workspace_accuracy
 from .priors import GaussianPrior, prior_from_machine
 from ..identify.result import covariance_dict, decided_by_prior_lines
@@ -94,6 +95,8 @@ class FilterResult:
     #: Combinations the data do not separate that the prior decides (``free="auto"``: estimated, not fixed).
     decided_by_prior: tuple[str, ...] = ()
     extras: dict = field(default_factory=dict)
+    #: Which parameters the data determine alone (:func:`bayescal.identify.gauss_newton.data_determined`).
+    determined: NDArray | None = None
 
     method = "kalman"
 
@@ -134,7 +137,7 @@ class FilterResult:
             "variant": self.variant,
             "success": self.success,
             "message": self.message,
-            "parameters": parameter_list(self.names, self.units, self.theta, self.std, self.free),
+            "parameters": parameter_list(self.names, self.units, self.theta, self.std, self.free, self.determined),
             "rms_before": self.rms_before,
             "rms_after": self.rms_after,
             "dof": self.dof,
@@ -179,7 +182,7 @@ class FilterResult:
         k = self.poses_needed()
         lines.append(f"  within 10% of the final accuracy after {k} poses: measuring more than that buys little")
         pairs = strong_correlations(self.covariance, self.free_names)
-        lines += parameter_table(parameter_list(self.names, self.units, self.theta, self.std, self.free), pairs)
+        lines += parameter_table(parameter_list(self.names, self.units, self.theta, self.std, self.free, self.determined), pairs)
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, held at the prior mean: {', '.join(self.fixed)}"]
         lines += decided_by_prior_lines(self.decided_by_prior)
@@ -323,4 +326,5 @@ def kalman_filter(
         fixed=tuple(nm for nm, fr in zip(machine.layout.names, free_mask) if not fr),
         unidentifiable=() if ida is None else ida.combinations,
         decided_by_prior=() if ida is None else ida.decided_by_prior,
+        determined=determined_at(model, theta, free_mask, pred),
     )

@@ -149,6 +149,8 @@ class PosteriorResult:
     #: Importance-sampling ESS fractions of the straight and the bent proposal (``{"draws", "straight",
     #: "bent"}``), by which the bend was kept or dropped; None when no bend was fitted or tried.
     proposal_check: dict | None = field(default=None, repr=False)
+    #: Which parameters the data determine alone (the MAP's, :attr:`IdentificationResult.determined`).
+    determined: NDArray | None = field(default=None, repr=False)
 
     method = "mcmc"
 
@@ -183,7 +185,7 @@ class PosteriorResult:
             "method": "mcmc",
             "success": ok,
             "message": self.message,
-            "parameters": parameter_list(self.names, self.units, self.theta, self.std, self.free),
+            "parameters": parameter_list(self.names, self.units, self.theta, self.std, self.free, self.determined),
             "rms_before": self.rms_before,
             "rms_after": self.rms_after,
             "dof": self.dof,
@@ -246,7 +248,7 @@ class PosteriorResult:
         ]
         if not self.success:
             return "\n".join(lines)
-        rows = parameter_list(self.names, self.units, self.theta, self.std, self.free)
+        rows = parameter_list(self.names, self.units, self.theta, self.std, self.free, self.determined)
         lines += parameter_table(
             rows, strong_correlations(self.covariance, self.free_names),
             {"q05": self.quantiles[0], "q95": self.quantiles[2], "R-hat": self.rhat},
@@ -578,6 +580,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         tree=tree,
         seconds=seconds,
         fixed=start.fixed,
+        determined=getattr(start, "determined", None),
         unidentifiable=start.unidentifiable,
         decided_by_prior=start.decided_by_prior,
     )

@@ -10,11 +10,17 @@ from ..identify.result import STRONG_CORRELATION
 __all__ = ["parameter_list", "strong_correlations", "parameter_table", "STRONG_CORRELATION"]
 
 
-def parameter_list(names, units, theta: NDArray, std: NDArray, free: NDArray) -> list[dict]:
-    """``[{"name", "value", "std", "unit", "identified"}]`` with ``std`` None where undefined."""
+def parameter_list(names, units, theta: NDArray, std: NDArray, free: NDArray, determined: NDArray | None = None) -> list[dict]:
+    """``[{"name", "value", "std", "unit", "identified", "estimated"}]`` with ``std`` None where undefined.
+
+    ``estimated``: the method gave the parameter a value (free); ``identified``: the data determine it alone
+    (``determined``, :func:`bayescal.identify.gauss_newton.data_determined`; all free ones when not given).
+    """
+    det = np.ones(len(names), dtype=bool) if determined is None else np.asarray(determined, dtype=bool)
     return [
-        {"name": n, "value": float(v), "std": float(s) if np.isfinite(s) else None, "unit": u, "identified": bool(f)}
-        for n, v, s, u, f in zip(names, theta, std, units, free)
+        {"name": n, "value": float(v), "std": float(s) if np.isfinite(s) else None, "unit": u,
+         "identified": bool(f and d), "estimated": bool(f)}
+        for n, v, s, u, f, d in zip(names, theta, std, units, free, det)
     ]
 
 
@@ -34,7 +40,7 @@ def parameter_table(rows: list[dict], pairs: list[tuple[str, str, float]], extra
     lines = ["", head]
     j = 0
     for r in rows:
-        if not r["identified"]:
+        if not r.get("estimated", r["identified"]):
             continue
         std = f"{r['std']:12.3e}" if r["std"] is not None else f"{'-':>12}"
         extra = "".join(f"{v[j]:12.4g}" for v in extra_cols.values())

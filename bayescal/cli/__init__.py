@@ -19,7 +19,7 @@ __all__ = ["main", "build_parser", "EXIT_OK", "EXIT_FAILED", "EXIT_INPUT"]
 EXIT_OK, EXIT_FAILED, EXIT_INPUT = 0, 1, 2
 
 #: Subcommand modules, each with ``register(subparsers)`` setting ``func``.
-COMMANDS = ("identify", "simulate", "diagnose", "compensate", "grid", "plan", "compare", "klipper")
+COMMANDS = ("identify", "predict", "simulate", "diagnose", "compensate", "grid", "plan", "compare", "klipper")
 
 _EPILOG = """\
 examples:

@@ -12,10 +12,12 @@ from ..identify.choose import DEFAULT_RULE, RULE_NAMES
 from ..identify.robust import robust_map_weights
 from .bayes_identify import METHODS, add_arguments, run_bayes
 from .effect_options import joint_effects_model, with_fitted_effects
-from .inputs import add_frame_argument, free_arg, instrument_inputs
+from .inputs import add_frame_argument, free_arg, inputs_with_session, name_list
 from .instrument import add_force_argument, instrument_report, judge, refusal_note, write_calibrated_files
 from .outlier_options import add_outlier_arguments, outlier_kwargs
 from .outputs import add_output_options, write_json, write_report
+from ..machines.framed import base_machine
+from ..predict.recording import held_out_report, score_held_out
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -138,6 +140,16 @@ def register(sub) -> None:
              "data contradict it, uses the estimated scale (intervals widen for residuals larger than stated; a sigma "
              "stated far too large no longer leaves the calibration to the prior); 'stated' tests and reports only",
     )
+    p.add_argument(
+        "--discrepancy", choices=("off", "auto", "on"), default="off",
+        help="a model discrepancy: a smooth function of the inputs (actuators, auxiliary channels) added to the tool "
+             "pose for what the kinematic model leaves out, fitted off what the geometry explains; 'auto' keeps it "
+             "where the marginal likelihood supports it, 'on' always; the calibrated machine carries it "
+             "(docs/discrepancy.md). Default off; suggested when the residuals are larger than the noise",
+    )
+    p.add_argument("--discrepancy-inputs", metavar="NAMES",
+                   help="comma-separated inputs of the discrepancy: q1, q2, ... and auxiliary channels of the recording "
+                        "(default: every actuator and every channel that varies)")
     p.add_argument("--max-iter", type=int, default=50, help="Gauss-Newton iterations at most (default 50)")
     p.add_argument("--json", metavar="PATH", help="write the answer as JSON (docs/formats.md section 3)")
     p.add_argument("--write-machine", metavar="PATH", help="write the calibrated machine file")
@@ -181,7 +193,11 @@ def _k_arg(text: str):
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
 
-    machine, rec, model, check = instrument_inputs(args, constraints=True)
+    machine, rec, model, check, session = inputs_with_session(args, constraints=True)
+    if args.discrepancy != "off" and args.method not in ("ls", "ridge", "tsvd", "map"):
+        raise InputError(f"--discrepancy goes with --method ls, ridge, tsvd or map (got --method {args.method})")
+    if args.discrepancy_inputs and args.discrepancy == "off":
+        raise InputError("--discrepancy-inputs goes with --discrepancy auto or on")
     if args.write_klipper and machine.kind != "linear-delta":
         raise InputError(f"--write-klipper: Klipper's delta keys describe a linear-delta machine; {args.machine} is a {machine.kind}")
     if args.write_urdf:
@@ -219,16 +235,20 @@ def run(args) -> int:
     # method dispatch, outliers, the prior scale and the noise check: one library call (bayescal.identify.calibrate)
     cal = calibrate(model, method=args.method, lam=args.lam, k=args.k, free=free, rule=args.rule,
                     prior_scale=args.prior_scale, max_iter=args.max_iter, noise=args.noise,
-                    fit_effects=args.fit_effects, **okw)
+                    fit_effects=args.fit_effects, discrepancy=args.discrepancy,
+                    discrepancy_inputs=name_list(args.discrepancy_inputs) if args.discrepancy_inputs else None, **okw)
     res, handling, choice = cal.result, cal.handling, cal.choice
+    held_out = score_held_out(cal, session) if session is not None else {}
     if hasattr(model, "pivot_positions"):  # a constraint recording's fitted ballbar pivots
         res = replace(res, extras={**res.extras, "pivots": model.pivot_positions(res.theta)})
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
     # instrument frame and plausibility (docs/real-instruments.md)
     extra, plaus = judge(machine, model, res, check)
-    write_json(args, {**res.to_dict(), **extra})
-    write_calibrated_files(args, with_fitted_effects(machine, model, res), res, plaus)
+    write_json(args, {**res.to_dict(), **extra, **held_out})
+    written = with_fitted_effects(machine, model, res)
+    write_calibrated_files(args, written.with_calibration(cal.record(base_machine(written)), cal.discrepancy_model),
+                           res, plaus)
     write_report(args, "identify", res, machine=machine, model=model, choice=choice, answer_extra=extra)
     path = None
     if choice is not None and args.figures:
@@ -238,6 +258,10 @@ def run(args) -> int:
     if not args.quiet:
         print(res.report())
         print(cal.noise_report())
+        if text := cal.discrepancy_report():
+            print(text)
+        if text := held_out_report(held_out):
+            print(text)
         print(handling.report())
         print(instrument_report(extra, plaus))
         if machine.effects:

@@ -37,6 +37,10 @@ def recording_model(args: argparse.Namespace, *, constraints: bool = False) -> t
     if constrained is not None:
         return constrained
     rec = read_recording(args.recording)
+    if rec.is_check.any():  # FORMATS.md section 8: check rows are never identified from
+        import numpy as np
+
+        rec = rec.subset(np.flatnonzero(~rec.is_check))
     model = MeasurementModel.from_recording(machine, rec, dof=getattr(args, "dof", None))
     check_recording_solves(model, rec)
     return machine, rec, model
@@ -79,7 +83,7 @@ def add_frame_argument(p) -> None:
 
 
 def instrument_inputs(args: argparse.Namespace, *, constraints: bool = False):
-    """Machine, recording, model and the rigid-transform check, with ``args.frame`` applied.
+    """Machine, recording (its ``fit`` rows), model of those rows and the rigid-transform check, with ``args.frame``.
 
     A constraint recording gives ``(machine, recording, ConstraintModel, None)``
     when ``constraints`` (see :func:`recording_model`).
@@ -87,18 +91,36 @@ def instrument_inputs(args: argparse.Namespace, *, constraints: bool = False):
     Units are checked (RecordingError for positions that look like metres,
     angles like degrees).  With ``--frame base``, a recording that a rigid
     transform explains far better than the tolerances gets a warning on
-    stderr suggesting ``--frame fit`` (unless ``--quiet``).
+    stderr suggesting ``--frame fit`` (unless ``--quiet``).  ``check`` rows
+    (FORMATS.md section 8) are left out: :func:`instrument_session` keeps them.
     """
-    import sys
+    return inputs_with_session(args, constraints=constraints)[:4]
 
-    from ..instrument import prepare_model
 
+def inputs_with_session(args: argparse.Namespace, *, constraints: bool = False):
+    """As :func:`instrument_inputs`, plus the :class:`~bayescal.instrument.prepare.Session` (None for constraints)."""
     machine = load_machine(args.machine)
     constrained = _constraint_inputs(args, machine, constraints)
     if constrained is not None:
-        return (*constrained, None)
+        return (*constrained, None, None)
+    session = instrument_session(args, machine)
+    if session.unfitted_stations:
+        from ..errors import RecordingError
+
+        raise RecordingError(args.recording, None, "station", f"station {session.unfitted_stations[0]!r} has no fit "
+                             "rows; its frame cannot be fitted (give it fit rows, or leave its rows out)")
+    return session.machine, session.fit_recording, session.fit_model, session.check, session
+
+
+def instrument_session(args: argparse.Namespace, machine=None):
+    """The :class:`~bayescal.instrument.prepare.Session` of ``args.recording`` (every row, with its role)."""
+    import sys
+
+    from ..instrument.prepare import prepare_session
+
+    machine = load_machine(args.machine) if machine is None else machine
     rec = read_recording(args.recording)
-    machine, model, check = prepare_model(machine, rec, dof=getattr(args, "dof", None), frame=args.frame)
-    if check is not None and check.fires and not getattr(args, "quiet", False):
-        print(f"bayescal {args.command}: warning: {check.message()}", file=sys.stderr)
-    return machine, rec, model, check
+    session = prepare_session(machine, rec, dof=getattr(args, "dof", None), frame=getattr(args, "frame", "base"))
+    if session.check is not None and session.check.fires and not getattr(args, "quiet", False):
+        print(f"bayescal {args.command}: warning: {session.check.message()}", file=sys.stderr)
+    return session

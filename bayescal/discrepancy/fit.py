@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy import linalg, optimize
+from threadpoolctl import threadpool_limits
 
 from ..errors import InputError
 from ..identifiability import STRUCTURAL_RTOL
@@ -138,6 +139,8 @@ class _Problem:
         G = output_rows_map(model, theta, prediction, outputs) / sig[:, :, None]  # (n, dof, n_out)
         self.G = G
         self.g = np.einsum("nao,nap->nop", G, G)  # (n, n_out, n_out)
+        # output pairs no row couples (a position row never sees a rotation output): their blocks are zero
+        self.coupled = np.any(self.g != 0.0, axis=0)
         Qr = self.Q.reshape(n, dof, rank)
         self.H = np.einsum("nar,nao->nor", Qr, G)  # (n, n_out, rank)
         self.Gr = np.einsum("nao,na->no", G, self.r_perp.reshape(n, dof))  # (n, n_out)
@@ -148,9 +151,11 @@ class _Problem:
         """``M = F^T P F``, ``b = F^T P r`` and ``Q^T F`` for features ``phi`` (n, m) and output scales ``s``."""
         m, o = phi.shape[1], self.n_out
         # F^T F in (o, p) blocks of m x m: s_o s_p sum_n g_nop phi_n phi_n^T (one BLAS product per block)
-        FtF = np.empty((o * m, o * m))
+        FtF = np.zeros((o * m, o * m))
         for a in range(o):
             for c in range(a, o):
+                if not self.coupled[a, c]:
+                    continue
                 blk = (phi * self.g[:, a, c][:, None]).T @ phi * (s[a] * s[c])
                 FtF[a * m:(a + 1) * m, c * m:(c + 1) * m] = blk
                 FtF[c * m:(c + 1) * m, a * m:(a + 1) * m] = blk.T
@@ -202,7 +207,7 @@ def _optimise(prob: _Problem, U, x0, bounds, d, n_groups, groups, fit_noise, max
 
 
 def fit_discrepancy(model, theta, free, *, inputs=None, n_inducing: int | None = None, fit_noise: bool = True,
-                    seed: int = 0, maxiter: int = 60) -> DiscrepancyFit:
+                    seed: int = 0, maxiter: int = 40, hyper: Discrepancy | None = None) -> DiscrepancyFit:
     """Fit a discrepancy to the residual of a calibration (module docstring).
 
     Parameters
@@ -223,6 +228,11 @@ def fit_discrepancy(model, theta, free, *, inputs=None, n_inducing: int | None =
         For the subset of poses the hyperparameters are estimated on (large recordings).
     maxiter : int
         L-BFGS-B iterations per stage.
+    hyper : Discrepancy, optional
+        Keep this discrepancy's inputs, standardisation, inducing points,
+        length and output scales (no search) and refit only the weights,
+        with the noise factor 1 (the model's sigma as it is): a geometry
+        refitted at the noise the first fit estimated.
 
     Returns
     -------
@@ -232,6 +242,14 @@ def fit_discrepancy(model, theta, free, *, inputs=None, n_inducing: int | None =
     free_idx = np.flatnonzero(free) if np.asarray(free).dtype == bool else np.asarray(free, dtype=int)
     if model.y_measured is None:
         raise InputError("fit_discrepancy: the model has no measured values")
+    # the matrices are small (a few hundred): threaded BLAS only costs here, badly on a loaded machine (8x seen)
+    with threadpool_limits(1):
+        if hyper is not None:
+            return _refit_weights(model, theta, free_idx, hyper)
+        return _fit(model, theta, free_idx, inputs, n_inducing, fit_noise, seed, maxiter)
+
+
+def _fit(model, theta, free_idx, inputs, n_inducing, fit_noise, seed, maxiter) -> DiscrepancyFit:
     inputs = tuple(default_inputs(model) if inputs is None else inputs)
     if not inputs:
         raise InputError("fit_discrepancy: no inputs (actuators or auxiliary channels) to model the discrepancy over")
@@ -270,10 +288,10 @@ def fit_discrepancy(model, theta, free, *, inputs=None, n_inducing: int | None =
     x0 = np.clip(x0, [b[0] for b in bounds], [b[1] for b in bounds])
     U = hp.Z[farthest_points(hp.Z, m)]
     x, _ = _optimise(hp, U, x0, bounds, d, n_groups, groups, fit_noise, maxiter)
-    # inducing points again, where the fitted length scales say the function varies
+    # inducing points again, where the fitted length scales say the function varies (a polish from there)
     ls, _, _ = _unpack(x, d, n_groups, groups, fit_noise)
     U = hp.Z[farthest_points(hp.Z, m, weights=1.0 / ls)]
-    x, nll = _optimise(hp, U, x, bounds, d, n_groups, groups, fit_noise, maxiter)
+    x, nll = _optimise(hp, U, x, bounds, d, n_groups, groups, fit_noise, max(10, maxiter // 3))
     ls, s, c = _unpack(x, d, n_groups, groups, fit_noise)
     rr = float(hp.r_perp @ hp.r_perp)
     c0 = rr / max(hp.N_eff, 1)
@@ -281,25 +299,39 @@ def fit_discrepancy(model, theta, free, *, inputs=None, n_inducing: int | None =
     gain = float(nll0 - nll)
     # the weights' posterior on every pose
     full = hp if sub.size == n else _Problem(model, theta, pred, free_idx, inputs, outputs, center, scale)
-    phi, _ = nystrom_features(full.Z, U, ls)
-    M, b, QtF = full.pieces(phi, s)
+    template = Discrepancy(inputs=inputs, center=center, scale=scale, length_scales=ls, outputs=outputs,
+                           output_scales=s, inducing=U, weights=np.zeros(len(outputs) * U.shape[0]),
+                           log_evidence_gain=gain)
+    return _posterior(model, full, template, free_idx, c, gain)
+
+
+def _refit_weights(model, theta, free_idx, hyper: Discrepancy) -> DiscrepancyFit:
+    pred = model.predict(theta)
+    if not pred.success.all():
+        raise InputError("fit_discrepancy: a pose cannot be solved at the calibrated geometry")
+    prob = _Problem(model, theta, pred, free_idx, hyper.inputs, hyper.outputs, hyper.center, hyper.scale)
+    return _posterior(model, prob, hyper, free_idx, 1.0, hyper.log_evidence_gain)
+
+
+def _posterior(model, prob: _Problem, template: Discrepancy, free_idx, c: float, gain: float) -> DiscrepancyFit:
+    """The weights' Gaussian posterior at fixed hyperparameters, and the fitted discrepancy."""
+    phi, _ = nystrom_features(prob.Z, template.inducing, template.length_scales)
+    M, b, QtF = prob.pieces(phi, template.output_scales)
     K = M.shape[0]
-    prec = np.eye(K) + M / c
-    L = linalg.cholesky(prec, lower=True)
+    L = linalg.cholesky(np.eye(K) + M / c, lower=True)
     cov = linalg.cho_solve((L, True), np.eye(K))
     mu = cov @ b / c
     # the projection's geometric part: A^+ Q Q^T F = V_r diag(1/s_r) Q^T F, physical units
-    B = (full.V_r / full.s_r) @ QtF
-    shift = B @ mu
+    B = (prob.V_r / prob.s_r) @ QtF
     names = model.machine.layout.names
-    rr_full = float(full.r_perp @ full.r_perp)
-    fit_sq = float(mu @ M @ mu)
-    chi2 = rr_full - 2.0 * float(b @ mu) + fit_sq
+    rr = float(prob.r_perp @ prob.r_perp)
+    chi2 = rr - 2.0 * float(b @ mu) + float(mu @ M @ mu)
     hat = float(np.trace(cov @ M) / c)
     disc = Discrepancy(
-        inputs=inputs, center=center, scale=scale, length_scales=ls, outputs=outputs, output_scales=s, inducing=U,
-        weights=mu, shift_names=tuple(names[j] for j in free_idx), shift=shift,
-        log_evidence_gain=gain, explained=float(np.clip(1.0 - chi2 / max(rr_full, 1e-300), 0.0, 1.0)),
+        inputs=template.inputs, center=template.center, scale=template.scale, length_scales=template.length_scales,
+        outputs=template.outputs, output_scales=template.output_scales, inducing=template.inducing, weights=mu,
+        shift_names=tuple(names[j] for j in free_idx), shift=B @ mu, log_evidence_gain=gain,
+        explained=float(np.clip(1.0 - chi2 / max(rr, 1e-300), 0.0, 1.0)),
     )
     return DiscrepancyFit(discrepancy=disc, noise_factor=float(c), weight_cov=0.5 * (cov + cov.T), B=B,
                           supported=gain >= MIN_EVIDENCE_GAIN, chi2=chi2, effective_params=hat, free=free_idx)

@@ -15,7 +15,13 @@ command line get the same answer:
    where the data contradict it, the noise scale is estimated and the
    whole fit redone with it, until the scale settles, so that intervals are
    never narrower than the residuals justify and an overstated noise does
-   not leave the calibration to the prior.
+   not leave the calibration to the prior;
+4. with ``discrepancy="auto"`` or ``"on"``, a model discrepancy
+   (:mod:`bayescal.discrepancy`) fitted to what the geometry leaves, off
+   the span of the identification Jacobian; ``auto`` keeps it only where the
+   marginal likelihood supports it.  The noise is then tested with the
+   discrepancy accounted for, the geometry refitted at the noise that
+   supports, and the discrepancy's weights refitted at that geometry.
 """
 
 from __future__ import annotations
@@ -59,15 +65,92 @@ class Calibration:
     choice: object | None
     noise: NoiseCheck
     noise_scale: float = 1.0
+    discrepancy: object | None = None
+    discrepancy_note: str = ""
+    variance_factor: float = 1.0
+    loo_ratio: float = 1.0
+
+    @property
+    def discrepancy_model(self):
+        """The fitted :class:`~bayescal.discrepancy.Discrepancy` (None without one)."""
+        return None if self.discrepancy is None else self.discrepancy.discrepancy
+
+    @property
+    def joint_covariance(self):
+        """Covariance of the free parameters and the discrepancy's weights (None without either)."""
+        if self.result.covariance is None:
+            return None
+        if self.discrepancy is None:
+            return self.result.covariance
+        return self.discrepancy.joint_covariance(self.result.covariance)
+
+    def record(self, machine):
+        """The ``[calibration]`` record of ``machine`` written from this calibration (None without a covariance)."""
+        from ..discrepancy import weight_names
+        from ..predict.record import record_from_result
+
+        res = self.result
+        extra = weight_names(self.discrepancy.discrepancy.n_features) if self.discrepancy is not None else ()
+        return record_from_result(machine, res.names, res.free, res.covariance, noise_scale=self.noise_scale,
+                                  method=res.method, extra_names=extra,
+                                  extra_cov=self.joint_covariance if self.discrepancy is not None else None,
+                                  variance_factor=self.variance_factor)
+
+    def discrepancy_dict(self) -> dict:
+        """The answer's ``discrepancy`` block ({} when none was considered)."""
+        if self.discrepancy is None:
+            return {"discrepancy": {"kept": False, "note": self.discrepancy_note}} if self.discrepancy_note else {}
+        d = self.discrepancy.discrepancy
+        return {"discrepancy": {
+            "kept": True, "inputs": list(d.inputs), "relevance": d.relevance(), "outputs": list(d.outputs),
+            "output_scales": d.output_scales.tolist(), "output_units": list(d.output_units),
+            "log_evidence_gain": d.log_evidence_gain, "explained": d.explained,
+            "effective_params": self.discrepancy.effective_params, "n_inducing": d.n_inducing,
+            "note": self.discrepancy_note,
+        }}
+
+    def discrepancy_report(self) -> str:
+        if self.discrepancy is None:
+            return f"  discrepancy     {self.discrepancy_note}" if self.discrepancy_note else ""
+        d = self.discrepancy.discrepancy
+        rel = sorted(d.relevance().items(), key=lambda kv: -kv[1])
+        shown = ", ".join(f"{k} {v:.2g}" for k, v in rel[:6])
+        scales = ", ".join(f"{o} {s:.3g} {u}" for o, s, u in zip(d.outputs, d.output_scales, d.output_units))
+        return (f"  discrepancy     kept: log Bayes factor {d.log_evidence_gain:.1f} over none; carries "
+                f"{100 * d.explained:.0f} % of the residual; prior scale {scales}\n"
+                f"                  relevance of its inputs (1 / length scale): {shown}")
 
     def noise_report(self) -> str:
         line = f"  noise           {self.noise.message()}"
         if self.noise_scale != 1.0:
             line += f"\n                  sigma used: {self.noise_scale:.3g} x the stated one"
+        if self.variance_factor > 1.0:
+            line += (f"\n  predictive      left-out poses predicted {self.loo_ratio:.3g} times worse (in variance) than "
+                     f"the model's own intervals: predictions widen by {self.variance_factor:.3g} in variance")
         return line
 
     def noise_dict(self) -> dict:
-        return {"noise": {**self.noise.to_dict(), "scale_used": self.noise_scale}}
+        return {"noise": {**self.noise.to_dict(), "scale_used": self.noise_scale},
+                "predictive": {"variance_factor": self.variance_factor, "loo_ratio": self.loo_ratio}}
+
+    def with_variance_factor(self, model) -> "Calibration":
+        """This calibration with its leave-one-pose-out variance factor (:mod:`bayescal.predict.loo`) computed."""
+        from ..predict.loo import loo_variance_factor
+
+        res = self.result
+        if not res.success or res.covariance is None:
+            return self
+        scaled = model if self.noise_scale == 1.0 else model.with_pose_sigma(
+            np.asarray(model.row_sigma, dtype=float) * self.noise_scale)
+        weighted = self.handling.weighted_model(scaled) if hasattr(self.handling, "weighted_model") else scaled
+        disc = self.discrepancy.discrepancy if self.discrepancy is not None else None
+        try:
+            kappa, ratio = loo_variance_factor(weighted, res.theta, self.joint_covariance,
+                                               machine_index=np.flatnonzero(res.free), discrepancy=disc)
+        except (np.linalg.LinAlgError, ValueError):
+            return self
+        cal = replace(self, variance_factor=kappa, loo_ratio=ratio)
+        return replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict()}))
 
 
 def noise_check_of(model: MeasurementModel, res) -> NoiseCheck:
@@ -119,6 +202,8 @@ def calibrate(
     robust: str = "auto",
     noise: str = "auto",
     fit_effects: bool = False,
+    discrepancy: str = "off",
+    discrepancy_inputs=None,
     **outlier_kw,
 ) -> Calibration:
     """Identify the errors of a recording as ``bayescal identify`` does (module docstring).
@@ -145,6 +230,10 @@ def calibrate(
         replaced by the estimated scale; ``stated``: tested and reported only.
     fit_effects : bool
         The model's effect parameters are fitted (map: the prior scale stays the tolerances).
+    discrepancy : {"off", "auto", "on"}
+        A model discrepancy (module docstring, step 4).
+    discrepancy_inputs : sequence of str, optional
+        Its inputs (``q<i>``, auxiliary channels); default: every actuator and varying channel.
 
     Returns
     -------
@@ -166,16 +255,54 @@ def calibrate(
         raise InputError("rule: goes with method ridge, lam='auto' or method tsvd, k='auto'")
     if noise not in ("auto", "stated"):
         raise InputError(f"noise: expected 'auto' or 'stated', got {noise!r}")
+    if discrepancy not in ("off", "auto", "on"):
+        raise InputError(f"discrepancy: expected 'off', 'auto' or 'on', got {discrepancy!r}")
     kw = dict(lam=lam, k=k, free=free, rule=rule, prior_scale=prior_scale, max_iter=max_iter,
               outlier_kw={"robust": robust, **outlier_kw}, fit_effects=fit_effects)
     res, handling, choice = _fit_once(model, method, **kw)
     first = noise_check_of(model, res)
+    if discrepancy != "off" and res.success:
+        got = _with_discrepancy(model, method, kw, (res, handling, choice), discrepancy, discrepancy_inputs, noise)
+        if got is not None:
+            return got
+        note = "considered, not supported by the data (--discrepancy auto)"
+    else:
+        note = ""
     scale = 1.0
     # without a stated noise ([measurement] absent) the sigmas are weights and the covariance is already scaled
     if noise == "auto" and first.contradicted and res.success:
         res, handling, choice, scale = _with_noise_scale(model, method, kw, first.scale, (res, handling, choice))
-    cal = Calibration(result=res, handling=handling, choice=choice, noise=first, noise_scale=scale)
-    return replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict()}))
+    cal = Calibration(result=res, handling=handling, choice=choice, noise=first, noise_scale=scale, discrepancy_note=note)
+    cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}))
+    return cal.with_variance_factor(model)
+
+
+def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
+    """Step 4 of the module docstring; None when ``auto`` finds the discrepancy unsupported."""
+    from ..discrepancy import fit_discrepancy
+
+    res, handling, choice = first_fit
+    df = fit_discrepancy(model, res.theta, res.free, inputs=inputs)
+    if mode == "auto" and not df.supported:
+        return None
+    # the stated noise, tested with the discrepancy's part of the residual accounted for
+    n_distinct = distinct_rows(model.q, model.y_measured) * model.dof
+    p_eff = float(np.sum(res.filter_factors)) if np.size(res.filter_factors) else float(np.sum(res.free))
+    check = check_noise(df.chi2, n_distinct - p_eff - df.effective_params, stated=bool(model.machine.noise.given))
+    scale = check.scale if (noise == "auto" and check.contradicted) else 1.0
+    scaled = model if scale == 1.0 else model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
+    if scale != 1.0:
+        refit = _fit_once(scaled, method, **kw)
+        if refit[0].success:
+            res, handling, choice = refit
+        else:
+            scaled, scale = model, 1.0  # keep the fit at the stated noise
+    df = fit_discrepancy(scaled, res.theta, res.free, hyper=df.discrepancy)
+    note = ("fitted (--discrepancy on)" if mode == "on" else "supported by the data (--discrepancy auto)")
+    cal = Calibration(result=res, handling=handling, choice=choice, noise=check, noise_scale=scale,
+                      discrepancy=df, discrepancy_note=note)
+    cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}))
+    return cal.with_variance_factor(model)
 
 
 def _with_noise_scale(model, method, kw, scale, fallback):

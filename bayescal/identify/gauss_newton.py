@@ -31,7 +31,7 @@ from ..measurement import MeasurementModel
 from .result import IdentificationResult
 from .solvers import LS_RCOND, filtered_solve
 
-__all__ = ["identify", "resolve_free", "whitened_system", "posterior_covariance", "data_determined"]
+__all__ = ["identify", "resolve_free", "whitened_system", "posterior_covariance", "data_determined", "determined_at"]
 
 
 def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tuple[NDArray, NDArray]:
@@ -145,6 +145,19 @@ def _condition(s: NDArray, rtol: float = STRUCTURAL_RTOL) -> float:
         return float("inf")
     kept = s[s > rtol * s[0]]
     return float(kept[0] / kept[-1])
+
+
+def determined_at(model, theta: NDArray, free: NDArray, prediction=None) -> NDArray | None:
+    """Which parameters (P,) the data determine alone at ``theta``: free and in the row space (None if not solvable)."""
+    pred = model.predict(theta) if prediction is None else prediction
+    if not np.all(pred.success):
+        return None
+    free = np.asarray(free, dtype=bool)
+    sig = model.row_sigma
+    J = (model.jacobian(theta, pred) / sig[:, :, None]).reshape(-1, model.n_params)[:, free]
+    out = np.zeros(free.size, dtype=bool)
+    out[free] = data_determined(J)[0]
+    return out
 
 
 def data_determined(A: NDArray, rtol: float = STRUCTURAL_RTOL) -> tuple[NDArray, NDArray]:

@@ -54,12 +54,17 @@ class CalibrationRecord:
         Factor on the machine file's ``[measurement]`` sigma that the
         calibration's residuals supported (1: the stated noise fits).
     method : str
+    variance_factor : float
+        ``kappa >= 1`` on every predictive covariance: how much the
+        calibration's own left-out poses said its regions must widen
+        (:mod:`bayescal.predict.loo`).
     """
 
     names: tuple[str, ...]
     covariance: NDArray
     noise_scale: float = 1.0
     method: str = ""
+    variance_factor: float = 1.0
 
     @property
     def std(self) -> NDArray:
@@ -90,6 +95,7 @@ def calibration_toml(record: CalibrationRecord) -> str:
         "# of this file's geometry), float64 little-endian row-major, base64",
         f"method = {f(record.method)}",
         f"noise_scale = {f(float(record.noise_scale))}",
+        f"variance_factor = {f(float(record.variance_factor))}",
         f"parameters = {f(list(record.names))}",
         f"std = {f(record.std)}",
         f"covariance_f64le_b64 = {f(base64.b64encode(C.tobytes()).decode('ascii'))}",
@@ -102,7 +108,7 @@ def read_calibration(doc: TomlTable, path: str) -> CalibrationRecord | None:
     t = doc.table("calibration", required=False)
     if t is None:
         return None
-    t.reject_unknown({"method", "noise_scale", "parameters", "std", "covariance_f64le_b64"})
+    t.reject_unknown({"method", "noise_scale", "variance_factor", "parameters", "std", "covariance_f64le_b64"})
     names = t.data.get("parameters")
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or not names:
         raise t.error("parameters", "expected a non-empty list of parameter names")
@@ -127,11 +133,14 @@ def read_calibration(doc: TomlTable, path: str) -> CalibrationRecord | None:
     if not math.isfinite(scale) or not 1e-6 <= scale <= 1e6:
         raise t.error("noise_scale", f"expected a factor between 1e-6 and 1e6, got {scale!r}")
     method = t.string("method", default="")
-    return CalibrationRecord(tuple(names), C, float(scale), method)
+    kappa = t.number("variance_factor", default=1.0, positive=True)
+    if not 1.0 <= kappa <= 1e4:
+        raise t.error("variance_factor", f"expected a factor from 1 to 1e4, got {kappa!r}")
+    return CalibrationRecord(tuple(names), C, float(scale), method, float(kappa))
 
 
 def record_from_result(machine, names_all, free, covariance, *, noise_scale: float = 1.0, method: str = "",
-                       extra_names=(), extra_cov=None) -> CalibrationRecord | None:
+                       extra_names=(), extra_cov=None, variance_factor: float = 1.0) -> CalibrationRecord | None:
     """The record of an identification: the covariance of the machine's own parameters among the free ones.
 
     Parameters
@@ -155,7 +164,8 @@ def record_from_result(machine, names_all, free, covariance, *, noise_scale: flo
     sel = [i for i, n in enumerate(all_names) if n in keep_names or n in set(extra_names)]
     if not sel or not np.all(np.isfinite(C[np.ix_(sel, sel)])):
         return None
-    return CalibrationRecord(tuple(all_names[i] for i in sel), C[np.ix_(sel, sel)], float(noise_scale), method)
+    return CalibrationRecord(tuple(all_names[i] for i in sel), C[np.ix_(sel, sel)], float(noise_scale), method,
+                             float(variance_factor))
 
 
 def unknown_parameters_message(path: str, missing) -> str:

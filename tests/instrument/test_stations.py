@@ -123,5 +123,5 @@ def test_station_with_too_few_poses_is_named(setup):
     labels = np.array(stationed.station, dtype=object)
     labels[7] = "lonely"
     bad = replace(stationed, station=tuple(labels))
-    with pytest.raises(RecordingError, match="station 'lonely' has 1 pose"):
+    with pytest.raises(RecordingError, match="station .lonely. has 1 fit pose"):
         prepare_model(machine, bad, frame="fit")

@@ -29,7 +29,7 @@ def test_parameter_table_equals_json_answer(reports, kind):
         assert r[2][1] == p["std"]
         assert r[3][0] == p["unit"]
     cov = ans["covariance"]
-    assert len(cov["matrix"]) == len(cov["names"]) == sum(p["identified"] for p in ans["parameters"])
+    assert len(cov["matrix"]) == len(cov["names"]) == sum(p["estimated"] for p in ans["parameters"])
     C = np.array(cov["matrix"])
     std = np.sqrt(np.diag(C))
     got = {p["name"]: p["std"] for p in ans["parameters"]}

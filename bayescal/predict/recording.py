@@ -1,0 +1,292 @@
+"""``bayescal predict``: every row of a new recording from a calibrated machine, with a 90 % region, scored by role.
+
+The calibrated machine (geometry, effects, model discrepancy, and the
+covariance of its calibration in ``[calibration]``) is held fixed with its
+uncertainty.  Only what belongs to the session is fitted, on the ``fit``
+rows: the instrument frame of each station with ``frame="fit"``.  Every row
+gets its predictive mean and covariance (:mod:`bayescal.predict.engine`),
+its position error and whether it lies inside its 90 % region
+(:mod:`bayescal.predict.score`); the summary scores the ``check`` rows (no
+fit has seen them) and the ``fit`` rows apart.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import so3_log
+from ..io.recording import Recording
+from ..machines.base import Machine
+from .engine import PredictiveRows, predictive_rows
+from .score import REGION_LEVEL, score_rows, summarise
+
+__all__ = ["PredictionResult", "predict_recording"]
+
+
+@dataclass(frozen=True)
+class PredictionResult:
+    """The answer of :func:`predict_recording` (FORMATS.md section 8).
+
+    Attributes
+    ----------
+    machine_name : str
+    rows : tuple of dict
+        Per row: ``line``, ``station``, ``role``, ``measured``, ``predicted``,
+        ``std`` (one sigma per measured component), ``error_position_mm``,
+        ``inside_90``; or ``error`` (why it could not be predicted).
+    summary : dict
+        ``{"check": {...}, "fit": {...}}``: counts, mean / median / p95
+        position error (mm), coverage of the 90 % regions.
+    frames : dict
+        The session's fitted frames (``{}`` for ``frame="base"``).
+    notes : tuple of str
+        What the prediction took as known, in words.
+    """
+
+    machine_name: str
+    rows: tuple[dict, ...]
+    summary: dict
+    frames: dict
+    notes: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict:
+        return {"machine": self.machine_name, "rows": list(self.rows), "summary": self.summary, **self.frames,
+                "notes": list(self.notes), "region_level": REGION_LEVEL}
+
+    def report(self) -> str:
+        lines = [f"bayescal prediction with '{self.machine_name}'"]
+        for role in ("check", "fit"):
+            s = self.summary.get(role)
+            if not s or not s["n"] and not s["n_failed"]:
+                continue
+            if s["n"]:
+                lines.append(
+                    f"  {role:<6} {s['n']:>5} rows: position error mean {s['mean_error_position_mm']:.4g} mm, median "
+                    f"{s['median_error_position_mm']:.4g}, p95 {s['p95_error_position_mm']:.4g}; inside the 90 % "
+                    f"region: {100 * s['coverage_90']:.1f} %")
+            if s["n_failed"]:
+                lines.append(f"  {role:<6} {s['n_failed']:>5} rows not predicted (see their 'error' in the JSON)")
+        lines += [f"  note: {n}" for n in self.notes]
+        return "\n".join(lines)
+
+
+def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", dof: int | None = None) -> PredictionResult:
+    """Predict every row of ``rec`` from the calibrated ``machine`` (module docstring).
+
+    Parameters
+    ----------
+    machine : Machine
+        As loaded from a calibrated machine file (``bayescal.machines.load_machine``):
+        its ``calibration`` record gives the parameters' covariance and noise
+        scale, its ``discrepancy`` the model discrepancy (either may be absent).
+    rec : Recording
+        With an optional ``station`` and ``role`` column.
+    frame : {"base", "fit"}
+        ``fit``: each station's instrument frame is fitted on its ``fit`` rows,
+        the machine held fixed.
+    dof : int, optional
+        6, 5 or 3; default: what the recording holds.
+
+    Returns
+    -------
+    PredictionResult
+    """
+    from ..identify.gauss_newton import identify
+    from ..instrument.plausibility import frame_answer
+    from ..instrument.prepare import prepare_session
+
+    session = prepare_session(machine, rec, dof=dof, frame=frame, strict=False)
+    fm, model = session.machine, session.model
+    errors = session.row_errors()
+    usable = np.array([e is None for e in errors])
+    fit_rows = ~rec.is_check & usable
+    disc = machine.discrepancy
+    if disc is not None:
+        try:
+            disc.raw_inputs(model)
+        except InputError as exc:
+            errors = [str(exc)] * rec.n_poses
+            usable[:] = False
+            fit_rows[:] = False
+    names = fm.layout.names
+    n_session = fm.n_frame if frame == "fit" else 0
+    theta = np.zeros(fm.n_params)
+    notes = []
+    frames = {}
+    if n_session:
+        theta, fit_ok = _fit_frames(model, theta, n_session, fit_rows, disc, identify)
+        if not fit_ok:
+            raise InputError(f"{rec.path}: the instrument frame(s) could not be fitted on the fit rows")
+        free = np.zeros(fm.n_params, dtype=bool)
+        free[:n_session] = True
+        frames = frame_answer(fm, theta, free, None)
+    C, machine_index, noise_factor, kappa, note = _machine_covariance(machine, fm, names, disc)
+    if note:
+        notes.append(note)
+    idx = np.flatnonzero(usable)
+    pr = PredictiveRows(np.full((rec.n_poses, model.dof), np.nan), np.full((rec.n_poses, model.dof, model.dof), np.nan),
+                        np.zeros(rec.n_poses, dtype=bool), ("",) * rec.n_poses)
+    if idx.size:
+        sub = model.subset(idx)
+        got = predictive_rows(sub, theta, C, machine_index=machine_index, noise_factor=noise_factor, discrepancy=disc,
+                              session_index=np.arange(n_session) if n_session else None, fit_rows=fit_rows[idx],
+                              variance_factor=kappa)
+        mean, cov, ok = pr.mean.copy(), pr.cov.copy(), pr.success.copy()
+        mean[idx], cov[idx], ok[idx] = got.mean, got.cov, got.success
+        msgs = list(pr.message)
+        for k, i in enumerate(idx):
+            msgs[i] = got.message[k]
+        pr = PredictiveRows(mean, cov, ok, tuple(msgs))
+    for i in np.flatnonzero(usable & ~pr.success):
+        errors[i] = f"cannot be predicted: {pr.message[i] or 'the pose does not solve'}"
+    failed = np.array([e is not None for e in errors])
+    scores = score_rows(model.y_measured, pr.mean, pr.cov)
+    rows = _rows(rec, model, pr, scores, errors)
+    summary = {"check": summarise(scores, rec.is_check, failed), "fit": summarise(scores, ~rec.is_check, failed)}
+    if disc is None:
+        notes.append("no [discrepancy] in the machine file: the prediction is the kinematic model's")
+    return PredictionResult(machine.name, tuple(rows), summary, frames, tuple(notes))
+
+
+def _fit_frames(model, theta, n_session, fit_rows, disc, identify):
+    """Least squares of the session's frames on the fit rows, the machine held fixed (the discrepancy's mean removed)."""
+    fit_idx = np.flatnonzero(fit_rows)
+    if fit_idx.size == 0:
+        raise InputError("predict --frame fit: no fit rows to fit the instrument frame(s) on")
+    sub = model.subset(fit_idx)
+    pred = sub.predict(theta)
+    ok = np.flatnonzero(pred.success)
+    sub = sub.subset(ok)
+    free = list(range(n_session))
+    for _ in range(2 if disc is not None else 1):
+        target = sub
+        if disc is not None:
+            p = sub.predict(theta)
+            dmean, _, _ = disc.rows(sub, theta, p)
+            target = replace(sub, y_measured=sub.y_measured - dmean)
+        res = identify(target, method="ls", free=free, theta0=theta)
+        if not res.success:
+            return theta, False
+        theta = res.theta
+    return theta, True
+
+
+def _machine_covariance(machine, fm, names, disc):
+    """Covariance over the machine's parameters the record holds (and the discrepancy's weights), their indices, c."""
+    from ..discrepancy import weight_names
+
+    record = machine.calibration
+    pos = {n: i for i, n in enumerate(names)}
+    wnames = weight_names(disc.n_features) if disc is not None else ()
+    if record is None:
+        k = len(wnames)
+        note = ("no [calibration] in the machine file: its parameters are taken as exact; the intervals carry the "
+                "instrument noise" + (" and the discrepancy's prior" if disc is not None else ""))
+        return np.eye(k) if k else np.zeros((0, 0)), np.zeros(0, dtype=int), 1.0, 1.0, note
+    geo = [n for n in record.names if n in pos]
+    C = record.covariance_for(geo + list(wnames))
+    if disc is not None:
+        # weights the record does not hold keep their prior, N(0, I)
+        missing = [i for i, n in enumerate(wnames) if n not in set(record.names)]
+        for i in missing:
+            C[len(geo) + i, len(geo) + i] = 1.0
+    note = ""
+    lost = [n for n in record.names if n not in pos and not n.startswith("discrepancy.")]
+    if lost:
+        note = f"{len(lost)} parameter(s) of [calibration] are not this machine's and were left out: {', '.join(lost[:4])}"
+    return (C, np.array([pos[n] for n in geo], dtype=int), float(record.noise_scale) ** 2,
+            float(record.variance_factor), note)
+
+
+def _rows(rec, model, pr, scores, errors) -> list[dict]:
+    measured, predicted = _in_recording_terms(rec, model, pr)
+    std = pr.std
+    out = []
+    stations = rec.station or ("",) * rec.n_poses
+    roles = rec.role or ("fit",) * rec.n_poses
+    lines = rec.lines
+    for i in range(rec.n_poses):
+        row = {"line": int(lines[i]), "station": stations[i] if rec.station is not None else None, "role": roles[i],
+               "measured": measured[i]}
+        if errors[i] is not None:
+            row["error"] = errors[i]
+        else:
+            row.update({"predicted": predicted[i], "std": std[i].tolist(),
+                        "error_position_mm": float(scores.error_position[i]), "inside_90": bool(scores.inside[i])})
+        out.append(row)
+    return out
+
+
+def _in_recording_terms(rec, model, pr):
+    """Measured and predicted values as the recording writes them: position, then rotation vector or tool axis."""
+    measured = [rec.position[i].tolist() for i in range(rec.n_poses)]
+    predicted = [pr.mean[i, :3].tolist() for i in range(rec.n_poses)]
+    if model.dof == 6 and rec.rotvec is not None:
+        # the model's rows are log(R R_meas^T): the predicted rotation is exp(row) R_meas
+        from ..geometry import so3_exp
+
+        R_meas = so3_exp(rec.rotvec)
+        ok = np.all(np.isfinite(pr.mean[:, 3:]), axis=1)
+        rv = np.full((rec.n_poses, 3), np.nan)
+        if ok.any():
+            rv[ok] = so3_log(so3_exp(pr.mean[ok, 3:]) @ R_meas[ok])
+        for i in range(rec.n_poses):
+            measured[i] += rec.rotvec[i].tolist()
+            predicted[i] += rv[i].tolist()
+    return measured, predicted
+
+
+def score_held_out(cal, session) -> dict:
+    """The ``check`` rows of a calibration's own recording, predicted and scored as ``predict`` scores them.
+
+    Parameters
+    ----------
+    cal : bayescal.identify.calibrate.Calibration
+        Fitted on the session's ``fit`` rows (its frames are the session's).
+    session : bayescal.instrument.prepare.Session
+
+    Returns
+    -------
+    dict
+        ``{"check": {"summary": {...}, "rows": [...]}}``, or ``{}`` when the
+        recording has no ``check`` row.
+    """
+    rec = session.recording
+    if not rec.is_check.any():
+        return {}
+    res = cal.result
+    idx = np.flatnonzero(rec.is_check)
+    model = session.model.subset(idx)
+    if cal.noise_scale != 1.0:
+        model = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * cal.noise_scale)
+    sub_rec = rec.subset(idx)
+    errors = [None] * idx.size
+    if not res.success or cal.joint_covariance is None:
+        errors = ["the calibration did not succeed"] * idx.size
+        pr = PredictiveRows(np.full((idx.size, model.dof), np.nan), np.full((idx.size, model.dof, model.dof), np.nan),
+                            np.zeros(idx.size, dtype=bool), ("",) * idx.size)
+    else:
+        disc = cal.discrepancy.discrepancy if cal.discrepancy is not None else None
+        pr = predictive_rows(model, res.theta, cal.joint_covariance, machine_index=np.flatnonzero(res.free),
+                             discrepancy=disc, variance_factor=cal.variance_factor)
+        errors = [None if ok else f"cannot be predicted: {m}" for ok, m in zip(pr.success, pr.message)]
+    failed = np.array([e is not None for e in errors])
+    scores = score_rows(model.y_measured, pr.mean, pr.cov)
+    rows = _rows(sub_rec, model, pr, scores, errors)
+    return {"check": {"summary": summarise(scores, np.ones(idx.size, dtype=bool), failed), "rows": rows}}
+
+
+def held_out_report(answer: dict) -> str:
+    """The report line of :func:`score_held_out`'s answer ("" without check rows)."""
+    c = answer.get("check")
+    if not c:
+        return ""
+    s = c["summary"]
+    if not s["n"]:
+        return f"  held out        {s['n_failed']} check rows, none predicted"
+    return (f"  held out        {s['n']} check rows: position error mean {s['mean_error_position_mm']:.4g} mm, median "
+            f"{s['median_error_position_mm']:.4g}, p95 {s['p95_error_position_mm']:.4g}; inside their 90 % region "
+            f"{100 * s['coverage_90']:.1f} %")
