@@ -82,7 +82,7 @@ class Calibration:
             return None
         if self.discrepancy is None:
             return self.result.covariance
-        return self.discrepancy.joint_covariance(self.result.covariance)
+        return self.discrepancy.covariance
 
     def record(self, machine):
         """The ``[calibration]`` record of ``machine`` written from this calibration (None without a covariance)."""
@@ -282,27 +282,49 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
     from ..discrepancy import fit_discrepancy
 
     res, handling, choice = first_fit
-    df = fit_discrepancy(model, res.theta, res.free, inputs=inputs)
+    if not res.lam:
+        raise InputError(f"discrepancy: the split between the geometry and a discrepancy is decided by the geometry's "
+                         f"prior; method {method!r} has none (use method 'map', or 'ridge' with lam > 0)")
+    idx = np.flatnonzero(res.free)
+    machine = model.machine
+    prior_sd = np.asarray(machine.tolerance, dtype=float)[idx] / math.sqrt(res.lam)
+    mean = getattr(machine, "prior_mean", None)
+    prior_mean = None if mean is None else np.asarray(mean, dtype=float)[idx]
+    df = fit_discrepancy(model, res.theta, res.free, prior_sd, prior_mean=prior_mean, inputs=inputs)
     if mode == "auto" and not df.supported:
         return None
-    # the stated noise, tested with the discrepancy's part of the residual accounted for
+    # the stated noise, tested with the discrepancy accounted for (the joint fit's effective parameters)
     n_distinct = distinct_rows(model.q, model.y_measured) * model.dof
-    p_eff = float(np.sum(res.filter_factors)) if np.size(res.filter_factors) else float(np.sum(res.free))
-    check = check_noise(df.chi2, n_distinct - p_eff - df.effective_params, stated=bool(model.machine.noise.given))
+    check = check_noise(df.chi2, n_distinct - df.effective_params, stated=bool(machine.noise.given))
     scale = check.scale if (noise == "auto" and check.contradicted) else 1.0
     scaled = model if scale == 1.0 else model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
-    if scale != 1.0:
-        refit = _fit_once(scaled, method, **kw)
-        if refit[0].success:
-            res, handling, choice = refit
-        else:
-            scaled, scale = model, 1.0  # keep the fit at the stated noise
-    df = fit_discrepancy(scaled, res.theta, res.free, hyper=df.discrepancy)
+    # the joint posterior at the noise used, relinearised once at its own geometry
+    theta = res.theta.copy()
+    for _ in range(2):
+        df = fit_discrepancy(scaled, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
+        theta = theta.copy()
+        theta[idx] += df.dtheta
+    df = fit_discrepancy(scaled, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
+    res = _joint_result(scaled, res, theta, df)
     note = ("fitted (--discrepancy on)" if mode == "on" else "supported by the data (--discrepancy auto)")
     cal = Calibration(result=res, handling=handling, choice=choice, noise=check, noise_scale=scale,
                       discrepancy=df, discrepancy_note=note)
     cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}))
     return cal.with_variance_factor(model)
+
+
+def _joint_result(model, res, theta, df):
+    """The identification answer of the geometry fitted jointly with a discrepancy (at ``model``'s noise)."""
+    p = int(np.sum(res.free))
+    pred = model.predict(theta)
+    after = model.residual(pred)
+    if pred.success.all():
+        after = after - df.discrepancy.rows(model, theta, pred)[0]
+    return replace(
+        res, theta=theta, covariance=df.covariance[:p, :p], residuals_after=after, rms_after=model.rms(after),
+        chi2=float(np.sum((after / model.row_sigma) ** 2)),
+        covariance_kind=res.covariance_kind + "; joint with the model discrepancy (its weights marginalised)",
+    )
 
 
 def _with_noise_scale(model, method, kw, scale, fallback):

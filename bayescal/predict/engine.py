@@ -79,6 +79,7 @@ def predictive_rows(
     session_index: NDArray | None = None,
     fit_rows: NDArray | None = None,
     variance_factor: float = 1.0,
+    residual_variance: bool = True,
 ) -> PredictiveRows:
     """The predictive distribution of every row of ``model`` (module docstring).
 
@@ -103,6 +104,9 @@ def predictive_rows(
         Which rows the session's parameters were fitted on.
     variance_factor : float
         ``kappa`` on the whole covariance (:func:`bayescal.predict.loo.loo_variance_factor`).
+    residual_variance : bool
+        Add ``D``, the discrepancy's prior variance its inducing points do not
+        carry (False: the parameters' part alone, the hat matrix of a fit).
 
     Returns
     -------
@@ -127,6 +131,8 @@ def predictive_rows(
     if discrepancy is not None:
         dmean, F, D = discrepancy.rows(sub, theta, sub_pred, J=J)
         mu = mu + dmean
+        if not residual_variance:
+            D = np.zeros_like(D)
         Jm = np.concatenate([Jm, F], axis=2)
     C = np.asarray(covariance, dtype=float)
     if C.shape != (Jm.shape[2],) * 2:

@@ -41,7 +41,11 @@ def loo_variance_factor(model, theta, covariance, *, machine_index, discrepancy=
     discrepancy : Discrepancy, optional
     """
     pr = predictive_rows(model, theta, covariance, machine_index=machine_index, noise_factor=0.0,
-                         discrepancy=discrepancy)
+                         discrepancy=discrepancy, residual_variance=False)
+    # the discrepancy's prior part its inducing points do not carry: in every prediction, in no fit
+    D = np.zeros_like(pr.cov)
+    if discrepancy is not None and pr.success.all():
+        D = discrepancy.rows(model, theta, model.predict(theta))[2]
     ok = pr.success
     if not ok.any() or model.y_measured is None:
         return 1.0, 1.0
@@ -53,8 +57,9 @@ def loo_variance_factor(model, theta, covariance, *, machine_index, discrepancy=
     good = np.linalg.eigvalsh(0.5 * (IH + np.swapaxes(IH, 1, 2)))[:, 0] > 1e-6  # a pose alone deciding a direction
     if not good.any():
         return 1.0, 1.0
-    S = np.linalg.inv(IH[good])  # leave-one-out covariance, whitened
-    e = np.einsum("nij,nj->ni", S, r[good])
+    Dw = D[ok] / (sig[:, :, None] * sig[:, None, :])
+    S = np.linalg.inv(IH[good]) + Dw[good]  # leave-one-out covariance, whitened
+    e = np.einsum("nij,nj->ni", np.linalg.inv(IH[good]), r[good])
     p = slice(0, 3)
     Spp = S[:, p, p]
     d2 = np.einsum("ni,ni->n", e[:, p], np.linalg.solve(Spp, e[:, p, None])[:, :, 0])
