@@ -10,7 +10,7 @@ from ..bayes.priors import PRIOR_SCALES
 from ..errors import InputError
 from ..identify.choose import DEFAULT_RULE, RULE_NAMES, choose_regularisation
 from ..identify.robust import fit_system, identify_with_outliers, robust_map_weights
-from .bayes_identify import METHODS, add_arguments, run_bayes
+from .bayes_identify import METHODS, add_arguments, check_method_options, run_bayes
 from .effect_options import joint_effects_model, with_fitted_effects
 from .inputs import add_frame_argument, free_arg, instrument_inputs
 from .instrument import add_force_argument, instrument_report, judge, refusal_note, write_calibrated_files
@@ -170,6 +170,7 @@ def _k_arg(text: str):
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
 
+    check_method_options(args)  # e.g. --posterior with a method other than mcmc: refused, not ignored
     machine, rec, model, check = instrument_inputs(args, constraints=True)
     if args.write_klipper and machine.kind != "linear-delta":
         raise InputError(f"--write-klipper: Klipper's delta keys describe a linear-delta machine; {args.machine} is a {machine.kind}")
