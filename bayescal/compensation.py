@@ -34,9 +34,14 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import InputError, RecordingError
 from .io.answers import write_text_atomic
 
-__all__ = ["CompensationGrid", "build_grid", "read_grid", "write_grid", "GRID_COLUMNS"]
+__all__ = ["CompensationGrid", "build_grid", "read_grid", "write_grid", "table_interpolator", "evaluate_grid", "GRID_COLUMNS"]
 
 GRID_COLUMNS = ("i", "j", "x", "z", "ex", "ez", "std_ex", "std_ez")
+
+#: Largest plausible node error or std as a fraction of the grid's longer side.
+MAX_ERROR_FRACTION = 0.1
+#: Bytes per node while a grid is built from an error table (node coordinates, interpolation, the grid).
+_BYTES_PER_NODE = 8 * 32
 
 
 @dataclass(frozen=True)
@@ -74,6 +79,36 @@ class CompensationGrid:
         object.__setattr__(self, "zs", zs)
         object.__setattr__(self, "error", err)
         object.__setattr__(self, "std", std)
+
+    @property
+    def error_limit(self) -> float:
+        """Largest plausible node error or std, mm: a tenth of the grid's longer side (:meth:`check_plausible`)."""
+        return MAX_ERROR_FRACTION * max(self.xs[-1] - self.xs[0], self.zs[-1] - self.zs[0])
+
+    def check_plausible(self, where: str = "grid") -> None:
+        """InputError for a node error or std that is not finite or above :attr:`error_limit`.
+
+        A residual error a tenth as large as the range it is measured over is
+        not something a bilinear correction should apply (recalibrate instead);
+        1e300 is a typo or an overflow.
+        """
+        limit = self.error_limit
+        for name, values in (("error", self.error), ("std", self.std)):
+            a = np.abs(values)
+            # a std may be NaN (unknown); an error may not
+            bad = (np.isnan(a) if name == "error" else np.zeros(a.shape, bool)) | np.isinf(a) | (np.nan_to_num(a) > limit)
+            if bad.any():
+                j, i, c = (int(v) for v in np.argwhere(bad)[0])
+                col = ("ex", "ez")[c] if name == "error" else ("std_ex", "std_ez")[c]
+                raise InputError(f"{where}: node ({i}, {j}) has {col} = {float(values[j, i, c])!r} mm; expected a finite "
+                                 f"value of at most {limit:.4g} mm (a tenth of the grid's longer side)")
+
+    def outside(self, x: ArrayLike, z: ArrayLike) -> NDArray:
+        """Which points ``(x, z)`` lie outside the grid's range (beyond 1e-9 of a side), shape (n,) bool."""
+        x, z = np.atleast_1d(np.asarray(x, float)), np.atleast_1d(np.asarray(z, float))
+        tx = 1e-9 * (self.xs[-1] - self.xs[0])
+        tz = 1e-9 * (self.zs[-1] - self.zs[0])
+        return ~((x >= self.xs[0] - tx) & (x <= self.xs[-1] + tx) & (z >= self.zs[0] - tz) & (z <= self.zs[-1] + tz))
 
     def interpolate(self, x: ArrayLike, z: ArrayLike) -> NDArray:
         """Bilinear interpolation of the node errors at points ``(x, z)``, shape (n, 2), mm.
@@ -137,16 +172,85 @@ def build_grid(
         raise InputError(f"std: expected a finite non-negative number (mm), got {std!r}")
     if int(n) != n or n < 2 or (n_z is not None and (int(n_z) != n_z or n_z < 2)):
         raise InputError(f"grid size: expected integers >= 2, got n={n!r}, n_z={n_z!r}")
+    from .limits import check_memory
+
+    nz = int(n if n_z is None else n_z)
+    check_memory(float(n) * nz * _BYTES_PER_NODE, f"a grid of {int(n)} x {nz} nodes", "lower the nodes per axis (--n)")
     xs = np.linspace(*x_range, int(n))
-    zs = np.linspace(*z_range, int(n if n_z is None else n_z))
+    zs = np.linspace(*z_range, nz)
     X, Z = np.meshgrid(xs, zs)
     err = np.asarray(error_at(X.ravel(), Z.ravel()), float).reshape(zs.size, xs.size, 2)
     sd = None if std is None else np.full(err.shape, float(std))
-    return CompensationGrid(xs=xs, zs=zs, error=err, std=sd)
+    grid = CompensationGrid(xs=xs, zs=zs, error=err, std=sd)
+    grid.check_plausible("grid")
+    return grid
+
+
+def table_interpolator(path: str, table: NDArray):
+    """``error_at(x, z) -> (k, 2)``: linear interpolation of an error table ``x, z, ex, ez`` (mm).
+
+    Raises
+    ------
+    RecordingError
+        Fewer than three points, points on one line (no area to interpolate
+        over), or a grid node outside the points' convex hull (raised by the
+        returned function), naming ``path``.
+    """
+    from scipy.interpolate import griddata
+    from scipy.spatial import QhullError
+
+    pts = np.asarray(table[:, :2], float)
+    uniq = np.unique(pts, axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):  # coordinates near the float range: judged as not finite
+        centred = (uniq - uniq.mean(axis=0)) if len(uniq) else uniq
+    if not np.isfinite(centred).all():
+        raise RecordingError(path, None, None, "coordinates too large to interpolate between; expected x, z in mm")
+    span = np.abs(centred).max() if uniq.size else 0.0
+    if len(uniq) < 3 or np.linalg.matrix_rank(centred, tol=1e-9 * max(span, 1e-300)) < 2:
+        line = " on one line" if len(uniq) >= 3 else ""
+        raise RecordingError(path, None, None, f"{len(uniq)} distinct point(s){line}; expected measured points spanning "
+                             "an area (at least three not on one line) around every grid node")
+
+    def at(x, z):
+        xi = np.column_stack([x, z])
+        try:
+            e = np.column_stack([griddata(pts, table[:, k], xi, method="linear") for k in (2, 3)])
+        except (QhullError, ValueError) as exc:
+            raise RecordingError(path, None, None, f"the points cannot be triangulated ({str(exc).splitlines()[0]})") from None
+        if not np.isfinite(e).all():
+            raise RecordingError(path, None, None, "the measured points do not cover every grid node of the ranges given")
+        return e
+
+    return at
+
+
+def evaluate_grid(grid: CompensationGrid, table: NDArray, path: str) -> dict:
+    """Errors of fresh measured points ``x, z, ex, ez`` (mm) before and after compensation by ``grid``.
+
+    Raises
+    ------
+    RecordingError
+        A point outside the grid's range (compensation is defined only
+        inside it; :meth:`CompensationGrid.interpolate` would extrapolate the
+        edge cells), naming its line.
+    """
+    out = np.flatnonzero(grid.outside(table[:, 0], table[:, 1]))
+    if out.size:
+        i = int(out[0])
+        raise RecordingError(
+            path, i + 2, "x", f"point ({float(table[i, 0])!r}, {float(table[i, 1])!r}) mm is outside the grid "
+            f"(x {grid.xs[0]:g}..{grid.xs[-1]:g}, z {grid.zs[0]:g}..{grid.zs[-1]:g} mm); the grid compensates only "
+            "inside its range"
+        )
+    after = table[:, 2:4] - grid.interpolate(table[:, 0], table[:, 1])
+    before = table[:, 2:4]
+    return {"max_before_mm": float(np.abs(before).max()), "max_after_mm": float(np.abs(after).max()),
+            "rms_before_mm": float(np.sqrt(np.mean(before**2))), "rms_after_mm": float(np.sqrt(np.mean(after**2)))}
 
 
 def write_grid(path: str | os.PathLike, grid: CompensationGrid) -> Path:
-    """Write the grid CSV atomically."""
+    """Write the grid CSV atomically; implausible node values (:meth:`CompensationGrid.check_plausible`) are refused."""
+    grid.check_plausible(f"not writing {path}")
     return write_text_atomic(path, grid.to_csv())
 
 
@@ -160,11 +264,9 @@ def read_grid(path: str | os.PathLike, *, text: str | None = None) -> Compensati
     """
     path = str(path)
     if text is None:
-        try:
-            with open(path, encoding="utf-8-sig", newline="") as fh:
-                text = fh.read()
-        except (FileNotFoundError, IsADirectoryError):
-            raise RecordingError(path, None, None, "file not found; expected a BIC grid CSV") from None
+        from .io.safe_paths import MAX_CSV_BYTES, read_input_text
+
+        text = read_input_text(path, "a BIC grid CSV", limit=MAX_CSV_BYTES, error=lambda msg: RecordingError(path, None, None, msg))
     rows = [r for r in csv.reader(io.StringIO(text))]
     while rows and all(c.strip() == "" for c in rows[-1]):
         rows.pop()
@@ -208,6 +310,8 @@ def read_grid(path: str | os.PathLike, *, text: str | None = None) -> Compensati
                 raise RecordingError(path, line, c, f"node coordinate {v!r} differs from {arr[idx]!r} on the same grid line")
             arr[idx] = v
     try:
-        return CompensationGrid(xs=xs, zs=zs, error=err, std=std)
+        grid = CompensationGrid(xs=xs, zs=zs, error=err, std=std)
+        grid.check_plausible("the grid")
     except InputError as exc:
         raise RecordingError(path, None, None, str(exc)) from None
+    return grid

@@ -68,7 +68,16 @@ def draw_errors(machine: Machine, rng: np.random.Generator, *, tolerance: NDArra
 
 
 def draw_poses(machine: Machine, n: int, rng: np.random.Generator, theta: NDArray | None = None) -> NDArray:
-    """``n`` actuator vectors within ``q_limits`` at which the machine (with ``theta``) can be solved."""
+    """``n`` actuator vectors within ``q_limits`` at which the machine (with ``theta``) can be solved.
+
+    A number of poses whose arrays would not fit in memory is refused first
+    (:func:`bayescal.limits.check_memory`).
+    """
+    from .limits import check_memory
+
+    # per pose: the actuator vector, forward kinematics' state and its Jacobian, twice (draws are redrawn)
+    check_memory(2.0 * n * 8 * (64 + 16 * machine.n_params), f"{int(n):,} poses",
+                 "lower the number of poses (--poses, --eval-poses)")
     out: list[NDArray] = []
     for _ in range(50):
         q = machine.sample_q(max(2 * (n - len(out)), 8), rng)

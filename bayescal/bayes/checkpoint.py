@@ -19,9 +19,9 @@ another run's checkpoint is an error, never a silent mix.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -68,50 +68,106 @@ def save_checkpoint(path: str | os.PathLike, backend: emcee.backends.Backend, fi
     }
     if backend.blobs is not None:
         arrays["blobs"] = backend.blobs[:it]
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent if str(path.parent) else ".")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    from ..io.answers import write_with_atomic
+
+    write_with_atomic(path, stream=lambda fh: np.savez(fh, **arrays))
     return path
 
 
 def load_checkpoint(path: str | os.PathLike, fingerprint: dict) -> emcee.backends.Backend:
-    """The emcee backend saved in ``path``; InputError if missing, unreadable or of another run."""
+    """The emcee backend saved in ``path``; InputError if missing, unreadable, damaged or of another run.
+
+    The file must be a regular file (of at most
+    :data:`~bayescal.io.safe_paths.MAX_CHECKPOINT_BYTES`), an ``.npz``
+    archive with every array a checkpoint holds, each of the type and shape
+    the fingerprint's walkers and parameters imply, the chain finite, the
+    random state a whole MT19937 state (:func:`_check_arrays`).
+    """
+    from ..io.safe_paths import MAX_CHECKPOINT_BYTES, read_input_bytes
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"--resume: {path}: no checkpoint there (run once with --checkpoint {path})")
+    # protect=False: the run rewrites its own checkpoint
+    raw = read_input_bytes(path, "an MCMC checkpoint (.npz)", limit=MAX_CHECKPOINT_BYTES, protect=False)
     try:
-        # our own handle: np.load leaks its file when the zip is truncated (a ResourceWarning)
-        with open(path, "rb") as fh:
-            z = np.load(fh, allow_pickle=False)
-            if not hasattr(z, "files"):  # a single .npy array, not an .npz archive
-                raise ValueError("a single array, not an .npz archive")
-            with z:
-                data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # truncated: a bad zip file; empty: EOFError
+        z = np.load(io.BytesIO(raw), allow_pickle=False)
+        if not hasattr(z, "files"):  # a single .npy array, not an .npz archive
+            raise ValueError("a single array, not an .npz archive")
+        with z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, RuntimeError, KeyError) as exc:
+        # truncated: a bad zip file; empty: EOFError; a damaged member: zlib's error (an OSError) or BadZipFile
         raise InputError(f"{path}: not a bayescal MCMC checkpoint ({exc})") from None
     missing = sorted(_KEYS - set(data))
     if missing:
         raise InputError(f"{path}: not a bayescal MCMC checkpoint (no {', '.join(missing)})")
-    saved = json.loads(str(data["fingerprint"]))
+    saved = _saved_fingerprint(path, data["fingerprint"])
     mine = json.loads(json.dumps(fingerprint, sort_keys=True))
     diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
     if diff:
         raise InputError(f"{path}: this checkpoint belongs to another run ({', '.join(diff)} differ)")
+    it = _check_arrays(path, data, saved)
     chain = data["chain"]
     backend = emcee.backends.Backend()
     backend.reset(chain.shape[1], chain.shape[2])
-    backend.chain = chain
-    backend.log_prob = data["log_prob"]
+    backend.chain = chain.astype(float)
+    backend.log_prob = data["log_prob"].astype(float)
     backend.blobs = data.get("blobs")
     backend.accepted = data["accepted"]
-    backend.iteration = int(data["iteration"])
+    backend.iteration = it
     pos, has_gauss = (int(v) for v in data["rs_meta"])
     backend.random_state = (str(data["rs_name"]), data["rs_keys"], pos, has_gauss, float(data["rs_cached"]))
     return backend
+
+
+def _saved_fingerprint(path: Path, arr: np.ndarray) -> dict:
+    """The fingerprint stored in a checkpoint: a JSON object in a 0-d string array."""
+    try:
+        if arr.ndim != 0 or arr.dtype.kind != "U":
+            raise ValueError("not a text value")
+        saved = json.loads(str(arr))
+    except (ValueError, RecursionError) as exc:
+        raise InputError(f"{path}: damaged MCMC checkpoint (its run fingerprint is not readable: {exc})") from None
+    if not isinstance(saved, dict):
+        raise InputError(f"{path}: damaged MCMC checkpoint (its run fingerprint is not a JSON object)")
+    return saved
+
+
+def _check_arrays(path: Path, data: dict, saved: dict) -> int:
+    """The number of saved steps, after checking every array of a checkpoint; InputError naming the first bad one."""
+    def bad(name: str, expected: str):
+        got = data[name]
+        return InputError(f"{path}: damaged MCMC checkpoint: '{name}' is {got.dtype} of shape {got.shape}; expected {expected}")
+
+    walkers, names = saved.get("n_walkers"), saved.get("names")
+    if not isinstance(walkers, int) or not isinstance(names, list):
+        raise InputError(f"{path}: damaged MCMC checkpoint (its fingerprint has no walkers or parameter names)")
+    it_arr = data["iteration"]
+    if it_arr.ndim != 0 or it_arr.dtype.kind not in "iu" or int(it_arr) < 0:
+        raise bad("iteration", "a non-negative integer")
+    it = int(it_arr)
+    expect = {
+        "chain": ((it, walkers, len(names)), "f", "finite numbers"),
+        "log_prob": ((it, walkers), "f", "numbers"),
+        "accepted": ((walkers,), "fiu", "counts"),
+        "rs_keys": ((624,), "iu", "the 624 words of an MT19937 state"),
+        "rs_meta": ((2,), "iu", "two integers"),
+        "rs_cached": ((), "f", "a number"),
+        "rs_name": ((), "U", "the text 'MT19937'"),
+    }
+    for name, (shape, kinds, what) in expect.items():
+        a = data[name]
+        if a.shape != shape or a.dtype.kind not in kinds:
+            raise bad(name, f"{what}, shape {shape}")
+    if not np.all(np.isfinite(data["chain"])):
+        raise bad("chain", "finite numbers")
+    if np.any(np.isnan(data["log_prob"])) or np.any(data["accepted"] < 0):
+        raise bad("log_prob" if np.any(np.isnan(data["log_prob"])) else "accepted", "numbers (no NaN) and counts >= 0")
+    if str(data["rs_name"]) != "MT19937":
+        raise bad("rs_name", "the text 'MT19937'")
+    if not 0 <= int(data["rs_meta"][0]) <= 624 or int(data["rs_meta"][1]) not in (0, 1):
+        raise bad("rs_meta", "a position 0..624 and a flag 0 or 1")
+    if "blobs" in data and (data["blobs"].ndim < 2 or data["blobs"].shape[:2] != (it, walkers)):
+        raise bad("blobs", f"shape ({it}, {walkers}, ...)")
+    return it

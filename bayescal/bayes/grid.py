@@ -33,7 +33,7 @@ from ..io import write_text_atomic
 from ..machines.base import Machine
 from .accuracy import tool_point_std_at
 
-__all__ = ["CompensationGrid", "compensation_grid", "actuator_nodes"]
+__all__ = ["CompensationGrid", "compensation_grid", "actuator_nodes", "grid_node_count", "check_grid_size"]
 
 
 @dataclass(frozen=True)
@@ -124,6 +124,38 @@ def actuator_nodes(axes) -> NDArray:
     return np.array(list(itertools.product(*axes)), dtype=float)
 
 
+def grid_node_count(machine: Machine, n: int, space: str = "actuator") -> int:
+    """Nodes of a grid of ``n`` per axis: ``n ** n_actuators`` in actuator space, at most ``n ** 3`` in tool space."""
+    return int(n) ** (machine.n_actuators if space == "actuator" else 3)
+
+
+def check_grid_size(machine: Machine, n: int, space: str = "actuator", *, n_samples: int = 0) -> None:
+    """Refuse, before any work, a grid whose arrays would not fit in memory (:func:`bayescal.limits.check_memory`).
+
+    Parameters
+    ----------
+    machine : Machine
+        The machine (its parameters and actuators size the per-node arrays).
+    n : int
+        Nodes per axis (``--nodes``); at least 2.
+    space : {"actuator", "tool", "auto"}
+        ``auto``: actuator space when the whole ``q_limits`` box is reachable, else tool space.
+    n_samples : int
+        Posterior draws evaluated at every node (0: a covariance).
+    """
+    from ..limits import check_memory
+
+    if isinstance(n, bool) or int(n) != n or n < 2:
+        raise InputError(f"n (--nodes): expected at least 2 nodes per axis, got {n!r}")
+    if space == "auto":
+        space = "actuator" if machine.actuator_box_reachable else "tool"
+    nodes = grid_node_count(machine, n, space)
+    # per node: the poses and the tool-point Jacobian (3 x P) a few times over, and each draw's forward kinematics
+    per_node = 8.0 * (12 * machine.n_params + 64 * machine.n_actuators + 256) + 8.0 * 64 * n_samples
+    axes = machine.n_actuators if space == "actuator" else 3
+    check_memory(nodes * per_node, f"a grid of {int(n)}^{axes} = {nodes:,} nodes", "lower --nodes (nodes per axis)")
+
+
 def compensation_grid(
     machine: Machine,
     theta: ArrayLike,
@@ -170,8 +202,7 @@ def compensation_grid(
     if axes is None:
         if machine.q_limits is None:
             raise InputError(f"{machine.source}: no [workspace] q_limits to span a grid; give axes")
-        if n < 2:
-            raise InputError(f"n: expected at least 2 nodes per actuator, got {n}")
+        check_grid_size(machine, n, "actuator", n_samples=0 if samples is None else len(samples))
         axes = tuple(np.linspace(lo, hi, n) for lo, hi in machine.q_limits)
     axes = tuple(np.asarray(a, dtype=float) for a in axes)
     if len(axes) != machine.n_actuators:

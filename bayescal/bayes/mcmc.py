@@ -47,7 +47,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -401,6 +400,11 @@ def sample_posterior(
     n_walkers = 2 * n + 2 if n_walkers is None else int(n_walkers)
     if n_walkers < n + 2 or n_walkers % 2:
         raise InputError(f"n_walkers: expected an even number >= {n + 2}, got {n_walkers}")
+    from ..limits import check_memory
+
+    # the chain and its log-probabilities, held by emcee and copied into the summary and the posterior tree
+    check_memory(4.0 * 8 * n_steps * n_walkers * (n + 2), f"a chain of {n_steps:,} steps x {n_walkers} walkers x {n} "
+                 "parameters", "lower --steps or --walkers")
     burn_default = burn is None
     burn = n_steps // 5 if burn is None else int(burn)
     if not 0 <= burn < n_steps:
@@ -609,13 +613,7 @@ def write_posterior(result: PosteriorResult, path: str | os.PathLike, *, thin: i
     if thin < 1:
         raise InputError(f"thin: expected an integer >= 1, got {thin}")
     tree = result.tree if thin == 1 else result.tree.isel(draw=slice(None, None, thin))
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
-    os.close(fd)
-    try:
-        tree.to_netcdf(tmp, engine="netcdf4")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    from ..io.answers import write_with_atomic
+
+    # a temporary file with a unique name beside path, then a rename; a link or device at path is refused
+    return write_with_atomic(path, to_path=lambda tmp: tree.to_netcdf(tmp, engine="netcdf4"))

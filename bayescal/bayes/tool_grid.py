@@ -314,8 +314,9 @@ def tool_grid(
     ToolGrid
     """
     theta = machine.check_theta(theta)
-    if n < 2:
-        raise InputError(f"n: expected at least 2 nodes per axis, got {n}")
+    from .grid import check_grid_size
+
+    check_grid_size(machine, n, "tool", n_samples=0 if samples is None else len(samples))
     box = tool_box(machine)
     for name, (lo, hi) in (ranges or {}).items():
         a = "xyz".index(name)

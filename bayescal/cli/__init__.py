@@ -64,15 +64,28 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INPUT
     args.argv = list(sys.argv[1:] if argv is None else argv)  # for the report's inputs
     try:
-        from .outputs import check_output_folders
+        from ..io.safe_paths import run_scope
+        from .outputs import check_option_values, check_run_paths
 
-        check_output_folders(args)
-        with warnings.catch_warnings():
+        # option values, output paths and formats before any computation; within the run no
+        # output may replace a file it read (bayescal.io.safe_paths)
+        check_option_values(args)
+        check_run_paths(args)
+        with warnings.catch_warnings(), run_scope():
             # numerical trouble is reported in the result and the exit code, not as a warning dump
             warnings.simplefilter("ignore")
             return int(args.func(args))
     except BayescalError as exc:
-        print(f"bayescal {args.command}: error: {exc}", file=sys.stderr)
+        print(f"bayescal {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_INPUT
+    except MemoryError as exc:
+        # the estimates of bayescal.limits.check_memory refuse large requests up front; this is the rest
+        print(f"bayescal {args.command}: error: out of memory{_memory_detail(exc)}; make the request smaller "
+              "(fewer nodes, poses, candidates or steps)", file=sys.stderr)
+        return EXIT_INPUT
+    except RecursionError:
+        print(f"bayescal {args.command}: error: an input nested too deeply to read (a file including itself, or "
+              "tables nested hundreds deep)", file=sys.stderr)
         return EXIT_INPUT
     except BrokenPipeError:
         # the reader of our output went away (`bayescal ... | head`): stop quietly
@@ -92,6 +105,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"bayescal {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _one_line(exc: BaseException) -> str:
+    """The message on one line (a value quoted from a file may hold line breaks)."""
+    return " ".join(str(exc).split("\n"))
+
+
+def _memory_detail(exc: MemoryError) -> str:
+    text = str(exc)
+    return f" ({text})" if text else ""
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -9,7 +9,7 @@ from pathlib import Path
 from ..errors import InputError
 from .outputs import write_json, write_report
 
-__all__ = ["add_arguments", "run_bayes", "METHODS"]
+__all__ = ["add_arguments", "check_method_options", "run_bayes", "METHODS"]
 
 METHODS = ("kalman", "mcmc")
 
@@ -39,6 +39,25 @@ def add_arguments(p) -> None:
         "--progress", action=argparse.BooleanOptionalAction, default=None,
         help="mcmc: show a progress bar (default: when stderr is a terminal)",
     )
+
+
+#: Options that act only with one method: (dest, option, method, is it given?).
+_METHOD_OPTIONS = (
+    ("posterior", "--posterior", "mcmc", lambda v: v is not None),
+    ("walkers", "--walkers", "mcmc", lambda v: v is not None),
+    ("surrogate", "--surrogate", "mcmc", lambda v: v != "none"),
+    ("checkpoint", "--checkpoint", "mcmc", lambda v: v is not None),
+    ("resume", "--resume", "mcmc", bool),
+    ("variant", "--variant", "kalman", lambda v: v != "ekf"),
+    ("process_noise", "--process-noise", "kalman", lambda v: v != 0.0),
+)
+
+
+def check_method_options(args) -> None:
+    """Refuse, before any work, an option of one method given with another (it would be silently ignored)."""
+    for dest, option, method, given in _METHOD_OPTIONS:
+        if args.method != method and given(getattr(args, dest, None)):
+            raise InputError(f"{option} goes with --method {method}; it does nothing with --method {args.method}")
 
 
 def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
 
-from ..compensation import build_grid, read_grid, write_grid
+from ..compensation import build_grid, evaluate_grid, read_grid, table_interpolator, write_grid
 from ..errors import InputError
 from .outputs import add_output_options, write_json, write_report
 
@@ -60,23 +59,13 @@ def _table(path):
 
 
 def run(args) -> int:
-    from scipy.interpolate import griddata
-
     from . import EXIT_OK
 
     if args.errors:
         if not args.x_range or not args.z_range:
             raise InputError("--x-range and --z-range are required with --errors")
         t = _table(args.errors)
-
-        def at(x, z):
-            pts = np.column_stack([x, z])
-            e = np.column_stack([griddata(t[:, :2], t[:, k], pts, method="linear") for k in (2, 3)])
-            if not np.isfinite(e).all():
-                raise InputError(f"{args.errors}: the measured points do not cover every grid node of the ranges given")
-            return e
-
-        grid = build_grid(args.x_range, args.z_range, at, n=args.n, std=args.node_std)
+        grid = build_grid(args.x_range, args.z_range, table_interpolator(args.errors, t), n=args.n, std=args.node_std)
         if args.out:  # before printing: a closed stdout (`| head`) must not cost the grid
             write_grid(args.out, grid)
         print(grid.report())
@@ -86,10 +75,7 @@ def run(args) -> int:
         raise InputError("give --errors (build a grid) or --grid (evaluate one)")
     ans = None
     if args.evaluate:
-        t = _table(args.evaluate)
-        after = t[:, 2:] - grid.interpolate(t[:, 0], t[:, 1])
-        ans = {"max_before_mm": float(np.abs(t[:, 2:]).max()), "max_after_mm": float(np.abs(after).max()),
-               "rms_before_mm": float(np.sqrt(np.mean(t[:, 2:] ** 2))), "rms_after_mm": float(np.sqrt(np.mean(after**2)))}
+        ans = evaluate_grid(grid, _table(args.evaluate), args.evaluate)
         write_json(args, ans)
         print(f"fresh points: max |error| {ans['max_before_mm']:.4f} mm -> {ans['max_after_mm']:.4f} mm after BIC")
     write_report(args, "compensate", grid, evaluation=ans)

@@ -123,6 +123,11 @@ def run(args) -> int:
     typo = [k for k in aux if k not in known]
     if typo:  # a misspelt channel would silently leave the effect at its default
         raise InputError(f"--aux {typo[0]}: unknown channel; expected one of: {', '.join(known)}")
+    from ..bayes.grid import check_grid_size
+
+    # --nodes checked (at least 2, and arrays that fit in memory) before the identification runs
+    check_grid_size(model.machine.geometry_part[0], args.nodes, args.space,
+                    n_samples=400 if args.method == "mcmc" else 0)
     if args.fit_effects:
         from .effect_options import joint_effects_model
 
@@ -144,8 +149,6 @@ def run(args) -> int:
             print(res.report())
         print(f"bayescal grid: the identification did not succeed ({res.message}); no grid written")
         return EXIT_FAILED
-    if args.nodes < 2:
-        raise InputError(f"--nodes: expected at least 2, got {args.nodes}")
     # the grid is over the machine in its base frame: an instrument frame (fitted or known) is left out
     base, theta, free_mask, kw = base_frame_parts(model.machine, res.theta, res.free, kw)
     space = args.space

@@ -10,7 +10,7 @@ from ..errors import InputError
 from ..identify.calibrate import calibrate
 from ..identify.choose import DEFAULT_RULE, RULE_NAMES
 from ..identify.robust import robust_map_weights
-from .bayes_identify import METHODS, add_arguments, run_bayes
+from .bayes_identify import METHODS, add_arguments, check_method_options, run_bayes
 from .effect_options import joint_effects_model, with_fitted_effects
 from .inputs import add_frame_argument, free_arg, inputs_with_session, name_list
 from .instrument import add_force_argument, instrument_report, judge, refusal_note, write_calibrated_files
@@ -193,11 +193,13 @@ def _k_arg(text: str):
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
 
-    machine, rec, model, check, session = inputs_with_session(args, constraints=True)
-    if args.discrepancy != "off" and args.method not in ("ls", "ridge", "tsvd", "map"):
-        raise InputError(f"--discrepancy goes with --method ls, ridge, tsvd or map (got --method {args.method})")
+    check_method_options(args)  # e.g. --posterior with a method other than mcmc: refused, not ignored
+    if args.discrepancy != "off" and args.method not in ("map", "ridge"):
+        raise InputError(f"--discrepancy goes with --method map or ridge: the geometry's prior decides what the "
+                         f"discrepancy may take (got --method {args.method})")
     if args.discrepancy_inputs and args.discrepancy == "off":
         raise InputError("--discrepancy-inputs goes with --discrepancy auto or on")
+    machine, rec, model, check, session = inputs_with_session(args, constraints=True)
     if args.write_klipper and machine.kind != "linear-delta":
         raise InputError(f"--write-klipper: Klipper's delta keys describe a linear-delta machine; {args.machine} is a {machine.kind}")
     if args.write_urdf:

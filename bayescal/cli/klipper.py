@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..io import write_json_atomic, write_text_atomic
+from ..io import write_json_atomic
+from ..io.answers import write_files_atomic
 from ..io.constraints import constraints_to_csv
 
 HELP = """\
@@ -96,8 +97,9 @@ def run(args) -> int:
     span = np.vstack([rec.qa, rec.qb[np.isfinite(rec.qb).all(axis=1)]])
     machine = klipper_machine(kd, name=f"Klipper delta {Path(args.config).name}", q_span=span)
     out = Path(args.out)
-    write_text_atomic(out / "machine.toml", _TOLERANCE_NOTE + machine.to_toml())
-    write_text_atomic(out / "recording.csv", constraints_to_csv(rec))
+    # one unit: a machine file never stands beside the recording of another config
+    write_files_atomic([(out / "machine.toml", _TOLERANCE_NOTE + machine.to_toml()),
+                        (out / "recording.csv", constraints_to_csv(rec))])
     n_h = sum(m == "height" for m in rec.measure)
     notes = cfg.notes()
     if args.json:

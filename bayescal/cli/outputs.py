@@ -1,30 +1,47 @@
-"""What every command does with its output files: --report, --mkdir, and saying what it wrote.
+"""What every command does with its files: --report, --mkdir, the paths checked up front, saying what it wrote.
 
 One call per command: :func:`add_output_options` adds ``--report PATH.html``
 and ``--mkdir``; :func:`write_json`, :func:`write_calibrated_machine` and
 :func:`write_report` write atomically and say on stderr what they wrote
-(stdout stays the report text, so it can be piped).  :func:`check_output_folders`
-runs before any command: an answer file into a folder that does not exist
-is an error naming the folder, before minutes of computing, unless
-``--mkdir`` asks for it.
+(stdout stays the report text, so it can be piped).  :func:`check_run_paths`
+runs before any command: it lists the run's input and output files from
+the options (and the files a command writes beside them) and applies
+:func:`bayescal.io.safe_paths.check_outputs`: an output that is an input,
+two outputs that are one file, a link, device or folder as an output, a
+figure name matplotlib cannot write, or a folder that does not exist
+(unless ``--mkdir``) is an error naming the options, before minutes of
+computing.
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import math
 import sys
 from pathlib import Path
 
 from ..errors import InputError
 from ..io import write_json_atomic, write_text_atomic
 
-__all__ = ["add_output_options", "check_output_folders", "say", "write_json", "write_calibrated_machine", "write_report", "run_inputs"]
+__all__ = [
+    "add_output_options", "check_run_paths", "check_option_values", "run_paths", "say", "write_json",
+    "write_calibrated_machine", "write_report", "run_inputs",
+]
 
-#: Options naming one output file whose folder must exist (or --mkdir).
-FILE_OUTPUTS = ("json", "report", "write_machine", "truth", "nc", "out_csv", "posterior", "figure")
-#: Options naming input files, hashed into the report.
-INPUT_FILES = ("recording", "machine", "errors", "grid", "evaluate", "poses_file", "resume_from")
+#: Options naming one output file, by ``dest`` (``--out`` is a folder for the commands in OUT_FOLDERS).
+FILE_OUTPUTS = ("json", "report", "write_machine", "write_klipper", "truth", "nc", "out", "posterior", "checkpoint", "figure")
+#: Options naming a folder the command writes figures into (created when missing).
+FOLDER_OUTPUTS = ("figures",)
+#: Options naming a figure file (its suffix must be a format matplotlib writes).
+FIGURE_OUTPUTS = ("figure",)
+#: Commands whose --out is a folder, and the files they write into it.
+OUT_FOLDERS = {
+    "compare": ("table.txt", "comparison.json", "config.json", "trials.jsonl"),
+    "klipper": ("machine.toml", "recording.csv"),
+}
+#: Options naming input files, hashed into the report (and never to be overwritten).
+INPUT_FILES = ("recording", "machine", "errors", "grid", "evaluate", "poses_file", "given", "config", "resume_from")
 
 
 def add_output_options(p: argparse.ArgumentParser, *, report: bool = True) -> None:
@@ -38,18 +55,60 @@ def add_output_options(p: argparse.ArgumentParser, *, report: bool = True) -> No
     g.add_argument("--mkdir", action="store_true", help="create missing folders of the output files (default: error)")
 
 
-def check_output_folders(args: argparse.Namespace) -> None:
-    """An InputError naming the first output file whose folder does not exist (unless ``--mkdir``)."""
-    if getattr(args, "mkdir", False):
-        return
+def _label(key: str) -> str:
+    return key if key in ("recording", "config") else "--" + key.replace("_", "-")
+
+
+def run_paths(args: argparse.Namespace) -> tuple[dict, dict, dict]:
+    """The run's ``(inputs, outputs, folders)`` by label (the option as typed), from the parsed options.
+
+    Outputs include what a command writes beside the named ones: simulate's
+    truth JSON and machine file, the files compare and klipper write into
+    their ``--out`` folder.
+    """
+    inputs = {_label(k): v for k in INPUT_FILES if isinstance(v := getattr(args, k, None), str) and v}
+    outputs, folders = {}, {}
+    command = getattr(args, "command", "")
     for key in FILE_OUTPUTS:
-        path = getattr(args, key, None)
-        if not isinstance(path, str) or not path:
+        value = getattr(args, key, None)
+        if not isinstance(value, str) or not value:
             continue
-        folder = Path(path).parent
-        if not folder.is_dir():
-            opt = {"truth": "--json/--truth"}.get(key, "--" + key.replace("_", "-"))
-            raise InputError(f"{opt} {path}: the folder {folder} does not exist (create it, or add --mkdir)")
+        if key == "out" and command in OUT_FOLDERS:
+            folders["--out"] = value
+            outputs.update({f"--out's {name}": str(Path(value) / name) for name in OUT_FOLDERS[command]})
+        else:
+            outputs[_label(key)] = value
+    if command == "simulate" and getattr(args, "out", None):
+        truth = Path(args.truth) if getattr(args, "truth", None) else Path(args.out).with_suffix(".truth.json")
+        outputs.setdefault("--truth", str(truth))
+        outputs["the true machine file beside --truth"] = str(truth.with_suffix(".toml"))
+    folders.update({_label(k): v for k in FOLDER_OUTPUTS if isinstance(v := getattr(args, k, None), str) and v})
+    return inputs, outputs, folders
+
+
+def check_run_paths(args: argparse.Namespace) -> None:
+    """Before any command: the output paths and formats checked against the inputs (module docstring)."""
+    from ..io.safe_paths import check_figure_path, check_inputs, check_outputs
+
+    inputs, outputs, folders = run_paths(args)
+    check_inputs(inputs)  # a named pipe or a device named as an input: refused before it could block or flood
+    check_outputs(outputs, inputs, folders=folders, mkdir=bool(getattr(args, "mkdir", False)))
+    for key in FIGURE_OUTPUTS:
+        if isinstance(value := getattr(args, key, None), str) and value:
+            check_figure_path(value, _label(key))
+
+
+def check_option_values(args: argparse.Namespace) -> None:
+    """Values every command refuses alike: a seed outside 0..2**32-1, a number that is NaN or infinite."""
+    from ..limits import check_seed
+
+    if getattr(args, "seed", None) is not None:
+        check_seed(args.seed, "--seed")
+    for key, value in vars(args).items():
+        values = value if isinstance(value, list) else [value]
+        for v in values:
+            if isinstance(v, float) and not math.isfinite(v):
+                raise InputError(f"{_label(key)}: expected a finite number, got {v}")
 
 
 def say(args: argparse.Namespace, message: str) -> None:

@@ -9,7 +9,8 @@ import numpy as np
 
 from ..effects.stored import machine_file_text
 from ..errors import InputError
-from ..io import write_json_atomic, write_recording, write_text_atomic
+from ..io.answers import json_text, write_files_atomic
+from ..io.recording import recording_to_csv
 from ..machines import load_machine
 from ..simulate import simulate_recording
 from .inputs import name_list
@@ -160,9 +161,12 @@ def run(args) -> int:
         )
     out = Path(args.out)
     truth = Path(args.truth) if args.truth else out.with_suffix(".truth.json")
-    write_recording(out, sim.recording)
-    write_json_atomic(truth, {"machine": machine.name, "dof": args.dof, **sim.truth_dict()})
-    write_text_atomic(truth.with_suffix(".toml"), machine_file_text(machine, sim.theta_true))  # with its [effect.*]
+    # one unit: the recording never stands beside the truth of another run (bayescal.io.answers)
+    write_files_atomic([
+        (out, recording_to_csv(sim.recording)),
+        (truth, json_text({"machine": machine.name, "dof": args.dof, **sim.truth_dict()})),
+        (truth.with_suffix(".toml"), machine_file_text(machine, sim.theta_true)),  # with its [effect.*]
+    ])
     if not args.quiet:
         err = np.linalg.norm(sim.recording.position - machine.forward(sim.recording.q).position, axis=1)
         print(
@@ -176,7 +180,7 @@ def run(args) -> int:
 def _run_ballbar(args, machine) -> int:
     """``simulate --ballbar``: circles about a pivot, read as distances (a constraint recording)."""
     from . import EXIT_OK
-    from ..io.constraints import write_constraints
+    from ..io.constraints import constraints_to_csv
     from ..simulate_constraints import simulate_ballbar
 
     if args.effect or args.aux or args.dof != 6:
@@ -195,9 +199,11 @@ def _run_ballbar(args, machine) -> int:
     )
     out = Path(args.out)
     truth = Path(args.truth) if args.truth else out.with_suffix(".truth.json")
-    write_constraints(out, sim.recording)
-    write_json_atomic(truth, {"machine": machine.name, "measure": "ballbar", **sim.truth_dict(machine)})
-    write_text_atomic(truth.with_suffix(".toml"), machine.to_toml(sim.theta_true))
+    write_files_atomic([
+        (out, constraints_to_csv(sim.recording)),
+        (truth, json_text({"machine": machine.name, "measure": "ballbar", **sim.truth_dict(machine)})),
+        (truth.with_suffix(".toml"), machine.to_toml(sim.theta_true)),
+    ])
     if not args.quiet:
         print(f"wrote {out} ({sim.recording.n_rows} ballbar readings of {args.ballbar:g} mm), truth {truth}")
     return EXIT_OK

@@ -8,6 +8,8 @@ names them, with options after a colon: ``ridge:lam=0.1``, ``tsvd:k=20``.
 
 from __future__ import annotations
 
+import inspect
+import math
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -28,6 +30,7 @@ class Method:
     fn: Callable
     defaults: dict = field(default_factory=dict)
     help: str = ""
+    check: Callable[[dict, str], None] | None = None
 
 
 @dataclass(frozen=True)
@@ -47,11 +50,74 @@ class MethodSpec:
 METHODS: dict[str, Method] = {}
 
 
-def register_method(name: str, fn: Callable, *, help: str = "", **defaults) -> None:
-    """Register ``fn(model, *, free, **options) -> IdentificationResult`` under ``name``."""
+def register_method(name: str, fn: Callable, *, help: str = "", check: Callable[[dict, str], None] | None = None,
+                    **defaults) -> None:
+    """Register ``fn(model, *, free, **options) -> IdentificationResult`` under ``name``.
+
+    ``check(options, label)``, if given, raises InputError for option values
+    the method cannot take (options are the defaults updated by the ones
+    asked for), so :func:`parse_methods` refuses them before any trial.
+    """
     if not name or not name.replace("_", "").isalnum():
         raise InputError(f"method name: expected letters, digits and underscores, got {name!r}")
-    METHODS[name] = Method(name, fn, dict(defaults), help)
+    METHODS[name] = Method(name, fn, dict(defaults), help, check)
+
+
+def _option_names(fn: Callable) -> tuple[str, ...]:
+    """The options a method's callable takes: its keyword parameters other than ``model`` and ``free``."""
+    params = inspect.signature(fn).parameters.values()
+    return tuple(p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and p.name not in ("model", "free"))
+
+
+def _bad(label: str, key: str, value, expected: str) -> InputError:
+    return InputError(f"--methods: {label}: {key}={value}: expected {expected}")
+
+
+def _is_number(v, lo: float = 0.0) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v >= lo
+
+
+def _check_rule(o: dict, label: str, auto: bool, what: str) -> None:
+    from ..identify.choose import RULE_NAMES
+
+    rule = o.get("rule")
+    if rule in (None, "default"):
+        return
+    if rule not in RULE_NAMES:
+        raise _bad(label, "rule", rule, "one of " + ", ".join(RULE_NAMES))
+    if not auto:
+        raise InputError(f"--methods: {label}: rule={rule} is the rule of {what}=auto; give {what}=auto with it")
+
+
+def _check_ridge(o: dict, label: str) -> None:
+    lam = o.get("lam")
+    if lam != "auto" and not _is_number(lam):
+        raise _bad(label, "lam", lam, "a finite number >= 0 or 'auto'")
+    _check_rule(o, label, lam == "auto", "lam")
+
+
+def _check_tsvd(o: dict, label: str) -> None:
+    k = o.get("k")
+    if k not in ("auto", "snr") and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+        raise _bad(label, "k", k, "a positive integer, 'snr' or 'auto'")
+    _check_rule(o, label, k == "auto", "k")
+
+
+def _check_kalman(o: dict, label: str) -> None:
+    if o.get("variant") not in ("ekf", "ukf"):
+        raise _bad(label, "variant", o.get("variant"), "ekf or ukf")
+
+
+def _check_mcmc(o: dict, label: str) -> None:
+    from ..limits import SEED_MAX
+
+    steps, seed = o.get("steps"), o.get("seed")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 20:
+        raise _bad(label, "steps", steps, "an integer >= 20")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= SEED_MAX:
+        raise _bad(label, "seed", seed, f"an integer from 0 to {SEED_MAX}")
+    if o.get("surrogate") not in ("none", "linear"):
+        raise _bad(label, "surrogate", o.get("surrogate"), "none or linear")
 
 
 def tsvd_snr_rank(model: MeasurementModel, free) -> int:
@@ -111,7 +177,7 @@ def _mcmc(model, *, free, steps=400, seed=0, surrogate="linear"):
 
 
 register_method("ls", _ls, help="Gauss-Newton least squares")
-register_method("ridge", _ridge, lam=1.0, help="ridge towards nominal (lam=1: MAP under the tolerance prior; "
+register_method("ridge", _ridge, lam=1.0, check=_check_ridge, help="ridge towards nominal (lam=1: MAP under the tolerance prior; "
                 "lam=auto chooses lam by a rule, rule=evidence by default)")
 def _map(model, *, free):
     # the identify core scales columns by the tolerances, so ridge with lam = 1 is exactly the MAP
@@ -121,11 +187,11 @@ def _map(model, *, free):
 
 
 register_method("map", _map, help="MAP under the tolerance prior (ridge with lam=1)")
-register_method("tsvd", _tsvd, k="snr",
+register_method("tsvd", _tsvd, k="snr", check=_check_tsvd,
                 help="truncated SVD; k=snr keeps singular values > 1 of the tolerance-scaled matrix, k=auto chooses "
                 "k by a rule (rule=cv|lcurve|gcv|discrepancy|evidence|risk)")
-register_method("kalman", _kalman, variant="ekf", help="recursive Kalman filter, one update per pose (variant=ekf|ukf)")
-register_method("mcmc", _mcmc, steps=400, seed=0, surrogate="linear",
+register_method("kalman", _kalman, variant="ekf", check=_check_kalman, help="recursive Kalman filter, one update per pose (variant=ekf|ukf)")
+register_method("mcmc", _mcmc, steps=400, seed=0, surrogate="linear", check=_check_mcmc,
                 help="posterior mean by emcee (steps=400, surrogate=linear|none); a trial whose chain has not "
                 "converged counts as a failure")
 
@@ -137,6 +203,17 @@ def _value(text: str):
         except ValueError:
             pass
     return text
+
+
+def _check_options(method: Method, label: str, options: dict) -> None:
+    """Refuse option names the method does not take and values it cannot use (before any trial)."""
+    known = _option_names(method.fn)
+    for key in options:
+        if key not in known:
+            takes = f"its options are {', '.join(known)}" if known else "it takes no options"
+            raise InputError(f"--methods: {label}: unknown option {key!r} of {method.name} ({takes})")
+    if method.check is not None:
+        method.check({**method.defaults, **options}, label)
 
 
 def parse_methods(text: str) -> tuple[MethodSpec, ...]:
@@ -156,6 +233,7 @@ def parse_methods(text: str) -> tuple[MethodSpec, ...]:
             if not eq or not k.strip():
                 raise InputError(f"--methods: option {kv!r} of {name!r}: expected key=value (e.g. ridge:lam=0.1)")
             options.append((k.strip(), _value(v.strip())))
+        _check_options(METHODS[name], item, dict(options))
         specs.append(MethodSpec(label=item, name=name, options=tuple(options)))
     if not specs:
         raise InputError("--methods: expected at least one method, e.g. ls,ridge,tsvd")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -212,8 +211,19 @@ def compare_methods(
     -------
     Comparison
     """
+    from ..limits import check_seed
+    from .methods import parse_methods
+
+    parse_methods(methods)  # unknown methods, options and values refused before anything runs
+    check_seed(seed, "seed")
+    if not (np.isfinite(tolerance_scale) and tolerance_scale > 0):
+        raise InputError(f"tolerance_scale (--tolerance-scale): expected a positive number, got {tolerance_scale!r}")
     if int(trials) != trials or trials < 1:
         raise InputError(f"trials: expected a positive integer, got {trials!r}")
+    from ..limits import check_memory
+
+    # every trial's record is kept (and saved): about a kilobyte per method
+    check_memory(float(trials) * 1024 * (2 + len(parse_methods(methods))), f"{int(trials):,} trials", "lower --trials")
     if free not in ("auto", "all"):
         raise InputError(f"free: expected 'auto' or 'all', got {free!r}")
     if n_poses < 1 or n_eval < 1:
@@ -225,10 +235,9 @@ def compare_methods(
         from ..models import model_from_recording, read_any_recording
 
         rec_name = str(recording)
-        try:
-            rec_text = Path(recording).read_text(encoding="utf-8-sig")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise InputError(f"{rec_name}: cannot read the recording ({exc})") from exc
+        from ..io.safe_paths import MAX_CSV_BYTES, read_input_text
+
+        rec_text = read_input_text(recording, "a recording (CSV)", limit=MAX_CSV_BYTES)
         # checked here (bad input is an error before any trial), and its size and DOF recorded
         model = model_from_recording(machine, read_any_recording(rec_name, text=rec_text), dof=dof)
         n_poses, dof = model.n_poses, model.dof

@@ -37,7 +37,7 @@ from typing import Iterator
 from ..errors import InputError
 from ..io import write_json_atomic
 from ..io.answers import to_jsonable
-from .trial import CompareConfig, run_trial
+from .trial import METRICS, CompareConfig, run_trial
 
 __all__ = ["run_trials", "load_trials", "TRIALS_FILE", "CONFIG_FILE"]
 
@@ -56,15 +56,29 @@ def load_trials(out: str | os.PathLike, config: CompareConfig) -> dict[int, dict
     Raises
     ------
     InputError
-        If ``out`` holds a different configuration.
+        If ``out`` holds a different configuration, or a damaged state: a
+        ``config.json`` that is not a JSON object, a line of ``trials.jsonl``
+        (other than a torn last line, which is dropped) that is not a trial
+        record of this configuration (:func:`_check_record`), naming the line.
     """
+    from ..io.safe_paths import MAX_JSON_STATE_BYTES, check_replaceable, read_input_text
+
     out = Path(out)
     cfg_path = out / CONFIG_FILE
+    remedy = "remove the folder or choose another --out"
+    for state in (cfg_path, out / TRIALS_FILE):
+        check_replaceable(state)  # rewritten or appended to: a regular file, not a link, a pipe or a device
     if cfg_path.exists():
+        # protect=False: the run rewrites its own state
+        text = read_input_text(cfg_path, "a comparison's configuration (JSON)", limit=MAX_JSON_STATE_BYTES,
+                               protect=False)
         try:
-            saved = json.loads(cfg_path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise InputError(f"{cfg_path}: not valid JSON ({exc}); remove the folder or choose another --out") from exc
+            saved = json.loads(text)
+        except (ValueError, RecursionError) as exc:
+            raise InputError(f"{cfg_path}: not valid JSON ({exc}); {remedy}") from None
+        if not isinstance(saved, dict):
+            raise InputError(f"{cfg_path}: expected a JSON object (the comparison's configuration), got "
+                             f"{type(saved).__name__}; {remedy}")
         mine = _normalise(config.to_dict())
         diff = sorted(k for k in set(saved) | set(mine) if k != "trials" and saved.get(k) != mine.get(k))
         if diff:
@@ -76,7 +90,8 @@ def load_trials(out: str | os.PathLike, config: CompareConfig) -> dict[int, dict
     done: dict[int, dict] = {}
     if not path.exists():
         return done
-    raw = path.read_bytes()
+    raw = read_input_text(path, "a comparison's saved trials (JSON lines)", limit=MAX_JSON_STATE_BYTES,
+                          protect=False).encode("utf-8")
     end = raw.rfind(b"\n") + 1
     if end < len(raw):
         # a torn last line from an interrupted write: drop it so appends start on a fresh line
@@ -84,14 +99,48 @@ def load_trials(out: str | os.PathLike, config: CompareConfig) -> dict[int, dict
             fh.truncate(end)
             fh.flush()
             os.fsync(fh.fileno())
-    for line in raw[:end].decode("utf-8").splitlines():
+    labels = [s.label for s in config.specs]
+    for n, line in enumerate(raw[:end].decode("utf-8").splitlines(), start=1):
         if not line.strip():
             continue
-        rec = json.loads(line)
-        t = int(rec["trial"])
+        rec = _check_record(line, labels, f"{path}: line {n}", remedy)
+        t = rec["trial"]
         if 0 <= t < config.trials:
             done[t] = rec
     return done
+
+
+def _number_or_null(v) -> bool:
+    """A metric as records hold it: a number, or null for NaN (to_jsonable)."""
+    return v is None or (not isinstance(v, bool) and isinstance(v, (int, float)))
+
+
+def _check_record(line: str, labels: list[str], where: str, remedy: str) -> dict:
+    """One saved trial: ``{"trial": int, "nominal": {...}, "methods": {label: {"success": bool, ...}}}``."""
+    try:
+        rec = json.loads(line)
+    except (ValueError, RecursionError) as exc:
+        raise InputError(f"{where}: not a JSON trial record ({exc}); {remedy}") from None
+    if not isinstance(rec, dict):
+        raise InputError(f"{where}: expected a JSON object (a trial record); {remedy}")
+    t = rec.get("trial")
+    if isinstance(t, bool) or not isinstance(t, int) or t < 0:
+        raise InputError(f"{where}: expected \"trial\": a non-negative integer, got {t!r}; {remedy}")
+    methods = rec.get("methods")
+    if not isinstance(rec.get("nominal"), dict) or not isinstance(methods, dict):
+        raise InputError(f"{where}: expected \"nominal\" and \"methods\" objects; {remedy}")
+    if not all(_number_or_null(v) for v in rec["nominal"].values()):
+        raise InputError(f"{where}: \"nominal\" holds a value that is not a number; {remedy}")
+    for label in labels:
+        entry = methods.get(label)
+        if not isinstance(entry, dict) or not isinstance(entry.get("success"), bool):
+            raise InputError(f"{where}: no result of method {label!r} (an object with \"success\"); {remedy}")
+        if not isinstance(entry.get("message", ""), str) or (not entry["success"] and "message" not in entry):
+            raise InputError(f"{where}: method {label!r}: expected a \"message\" text; {remedy}")
+        bad = [k for k, v in entry.items() if k in METRICS + ("seconds",) and not _number_or_null(v)]
+        if bad:
+            raise InputError(f"{where}: method {label!r}: {bad[0]} is not a number; {remedy}")
+    return rec
 
 
 def _append(path: Path, record: dict) -> None:

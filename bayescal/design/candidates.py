@@ -228,6 +228,11 @@ def draw_candidates(
         the same with or without them.  Those the machine cannot assemble
         are rejected like any candidate.
     """
+    from ..limits import check_memory
+
+    # per candidate: its Jacobian block (dof x P) a few times over, and its forward kinematics
+    check_memory(float(n) * 8 * (3 * dof * machine.n_params + 256), f"{int(n):,} candidate poses",
+                 "lower --candidates")
     if n < 1:
         raise InputError(f"candidates: expected a positive number, got {n}")
     q = machine.sample_q(int(n), rng)

@@ -20,6 +20,7 @@ before and after (:func:`bayescal.identifiability.analyse_identifiability`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from itertools import combinations
 
@@ -39,6 +40,26 @@ __all__ = ["RelationPlan", "grid_points", "relation_candidates", "plan_relations
            "relation_output_weight", "relaxed_relations"]
 
 MEASURES = ("height", "distance")
+
+
+def check_relations_size(machine: Machine, measure: str, radius: float, spacing: float) -> None:
+    """Refuse, before any work, a grid of candidates whose arrays would not fit in memory.
+
+    The square of ``2 floor(radius / spacing) + 1`` points per side is
+    meshed; heights are one candidate per point within the radius, distances
+    one per pair of points (:func:`bayescal.limits.check_memory`).
+    """
+    from ..limits import check_memory
+
+    if not (np.isfinite(radius) and np.isfinite(spacing) and radius > 0 and spacing > 0):
+        raise InputError(f"grid: expected a positive radius and spacing, got {radius} and {spacing} mm")
+    k = math.floor(min(radius / spacing, 1e15))  # capped: beyond it any grid is refused, and squares stay finite
+    square = (2 * k + 1) ** 2
+    points = min(square, np.pi * (k + 1) ** 2)
+    rows = points if measure == "height" else points * (points - 1) / 2
+    need = 8.0 * (4 * square + rows * (3 * machine.n_params + 2 * machine.n_actuators + 8))
+    what = f"{points:,.0f} grid points" + ("" if measure == "height" else f" ({rows:,.0f} pairs)")
+    check_memory(need, what, "raise --spacing or lower --radius")
 
 
 def grid_points(centre: NDArray, radius: float, spacing: float) -> NDArray:
@@ -247,6 +268,7 @@ def plan_relations(
     repeats = (method == "relaxed") if repeats is None else bool(repeats)
     if n < 1:
         raise InputError(f"n: expected a positive number of measurements, got {n}")
+    check_relations_size(machine, measure, radius, radius / 4 if spacing is None else spacing)
     if centre is None:
         centre = machine.forward(machine.home_q()[None, :]).position[0]
     pts = grid_points(np.asarray(centre, dtype=float), radius, radius / 4 if spacing is None else spacing)

@@ -36,6 +36,10 @@ __all__ = ["check_recording_units", "POSITION_RATIO", "ANGLE_RATIO"]
 POSITION_RATIO = 100.0
 #: Measured/nominal RMS relative angle above this: degrees.
 ANGLE_RATIO = 10.0
+#: Largest measured coordinate, mm (1000 km: beyond it no unit makes a value a measurement).
+MAX_COORDINATE = 1e9
+#: Largest rotation vector component, rad (a rotation vector in degrees stays far below; the norm rule names those).
+MAX_ROTATION = 1e6
 
 
 def _spread(p: np.ndarray) -> float:
@@ -63,6 +67,7 @@ def check_recording_units(machine: Machine, rec: Recording) -> None:
         Columns with a unit suffix are not judged.
     """
     declared = getattr(rec, "declared_units", {}) or {}
+    _check_magnitudes(rec)
     q = machine.check_q(rec.q)
     nom = machine.forward(q)
     ok = nom.success
@@ -83,7 +88,7 @@ def check_recording_units(machine: Machine, rec: Recording) -> None:
             # instrument noise look like micrometres
             if ratio > POSITION_RATIO and s_meas > 1.0:
                 raise RecordingError(
-                    rec.path, None, "x",
+                    rec.path, None, _widest(rec.position[ok]),
                     f"the measured tool points spread over {s_meas:.4g} (RMS about their centre) where the nominal machine "
                     f"moves them {s_nom:.4g} mm at the same poses: the positions look like micrometres; expected mm, or "
                     "name the columns x_um, y_um, z_um",
@@ -100,6 +105,31 @@ def check_recording_units(machine: Machine, rec: Recording) -> None:
         a_nom = _relative_angles(nom.rotation[ok])
         a_meas = _relative_angles(Rotation.from_rotvec(rec.rotvec[ok]).as_matrix())
         _angle_rule(rec, a_nom, a_meas, "rx", "the orientations look like degrees; expected rad, or name the columns rx_deg, ry_deg, rz_deg")
+
+
+def _widest(p: np.ndarray) -> str:
+    """The position column (x, y or z) whose values spread the most: the one a message about the spread names."""
+    return "xyz"[int(np.argmax(np.std(p, axis=0)))]
+
+
+def _check_magnitudes(rec: Recording) -> None:
+    """RecordingError naming line and column for a measured coordinate beyond :data:`MAX_COORDINATE` mm.
+
+    Such a value is no measurement in any unit (1e308 is an overflow or a
+    typo); judged before the spread rules, whose statistics it would make
+    infinite and whose message would then blame another column.
+    """
+    for values, names in ((rec.position, ("x", "y", "z")), (rec.rotvec, ("rx", "ry", "rz"))):
+        if values is None:
+            continue
+        limit = MAX_COORDINATE if names[0] == "x" else MAX_ROTATION
+        big = np.argwhere(~(np.abs(values) <= limit))
+        if big.size:
+            r, c = (int(v) for v in big[0])
+            unit = "mm" if names[0] == "x" else "rad"
+            raise RecordingError(rec.path, r + 2, names[c], f"{float(values[r, c])!r} {unit}; expected a "
+                                 f"measured {'coordinate' if unit == 'mm' else 'rotation vector component'} within "
+                                 f"+-{limit:g} {unit}")
 
 
 def _angle_rule(rec, a_nom, a_meas, col, what) -> None:

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import RecordingError
+from ..limits import sigma_problem
 from .answers import write_text_atomic
 from .recording import check_q_limits, parse_number, read_csv_rows
 
@@ -145,15 +146,17 @@ def is_constraint_recording(path: str | os.PathLike, *, text: str | None = None)
         False also for a file that cannot be read as CSV: the pose-recording
         reader then reports what is wrong with it (file, line, column).
     """
+    from ..errors import BayescalError
+    from .safe_paths import MAX_CSV_BYTES, read_input_text
+
     try:
         if text is None:
-            with open(path, encoding="utf-8-sig", newline="") as fh:
-                header = next(csv.reader(fh), [])
-        else:
-            # as read_csv_rows and the utf-8-sig file path: one byte-order mark dropped, any line end
-            body = text[1:] if text.startswith("\ufeff") else text
-            header = next(csv.reader(io.StringIO(body, newline="")), [])
-    except (OSError, UnicodeDecodeError, csv.Error):
+            # the reader's own checks (a regular file within the size limit; standard input read once)
+            text = read_input_text(path, "a recording (CSV)", limit=MAX_CSV_BYTES)
+        # as read_csv_rows: one byte-order mark dropped, any line end
+        body = text[1:] if text.startswith("\ufeff") else text
+        header = next(csv.reader(io.StringIO(body, newline="")), [])
+    except (BayescalError, csv.Error):
         return False
     return "measure" in [h.strip() for h in header]
 
@@ -277,6 +280,8 @@ def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> Con
             if s <= 0:
                 raise RecordingError(path, line, col, f"expected a positive one-sigma noise, got {s!r}")
             sigma[i] = s * unit_scale["sigma_position"]
+            if (problem := sigma_problem(float(sigma[i]), "position")) is not None:  # bayescal.limits
+                raise RecordingError(path, line, col, problem)
         for h in aux_cols:
             aux[h][i] = parse_number(cell(h), path, line, h)
     return ConstraintRecording(

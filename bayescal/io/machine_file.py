@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 import os
-import stat
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -17,36 +16,44 @@ import numpy as np
 
 from ..errors import MachineFileError
 
-__all__ = ["read_toml", "TomlTable", "format_toml_value", "UNIT_NORM_TOL"]
+__all__ = ["read_toml", "parse_toml_text", "TomlTable", "format_toml_value", "UNIT_NORM_TOL"]
 
 #: How far from 1 the norm of a unit vector in a machine file may be (it is then normalised).
 UNIT_NORM_TOL = 1e-4
 
 
 def read_toml(path: str | os.PathLike) -> "TomlTable":
-    """Parse a TOML file; a missing file or a syntax error raises MachineFileError."""
+    """Parse a TOML file; MachineFileError for a missing, unreadable or non-regular file, or a syntax error.
+
+    The file must be a regular file of at most
+    :data:`~bayescal.io.safe_paths.MAX_TOML_BYTES` (a folder, a named pipe or
+    a device is refused before it is read; :func:`~bayescal.io.safe_paths.read_input_text`).
+    """
+    from .safe_paths import MAX_TOML_BYTES, read_input_text
+
     path = Path(path)
+    # utf-8-sig: a byte-order mark (some Windows editors write one) is not part of the TOML
+    text = read_input_text(path, "a machine file (TOML)", limit=MAX_TOML_BYTES,
+                           error=lambda message: MachineFileError(str(path), "", message))
+    return TomlTable(parse_toml_text(text, str(path)), str(path), "")
+
+
+def parse_toml_text(text: str, path: str) -> dict:
+    """``tomllib.loads`` with every failure a MachineFileError naming ``path``.
+
+    Besides syntax errors: an integer of more than 4300 digits (Python's
+    limit on converting text to int) and nesting deeper than the parser's
+    recursion allows are refused, not raised as ValueError / RecursionError.
+    """
     try:
-        # a FIFO blocks the reader and a device (/dev/zero) never ends: only regular files are read
-        mode = path.stat().st_mode
-        if stat.S_ISDIR(mode):
-            raise IsADirectoryError(str(path))
-        if not stat.S_ISREG(mode):
-            raise MachineFileError(str(path), "", "is not a regular file (a FIFO, socket or device); expected a machine file (TOML)")
-        # utf-8-sig: a byte-order mark (some Windows editors write one) is not part of the TOML
-        text = path.read_bytes().decode("utf-8-sig")
-        doc = tomllib.loads(text)
-    except FileNotFoundError:
-        raise MachineFileError(str(path), "", "file not found") from None
-    except IsADirectoryError:
-        raise MachineFileError(str(path), "", "is a folder, expected a machine file (TOML)") from None
-    except UnicodeDecodeError as exc:
-        raise MachineFileError(str(path), "", f"not a UTF-8 text file ({exc}); TOML files are UTF-8") from None
+        return tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
-        raise MachineFileError(str(path), "", f"not valid TOML ({exc})") from exc
-    except OSError as exc:  # permission denied, a path through a file, ...
-        raise MachineFileError(str(path), "", f"cannot be read ({exc.strerror or exc})") from None
-    return TomlTable(doc, str(path), "")
+        raise MachineFileError(path, "", f"not valid TOML ({exc})") from None
+    except ValueError as exc:  # "Exceeds the limit (4300 digits) for integer string conversion"
+        what = "an integer of more than 4300 digits" if "digits" in str(exc) else f"a value that cannot be read ({exc})"
+        raise MachineFileError(path, "", f"not a machine file: {what}") from None
+    except RecursionError:
+        raise MachineFileError(path, "", "not a machine file: arrays or tables nested too deeply") from None
 
 
 #: Keys that belong at the top of a machine file, before any table.

@@ -260,15 +260,10 @@ def read_csv_rows(path: str, text: str | None, what: str) -> tuple[list[str], di
     unreadable file, an empty file, empty or duplicate column names.
     """
     if text is None:
-        try:
-            with open(path, encoding="utf-8-sig", newline="") as fh:
-                text = fh.read()
-        except FileNotFoundError:
-            raise RecordingError(path, None, None, f"file not found; expected {what}") from None
-        except IsADirectoryError:
-            raise RecordingError(path, None, None, f"is a folder, expected {what}") from None
-        except UnicodeDecodeError as exc:
-            raise RecordingError(path, None, None, f"not a UTF-8 text file ({exc})") from None
+        # a regular file within the size limit, or standard input read once (bayescal.io.safe_paths)
+        from .safe_paths import MAX_CSV_BYTES, read_input_text
+
+        text = read_input_text(path, what, limit=MAX_CSV_BYTES, error=lambda msg: RecordingError(path, None, None, msg))
     if text.startswith("\ufeff"):  # a byte-order mark, as some spreadsheet programs write
         text = text[1:]
     # newline="": line ends \n, \r\n and a lone \r all end a row
@@ -435,6 +430,11 @@ def _sigma_column(path: str, header: list[str], seen: dict[str, int], data: NDAr
             path, int(bad[0]) + 2, header[seen[name]],
             f"expected a positive one-sigma noise ({'mm' if name == 'sigma_position' else 'rad'}), got {float(v[bad[0]])!r}",
         )
+    from ..limits import sigma_problem  # the stated range of a noise (converted to mm or rad)
+
+    for i, x in enumerate(v):
+        if (problem := sigma_problem(float(x), name.removeprefix("sigma_"))) is not None:
+            raise RecordingError(path, i + 2, header[seen[name]], problem)
     return v
 
 

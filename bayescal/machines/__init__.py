@@ -68,10 +68,6 @@ def load_machine(path: str | os.PathLike) -> Machine:
 
 def machine_from_text(text: str, path: str = "<memory>") -> Machine:
     """Build a machine from machine-file text (as written by ``Machine.to_toml``)."""
-    import tomllib
+    from ..io.machine_file import parse_toml_text
 
-    try:
-        doc = tomllib.loads(text.removeprefix("\ufeff"))
-    except tomllib.TOMLDecodeError as exc:
-        raise MachineFileError(path, "", f"not valid TOML ({exc})") from exc
-    return _build(TomlTable(doc, path, ""), path)
+    return _build(TomlTable(parse_toml_text(text, path), path, ""), path)

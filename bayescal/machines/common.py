@@ -6,6 +6,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..io.machine_file import TomlTable, format_toml_value
+from ..limits import sigma_problem
 from .base import MeasurementNoise
 
 __all__ = ["read_noise", "read_q_limits", "read_tolerance", "common_toml"]
@@ -18,11 +19,13 @@ def read_noise(doc: TomlTable) -> MeasurementNoise:
         return MeasurementNoise()
     t.reject_unknown({"sigma_position", "sigma_angle"})
     d = MeasurementNoise()
-    return MeasurementNoise(
-        sigma_position=t.number("sigma_position", d.sigma_position, positive=True),
-        sigma_angle=t.number("sigma_angle", d.sigma_angle, positive=True),
-        given=True,
-    )
+    sp = t.number("sigma_position", d.sigma_position, positive=True)
+    sa = t.number("sigma_angle", d.sigma_angle, positive=True)
+    # a stated noise outside the plausible range (bayescal.limits) would whiten residuals into overflow
+    for key, value, kind in (("sigma_position", sp, "position"), ("sigma_angle", sa, "angle")):
+        if (problem := sigma_problem(value, kind)) is not None:
+            raise t.error(key, problem)
+    return MeasurementNoise(sigma_position=sp, sigma_angle=sa, given=True)
 
 
 def read_q_limits(doc: TomlTable, n_actuators: int) -> NDArray | None:

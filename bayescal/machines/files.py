@@ -7,7 +7,8 @@ one file with its ``[effect.*]`` and ``[instrument]`` tables; a hybrid
 machine puts each module in ``<stem>.m<k>.toml`` beside the main file (the
 form any reader of FORMATS.md reads; bayescal's own inline form is not in
 the contract), and its ``[effect.*]`` and ``[instrument]`` tables go into
-the main file.  Every file is written atomically.
+the main file.  The files of a hybrid are written as one unit, the main
+file renamed last (:func:`bayescal.io.answers.write_files_atomic`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from pathlib import Path
 
 from numpy.typing import ArrayLike
 
-from ..io.answers import write_text_atomic
+from ..io.answers import write_files_atomic, write_text_atomic
 from .base import Machine
 
 __all__ = ["write_calibrated_machine_files", "written_as_modules"]
@@ -52,14 +53,14 @@ def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | No
     """
     from ..effects.stored import calibration_tables_toml, effect_tables_toml, machine_file_text
     from .framed import InstrumentFrame, instrument_toml
-    from .hybrid import write_machine_files
+    from .hybrid import machine_files_text
 
     if not written_as_modules(machine):
         return [write_text_atomic(path, header + machine_file_text(machine, theta))]
     th = machine.check_theta(theta)
     framed = isinstance(machine, InstrumentFrame)
     inner = machine.machine if framed else machine
-    paths = write_machine_files(path, inner, th[machine.n_frame:] if framed else th)
+    files = machine_files_text(path, inner, th[machine.n_frame:] if framed else th)
     # the main file carries what belongs to the whole machine: its [effect.*] tables and its [instrument] frame
     extra = []
     if machine.effects:
@@ -69,7 +70,8 @@ def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | No
     if tables := calibration_tables_toml(machine).strip("\n"):
         extra.append(tables)
     if extra or header:
-        main = paths[0]
-        write_text_atomic(main, header + "\n\n".join([main.read_text().rstrip("\n")] + [e.rstrip("\n") for e in extra])
-                          + "\n")
-    return paths
+        main, text = files[0]
+        files[0] = (main, header + "\n\n".join([text.rstrip("\n")] + [e.rstrip("\n") for e in extra]) + "\n")
+    # one unit, the main file renamed last (bayescal.io.answers.write_files_atomic)
+    write_files_atomic(files[1:] + files[:1])
+    return [p for p, _ in files]

@@ -373,6 +373,21 @@ class Hybrid(Machine):
         return "\n".join(out) + common_toml(self, {})
 
 
+def machine_files_text(path, machine: Machine, theta: ArrayLike | None = None) -> list[tuple[Path, str]]:
+    """The files of :func:`write_machine_files` as ``(path, text)``, the main file first, without writing them."""
+    path = Path(path)
+    if not isinstance(machine, Hybrid):
+        return [(path, machine.to_toml(theta))]
+    f = format_toml_value
+    out = ['kind = "hybrid"', f"name = {f(machine.name)}", ""]
+    modules = []
+    for k, (m, role) in enumerate(zip(machine.modules, machine.roles)):
+        sub = path.with_name(f"{path.stem}.m{k + 1}.toml")
+        modules += machine_files_text(sub, m, machine.split_theta(theta)[k])
+        out += ["[[module]]", f"file = {f(sub.name)}", f"role = {f(role)}", ""]
+    return [(path, "\n".join(out) + common_toml(machine, {}))] + modules
+
+
 def write_machine_files(path, machine: Machine, theta: ArrayLike | None = None) -> list[Path]:
     """Write the machine file of ``nominal + theta`` in FORMATS.md's file-per-module form.
 
@@ -380,7 +395,10 @@ def write_machine_files(path, machine: Machine, theta: ArrayLike | None = None) 
     ``path`` (recursively for nested hybrids) and ``path`` lists them with
     ``file = "..."``, the form FORMATS.md section 5 specifies, which any
     implementation of that format reads.  Any other kind is written as
-    :meth:`Machine.to_toml`.  Every file is written atomically.
+    :meth:`Machine.to_toml`.  The files are written as one unit
+    (:func:`bayescal.io.answers.write_files_atomic`): all of them complete
+    beside their targets first, then renamed, the module files before the
+    main file.
 
     Parameters
     ----------
@@ -395,19 +413,11 @@ def write_machine_files(path, machine: Machine, theta: ArrayLike | None = None) 
     list of Path
         The files written, the main file first.
     """
-    from ..io.answers import write_text_atomic
+    from ..io.answers import write_files_atomic
 
-    path = Path(path)
-    if not isinstance(machine, Hybrid):
-        return [write_text_atomic(path, machine.to_toml(theta))]
-    f = format_toml_value
-    out = ['kind = "hybrid"', f"name = {f(machine.name)}", ""]
-    written = []
-    for k, (m, role) in enumerate(zip(machine.modules, machine.roles)):
-        sub = path.with_name(f"{path.stem}.m{k + 1}.toml")
-        written += write_machine_files(sub, m, machine.split_theta(theta)[k])
-        out += ["[[module]]", f"file = {f(sub.name)}", f"role = {f(role)}", ""]
-    return [write_text_atomic(path, "\n".join(out) + common_toml(machine, {}))] + written
+    files = machine_files_text(path, machine, theta)
+    write_files_atomic(files[1:] + files[:1])  # the main file last: it never lists a module not yet written
+    return [p for p, _ in files]
 
 
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from bayescal.io import Recording, read_recording
 from bayescal.io.recording import recording_to_csv
+from bayescal.limits import SIGMA_ANGLE_RANGE, SIGMA_POSITION_RANGE
 from bayescal.machines import Prs3, machine_from_text
 from bayescal.machines.base import MeasurementNoise
 from bayescal.machines.prs3 import PRS3_TOLERANCE_DEFAULTS
@@ -66,7 +67,9 @@ name_text = st.text(st.characters(blacklist_categories=("Cs",)), max_size=20)
 def prs3_machines(draw):
     lo = np.array(draw(st.lists(coord, min_size=3, max_size=3)))
     span = np.array(draw(st.lists(positive, min_size=3, max_size=3)))
-    noise = draw(st.one_of(st.just(MeasurementNoise()), st.builds(MeasurementNoise, positive, positive, st.just(True))))
+    # a stated noise within bayescal.limits' range (outside it a machine file is refused)
+    noise = draw(st.one_of(st.just(MeasurementNoise()), st.builds(
+        MeasurementNoise, st.floats(*SIGMA_POSITION_RANGE), st.floats(*SIGMA_ANGLE_RANGE), st.just(True))))
     return Prs3(
         rail_origin=np.array([draw(vec3) for _ in range(3)]),
         rail_direction=np.array([draw(direction) for _ in range(3)]),

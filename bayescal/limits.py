@@ -1,0 +1,115 @@
+"""Stated limits on values and sizes: seeds, noise sigmas, and the memory a request may take.
+
+Each limit is one function the readers, the library and the command line
+call, so that a value outside it is refused the same way everywhere with a
+message that states the limit (docs/cli.md, "Limits"):
+
+* a random seed is an integer from 0 to 2**32 - 1 (:func:`check_seed`):
+  numpy's legacy generator, which emcee uses, takes no other;
+* a stated noise is within :data:`SIGMA_POSITION_RANGE` mm or
+  :data:`SIGMA_ANGLE_RANGE` rad (:func:`sigma_problem`): a sigma of 1e-200
+  divides every residual into overflow, one of a metre is no instrument;
+* a request whose arrays would not fit in the memory this machine has
+  available is refused before it is allocated (:func:`check_memory`),
+  naming the size and the option that sets it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+from .errors import InputError
+
+__all__ = [
+    "SEED_MAX", "check_seed", "SIGMA_POSITION_RANGE", "SIGMA_ANGLE_RANGE", "sigma_problem", "memory_budget",
+    "check_memory", "check_count",
+]
+
+#: Largest random seed (numpy's legacy RandomState, which emcee draws from, takes 32 bits).
+SEED_MAX = 2**32 - 1
+#: A stated position noise (one sigma), mm: 1 nm to 1 m.
+SIGMA_POSITION_RANGE = (1e-6, 1e3)
+#: A stated angle noise (one sigma), rad: 1 nrad to 1 rad.
+SIGMA_ANGLE_RANGE = (1e-9, 1.0)
+
+
+def check_seed(seed, option: str = "seed") -> int:
+    """``seed`` as an int in 0..2**32-1; InputError naming ``option`` otherwise."""
+    if isinstance(seed, bool) or not isinstance(seed, (int,)) and not (hasattr(seed, "__index__")):
+        raise InputError(f"{option}: expected an integer from 0 to {SEED_MAX}, got {seed!r}")
+    value = int(seed)
+    if not 0 <= value <= SEED_MAX:
+        raise InputError(f"{option}: expected an integer from 0 to {SEED_MAX}, got {value}")
+    return value
+
+
+def sigma_problem(value: float, kind: str) -> str | None:
+    """What is wrong with a stated noise ``value`` (``kind`` ``"position"``, mm, or ``"angle"``, rad), or None."""
+    lo, hi = SIGMA_POSITION_RANGE if kind == "position" else SIGMA_ANGLE_RANGE
+    unit = "mm" if kind == "position" else "rad"
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
+        return f"expected a one-sigma {kind} noise from {lo:g} to {hi:g} {unit}, got {value!r}"
+    return None
+
+
+def _cgroup_room() -> float:
+    """Memory the control group may still take (cgroup v2 ``memory.max``), bytes; inf without a limit."""
+    base = Path("/sys/fs/cgroup")
+    try:
+        limit = (base / "memory.max").read_text().strip()
+        if limit == "max":
+            return math.inf
+        return max(0.0, float(limit) - float((base / "memory.current").read_text().strip()))
+    except (OSError, ValueError):
+        return math.inf
+
+
+def memory_budget() -> float:
+    """Bytes a request may take: the memory available now (Linux ``MemAvailable``, within a cgroup's limit).
+
+    Where neither can be read: the physical memory, else 8 GiB.
+    """
+    avail = math.inf
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                avail = float(line.split()[1]) * 1024
+                break
+    except (OSError, ValueError, IndexError):
+        pass
+    if not math.isfinite(avail):
+        try:
+            avail = float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (ValueError, OSError, AttributeError):
+            avail = 8.0 * 2**30
+    return min(avail, _cgroup_room())
+
+
+def check_memory(n_bytes: float, what: str, change: str) -> None:
+    """Refuse a request whose arrays would take about ``n_bytes``, more than :func:`memory_budget`.
+
+    Parameters
+    ----------
+    n_bytes : float
+        Estimated peak memory of the request, bytes (an estimate of the
+        largest arrays, not an exact account).
+    what : str
+        The request (``"a grid of 2000^3 nodes"``).
+    change : str
+        What to change (``"lower --nodes"``).
+    """
+    from .io.safe_paths import format_bytes
+
+    budget = memory_budget()
+    if not n_bytes <= budget:
+        raise InputError(f"{what} needs about {format_bytes(n_bytes)} of memory, more than the "
+                         f"{format_bytes(budget)} available; {change}")
+
+
+def check_count(value, option: str, *, minimum: int = 1) -> int:
+    """An integer option of at least ``minimum``; InputError naming ``option`` otherwise."""
+    if isinstance(value, bool) or int(value) != value or value < minimum:
+        raise InputError(f"{option}: expected an integer >= {minimum}, got {value!r}")
+    return int(value)

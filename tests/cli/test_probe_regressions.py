@@ -1,0 +1,206 @@
+"""The tracebacks and silent acceptances a probe found (issue 30, item 6-7): each an exit 2 with one line naming the cause."""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import shutil
+import sys
+
+import pytest
+
+from bayescal.cli import main
+from tests.conftest import PRS3_FILE, ROOT
+
+REC = ROOT / "examples" / "prs3" / "recording.csv"
+HYB = ROOT / "examples" / "hybrid_table"
+
+
+def run(capsys, *argv) -> tuple[int, list[str]]:
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    return code, captured.err.strip().splitlines()
+
+
+def refused(capsys, *argv, match: str | tuple[str, ...]) -> None:
+    code, err = run(capsys, *argv)
+    assert code == 2 and len(err) == 1, err
+    for m in (match,) if isinstance(match, str) else match:
+        assert m in err[0], err
+
+
+@pytest.fixture
+def d(tmp_path):
+    shutil.copy(REC, tmp_path / "r.csv")
+    shutil.copy(PRS3_FILE, tmp_path / "m.toml")
+    return tmp_path
+
+
+# ------------------------------------------------------------------ seeds
+SEED_COMMANDS = [
+    ["simulate", "--machine", "{d}/m.toml", "--poses", "3", "--out", "{d}/x.csv"],
+    ["identify", "{d}/r.csv", "--machine", "{d}/m.toml", "--method", "mcmc"],
+    ["diagnose", "{d}/r.csv", "--machine", "{d}/m.toml"],
+    ["grid", "{d}/r.csv", "--machine", "{d}/m.toml", "--method", "mcmc"],
+    ["plan", "--machine", "{d}/m.toml", "--n", "3", "--out", "{d}/p.csv"],
+    ["compare", "--machine", "{d}/m.toml", "--trials", "1"],
+]
+
+
+@pytest.mark.parametrize("seed", ["-1", str(2**32), str(2**70)])
+@pytest.mark.parametrize("argv", SEED_COMMANDS, ids=[a[0] for a in SEED_COMMANDS])
+def test_seeds_outside_32_bits_are_refused_by_every_command(d, capsys, argv, seed):
+    refused(capsys, *[a.format(d=d) for a in argv], "--seed", seed, match=("--seed", "from 0 to 4294967295"))
+
+
+def test_non_finite_numbers_are_refused(d, capsys):
+    refused(capsys, "plan", "--machine", d / "m.toml", "--n", "3", "--measure", "height", "--radius", "nan",
+            "--out", d / "p.csv", match="--radius: expected a finite number")
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--method", "ridge", "--lam", "inf",
+            match="--lam: expected a finite number")
+
+
+# ------------------------------------------------------------------ machine files
+@pytest.mark.parametrize("line, match", [
+    ("sigma_position = 1e-200", ("measurement.sigma_position", "from 1e-06 to 1000 mm")),
+    ("sigma_position = 5e3", ("measurement.sigma_position", "from 1e-06 to 1000 mm")),
+])
+def test_implausible_sigmas_are_refused_with_the_range(d, capsys, line, match):
+    text = (d / "m.toml").read_text()
+    (d / "m.toml").write_text("\n".join(line if s.startswith("sigma_position") else s for s in text.splitlines()))
+    for method in ("ls", "map"):
+        refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--method", method, match=match)
+
+
+@pytest.mark.parametrize("text, match", [
+    ("kind = " + "1" * 5000 + "\n", "an integer of more than 4300 digits"),
+    ("a = " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply"),
+    ("a = {" + "b = {" * 3000 + "}" * 3001 + "\n", "nested too deeply"),
+])
+def test_hostile_toml_is_refused(d, capsys, text, match):
+    (d / "bad.toml").write_text(text)
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "bad.toml", match=("bad.toml", match))
+
+
+# ------------------------------------------------------------------ non-regular and oversized inputs
+@pytest.mark.parametrize("where", ["recording", "machine", "module", "poses"])
+@pytest.mark.parametrize("kind", ["/dev/zero", "/dev/urandom", "fifo", "folder"])
+def test_non_regular_inputs_are_refused_before_reading(d, capsys, where, kind):
+    if kind.startswith("/dev/") and not os.path.exists(kind):
+        pytest.skip(f"no {kind}")
+    bad = {"fifo": d / "fifo", "folder": d / "folder"}.get(kind, kind)
+    if kind == "fifo":
+        os.mkfifo(bad)
+    elif kind == "folder":
+        os.mkdir(bad)
+    what = {"fifo": "named pipe", "folder": "folder"}.get(kind, "character device")
+    if where == "recording":
+        refused(capsys, "identify", bad, "--machine", d / "m.toml", match=(str(bad), what))
+    elif where == "machine":
+        refused(capsys, "identify", d / "r.csv", "--machine", bad, match=(str(bad), what))
+    elif where == "poses":
+        refused(capsys, "simulate", "--machine", d / "m.toml", "--poses-file", bad, "--seed", "1", "--out", d / "x.csv",
+                match=(str(bad), what))
+    else:
+        for f in ("table.toml", "recording.csv"):
+            shutil.copy(HYB / f, d / f)
+        (d / "hyb.toml").write_text((HYB / "machine.toml").read_text().replace('"head.toml"', f'"{bad}"'))
+        refused(capsys, "identify", d / "recording.csv", "--machine", d / "hyb.toml", match=(str(bad), what))
+
+
+def test_inputs_above_the_size_limit_are_refused_stating_it(d, capsys, monkeypatch):
+    import bayescal.io.safe_paths as sp
+
+    monkeypatch.setattr(sp, "MAX_CSV_BYTES", 1000)
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", match=("r.csv", "more than the limit of 1000 bytes"))
+    monkeypatch.setattr(sp, "MAX_TOML_BYTES", 100)
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", match=("m.toml", "more than the limit of 100 bytes"))
+
+
+def test_a_recording_on_standard_input_is_read_once(d, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "stdin", io.TextIOWrapper(io.BytesIO(REC.read_bytes())))
+    code, err = run(capsys, "identify", "/dev/stdin", "--machine", d / "m.toml", "--method", "map", "--quiet",
+                    "--json", d / "a.json")
+    assert code in (0, 1) and not any("empty file" in e for e in err) and (d / "a.json").is_file()
+
+
+# ------------------------------------------------------------------ sizes
+def test_requests_that_cannot_fit_in_memory_are_refused_naming_the_option(d, capsys):
+    refused(capsys, "grid", d / "r.csv", "--machine", d / "m.toml", "--nodes", "2000", match=("needs about", "--nodes"))
+    refused(capsys, "grid", d / "r.csv", "--machine", d / "m.toml", "--nodes", "1", match=("--nodes", "at least 2"))
+    (d / "e.csv").write_text("x,z,ex,ez\n-1,-1,0,0\n1,-1,0,0\n-1,1,0,0\n1,1,0,0\n")
+    refused(capsys, "compensate", "--errors", d / "e.csv", "--x-range", "-1", "1", "--z-range", "-1", "1", "--n", "100000",
+            match=("needs about", "--n"))
+    refused(capsys, "plan", "--machine", d / "m.toml", "--measure", "height", "--spacing", "0.001", "--n", "3",
+            "--out", d / "p.csv", match=("needs about", "--spacing"))
+    refused(capsys, "simulate", "--machine", d / "m.toml", "--poses", str(10**12), "--seed", "1", "--out", d / "x.csv",
+            match=("needs about", "--poses"))
+    refused(capsys, "plan", "--machine", d / "m.toml", "--n", "3", "--candidates", str(10**12), "--out", d / "p.csv",
+            match=("needs about", "--candidates"))
+
+
+# ------------------------------------------------------------------ option values
+@pytest.mark.parametrize("methods, match", [
+    ("ridge:foo=1", "unknown option 'foo' of ridge"), ("ridge:lam=abc", "lam=abc: expected a finite number >= 0"),
+    ("tsvd:k=-2", "k=-2: expected a positive integer"), ("mcmc:seed=-1", "seed=-1"), ("ls:k=3", "ls takes no options"),
+])
+def test_compare_method_options_are_refused_up_front(d, capsys, methods, match):
+    refused(capsys, "compare", "--machine", d / "m.toml", "--methods", methods, "--trials", "1", "--no-progress",
+            match=("--methods", match.replace("ls takes", "it takes")))
+
+
+@pytest.mark.parametrize("command", ["simulate", "compare"])
+def test_a_negative_tolerance_scale_is_refused(d, capsys, command):
+    extra = ["--poses", "3", "--seed", "1", "--out", d / "x.csv"] if command == "simulate" else ["--trials", "1"]
+    refused(capsys, command, "--machine", d / "m.toml", "--tolerance-scale", "-1", *extra, match="--tolerance-scale")
+
+
+@pytest.mark.parametrize("option", [["--posterior", "{d}/p.nc"], ["--walkers", "8"], ["--surrogate", "linear"],
+                                    ["--variant", "ukf"]])
+def test_an_option_of_another_method_is_refused_not_ignored(d, capsys, option):
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--method", "map",
+            *[o.format(d=d) for o in option], match=(option[0], "goes with --method"))
+
+
+# ------------------------------------------------------------------ compensate
+@pytest.mark.parametrize("rows, match", [
+    ("0,0,0.01,0.02\n", "1 distinct point"), ("0,0,0,0\n1,0,0,0\n2,0,0,0\n", "on one line"),
+])
+def test_compensate_refuses_tables_without_an_area(d, capsys, rows, match):
+    (d / "e.csv").write_text("x,z,ex,ez\n" + rows)
+    refused(capsys, "compensate", "--errors", d / "e.csv", "--x-range", "0", "2", "--z-range", "0", "1", "--n", "3",
+            match=("e.csv", match))
+
+
+def test_compensate_refuses_huge_node_errors_and_points_outside(d, capsys):
+    (d / "e.csv").write_text("x,z,ex,ez\n-10,-10,1e300,0\n10,-10,0,0\n-10,10,0,0\n10,10,0,0\n")
+    refused(capsys, "compensate", "--errors", d / "e.csv", "--x-range", "-10", "10", "--z-range", "-10", "10", "--n", "2",
+            "--out", d / "g.csv", match="ex = 1e+300 mm")
+    assert not (d / "g.csv").exists()
+    (d / "e.csv").write_text("x,z,ex,ez\n-10,-10,0.01,0\n10,-10,0,0\n-10,10,0,0\n10,10,0,0\n")
+    assert run(capsys, "compensate", "--errors", d / "e.csv", "--x-range", "-10", "10", "--z-range", "-10", "10", "--n", "2",
+               "--out", d / "g.csv")[0] == 0
+    (d / "far.csv").write_text("x,z,ex,ez\n0,0,0.1,0.1\n5000,5000,0.1,0.1\n")
+    refused(capsys, "compensate", "--grid", d / "g.csv", "--evaluate", d / "far.csv", match=("far.csv: line 3", "outside the grid"))
+
+
+# ------------------------------------------------------------------ recordings
+def test_an_overflowing_cell_is_named_by_its_own_column(d, capsys):
+    rows = list(csv.reader(io.StringIO(REC.read_text())))
+    rows[3][rows[0].index("y")] = "1e308"
+    with open(d / "r308.csv", "w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    refused(capsys, "identify", d / "r308.csv", "--machine", d / "m.toml", match=("line 4", "column 'y'", "1e+308"))
+
+
+def test_sigma_columns_outside_the_range_name_line_and_column(d, capsys):
+    rows = list(csv.reader(io.StringIO(REC.read_text())))
+    rows[0].append("sigma_position")
+    for r in rows[1:]:
+        r.append("0.005")
+    rows[5][-1] = "1e-200"
+    with open(d / "rs.csv", "w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    refused(capsys, "identify", d / "rs.csv", "--machine", d / "m.toml", match=("line 6", "sigma_position", "from 1e-06"))

@@ -1,0 +1,47 @@
+"""Stated limits (bayescal.limits): seeds, noise sigmas, and the memory budget."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bayescal.errors import InputError
+from bayescal.limits import SEED_MAX, check_memory, check_seed, memory_budget, sigma_problem
+
+
+@pytest.mark.parametrize("seed", [0, 1, SEED_MAX, np.int64(7)])
+def test_seeds_numpy_and_emcee_take_are_accepted(seed):
+    assert check_seed(seed) == int(seed)
+    np.random.RandomState(check_seed(seed))  # the legacy generator emcee seeds from takes every accepted seed
+
+
+@pytest.mark.parametrize("seed", [-1, SEED_MAX + 1, 2**64, 1.5, True, "3"])
+def test_other_seeds_are_refused_naming_the_option(seed):
+    with pytest.raises(InputError, match=f"--seed: expected an integer from 0 to {SEED_MAX}"):
+        check_seed(seed, "--seed")
+
+
+def test_the_legacy_generator_refuses_what_check_seed_refuses():
+    # the limit is numpy's own: the next integer up is a ValueError there
+    with pytest.raises(ValueError):
+        np.random.RandomState(SEED_MAX + 1)
+
+
+@pytest.mark.parametrize("value, kind, ok", [
+    (0.005, "position", True), (1e-6, "position", True), (1e3, "position", True), (1e-200, "position", False),
+    (2e3, "position", False), (float("nan"), "position", False), (5e-5, "angle", True), (1e-12, "angle", False),
+    (3.0, "angle", False),
+])
+def test_sigma_range(value, kind, ok):
+    problem = sigma_problem(value, kind)
+    assert (problem is None) == ok
+    if not ok:
+        assert "expected a one-sigma" in problem and ("mm" if kind == "position" else "rad") in problem
+
+
+def test_memory_budget_refuses_what_cannot_fit_and_names_the_option():
+    budget = memory_budget()
+    assert 0 < budget < 2**60
+    check_memory(1e6, "a small request", "lower --n")
+    with pytest.raises(InputError, match=r"a grid needs about .* TiB of memory, more than the .* available; lower --nodes"):
+        check_memory(32 * 2**40 + budget, "a grid", "lower --nodes")
