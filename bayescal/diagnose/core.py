@@ -216,7 +216,11 @@ def diagnose(
     for eff in lib:
         why = eff.not_applicable(machine, aux)
         if why is None:
-            f = eff.features(eff_machine, model.pose_q, eff_theta, pose_aux, model.pose_order, eff_poses)
+            if eff.features_at_nominal:
+                f = eff.features(eff_machine, model.pose_q, np.zeros_like(np.asarray(eff_theta, float)), pose_aux, model.pose_order,
+                                 None if eff.needs_poses else eff_poses)
+            else:
+                f = eff.features(eff_machine, model.pose_q, eff_theta, pose_aux, model.pose_order, eff_poses)
             f = eff.refine(f, model.q, dq_res)
             why = eff.inadmissible(f)
         if why is None:

@@ -190,7 +190,7 @@ def retest_with_effects(
     screen : OutlierScreen
         The screen the diagnosis used.
     """
-    from ..effects.model import _dq, _effect_theta, _predict, _slices, effect_columns
+    from ..effects.model import _dq, _dx, _effect_theta, _predict, _slices, effect_columns
 
     if not effects:
         return None
@@ -198,9 +198,9 @@ def retest_with_effects(
     P = machine.n_params
     slices = _slices(effects, model)
     q_eff = model.pose_q + _dq(effects, slices, fit.eta, model.pose_q.shape, _effect_theta(model, fit.theta))
-    sub, pred = _predict(model, q_eff, fit.theta, None)
+    sub, pred = _predict(model, q_eff, fit.theta, None, dx=_dx(effects, slices, fit.eta, model.pose_q.shape[0]))
     sig = np.asarray(model.row_sigma)
-    # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq
+    # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq and dx
     Jg = sub.jacobian(fit.theta, pred)
     Je, Jt = effect_columns(sub, fit.theta, pred, effects, slices, fit.eta)
     cols = [Jg if Jt is None else Jg + Jt] + Je
