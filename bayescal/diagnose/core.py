@@ -433,8 +433,8 @@ def _record(machine, final_model, fit: EffectFit, disc_trial):
     """The ``[calibration]`` record the calibrated machine carries (its covariance, noise scale, variance factor)."""
     from ..discrepancy import weight_names
     from ..machines.framed import base_machine
-    from ..predict.loo import loo_variance_factor
-    from ..predict.record import record_from_result
+    from ..prediction.loo import loo_variance_factor
+    from ..prediction.record import record_from_result
 
     P = machine.n_params
     free = np.ones(P, dtype=bool)

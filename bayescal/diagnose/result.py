@@ -126,7 +126,7 @@ class Diagnosis:
     #: The model discrepancy fitted where the final model still misfits (bayescal.diagnose.discrepancy.
     #: DiscrepancyTrial); None when not tried.
     discrepancy: object = None
-    #: The calibration's uncertainty the written machine carries (bayescal.predict.record.CalibrationRecord).
+    #: The calibration's uncertainty the written machine carries (bayescal.prediction.record.CalibrationRecord).
     record: object = None
 
     @property

@@ -298,7 +298,7 @@ def calibration_tables_toml(machine: Machine) -> str:
 
         parts.append(discrepancy_toml(machine.discrepancy))
     if machine.calibration is not None:
-        from ..predict.record import calibration_toml
+        from ..prediction.record import calibration_toml
 
         parts.append(calibration_toml(machine.calibration))
     return "".join("\n" + p.rstrip("\n") + "\n" for p in parts)

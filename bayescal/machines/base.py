@@ -229,7 +229,7 @@ class Machine(ABC):
     #: dataclass field of the kinds: :meth:`with_effects` attaches them to a copy.
     effects: tuple = ()
     #: What a calibrated machine file keeps of its calibration (``[calibration]``: the parameters'
-    #: covariance and the noise scale, :class:`bayescal.predict.record.CalibrationRecord`) and its
+    #: covariance and the noise scale, :class:`bayescal.prediction.record.CalibrationRecord`) and its
     #: model discrepancy (``[discrepancy]``, :class:`bayescal.discrepancy.Discrepancy`); None when
     #: the file has none.  Attached by :meth:`with_calibration`, like the effects.
     calibration = None

@@ -14,7 +14,7 @@ from bayescal.io import read_recording
 from bayescal.io.recording import write_recording
 from bayescal.machines import load_machine
 from bayescal.machines.framed import Frame
-from bayescal.predict.recording import predict_recording
+from bayescal.prediction.recording import predict_recording
 from bayescal.simulate import simulate_recording
 
 from ..conftest import PRS3_FILE

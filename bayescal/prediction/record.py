@@ -57,7 +57,7 @@ class CalibrationRecord:
     variance_factor : float
         ``kappa >= 1`` on every predictive covariance: how much the
         calibration's own left-out poses said its regions must widen
-        (:mod:`bayescal.predict.loo`).
+        (:mod:`bayescal.prediction.loo`).
     """
 
     names: tuple[str, ...]

@@ -13,9 +13,9 @@ from bayescal.instrument.prepare import prepare_session
 from bayescal.machines import machine_from_text
 from bayescal.machines.framed import Frame
 from bayescal.measurement import MeasurementModel
-from bayescal.predict.engine import predictive_rows
-from bayescal.predict.record import CalibrationRecord, calibration_toml
-from bayescal.predict.score import score_rows
+from bayescal.prediction.engine import predictive_rows
+from bayescal.prediction.record import CalibrationRecord, calibration_toml
+from bayescal.prediction.score import score_rows
 from bayescal.simulate import simulate_recording
 
 

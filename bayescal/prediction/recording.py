@@ -4,9 +4,9 @@ The calibrated machine (geometry, effects, model discrepancy, and the
 covariance of its calibration in ``[calibration]``) is held fixed with its
 uncertainty.  Only what belongs to the session is fitted, on the ``fit``
 rows: the instrument frame of each station with ``frame="fit"``.  Every row
-gets its predictive mean and covariance (:mod:`bayescal.predict.engine`),
+gets its predictive mean and covariance (:mod:`bayescal.prediction.engine`),
 its position error and whether it lies inside its 90 % region
-(:mod:`bayescal.predict.score`); the summary scores the ``check`` rows (no
+(:mod:`bayescal.prediction.score`); the summary scores the ``check`` rows (no
 fit has seen them) and the ``fit`` rows apart.
 """
 
