@@ -39,3 +39,13 @@ def test_write_machine_then_predict(tmp_path):
     assert p.summary["fit"]["n"] == 36 and p.summary["fit"]["coverage_90"] > 0.8
     # the written machine (errors folded into its geometry) predicts what the fit's residual says, to rounding
     assert p.summary["fit"]["rms_error_position_mm"] == pytest.approx(cal.result.rms_after["position"], rel=1e-6)
+
+
+def test_the_library_snippet_of_the_docs_runs(tmp_path, monkeypatch, capsys):
+    text = (ROOT / "docs" / "index.md").read_text(encoding="utf-8")
+    block = text.split("## The library in ten lines", 1)[1].split("```python", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(tmp_path)
+    exec(compile(block.replace('"examples/', f'"{ROOT.as_posix()}/examples/'), "docs/index.md", "exec"), {})
+    out = capsys.readouterr().out
+    assert "bayescal identification" in out and "ParameterEstimate(name='chain1.link_length'" in out
+    assert (tmp_path / "calibrated.toml").is_file()
