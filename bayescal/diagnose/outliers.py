@@ -240,15 +240,13 @@ def retest_with_discrepancy(model: MeasurementModel, theta, fitted, screen: Outl
     fitted : DiscrepancyFit
     screen : OutlierScreen
     """
-    disc = fitted.discrepancy
-    pred = model.predict(theta)
-    if not pred.success.all():
+    from ..discrepancy.fit import joint_design
+    from ..errors import InputError
+
+    try:
+        A, r = joint_design(model, theta, fitted, np.asarray(model.machine.tolerance)[fitted.free])
+    except InputError:
         return None
-    sig = np.asarray(model.row_sigma)
-    mean, F, _ = disc.rows(model, theta, pred)
-    J = model.jacobian(theta, pred)[:, :, fitted.free] * np.asarray(model.machine.tolerance)[fitted.free]
-    A = (np.concatenate([J, F], axis=2) / sig[:, :, None]).reshape(model.n_poses * model.dof, -1)
-    r = ((model.residual(pred) - mean) / sig).reshape(-1)
     weights = np.where(screen.excluded, EXCLUDE_FACTOR**-2, 1.0)
     test = pose_test_linear(A, r, model.dof, lam=1.0, weights=weights, scale="robust", alpha=alpha,
                             lines=screen.test.lines)

@@ -56,7 +56,7 @@ from ..errors import InputError
 from .kernel import farthest_points, nystrom_features
 from .model import OUTPUT_NAMES, Discrepancy, discrepancy_inputs, output_rows_map
 
-__all__ = ["DiscrepancyFit", "fit_discrepancy", "default_inputs", "MIN_EVIDENCE_GAIN", "MAX_HYPER_POSES"]
+__all__ = ["DiscrepancyFit", "fit_discrepancy", "default_inputs", "joint_design", "MIN_EVIDENCE_GAIN", "MAX_HYPER_POSES"]
 
 #: Log Bayes factor (in nats) a discrepancy must gain over white noise to be kept.
 MIN_EVIDENCE_GAIN = 6.0
@@ -376,3 +376,20 @@ def _posterior(model, prob: _Problem, template: Discrepancy, free_idx, prior_sd,
     )
     return DiscrepancyFit(discrepancy=disc, noise_factor=float(c), covariance=0.5 * (cov + cov.T), dtheta=dtheta,
                           supported=gain >= MIN_EVIDENCE_GAIN, chi2=chi2, effective_params=hat, free=free_idx)
+
+
+def joint_design(model, theta, fitted: DiscrepancyFit, prior_sd) -> tuple[NDArray, NDArray]:
+    """The joint fit's whitened design and residual at ``theta``: ``([J C0^(1/2), F], W (y - h - delta))``.
+
+    Every column has prior ``N(0, I)`` (ridge ``lam = 1``), as the per-pose
+    outlier test (:func:`bayescal.outliers.pose_test_linear`) expects; rows pose by pose.
+    """
+    pred = model.predict(theta)
+    if not pred.success.all():
+        raise InputError("joint_design: a pose cannot be solved at the joint fit's geometry")
+    sig = np.asarray(model.row_sigma, dtype=float)
+    mean, F, _ = fitted.discrepancy.rows(model, theta, pred)
+    J = model.jacobian(theta, pred)[:, :, fitted.free] * np.asarray(prior_sd, dtype=float)
+    A = (np.concatenate([J, F], axis=2) / sig[:, :, None]).reshape(model.n_poses * model.dof, -1)
+    r = ((model.residual(pred) - mean) / sig).reshape(-1)
+    return A, r

@@ -362,12 +362,56 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
         theta = theta.copy()
         theta[idx] += df.dtheta
     df = fit_discrepancy(scaled, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
+    handling, df, theta = _joint_outliers(scaled, res, theta, df, prior_sd, prior_mean, handling, kw["outlier_kw"])
     res = _joint_result(scaled, res, theta, df)
     note = ("fitted (--discrepancy on)" if mode == "on" else "supported by the data (--discrepancy auto)")
     cal = Calibration(result=res, handling=handling, choice=choice, noise=check, noise_scale=scale,
                       discrepancy=df, discrepancy_note=note, model=model)
     cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}))
     return cal.with_variance_factor(model)
+
+
+def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outlier_kw):
+    """The outlier test against the model with its discrepancy, and the joint fit without the poses it names.
+
+    The geometry-only fit judged the poses by a model without the
+    discrepancy, and a pose the discrepancy explains (the most bent ones)
+    stood out there: that is physics.  Here every pose is judged against
+    the joint fit (ridge ``lam = 1`` on its design); the poses it flags
+    (a gross error no model explains) leave the joint fit, which is redone.
+    """
+    from ..discrepancy import fit_discrepancy
+    from ..discrepancy.fit import joint_design
+    from ..outliers import ALPHA, MAX_FRACTION, pose_test_linear
+    from .robust import OutlierHandling
+
+    robust = outlier_kw.get("robust", "auto")
+    alpha, lines = outlier_kw.get("alpha", ALPHA), outlier_kw.get("lines")
+    try:
+        A, r = joint_design(model, theta, df, prior_sd)
+    except InputError:
+        return handling, df, theta
+    test = pose_test_linear(A, r, model.dof, lam=1.0, alpha=alpha, lines=lines)
+    flagged = test.flagged
+    judged = "judged against the model with its discrepancy"
+    if not flagged.any():
+        return OutlierHandling(test=test, mode=robust, action=f"none flagged, {judged}; every pose kept at full weight"), \
+            df, theta
+    if robust == "off" or flagged.sum() > MAX_FRACTION * model.n_poses:
+        why = "--robust off" if robust == "off" else f"{int(flagged.sum())} of {model.n_poses} stand out: structure"
+        return OutlierHandling(test=test, mode=robust, action=f"kept ({why}), {judged}"), df, theta
+    weights = np.where(flagged, 1e-12, 1.0)
+    excluded = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) / np.sqrt(weights)[:, None])
+    idx = np.flatnonzero(res.free)
+    for _ in range(2):
+        df = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
+        theta = theta.copy()
+        theta[idx] += df.dtheta
+    df = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
+    A, r = joint_design(model, theta, df, prior_sd)
+    test = pose_test_linear(A, r, model.dof, lam=1.0, weights=weights, alpha=alpha, lines=lines)
+    action = f"excluded from the joint fit ({int(flagged.sum())} pose(s)), {judged}"
+    return OutlierHandling(test=test, mode=robust, action=action, weights=weights), df, theta
 
 
 def _joint_result(model, res, theta, df):
