@@ -1,4 +1,4 @@
-"""Convert the real two-axis positioner recording (industrial_calibration, Apache-2.0) to FORMATS.md files.
+"""Convert the real two-axis positioner recording (industrial_calibration, Apache-2.0) to bayescal's files (docs/formats.md).
 
 Source: ``../shared/data/real/positioner/`` (``measurements.yaml``,
 ``pose_initial_guesses.yaml``, ``LICENSE``, ``nominal.md``), copied

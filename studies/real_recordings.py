@@ -438,7 +438,7 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
         result["worst_lines_heldout_registration"] = [[int(i) + 2, float(held["registration"][i])] for i in order[:6]]
         _stamp("tiago cross-validation done", t0)
 
-        # ---- bayescal's outlier screen (FORMATS.md section 4), from the registered machine (no local minimum)
+        # ---- bayescal's outlier screen (docs/formats.md section 4), from the registered machine (no local minimum)
         result["outlier_screen"] = _outlier_screen(fm.to_toml(reg.theta), rec, Path(tmp), REG)
         _stamp("tiago outlier screen done", t0)
 

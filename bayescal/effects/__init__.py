@@ -22,7 +22,7 @@ __all__ = [
     "JointCompliance", "ThermalExpansion", "Backlash", "ScrewPeriodicError", "RedundancyPreload",
 ]
 
-#: The library, by stable name (FORMATS.md section 3), in the order they are tried.
+#: The library, by stable name (docs/formats.md section 3), in the order they are tried.
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls for cls in (JointCompliance, ThermalExpansion, Backlash, ScrewPeriodicError, RedundancyPreload)
 }

@@ -217,7 +217,7 @@ def _outlier_cause(model, residuals, line_offset, dof_left) -> str | None:
 
 
 def frame_answer(machine: Machine, theta: NDArray, free: NDArray, covariance: NDArray | None) -> dict:
-    """The ``"frame"`` block of the JSON answer (FORMATS.md section 4), ``"frames"`` for several stations (section 8).
+    """The ``"frame"`` block of the JSON answer (docs/formats.md section 4), ``"frames"`` for several stations (section 8).
 
     ``{}`` without an instrument frame.  ``std`` is that of the composed
     frame: the origin's is the correction's, the rotation vector's
