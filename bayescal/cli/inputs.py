@@ -121,6 +121,7 @@ def instrument_session(args: argparse.Namespace, machine=None):
     machine = load_machine(args.machine) if machine is None else machine
     rec = read_recording(args.recording)
     session = prepare_session(machine, rec, dof=getattr(args, "dof", None), frame=getattr(args, "frame", "base"))
-    if session.check is not None and session.check.fires and not getattr(args, "quiet", False):
-        print(f"bayescal {args.command}: warning: {session.check.message()}", file=sys.stderr)
+    warning = None if session.check is None else session.check.warning()
+    if warning and not getattr(args, "quiet", False):
+        print(f"bayescal {args.command}: warning: {warning}", file=sys.stderr)
     return session

@@ -2,8 +2,8 @@
 
 Nothing in the repository may cite a copy of the contract kept outside it (the
 name is spelled in two parts below so that this file does not cite it
-either); and when the shared contract sits beside the checkout
-(``../shared/FORMATS.md``, absent on a fresh clone), every section of it
+either); and when the shared contract sits beside the checkout (in
+``../shared/``, absent on a fresh clone), every section of it
 appears in docs/formats.md word for word, in order (whitespace normalised).
 """
 
