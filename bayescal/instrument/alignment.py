@@ -206,6 +206,9 @@ class FrameCheck:
         ``swapped_aligned``); NaN when not computed.
     swapped_aligned : bool
         The mirror image needs a rigid transform as well (an instrument frame).
+    rms_tolerance_machine : float
+        :attr:`rms_tolerance` without the tool's parameters: what the machine's own tolerances
+        explain when the file declares the tool point unknown (a tolerance of a metre).
     """
 
     rms_nominal: float
@@ -219,6 +222,7 @@ class FrameCheck:
     swapped: str = ""
     rms_swapped: float = float("nan")
     swapped_aligned: bool = False
+    rms_tolerance_machine: float = float("nan")
 
     #: The nominal RMS must exceed the tolerance RMS by this factor ...
     BEYOND = 5.0
@@ -310,7 +314,7 @@ class FrameCheck:
                 f"them, against {self.rms_rigid:.3g} mm after the best rigid transform; check the order and signs of the "
                 "x, y, z columns (the instrument's frame may be left-handed), then try --frame fit"
             )
-        if kind == "frame":
+        if kind == "frame" and self.rms_nominal > self.BEYOND * self.rms_tolerance_machine:
             return (
                 f"missing --frame fit: {self._rigid_words()} brings the recording's tool points from "
                 f"{self.rms_nominal:.4g} mm to {self.rms_rigid:.3g} mm RMS of the nominal machine: the recording looks "
@@ -325,6 +329,7 @@ class FrameCheck:
             "rotation_deg": float(np.degrees(self.angle)), "scale": self.scale, "explanation": self.explanation,
             "rms_tool": self.rms_tool, "tool_offset": None if self.tool_offset is None else self.tool_offset.tolist(),
             "swapped": self.swapped or None, "rms_swapped": self.rms_swapped,
+            "rms_tolerance_machine": self.rms_tolerance_machine,
         }
 
 
@@ -348,12 +353,16 @@ def check_frame(machine: Machine, rec: Recording) -> FrameCheck | None:
     f = align_frame(pm, pn)
     rms1 = _rms(f.to_base(pm) - pn)
     J = machine.tool_jacobian(q[ok], None, nom_subset(nom, ok))[:, :3]
-    rms_tol = float(np.sqrt(np.mean(np.sum((J * machine.tolerance) ** 2, axis=(1, 2)))))
+    JS = J * machine.tolerance
+    rms_tol = float(np.sqrt(np.mean(np.sum(JS**2, axis=(1, 2)))))
+    own = np.array([not n.startswith("tool.") for n in machine.layout.names])
+    rms_tol_machine = float(np.sqrt(np.mean(np.sum(JS[:, :, own] ** 2, axis=(1, 2)))))
     s_m = np.sqrt(np.mean(np.sum((pm - pm.mean(0)) ** 2, axis=1)))
     s_n = np.sqrt(np.mean(np.sum((pn - pn.mean(0)) ** 2, axis=1)))
     tool = _tool_offset_fit(machine, J, pm - pn)
     swap = _best_swap(pm, pn, rms1)
-    return FrameCheck(rms0, rms1, rms_tol, f, float(s_n / s_m) if s_m > 0 else float("nan"), *tool, *swap)
+    return FrameCheck(rms0, rms1, rms_tol, f, float(s_n / s_m) if s_m > 0 else float("nan"), *tool, *swap,
+                      rms_tol_machine)
 
 
 def _rms(d: NDArray) -> float:

@@ -122,7 +122,11 @@ def test_frame_answer_std_matches_the_covariance(prs3):
 def test_base_frame_recordings_do_not_trigger_the_check(prs3, dof):
     for seed in range(5):
         rec = simulate_recording(prs3, 30, seed=100 + seed, dof=dof).recording
-        assert not check_frame(prs3, rec).fires
+        chk = check_frame(prs3, rec)
+        assert not chk.fires
+        # nor is a cause named: the drawn errors move the points mostly rigidly (a tenth of a millimetre), which
+        # is within what the tolerances explain, not a missing --frame fit
+        assert chk.cause() is None and chk.warning() is None
 
 
 def test_tool_offset_of_the_check_is_the_true_one(prs3, tmp_path):
