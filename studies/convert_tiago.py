@@ -68,9 +68,12 @@ BLOBS = {
 }
 HALF_PI = np.pi / 2
 
-#: The chain from ``base_footprint`` to ``wrist_ft_tool_link`` (the data set's README table, with the two values in
-#: which ``tiago_48_schunk.urdf`` differs from ``tiago.urdf``: arm_2 y = 0.0195, arm_3 z = -0.0015).  Per joint:
-#: name, type, URDF ``origin`` xyz (m), rpy (rad), limits (m or rad; None for a fixed joint).  Every axis is local z.
+#: The chain from ``base_footprint`` to ``wrist_ft_tool_link`` (the data set's README table, with the values in which
+#: ``tiago_48_schunk.urdf`` differs from ``tiago.urdf``: arm_2 y = 0.0195, arm_3 z = -0.0015, and arm_5's rpy written
+#: (pi/2, -pi/2, -pi/2), the same rotation as (0, -pi/2, 0)).  Per joint: name, type, URDF ``origin`` xyz (m), rpy
+#: (rad), limits (m or rad; None for a fixed joint).  Every axis is local z.  The rpy are written to the machine file
+#: as given: at a pitch of -pi/2 (arm_4, arm_5, arm_6) roll and yaw turn about one axis, and how a rotation is split
+#: between them decides what the ``rpy`` error parameters perturb, so the split is kept as the URDF states it.
 CHAIN = (
     ("base_footprint_joint", "fixed", (0.0, 0.0, 0.0985), (0.0, 0.0, 0.0), None),
     ("torso_fixed_joint", "fixed", (-0.062, 0.0, 0.193), (0.0, 0.0, 0.0), None),
@@ -79,7 +82,7 @@ CHAIN = (
     ("arm_2_joint", "revolute", (0.125, 0.0195, -0.031), (HALF_PI, 0.0, 0.0), (-HALF_PI, 1.0908307825)),
     ("arm_3_joint", "revolute", (0.0895, 0.0, -0.0015), (-HALF_PI, 0.0, HALF_PI), (-3.53429173529, HALF_PI)),
     ("arm_4_joint", "revolute", (-0.02, -0.027, -0.222), (-HALF_PI, -HALF_PI, 0.0), (-0.392699081699, 2.35619449019)),
-    ("arm_5_joint", "revolute", (-0.162, 0.02, 0.027), (0.0, -HALF_PI, 0.0), (-2.09439510239, 2.09439510239)),
+    ("arm_5_joint", "revolute", (-0.162, 0.02, 0.027), (HALF_PI, -HALF_PI, -HALF_PI), (-2.09439510239, 2.09439510239)),
     ("arm_6_joint", "revolute", (0.0, 0.0, 0.15), (0.0, -HALF_PI, -HALF_PI), (-1.41371669412, 1.41371669412)),
     ("arm_7_joint", "revolute", (0.0, 0.0, 0.0), (HALF_PI, 0.0, HALF_PI), (-2.09439510239, 2.09439510239)),
     ("arm_tool_joint", "fixed", (0.0, 0.0, 0.046), (HALF_PI, -HALF_PI, np.pi), None),
@@ -108,15 +111,20 @@ def transform(xyz, rpy) -> np.ndarray:
     return T
 
 
-def folded_chain() -> tuple[list[tuple[str, str, np.ndarray]], np.ndarray]:
-    """The moving joints with the fixed joints before each folded in, and the fixed tail (4x4, m)."""
+def folded_chain() -> tuple[list[tuple[str, str, np.ndarray, np.ndarray]], np.ndarray]:
+    """The moving joints (name, type, 4x4 in m, rpy) with the fixed joints before each folded in, and the fixed tail.
+
+    A moving joint keeps the table's rpy when no fixed joint before it turns (here: every one; the fixed joints
+    before the torso only translate), else the rpy of the folded rotation.
+    """
     joints, pending = [], np.eye(4)
     for name, kind, xyz, rpy, _ in CHAIN:
         T = pending @ transform(xyz, rpy)
         if kind == "fixed":
             pending = T
             continue
-        joints.append((name, kind, T))
+        turned = not np.allclose(pending[:3, :3], np.eye(3), atol=0.0)
+        joints.append((name, kind, T, rpy_from_matrix(T[:3, :3]) if turned else np.asarray(rpy, dtype=float)))
         pending = np.eye(4)
     return joints, pending
 
@@ -181,13 +189,13 @@ def machine_text() -> str:
         'name = "PAL TIAGo, torso + 7R arm (figaroh mocap set)"',
         "",
     ]
-    for name, kind, T in joints:
+    for name, kind, T, rpy in joints:
         out += [
             "[[joint]]",
             f'name = "{name}"',
             f'type = "{kind}"',
             f"origin = {f(T[:3, 3] * M_TO_MM)}",
-            f"rpy = {fa(rpy_from_matrix(T[:3, :3]))}",
+            f"rpy = {fa(rpy)}",
             "axis = [0.0, 0.0, 1.0]",
             "",
         ]
