@@ -269,7 +269,10 @@ an unknown instrument frame and an unknown tool point.
   `torso_lift_joint` (prismatic, q1 in mm) and `arm_1_joint` ... `arm_7_joint` (revolute, q2-q8
   in rad), every axis local z, with the parameters of `tiago_48_schunk.urdf` (the URDF
   `calibration.py` loads; it differs from `tiago.urdf` in arm_2's origin y, 19.5 mm against
-  16.5 mm, and arm_3's origin z, -1.5 mm against +1.5 mm). The fixed joints before the torso
+  16.5 mm, and arm_3's origin z, -1.5 mm against +1.5 mm, and writes arm_5's rotation as
+  rpy (pi/2, -pi/2, -pi/2) instead of (0, -pi/2, 0); the rpy are kept as written, since at a
+  pitch of -pi/2 how a rotation is split between roll and yaw decides what the `rpy` error
+  parameters perturb). The fixed joints before the torso
   lift (`base_footprint_joint`, `torso_fixed_joint`) are folded into its origin, and the fixed
   joints after arm_7 (`arm_tool_joint`, `wrist_ft_joint`, `wrist_tool_joint`) into the tool, as
   bayescal folds a URDF: `[tool] point` is `wrist_ft_tool_link`'s origin in `arm_7_link`'s frame.
