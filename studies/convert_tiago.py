@@ -123,7 +123,7 @@ def folded_chain() -> tuple[list[tuple[str, str, np.ndarray, np.ndarray]], np.nd
         if kind == "fixed":
             pending = T
             continue
-        turned = not np.allclose(pending[:3, :3], np.eye(3), atol=0.0)
+        turned = not np.array_equal(pending[:3, :3], np.eye(3))
         joints.append((name, kind, T, rpy_from_matrix(T[:3, :3]) if turned else np.asarray(rpy, dtype=float)))
         pending = np.eye(4)
     return joints, pending
@@ -139,7 +139,7 @@ def forward(q: np.ndarray) -> np.ndarray:
     out = np.empty((q.shape[0], 4, 4))
     for n, qi in enumerate(q):
         T = np.eye(4)
-        for k, (name, kind, xyz, rpy, _) in enumerate(c for c in CHAIN):
+        for name, kind, xyz, rpy, _ in CHAIN:
             T = T @ transform(xyz, rpy)
             if kind == "prismatic":
                 T = T @ transform((0.0, 0.0, qi[JOINTS.index(name)] / M_TO_MM), (0.0, 0.0, 0.0))
