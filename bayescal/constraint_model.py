@@ -171,6 +171,10 @@ class ConstraintModel:
     aux: dict = field(default_factory=dict)
     pivot_order: tuple[str, ...] = ()
     dof: int = 1
+    #: Base-frame tool-pose perturbation of every solved pose (:attr:`pose_q` order), shape (n_solved, 6),
+    #: or None: what effects that move the tool add after the kinematics (as
+    #: :attr:`bayescal.measurement.MeasurementModel.pose_offset`).
+    pose_offset: NDArray | None = None
 
     def __post_init__(self) -> None:
         qa = self.base.check_q(self.qa)
@@ -226,11 +230,11 @@ class ConstraintModel:
         if machine.effects:
             # the machine file's [effect.*] tables at their stored values (docs/formats.md section 7), as for pose
             # recordings: every solved pose moves by the effects' dq, driven by its row's channels, in time order
-            from .effects.stored import effect_delta_q
+            from .effects.stored import effect_delta_q_and_x
 
             pose_aux = {k: np.asarray(v)[model.pose_row] for k, v in model.aux.items()}
-            dq = effect_delta_q(machine, machine.effects, model.pose_q, pose_aux, order=model.pose_order)
-            model = model.with_pose_q(model.pose_q + dq)
+            dq, dx = effect_delta_q_and_x(machine, machine.effects, model.pose_q, pose_aux, order=model.pose_order)
+            model = model.with_pose_q(model.pose_q + dq).with_pose_offset(dx)
         pred = model.predict(None)
         if not pred.success.all():
             i = int(np.flatnonzero(~pred.success)[0])
@@ -324,6 +328,7 @@ class ConstraintModel:
             y_measured=None if self.y_measured is None else self.y_measured[idx],
             pose_sigma=None if self.pose_sigma is None else self.pose_sigma[idx],
             aux={k: v[idx] for k, v in self.aux.items()},
+            pose_offset=None if self.pose_offset is None else self.pose_offset[self.poses_of(idx)],
         )
 
     # ---------------------------------------------------------------- the model
@@ -377,6 +382,10 @@ class ConstraintModel:
         if guess is not None and guess.position.shape[0] != Q.shape[0]:
             guess = None
         poses = self.base.forward(Q, th_m, guess=guess)
+        if self.pose_offset is not None:
+            from .measurement import offset_poses
+
+            poses = offset_poses(self.base, Q, th_m, poses, self.pose_offset)
         n, nd = self.n_poses, self._dist.size
         M = n + nd
         pos = poses.position.reshape(blocks, M, 3)
@@ -478,6 +487,13 @@ class ConstraintModel:
         qb = self.qb.copy()
         qb[self._dist] = pose_q[n:]
         return replace(self, qa=pose_q[:n], qb=qb, pivot_start=self.pivot_start, pivot_order=self.pivot_ids)
+
+    def with_pose_offset(self, pose_offset: NDArray | None) -> "ConstraintModel":
+        """The same relations with another base-frame tool-pose perturbation of the solved poses (None: none), shape (n_solved, 6)."""
+        from dataclasses import replace
+
+        off = None if pose_offset is None else np.asarray(pose_offset, dtype=float).reshape(-1, 6)
+        return replace(self, pivot_start=self.pivot_start, pivot_order=self.pivot_ids, pose_offset=off)
 
     def effect_inputs(self, theta: NDArray, prediction: ConstraintPrediction | None) -> tuple[Machine, NDArray, ToolPoses | None]:
         """The machine, its geometry (pivots dropped) and the solved poses at which effects are evaluated (None without a prediction)."""

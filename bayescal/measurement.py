@@ -27,7 +27,7 @@ from .geometry import left_jacobian_inverse, skew, so3_exp, so3_log, tangent_bas
 from .io.recording import Recording
 from .machines.base import Machine, ToolPoses, map_state
 
-__all__ = ["MeasurementModel", "Prediction", "rows_per_pose"]
+__all__ = ["MeasurementModel", "Prediction", "rows_per_pose", "offset_poses", "pose_offset_rows"]
 
 
 def rows_per_pose(dof: int) -> int:
@@ -83,6 +83,14 @@ class MeasurementModel:
         recording's ``sigma_position`` / ``sigma_angle`` columns, or weights
         of a robust fit.  Default: the machine's ``[measurement]`` noise for
         every pose (:attr:`sigma`).
+    pose_offset : ndarray, shape (n_poses, 6), optional
+        A tool-pose perturbation of every solved pose in the machine's base
+        frame (mm, then a small rotation in rad) that the kinematics does
+        not describe: what effects that move the tool
+        (:attr:`bayescal.effects.Effect.moves_tool`, a link bending under
+        gravity) add after the forward kinematics.  :meth:`predict` rotates
+        it into each pose's measurement frame (:func:`offset_poses`); it
+        does not depend on ``theta``.  None: no offset.
     """
 
     machine: Machine
@@ -93,10 +101,16 @@ class MeasurementModel:
     aux: dict | None = None
     guess: ToolPoses | None = None
     pose_sigma: NDArray | None = None
+    pose_offset: NDArray | None = None
 
     def __post_init__(self) -> None:
         q = self.machine.check_q(self.q)
         object.__setattr__(self, "q", q)
+        if self.pose_offset is not None:
+            off = np.asarray(self.pose_offset, dtype=float)
+            if off.shape != (q.shape[0], 6) or not np.all(np.isfinite(off)):
+                raise InputError(f"pose_offset: expected finite values of shape ({q.shape[0]}, 6), got {off.shape}")
+            object.__setattr__(self, "pose_offset", off)
         rows_per_pose(self.dof)
         if self.R_ref is None and self.dof != 3:
             nominal = self.machine.forward(q, None, guess=self.guess)
@@ -150,10 +164,12 @@ class MeasurementModel:
         R_meas = so3_exp(rec.rotvec) if rec.rotvec is not None else None
         guess = machine.guess_from_measurement(rec.q, rec.position, R_meas, rec.axis)
         q = rec.q
+        offset = None
         if machine.effects:
             # the machine file's [effect.*] tables at their stored values: the kinematics sees the
-            # actuator positions the effects make of the commanded ones, so every consumer applies them
-            from .effects.stored import effect_delta_q
+            # actuator positions the effects make of the commanded ones, and the tool the perturbation
+            # of those that move it, so every consumer applies them
+            from .effects.stored import effect_delta_q_and_x
             from .machines.framed import InstrumentFrame, base_machine
 
             if isinstance(machine, InstrumentFrame):
@@ -162,10 +178,11 @@ class MeasurementModel:
                 base = base_machine(machine)
                 poses = base.forward(q, None)
                 poses = poses if poses.success.all() else None
-                q = q + effect_delta_q(base, machine.effects, q, dict(rec.aux), poses=poses)
+                dq, offset = effect_delta_q_and_x(base, machine.effects, q, dict(rec.aux), poses=poses)
             else:
                 poses = machine.forward(q, None, guess=guess) if guess is not None else None
-                q = q + effect_delta_q(machine, machine.effects, q, dict(rec.aux), poses=poses)
+                dq, offset = effect_delta_q_and_x(machine, machine.effects, q, dict(rec.aux), poses=poses)
+            q = q + dq
             guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
         n = rec.n_poses
         y = np.zeros((n, dof))
@@ -179,7 +196,7 @@ class MeasurementModel:
             R_ref = _frame_with_z(axis)
         return cls(
             machine=machine, q=q, dof=dof, y_measured=y, R_ref=R_ref, aux=dict(rec.aux), guess=guess,
-            pose_sigma=_recording_pose_sigma(machine, rec, dof),
+            pose_sigma=_recording_pose_sigma(machine, rec, dof), pose_offset=offset,
         )
 
     # ------------------------------------------------------------- properties
@@ -230,6 +247,7 @@ class MeasurementModel:
             aux=None if self.aux is None else {k: v[idx] for k, v in self.aux.items()},
             guess=g,
             pose_sigma=None if self.pose_sigma is None else self.pose_sigma[idx],
+            pose_offset=None if self.pose_offset is None else self.pose_offset[idx],
         )
 
     # ------------------------------------------------- poses (what effects act on)
@@ -263,6 +281,12 @@ class MeasurementModel:
         from dataclasses import replace
 
         return replace(self, q=pose_q, guess=self.guess if keep_guess else None)
+
+    def with_pose_offset(self, pose_offset: NDArray | None) -> "MeasurementModel":
+        """The same model with another base-frame tool-pose perturbation of its solved poses (None: none), shape (n_solved, 6)."""
+        from dataclasses import replace
+
+        return replace(self, pose_offset=pose_offset)
 
     def effect_inputs(self, theta: NDArray, prediction: Prediction | None) -> tuple[Machine, NDArray, ToolPoses | None]:
         """The machine, geometry and solved poses at which effects are evaluated (``features``, ``actuator_jacobian``).
@@ -318,6 +342,8 @@ class MeasurementModel:
         if g is not None and g.position.shape[0] != q.shape[0]:
             g = _tile_poses(g, q.shape[0] // g.position.shape[0])
         poses = self.machine.forward(q, theta, guess=g)
+        if self.pose_offset is not None:
+            poses = offset_poses(self.machine, q, theta, poses, self.pose_offset)
         return Prediction(y=self._rows(poses), poses=poses)
 
     def jacobian(self, theta: ArrayLike | None, prediction: Prediction) -> NDArray:
@@ -374,6 +400,73 @@ class MeasurementModel:
             "position": float(np.sqrt(np.mean(pos**2))),
             "angle": None if ang is None else float(np.sqrt(np.mean(ang**2))),
         }
+
+
+def offset_poses(machine: Machine, q: NDArray, theta, poses: ToolPoses, offset: NDArray) -> ToolPoses:
+    """Solved poses moved by base-frame tool-pose perturbations, in the frame the poses are measured in.
+
+    Parameters
+    ----------
+    machine : Machine
+        The machine ``poses`` were solved on (:meth:`Machine.measurement_rotation`
+        takes the base-frame perturbation into each pose's measurement frame).
+    q : ndarray, shape (n, N)
+    theta : ndarray, shape (P,) or (n, P), or None
+    poses : ToolPoses
+        ``machine.forward(q, theta)``.
+    offset : ndarray, shape (n_0, 6)
+        Base-frame displacement of the tool point (mm) and small rotation of
+        the tool frame (rad) per pose; tiled when ``n`` is a multiple of
+        ``n_0`` (stacked parameter sets).
+
+    Returns
+    -------
+    ToolPoses
+        Position ``p + R_m dx``, rotation ``exp([R_m w]x) R`` with ``R_m`` the
+        measurement rotation; the kind's state (warm start) is kept.
+    """
+    n = poses.position.shape[0]
+    off = np.asarray(offset, dtype=float)
+    if off.shape[0] != n:
+        off = np.tile(off, (n // off.shape[0], 1))
+    Rm = machine.measurement_rotation(q, theta)
+    dp = np.einsum("nij,nj->ni", Rm, off[:, :3])
+    w = np.einsum("nij,nj->ni", Rm, off[:, 3:])
+    return ToolPoses(poses.position + dp, so3_exp(w) @ poses.rotation, poses.success, poses.message, poses.state)
+
+
+def pose_offset_rows(model, theta, prediction, dX: NDArray) -> NDArray:
+    """Measurement-row derivative of base-frame tool-pose perturbations of every solved pose.
+
+    Parameters
+    ----------
+    model : MeasurementModel or ConstraintModel
+    theta : ndarray
+        The model's parameters (the measurement rotation depends on a fitted frame).
+    prediction : Prediction
+        At which the rows are linearised.
+    dX : ndarray, shape (n_solved, 6, k)
+        Base-frame tool displacement (mm) and small rotation (rad) per unit
+        of ``k`` variables (an effect's parameters).
+
+    Returns
+    -------
+    ndarray, shape (n_rows, dof, k)
+        Through each pose's measurement rotation, then ``rows_jacobian`` (the
+        map the geometric parameters go through).  The rotation the model
+        already applies (its ``pose_offset``, ``phi`` in the measurement
+        frame) turns a change ``dw`` into ``J_l(phi) dw`` (``exp([phi +
+        dphi]x) = exp([J_l(phi) dphi]x) exp([phi]x)``).
+    """
+    Rm = model.machine.measurement_rotation(model.pose_q, theta)
+    J = np.empty_like(np.asarray(dX, dtype=float))
+    J[:, :3] = np.einsum("nij,njk->nik", Rm, dX[:, :3])
+    J[:, 3:] = np.einsum("nij,njk->nik", Rm, dX[:, 3:])
+    own = getattr(model, "pose_offset", None)
+    if own is not None:
+        phi = np.einsum("nij,nj->ni", Rm, own[:, 3:])
+        J[:, 3:] = np.linalg.solve(left_jacobian_inverse(phi), J[:, 3:])
+    return model.rows_jacobian(J, prediction)
 
 
 def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:

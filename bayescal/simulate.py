@@ -26,7 +26,14 @@ __all__ = ["PoseTransform", "SimulatedRecording", "draw_errors", "draw_poses", "
 
 
 class PoseTransform(Protocol):
-    """A physical effect as seen by the simulator (see the module docstring)."""
+    """A physical effect as seen by the simulator (see the module docstring).
+
+    A transform may also have a method ``pose_offset(q, theta, aux, order)``
+    returning a base-frame tool-pose perturbation (n, 6) (mm, then a small
+    rotation in rad) or None, evaluated at the same inputs as
+    :meth:`transform`: what the structure does after the kinematics (a link
+    bending under gravity).  :func:`measure` adds it to the solved poses.
+    """
 
     def transform(
         self, q: NDArray, theta: NDArray, aux: dict[str, NDArray], order: NDArray
@@ -108,12 +115,20 @@ def measure(
     n = q.shape[0]
     aux = {} if aux is None else dict(aux)
     q_true, th = q, np.broadcast_to(theta, (n, machine.n_params)).copy()
+    offset = None
     for eff in effects:
+        off = eff.pose_offset(q_true, th, aux, np.arange(n)) if hasattr(eff, "pose_offset") else None
+        if off is not None:
+            offset = (0.0 if offset is None else offset) + np.asarray(off, dtype=float)
         q_true, th = eff.transform(q_true, th, aux, np.arange(n))
     poses = machine.forward(q_true, th)
     if not poses.success.all():
         i = int(np.flatnonzero(~poses.success)[0])
         raise InputError(f"simulated pose {i + 1} (q = {q[i].tolist()}) cannot be solved: {poses.message[i]}")
+    if offset is not None:
+        from .measurement import offset_poses
+
+        poses = offset_poses(machine, q_true, th, poses, offset)
     sp, sa = machine.noise.sigma_position, machine.noise.sigma_angle
     pos = poses.position.copy()
     R = poses.rotation

@@ -18,7 +18,7 @@ first principles (not with bayescal's effect code):
 Each repetition calibrates 200 poses (``role = fit``) with MAP as
 ``bayescal identify --method map`` does (bayescal.identify.calibrate), with
 the discrepancy off and ``auto``, and scores 100 held-out poses (``role =
-check``) as identify's answer scores them (bayescal.predict.recording.score_held_out):
+check``) as identify's answer scores them (bayescal.prediction.recording.score_held_out):
 mean position error and the share inside the 90 % predictive region.
 
 Targets (issue #28): with a mismatch, coverage 85-95 % and held-out error at
@@ -45,7 +45,7 @@ from bayescal.identify.calibrate import calibrate
 from bayescal.instrument.prepare import prepare_session
 from bayescal.io.recording import Recording
 from bayescal.machines import load_machine
-from bayescal.predict.recording import score_held_out
+from bayescal.prediction.recording import score_held_out
 from bayescal.simulate import draw_errors, draw_poses
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -221,7 +221,11 @@ def compensation_grid(
             f"grid node {i + 1} (q = {q_cmd[i].tolist()}) cannot be solved; narrow the grid with --range q1=LO:HI "
             f"(one per actuator, q1..q{machine.n_actuators}), or span the tool point with --space tool"
         )
-    correction = -(est.position - nominal.position)
+    reached = est.position
+    dx = machine.node_tool_offset(q_cmd, theta, aux)
+    if dx is not None:  # effects that move the tool, not the drives (a column bending under its load)
+        reached = reached + dx[:, :3]
+    correction = -(reached - nominal.position)
     std, source = tool_point_std_at(machine, q, theta, free, covariance=covariance, samples=samples, caller="compensation_grid",
                                     dq_dtheta=dq_dtheta)
     unit = "mm or rad per actuator"  # docs/formats.md section 2: mm for prismatic, rad for revolute actuators

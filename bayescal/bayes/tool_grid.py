@@ -357,6 +357,9 @@ def tool_grid(
     # against the nominal point actually commanded: equal to the node on the controlled axes, and the
     # right reference on an axis the actuators do not set (there the node coordinate is only a mean)
     error = est.position - nominal.position
+    dx = machine.node_tool_offset(q, theta, aux)
+    if dx is not None:  # effects that move the tool, not the drives (a column bending under its load)
+        error = error + dx[:, :3]
     std, source = tool_point_std_at(machine, q_act, theta, free, covariance=covariance, samples=samples, caller="tool_grid",
                                     dq_dtheta=dq_dtheta)
     shape = tuple(a.size for a in axes) + (3,)

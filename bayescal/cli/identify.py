@@ -17,7 +17,7 @@ from .instrument import add_force_argument, instrument_report, judge, refusal_no
 from .outlier_options import add_outlier_arguments, outlier_kwargs
 from .outputs import add_output_options, write_json, write_report
 from ..machines.framed import base_machine
-from ..predict.recording import held_out_report, score_held_out
+from ..prediction.recording import held_out_report, score_held_out
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.

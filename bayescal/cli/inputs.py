@@ -109,7 +109,9 @@ def inputs_with_session(args: argparse.Namespace, *, constraints: bool = False):
 
         raise RecordingError(args.recording, None, "station", f"station {session.unfitted_stations[0]!r} has no fit "
                              "rows; its frame cannot be fitted (give it fit rows, or leave its rows out)")
-    return session.machine, session.fit_recording, session.fit_model, session.check, session
+    # the machine bound to the fit rows' stations (a command that rebuilds the model from the recording it gets)
+    fit_model = session.fit_model
+    return fit_model.machine, session.fit_recording, fit_model, session.check, session
 
 
 def instrument_session(args: argparse.Namespace, machine=None):

@@ -29,7 +29,11 @@ screw_periodic_error um (on a revolute drive urad for um, urad/rad for um/m,
 urad/(N m) for um/N), redundancy_preload um of the redundant drive's
 offset, only on redundantly actuated machines such as the RASPM-2T1R: drive
 stiffnesses of 150-500 N/um turn that offset and the incompatibility the drawn
-geometric errors leave into internal forces and deflections),
+geometric errors leave into internal forces and deflections;
+gravity_deflection um/N, the bending compliance at 1 m of every stage and
+long link of a serial chain, which moves the tool (unknown link masses drawn
+at 10-30 kg); gravity_backlash um, a dead band taken up on the side of each
+joint's gravity load, on serial chains),
 and auxiliary channels recorded with --aux
 (time_s; temp_C, a warm-up of 5 K; payload_kg, 0-25 kg changed between poses).
 Temperature drives thermal_expansion even when it is not recorded.

@@ -8,3 +8,20 @@ __all__ = [
     "diagnose", "Diagnosis", "EffectTrial", "ParameterValue", "locate", "Location", "ChannelDependence",
     "distance_correlation", "holm", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION",
 ]
+
+
+class _CallablePackage(type(__import__("sys"))):
+    """``bayescal.diagnose`` is this package and, called, the front door's verb (:func:`bayescal.api.diagnose`).
+
+    Importing a submodule sets the package as the parent's attribute, so a
+    function ``bayescal.diagnose`` could not live beside the package; calling
+    the package instead does what the verb does (paths or objects in).
+    """
+
+    def __call__(self, machine, recording, **options):
+        from ..api import diagnose as verb
+
+        return verb(machine, recording, **options)
+
+
+__import__("sys").modules[__name__].__class__ = _CallablePackage

@@ -1,4 +1,10 @@
-"""The calibrated machine a diagnosis writes: its final geometry and the selected effects as ``[effect.*]`` tables.
+"""The calibrated machine a diagnosis writes: its final geometry, the selected effects as ``[effect.*]`` tables.
+
+Every verdict also writes the calibration's uncertainty (``[calibration]``:
+the covariance of the parameters, the noise scale the residuals supported,
+the leave-one-out variance factor) and, when the diagnosis kept one, the
+model discrepancy (``[discrepancy]``), so that ``bayescal predict`` predicts
+new recordings with honest regions.
 
 ``bayescal diagnose --write-machine PATH`` (docs/formats.md section 7):
 
@@ -7,6 +13,9 @@
   the geometry no longer absorbs them;
 * verdict ``"none"``: the geometry-only calibration (MAP under the
   tolerance prior), no effect tables;
+* verdict ``"discrepancy"``: the geometry fitted jointly with the model
+  discrepancy (``[discrepancy]``), which predicts what no effect of the
+  library explains;
 * verdict ``"unexplained"``: written all the same, with a warning: the
   geometry fitted with the effects that were selected (if any), else the
   geometry-only calibration.  A structured mismatch remains that this
@@ -75,10 +84,14 @@ class CalibratedMachine:
 
     def summary(self, path: str) -> str:
         """One line saying what was written to ``path``."""
+        disc = self.machine.discrepancy is not None
+        extra = (", the model discrepancy [discrepancy]" if disc else "") + (
+            " and the calibration's uncertainty [calibration]" if self.machine.calibration is not None else "")
         if self.effects:
             tables = ", ".join(f"[effect.{e}]" for e in self.effects)
-            return f"wrote {path}: the geometry fitted jointly with {', '.join(self.effects)}, and {tables}"
-        return f"wrote {path}: the geometry-only calibration (MAP under the tolerance prior), no effect tables"
+            return f"wrote {path}: the geometry fitted jointly with {', '.join(self.effects)}, and {tables}{extra}"
+        what = "with a model discrepancy" if disc else "geometry-only calibration (MAP under the tolerance prior)"
+        return f"wrote {path}: the {what}, no effect tables{extra}"
 
 
 def calibrated_machine(machine: Machine, diagnosis: Diagnosis) -> CalibratedMachine:
@@ -118,6 +131,8 @@ def calibrated_machine(machine: Machine, diagnosis: Diagnosis) -> CalibratedMach
         )
         for name in selected
     )
+    disc = diagnosis.discrepancy
+    base = base.with_calibration(diagnosis.record, disc.fit.discrepancy if disc is not None and disc.kept else None)
     text = machine_file_text(base, theta, stored)
     header = _header(diagnosis)
     text = header + text

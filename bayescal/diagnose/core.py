@@ -44,8 +44,9 @@ from ..measurement import MeasurementModel
 from ..models import model_from_recording
 from ..outliers import recording_lines
 from .confound import geometry_confound
+from .discrepancy import try_discrepancy
 from .locate import locate
-from .outliers import retest_with_effects, screen_outliers
+from .outliers import retest_with_discrepancy, retest_with_effects, screen_outliers
 from .result import Diagnosis, EffectTrial, ParameterValue
 
 __all__ = ["diagnose", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION"]
@@ -128,6 +129,7 @@ def diagnose(
     n_perm: int | None = None,
     effect_settings: dict[str, dict] | None = None,
     _screen=None,
+    _disc_retested: bool = False,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -214,7 +216,11 @@ def diagnose(
     for eff in lib:
         why = eff.not_applicable(machine, aux)
         if why is None:
-            f = eff.features(eff_machine, model.pose_q, eff_theta, pose_aux, model.pose_order, eff_poses)
+            if eff.features_at_nominal:
+                f = eff.features(eff_machine, model.pose_q, np.zeros_like(np.asarray(eff_theta, float)), pose_aux, model.pose_order,
+                                 None if eff.needs_poses else eff_poses)
+            else:
+                f = eff.features(eff_machine, model.pose_q, eff_theta, pose_aux, model.pose_order, eff_poses)
             f = eff.refine(f, model.q, dq_res)
             why = eff.inadmissible(f)
         if why is None:
@@ -316,7 +322,30 @@ def diagnose(
         final = retest_with_effects(base_model, [(c.effect, c.features) for c in selected], cur_fit, screen)
         if final is not None:
             return diagnose(machine, recording, effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm,
-                            effect_settings=effect_settings, _screen=final)
+                            effect_settings=effect_settings, _screen=final, _disc_retested=_disc_retested)
+
+    # the last step (bayescal/diagnose/discrepancy.py): a mismatch no effect explains is modelled all the same
+    located_sig = location.strongest is not None and location.strongest.significant
+    disc_trial, final_model = None, _final_model(machine, recording, model, selected, cur_fit, settings, screen)
+    if (p_f < P_MISMATCH or located_sig) and final_model is not None:
+        disc_trial = try_discrepancy(final_model, cur_fit.theta, folds, cur_cv, location=location,
+                                     units=machine.actuator_units, seed=seed)
+    if disc_trial is not None and disc_trial.kept and screen is not None and not _disc_retested:
+        # poses the discrepancy explains are physics, not gross errors: judge the outliers against it
+        plain = _final_model(machine, recording, base_model, selected, cur_fit, settings, None)
+        final = retest_with_discrepancy(plain, cur_fit.theta, disc_trial.fit, screen) if plain is not None else None
+        if final is not None:
+            return diagnose(machine, recording, effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm,
+                            effect_settings=effect_settings, _screen=final, _disc_retested=True)
+    if disc_trial is not None and disc_trial.kept:
+        cur_cv = disc_trial.rms_cv_after
+        if verdict == "unexplained":
+            verdict = selected[0].effect.name if selected else "discrepancy"
+            message = ("no effect of the library explains the located mismatch; a model discrepancy does, out of sample "
+                       f"(it resembles {disc_trial.resembles})") if not selected else (
+                f"{', '.join(c.effect.name for c in selected)} and a model discrepancy together explain the mismatch "
+                "out of sample")
+    record = _record(machine, final_model, cur_fit, disc_trial)
 
     sel_names = [c.effect.name for c in selected]
     confound = None
@@ -364,4 +393,69 @@ def diagnose(
         effect_settings={k: dict(v) for k, v in settings.items()},
         outliers=screen,
         confound=confound,
+        discrepancy=disc_trial,
+        record=record,
     )
+
+
+def _stored(selected, fit: EffectFit, settings: dict) -> tuple:
+    """The selected effects at their fitted values, as machine-file tables."""
+    from ..effects.stored import StoredEffect
+
+    out = []
+    for c in selected:
+        name = c.effect.name
+        params = _params(fit, name)
+        out.append(StoredEffect(
+            name, tuple((p.name, float(p.value)) for p in params), tuple(p.unit for p in params), source="<diagnosis>",
+            settings=tuple((k, np.asarray(v, float).tolist() if np.ndim(v) else float(v))
+                           for k, v in settings.get(name, {}).items())))
+    return tuple(out)
+
+
+def _final_model(machine, recording, model, selected, fit: EffectFit, settings, screen):
+    """The final model's recording with its effects applied at their fitted values (and the outliers' weights).
+
+    None for recordings a discrepancy does not model (constraint recordings: a row is not one pose).
+    """
+    if np.asarray(model.pose_q).shape[0] != model.n_poses:
+        return None
+    if not selected:
+        return model
+    try:
+        m = model_from_recording(machine.with_effects(_stored(selected, fit, settings)), recording, check=False)
+    except (KinematicsError, InputError):
+        return None
+    return screen.weighted_model(m) if screen is not None else m
+
+
+def _record(machine, final_model, fit: EffectFit, disc_trial):
+    """The ``[calibration]`` record the calibrated machine carries (its covariance, noise scale, variance factor)."""
+    from ..discrepancy import weight_names
+    from ..machines.framed import base_machine
+    from ..prediction.loo import loo_variance_factor
+    from ..prediction.record import record_from_result
+
+    P = machine.n_params
+    free = np.ones(P, dtype=bool)
+    names = machine.layout.names
+    if disc_trial is not None and disc_trial.kept:
+        f = disc_trial.fit
+        scale = float(np.sqrt(f.noise_factor))
+        extra, cov = weight_names(f.discrepancy.n_features), f.covariance
+        disc = f.discrepancy
+    else:
+        if fit.covariance is None:
+            return None
+        scale2 = _scale2(fit)
+        scale, extra, cov, disc = float(np.sqrt(scale2)), (), fit.covariance[:P, :P] * scale2, None
+    kappa = 1.0
+    if final_model is not None:
+        scaled = final_model.with_pose_sigma(np.asarray(final_model.row_sigma, dtype=float) * scale)
+        try:
+            kappa, _ = loo_variance_factor(scaled, fit.theta[:P], cov, machine_index=np.arange(P), discrepancy=disc)
+        except (np.linalg.LinAlgError, ValueError, KinematicsError):
+            kappa = 1.0
+    return record_from_result(base_machine(machine), names, free, cov[:P, :P] if not extra else None,
+                              noise_scale=scale, method="diagnose", extra_names=extra,
+                              extra_cov=cov if extra else None, variance_factor=kappa)

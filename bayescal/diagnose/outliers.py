@@ -43,7 +43,8 @@ from ..effects.model import fit_map
 from ..measurement import MeasurementModel
 from ..outliers import ALPHA, MAX_FRACTION, PoseTest, pose_test, pose_test_linear
 
-__all__ = ["OutlierScreen", "screen_outliers", "retest_with_effects", "EXCLUDE_FACTOR", "MAX_FRACTION"]
+__all__ = ["OutlierScreen", "screen_outliers", "retest_with_effects", "retest_with_discrepancy", "EXCLUDE_FACTOR",
+           "MAX_FRACTION"]
 
 #: A flagged pose's sigma is multiplied by this (weight 1e-12): out of every fit.
 EXCLUDE_FACTOR = 1e6
@@ -189,7 +190,7 @@ def retest_with_effects(
     screen : OutlierScreen
         The screen the diagnosis used.
     """
-    from ..effects.model import _dq, _effect_theta, _predict, _slices, effect_columns
+    from ..effects.model import _dq, _dx, _effect_theta, _predict, _slices, effect_columns
 
     if not effects:
         return None
@@ -197,9 +198,9 @@ def retest_with_effects(
     P = machine.n_params
     slices = _slices(effects, model)
     q_eff = model.pose_q + _dq(effects, slices, fit.eta, model.pose_q.shape, _effect_theta(model, fit.theta))
-    sub, pred = _predict(model, q_eff, fit.theta, None)
+    sub, pred = _predict(model, q_eff, fit.theta, None, dx=_dx(effects, slices, fit.eta, model.pose_q.shape[0]))
     sig = np.asarray(model.row_sigma)
-    # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq
+    # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq and dx
     Jg = sub.jacobian(fit.theta, pred)
     Je, Jt = effect_columns(sub, fit.theta, pred, effects, slices, fit.eta)
     cols = [Jg if Jt is None else Jg + Jt] + Je
@@ -216,4 +217,47 @@ def retest_with_effects(
         action = f"excluded from every fit, the location tests and the cross-validation (kept in the measurement order); {judged}"
     else:
         action = f"no pose flagged, {judged} (the geometric model's misfit alone had flagged some); every pose used"
+    return OutlierScreen(test=test, excluded=flagged.copy(), action=action)
+
+
+def retest_with_discrepancy(model: MeasurementModel, theta, fitted, screen: OutlierScreen, *,
+                            alpha: float = ALPHA) -> OutlierScreen | None:
+    """Test every pose against the final model with its discrepancy; the screen to use, or None if unchanged.
+
+    A pose whose residual the discrepancy explains (the most bent poses of a
+    machine that bends) is physics, not a gross error: against the geometry
+    alone it stood out, against the model with the discrepancy it does not,
+    and it is released.  The design is the joint fit's: the geometry's
+    columns scaled by its prior std, the discrepancy's features (prior
+    ``N(0, I)``), ridge ``lam = 1``.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The final model's recording (effects applied) with its instrument noise, not the exclusion weights.
+    theta : ndarray, shape (P,)
+        The geometry of the joint fit.
+    fitted : DiscrepancyFit
+    screen : OutlierScreen
+    """
+    disc = fitted.discrepancy
+    pred = model.predict(theta)
+    if not pred.success.all():
+        return None
+    sig = np.asarray(model.row_sigma)
+    mean, F, _ = disc.rows(model, theta, pred)
+    J = model.jacobian(theta, pred)[:, :, fitted.free] * np.asarray(model.machine.tolerance)[fitted.free]
+    A = (np.concatenate([J, F], axis=2) / sig[:, :, None]).reshape(model.n_poses * model.dof, -1)
+    r = ((model.residual(pred) - mean) / sig).reshape(-1)
+    weights = np.where(screen.excluded, EXCLUDE_FACTOR**-2, 1.0)
+    test = pose_test_linear(A, r, model.dof, lam=1.0, weights=weights, scale="robust", alpha=alpha,
+                            lines=screen.test.lines)
+    flagged = test.flagged
+    if np.array_equal(flagged, screen.excluded) or flagged.sum() > MAX_FRACTION * model.n_poses:
+        return None
+    judged = "judged against the final model with its discrepancy"
+    if flagged.any():
+        action = f"excluded from every fit, the location tests and the cross-validation (kept in the measurement order); {judged}"
+    else:
+        action = f"no pose flagged, {judged} (the model without it had flagged some: physics, not gross errors); every pose used"
     return OutlierScreen(test=test, excluded=flagged.copy(), action=action)

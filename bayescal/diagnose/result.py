@@ -123,6 +123,11 @@ class Diagnosis:
     #: How well the written geometry (without the effects) is known and what it trades off against
     #: (bayescal.diagnose.confound.GeometryConfound); None when no effect was selected.
     confound: object = None
+    #: The model discrepancy fitted where the final model still misfits (bayescal.diagnose.discrepancy.
+    #: DiscrepancyTrial); None when not tried.
+    discrepancy: object = None
+    #: The calibration's uncertainty the written machine carries (bayescal.prediction.record.CalibrationRecord).
+    record: object = None
 
     @property
     def located(self) -> ChannelDependence | None:
@@ -156,6 +161,7 @@ class Diagnosis:
             "evidence_kind": "log Bayes factor, Laplace approximation (nats)",
             "message": self.message,
             "written_geometry": None if self.confound is None else self.confound.to_dict(),
+            "discrepancy": None if self.discrepancy is None else self.discrepancy.to_dict(),
             **self._outlier_keys(),
         }
 
@@ -184,6 +190,13 @@ class Diagnosis:
             )
         if self.verdict == "none":
             L.append("VERDICT none: the geometric model explains the recording to within the instrument noise.")
+        elif self.verdict == "discrepancy":
+            d = self.discrepancy
+            L.append(
+                "VERDICT discrepancy: no effect of the library explains the mismatch; a model discrepancy does, out of "
+                f"sample: position RMS {1e3 * self.rms_cv_geometric:.1f} um -> {1e3 * self.rms_cv_final:.1f} um. "
+                f"It resembles {d.resembles if d is not None else 'a smooth error'}."
+            )
         elif self.verdict == "unexplained":
             L.append(
                 "VERDICT unexplained: a structured mismatch remains that no effect of the library explains; "
@@ -209,6 +222,8 @@ class Diagnosis:
                     L.append(f"    {p.name:<24} {p.value:12.4g} +- {std:<9} {p.unit}")
         for n, r in self.skipped:
             L.append(f"{n:<22} skipped: {r}")
+        if self.discrepancy is not None:
+            L.append(self.discrepancy.report())
         if self.message:
             L.append(self.message)
         return "\n".join(L)

@@ -18,7 +18,7 @@
     explained = 0.62                     # share of the whitened residual the mean carries
 
 Its weights' uncertainty (jointly with the geometry) is in ``[calibration]``
-under the names ``discrepancy.w0`` ... (:mod:`bayescal.predict.record`).
+under the names ``discrepancy.w0`` ... (:mod:`bayescal.prediction.record`).
 """
 
 from __future__ import annotations

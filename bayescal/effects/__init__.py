@@ -10,6 +10,8 @@ from ..errors import InputError
 from .backlash import Backlash
 from .base import BoundEffect, Effect, EffectParam, Features, approach_direction
 from .check import check_effect
+from .gravity_backlash import GravityBacklash
+from .gravity_deflection import GravityDeflection
 from .joint_compliance import JointCompliance, actuator_loads
 from .model import EffectFit, fit_map
 from .redundancy_preload import RedundancyPreload
@@ -19,12 +21,14 @@ from .thermal_expansion import ThermalExpansion
 __all__ = [
     "EFFECTS", "get_effect", "Effect", "EffectParam", "Features", "BoundEffect", "approach_direction",
     "check_effect", "actuator_loads", "EffectFit", "fit_map",
-    "JointCompliance", "ThermalExpansion", "Backlash", "ScrewPeriodicError", "RedundancyPreload",
+    "JointCompliance", "ThermalExpansion", "Backlash", "ScrewPeriodicError", "RedundancyPreload", "GravityDeflection",
+    "GravityBacklash",
 ]
 
 #: The library, by stable name (docs/formats.md section 3), in the order they are tried.
 EFFECTS: dict[str, type[Effect]] = {
-    cls.name: cls for cls in (JointCompliance, ThermalExpansion, Backlash, ScrewPeriodicError, RedundancyPreload)
+    cls.name: cls for cls in (JointCompliance, ThermalExpansion, Backlash, ScrewPeriodicError, RedundancyPreload,
+                              GravityDeflection, GravityBacklash)
 }
 
 

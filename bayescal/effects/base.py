@@ -1,9 +1,22 @@
 """What every physical effect provides, and the pieces effects share.
 
-An effect is physics the geometric model leaves out.  Every effect in this
-library acts on the actuator positions before the forward kinematics:
+An effect is physics the geometric model leaves out.  It acts on the
+actuator positions before the forward kinematics, on the tool pose after
+it, or on both:
 
     q_actual = q_commanded + dq(features, eta)
+    tool     = forward(q_actual, theta) moved by dx(features, eta)
+
+``dx`` (shape (n_poses, 6): a base-frame displacement of the tool point in
+mm, then a small base-frame rotation of the tool frame in rad) is what a
+structure does that no joint coordinate describes: a link or a telescopic
+column bending under the weight it carries (:attr:`Effect.moves_tool`).
+Consumers apply it in one place, the measurement models' per-pose tool
+offset (:meth:`bayescal.measurement.MeasurementModel.with_pose_offset`),
+rotated into each pose's measurement frame
+(:meth:`bayescal.machines.Machine.measurement_rotation`); its Jacobian
+``d dx / d eta`` enters the rows through the same map the geometric
+parameters go through (``rows_jacobian``).
 
 where ``features`` are per-pose quantities computed once from the recording
 (approach direction, temperature, gravity load on each actuator, ...) and
@@ -124,12 +137,14 @@ def approach_direction(q: NDArray, order: NDArray | None = None) -> NDArray:
 
 
 class Effect(ABC):
-    """A physical effect: a named, parametrised change of the actuator positions.
+    """A physical effect: a named, parametrised change of the actuator positions (and of the tool pose).
 
     Subclasses set :attr:`name`, :attr:`summary`, :attr:`magnitude_unit` and
     :attr:`default_magnitude`, and implement :meth:`features`,
     :meth:`params`, :meth:`delta_q`, :meth:`delta_q_jacobian` and
-    :meth:`simulated_values`.  The class docstring states the physics and
+    :meth:`simulated_values`; an effect that moves the tool sets
+    :attr:`moves_tool` and implements :meth:`delta_x` and
+    :meth:`delta_x_jacobian`.  The class docstring states the physics and
     its usual size on machine tools.
     """
 
@@ -140,6 +155,11 @@ class Effect(ABC):
     default_magnitude: ClassVar[float] = 0.0
     #: Whether :meth:`features` needs the solved poses (then :class:`BoundEffect` solves them).
     needs_poses: ClassVar[bool] = False
+    #: Whether the diagnosis computes the features at the nominal geometry rather than at its geometry-only
+    #: fit.  That fit absorbs what it can of a missing effect; an effect whose features are sensitive to
+    #: exactly that part of the geometry (a column's bending is driven by the angle between gravity and the
+    #: column, which a geometry-only fit tilts to mimic the bending) would be biased by it.
+    features_at_nominal: ClassVar[bool] = False
     #: Inputs a user may state (constructor keywords, documented defaults in the class docstring); in a
     #: machine file they sit beside the fitted parameters in the effect's ``[effect.<name>]`` table.
     settings_keys: ClassVar[tuple[str, ...]] = ()
@@ -190,6 +210,25 @@ class Effect(ABC):
     @abstractmethod
     def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
         """``d dq / d eta``, shape (n_poses, n_actuators, n_params)."""
+
+    #: Whether the effect also moves the tool pose after the kinematics (:meth:`delta_x`); consumers
+    #: skip the tool offset of effects that do not.
+    moves_tool: ClassVar[bool] = False
+
+    def delta_x(self, features: Features, eta: NDArray) -> NDArray:
+        """Tool-pose perturbation ``dx``, shape (n_poses, 6): base-frame displacement of the tool point (mm), then a small base-frame rotation of the tool frame (rad).
+
+        Zero unless :attr:`moves_tool`.  First order: the measured tool
+        point is ``p + dx[:3]`` and the measured orientation
+        ``exp([dx[3:]]x) R``.
+        """
+        n = next(iter(features.per_pose.values())).shape[0] if features.per_pose else 0
+        return np.zeros((n, 6))
+
+    def delta_x_jacobian(self, features: Features, eta: NDArray) -> NDArray:
+        """``d dx / d eta``, shape (n_poses, 6, n_params)."""
+        dx = self.delta_x(features, eta)
+        return np.zeros(dx.shape + (len(np.asarray(eta)),))
 
     #: Whether ``dq`` also depends on the geometric errors ``theta`` being fitted (then the effect overrides
     #: :meth:`delta_q_at`, :meth:`delta_q_jacobian_at` and :meth:`delta_q_theta_jacobian`, and
@@ -291,3 +330,13 @@ class BoundEffect:
         """``(q + dq, theta)``: the :class:`bayescal.simulate.PoseTransform` protocol."""
         f = self.features(q, theta, aux, order)
         return q + self.effect.delta_q(f, self.values), theta
+
+    def pose_offset(self, q: NDArray, theta: NDArray, aux: dict, order: NDArray) -> NDArray | None:
+        """The effect's base-frame tool-pose perturbation ``dx`` at commanded ``q`` (n, 6), or None when it moves no tool.
+
+        The optional part of :class:`bayescal.simulate.PoseTransform`: the
+        simulator adds it to the solved poses.
+        """
+        if not self.effect.moves_tool:
+            return None
+        return self.effect.delta_x(self.features(q, theta, aux, order), self.values)

@@ -29,7 +29,8 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
     ``delta_q_jacobian`` against central finite differences (and, for a
     geometry-dependent effect, ``delta_q_at`` and its two Jacobians), the
     :class:`~bayescal.simulate.PoseTransform` behaviour of the bound effect
-    (``theta`` unchanged, ``q`` moved by ``delta_q``), and feature subsetting.
+    (``theta`` unchanged, ``q`` moved by ``delta_q``, the tool by
+    ``delta_x`` for an effect that moves it), and feature subsetting.
 
     Parameters
     ----------
@@ -97,6 +98,8 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
         fail(f"delta_q_jacobian differs from finite differences by {np.max(np.abs(J - Jfd)) / scale:.1e} (relative)")
     if effect.geometry_dependent:
         _check_geometry_dependence(effect, machine, feats, eta, theta, rng, rtol, fail)
+    if effect.moves_tool:
+        _check_tool_motion(effect, feats, zero, lin.all(), eta, sd, rtol, fail)
     idx = np.arange(0, n_poses, 2)
     sub = feats.subset(idx)
     if not np.allclose(effect.delta_q(sub, eta), effect.delta_q(feats, eta)[idx]):
@@ -107,6 +110,34 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
         fail("the bound effect's transform does not move q by delta_q")
     if not np.array_equal(th2, np.broadcast_to(theta, th2.shape)):
         fail("the bound effect's transform changed theta")
+    if effect.moves_tool:
+        if not np.allclose(effect.delta_x(sub, eta), effect.delta_x(feats, eta)[idx]):
+            fail("Features.subset does not give the subset's delta_x")
+        off = bound.pose_offset(q, np.broadcast_to(theta, (n_poses, machine.n_params)).copy(), aux, np.arange(n_poses))
+        if off is None or not np.allclose(off, effect.delta_x(feats, eta), rtol=0, atol=1e-12):
+            fail("the bound effect's pose_offset is not delta_x")
+
+
+def _check_tool_motion(effect: Effect, feats: Features, zero, linear: bool, eta, sd, rtol: float, fail) -> None:
+    """An effect that moves the tool: ``delta_x`` of shape (n, 6), zero at zero parameters, its Jacobian against central differences."""
+    n = next(iter(feats.per_pose.values())).shape[0]
+    dx0 = effect.delta_x(feats, zero)
+    if dx0.shape != (n, 6):
+        fail(f"delta_x: expected shape {(n, 6)}, got {dx0.shape}")
+    if linear and np.max(np.abs(dx0)) > 0:
+        fail("delta_x must vanish when every parameter is zero")
+    J = effect.delta_x_jacobian(feats, eta)
+    K = len(sd)
+    if J.shape != (n, 6, K):
+        fail(f"delta_x_jacobian: expected shape {(n, 6, K)}, got {J.shape}")
+    Jfd = np.empty_like(J)
+    for k in range(K):
+        e = np.zeros(K)
+        e[k] = 1e-4 * sd[k]
+        Jfd[..., k] = (effect.delta_x(feats, eta + e) - effect.delta_x(feats, eta - e)) / (2 * e[k])
+    scale = max(np.max(np.abs(Jfd)), 1e-300)
+    if np.max(np.abs(J - Jfd)) > rtol * scale:
+        fail(f"delta_x_jacobian differs from finite differences by {np.max(np.abs(J - Jfd)) / scale:.1e} (relative)")
 
 
 def _check_geometry_dependence(effect: Effect, machine: Machine, feats: Features, eta, theta, rng, rtol: float, fail) -> None:

@@ -8,6 +8,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from ..machines.base import ActuatorUnit, Machine, ToolPoses
 from .base import Effect, EffectParam, Features
+from .gravity_field import gravity_per_pose, link_middles, serial_part, tilt_basis, tilted_gravity
 
 __all__ = ["JointCompliance", "actuator_loads", "gravity_direction", "compliance_prior_scale", "GRAVITY", "DEFAULT_GRAVITY_DIRECTION"]
 
@@ -234,7 +235,10 @@ class JointCompliance(Effect):
         dx_b / dq_i = v_b,i + w_b,i x (R_b c_b),    dq_i = c_i tau_i,
 
     and the parameters are ``compliance.q<i>`` (um/N or urad/(N m), as
-    above, starting at 0.5 um/N, 50 urad/(N m)) and ``gravity.tilt_1``,
+    above, starting at 0.5 um/N, 50 urad/(N m)), ``mass.<body>`` (kg,
+    ``>= 0``, prior ``0 +- 100``, started at 20 kg) for every body whose
+    stated mass is ``nan`` (not known: fitted, at the link's middle on a
+    serial chain unless ``link_com_mm`` places it) and ``gravity.tilt_1``,
     ``gravity.tilt_2``, with or without a payload channel: the known loads
     fix the compliances.  The last body is then the platform (its mass the
     last entry of ``link_mass_kg``), so ``platform_mass_kg`` and
@@ -259,6 +263,8 @@ class JointCompliance(Effect):
     MASS_PRIOR_KG = 100.0
     COM_PRIOR_MM = 200.0
     TILT_PRIOR = 0.5
+    #: Where the fit starts a link mass stated unknown (nan in ``link_mass_kg``), kg.
+    LINK_MASS_START_KG = 20.0
 
     def __init__(self, *, gravity=None, payload_offset=(0.0, 0.0, 0.0), platform_mass_kg: float | None = None,
                  platform_com_mm=None, link_mass_kg=None, link_com_mm=None):
@@ -313,12 +319,17 @@ class JointCompliance(Effect):
                 raise InputError("joint_compliance link_com_mm: given without link_mass_kg; state the links' masses too")
             return
         mass = np.asarray(link_mass_kg, float).reshape(-1)
-        if not mass.size or not np.all(np.isfinite(mass)) or np.any(mass < 0) or not np.any(mass > 0):
-            raise InputError(f"joint_compliance link_mass_kg: expected masses in kg, >= 0 and not all zero, got {mass.tolist()}")
+        # NaN: a mass not known, fitted (mass.<body>); the others >= 0 and, with none unknown, not all zero
+        known = ~np.isnan(mass)
+        if (not mass.size or np.any(np.isinf(mass)) or np.any(mass[known] < 0)
+                or not (np.any(mass[known] > 0) or np.any(~known))):
+            raise InputError(f"joint_compliance link_mass_kg: expected masses in kg, >= 0 (nan: unknown, fitted) and not "
+                             f"all zero, got {mass.tolist()}")
         if platform_mass_kg is not None or platform_com_mm is not None:
             raise InputError("joint_compliance: link_mass_kg and platform_mass_kg/platform_com_mm both given; with link masses "
                              "the last body is the platform: give its mass and centre of mass as the last entries of "
                              "link_mass_kg and link_com_mm")
+        self.link_com_stated = link_com_mm is not None
         com = np.zeros((mass.size, 3)) if link_com_mm is None else np.asarray(link_com_mm, float)
         if com.size != 3 * mass.size or not np.all(np.isfinite(com)):
             raise InputError(f"joint_compliance link_com_mm: expected {mass.size} centres of mass [x, y, z] in mm "
@@ -357,7 +368,17 @@ class JointCompliance(Effect):
         return {"link_mass_kg": np.asarray(known.mass_kg, float).tolist(), "link_com_mm": np.asarray(known.com_mm, float).tolist()}
 
     def model_note(self, features: Features) -> str:
-        """Which loads the model has: the links' (and from where) or the platform's only."""
+        """Which loads the model has (the links' and from where, or the platform's only) and where gravity comes from."""
+        note = self._load_note(features)
+        if features.const.get("sensor"):
+            note = "; ".join(filter(None, [note, "gravity per pose from the base sensor (accel.base.*)"]))
+        return note
+
+    @staticmethod
+    def _load_note(features: Features) -> str:
+        if features.const.get("known") and features.const.get("fitted_bodies"):
+            return (f"gravity loads of all {features.const['n_bodies']} weight bodies ({features.const['source']}); "
+                    f"masses fitted for {', '.join(features.const['fitted_bodies'])} (stated unknown)")
         if features.const.get("known"):
             return f"gravity loads of all {features.const['n_bodies']} weight bodies known ({features.const['source']})"
         if features.const.get("n_bodies", 1) > 1:
@@ -395,6 +416,7 @@ class JointCompliance(Effect):
         # payload: then weakly determined, at their prior if it is zero), so that the parameter set
         # depends only on which channels a recording has, as machine-file effect tables need
         has_payload = "payload_kg" in aux
+        down, sensor = gravity_per_pose(aux, self.down, q.shape[0])  # a base sensor gives each pose its own
         mass = np.asarray(aux["payload_kg"], float) if has_payload else np.zeros(n)
         # q units per (compliance unit x N mm per q unit): 1e-3 (um/N x N -> mm), 1e-9 (urad/(N m) x N mm -> rad)
         units = machine.actuator_unit_info
@@ -403,8 +425,9 @@ class JointCompliance(Effect):
         # 1 / per_um m (100 mm on a joint): what "no gravity load" compares with
         arm = np.array([u.load_scale * u.per_um for u in units])
         return Features(
-            {"Jt": J[:, :3], "w": J[:, 3:], "R": R, "origin_arm": origin_arm, "payload_arm": payload_arm, "payload_kg": mass},
-            {"down": self.down, "has_payload": has_payload, "scale": scale, "arm": arm, "known": False,
+            {"Jt": J[:, :3], "w": J[:, 3:], "R": R, "origin_arm": origin_arm, "payload_arm": payload_arm, "payload_kg": mass,
+             "down": down},
+            {"down": self.down, "basis": tilt_basis(self.down), "sensor": sensor, "has_payload": has_payload, "scale": scale, "arm": arm, "known": False,
              "n_bodies": len(machine.weight_body_names)},
         )
 
@@ -420,28 +443,45 @@ class JointCompliance(Effect):
         wb = inner.weight_bodies(q, theta, poses)
         Rc = np.einsum("nbij,bj->nbi", wb.rotation, com)
         Jx = wb.jacobian[:, :, :3] + np.cross(wb.jacobian[:, :, 3:], Rc[:, :, :, None], axisa=2, axisb=2, axisc=2)
-        K = np.einsum("b,nbkm->nkm", mass, Jx)
+        unknown = np.flatnonzero(np.isnan(mass))  # stated as nan: fitted, mass.<body>
+        if unknown.size and not getattr(self, "link_com_stated", True):
+            # an unknown link's weight sits at its middle unless its centre of mass is stated
+            chain, _ = serial_part(inner, None)
+            if chain is not None:
+                com = np.array(com, float)
+                com[unknown] = link_middles(chain)[unknown]
+                Rc = np.einsum("nbij,bj->nbi", wb.rotation, com)
+                Jx = wb.jacobian[:, :, :3] + np.cross(wb.jacobian[:, :, 3:], Rc[:, :, :, None], axisa=2, axisb=2, axisc=2)
+        K = np.einsum("b,nbkm->nkm", np.nan_to_num(mass), Jx)
         J = inner.actuator_jacobian(q, theta, poses)
         payload_arm = np.einsum("nij,j->ni", np.asarray(poses.rotation, float), self.payload_offset)
         has_payload = "payload_kg" in aux
+        down, sensor = gravity_per_pose(aux, self.down, q.shape[0])  # a base sensor gives each pose its own
         n = q.shape[0]
         units = machine.actuator_unit_info
         return Features(
             {"K": K, "Jt": J[:, :3], "w": J[:, 3:], "payload_arm": payload_arm,
-             "payload_kg": np.asarray(aux["payload_kg"], float) if has_payload else np.zeros(n)},
-            {"down": self.down, "has_payload": has_payload, "known": True, "total_mass": float(mass.sum()),
+             "payload_kg": np.asarray(aux["payload_kg"], float) if has_payload else np.zeros(n), "down": down,
+             "Rb": Jx[:, unknown]},
+            {"down": self.down, "basis": tilt_basis(self.down), "sensor": sensor, "has_payload": has_payload, "known": True,
+             "total_mass": float(np.nansum(mass)) + self.LINK_MASS_START_KG * unknown.size,
+             "fitted_bodies": tuple(machine.weight_body_names[b] for b in unknown),
              "scale": np.array([u.small_to_q * u.load_scale for u in units]),
              "arm": np.array([u.load_scale * u.per_um for u in units]), "n_bodies": len(mass), "source": source},
         )
 
     def params(self, machine: Machine, features: Features) -> tuple[EffectParam, ...]:
         units = machine.actuator_unit_info
-        tilt_sd = 0.02 if self.gravity_stated else self.TILT_PRIOR
+        # a stated direction, or a base sensor's per pose, is known to within the mounting's small tilt
+        tilt_sd = 0.02 if (self.gravity_stated or (features is not None and features.const.get("sensor"))) else self.TILT_PRIOR
         if features is not None and features.const.get("known"):
-            # the loads are known: the compliances (started off zero, where the tilts have no gradient) and the mounting
+            # the loads are known: the compliances (started off zero, where the tilts have no gradient), the masses
+            # stated unknown (nan; started off zero too) and the mounting
             return tuple(
                 [EffectParam(f"compliance.q{i + 1}", u.compliance, self.COMPLIANCE_PRIOR * compliance_prior_scale(u), lower=0.0,
                              start=self.default_magnitude * compliance_prior_scale(u)) for i, u in enumerate(units)]
+                + [EffectParam(f"mass.{b}", "kg", self.MASS_PRIOR_KG, lower=0.0, start=self.LINK_MASS_START_KG)
+                   for b in features.const["fitted_bodies"]]
                 + [EffectParam(f"gravity.tilt_{k}", "rad", tilt_sd) for k in (1, 2)])
         if features is not None and features.const["has_payload"]:
             out = [EffectParam(f"compliance.q{i + 1}", u.compliance, self.COMPLIANCE_PRIOR * compliance_prior_scale(u), lower=0.0)
@@ -482,26 +522,34 @@ class JointCompliance(Effect):
             W = eta[:m]
             k = m
         com = eta[k : k + 3]
-        d, dd = gravity_direction(features.const["down"], eta[k + 3 : k + 5])
+        d, dd = self._gravity(features, eta[k + 3 : k + 5])
         arm_c = features.per_pose["origin_arm"] + np.einsum("nij,j->ni", R, com)  # x_c - x_t
         Jc = Jt + np.cross(w, arm_c[:, :, None], axisa=1, axisb=1, axisc=1)  # (n, 3, m): d x_c / d q
         Jl = Jt + np.cross(w, features.per_pose["payload_arm"][:, :, None], axisa=1, axisb=1, axisc=1)
-        phi = np.einsum("k,nkm->nm", d, Jc)  # (n, m)
-        psi = np.einsum("k,nkm->nm", d, Jl)
+        phi = np.einsum("nk,nkm->nm", d, Jc)  # (n, m)
+        psi = np.einsum("nk,nkm->nm", d, Jl)
         load = GRAVITY * features.per_pose["payload_kg"]  # N
         return k, W, c, mp, d, dd, Jc, Jl, phi, psi, load
+
+    @staticmethod
+    def _gravity(features: Features, tilt: NDArray) -> tuple[NDArray, NDArray]:
+        """Each pose's gravity direction (n, 3) at the tilts, and its derivative (n, 3, 2)."""
+        return tilted_gravity(features.per_pose["down"], features.const["basis"], tilt)
 
     def _known_terms(self, features: Features, eta: NDArray):
         eta = np.asarray(eta, float)
         K, Jt, w = features.per_pose["K"], features.per_pose["Jt"], features.per_pose["w"]
         m = K.shape[2]
+        F = len(features.const["fitted_bodies"])
         c = eta[:m]
-        d, dd = gravity_direction(features.const["down"], eta[m : m + 2])
+        if F:
+            K = K + np.einsum("f,nfkm->nkm", eta[m : m + F], features.per_pose["Rb"])
+        d, dd = self._gravity(features, eta[m + F : m + F + 2])
         Jl = Jt + np.cross(w, features.per_pose["payload_arm"][:, :, None], axisa=1, axisb=1, axisc=1)
         load = GRAVITY * features.per_pose["payload_kg"]  # N
         # generalised gravity force per drive, N mm per q unit: links and platform, then the payload
-        tau = GRAVITY * np.einsum("k,nkm->nm", d, K) + load[:, None] * np.einsum("k,nkm->nm", d, Jl)
-        dtau = GRAVITY * np.einsum("kt,nkm->nmt", dd, K) + load[:, None, None] * np.einsum("kt,nkm->nmt", dd, Jl)
+        tau = GRAVITY * np.einsum("nk,nkm->nm", d, K) + load[:, None] * np.einsum("nk,nkm->nm", d, Jl)
+        dtau = GRAVITY * np.einsum("nkt,nkm->nmt", dd, K) + load[:, None, None] * np.einsum("nkt,nkm->nmt", dd, Jl)
         return m, c, tau, dtau
 
     def delta_q(self, features: Features, eta: NDArray) -> NDArray:
@@ -514,11 +562,15 @@ class JointCompliance(Effect):
     def delta_q_jacobian(self, features: Features, eta: NDArray) -> NDArray:
         if features.const.get("known"):
             m, c, tau, dtau = self._known_terms(features, eta)
+            F = len(features.const["fitted_bodies"])
             s = features.const["scale"]
-            J = np.zeros((tau.shape[0], m, m + 2))
+            J = np.zeros((tau.shape[0], m, m + F + 2))
             ar = np.arange(m)
             J[:, ar, ar] = s[None, :] * tau
-            J[:, :, m:] = (s * c)[None, :, None] * dtau
+            if F:
+                d, _ = self._gravity(features, np.asarray(eta, float)[m + F : m + F + 2])
+                J[:, :, m : m + F] = (s * c)[None, :, None] * GRAVITY * np.einsum("nk,nfkm->nmf", d, features.per_pose["Rb"])
+            J[:, :, m + F :] = (s * c)[None, :, None] * dtau
             return J
         k, W, c, mp, d, dd, Jc, Jl, phi, psi, load = self._terms(features, eta)
         n, m = phi.shape
@@ -531,10 +583,10 @@ class JointCompliance(Effect):
         else:
             J[:, ar, ar] = s[None, :] * phi
         # d phi_i / d com = R^T (d x omega_i): d . (omega x R c) = c . R^T (d x omega)
-        dxw = np.cross(d[None, :, None], features.per_pose["w"], axisa=1, axisb=1, axisc=1)  # (n, 3, m)
+        dxw = np.cross(d[:, :, None], features.per_pose["w"], axisa=1, axisb=1, axisc=1)  # (n, 3, m)
         J[:, :, k : k + 3] = (s * W)[None, :, None] * np.einsum("nji,njm->nmi", features.per_pose["R"], dxw)
-        dphi = np.einsum("kt,nkm->nmt", dd, Jc)  # (n, m, 2)
-        dpsi = np.einsum("kt,nkm->nmt", dd, Jl)
+        dphi = np.einsum("nkt,nkm->nmt", dd, Jc)  # (n, m, 2)
+        dpsi = np.einsum("nkt,nkm->nmt", dd, Jl)
         J[:, :, k + 3 : k + 5] = s[None, :, None] * (W[None, :, None] * dphi + (c[None, :] * load[:, None])[:, :, None] * dpsi)
         return J
 
@@ -547,7 +599,8 @@ class JointCompliance(Effect):
         m = features.per_pose["Jt"].shape[2]
         if features.const.get("known"):
             # the loads per unit of the bodies' total weight (their lever arms), against the same 1e-3
-            tau = self._known_terms(features, np.concatenate([np.ones(m), np.zeros(2)]))[2]
+            F = len(features.const["fitted_bodies"])
+            tau = self._known_terms(features, np.concatenate([np.ones(m), np.full(F, self.LINK_MASS_START_KG), np.zeros(2)]))[2]
             lever = tau * features.const["arm"][None, :] / (GRAVITY * features.const["total_mass"])
             mass = features.per_pose["payload_kg"]
             if lever.size and np.max(np.abs(lever)) <= 1e-3 and not (mass.size and np.ptp(mass) > 0):
@@ -570,7 +623,8 @@ class JointCompliance(Effect):
         m = machine.n_actuators
         c = magnitude * rng.uniform(0.6, 1.4, m)
         if features.const.get("known"):
-            return np.concatenate([c, np.zeros(2)])
+            F = len(features.const["fitted_bodies"])
+            return np.concatenate([c, self.LINK_MASS_START_KG * rng.uniform(0.5, 1.5, F), np.zeros(2)])
         com = np.zeros(3) if self.stated_com is None else self.stated_com
         if features.const["has_payload"]:
             out = [c, [self.platform_mass_kg], com, np.zeros(2)]

@@ -16,11 +16,14 @@ How.  The parameter vector is ``(theta, eta)``: the geometric model's
 parameters (the machine's, then any nuisance ones it has) followed by every
 effect parameter, named ``effect.<effect>.<parameter>`` (the machine file's
 key) in the parameter's own unit.  The prediction is
-``h(q + sum_e dq_e(features_e, eta_e), theta)`` with the features computed
+``h(q + sum_e dq_e(features_e, eta_e), theta)``, its tool poses moved by
+``sum_e dx_e(features_e, eta_e)`` of the effects that move the tool (a
+structure bending under gravity), with the features computed
 once from the commanded poses, as the stored effects are applied
 (:func:`bayescal.effects.stored.effect_delta_q`), and ``dq`` at ``theta``
 for an effect whose ``dq`` depends on the geometry.  The Jacobian's effect
-columns are ``(d h / d q) (d dq / d eta)`` (:func:`.model.effect_columns`,
+columns are ``(d h / d q) (d dq / d eta)`` plus the rows of ``d dx / d eta``
+(:func:`.model.effect_columns`,
 the columns of the diagnosis' joint fit).  :class:`EffectAugmented` is the
 machine view consumers read the layout, tolerances (the effects' prior
 std) and prior means from, so identification, the MAP, Kalman filters and
@@ -50,7 +53,7 @@ from ..machines.base import Machine, ToolPoses
 from ..measurement import MeasurementModel, Prediction
 from ..params import ParamLayout, ParamSpec
 from .base import Effect, EffectParam, Features
-from .model import _dq, _effect_theta, _slices, effect_columns
+from .model import _at, _dq, _dx, _effect_theta, _slices, effect_columns
 from .stored import StoredEffect
 
 __all__ = ["EffectAugmented", "EffectModel", "effect_model"]
@@ -171,6 +174,13 @@ class EffectAugmented:
         full[:, :, self.n_base :] = J
         return q + dq, full
 
+    def node_tool_offset(self, q: NDArray, theta: NDArray | None = None, aux: dict | None = None) -> NDArray | None:
+        """The tool perturbation of the effects at ``theta``'s values at grid nodes (:meth:`Machine.node_tool_offset`)."""
+        from .stored import static_effect_delta_x
+
+        m = self.base.with_effects(self.tables(self.check_theta(theta)))
+        return static_effect_delta_x(m, m.effects, q, aux)
+
     def to_toml(self, theta: ArrayLike | None = None) -> str:
         """The geometry's machine file (the effect tables: :meth:`EffectModel.stored_effects`)."""
         return self.base.to_toml(self._base_theta(self.check_theta(theta)))
@@ -178,7 +188,10 @@ class EffectAugmented:
 
 def _sub_model(model: MeasurementModel, q: NDArray, guess: ToolPoses | None) -> MeasurementModel:
     """``model`` at the actuator positions ``q`` (a multiple of its poses: stacked blocks), without measured values."""
-    return dataclasses.replace(model, q=q, y_measured=None, pose_sigma=None, aux=None, guess=guess)
+    own = model.pose_offset
+    reps = q.shape[0] // model.q.shape[0]
+    return dataclasses.replace(model, q=q, y_measured=None, pose_sigma=None, aux=None, guess=guess,
+                               pose_offset=None if own is None else np.tile(own, (reps, 1)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -237,9 +250,14 @@ class EffectModel:
         th, eta = self._split(self.machine.check_theta(theta))
         return _dq(list(self.effects), self._slices, eta, self.geo.pose_q.shape, _effect_theta(self.geo, th))
 
+    def delta_x(self, theta: ArrayLike) -> NDArray | None:
+        """``sum_e dx_e`` of every solved pose at ``theta`` (P + K,), base frame (mm, rad), or None when no effect moves the tool."""
+        _, eta = self._split(self.machine.check_theta(theta))
+        return _dx(list(self.effects), self._slices, eta, self.geo.pose_q.shape[0])
+
     def at(self, theta: ArrayLike) -> MeasurementModel:
-        """The geometric model at the actuator positions the effects make at ``theta`` (measured values kept)."""
-        return self.geo.with_pose_q(self.geo.pose_q + self.delta_q(theta))
+        """The geometric model at the actuator positions and tool perturbation the effects make at ``theta`` (measured values kept)."""
+        return _at(self.geo, self.geo.pose_q + self.delta_q(theta), self.delta_x(theta))
 
     def predict(self, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> Prediction:
         """``h`` at ``theta`` of shape (P + K,) or (n_sets * n_poses, P + K) (one block of equal rows per set)."""
@@ -255,7 +273,12 @@ class EffectModel:
             raise InputError("theta: the effects take one parameter vector per block of poses, not per pose")
         q = np.concatenate([self.geo.pose_q + self.delta_q(b[0]) for b in blocks])
         g = guess if guess is not None else self.geo.guess
-        return _sub_model(self.geo, q, g).predict(th)
+        sub = _sub_model(self.geo, q, g)
+        dx = [self.delta_x(b[0]) for b in blocks]
+        if dx[0] is not None:
+            own = self.geo.pose_offset
+            sub = sub.with_pose_offset(np.concatenate([d if own is None else own + d for d in dx]))
+        return sub.predict(th)
 
     def jacobian(self, theta: ArrayLike | None, prediction: Prediction) -> NDArray:
         """``d h / d (theta, eta)``, shape (n_poses, dof, P + K): geometric columns at ``q + dq``, then the effects'."""

@@ -1,4 +1,5 @@
-"""The augmented measurement model ``h(q + dq(eta), theta)`` and its joint MAP fit.
+"""The augmented measurement model ``h(q + dq(eta), theta)`` (its tool poses moved by ``dx(eta)`` of the
+effects that move the tool) and its joint MAP fit.
 
 Unknowns are the geometric errors ``theta`` (prior ``N(0, tolerance^2)``)
 and the effect parameters ``eta`` (prior ``N(mean, sd^2)`` per
@@ -11,7 +12,8 @@ by Gauss-Newton with step halving: with no effect this is exactly
 ``identify(model, method="ridge", lam=1, free="all")`` (the MAP estimate
 under the tolerance prior); a thin reimplementation here because the
 effect parameters need their own prior means and their Jacobian columns
-``(d h / d q) (d dq / d eta)``.  The Laplace approximation at the MAP gives
+``(d h / d q) (d dq / d eta)`` plus, for an effect that moves the tool, the
+rows of ``d dx / d eta`` (:func:`bayescal.measurement.pose_offset_rows`).  The Laplace approximation at the MAP gives
 the posterior covariance ``(A^T A + I)^-1`` and the log marginal likelihood
 
     log Z = -(chi2 + |phi - phi_prior|^2) / 2 - log det(A^T A + I) / 2 + const.
@@ -27,7 +29,7 @@ from numpy.typing import NDArray
 
 from ..errors import KinematicsError
 from ..machines.base import ToolPoses, map_state
-from ..measurement import MeasurementModel, Prediction
+from ..measurement import MeasurementModel, Prediction, pose_offset_rows
 from .base import Effect, EffectParam, Features
 
 __all__ = ["EffectFit", "fit_map", "effect_residual", "actuator_residual", "effect_jacobian", "actuator_rows_jacobian"]
@@ -112,6 +114,24 @@ def _dq(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, shape,
     return dq
 
 
+def _dx(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, n: int) -> NDArray | None:
+    """``sum_e dx_e`` of the effects that move the tool, shape (n, 6), or None when none does."""
+    out = None
+    for (eff, f), sl in zip(effects, slices):
+        if eff.moves_tool:
+            out = (0.0 if out is None else out) + eff.delta_x(f, eta[sl])
+    return out
+
+
+def _at(model: MeasurementModel, q_eff: NDArray, dx: NDArray | None, *, keep_guess: bool = True) -> MeasurementModel:
+    """``model`` at the solved poses' actuator positions ``q_eff`` with the tool perturbation ``dx`` added to its own."""
+    sub = model.with_pose_q(q_eff, keep_guess=keep_guess)
+    if dx is not None:
+        own = getattr(model, "pose_offset", None)
+        sub = sub.with_pose_offset(dx if own is None else own + dx)
+    return sub
+
+
 def _effect_theta(model: MeasurementModel, theta: NDArray) -> NDArray:
     """The geometry the effects see (:meth:`MeasurementModel.effect_inputs`: a constraint model drops its pivots)."""
     return model.effect_inputs(np.asarray(theta, dtype=float), None)[1]
@@ -138,9 +158,11 @@ def _merge(pred: Prediction, other: Prediction) -> Prediction:
     return Prediction(y=pick(pred.y, other.y), poses=poses)
 
 
-def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, note: str = " (with the effect applied)") -> tuple[MeasurementModel, Prediction]:
-    # q_eff: every solved pose's actuator positions (model.pose_q + dq), as effects act on poses, not rows
-    sub = model.with_pose_q(q_eff)
+def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, note: str = " (with the effect applied)",
+             dx: NDArray | None = None) -> tuple[MeasurementModel, Prediction]:
+    # q_eff: every solved pose's actuator positions (model.pose_q + dq), as effects act on poses, not rows;
+    # dx: the tool perturbation of effects that move the tool (None: none)
+    sub = _at(model, q_eff, dx)
     pred = sub.predict(theta, guess=guess)
     if not pred.success.all():
         # Newton from a given start can miss a pose that a nearby start solves: retry from the
@@ -149,7 +171,7 @@ def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, not
         if base.success.any():
             pred = _merge(pred, sub.predict(theta, guess=base.poses))
         if not pred.success.all():
-            pred = _merge(pred, model.with_pose_q(q_eff, keep_guess=False).predict(theta, guess=None))
+            pred = _merge(pred, _at(model, q_eff, dx, keep_guess=False).predict(theta, guess=None))
     if not pred.success.all():
         i = int(np.flatnonzero(~pred.success)[0])
         raise KinematicsError(f"pose {i + 1}: {pred.poses.message[i]}{note}")
@@ -164,8 +186,9 @@ def effect_residual(
     The features are those of the model's solved poses (:attr:`MeasurementModel.pose_q`).
     """
     slices = _slices(effects, model)
-    q_eff = model.pose_q + _dq(effects, slices, np.asarray(eta, float), model.pose_q.shape, _effect_theta(model, theta))
-    _, pred = _predict(model, q_eff, theta, None)
+    eta = np.asarray(eta, float)
+    q_eff = model.pose_q + _dq(effects, slices, eta, model.pose_q.shape, _effect_theta(model, theta))
+    _, pred = _predict(model, q_eff, theta, None, dx=_dx(effects, slices, eta, model.pose_q.shape[0]))
     return model.residual(pred)
 
 
@@ -214,7 +237,11 @@ def effect_columns(model: MeasurementModel, theta: NDArray, prediction: Predicti
     Ja = machine.actuator_jacobian(model.pose_q, th, poses)
     cols, extra = [], None
     for (eff, f), sl in zip(effects, slices):
-        cols.append(model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, eff.delta_q_jacobian_at(f, eta[sl], th)), prediction))
+        col = model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, eff.delta_q_jacobian_at(f, eta[sl], th)), prediction)
+        if eff.moves_tool:
+            # the tool perturbation reaches the rows through each pose's measurement rotation
+            col = col + pose_offset_rows(model, theta, prediction, eff.delta_x_jacobian(f, eta[sl]))
+        cols.append(col)
         Jt = eff.delta_q_theta_jacobian(f, eta[sl], th)
         if Jt is not None:
             add = model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, Jt), prediction)
@@ -295,7 +322,8 @@ def fit_map(
 
     def evaluate(theta, eta, guess):
         q_eff = model.pose_q + _dq(effects, slices, eta, model.pose_q.shape, _effect_theta(model, theta))
-        sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if K else "")
+        sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if K else "",
+                             dx=_dx(effects, slices, eta, model.pose_q.shape[0]))
         r = model.residual(pred)
         rw = (r / sig).reshape(-1)
         phi = np.concatenate([theta, eta]) / scale

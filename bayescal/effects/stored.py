@@ -30,7 +30,10 @@ Rules (documented in docs/formats.md section E2):
   exactly the set its channels call for.
 
 Application: ``q_actual = q + sum_e delta_q_e(features_e(q, aux, order), eta_e)``
-with the features at the machine file's geometry (``theta = 0``).  The
+with the features at the machine file's geometry (``theta = 0``), and the
+tool poses moved by ``sum_e delta_x_e`` of the effects that move the tool
+(:func:`effect_delta_q_and_x`; the measurement models add it after the
+kinematics, :func:`bayescal.measurement.offset_poses`).  The
 gravity loads of joint compliance change with the identified geometric
 corrections by about their relative size (1e-4), which is neglected.
 """
@@ -52,7 +55,7 @@ from .base import Effect, EffectParam
 
 __all__ = [
     "StoredEffect", "PROBE_CHANNELS", "read_effect_tables", "effect_tables_toml", "effect_delta_q",
-    "static_effect_delta_q", "effect_delta_q_jacobian", "static_effect_delta_q_and_jacobian", "StoredEffectsTransform", "machine_file_text", "parse_aux_values", "predict_poses",
+    "static_effect_delta_q", "static_effect_delta_x", "effect_delta_q_jacobian", "effect_delta_q_and_x", "effect_delta_x_jacobian", "static_effect_delta_q_and_jacobian", "StoredEffectsTransform", "machine_file_text", "parse_aux_values", "predict_poses",
 ]
 
 #: Auxiliary channels whose presence can change an effect's parameter set (docs/formats.md section 2).
@@ -172,7 +175,9 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
             # a stated input (a number, a vector of numbers or a list of vectors), not a fitted parameter
             rows = v if isinstance(v, list) and v and all(isinstance(x, list) for x in v) else [v]
             flat = [x for r in rows for x in (r if isinstance(r, list) else [r])]
-            if not flat or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in flat):
+            # a link mass may be nan: not known, fitted by the effect
+            ok = (lambda x: math.isfinite(x) or math.isnan(x)) if k == "link_mass_kg" else math.isfinite
+            if not flat or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not ok(x) for x in flat):
                 raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number, a vector of numbers or a list of vectors (an input of {name}), got {v!r}")
             settings.append((k, _floats(v)))
             continue
@@ -293,7 +298,7 @@ def calibration_tables_toml(machine: Machine) -> str:
 
         parts.append(discrepancy_toml(machine.discrepancy))
     if machine.calibration is not None:
-        from ..predict.record import calibration_toml
+        from ..prediction.record import calibration_toml
 
         parts.append(calibration_toml(machine.calibration))
     return "".join("\n" + p.rstrip("\n") + "\n" for p in parts)
@@ -342,6 +347,54 @@ def effect_delta_q(
     for _, eff, f, eta in _effect_terms(machine, effects, q, aux, theta, order, poses):
         dq = dq + eff.delta_q(f, eta)
     return dq
+
+
+def effect_delta_q_and_x(
+    machine: Machine,
+    effects: tuple[StoredEffect, ...],
+    q: NDArray,
+    aux: dict | None = None,
+    *,
+    theta: NDArray | None = None,
+    order: NDArray | None = None,
+    poses: ToolPoses | None = None,
+) -> tuple[NDArray, NDArray | None]:
+    """:func:`effect_delta_q` and the stored effects' tool-pose perturbation ``sum_e dx_e``.
+
+    Returns
+    -------
+    dq : ndarray, shape (n_poses, n_actuators)
+    dx : ndarray, shape (n_poses, 6), or None
+        Base-frame displacement of the tool point (mm) and small rotation of
+        the tool frame (rad) of the effects that move the tool
+        (:attr:`Effect.moves_tool`: a structure bending under gravity); None
+        when none does.  Arguments and errors as :func:`effect_delta_q`.
+    """
+    q = machine.check_q(q)
+    dq = np.zeros_like(q)
+    dx = None
+    for _, eff, f, eta in _effect_terms(machine, effects, q, aux, theta, order, poses):
+        dq = dq + eff.delta_q(f, eta)
+        if eff.moves_tool:
+            dx = (0.0 if dx is None else dx) + eff.delta_x(f, eta)
+    return dq, dx
+
+
+def effect_delta_x_jacobian(
+    machine: Machine,
+    effects: tuple[StoredEffect, ...],
+    q: NDArray,
+    aux: dict | None = None,
+    *,
+    theta: NDArray | None = None,
+    order: NDArray | None = None,
+    poses: ToolPoses | None = None,
+) -> NDArray:
+    """``d (sum_e dx_e) / d eta`` at the tables' values, shape (n_poses, 6, K), columns as :func:`effect_delta_q_jacobian`."""
+    q = machine.check_q(q)
+    cols = [eff.delta_x_jacobian(f, eta) if eff.moves_tool else np.zeros((q.shape[0], 6, len(eta)))
+            for _, eff, f, eta in _effect_terms(machine, effects, q, aux, theta, order, poses)]
+    return np.concatenate(cols, axis=2) if cols else np.zeros((q.shape[0], 6, 0))
 
 
 def effect_delta_q_jacobian(
@@ -422,7 +475,8 @@ def predict_poses(machine: Machine, q: NDArray, aux: dict | None = None, *, thet
 
     The library's prediction of a calibrated machine (geometry plus
     ``[effect.*]`` tables) for a recording's poses and channels:
-    ``forward(q + sum_e dq_e, theta)``.  Without effects this is
+    ``forward(q + sum_e dq_e, theta)``, moved by ``sum_e dx_e`` of the
+    effects that move the tool.  Without effects this is
     ``machine.forward(q, theta)``.
 
     Parameters
@@ -438,9 +492,15 @@ def predict_poses(machine: Machine, q: NDArray, aux: dict | None = None, *, thet
         Time rank of each row.
     """
     q = machine.check_q(q)
-    if machine.effects:
-        q = q + effect_delta_q(machine, machine.effects, q, aux, theta=theta, order=order)
-    return machine.forward(q, theta)
+    if not machine.effects:
+        return machine.forward(q, theta)
+    dq, dx = effect_delta_q_and_x(machine, machine.effects, q, aux, theta=theta, order=order)
+    poses = machine.forward(q + dq, theta)
+    if dx is None:
+        return poses
+    from ..measurement import offset_poses
+
+    return offset_poses(machine, q + dq, theta, poses, dx)
 
 
 def static_effect_delta_q(machine: Machine, effects: tuple[StoredEffect, ...], q: NDArray, aux: dict | None = None) -> NDArray:
@@ -483,6 +543,23 @@ def static_effect_delta_q_and_jacobian(machine: Machine, effects: tuple[StoredEf
     return np.concatenate(dq), np.concatenate(jac)
 
 
+def static_effect_delta_x(machine: Machine, effects: tuple[StoredEffect, ...], q: NDArray, aux: dict | None = None) -> NDArray | None:
+    """The stored effects' base-frame tool-pose perturbation at grid nodes, (n, 6), or None when no effect moves the tool.
+
+    The tool-moving effects (:attr:`Effect.moves_tool`: structures bending
+    under gravity) read no measurement order, so the nodes are evaluated
+    together.  ``aux`` holds constants or per-node arrays, as for
+    :func:`static_effect_delta_q`.
+    """
+    q = machine.check_q(q)
+    n = q.shape[0]
+    moving = tuple(st for st in effects if st.effect().moves_tool)
+    if not moving:
+        return None
+    aux_n = {k: np.broadcast_to(np.asarray(v, float), (n,)) for k, v in (aux or {}).items()}
+    return effect_delta_q_and_x(machine, moving, q, aux_n)[1]
+
+
 @dataclass(frozen=True, eq=False)
 class StoredEffectsTransform:
     """The stored effects as a :class:`bayescal.simulate.PoseTransform` (simulating a machine that carries them)."""
@@ -492,6 +569,10 @@ class StoredEffectsTransform:
 
     def transform(self, q: NDArray, theta: NDArray, aux: dict, order: NDArray) -> tuple[NDArray, NDArray]:
         return q + effect_delta_q(self.machine, self.effects, q, aux, theta=theta, order=order), theta
+
+    def pose_offset(self, q: NDArray, theta: NDArray, aux: dict, order: NDArray) -> NDArray | None:
+        """The tables' base-frame tool-pose perturbation at commanded ``q`` (None when no effect moves the tool)."""
+        return effect_delta_q_and_x(self.machine, self.effects, q, aux, theta=theta, order=order)[1]
 
 
 def parse_aux_values(items: list[str] | None) -> dict[str, float]:

@@ -27,7 +27,7 @@ command line get the same answer:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -58,6 +58,12 @@ class Calibration:
         The test at the stated noise (before any rescaling).
     noise_scale : float
         Factor on the stated sigma the answer uses (1 when the noise fits).
+    discrepancy : DiscrepancyFit or None
+        The model discrepancy fitted with the geometry (``discrepancy="auto"`` / ``"on"``).
+    variance_factor, loo_ratio : float
+        The leave-one-pose-out factor on predictive covariances (:mod:`bayescal.prediction.loo`).
+    model : MeasurementModel
+        What was calibrated (for :meth:`write_machine` and held-out scoring).
     """
 
     result: IdentificationResult
@@ -69,6 +75,56 @@ class Calibration:
     discrepancy_note: str = ""
     variance_factor: float = 1.0
     loo_ratio: float = 1.0
+    model: object = field(default=None, repr=False, compare=False)
+
+    # ------------------------------------------------------------ the answer
+    @property
+    def parameters(self):
+        """The parameters by name: value, std, unit, identified (:class:`ParameterEstimate`)."""
+        return {p.name: p for p in self.result.parameters}
+
+    def to_dict(self) -> dict:
+        """The JSON answer of ``bayescal identify`` (docs/formats.md section 3), without the instrument keys."""
+        return self.result.to_dict()
+
+    def report(self) -> str:
+        """The report ``bayescal identify`` prints: fit, parameters, noise, discrepancy, outliers."""
+        parts = [self.result.report(), self.noise_report(), self.discrepancy_report(), self.handling.report()]
+        return "\n".join(p for p in parts if p)
+
+    def _repr_html_(self) -> str:
+        from html import escape
+
+        rows = "".join(
+            f"<tr><td>{escape(p.name)}</td><td>{p.value:.6g}</td><td>{'' if p.std is None else f'{p.std:.3g}'}</td>"
+            f"<td>{escape(p.unit)}</td><td>{'data' if p.identified else 'prior'}</td></tr>"
+            for p in self.result.parameters if p.estimated)
+        r = self.result
+        head = (f"<p><b>{escape(r.machine_name)}</b> ({escape(r.kind)}), {escape(r.method)}: "
+                f"{'converged' if r.success else 'FAILED'}; RMS position {r.rms_before['position']:.4g} mm before, "
+                f"{r.rms_after['position']:.4g} mm after; {escape(self.noise.message())}</p>")
+        return head + ("<table><tr><th>parameter</th><th>value</th><th>std</th><th>unit</th><th>determined by</th></tr>"
+                       f"{rows}</table>")
+
+    def machine_with_record(self, machine=None):
+        """The calibrated machine as it is written: ``nominal + theta`` folded later, its record and discrepancy attached."""
+        from ..machines.framed import base_machine
+
+        machine = self.model.machine if machine is None else machine
+        return machine.with_calibration(self.record(base_machine(machine)), self.discrepancy_model)
+
+    def write_machine(self, path, machine=None) -> list:
+        """Write the calibrated machine file (geometry folded in, ``[calibration]``, ``[discrepancy]``), atomically.
+
+        ``machine``: the machine that was calibrated (default: the model's).
+        Returns the files written (a hybrid machine writes one per module).
+        """
+        from ..machines.files import write_calibrated_machine_files
+
+        if not self.result.success:
+            raise InputError(f"write_machine: the calibration did not succeed ({self.result.message})")
+        m = self.machine_with_record(machine)
+        return write_calibrated_machine_files(path, m, self.result.theta[: m.n_params])
 
     @property
     def discrepancy_model(self):
@@ -87,7 +143,7 @@ class Calibration:
     def record(self, machine):
         """The ``[calibration]`` record of ``machine`` written from this calibration (None without a covariance)."""
         from ..discrepancy import weight_names
-        from ..predict.record import record_from_result
+        from ..prediction.record import record_from_result
 
         res = self.result
         extra = weight_names(self.discrepancy.discrepancy.n_features) if self.discrepancy is not None else ()
@@ -134,8 +190,8 @@ class Calibration:
                 "predictive": {"variance_factor": self.variance_factor, "loo_ratio": self.loo_ratio}}
 
     def with_variance_factor(self, model) -> "Calibration":
-        """This calibration with its leave-one-pose-out variance factor (:mod:`bayescal.predict.loo`) computed."""
-        from ..predict.loo import loo_variance_factor
+        """This calibration with its leave-one-pose-out variance factor (:mod:`bayescal.prediction.loo`) computed."""
+        from ..prediction.loo import loo_variance_factor
 
         res = self.result
         if not res.success or res.covariance is None:
@@ -273,7 +329,8 @@ def calibrate(
     if noise == "auto" and first.contradicted and res.success:
         res, handling, choice, scale = _with_noise_scale(model, method, kw, first.scale, (res, handling, choice))
     cal = Calibration(result=res, handling=handling, choice=choice, noise=first, noise_scale=scale, discrepancy_note=note)
-    cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}))
+    cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}),
+                  model=model)
     return cal.with_variance_factor(model)
 
 
@@ -308,7 +365,7 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
     res = _joint_result(scaled, res, theta, df)
     note = ("fitted (--discrepancy on)" if mode == "on" else "supported by the data (--discrepancy auto)")
     cal = Calibration(result=res, handling=handling, choice=choice, noise=check, noise_scale=scale,
-                      discrepancy=df, discrepancy_note=note)
+                      discrepancy=df, discrepancy_note=note, model=model)
     cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}))
     return cal.with_variance_factor(model)
 

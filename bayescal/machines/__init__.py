@@ -46,7 +46,7 @@ def _build(doc, path: str) -> Machine:
     if "calibration" in doc.data or "discrepancy" in doc.data:
         # the calibration's uncertainty and model discrepancy, for bayescal predict (docs/formats.md section 8)
         from ..discrepancy.table import read_discrepancy
-        from ..predict.record import check_record, read_calibration
+        from ..prediction.record import check_record, read_calibration
 
         record = read_calibration(doc, path)
         if record is not None:

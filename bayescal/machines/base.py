@@ -229,7 +229,7 @@ class Machine(ABC):
     #: dataclass field of the kinds: :meth:`with_effects` attaches them to a copy.
     effects: tuple = ()
     #: What a calibrated machine file keeps of its calibration (``[calibration]``: the parameters'
-    #: covariance and the noise scale, :class:`bayescal.predict.record.CalibrationRecord`) and its
+    #: covariance and the noise scale, :class:`bayescal.prediction.record.CalibrationRecord`) and its
     #: model discrepancy (``[discrepancy]``, :class:`bayescal.discrepancy.Discrepancy`); None when
     #: the file has none.  Attached by :meth:`with_calibration`, like the effects.
     calibration = None
@@ -459,6 +459,20 @@ class Machine(ABC):
         from ..effects.stored import static_effect_delta_q
 
         return q + static_effect_delta_q(self, self.effects, q, aux), None
+
+    def node_tool_offset(self, q: NDArray, theta: NDArray | None = None, aux: dict | None = None) -> NDArray | None:
+        """Base-frame tool displacement (mm) and rotation (rad) of the stored effects that move the tool, at grid nodes.
+
+        Shape (n, 6), or None when no effect moves the tool (a link or
+        column bending under gravity: :attr:`bayescal.effects.Effect.moves_tool`);
+        a grid adds it to the tool point the drives reach
+        (:func:`bayescal.effects.stored.static_effect_delta_x`).
+        """
+        if not self.effects:
+            return None
+        from ..effects.stored import static_effect_delta_x
+
+        return static_effect_delta_x(self, self.effects, q, aux)
 
     def guess_from_measurement(
         self, q: NDArray, position: NDArray, rotation: NDArray | None = None, axis: NDArray | None = None

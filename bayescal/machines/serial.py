@@ -55,7 +55,7 @@ from ..params import ParamLayout, ParamSpec
 from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
 
-__all__ = ["Serial", "SERIAL_TOLERANCE_DEFAULTS", "JOINT_TYPES", "rpy_matrix", "rpy_from_matrix", "mimic_problem"]
+__all__ = ["Serial", "ChainFrames", "SERIAL_TOLERANCE_DEFAULTS", "JOINT_TYPES", "rpy_matrix", "rpy_from_matrix", "mimic_problem"]
 
 #: Documented one-sigma defaults of the ``[tolerance]`` table (mm or rad).
 SERIAL_TOLERANCE_DEFAULTS: dict[str, float] = {
@@ -174,6 +174,38 @@ class _Chain:
     tool_rpy: NDArray  # (n, 3)
     p_tool: NDArray  # (n, 3)
     R_tool: NDArray  # (n, 3, 3)
+
+
+@dataclass(frozen=True)
+class ChainFrames:
+    """The frames of a solved serial chain per pose, base frame (what structural effects need).
+
+    Attributes
+    ----------
+    joint_origin : ndarray, shape (n, m, 3)
+        Origin of joint ``k``'s frame before its motion, mm (where a
+        prismatic stage stands at position 0).
+    joint_axis : ndarray, shape (n, m, 3)
+        Unit axis of joint ``k``, base frame.
+    link_origin : ndarray, shape (n, m, 3)
+        Origin of link ``k``'s frame (after joint ``k``'s motion), mm.
+    link_rotation : ndarray, shape (n, m, 3, 3)
+        Orientation of link ``k``'s frame.
+    joint_position : ndarray, shape (n, m)
+        Position of every joint (mimic joints included, zero offsets added), rad or mm.
+    next_point : ndarray, shape (n, m, 3)
+        Where link ``k`` carries the next joint (its origin) or, for the last link, the tool point, mm.
+    tool_point : ndarray, shape (n, 3)
+        mm.
+    """
+
+    joint_origin: NDArray
+    joint_axis: NDArray
+    link_origin: NDArray
+    link_rotation: NDArray
+    joint_position: NDArray
+    next_point: NDArray
+    tool_point: NDArray
 
 
 def _read_joint_tables(joints: list[TomlTable]) -> tuple[list, list, list, list, list, tuple | None]:
@@ -539,6 +571,15 @@ class Serial(Machine):
         J[:, :3, t : t + 3] = c.R_end
         J[:, 3:, t + 3 : t + 6] = c.R_end @ rpy_rates(c.tool_rpy)
         return J
+
+    def chain_frames(self, q: ArrayLike, theta: ArrayLike | None = None) -> ChainFrames:
+        """Every joint's and link's frame at actuator positions ``q`` (n, N) and geometric errors ``theta`` (:class:`ChainFrames`)."""
+        q = self.check_q(q)
+        n = q.shape[0]
+        c = self._chain(q, self._theta_rows(theta, n))
+        axis = np.einsum("nkij,nkj->nki", c.R_joint, c.axis)
+        nxt = np.concatenate([c.p_joint[:, 1:], c.p_tool[:, None]], axis=1)
+        return ChainFrames(c.p_joint, axis, c.p_after, c.R_after, c.qe, nxt, c.p_tool)
 
     def weight_bodies(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> WeightBodies:
         """Every moving link: link ``k`` in the frame after joint ``k``, moved by joints ``1 .. k`` (joint twists).

@@ -11,10 +11,19 @@ from bayescal.measurement import MeasurementModel
 AUX = {"temp_C": np.linspace(20, 25, 12), "time_s": np.linspace(0, 3000, 12), "payload_kg": np.linspace(0, 20, 12)}
 
 
-@pytest.mark.parametrize("name", [n for n in EFFECTS if n != "redundancy_preload"])
+#: Effects of serial chains only (their links and stages), checked on the telescope and the arm in tests/physics.
+SERIAL_ONLY = ("gravity_deflection", "gravity_backlash")
+
+
+@pytest.mark.parametrize("name", [n for n in EFFECTS if n != "redundancy_preload" and n not in SERIAL_ONLY])
 def test_effect_conformance_and_jacobian(prs3, name):
     # check_effect compares delta_q_jacobian with central finite differences, among other things
     check_effect(get_effect(name), prs3, aux=AUX)
+
+
+@pytest.mark.parametrize("name", SERIAL_ONLY)
+def test_serial_only_effects_say_why_not_on_a_parallel_kind(prs3, name):
+    assert "serial chains" in get_effect(name).not_applicable(prs3, {})
 
 
 def test_thermal_time_mode_conformance(prs3):

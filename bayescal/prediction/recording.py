@@ -4,9 +4,9 @@ The calibrated machine (geometry, effects, model discrepancy, and the
 covariance of its calibration in ``[calibration]``) is held fixed with its
 uncertainty.  Only what belongs to the session is fitted, on the ``fit``
 rows: the instrument frame of each station with ``frame="fit"``.  Every row
-gets its predictive mean and covariance (:mod:`bayescal.predict.engine`),
+gets its predictive mean and covariance (:mod:`bayescal.prediction.engine`),
 its position error and whether it lies inside its 90 % region
-(:mod:`bayescal.predict.score`); the summary scores the ``check`` rows (no
+(:mod:`bayescal.prediction.score`); the summary scores the ``check`` rows (no
 fit has seen them) and the ``fit`` rows apart.
 """
 
@@ -114,15 +114,20 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     names = fm.layout.names
     n_session = fm.n_frame if frame == "fit" else 0
     theta = np.zeros(fm.n_params)
+    frame_free: list[int] = []
     notes = []
     frames = {}
     if n_session:
-        theta, fit_ok = _fit_frames(model, theta, n_session, fit_rows, disc, identify)
+        fitted = [k for k, label in enumerate(fm.stations) if label not in session.unfitted_stations]
+        frame_free = [6 * k + c for k in fitted for c in range(6)]
+        theta, fit_ok = _fit_frames(model, theta, frame_free, fit_rows, disc, identify)
         if not fit_ok:
             raise InputError(f"{rec.path}: the instrument frame(s) could not be fitted on the fit rows")
         free = np.zeros(fm.n_params, dtype=bool)
         free[:n_session] = True
         frames = frame_answer(fm, theta, free, None)
+        if session.unfitted_stations and "frames" in frames:
+            frames = {"frames": {k: v for k, v in frames["frames"].items() if k not in session.unfitted_stations}}
     C, machine_index, noise_factor, kappa, note = _machine_covariance(machine, fm, names, disc)
     if note:
         notes.append(note)
@@ -132,7 +137,7 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     if idx.size:
         sub = model.subset(idx)
         got = predictive_rows(sub, theta, C, machine_index=machine_index, noise_factor=noise_factor, discrepancy=disc,
-                              session_index=np.arange(n_session) if n_session else None, fit_rows=fit_rows[idx],
+                              session_index=np.array(frame_free) if n_session else None, fit_rows=fit_rows[idx],
                               variance_factor=kappa)
         mean, cov, ok = pr.mean.copy(), pr.cov.copy(), pr.success.copy()
         mean[idx], cov[idx], ok[idx] = got.mean, got.cov, got.success
@@ -151,7 +156,7 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     return PredictionResult(machine.name, tuple(rows), summary, frames, tuple(notes))
 
 
-def _fit_frames(model, theta, n_session, fit_rows, disc, identify):
+def _fit_frames(model, theta, frame_free, fit_rows, disc, identify):
     """Least squares of the session's frames on the fit rows, the machine held fixed (the discrepancy's mean removed)."""
     fit_idx = np.flatnonzero(fit_rows)
     if fit_idx.size == 0:
@@ -160,7 +165,7 @@ def _fit_frames(model, theta, n_session, fit_rows, disc, identify):
     pred = sub.predict(theta)
     ok = np.flatnonzero(pred.success)
     sub = sub.subset(ok)
-    free = list(range(n_session))
+    free = list(frame_free)
     for _ in range(2 if disc is not None else 1):
         target = sub
         if disc is not None:

@@ -57,7 +57,7 @@ class CalibrationRecord:
     variance_factor : float
         ``kappa >= 1`` on every predictive covariance: how much the
         calibration's own left-out poses said its regions must widen
-        (:mod:`bayescal.predict.loo`).
+        (:mod:`bayescal.prediction.loo`).
     """
 
     names: tuple[str, ...]
@@ -127,7 +127,8 @@ def read_calibration(doc: TomlTable, path: str) -> CalibrationRecord | None:
     if len(buf) != 8 * n * n:
         raise t.error("covariance_f64le_b64", f"{len(buf)} bytes; expected {8 * n * n} ({n} x {n} float64 values)")
     C = np.frombuffer(buf, dtype="<f8").reshape(n, n).astype(float)
-    if not np.all(np.isfinite(C)) or not np.allclose(C, C.T, rtol=1e-9, atol=1e-300) or np.any(np.diag(C) < 0):
+    big = float(np.max(np.abs(C))) if C.size else 0.0
+    if not np.all(np.isfinite(C)) or np.max(np.abs(C - C.T), initial=0.0) > 1e-9 * big or np.any(np.diag(C) < 0):
         raise t.error("covariance_f64le_b64", "expected a finite, symmetric covariance with non-negative variances")
     scale = t.number("noise_scale", default=1.0, positive=True)
     if not math.isfinite(scale) or not 1e-6 <= scale <= 1e6:
@@ -155,7 +156,7 @@ def record_from_result(machine, names_all, free, covariance, *, noise_scale: flo
         A joint covariance to use instead (discrepancy weights appended): ``extra_cov`` over
         ``[free names..., extra_names...]``.
     """
-    if covariance is None:
+    if covariance is None and extra_cov is None:
         return None
     keep_names = set(machine.layout.names)
     free_names = [n for n, f in zip(names_all, np.asarray(free, dtype=bool)) if f]
@@ -164,7 +165,8 @@ def record_from_result(machine, names_all, free, covariance, *, noise_scale: flo
     sel = [i for i, n in enumerate(all_names) if n in keep_names or n in set(extra_names)]
     if not sel or not np.all(np.isfinite(C[np.ix_(sel, sel)])):
         return None
-    return CalibrationRecord(tuple(all_names[i] for i in sel), C[np.ix_(sel, sel)], float(noise_scale), method,
+    Cs = C[np.ix_(sel, sel)]
+    return CalibrationRecord(tuple(all_names[i] for i in sel), 0.5 * (Cs + Cs.T), float(noise_scale), method,
                              float(variance_factor))
 
 

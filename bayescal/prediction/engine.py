@@ -9,7 +9,7 @@ row's predictive distribution is Gaussian with
 where
 
 * ``C`` is the covariance of the machine's parameters (and of the
-  discrepancy's weights, jointly; :mod:`bayescal.predict.record`) and ``G``
+  discrepancy's weights, jointly; :mod:`bayescal.prediction.record`) and ``G``
   their columns of the row Jacobian (with the discrepancy's features);
 * the session's own parameters ``s`` (the instrument frames of
   ``predict --frame fit``) are fitted on the recording's ``fit`` rows with
@@ -103,7 +103,7 @@ def predictive_rows(
     fit_rows : ndarray of bool, shape (n,), optional
         Which rows the session's parameters were fitted on.
     variance_factor : float
-        ``kappa`` on the whole covariance (:func:`bayescal.predict.loo.loo_variance_factor`).
+        ``kappa`` on the whole covariance (:func:`bayescal.prediction.loo.loo_variance_factor`).
     residual_variance : bool
         Add ``D``, the discrepancy's prior variance its inducing points do not
         carry (False: the parameters' part alone, the hat matrix of a fit).

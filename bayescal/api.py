@@ -1,0 +1,129 @@
+"""The front door: the few verbs a notebook user needs, each the command line's own policy.
+
+.. code-block:: python
+
+    import bayescal
+
+    s = bayescal.load("machine.toml", "recording.csv", frame="fit")   # units, frame(s), stations, roles checked
+    cal = bayescal.calibrate(s, method="map", discrepancy="auto")     # what `bayescal identify` runs
+    cal.report(); cal.parameters["chain1.link_length"].std
+    cal.write_machine("calibrated.toml")
+    p = bayescal.predict("calibrated.toml", "new.csv", frame="fit")  # what `bayescal predict` runs
+    p.summary["check"]["coverage_90"]
+
+``bayescal identify``, ``predict`` and ``diagnose`` call the same functions,
+so a study gets the number a user gets.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+
+from .io.recording import Recording
+from .machines.base import Machine
+
+__all__ = ["load", "calibrate", "predict", "diagnose"]
+
+
+def _machine(machine) -> Machine:
+    from .machines import load_machine
+
+    return machine if isinstance(machine, Machine) else load_machine(machine)
+
+
+def _recording(recording) -> Recording:
+    from .io import read_recording
+
+    return recording if isinstance(recording, Recording) else read_recording(recording)
+
+
+def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Recording, *, frame: str = "base",
+         dof: int | None = None):
+    """A machine file and a recording, checked and made into a model, as every command makes them.
+
+    Parameters
+    ----------
+    machine : path or Machine
+        Machine file (docs/formats.md sections 1, 5, 7).
+    recording : path or Recording
+        Recording CSV (sections 2, 4, 8: per-pose sigma, unit suffixes, ``station`` and ``role`` columns).
+    frame : {"base", "fit"}
+        ``fit``: an instrument frame per station, fitted with the geometry.
+    dof : int, optional
+        6, 5 or 3 (default: what the recording holds).
+
+    Returns
+    -------
+    bayescal.instrument.prepare.Session
+        ``.fit_model`` (the rows to identify from), ``.check_model`` (held-out rows), ``.machine``, ``.check``
+        (the rigid-transform check: ``check.fires`` suggests ``frame="fit"``).
+    """
+    from .instrument.prepare import prepare_session
+
+    session = prepare_session(_machine(machine), _recording(recording), dof=dof, frame=frame)
+    if session.unfitted_stations:
+        from .errors import RecordingError
+
+        raise RecordingError(session.recording.path, None, "station", f"station {session.unfitted_stations[0]!r} has "
+                             "no fit rows; its frame cannot be fitted")
+    return session
+
+
+def calibrate(data, *, method: str = "map", **options):
+    """Identify a recording's errors as ``bayescal identify`` does (method, outliers, prior scale, noise, discrepancy).
+
+    Parameters
+    ----------
+    data : Session or MeasurementModel
+        From :func:`load` (its ``check`` rows are then scored as ``identify`` scores them), or a model.
+    method : {"map", "ridge", "tsvd", "ls"}
+    **options
+        Of :func:`bayescal.identify.calibrate.calibrate`: ``lam``, ``k``, ``free``, ``rule``,
+        ``prior_scale``, ``robust``, ``noise``, ``discrepancy``, ``discrepancy_inputs``, ...
+
+    Returns
+    -------
+    bayescal.identify.calibrate.Calibration
+        ``report()``, ``to_dict()``, ``parameters`` by name, ``write_machine(path)``; with a session
+        holding ``check`` rows, ``result.extras["check"]`` holds their scores.
+    """
+    from .identify.calibrate import calibrate as _calibrate
+    from .instrument.prepare import Session
+
+    if isinstance(data, Session):
+        cal = _calibrate(data.fit_model, method=method, **options)
+        from .prediction.recording import score_held_out
+
+        held = score_held_out(cal, data)
+        if held:
+            cal = replace(cal, result=replace(cal.result, extras={**cal.result.extras, **held}))
+        return cal
+    return _calibrate(data, method=method, **options)
+
+
+def predict(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Recording, *, frame: str = "base",
+            dof: int | None = None):
+    """Predict every row of a recording from a calibrated machine, as ``bayescal predict`` does.
+
+    Returns
+    -------
+    bayescal.prediction.recording.PredictionResult
+        ``rows``, ``summary`` (per role: mean, median, p95 position error in mm, ``coverage_90``),
+        ``to_dict()``, ``report()``.
+    """
+    from .prediction.recording import predict_recording
+
+    return predict_recording(_machine(machine), _recording(recording), frame=frame, dof=dof)
+
+
+def diagnose(machine: str | os.PathLike | Machine, recording, **options):
+    """Locate a model mismatch, name the missing physics, model it, as ``bayescal diagnose`` does.
+
+    ``recording``: a path or a Recording; ``options`` of :func:`bayescal.diagnose.diagnose`.
+    """
+    from .diagnose import diagnose as _diagnose
+    from .models import read_any_recording
+
+    rec = recording if not isinstance(recording, (str, os.PathLike)) else read_any_recording(recording)
+    return _diagnose(_machine(machine), rec, **options)

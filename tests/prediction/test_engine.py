@@ -1,0 +1,107 @@
+"""The predictive distribution of rows against Monte Carlo, and the calibration record's round trip."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bayescal.geometry import so3_exp, so3_log
+from bayescal.identify import identify
+from bayescal.instrument.prepare import prepare_session
+from bayescal.machines import machine_from_text
+from bayescal.machines.framed import Frame
+from bayescal.measurement import MeasurementModel
+from bayescal.prediction.engine import predictive_rows
+from bayescal.prediction.record import CalibrationRecord, calibration_toml
+from bayescal.prediction.score import score_rows
+from bayescal.simulate import simulate_recording
+
+
+def test_covariance_propagation_equals_monte_carlo(prs3, rng):
+    """Parameters drawn from C, rows evaluated by the full (nonlinear) model: their spread is G C G^T + R."""
+    sim = simulate_recording(prs3, 6, seed=2, dof=6)
+    model = MeasurementModel.from_recording(prs3, sim.recording)
+    theta = sim.theta_true
+    idx = np.arange(prs3.n_params)
+    C = np.diag((0.3 * prs3.tolerance) ** 2)
+    pr = predictive_rows(model, theta, C, machine_index=idx, noise_factor=1.0)
+    draws = theta + rng.normal(size=(3000, prs3.n_params)) * 0.3 * prs3.tolerance
+    # one vectorised call: the parameter sets stacked in blocks of the model's poses
+    ys = model.predict(np.repeat(draws, model.n_poses, axis=0)).y.reshape(3000, model.n_poses, -1)
+    ys = ys + rng.normal(size=ys.shape) * model.row_sigma  # the instrument's noise
+    emp = np.einsum("kni,knj->nij", ys - ys.mean(0), ys - ys.mean(0)) / (ys.shape[0] - 1)
+    sd = np.sqrt(np.einsum("nii->ni", pr.cov))
+    # variances within Monte Carlo error (3000 draws: ~2.6 % sd of a variance, 5 sigma allowed)
+    np.testing.assert_allclose(np.einsum("nii->ni", emp), sd**2, rtol=0.15)
+    np.testing.assert_allclose(ys.mean(0), pr.mean, atol=3 * np.max(sd) / np.sqrt(3000))
+
+
+def test_refitted_frame_absorbs_what_it_can(prs3, rng):
+    """Frames refitted per session: Monte Carlo of geometry draws, noise and a least-squares frame refit."""
+    sim = simulate_recording(prs3, 24, seed=5, dof=3)
+    f = Frame.from_rotation_vector([800.0, -300.0, 50.0], [0.2, -0.1, 0.9])
+    rec = replace(sim.recording, position=f.to_instrument(sim.recording.position),
+                  role=tuple(["fit"] * 16 + ["check"] * 8))
+    session = prepare_session(prs3, rec, frame="fit")
+    fm, model = session.machine, session.model
+    fit_rows = ~rec.is_check
+    base = identify(model.subset(np.flatnonzero(fit_rows)), method="ls", free=list(range(6)))
+    theta0 = base.theta  # the frame fitted at the machine's file geometry
+    geo = np.arange(6, fm.n_params)
+    C = np.diag((0.5 * fm.tolerance[geo]) ** 2)
+    pr = predictive_rows(model, theta0, C, machine_index=geo, session_index=np.arange(6), fit_rows=fit_rows)
+    chk = np.flatnonzero(~fit_rows)
+    errs = []
+    for _ in range(150):
+        t = theta0.copy()
+        t[geo] += rng.normal(size=geo.size) * 0.5 * fm.tolerance[geo]
+        y = model.predict(t).y + rng.normal(size=(model.n_poses, 3)) * model.row_sigma
+        sess = replace(model, y_measured=y)
+        refit = identify(sess.subset(np.flatnonzero(fit_rows)), method="ls", free=list(range(6)), theta0=theta0)
+        pred = model.predict(refit.theta).y
+        errs.append(y[chk] - pred[chk])
+    errs = np.array(errs)
+    emp = np.einsum("kni,knj->nij", errs, errs) / errs.shape[0]
+    # 150 draws: a variance to ~12 % (1 sd); 35 % allowed
+    np.testing.assert_allclose(np.einsum("nii->ni", emp), np.einsum("nii->ni", pr.cov[chk]), rtol=0.35)
+    # without the refit's projection the geometry's uncertainty would count in full: much larger here
+    raw = predictive_rows(model, theta0, C, machine_index=geo)
+    assert np.mean(np.einsum("nii->ni", raw.cov[chk])) > 2 * np.mean(np.einsum("nii->ni", pr.cov[chk]))
+
+
+def test_score_rows_counts_the_ellipsoid():
+    mean = np.zeros((2, 3))
+    cov = np.stack([np.eye(3), np.diag([1.0, 4.0, 9.0])])
+    meas = np.array([[2.6, 0.0, 0.0], [0.0, 4.0, 0.0]])  # chi2_3(0.9) = 6.25: 2.6^2 = 6.76 out; (4/2)^2 = 4 in
+    s = score_rows(meas, mean, cov)
+    assert s.inside.tolist() == [False, True]
+    np.testing.assert_allclose(s.error_position, [2.6, 4.0])
+
+
+def test_calibration_record_round_trips(prs3, rng):
+    A = rng.normal(size=(5, 5))
+    C = A @ A.T * 1e-4
+    names = prs3.layout.names[:5]
+    rec = CalibrationRecord(tuple(names), C, 1.3, "map", 1.2)
+    back = machine_from_text(prs3.to_toml(None) + "\n" + calibration_toml(rec)).calibration
+    assert back.names == rec.names and back.noise_scale == 1.3 and back.variance_factor == 1.2
+    np.testing.assert_array_equal(back.covariance, C)
+    np.testing.assert_array_equal(back.covariance_for(names[::-1]), C[::-1, ::-1])
+
+
+@pytest.mark.parametrize("bad,what", [
+    ('covariance_f64le_b64 = "AAAA"', "bytes; expected"),
+    ('covariance_f64le_b64 = "not base64!"', "not valid base64"),
+    ("noise_scale = -1.0", "positive"),
+])
+def test_broken_calibration_table_is_named(prs3, bad, what):
+    from bayescal.errors import MachineFileError
+
+    good = calibration_toml(CalibrationRecord(("tool.point.x",), np.eye(1), 1.0, "map"))
+    key = bad.split(" =")[0]
+    text = "\n".join(bad if line.startswith(key + " ") else line for line in good.splitlines())
+    with pytest.raises(MachineFileError, match=what) as exc:
+        machine_from_text(prs3.to_toml(None) + "\n" + text)
+    assert "calibration." in str(exc.value)
