@@ -44,6 +44,7 @@ should drop it (a clean recording).
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,8 +64,8 @@ MIN_EVIDENCE_GAIN = 6.0
 MAX_HYPER_POSES = 1200
 #: Inducing points at most (and at most half the poses).
 MAX_INDUCING = 48
-#: Auxiliary channels that are bookkeeping, not physics: never default inputs.
-_NOT_PHYSICS = ("pose_id", "id", "index", "line", "sample", "sigma_position", "sigma_angle")
+#: Auxiliary channels that are bookkeeping, not physics: never default inputs (``pose_id``, ``source_key``, ...).
+_NOT_PHYSICS = re.compile(r"(^|_)(id|key|index|idx|line|sample|row|count|number)$|^sigma_", re.I)
 
 
 @dataclass(frozen=True)
@@ -114,7 +115,7 @@ def default_inputs(model) -> tuple[str, ...]:
     names = [f"q{i + 1}" for i in range(n_act)]
     for k, v in (model.aux or {}).items():
         v = np.asarray(v, dtype=float)
-        if k.lower() in _NOT_PHYSICS or not np.all(np.isfinite(v)) or np.ptp(v) <= 0:
+        if _NOT_PHYSICS.search(k) or not np.all(np.isfinite(v)) or np.ptp(v) <= 0:
             continue
         names.append(k)
     return tuple(names)

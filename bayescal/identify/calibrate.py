@@ -198,10 +198,10 @@ class Calibration:
             return self
         scaled = model if self.noise_scale == 1.0 else model.with_pose_sigma(
             np.asarray(model.row_sigma, dtype=float) * self.noise_scale)
-        weighted = self.handling.weighted_model(scaled) if hasattr(self.handling, "weighted_model") else scaled
+        # every pose at full weight (bayescal/prediction/loo.py says why)
         disc = self.discrepancy.discrepancy if self.discrepancy is not None else None
         try:
-            kappa, ratio = loo_variance_factor(weighted, res.theta, self.joint_covariance,
+            kappa, ratio = loo_variance_factor(scaled, res.theta, self.joint_covariance,
                                                machine_index=np.flatnonzero(res.free), discrepancy=disc)
         except (np.linalg.LinAlgError, ValueError):
             return self
