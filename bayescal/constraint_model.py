@@ -211,7 +211,7 @@ class ConstraintModel:
         :meth:`bayescal.measurement.MeasurementModel.from_recording` does.
         A machine file's ``[instrument]`` frame does not apply: heights are
         measured along the base z axis and distances do not see a frame
-        (FORMATS.md section 6), so the model is of the machine in its base frame.
+        (docs/formats.md section 6), so the model is of the machine in its base frame.
         """
         if dof not in (None, 1):
             raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
@@ -220,7 +220,7 @@ class ConstraintModel:
         if isinstance(machine, InstrumentFrame):
             if machine.fit:
                 raise InputError("a constraint recording does not see an instrument frame (heights are along the base z "
-                                 "axis, FORMATS.md section 6): there is no frame to fit")
+                                 "axis, docs/formats.md section 6): there is no frame to fit")
             machine = machine.machine
         rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
         model = cls(
@@ -228,7 +228,7 @@ class ConstraintModel:
             y_measured=rec.value[:, None], pose_sigma=rec.sigma, aux=dict(rec.aux),
         )
         if machine.effects:
-            # the machine file's [effect.*] tables at their stored values (FORMATS.md section 7), as for pose
+            # the machine file's [effect.*] tables at their stored values (docs/formats.md section 7), as for pose
             # recordings: every solved pose moves by the effects' dq, driven by its row's channels, in time order
             from .effects.stored import effect_delta_q_and_x
 

@@ -475,7 +475,7 @@ def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:
     Every identification and diagnosis starts at the nominal geometry, so a
     pose it cannot solve (a recording of another machine, actuator positions
     in other units, a pose outside the reachable workspace) stops it; this
-    says so in terms of the files (FORMATS.md: name the file and the line).
+    says so in terms of the files (docs/formats.md: name the file and the line).
     """
     from .errors import RecordingError
 
@@ -490,7 +490,7 @@ def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:
 
 
 def _recording_pose_sigma(machine: Machine, rec: Recording, dof: int) -> NDArray | None:
-    """Per-pose noise from the recording's ``sigma_position`` / ``sigma_angle`` columns (FORMATS.md section 4).
+    """Per-pose noise from the recording's ``sigma_position`` / ``sigma_angle`` columns (docs/formats.md section 4).
 
     A missing column takes the machine's ``[measurement]`` value; a
     position-only model ignores ``sigma_angle``.  None when neither applies.

@@ -17,7 +17,7 @@ __all__ = ["read_any_recording", "model_from_recording"]
 
 
 def read_any_recording(path: str | os.PathLike, *, text: str | None = None) -> Recording | ConstraintRecording:
-    """Read a recording CSV: a constraint recording (a ``measure`` column, FORMATS.md section 6) or measured poses.
+    """Read a recording CSV: a constraint recording (a ``measure`` column, docs/formats.md section 6) or measured poses.
 
     Which of the two it is, :func:`~bayescal.io.constraints.is_constraint_recording` decides (from
     the header, as CSV); the reader of that kind then reports any error with file, line and column.

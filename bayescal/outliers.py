@@ -170,7 +170,7 @@ class PoseTest:
         return idx[np.argsort(self.p_value[idx], kind="stable")]
 
     def outliers(self) -> list[dict]:
-        """FORMATS.md section 4: ``[{"line", "statistic", "p_value"}, ...]`` (``p_value`` family-wise), in line order."""
+        """docs/formats.md section 4: ``[{"line", "statistic", "p_value"}, ...]`` (``p_value`` family-wise), in line order."""
         idx = np.sort(np.flatnonzero(self.flagged))
         return [
             {"line": int(self.lines[i]), "statistic": float(self.statistic[i]), "p_value": float(self.p_adjusted[i]),

@@ -1,4 +1,4 @@
-"""Convert the real two-axis positioner recording (industrial_calibration, Apache-2.0) to FORMATS.md files.
+"""Convert the real two-axis positioner recording (industrial_calibration, Apache-2.0) to bayescal's files (docs/formats.md).
 
 Source: ``../shared/data/real/positioner/`` (``measurements.yaml``,
 ``pose_initial_guesses.yaml``, ``LICENSE``, ``nominal.md``), copied
@@ -14,6 +14,9 @@ Writes ``examples/positioner/``:
   source's initial guess of the target mount as the tool frame;
 * ``recording.csv``: ``q1, q2`` (rad), the measured target pose in the sensor
   frame (``x, y, z`` mm, ``rx, ry, rz`` rotation vector), and the source keys;
+* ``source/``: ``measurements.yaml`` and ``pose_initial_guesses.yaml`` byte
+  for byte (the independent baselines of ``studies/positioner_source.py`` and
+  the tests read them there, so they run on a fresh clone);
 * ``README.md`` (attribution, conversion, what is known) and ``LICENSE``.
 
 DH to URDF: a DH row is ``Tz(d_i) Rz(theta_i) Rz(q_i) Tx(r_i) Rx(alpha_i)``.  The
@@ -56,6 +59,10 @@ OUT = ROOT / "examples" / "positioner"
 COMMIT = "fe62b7c9b7b347ee047a6fee6f417cd8427b2836"
 REPO = "https://github.com/ros-industrial/industrial_calibration"
 SOURCE_PATH = "examples/data/kinematic_calibration"
+#: The source files bundled in ``examples/positioner/source/`` and their git blob ids (the shared data set's README).
+SOURCE_FILES = ("measurements.yaml", "pose_initial_guesses.yaml")
+BLOBS = {"measurements.yaml": "eb9fc9cf0e2377c8b2fc0a85db4466ed3f13236a",
+         "pose_initial_guesses.yaml": "41ee6fdce4d63ebc2f9bc6f0fae9725a2d82b911"}
 
 #: ``createTwoAxisPositioner()``: DH rows [d (m), theta (rad), r (m), alpha (rad)], both revolute.
 DH = np.array([[0.0, 0.0, 0.0, -np.pi / 2], [-0.475, -np.pi / 2, 0.0, 0.0]])
@@ -184,8 +191,9 @@ sensor that reports the full 6-DOF pose of a target on the turntable: 205 poses,
   and `{SOURCE_PATH}/pose_initial_guesses.yaml` (git blob `41ee6fdce4d63ebc2f9bc6f0fae9725a2d82b911`);
   nominal model from `examples/kinematic_calibration.cpp` (`createTwoAxisPositioner()`).
 * License: Apache License 2.0, copied in [LICENSE](LICENSE) from the same commit.
-  The files here are derived from the source data by `studies/convert_positioner.py`
-  (units and representation changed as described below; no measured value changed).
+  The two YAML files are in `source/`, byte for byte; `machine.toml` and `recording.csv`
+  are derived from them by `studies/convert_positioner.py` (units and representation
+  changed as described below; no measured value changed).
 
 ## Files
 
@@ -236,7 +244,7 @@ Regenerate with `python studies/convert_positioner.py`.
 
 
 def convert(source: Path, out: Path) -> None:
-    """Read the source YAML files and write the example directory."""
+    """Read the source YAML files and write the example directory (``out/source`` may be ``source`` itself)."""
     import yaml  # PyYAML: only this one-off conversion needs it
 
     measurements = yaml.safe_load((source / "measurements.yaml").read_text())
@@ -246,7 +254,14 @@ def convert(source: Path, out: Path) -> None:
     write_text_atomic(out / "machine.toml", machine_text(mount))
     write_text_atomic(out / "recording.csv", recording_text(measurements))
     write_text_atomic(out / "README.md", README)
-    shutil.copyfile(source / "LICENSE", out / "LICENSE")
+    keep = out / "source"
+    if keep.resolve() != source.resolve():
+        keep.mkdir(exist_ok=True)
+        for name in SOURCE_FILES:
+            shutil.copyfile(source / name, keep / name)
+    licence = source / "LICENSE" if (source / "LICENSE").is_file() else source.parent / "LICENSE"
+    if licence.resolve() != (out / "LICENSE").resolve():
+        shutil.copyfile(licence, out / "LICENSE")
 
 
 def main(argv=None) -> int:
@@ -255,7 +270,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=OUT, help="example directory to write")
     args = p.parse_args(argv)
     convert(args.source, args.out)
-    print(f"wrote {args.out}/machine.toml, recording.csv, README.md, LICENSE")
+    print(f"wrote {args.out}/machine.toml, recording.csv, README.md, LICENSE, source/")
     return 0
 
 

@@ -2,8 +2,9 @@
 
 The two real recordings of ``docs/real-recordings.md``: the two-axis
 positioner (``examples/positioner``, 205 poses, 6-DOF, Apache-2.0) and the
-TIAGo arm (``../shared/data/real/tiago``, 34 poses, position only, its URDF
-read in place: CC BY-NC-ND, never copied).  Each is cut into folds; every
+TIAGo arm (``examples/tiago``, 34 poses, position only, Apache-2.0; its chain
+written from the kinematic parameters of the URDF, whose file is CC BY-NC-ND
+and not used).  Each is cut into folds; every
 fold is held out as ``role = check`` rows of the same recording and
 calibrated exactly as ``bayescal identify --method map --frame fit
 [--discrepancy auto]`` calibrates it (bayescal.load and bayescal.calibrate,
@@ -20,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -83,16 +83,9 @@ def main(argv=None) -> int:
     pos_m = load_machine(ROOT / "examples" / "positioner" / "machine.toml")
     pos_r = read_recording(ROOT / "examples" / "positioner" / "recording.csv")
     results["positioner"] = run("positioner", pos_m, pos_r, 3 if args.quick else 10)
-    shared = rc.SHARED / "tiago"
-    from real_recordings import TIAGO_URDF, tiago_files
-
-    if (shared / TIAGO_URDF).is_file():
-        with tempfile.TemporaryDirectory(prefix="bayescal_tiago_") as tmp:
-            mp, rp = tiago_files(Path(tmp), shared)
-            m, r = load_machine(mp), read_recording(rp)
-            results["tiago"] = run("tiago", m, r, 3 if args.quick else r.n_poses)
-    else:
-        print("TIAGo data absent (../shared/data/real/tiago): skipped")
+    tiago = ROOT / "examples" / "tiago"  # bundled (studies/convert_tiago.py); the CC BY-NC-ND URDF is not used
+    m, r = load_machine(tiago / "machine.toml"), read_recording(tiago / "recording.csv")
+    results["tiago"] = run("tiago", m, r, 3 if args.quick else r.n_poses)
     if not args.quick:
         write_json_atomic(args.out, results)
     return 0

@@ -24,11 +24,11 @@ that leave it effectively free.
    the noise estimated from each fold's training residuals) on held-out poses.
 4. ``bayescal diagnose --frame fit``.
 
-**TIAGo** (``../shared/data/real/tiago/``: CSV Apache-2.0, URDFs CC BY-NC-ND:
-read, never copied).  The machine file (``urdf = ...``, ``base_footprint`` to
-``wrist_ft_tool_link``) and the recording (x1, y1, z1 in mm; torso in mm) are
-written into a temporary folder at run time.  Frame (mocap frame) and tool
-point fitted; leave-one-out and k-fold cross-validation of registration
+**TIAGo** (``examples/tiago/``, converted once by ``studies/convert_tiago.py``
+from the Apache-2.0 figaroh recording; the chain, ``base_footprint`` to
+``wrist_ft_tool_link``, is written from the kinematic parameters of the URDF
+figaroh loads, whose file is CC BY-NC-ND and not used).  Frame (mocap frame)
+and tool point fitted; leave-one-out and k-fold cross-validation of registration
 only, ``ls`` / ``map`` / ``ridge``; an independent registration by scipy;
 the rows bayescal flags against those the data's README names; ``diagnose``.
 
@@ -40,7 +40,8 @@ Run::
 only, two folds, the scipy full-parameter baseline only (started from the
 source's guesses), no diagnosis, a 3-fold TIAGo cross-validation instead of
 leave-one-out, one command-line run.
-Without ``../shared`` only the positioner's bayescal part runs.
+Everything runs from the bundled examples (the positioner's source YAML, for the
+independent baselines, is bundled in ``examples/positioner/source/``).
 """
 
 from __future__ import annotations
@@ -133,13 +134,13 @@ def positioner(out: Path, *, quick: bool, seed: int, folds: int, t0: float) -> d
     ]
 
     # ---- 2./3. k-fold cross-validation by observation
-    shared = rc.SHARED / "positioner"
+    source = ROOT / "examples" / "positioner" / "source"  # the source YAML, bundled (Apache-2.0)
     src = None
-    if (shared / "measurements.yaml").is_file():
+    if (source / "measurements.yaml").is_file():
         import positioner_source as ps
 
-        data = ps.load_positioner(shared)
-        guesses = ps.load_guesses(shared)
+        data = ps.load_positioner(source)
+        guesses = ps.load_guesses(source)
         # the recording is the converter's output, row for row (same keys, same order)
         assert np.array_equal(np.array(data.keys, dtype=float), rec.aux["source_key"])
         src = (ps, data, guesses)
@@ -277,70 +278,22 @@ def _figures_positioner(out: Path, held: dict, cov, n: int) -> None:
 
 
 # ================================================================ TIAGo
-TIAGO_URDF = "tiago_48_schunk.urdf"  # the URDF figaroh's calibration.py loads (README of the data set)
-TIAGO_JOINTS = ("torso_lift_joint",) + tuple(f"arm_{i}_joint" for i in range(1, 8))
-#: Nominal tolerances of the arm's geometry (one sigma; mm, rad): a few tenths of a degree and a millimetre or
-#: two for a cast and machined arm.  The tool point (the virtual mocap point on the hand) is unknown: 1 m.
-TIAGO_TOLERANCE = {"origin": 2.0, "rpy": 0.005, "axis": 0.005, "offset_angle": 0.005, "offset_length": 2.0,
-                   "tool_point": 1000.0, "tool_rpy": 1.0}
-#: Position noise of the machine file (mm).  Not a specification: upstream quotes a median rigid-body point noise of
-#: 0.2 mm for the rebuilt sessions; this file's floor is the timing defect and the arm (see the docs page), so the
-#: study estimates the noise from training residuals instead of trusting this number.
-TIAGO_SIGMA = 1.0
+#: The bundled example (studies/convert_tiago.py: the Apache-2.0 recording, and the chain written from the kinematic
+#: parameters of tiago_48_schunk.urdf, the URDF figaroh's calibration.py loads; the CC BY-NC-ND URDF is not used).
+TIAGO = ROOT / "examples" / "tiago"
 
 
-def tiago_files(folder: Path, shared: Path) -> tuple[Path, Path]:
-    """Write the TIAGo machine file and recording into ``folder`` (a temporary folder: nothing is bundled).
+def tiago_scipy_registration(rec, n_starts: int = 20) -> dict:
+    """Independent registration (frame + tool point) by numpy's 4x4 forward kinematics and scipy, random starts.
 
-    The machine file points at the URDF in ``shared`` (CC BY-NC-ND: read in place, never copied).
-    The recording keeps the CSV's row order, so its line numbers are the source CSV's.
+    The forward kinematics is ``convert_tiago.forward`` (the chain's table composed with scipy's rotations),
+    not bayescal's serial model.
     """
-    import csv
-
-    toml = "\n".join([
-        'kind = "serial"',
-        'name = "PAL TIAGo, torso + 7R arm (figaroh mocap set)"',
-        f'urdf = "{(shared / TIAGO_URDF).as_posix()}"',
-        'base_link = "base_footprint"',
-        'tip_link = "wrist_ft_tool_link"',
-        "", "[tool]", "point = [0.0, 0.0, 0.0]",
-        "", "[measurement]", f"sigma_position = {TIAGO_SIGMA}", "sigma_angle = 0.001",
-        "", "[tolerance]", *(f"{k} = {v}" for k, v in TIAGO_TOLERANCE.items()), "",
-    ])
-    with open(shared / "qualysis_base_hand_calibration.csv", newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    lines = [",".join([f"q{i + 1}" for i in range(8)] + ["x", "y", "z", "source_line"])]
-    for k, row in enumerate(rows):
-        q = [float(row[j]) for j in TIAGO_JOINTS]
-        q[0] *= 1000.0  # torso lift, m -> mm
-        p = [1000.0 * float(row[c]) for c in ("x1", "y1", "z1")]
-        lines.append(",".join(repr(v) for v in q + p) + f",{k + 2}")
-    machine_path, rec_path = folder / "tiago.toml", folder / "tiago.csv"
-    # the recorded torso reaches 350.18 mm, past the URDF's 350 mm limit (an encoder reading beyond the
-    # soft limit): the recording is the truth, so the limits are the URDF's widened by 1 mm / 0.01 rad
-    write_text_atomic(machine_path, toml)
-    lim = load_machine(machine_path).q_limits + np.array([-1.0, 1.0]) * np.array([[1.0]] + [[0.01]] * 7)
-    toml += "\n[workspace]                    # the URDF's limits, widened (see studies/real_recordings.py)\n"
-    toml += "q_limits = [" + ", ".join(f"[{float(a)!r}, {float(b)!r}]" for a, b in lim) + "]\n"
-    write_text_atomic(machine_path, toml)
-    write_text_atomic(rec_path, "\n".join(lines) + "\n")
-    return machine_path, rec_path
-
-
-def tiago_scipy_registration(shared: Path, rec, n_starts: int = 20) -> dict:
-    """Independent registration (frame + tool point) by yourdfpy's forward kinematics and scipy, random starts."""
-    import yourdfpy
+    import convert_tiago as ct
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
-    robot = yourdfpy.URDF.load(str(shared / TIAGO_URDF), load_meshes=False, build_scene_graph=True)
-    T = []
-    for q in rec.q:
-        cfg = {j: (q[0] / 1000.0 if j == "torso_lift_joint" else q[i]) for i, j in enumerate(TIAGO_JOINTS)}
-        robot.update_cfg(cfg)
-        T.append(robot.get_transform("wrist_ft_tool_link", "base_footprint"))
-    T = np.array(T)
-    T[:, :3, 3] *= 1000.0
+    T = ct.forward(rec.q)  # wrist_ft_tool_link in base_footprint, mm
     y = rec.position
 
     def resid(x):
@@ -362,13 +315,12 @@ def tiago_scipy_registration(shared: Path, rec, n_starts: int = 20) -> dict:
 
 
 def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
-    shared = rc.SHARED / "tiago"
-    if not (shared / TIAGO_URDF).is_file():
-        print("TIAGo data absent (../shared/data/real/tiago): skipped")
+    machine_path, rec_path = TIAGO / "machine.toml", TIAGO / "recording.csv"
+    if not rec_path.is_file():
+        print(f"TIAGo example absent ({TIAGO}): skipped")
         return None
     result: dict = {}
     with tempfile.TemporaryDirectory(prefix="bayescal_tiago_") as tmp:
-        machine_path, rec_path = tiago_files(Path(tmp), shared)
         machine = load_machine(machine_path)
         rec = read_recording(rec_path)
         fm, model = rc.prepare(machine, rec)
@@ -406,15 +358,16 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
         frame = fm.frame_at(reg.theta)
         # the machine's tool point lives in the last moving joint's frame (arm_7_link; the fixed joints to
         # wrist_ft_tool_link are folded in): carried back into wrist_ft_tool_link to compare with the README
-        from bayescal.machines.urdf import chain_from_urdf
+        import convert_tiago as ct
 
-        R_tail, p_tail = chain_from_urdf(shared / TIAGO_URDF, "base_footprint", "wrist_ft_tool_link").tail
+        tail = ct.folded_chain()[1]
+        R_tail, p_tail = tail[:3, :3], tail[:3, 3] * ct.M_TO_MM
         tool_arm7 = fm.tool_point + reg.theta[[names.index(n) for n in TOOL3]]
         result["registration_frame"] = {"origin_mm": frame.origin.tolist(), "rotation_vector": frame.rotation_vector.tolist(),
                                         "tool_mm": (R_tail.T @ (tool_arm7 - p_tail)).tolist()}
 
         # ---- independent registration
-        sc = tiago_scipy_registration(shared, rec, 5 if quick else 20)
+        sc = tiago_scipy_registration(rec, 5 if quick else 20)
         pos_reg, _, _ = rc.pose_errors(model, reg.theta)
         result["scipy_registration"] = {k: v for k, v in sc.items() if k != "per_pose"}
         result["scipy_vs_bayescal_per_pose_max_diff_mm"] = float(np.max(np.abs(sc["per_pose"] - pos_reg)))
@@ -438,7 +391,7 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
         result["worst_lines_heldout_registration"] = [[int(i) + 2, float(held["registration"][i])] for i in order[:6]]
         _stamp("tiago cross-validation done", t0)
 
-        # ---- bayescal's outlier screen (FORMATS.md section 4), from the registered machine (no local minimum)
+        # ---- bayescal's outlier screen (docs/formats.md section 4), from the registered machine (no local minimum)
         result["outlier_screen"] = _outlier_screen(fm.to_toml(reg.theta), rec, Path(tmp), REG)
         _stamp("tiago outlier screen done", t0)
 
@@ -584,7 +537,7 @@ def tables(res: dict) -> str:
                 else [k, v["n_free"], "refused: " + (v.get("message") or "not successful").split(":")[0], None, None]
                 for k, v in t["in_sample"].items()]
         s = t["scipy_registration"]
-        rows.append(["registration, independent (yourdfpy + scipy, random starts)", 9, None, s["rms"], s["max"]])
+        rows.append(["registration, independent (numpy 4x4 chain + scipy, random starts)", 9, None, s["rms"], s["max"]])
         out.append(rc.fmt_table(["fit", "free", "mean mm", "RMS mm", "max mm"], rows))
         out.append(f"\n### TIAGo: held out ({t['cv_kind']})\n")
         out.append(rc.fmt_table(["fit", "mean mm", "RMS mm", "max mm"],

@@ -162,7 +162,7 @@ def test_ballbar_on_a_2t1r_machine_in_the_plane_it_moves_in():
 
 
 def test_a_machine_files_instrument_frame_does_not_move_heights():
-    # FORMATS.md section 6: a height is z of the tool point in the base frame; a machine file's [instrument]
+    # docs/formats.md section 6: a height is z of the tool point in the base frame; a machine file's [instrument]
     # table (the pose recordings' frame) must not turn it into the instrument's z (before: heights were
     # predicted 48-50 mm off with this frame, and identify fitted nonsense)
     from bayescal.errors import InputError

@@ -228,7 +228,7 @@ def compensation_grid(
     correction = -(reached - nominal.position)
     std, source = tool_point_std_at(machine, q, theta, free, covariance=covariance, samples=samples, caller="compensation_grid",
                                     dq_dtheta=dq_dtheta)
-    unit = "mm or rad per actuator"  # FORMATS.md: mm for prismatic, rad for revolute actuators
+    unit = "mm or rad per actuator"  # docs/formats.md section 2: mm for prismatic, rad for revolute actuators
     return CompensationGrid(
         machine_name=machine.name,
         axis_names=tuple(f"q{i + 1}" for i in range(machine.n_actuators)),

@@ -1,4 +1,4 @@
-"""Shared output of the probabilistic methods: the FORMATS.md parameter list and correlation flags."""
+"""Shared output of the probabilistic methods: the parameter list of docs/formats.md section 3 and correlation flags."""
 
 from __future__ import annotations
 

@@ -109,7 +109,7 @@ class ToolGrid:
         return self.axes[1].size == 1 and self.axes[0].size >= 2 and self.axes[2].size >= 2
 
     def to_nc_csv(self) -> str:
-        """The NC-loadable CSV (docs/formats.md): BIC columns for a planar grid, else ``NC_COLUMNS``."""
+        """The NC-loadable CSV (docs/formats.md section E8): BIC columns for a planar grid, else ``NC_COLUMNS``."""
         if self.planar:
             from ..compensation import CompensationGrid
 

@@ -27,7 +27,7 @@ Methods: registry names, comma separated, options after a colon
 
 With --recording CSV every trial re-measures what that recording measured
 (its poses, or the distance pairs, heights and ballbar circles of a
-constraint recording, FORMATS.md section 6) on its true machine, so the
+constraint recording, docs/formats.md section 6) on its true machine, so the
 methods are compared on the user's own measurement plan; ballbar pivots
 are fitted as nuisance parameters and the output error is the geometry's.
 

@@ -25,7 +25,7 @@ Diagnose what the geometric model leaves out.
    decisive (> ln 100) and the leave-poses-out cross-validated position RMS
    improves; combine effects by greedy forward selection.
 
-A constraint recording (distances, heights, ballbar readings; FORMATS.md
+A constraint recording (distances, heights, ballbar readings; docs/formats.md
 section 6) is diagnosed the same way, one row per measurement: the effects
 act on the actuator positions of every pose a row measures (a distance's
 pose a, then its pose b, in that time order), the pose region is the tool
@@ -36,7 +36,7 @@ Verdict: an effect name, "none" (noise explains the residuals) or
 
 --write-machine PATH writes the calibrated machine: the geometry fitted
 jointly with the selected effects, plus those effects as [effect.<name>]
-tables, which identify, grid and simulate then apply (FORMATS.md section 7).
+tables, which identify, grid and simulate then apply (docs/formats.md section 7).
 Verdict none: the geometry-only calibration. Verdict unexplained: the
 geometry fitted with whatever effects were selected (else geometry only),
 with a warning on stderr. Effect tables in the --machine file are not
@@ -98,7 +98,7 @@ def run(args) -> int:
     if machine.effects and not args.quiet:
         print(f"note: the [effect.*] tables of {args.machine} are not applied: the diagnosis fits every effect afresh")
     result = diagnose(machine, rec, effects=effects, seed=args.seed, effect_settings=effect_inputs(machine, args.effect_input))
-    # --frame fit: the fitted instrument frame (FORMATS.md section 4)
+    # --frame fit: the fitted instrument frame (docs/formats.md section 4)
     from .instrument import fitted_frame_answer, instrument_frame_line
 
     frame = fitted_frame_answer(machine, model)
@@ -175,7 +175,7 @@ def effect_inputs(machine, items: list[str]) -> dict[str, dict]:
 
 
 def _write_calibrated(args, machine, result, calibrated) -> None:
-    """Write the calibrated machine: one file, or a hybrid in FORMATS.md section 5's file-per-module form
+    """Write the calibrated machine: one file, or a hybrid in docs/formats.md section 5's file-per-module form
     (:meth:`bayescal.diagnose.calibrated.CalibratedMachine.write`)."""
     calibrated.write(args.write_machine)
 

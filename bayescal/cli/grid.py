@@ -35,7 +35,7 @@ Grid nodes have no approach direction, so backlash is not in the grid
 parameters are identified with the geometry (identify --fit-effects), the
 grid applies the fitted values, and its std carries their uncertainty.
 
-A constraint recording (distances, heights, ballbar readings; FORMATS.md
+A constraint recording (distances, heights, ballbar readings; docs/formats.md
 section 6) gives the grid of the geometry it calibrates; ballbar pivots are
 nuisance parameters, fitted and left out of the grid (so is a fitted
 instrument frame).
@@ -43,7 +43,7 @@ instrument frame).
 --space tool spans the grid over the nominal tool point instead (x, y, z in
 mm, the coordinates the actuators set; nominal inverse kinematics at every
 node): at each node the residual error (actual minus commanded) and its
-std.  --nc CSV writes it in the NC-loadable format (docs/formats.md: the BIC
+std.  --nc CSV writes it in the NC-loadable format (docs/formats.md section E8: the BIC
 columns i,j,x,z,ex,ez,std_ex,std_ez for a planar machine such as the
 RASPM-2T1R, otherwise i,j,k,x,y,z,ex,ey,ez,std_ex,std_ey,std_ez).  The
 default space is 'actuator' where every actuator vector within q_limits
@@ -91,7 +91,7 @@ def register(sub) -> None:
                    "actuator otherwise)")
     p.add_argument("--range", action="append", default=[], metavar="NAME=LO:HI", dest="ranges",
                    help="narrow one grid axis (repeatable): q1..qN (actuator unit) or x, y, z (mm)")
-    p.add_argument("--nc", metavar="CSV", help="tool space: write the NC-loadable grid CSV (docs/formats.md)")
+    p.add_argument("--nc", metavar="CSV", help="tool space: write the NC-loadable grid CSV (docs/formats.md section E8)")
     p.add_argument("--out", metavar="CSV", help="write the grid as CSV")
     p.add_argument("--figure", metavar="PNG", help="draw correction and std heat maps")
     p.add_argument("--json", metavar="PATH", help="write a summary as JSON")
@@ -177,7 +177,7 @@ def run(args) -> int:
         say(args, f"wrote {args.out} (grid CSV, {space} space)")
     if args.nc:
         grid.write_nc_csv(args.nc)
-        say(args, f"wrote {args.nc} (NC-loadable grid CSV, docs/formats.md)")
+        say(args, f"wrote {args.nc} (NC-loadable grid CSV, docs/formats.md section E8)")
     if args.figure:
         from ..plots.bayes import plot_grid
 

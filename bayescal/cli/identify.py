@@ -70,7 +70,7 @@ with --lam 1).
 A machine file with [effect.<name>] tables (written by diagnose
 --write-machine) has those effects applied at their stored values, driven by
 the recording's auxiliary channels and measurement order: only the geometry
-is identified, and --write-machine keeps the tables (FORMATS.md section 7).
+is identified, and --write-machine keeps the tables (docs/formats.md section 7).
 With --fit-effects (--method map or mcmc) the effects' parameters are
 unknowns too, under the effects' own priors, started at the stored values:
 the MAP and its covariance, or the posterior, are joint, so the geometry's

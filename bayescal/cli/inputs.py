@@ -24,7 +24,7 @@ def recording_model(args: argparse.Namespace, *, constraints: bool = False) -> t
 
     Raises a BayescalError naming the recording's file and line when the
     machine cannot assemble one of its poses at the nominal geometry.  A
-    constraint recording (FORMATS.md section 6, a ``measure`` column) gives a
+    constraint recording (docs/formats.md section 6, a ``measure`` column) gives a
     :class:`~bayescal.constraint_model.ConstraintModel` when the command
     takes one (``constraints=True``), and a clear error otherwise.
     With ``args.frame`` (``--frame base|fit``) see :func:`instrument_inputs`.
@@ -37,7 +37,7 @@ def recording_model(args: argparse.Namespace, *, constraints: bool = False) -> t
     if constrained is not None:
         return constrained
     rec = read_recording(args.recording)
-    if rec.is_check.any():  # FORMATS.md section 8: check rows are never identified from
+    if rec.is_check.any():  # docs/formats.md section 8: check rows are never identified from
         import numpy as np
 
         rec = rec.subset(np.flatnonzero(~rec.is_check))
@@ -47,7 +47,7 @@ def recording_model(args: argparse.Namespace, *, constraints: bool = False) -> t
 
 
 def _constraint_inputs(args: argparse.Namespace, machine: Machine, constraints: bool):
-    """``(machine, recording, ConstraintModel)`` for a constraint recording (FORMATS.md section 6), else None."""
+    """``(machine, recording, ConstraintModel)`` for a constraint recording (docs/formats.md section 6), else None."""
     from ..io.constraints import is_constraint_recording
 
     if not is_constraint_recording(args.recording):
@@ -64,13 +64,13 @@ def _constraint_inputs(args: argparse.Namespace, machine: Machine, constraints: 
     if getattr(args, "frame", "base") == "fit":
         raise InputError(
             f"--frame fit: {args.recording} is a constraint recording; distances and ballbar radii do not see an "
-            "instrument frame, and heights are measured along the base z axis (FORMATS.md section 6): drop --frame fit"
+            "instrument frame, and heights are measured along the base z axis (docs/formats.md section 6): drop --frame fit"
         )
     crec = read_constraints(args.recording)
     return machine, crec, ConstraintModel.from_recording(machine, crec, dof=getattr(args, "dof", None))
 
 
-# ---------------------------------------------------------------- instrument frame (FORMATS.md section 4)
+# ---------------------------------------------------------------- instrument frame (docs/formats.md section 4)
 FRAME_HELP = (
     "frame of the recording: 'base' (default: the machine's base frame, or the machine file's [instrument] "
     "frame) or 'fit' (an unknown instrument frame, fitted with the geometry; docs/real-instruments.md)"
@@ -92,7 +92,7 @@ def instrument_inputs(args: argparse.Namespace, *, constraints: bool = False):
     angles like degrees).  With ``--frame base``, a recording that a rigid
     transform explains far better than the tolerances gets a warning on
     stderr suggesting ``--frame fit`` (unless ``--quiet``).  ``check`` rows
-    (FORMATS.md section 8) are left out: :func:`instrument_session` keeps them.
+    (docs/formats.md section 8) are left out: :func:`instrument_session` keeps them.
     """
     return inputs_with_session(args, constraints=constraints)[:4]
 
@@ -123,6 +123,7 @@ def instrument_session(args: argparse.Namespace, machine=None):
     machine = load_machine(args.machine) if machine is None else machine
     rec = read_recording(args.recording)
     session = prepare_session(machine, rec, dof=getattr(args, "dof", None), frame=getattr(args, "frame", "base"))
-    if session.check is not None and session.check.fires and not getattr(args, "quiet", False):
-        print(f"bayescal {args.command}: warning: {session.check.message()}", file=sys.stderr)
+    warning = None if session.check is None else session.check.warning()
+    if warning and not getattr(args, "quiet", False):
+        print(f"bayescal {args.command}: warning: {warning}", file=sys.stderr)
     return session

@@ -170,7 +170,7 @@ def write_calibrated_machine(args: argparse.Namespace, machine, theta) -> Path |
     """Write the calibrated machine (``nominal + theta``) to ``args.write_machine`` and say so.
 
     Every kind is one file (its ``[effect.*]`` and ``[instrument]`` tables
-    kept), except a hybrid machine, which is written in FORMATS.md section
+    kept), except a hybrid machine, which is written in docs/formats.md section
     5's file-per-module form (``<stem>.m<k>.toml`` beside it, listed with
     ``file = ...``) so that any reader of that format reads it; its
     ``[effect.*]`` and ``[instrument]`` tables, if any, go into the main file.

@@ -107,7 +107,7 @@ def register(sub) -> None:
     p.add_argument("--spacing", type=float, help="grid spacing in mm (default radius/4)")
     p.add_argument("--sigma", type=float, help="noise of a planned measurement in mm (default [measurement] sigma_position)")
     p.add_argument("--min-distance", type=float, default=0.0, help="shortest distance to plan, mm (default 0)")
-    p.add_argument("--out", required=True, help="CSV to write (poses: q1..qN, pose_id, docs/formats.md section 4; relations: a constraint recording)")
+    p.add_argument("--out", required=True, help="CSV to write (poses: q1..qN, pose_id, docs/formats.md section E7; relations: a constraint recording)")
     p.add_argument("--json", metavar="PATH", help="write the plan and its criterion values as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.add_argument(

@@ -36,7 +36,7 @@ examples:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "predict", help="predict a new recording from a calibrated machine, with 90 % regions",
+        "predict", help="predict a new recording from a calibrated machine, with 90 %% regions",
         description=HELP, epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recording", help="recording CSV (docs/formats.md sections 2, 4 and 8: station and role columns)")

@@ -69,7 +69,7 @@ def register(sub) -> None:
     p.add_argument("--poses", type=int, help="number of measured poses, drawn within q_limits (or --poses-file)")
     p.add_argument("--poses-file", metavar="CSV",
                    help="simulate at these commanded poses instead: a CSV with columns q1..qN (the plan 'bayescal plan "
-                   "--out' writes; other columns are ignored), docs/formats.md")
+                   "--out' writes; other columns are ignored), docs/formats.md section E7")
     p.add_argument("--seed", type=int, required=True, help="random seed (errors, poses and noise)")
     p.add_argument("--out", required=True, help="recording CSV to write")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), default=6, help="measurement type (default 6)")
@@ -87,7 +87,7 @@ def register(sub) -> None:
     )
     p.add_argument(
         "--ballbar", type=float, metavar="RADIUS",
-        help="record a ballbar session instead (FORMATS.md section 6): --poses readings per circle of RADIUS mm "
+        help="record a ballbar session instead (docs/formats.md section 6): --poses readings per circle of RADIUS mm "
         "about --pivot, one circle per plane of --planes, written as ballbar rows",
     )
     p.add_argument("--pivot", metavar="X,Y,Z", help="ballbar pivot, base frame, mm (default: the tool point at the middle of q_limits)")

@@ -201,7 +201,7 @@ def compare_methods(
         Backend (see :func:`bayescal.compare.runner.run_trials`).
     recording : path, optional
         A recording (measured poses, or a constraint recording of
-        distances, heights and ballbar readings, FORMATS.md section 6):
+        distances, heights and ballbar readings, docs/formats.md section 6):
         every trial then re-measures what it measured on its true machine,
         with the machine file's noise (or the recording's per-row
         ``sigma_position``), instead of ``n_poses`` drawn poses; ``dof`` as

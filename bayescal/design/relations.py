@@ -126,7 +126,7 @@ def _scaled_rows(machine: Machine, rec: ConstraintRecording, sigma: float | None
 def _given_rows(machine: Machine, given: ConstraintRecording) -> NDArray:
     """Whitened, tolerance-scaled rows of the measurements already taken, on the machine's parameters.
 
-    Ballbar rows (FORMATS.md section 6: every command that takes a recording takes this
+    Ballbar rows (docs/formats.md section 6: every command that takes a recording takes this
     one) bring their pivots as nuisance parameters under the pivot prior; their
     information on the machine is the Schur complement of the pivot block, returned
     as equivalent rows ``R`` with ``R^T R = M_mm - M_mp M_pp^-1 M_pm - I``.

@@ -6,7 +6,7 @@ the leave-one-out variance factor) and, when the diagnosis kept one, the
 model discrepancy (``[discrepancy]``), so that ``bayescal predict`` predicts
 new recordings with honest regions.
 
-``bayescal diagnose --write-machine PATH`` (FORMATS.md section 7):
+``bayescal diagnose --write-machine PATH`` (docs/formats.md section 7):
 
 * verdict an effect: the geometry fitted jointly with every selected effect
   (the verdict's first), and those effects at their fitted values, so that
@@ -61,7 +61,7 @@ class CalibratedMachine:
     warning: str = ""
 
     def write(self, path) -> list:
-        """Write the calibrated machine to ``path``: one file, or a hybrid in FORMATS.md section 5's form.
+        """Write the calibrated machine to ``path``: one file, or a hybrid in docs/formats.md section 5's form.
 
         A hybrid's ``text`` holds its modules inline (``[module.machine]``),
         which bayescal reads but the format contract does not specify; it is

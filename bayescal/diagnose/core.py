@@ -140,7 +140,7 @@ def diagnose(
         Effects it carries (``[effect.*]`` tables) are not applied: every
         effect is fitted afresh with the geometry.
     recording : Recording or ConstraintRecording
-        Rows in measurement order: measured poses (FORMATS.md section 2) or
+        Rows in measurement order: measured poses (docs/formats.md section 2) or
         distances, heights and ballbar readings (section 6), whose poses the
         effects act on (a distance's pose a, then its pose b).
     effects : list of str, optional
@@ -363,7 +363,7 @@ def diagnose(
         note = "; ".join(filter(None, ["look-elsewhere penalty %.1f nats" % c.penalty if c.penalty else "",
                                        c.effect.model_note(c.features)]))
         trials.append(EffectTrial(name, name in sel_names, float(ev), params, cv0, cv, note))
-    trials.sort(key=lambda t: -t.evidence)  # FORMATS.md: most evident first
+    trials.sort(key=lambda t: -t.evidence)  # docs/formats.md section 3: most evident first
     return Diagnosis(
         verdict=verdict,
         effects=tuple(trials),

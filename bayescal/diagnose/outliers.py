@@ -84,7 +84,7 @@ class OutlierScreen:
         return model.with_pose_sigma(sig)
 
     def outliers(self) -> list[dict]:
-        """FORMATS.md section 4 entries of the excluded poses (line order)."""
+        """docs/formats.md section 4 entries of the excluded poses (line order)."""
         t = self.test
         return [
             {"line": int(t.lines[i]), "statistic": float(t.statistic[i]), "p_value": float(t.p_adjusted[i]),

@@ -1,4 +1,4 @@
-"""The answer of a diagnosis (FORMATS.md section 3, ``bayescal diagnose``)."""
+"""The answer of a diagnosis (docs/formats.md section 3, ``bayescal diagnose``)."""
 
 from __future__ import annotations
 
@@ -88,7 +88,7 @@ class Diagnosis:
         Geometric errors of the final model (jointly with the selected
         effects) and of the geometric model alone.
     outliers : OutlierScreen or None
-        Gross-error poses named and excluded before the diagnosis (FORMATS.md section 4).
+        Gross-error poses named and excluded before the diagnosis (docs/formats.md section 4).
     """
 
     verdict: str
@@ -134,7 +134,7 @@ class Diagnosis:
         return self.location.strongest
 
     def to_dict(self) -> dict:
-        """The JSON answer of FORMATS.md section 3 (plus documented extra keys)."""
+        """The JSON answer of docs/formats.md section 3 (plus documented extra keys)."""
         loc = self.located
         return {
             "verdict": self.verdict,
@@ -166,7 +166,7 @@ class Diagnosis:
         }
 
     def _outlier_keys(self) -> dict:
-        """FORMATS.md section 4: ``outliers`` by CSV line and what the diagnosis did with them."""
+        """docs/formats.md section 4: ``outliers`` by CSV line and what the diagnosis did with them."""
         if self.outliers is None:
             return {"outliers": [], "outlier_handling": "not screened"}
         return self.outliers.to_dict()

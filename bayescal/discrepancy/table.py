@@ -1,4 +1,4 @@
-"""The ``[discrepancy]`` table of a calibrated machine file (a bayescal extension of FORMATS.md section 7).
+"""The ``[discrepancy]`` table of a calibrated machine file (a bayescal extension of docs/formats.md section 7).
 
 .. code-block:: toml
 

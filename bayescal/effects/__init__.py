@@ -25,7 +25,7 @@ __all__ = [
     "GravityBacklash",
 ]
 
-#: The library, by stable name (FORMATS.md section 3), in the order they are tried.
+#: The library, by stable name (docs/formats.md section 3), in the order they are tried.
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls for cls in (JointCompliance, ThermalExpansion, Backlash, ScrewPeriodicError, RedundancyPreload,
                               GravityDeflection, GravityBacklash)

@@ -2,7 +2,7 @@
 
 * The gravity direction of each pose: the effect's ``gravity`` input (a base-frame
   direction, ``[0, 0, -1]`` by default) or, when the recording has a base
-  sensor (columns ``accel.base.x``, ``.y``, ``.z``, FORMATS.md section 8), the
+  sensor (columns ``accel.base.x``, ``.y``, ``.z``, docs/formats.md section 8), the
   sensor's reading at that pose.  Only the direction is used.  An
   accelerometer at rest reads the specific force, which points *up*; a sensor
   whose readings point away from the stated direction on most poses is
@@ -27,7 +27,7 @@ from ..machines.base import Machine
 __all__ = ["BASE_SENSOR", "gravity_per_pose", "tilt_basis", "tilted_gravity", "serial_part", "chain_masses",
            "link_middles", "check_masses"]
 
-#: The recording columns of a base tilt sensor (FORMATS.md section 8).
+#: The recording columns of a base tilt sensor (docs/formats.md section 8).
 BASE_SENSOR = ("accel.base.x", "accel.base.y", "accel.base.z")
 
 

@@ -1,6 +1,6 @@
 """A measurement model whose unknowns are the geometry *and* the parameters of the machine file's effects.
 
-Why.  A machine file's ``[effect.*]`` tables (FORMATS.md section 7) hold
+Why.  A machine file's ``[effect.*]`` tables (docs/formats.md section 7) hold
 values fitted by ``diagnose``; every command applies them as fixed
 (:mod:`bayescal.effects.stored`).  A posterior of the geometry alone then
 treats a compliance or a thermal coefficient as known exactly, while the
@@ -340,7 +340,7 @@ def effect_model(machine: Machine, rec, *, dof: int | None = None) -> EffectMode
         instrument frame around the file's machine), with the stored effects
         (``machine.effects``); they become unknowns under their library priors.
     rec : Recording
-        A pose recording (FORMATS.md section 2).
+        A pose recording (docs/formats.md section 2).
     dof : int, optional
         As in :meth:`MeasurementModel.from_recording`.
 

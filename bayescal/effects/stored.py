@@ -1,4 +1,4 @@
-"""Effects stored in a machine file: ``[effect.<name>]`` tables (FORMATS.md section 7).
+"""Effects stored in a machine file: ``[effect.<name>]`` tables (docs/formats.md section 7).
 
 A calibrated machine may carry the physical effects found with it, at fixed
 values, one table per effect, keyed by the effect's parameter names in the
@@ -12,7 +12,7 @@ interface (``not_applicable``, ``features``, ``params``, ``delta_q``) and the
 registry :data:`bayescal.effects.EFFECTS`: a newly registered effect is read,
 written and applied with no code here.
 
-Rules (documented in docs/formats.md):
+Rules (documented in docs/formats.md section E2):
 
 * an unknown effect name, a parameter the effect does not have, a value
   that is not a finite number, or an effect that cannot act on this machine
@@ -58,7 +58,7 @@ __all__ = [
     "static_effect_delta_q", "static_effect_delta_x", "effect_delta_q_jacobian", "effect_delta_q_and_x", "effect_delta_x_jacobian", "static_effect_delta_q_and_jacobian", "StoredEffectsTransform", "machine_file_text", "parse_aux_values", "predict_poses",
 ]
 
-#: Auxiliary channels whose presence can change an effect's parameter set (FORMATS.md section 2).
+#: Auxiliary channels whose presence can change an effect's parameter set (docs/formats.md section 2).
 PROBE_CHANNELS = ("time_s", "temp_C", "payload_kg")
 
 #: The machine-file key of the effect tables.

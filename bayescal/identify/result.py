@@ -219,7 +219,7 @@ class IdentificationResult:
 
     # ----------------------------------------------------------------- output
     def to_dict(self) -> dict:
-        """The JSON answer of ``bayescal identify`` (FORMATS.md section 3), plus details."""
+        """The JSON answer of ``bayescal identify`` (docs/formats.md section 3), plus details."""
         return {
             "machine": self.machine_name,
             "kind": self.kind,

@@ -113,7 +113,7 @@ class OutlierHandling:
         return replace(self, test=_unflag(t) if self.structural else t)
 
     def to_dict(self) -> dict:
-        """JSON keys: ``outliers`` (FORMATS.md section 4), ``outlier_handling``, ``outlier_test`` (every pose)."""
+        """JSON keys: ``outliers`` (docs/formats.md section 4), ``outlier_handling``, ``outlier_test`` (every pose)."""
         if self.test is None:
             return {"outliers": [], "outlier_handling": self.action, "outlier_test": None}
         return {

@@ -1,4 +1,4 @@
-"""Recordings as instruments deliver them (FORMATS.md section 4).
+"""Recordings as instruments deliver them (docs/formats.md section 4).
 
 * :mod:`~bayescal.instrument.alignment`: closed-form rigid alignment (the start
   of ``--frame fit``) and the check that suggests it;

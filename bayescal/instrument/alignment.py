@@ -11,6 +11,7 @@ and translations of any size are recovered.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -162,7 +163,19 @@ def register_with_tool_offset(
 
 @dataclass(frozen=True)
 class FrameCheck:
-    """Does a rigid transform explain the recording far better than the tolerances?
+    """Does a rigid transform explain the recording far better than the tolerances, or does a simpler mistake?
+
+    Three mistakes move a whole recording away from the nominal machine; each is
+    fitted to the tool points in closed form and the one that explains them best
+    (smallest RMS, at least :attr:`DROP` times below the nominal RMS) is named
+    (:attr:`explanation`):
+
+    * ``"frame"``: the recording is in an instrument's frame (a rigid transform);
+    * ``"tool"``: the machine file's ``[tool] point`` is wrong (a tool length):
+      an offset of the tool point, fixed in the tool's own frame, moves every
+      measured point by the pose's rotation of it;
+    * ``"swap"``: two position columns are exchanged (a reflection, which no
+      rigid transform can undo), possibly in an instrument's frame as well.
 
     Attributes
     ----------
@@ -178,6 +191,24 @@ class FrameCheck:
     scale : float
         Spread of the nominal points over the spread of the measured ones
         (1 when the units agree).
+    rms_tool : float
+        Tool-point RMS (mm) after the best offset of the tool point (no frame); NaN when the machine has
+        no single ``tool.point`` (a hybrid machine).
+    tool_offset : ndarray, shape (3,), or None
+        That offset of ``[tool] point``, mm, in the frame the machine file gives the point in.
+    tool_sigmas : float
+        Its largest component in tolerances of ``tool_point``.
+    swapped : str
+        The exchanged columns that explain the recording best (``"x, y"``), ``"mirrored"`` when a
+        mirror image needs a rigid transform as well (which columns cannot be told then), or ``""``.
+    rms_swapped : float
+        Tool-point RMS (mm) with those columns exchanged back (after a rigid transform when
+        ``swapped_aligned``); NaN when not computed.
+    swapped_aligned : bool
+        The mirror image needs a rigid transform as well (an instrument frame).
+    rms_tolerance_machine : float
+        :attr:`rms_tolerance` without the tool's parameters: what the machine's own tolerances
+        explain when the file declares the tool point unknown (a tolerance of a metre).
     """
 
     rms_nominal: float
@@ -185,6 +216,13 @@ class FrameCheck:
     rms_tolerance: float
     frame: Frame
     scale: float
+    rms_tool: float = float("nan")
+    tool_offset: NDArray | None = None
+    tool_sigmas: float = float("nan")
+    swapped: str = ""
+    rms_swapped: float = float("nan")
+    swapped_aligned: bool = False
+    rms_tolerance_machine: float = float("nan")
 
     #: The nominal RMS must exceed the tolerance RMS by this factor ...
     BEYOND = 5.0
@@ -192,11 +230,34 @@ class FrameCheck:
     DROP = 5.0
     #: Firing with a nominal RMS above this many times the tolerance RMS: refused, not warned.
     REFUSE = 100.0
+    #: A tool-point offset within this many tolerances is the identification's business, not a mistake.
+    TOOL_SIGMAS = 10.0
+
+    @property
+    def explanation(self) -> str | None:
+        """``"frame"``, ``"tool"`` or ``"swap"``: the mistake that explains the recording best, or None.
+
+        A candidate must cut the nominal RMS by :attr:`DROP`; a tool offset must
+        also lie beyond :attr:`TOOL_SIGMAS` tolerances, and an exchange of columns
+        must beat the best rigid transform by :attr:`DROP` too (for points in a
+        plane, a rotation undoes an exchange: that is a frame).  The smallest RMS wins.
+        """
+        cands = {"frame": self.rms_rigid}
+        if math.isfinite(self.rms_swapped) and self.rms_swapped * self.DROP < self.rms_rigid:
+            cands["swap"] = self.rms_swapped
+        if math.isfinite(self.tool_sigmas) and self.tool_sigmas > self.TOOL_SIGMAS:
+            cands["tool"] = self.rms_tool
+        ok = {k: v for k, v in cands.items() if math.isfinite(v) and v * self.DROP < self.rms_nominal}
+        return min(ok, key=ok.get) if ok else None
 
     @property
     def fires(self) -> bool:
-        """True when a rigid transform, not the tolerances, explains the recording (suggest ``--frame fit``)."""
-        return self.rms_nominal > self.BEYOND * self.rms_tolerance and self.rms_rigid * self.DROP < self.rms_nominal
+        """True when a rigid transform, not the tolerances nor a simpler mistake, explains the recording.
+
+        Then suggest ``--frame fit``: the nominal RMS exceeds :attr:`BEYOND` times what
+        the tolerances explain, and the rigid transform is the best explanation.
+        """
+        return self.rms_nominal > self.BEYOND * self.rms_tolerance and self.explanation == "frame"
 
     @property
     def refuses(self) -> bool:
@@ -208,20 +269,67 @@ class FrameCheck:
         """Rotation angle of the rigid transform, rad."""
         return float(np.linalg.norm(self.frame.rotation_vector))
 
+    def _rigid_words(self) -> str:
+        return (f"a rigid transform (translation {np.linalg.norm(self.frame.origin):.4g} mm, rotation "
+                f"{np.degrees(self.angle):.3g} deg)")
+
     def message(self) -> str:
         return (
             f"the recording's tool points are {self.rms_nominal:.4g} mm RMS from the nominal machine, far more than the "
-            f"{self.rms_tolerance:.3g} mm its tolerances explain, and a rigid transform (translation "
-            f"{np.linalg.norm(self.frame.origin):.4g} mm, rotation {np.degrees(self.angle):.3g} deg) brings them to "
+            f"{self.rms_tolerance:.3g} mm its tolerances explain, and {self._rigid_words()} brings them to "
             f"{self.rms_rigid:.3g} mm: the recording looks like it is in an instrument's frame, not the base frame; "
             "try --frame fit"
         )
+
+    def warning(self) -> str | None:
+        """What to tell the user before identifying: the frame message, a wrong tool point or swapped columns."""
+        if self.fires:
+            return self.message()
+        if self.explanation in ("tool", "swap"):
+            return self.cause()
+        return None
+
+    def cause(self) -> str | None:
+        """The likely cause, in words, of a recording this far from the nominal machine (None: no simple mistake)."""
+        kind = self.explanation
+        if kind == "tool":
+            d = self.tool_offset
+            return (
+                f"wrong tool point: moving [tool] point by ({d[0]:.4g}, {d[1]:.4g}, {d[2]:.4g}) mm "
+                f"({np.linalg.norm(d):.4g} mm, {self.tool_sigmas:.0f} tolerances) brings the recording from "
+                f"{self.rms_nominal:.4g} mm to {self.rms_tool:.3g} mm RMS of the nominal machine ({self._rigid_words()} "
+                f"only to {self.rms_rigid:.3g} mm); check the tool's length and the machine file's [tool] point"
+            )
+        if kind == "swap" and not self.swapped_aligned:
+            a, b = self.swapped.split(", ")
+            return (
+                f"swapped columns: with columns {a} and {b} exchanged the recording is {self.rms_swapped:.3g} mm "
+                f"RMS from the nominal machine, against {self.rms_nominal:.4g} mm as given and {self.rms_rigid:.3g} mm "
+                f"after the best rigid transform (which cannot undo an exchange); check the order of the x, y, z columns"
+            )
+        if kind == "swap":
+            return (
+                f"swapped columns: the recording is a mirror image of the nominal machine's tool points (two of x, y, z "
+                f"exchanged, or one reversed): mirrored and rigidly aligned it is {self.rms_swapped:.3g} mm RMS from "
+                f"them, against {self.rms_rigid:.3g} mm after the best rigid transform; check the order and signs of the "
+                "x, y, z columns (the instrument's frame may be left-handed), then try --frame fit"
+            )
+        if kind == "frame" and self.rms_nominal > self.BEYOND * self.rms_tolerance_machine:
+            return (
+                f"missing --frame fit: {self._rigid_words()} brings the recording's tool points from "
+                f"{self.rms_nominal:.4g} mm to {self.rms_rigid:.3g} mm RMS of the nominal machine: the recording looks "
+                "like it is in an instrument's frame, not the base frame; identify with --frame fit"
+            )
+        return None
 
     def to_dict(self) -> dict:
         return {
             "fires": self.fires, "refuses": self.refuses, "rms_nominal": self.rms_nominal, "rms_rigid": self.rms_rigid,
             "rms_tolerance": self.rms_tolerance, "translation": float(np.linalg.norm(self.frame.origin)),
-            "rotation_deg": float(np.degrees(self.angle)), "scale": self.scale,
+            "rotation_deg": float(np.degrees(self.angle)), "scale": self.scale, "explanation": self.explanation,
+            "rms_tool": self.rms_tool, "tool_offset": None if self.tool_offset is None else self.tool_offset.tolist(),
+            "swapped": self.swapped or None, "rms_swapped": self.rms_swapped,
+            "rms_tolerance_machine": self.rms_tolerance_machine,
         }
 
 
@@ -229,7 +337,9 @@ def check_frame(machine: Machine, rec: Recording) -> FrameCheck | None:
     """Compare the recording (read as base frame) with the nominal machine, as given and rigidly aligned.
 
     Uses the tool points only (every recording has them).  ``machine`` may
-    carry a known instrument frame; the check is then in that frame.
+    carry a known instrument frame; the check is then in that frame.  The
+    simpler mistakes a rigid transform is weighed against (a tool-point
+    offset, exchanged columns) are fitted too (:class:`FrameCheck`).
     None when there is nothing to align (fewer than 3 solvable poses, or
     measured points that do not move).
     """
@@ -239,14 +349,70 @@ def check_frame(machine: Machine, rec: Recording) -> FrameCheck | None:
     pm, pn = rec.position[ok], nom.position[ok]
     if ok.sum() < 3 or np.ptp(pm, axis=0).max() == 0 or np.ptp(pn, axis=0).max() == 0:
         return None
-    rms0 = float(np.sqrt(np.mean(np.sum((pm - pn) ** 2, axis=1))))
+    rms0 = _rms(pm - pn)
     f = align_frame(pm, pn)
-    rms1 = float(np.sqrt(np.mean(np.sum((f.to_base(pm) - pn) ** 2, axis=1))))
-    J = machine.tool_jacobian(q[ok], None, nom_subset(nom, ok))[:, :3] * machine.tolerance
-    rms_tol = float(np.sqrt(np.mean(np.sum(J**2, axis=(1, 2)))))
+    rms1 = _rms(f.to_base(pm) - pn)
+    J = machine.tool_jacobian(q[ok], None, nom_subset(nom, ok))[:, :3]
+    JS = J * machine.tolerance
+    rms_tol = float(np.sqrt(np.mean(np.sum(JS**2, axis=(1, 2)))))
+    own = np.array([not n.startswith("tool.") for n in machine.layout.names])
+    rms_tol_machine = float(np.sqrt(np.mean(np.sum(JS[:, :, own] ** 2, axis=(1, 2)))))
     s_m = np.sqrt(np.mean(np.sum((pm - pm.mean(0)) ** 2, axis=1)))
     s_n = np.sqrt(np.mean(np.sum((pn - pn.mean(0)) ** 2, axis=1)))
-    return FrameCheck(rms0, rms1, rms_tol, f, float(s_n / s_m) if s_m > 0 else float("nan"))
+    tool = _tool_offset_fit(machine, J, pm - pn)
+    swap = _best_swap(pm, pn, rms1)
+    return FrameCheck(rms0, rms1, rms_tol, f, float(s_n / s_m) if s_m > 0 else float("nan"), *tool, *swap,
+                      rms_tol_machine)
+
+
+def _rms(d: NDArray) -> float:
+    """Root-mean-square over points of the 3-D norm, mm."""
+    return float(np.sqrt(np.mean(np.sum(np.asarray(d) ** 2, axis=1))))
+
+
+def _tool_offset_fit(machine: Machine, J: NDArray, diff: NDArray) -> tuple[float, NDArray | None, float]:
+    """``(rms, offset, sigmas)`` of the least-squares tool-point offset explaining ``diff`` = measured - nominal.
+
+    The tool point enters every kind's forward kinematics linearly (``p = p_0(q) + R(q) t``),
+    so its Jacobian columns ``J[:, :, tool.point.*]`` give the exact fit.
+    """
+    names = machine.layout.names
+    comps = [(c, names.index(f"tool.point.{'xyz'[c]}")) for c in range(3) if f"tool.point.{'xyz'[c]}" in names]
+    if not comps:  # a hybrid machine: each module has its own
+        return float("nan"), None, float("nan")
+    idx = [i for _, i in comps]
+    A = J[:, :, idx].reshape(-1, len(idx))
+    dt, *_ = np.linalg.lstsq(A, diff.ravel(), rcond=None)
+    rms = _rms((diff.ravel() - A @ dt).reshape(-1, 3))
+    tol = np.asarray(machine.tolerance, dtype=float)[idx]
+    offset = np.zeros(3)  # a planar kind has no parameter for the coordinate it cannot move
+    offset[[c for c, _ in comps]] = dt
+    return rms, offset, float(np.max(np.abs(dt) / tol))
+
+
+_PAIRS = ((0, 1, "x, y"), (0, 2, "x, z"), (1, 2, "y, z"))
+
+
+def _best_swap(pm: NDArray, pn: NDArray, rms_rigid: float) -> tuple[str, float, bool]:
+    """``(columns, rms, aligned)``: two exchanged position columns that bring ``pm`` closest to ``pn``.
+
+    An exchange as it is (``"x, y"``, ...) when one beats the best rigid
+    transform ``rms_rigid`` by :attr:`FrameCheck.DROP`; else the mirror image
+    rigidly aligned (``"mirrored"``, ``aligned`` True): in an instrument's frame
+    every exchange (or a reversed axis) composed with a rotation fits the same,
+    so which columns cannot be told.
+    """
+    direct = min((_rms(_exchanged(pm, a, b) - pn), label) for a, b, label in _PAIRS)
+    if direct[0] * FrameCheck.DROP < rms_rigid:
+        return direct[1], direct[0], False
+    mirrored = _exchanged(pm, 0, 1)
+    return "mirrored", _rms(align_frame(mirrored, pn).to_base(mirrored) - pn), True
+
+
+def _exchanged(p: NDArray, a: int, b: int) -> NDArray:
+    out = p.copy()
+    out[:, [a, b]] = out[:, [b, a]]
+    return out
 
 
 def nom_subset(poses, mask):

@@ -20,9 +20,16 @@ Likely causes are named for each flagged case:
   tolerance-scaled identification matrix at the answer (singular values
   below 1: the data determine those directions worse than one tolerance);
 * *wrong frame*: the rigid-transform check of the recording fires
-  (:class:`~bayescal.instrument.alignment.FrameCheck`);
-* *wrong units*: the measured points spread more than 5 % more or less
-  than the nominal machine's at the same poses;
+  (:class:`~bayescal.instrument.alignment.FrameCheck`); *missing --frame
+  fit*: a rigid transform is the best of the check's explanations but the
+  tolerances hid it from the check (a tool point declared unknown, with a
+  large tolerance);
+* *wrong tool point*: an offset of the machine file's tool point beyond 10
+  tolerances explains the recording best (a wrong tool length);
+* *swapped columns*: two exchanged position columns explain the recording
+  far better than any rigid transform;
+* *wrong units*: none of these explains it, and the measured points spread
+  more than 5 % more or less than the nominal machine's at the same poses;
 * *outliers*: the worst 3 % of poses (at least one) carry more than half
   of the chi-square, with a reduced chi-square above 2.
 """
@@ -165,17 +172,33 @@ def assess_plausibility(
                 "identification matrix (the data determine them worse than one tolerance); use --method ridge --lam auto, "
                 "--method map or --free auto"
             )
-    if check is not None and check.fires:
-        causes.append("wrong frame: " + check.message())
-    if check is not None and math.isfinite(check.scale) and abs(math.log(check.scale)) > 0.05:
-        causes.append(
-            f"wrong units: the nominal machine's tool points spread {check.scale:.4g} times as far as the measured ones "
-            "at the same poses; check the units of x, y, z (suffixes _mm, _um, _m)"
-        )
+    causes += _recording_causes(check)
     out = _outlier_cause(model, residuals, line_offset, n_rows - n_eff)
     if out:
         causes.append(out)
     return Plausibility(False, tuple(reasons), tuple(causes), tuple(params))
+
+
+def _recording_causes(check: FrameCheck | None) -> list[str]:
+    """Causes the rigid-transform check names: a frame, a tool point, exchanged columns, units.
+
+    A frame the check fires on is named as before; a tool-point offset, exchanged
+    columns, or a frame the tolerances hid (a tool point declared unknown) are
+    named when they explain the recording best (:attr:`FrameCheck.explanation`).
+    Units are named only when none of these explains the recording: a tool
+    length error also changes how far the measured points spread.
+    """
+    if check is None:
+        return []
+    if check.fires:
+        return ["wrong frame: " + check.message()]
+    cause = check.cause()
+    if cause is not None:
+        return [cause]
+    if math.isfinite(check.scale) and abs(math.log(check.scale)) > 0.05:
+        return [f"wrong units: the nominal machine's tool points spread {check.scale:.4g} times as far as the measured "
+                "ones at the same poses; check the units of x, y, z (suffixes _mm, _um, _m)"]
+    return []
 
 
 def _near_null(model, theta, free, pred, flagged) -> list[str]:
@@ -217,7 +240,7 @@ def _outlier_cause(model, residuals, line_offset, dof_left) -> str | None:
 
 
 def frame_answer(machine: Machine, theta: NDArray, free: NDArray, covariance: NDArray | None) -> dict:
-    """The ``"frame"`` block of the JSON answer (FORMATS.md section 4), ``"frames"`` for several stations (section 8).
+    """The ``"frame"`` block of the JSON answer (docs/formats.md section 4), ``"frames"`` for several stations (section 8).
 
     ``{}`` without an instrument frame.  ``std`` is that of the composed
     frame: the origin's is the correction's, the rotation vector's

@@ -1,6 +1,6 @@
 """The measurement model of a recording in the base frame, a known instrument frame, or fitted ones (per station).
 
-Roles (FORMATS.md section 8): only ``fit`` rows are ever identified from;
+Roles (docs/formats.md section 8): only ``fit`` rows are ever identified from;
 ``check`` rows are held out.  :func:`prepare_session` builds one model of
 every row (so that all rows share the machine, its stations and frames) and
 gives the ``fit`` and ``check`` parts; :func:`prepare_model` gives the
@@ -95,7 +95,7 @@ def prepare_session(
     frame : {"base", "fit"}
         ``"base"``: the recording is in the machine's base frame (or its
         known instrument frame).  ``"fit"``: in unknown instrument frames, one
-        per station (FORMATS.md section 8), fitted with the geometry, each
+        per station (docs/formats.md section 8), fitted with the geometry, each
         started from the closed-form alignment of its station's ``fit`` rows.
     strict : bool
         Refuse a recording with a pose the nominal machine cannot solve
@@ -166,7 +166,7 @@ def prepare_model(
 
 
 def station_frames(machine: Machine, rec: Recording, *, dof: int | None = None) -> tuple[InstrumentFrame, tuple[str, ...]]:
-    """A fitted instrument frame per station of ``rec`` (FORMATS.md section 8), each started by its own alignment.
+    """A fitted instrument frame per station of ``rec`` (docs/formats.md section 8), each started by its own alignment.
 
     One station (no ``station`` column, or one label) gives the single frame
     of section 4 (parameters ``frame.origin.x`` ...); several give six

@@ -1,6 +1,6 @@
 """Recordings whose numbers look like another unit than their columns say.
 
-The rules (FORMATS.md section 4: "refused with a message that names the unit
+The rules (docs/formats.md section 4: "refused with a message that names the unit
 it suspects and the suffix to use"), applied only to columns without a unit
 suffix, and all independent of the instrument frame:
 

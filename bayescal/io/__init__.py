@@ -1,4 +1,4 @@
-"""Input and output at the edges: machine files, recordings, JSON answers (FORMATS.md)."""
+"""Input and output at the edges: machine files, recordings, JSON answers (docs/formats.md)."""
 
 from .answers import write_json_atomic, write_text_atomic
 from .machine_file import TomlTable, read_toml

@@ -1,4 +1,4 @@
-"""Constraint recordings: distances, heights and ballbar readings (CSV, FORMATS.md section 6).
+"""Constraint recordings: distances, heights and ballbar readings (CSV, docs/formats.md section 6).
 
 One row per measurement:
 
@@ -36,12 +36,12 @@ __all__ = [
     "is_constraint_recording", "MEASURES",
 ]
 
-#: The measurement types of FORMATS.md section 6.
+#: The measurement types of docs/formats.md section 6.
 MEASURES = ("distance", "height", "ballbar")
 _AQ = re.compile(r"^a_q([1-9][0-9]*)$")
 _BQ = re.compile(r"^b_q([1-9][0-9]*)$")
 _PIVOT_ID = re.compile(r"^[A-Za-z0-9_-]+$")
-# FORMATS.md: millimetres "unless a column name says otherwise (_deg, _um)", and section 4's
+# docs/formats.md (the contract's preamble): millimetres "unless a column name says otherwise (_deg, _um)", and section 4's
 # suffixes (x_m, x_um): the measured length and its noise may carry a length unit.
 _LENGTH_COLUMN = re.compile(r"^(value|sigma_position)_(um|mm|m|deg|rad|mrad)$")
 _LENGTH_UNITS = {"mm": 1.0, "um": 1e-3, "m": 1e3}
@@ -198,7 +198,7 @@ def _length_columns(
 
 
 def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> ConstraintRecording:
-    """Read a constraint recording CSV strictly (FORMATS.md section 6).
+    """Read a constraint recording CSV strictly (docs/formats.md section 6).
 
     Parameters
     ----------

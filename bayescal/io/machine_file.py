@@ -1,4 +1,4 @@
-"""Strict reading of machine files (TOML, FORMATS.md section 1).
+"""Strict reading of machine files (TOML, docs/formats.md section 1).
 
 The kind-specific keys are read by each machine module through
 :class:`TomlTable`, which names the file and the dotted key in every error.

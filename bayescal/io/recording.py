@@ -1,4 +1,4 @@
-"""Recordings of measured poses (CSV, FORMATS.md section 2), read strictly."""
+"""Recordings of measured poses (CSV, docs/formats.md section 2), read strictly."""
 
 from __future__ import annotations
 
@@ -19,10 +19,10 @@ from .answers import write_text_atomic
 __all__ = ["Recording", "read_recording", "write_recording", "recording_to_csv"]
 
 _Q = re.compile(r"^q([1-9][0-9]*)$")
-# FORMATS.md: "millimetres for lengths, radians for angles, unless a column name says
+# docs/formats.md (the contract's preamble): "millimetres for lengths, radians for angles, unless a column name says
 # otherwise (_deg, _um)".  A measured quantity's column may carry its unit as a suffix;
 # it is converted on reading.  Other names stay auxiliary channels, read as they are.
-# FORMATS.md section 4 adds _m and _mrad, and the per-pose noise columns sigma_position (mm)
+# docs/formats.md section 4 adds _m and _mrad, and the per-pose noise columns sigma_position (mm)
 # and sigma_angle (rad), which take the same suffixes.
 _UNIT_COLUMN = re.compile(r"^(q[1-9][0-9]*|x|y|z|rx|ry|rz|nx|ny|nz|sigma_position|sigma_angle)_(um|mm|m|deg|rad|mrad)$")
 _LENGTH_UNITS = {"mm": 1.0, "um": 1e-3, "m": 1e3}
@@ -62,13 +62,13 @@ class Recording:
         recordings made in memory.
     sigma_position, sigma_angle : ndarray, shape (n_poses,) or None
         Per-pose one-sigma noise (mm, rad) from the optional columns of the
-        same names (FORMATS.md section 4); None when absent.
+        same names (docs/formats.md section 4); None when absent.
     declared_units : dict of str to str
         The unit suffix each measured column carried (``{"x": "m"}``); a
         quantity without suffix is absent.  Used to judge unsuffixed columns
         whose numbers look like another unit.
     station : tuple of str or None
-        The optional ``station`` column (FORMATS.md section 8): which set-up
+        The optional ``station`` column (docs/formats.md section 8): which set-up
         of the instrument took each row (any label); None when absent.
     role : tuple of str or None
         The optional ``role`` column: ``"fit"`` (used to identify) or
@@ -87,7 +87,7 @@ class Recording:
     path: str = "<memory>"
     q_columns: tuple[str, ...] = ()
     q_units: tuple[str, ...] = ()
-    # FORMATS.md section 4: per-pose noise and the units the columns declared
+    # docs/formats.md section 4: per-pose noise and the units the columns declared
     sigma_position: NDArray | None = None
     sigma_angle: NDArray | None = None
     declared_units: dict = field(default_factory=dict)
@@ -283,11 +283,11 @@ def read_csv_rows(path: str, text: str | None, what: str) -> tuple[list[str], di
     if not rows:
         raise RecordingError(path, 1, None, "empty file; expected a header row")
     for i, row in enumerate(rows):
-        # FORMATS.md: one header row, then one row per pose; nothing else between them
+        # docs/formats.md section 2: one header row, then one row per pose; nothing else between them
         first = row[0].strip() if row else ""
         what = "the header row" if i == 0 else "one row per measured pose"
         if first.startswith("#"):
-            raise RecordingError(path, i + 1, None, f"a comment line; comments are not part of the CSV format (FORMATS.md), expected {what}")
+            raise RecordingError(path, i + 1, None, f"a comment line; comments are not part of the CSV format (docs/formats.md section 2), expected {what}")
         if blank(row):
             raise RecordingError(path, i + 1, None, f"a blank line; expected {what} (blank lines only at the end)")
     header = [h.strip() for h in rows[0]]
@@ -379,7 +379,7 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
     )
 
 
-#: Columns of labels, not numbers (FORMATS.md section 8): which instrument set-up took a row, and its role.
+#: Columns of labels, not numbers (docs/formats.md section 8): which instrument set-up took a row, and its role.
 LABEL_COLUMNS = ("station", "role")
 #: The values of ``role``.
 ROLES = ("fit", "check")
@@ -476,7 +476,7 @@ def _unit_columns(path: str, header: list[str], seen: dict[str, int]) -> tuple[d
 
 
 def recording_to_csv(rec: Recording, *, precision: int | None = None) -> str:
-    """The CSV text of a recording (FORMATS.md column names, measurement order).
+    """The CSV text of a recording (docs/formats.md section 2 column names, measurement order).
 
     ``precision=None`` (default) writes each number as the shortest text that
     reads back to the same float, so a written recording is read back

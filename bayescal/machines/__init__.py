@@ -33,7 +33,7 @@ def _build(doc, path: str) -> Machine:
     kind = doc.string("kind")
     if kind not in KINDS:
         raise MachineFileError(path, "kind", f"unknown kind {kind!r}; expected one of: {', '.join(KINDS)}")
-    # FORMATS.md section 4: an optional [instrument] table (the recordings' frame) for every kind;
+    # docs/formats.md section 4: an optional [instrument] table (the recordings' frame) for every kind;
     # [effect.<name>] tables (section 7) are read for every kind alike, after the geometry
     frame = read_instrument(doc, path)
     extra = ("effect", "instrument", "calibration", "discrepancy")
@@ -44,7 +44,7 @@ def _build(doc, path: str) -> Machine:
 
         machine = machine.with_effects(read_effect_tables(doc, machine))
     if "calibration" in doc.data or "discrepancy" in doc.data:
-        # the calibration's uncertainty and model discrepancy, for bayescal predict (FORMATS.md section 8)
+        # the calibration's uncertainty and model discrepancy, for bayescal predict (docs/formats.md section 8)
         from ..discrepancy.table import read_discrepancy
         from ..prediction.record import check_record, read_calibration
 
@@ -56,7 +56,7 @@ def _build(doc, path: str) -> Machine:
 
 
 def load_machine(path: str | os.PathLike) -> Machine:
-    """Read a machine file (FORMATS.md section 1) of any shipped kind.
+    """Read a machine file (docs/formats.md section 1) of any shipped kind.
 
     Raises
     ------

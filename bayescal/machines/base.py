@@ -76,7 +76,7 @@ class ActuatorUnit:
     weight: str = "um"
 
 
-#: The two actuator units of FORMATS.md (``q`` in mm for prismatic, rad for revolute joints).
+#: The two actuator units of docs/formats.md section 2 (``q`` in mm for prismatic, rad for revolute joints).
 ACTUATOR_UNITS = {
     "mm": ActuatorUnit("mm", "um", 1e-3, 1.0, "screw or scale", "um/m", "N", 1.0, "um/N", "um"),
     "rad": ActuatorUnit("rad", "urad", 1e-6, 10.0, "gear or encoder", "urad/rad", "N m", 1e-3, "urad/(N m)", "urad/m"),
@@ -225,7 +225,7 @@ class Machine(ABC):
     kind: ClassVar[str] = ""
 
     #: Physical effects at fixed values, from the machine file's ``[effect.<name>]`` tables
-    #: (FORMATS.md section 7; tuple of :class:`bayescal.effects.stored.StoredEffect`).  Not a
+    #: (docs/formats.md section 7; tuple of :class:`bayescal.effects.stored.StoredEffect`).  Not a
     #: dataclass field of the kinds: :meth:`with_effects` attaches them to a copy.
     effects: tuple = ()
     #: What a calibrated machine file keeps of its calibration (``[calibration]``: the parameters'

@@ -4,14 +4,14 @@
 contract that all consumers (measurement models, solvers, filters, samplers,
 studies) rely on, in the spirit of scikit-learn's ``check_estimator``:
 
-* parameter names are unique and follow FORMATS.md (``chain<i>.<key>[.<component>]``
+* parameter names are unique and follow docs/formats.md section 3 (``chain<i>.<key>[.<component>]``
   or ``tool.point.<component>``), units are known, tolerances positive;
 * ``forward`` succeeds on poses drawn within ``q_limits``, returns proper
   rotations, and is deterministic;
 * ``tool_jacobian`` agrees with central finite differences for every
   parameter, for the tool point and for the small platform rotation;
 * the machine file written by ``to_toml(theta)`` and read back predicts the
-  same poses (the calibrated-machine contract of FORMATS.md section 3);
+  same poses (the calibrated-machine contract of docs/formats.md section 3);
 * a per-pose ``theta`` of shape ``(n_poses, P)`` gives what per-pose calls give;
 * a forward-kinematics start from ``guess_from_measurement`` reaches the same
   solution as a cold start.
@@ -34,10 +34,10 @@ from .base import Machine, ToolPoses
 
 __all__ = ["check_machine", "MachineCheckError", "KNOWN_UNITS", "PARAM_NAME"]
 
-#: Units a geometric parameter may have (FORMATS.md: millimetres and radians).
+#: Units a geometric parameter may have (docs/formats.md: millimetres and radians).
 KNOWN_UNITS = frozenset({"mm", "rad"})
 
-#: FORMATS.md parameter names: ``chain<i>.<key>[.<component>]`` or ``tool.point.<component>``;
+#: Parameter names of docs/formats.md section 3: ``chain<i>.<key>[.<component>]`` or ``tool.point.<component>``;
 #: serial chains (section 5) ``joint<i>.<key>[.<component>]`` and ``tool.rpy.<component>``; a
 #: hybrid machine prefixes its modules' names with ``m<k>.``.
 # chain<i>.<key>[.<component>]; a key may itself be a dotted path into a sub-table of the chain
@@ -47,7 +47,7 @@ PARAM_NAME = re.compile(
     r"^(m[1-9][0-9]*\.)*((chain|tower)[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,3}|joint[1-9][0-9]*(\.[a-z][a-z0-9_]*){1,2}"
     r"|tool\.(point|rpy)\.[a-z][a-z0-9_]*)$"
 )
-#: The instrument frame's parameters (FORMATS.md section 4; bayescal.machines.framed).
+#: The instrument frame's parameters (docs/formats.md section 4; bayescal.machines.framed).
 FRAME_PARAM_NAME = re.compile(r"^frame\.(origin|rotation_vector)\.[xyz]$")
 
 #: Agreement demanded of two solutions of the same pose (mm for positions, rad for rotations).

@@ -1,11 +1,11 @@
-"""Write a calibrated machine as machine files: one file, or a hybrid in FORMATS.md section 5's file-per-module form.
+"""Write a calibrated machine as machine files: one file, or a hybrid in docs/formats.md section 5's file-per-module form.
 
 One place for what ``--write-machine`` of every command and
 :meth:`bayescal.diagnose.calibrated.CalibratedMachine.write` write, so that
 a library user and the command line produce the same files: every kind is
 one file with its ``[effect.*]`` and ``[instrument]`` tables; a hybrid
 machine puts each module in ``<stem>.m<k>.toml`` beside the main file (the
-form any reader of FORMATS.md reads; bayescal's own inline form is not in
+form any reader of docs/formats.md section 5 reads; bayescal's own inline form is not in
 the contract), and its ``[effect.*]`` and ``[instrument]`` tables go into
 the main file.  The files of a hybrid are written as one unit, the main
 file renamed last (:func:`bayescal.io.answers.write_files_atomic`).

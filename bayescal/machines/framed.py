@@ -7,7 +7,7 @@ in that frame,
     p_inst = R^T (p_base - o),      R_inst = R^T R_base,
 
 where ``(o, R)`` is the pose of the instrument frame in the base frame
-(``p_base = R p_inst + o``, the ``[instrument]`` table of FORMATS.md
+(``p_base = R p_inst + o``, the ``[instrument]`` table of docs/formats.md
 section 4).  With ``fit=True`` the frame is six more parameters placed
 *first* in the layout: ``frame.origin.x/y/z`` (mm) and
 ``frame.rotation_vector.x/y/z`` (rad), a small correction of a start frame
@@ -35,7 +35,7 @@ more, towards least squares' rank-deficiency threshold (1e-10).
 With ``fit=False`` the frame is known (read from a machine file's
 ``[instrument]`` table) and adds no parameters.
 
-**Stations** (FORMATS.md section 8).  A recording may come from several
+**Stations** (docs/formats.md section 8).  A recording may come from several
 set-ups of the instrument (a tracker moved to see another part of the
 workspace, another day's session): ``stations`` names them and every
 station has its own frame, six parameters each,
@@ -112,7 +112,7 @@ class Frame:
 
 
 def instrument_toml(frame: Frame) -> str:
-    """The ``[instrument]`` table of a machine file (FORMATS.md section 4)."""
+    """The ``[instrument]`` table of a machine file (docs/formats.md section 4)."""
     f = format_toml_value
     return "\n".join(
         ["[instrument]", f"origin = {f(frame.origin)}", f"rotation_vector = {f(frame.rotation_vector)}", ""]
@@ -466,7 +466,7 @@ class InstrumentFrame(Machine):
     def to_toml(self, theta: ArrayLike | None = None) -> str:
         """The inner machine's file of ``nominal + theta`` (base frame), plus the ``[instrument]`` table of one station.
 
-        Several stations belong to the session, not the machine (FORMATS.md section 8): no table then.
+        Several stations belong to the session, not the machine (docs/formats.md section 8): no table then.
         """
         th = self.check_theta(theta)
         text = self.machine.to_toml(th[self.n_frame :])

@@ -1,4 +1,4 @@
-"""Hybrid machines: modules of any kind stacked on one another (FORMATS.md section 5).
+"""Hybrid machines: modules of any kind stacked on one another (docs/formats.md section 5).
 
 A ``kind = "hybrid"`` file lists ``[[module]]`` tables in actuator order, each
 with ``role`` and either ``file`` (a machine file of any kind, relative to the
@@ -93,7 +93,7 @@ def _compose(Rs: list[NDArray], ps: list[NDArray], n: int):
 def _table_tool_default(doc: TomlTable) -> TomlTable:
     """A serial table module without ``[tool]``: its tool frame is its last joint frame.
 
-    FORMATS.md section 5 measures the tool "relative to the table's last frame"; bayescal
+    docs/formats.md section 5 measures the tool "relative to the table's last frame"; bayescal
     reads that as the table module's tool frame (``T_1 ... T_n Trans(tool.point)
     Rot(tool.rpy)``). A table written with the other reading (the last joint frame) needs
     no ``[tool]``, and with none the two readings agree, so it may be left out.
@@ -389,11 +389,11 @@ def machine_files_text(path, machine: Machine, theta: ArrayLike | None = None) -
 
 
 def write_machine_files(path, machine: Machine, theta: ArrayLike | None = None) -> list[Path]:
-    """Write the machine file of ``nominal + theta`` in FORMATS.md's file-per-module form.
+    """Write the machine file of ``nominal + theta`` in the file-per-module form of docs/formats.md section 5.
 
     For a hybrid machine, each module goes to ``<stem>.m<k>.toml`` beside
     ``path`` (recursively for nested hybrids) and ``path`` lists them with
-    ``file = "..."``, the form FORMATS.md section 5 specifies, which any
+    ``file = "..."``, the form docs/formats.md section 5 specifies, which any
     implementation of that format reads.  Any other kind is written as
     :meth:`Machine.to_toml`.  The files are written as one unit
     (:func:`bayescal.io.answers.write_files_atomic`): all of them complete

@@ -1,6 +1,6 @@
 """The 3-PRS parallel mechanism (spindle head of a five-axis hybrid machine).
 
-Kinematics (FORMATS.md section 1): slider centre ``C_i = B_i + q_i u_i``;
+Kinematics (docs/formats.md section 1): slider centre ``C_i = B_i + q_i u_i``;
 sphere centre ``A_i = p + R a_i``; each chain imposes
 
     F1_i = (|A_i - C_i|^2 - l_i^2) / 2 = 0        (link length)
@@ -254,7 +254,7 @@ class Prs3(Machine):
         rho = np.linalg.norm(perp(rel_c), axis=2).mean(axis=1) - np.linalg.norm(perp(rel_a), axis=2).mean(axis=1)
         h = np.sqrt(np.maximum(g.l.mean(axis=1) ** 2 - rho**2, 1e-6 * g.l.mean(axis=1) ** 2))
         s = -1.0 if self.links_against_rail else 1.0
-        # The platform frame need not be aligned with the base frame at home (FORMATS.md does
+        # The platform frame need not be aligned with the base frame at home (docs/formats.md section 1 does
         # not ask for it): start from the rotation that lays the sphere-centre pattern onto
         # the slider pattern seen along the rails (Kabsch), so that Newton starts near the
         # machine's own assembly whatever frame the machine file's author chose.

@@ -1,6 +1,6 @@
 """Serial chains (rotary tables, trunnions, positioners, wrists, arms) with URDF joint semantics.
 
-Kinematics (FORMATS.md section 5), lengths in mm and angles in rad: joint
+Kinematics (docs/formats.md section 5), lengths in mm and angles in rad: joint
 ``i`` contributes
 
     T_i = Trans(origin_i) Rot(rpy_i) M_i(q_i + offset_i),
@@ -10,7 +10,7 @@ Kinematics (FORMATS.md section 5), lengths in mm and angles in rad: joint
 and the tool (measured) frame is ``T_1 ... T_n Trans(tool.point) Rot(tool.rpy)``;
 its origin is the tool point and its orientation the measured orientation.
 
-Mimic joints (FORMATS.md section 8; URDF ``<mimic>``): joint ``i`` with
+Mimic joints (docs/formats.md section 8; URDF ``<mimic>``): joint ``i`` with
 ``mimic = d`` moves by ``multiplier * q_d + offset`` (``q_d`` the position of
 joint ``d``, which is no mimic joint itself).  A mimic joint is no actuator:
 the actuators ``q_1 ... q_N`` are the non-mimic joints in order, and the

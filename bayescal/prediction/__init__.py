@@ -1,1 +1,1 @@
-"""Prediction of new recordings from a calibrated machine, with its uncertainty (FORMATS.md section 8)."""
+"""Prediction of new recordings from a calibrated machine, with its uncertainty (docs/formats.md section 8)."""

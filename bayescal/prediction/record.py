@@ -1,7 +1,7 @@
 """What a calibrated machine file keeps of its calibration: the parameters' covariance and the noise scale.
 
 ``bayescal predict`` holds a calibrated machine fixed *with its
-uncertainty* (FORMATS.md section 8), so the machine file written by
+uncertainty* (docs/formats.md section 8), so the machine file written by
 ``identify``, ``diagnose`` and ``grid`` carries a ``[calibration]`` table (a
 bayescal extension; other readers ignore it):
 

@@ -28,7 +28,7 @@ __all__ = ["PredictionResult", "predict_recording"]
 
 @dataclass(frozen=True)
 class PredictionResult:
-    """The answer of :func:`predict_recording` (FORMATS.md section 8).
+    """The answer of :func:`predict_recording` (docs/formats.md section 8).
 
     Attributes
     ----------

@@ -3,7 +3,7 @@
 A row is inside its 90 % predictive region when its measured position lies
 in the ellipsoid ``e^T S^-1 e <= chi2_3(0.90)`` (``e`` the position error,
 ``S`` the predictive covariance of the three position components), the
-region FORMATS.md section 8 asks for.  The summary of a set of rows gives
+region docs/formats.md section 8 asks for.  The summary of a set of rows gives
 mean, median and 95th percentile of the position error (mm) and the share
 of rows inside their region, over the rows whose prediction succeeded
 (those that failed are counted apart).

@@ -95,7 +95,7 @@ def _unidentifiable_section(d: dict) -> dict:
 
 
 def _outlier_indices(result) -> list[int]:
-    """0-based poses named as outliers: the answer's ``outliers`` (FORMATS.md section 4: CSV ``line``, header = 1)."""
+    """0-based poses named as outliers: the answer's ``outliers`` (docs/formats.md section 4: CSV ``line``, header = 1)."""
     out = []
     found = getattr(result, "outliers", None)
     if found is None and hasattr(result, "to_dict"):

@@ -1,7 +1,7 @@
 """Both compensation grids apply a machine file's [effect.*] tables, checked against independent physics.
 
 For every effect kind a machine file can carry, a machine is written with
-the table by hand (FORMATS.md section 7), the grid is computed in tool space
+the table by hand (docs/formats.md section 7), the grid is computed in tool space
 (and in actuator space at the same actuator positions), and each node is
 compared with an independent computation that shares no effect code: the
 actuator positions the drives really reach come from the simulators of
@@ -33,7 +33,7 @@ from tests.physics.statics_3prs import GravityLoad, deflected_q
 from tests.physics.thermal_growth import PartGrowth
 
 RASPM = ROOT / "examples" / "raspm" / "machine.toml"
-DOWN = np.array([0.0, 0.0, -1.0])  # the effect's default gravity direction (FORMATS.md: [0, 0, -1])
+DOWN = np.array([0.0, 0.0, -1.0])  # the effect's default gravity direction (docs/formats.md section E2: [0, 0, -1])
 
 
 def _cov(m):

@@ -138,7 +138,7 @@ def test_pose_the_machine_cannot_assemble_names_file_and_line(tmp_path, capsys, 
 
 
 def test_every_computing_command_takes_json(tmp_path, capsys):
-    """FORMATS.md section 3: every command that computes something can write its answer with --json PATH."""
+    """docs/formats.md section 3: every command that computes something can write its answer with --json PATH."""
     from bayescal.cli import COMMANDS, build_parser
 
     sub = next(a for a in build_parser()._actions if a.dest == "command")

@@ -46,7 +46,7 @@ def test_identify_takes_constraint_recordings(ballbar, tmp_path, method, capsys)
 
 
 def test_identify_ls_on_heights_and_distances(tmp_path):
-    # heights and distances written by hand (FORMATS.md section 6) from the nominal machine
+    # heights and distances written by hand (docs/formats.md section 6) from the nominal machine
     m = load_machine(DELTA)
     q = m.sample_q(60, np.random.default_rng(0))
     x = m.forward(q).position

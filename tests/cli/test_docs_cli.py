@@ -30,3 +30,12 @@ def test_docs_index_links_every_page():
     index = (ROOT / "docs" / "index.md").read_text(encoding="utf-8")
     pages = sorted(p.name for p in (ROOT / "docs").glob("*.md") if p.name != "index.md")
     assert [p for p in pages if f"({p}" not in index] == []
+
+
+def test_every_help_text_renders():
+    """argparse formats help strings with %: a bare '%' in one (a '90 % region') printed a dict into --help."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    texts = [parser.format_help()] + [p.format_help() for p in sub.choices.values()]
+    assert not [t for t in texts if "option_strings" in t or "'dest'" in t]
+    assert "with 90 %" in parser.format_help()

@@ -1,4 +1,4 @@
-"""identify --write-machine on a hybrid machine writes FORMATS.md section 5's file-per-module form."""
+"""identify --write-machine on a hybrid machine writes docs/formats.md section 5's file-per-module form."""
 
 import json
 import tomllib
@@ -33,7 +33,7 @@ def test_hybrid_calibration_is_written_as_module_files_that_predict_like_the_fit
 
 
 def test_hybrid_with_effect_tables_keeps_them_in_the_main_file(tmp_path):
-    # FORMATS.md section 7: a machine read with [effect.*] tables is written with them (before: the
+    # docs/formats.md section 7: a machine read with [effect.*] tables is written with them (before: the
     # file-per-module form dropped them, and the calibrated hybrid predicted without its backlash)
     import shutil
 
@@ -53,7 +53,7 @@ def test_hybrid_with_effect_tables_keeps_them_in_the_main_file(tmp_path):
 
 
 def test_diagnose_writes_a_hybrid_in_the_file_per_module_form_with_its_effects(tmp_path):
-    # FORMATS.md section 5: [[module]] tables each name a file; diagnose --write-machine wrote the modules
+    # docs/formats.md section 5: [[module]] tables each name a file; diagnose --write-machine wrote the modules
     # inline ([module.machine]), which only bayescal reads, while identify wrote the contract's form
     rec = tmp_path / "rec.csv"
     assert main(["simulate", "--machine", str(HYB / "machine.toml"), "--poses", "40", "--seed", "3", "--effect",

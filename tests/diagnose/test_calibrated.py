@@ -89,7 +89,7 @@ def test_stored_effects_of_the_input_machine_are_fitted_afresh(prs3):
 
 def test_write_puts_a_hybrid_in_module_files_and_keeps_its_header(tmp_path):
     # the library object wrote its inline text ([module.machine]) where the command line wrote the
-    # FORMATS.md section 5 form; both now go through one writer
+    # docs/formats.md section 5 form; both now go through one writer
     import tomllib
 
     from bayescal.diagnose.calibrated import CalibratedMachine

@@ -1,4 +1,4 @@
-"""[effect.<name>] tables in machine files: strict reading, writing, round trips and application (FORMATS.md section 7)."""
+"""[effect.<name>] tables in machine files: strict reading, writing, round trips and application (docs/formats.md section 7)."""
 
 import numpy as np
 import pytest

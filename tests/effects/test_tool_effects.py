@@ -67,7 +67,7 @@ def test_through_an_instrument_frame_the_offset_is_rotated_into_the_measurement_
     base = machine_from_text(TELESCOPE, "t.toml")
     q = base.sample_q(6, rng)
     dx = _dx(base, q)
-    # by hand, FORMATS.md section 4: p_base = R p_instrument + origin
+    # by hand, docs/formats.md section 4: p_base = R p_instrument + origin
     R = so3_exp(np.array([0.1, -0.2, 2.5]))
     origin = np.array([1500.0, -800.0, 200.0])
     p_base = base.forward(q).position + dx[:, :3]

@@ -1,4 +1,4 @@
-"""Running the CLI as an outside program would, and reading its answers as FORMATS.md states them.
+"""Running the CLI as an outside program would, and reading its answers as docs/formats.md (the contract) states them.
 
 Nothing here imports bayescal's readers or writers: the command line is run through
 ``bayescal.cli.main`` (the same entry point as ``python -m bayescal``) and its files are

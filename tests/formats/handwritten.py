@@ -1,7 +1,7 @@
-"""Machine files and recordings written by hand from FORMATS.md, by a program that is not bayescal.
+"""Machine files and recordings written by hand from the contract of docs/formats.md, by a program that is not bayescal.
 
 This module is the "independent party" of the format tests: it imports nothing from
-bayescal. Its kinematics are the spec's own equations (FORMATS.md sections 1 and 5)
+bayescal. Its kinematics are the spec's own equations (docs/formats.md sections 1 and 5)
 solved with numpy, its TOML and CSV are written as text, in the variants another
 program could plausibly produce and the spec allows (column order, optional columns,
 unit suffixes, CRLF, a UTF-8 BOM, trailing whitespace, integers for floats, ...).
@@ -39,7 +39,7 @@ def matrix_to_rotvec(r: np.ndarray) -> np.ndarray:
 
 
 def rpy_matrix(rpy) -> np.ndarray:
-    """R = Rz(y) Ry(p) Rx(r), URDF's fixed-axis convention (FORMATS.md section 5)."""
+    """R = Rz(y) Ry(p) Rx(r), URDF's fixed-axis convention (docs/formats.md section 5)."""
     r, p, y = rpy
     cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
     rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])

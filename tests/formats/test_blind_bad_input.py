@@ -1,5 +1,5 @@
 """Blind run: bad hand-written input gives exit code 2, a message naming file, line/key and
-what was expected, and no output file (FORMATS.md: "reject what does not fit with a clear
+what was expected, and no output file (docs/formats.md: "reject what does not fit with a clear
 message that names the file, the line or key, and what was expected")."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Blind run: hand-written distance, height and ballbar recordings (FORMATS.md section 6).
+"""Blind run: hand-written distance, height and ballbar recordings (docs/formats.md section 6).
 
 Rows are written as another program would (``handwritten.py``): the measure column in any
 place, empty ``b_q*`` cells on height and ballbar rows, optional ``pivot`` and

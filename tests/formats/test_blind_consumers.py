@@ -1,5 +1,5 @@
 """Blind run: grid, compare, plan, simulate and klipper on hand-written files, and bayescal's
-written recordings read back with an independent reader (FORMATS.md sections 2, 6)."""
+written recordings read back with an independent reader (docs/formats.md sections 2, 6)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Blind run: instrument frames (FORMATS.md section 4), serial chains and hybrid machines (section 5).
+"""Blind run: instrument frames (docs/formats.md section 4), serial chains and hybrid machines (section 5).
 
 Files written by ``handwritten.py``; truths from the spec's equations in numpy.
 """

@@ -1,7 +1,7 @@
-"""Blind run: hand-written 3-PRS machine files and pose recordings (FORMATS.md sections 1-4).
+"""Blind run: hand-written 3-PRS machine files and pose recordings (docs/formats.md sections 1-4).
 
 The files come from ``handwritten.py`` (no bayescal code); the true machine's tool poses are
-the spec's equations solved by numpy. bayescal's answers are read as FORMATS.md states
+the spec's equations solved by numpy. bayescal's answers are read as docs/formats.md states
 them, and the calibrated machine it writes is checked by predicting the true machine with
 the spec's kinematics alone.
 """

@@ -122,4 +122,35 @@ def test_frame_answer_std_matches_the_covariance(prs3):
 def test_base_frame_recordings_do_not_trigger_the_check(prs3, dof):
     for seed in range(5):
         rec = simulate_recording(prs3, 30, seed=100 + seed, dof=dof).recording
-        assert not check_frame(prs3, rec).fires
+        chk = check_frame(prs3, rec)
+        assert not chk.fires
+        # nor is a cause named: the drawn errors move the points mostly rigidly (a tenth of a millimetre), which
+        # is within what the tolerances explain, not a missing --frame fit
+        assert chk.cause() is None and chk.warning() is None
+
+
+def test_tool_offset_of_the_check_is_the_true_one(prs3, tmp_path):
+    """Points measured with a tool 20 mm longer (and off-axis): the check's closed-form tool offset is the true one."""
+    text = (ROOT / "examples" / "prs3" / "machine.toml").read_text()
+    d = np.array([1.5, -0.5, -20.0])
+    (tmp_path / "long.toml").write_text(text.replace("point = [0.0, 0.0, -100.0]", "point = [1.5, -0.5, -120.0]"))
+    from bayescal.machines import load_machine
+
+    rec = simulate_recording(prs3, 30, seed=8, dof=3).recording
+    exact = replace(rec, position=load_machine(tmp_path / "long.toml").forward(rec.q).position)
+    chk = check_frame(prs3, exact)
+    assert np.allclose(chk.tool_offset, d, atol=1e-8) and chk.rms_tool < 1e-8
+    assert chk.explanation == "tool" and not chk.fires and chk.cause().startswith("wrong tool point")
+
+
+def test_an_exchange_a_rotation_undoes_is_a_frame():
+    """Points in a plane (the planar RASPM module moves in x and z): exchanging x and y is a turn by 90 degrees,
+    so the recording is in another frame, not mirrored, and --frame fit is the right advice."""
+    from bayescal.machines import load_machine
+
+    m = load_machine(ROOT / "examples" / "raspm" / "machine.toml")
+    rec = simulate_recording(m, 30, seed=2, dof=3).recording
+    p = rec.position.copy()
+    p[:, [0, 1]] = p[:, [1, 0]]
+    chk = check_frame(m, replace(rec, position=p))
+    assert chk.explanation == "frame" and chk.fires and chk.rms_swapped >= chk.rms_rigid / chk.DROP

@@ -1,4 +1,4 @@
-"""Several instrument stations, one geometry (FORMATS.md section 8): frames at random poses metres apart."""
+"""Several instrument stations, one geometry (docs/formats.md section 8): frames at random poses metres apart."""
 
 from __future__ import annotations
 

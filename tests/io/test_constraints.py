@@ -1,4 +1,4 @@
-"""Constraint recordings (FORMATS.md section 6): strict reading, errors naming line and column, round trip."""
+"""Constraint recordings (docs/formats.md section 6): strict reading, errors naming line and column, round trip."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Per-pose noise columns sigma_position / sigma_angle (FORMATS.md section 4): read strictly, weight each pose."""
+"""Per-pose noise columns sigma_position / sigma_angle (docs/formats.md section 4): read strictly, weight each pose."""
 
 from __future__ import annotations
 

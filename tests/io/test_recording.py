@@ -134,7 +134,7 @@ def test_lone_cr_file_reads_from_disk(tmp_path):
 
 
 def test_unit_suffixes_are_converted_to_mm_and_rad():
-    """FORMATS.md: mm and rad 'unless a column name says otherwise (_deg, _um)'."""
+    """docs/formats.md: mm and rad 'unless a column name says otherwise (_deg, _um)'."""
     text = "q1_um,q2,q3_mm,x_um,y,z,rx_deg,ry_rad,rz,temp_C\n500000,501,502,1500,2,3,90,0.5,0.25,21\n"
     rec = read_recording("r.csv", text=text)
     assert rec.dof == 6 and list(rec.aux) == ["temp_C"]  # not silently three more aux channels

@@ -1,4 +1,4 @@
-"""The hybrid kind (FORMATS.md section 5): stacking against a hand-composed chain of 4x4
+"""The hybrid kind (docs/formats.md section 5): stacking against a hand-composed chain of 4x4
 transforms, the chain-rule Jacobian against central differences, conformance, the inline
 calibrated file, nested states through measurement subsets and stacked parameter sets, and
 the identifiability across modules."""
@@ -198,7 +198,7 @@ def test_example_recording_identifies_the_true_machine(table):
 
 
 def test_write_machine_files_uses_module_files(table, tmp_path):
-    """The file-per-module form of FORMATS.md section 5: module files beside the hybrid file,
+    """The file-per-module form of docs/formats.md section 5: module files beside the hybrid file,
     each a plain machine file of its kind, read back to the same predictions."""
     from bayescal.machines import write_machine_files
 

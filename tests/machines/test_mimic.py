@@ -1,4 +1,4 @@
-"""Mimic joints (FORMATS.md section 8) in [[joint]] tables and URDF files: forward kinematics against an
+"""Mimic joints (docs/formats.md section 8) in [[joint]] tables and URDF files: forward kinematics against an
 independent product of 4x4 transforms built from the file text itself, the Jacobians against central
 differences (check_machine), per-joint parameter names, written files, weight bodies, recordings with
 q columns for the actuators only, identification, and refusals by name."""

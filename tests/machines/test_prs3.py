@@ -87,7 +87,7 @@ def test_theta_of_wrong_shape_is_an_input_error(prs3):
 
 @pytest.mark.parametrize("turn_deg", [90.0, 180.0, -135.0])
 def test_platform_frame_turned_against_the_base_frame(prs3, rng, turn_deg):
-    """FORMATS.md does not ask for the platform frame to be aligned with the base frame at home.
+    """docs/formats.md section 1 does not ask for the platform frame to be aligned with the base frame at home.
 
     The same physical machine described in a platform frame turned about z
     (sphere centres and tool point rotated back) must solve to the same tool
@@ -114,7 +114,7 @@ def test_platform_frame_turned_against_the_base_frame(prs3, rng, turn_deg):
 
 
 def test_recording_of_the_other_assembly_branch_without_the_assembly_key(prs3, rng):
-    """A FORMATS.md-only file has no ``assembly`` key: the measurement decides the branch.
+    """A file written from the contract alone (docs/formats.md section 1) has no ``assembly`` key: the measurement decides the branch.
 
     The example machine with its rails pointing the other way (q -> -q) has its
     links along the rails, while the file (no ``assembly``) says the default,

@@ -1,4 +1,4 @@
-"""The serial kind (FORMATS.md section 5): FK against an independent product of 4x4 transforms,
+"""The serial kind (docs/formats.md section 5): FK against an independent product of 4x4 transforms,
 analytic Jacobian against central differences, conformance, identifiability, file errors."""
 
 import numpy as np
@@ -88,7 +88,7 @@ def _homogeneous(R=np.eye(3), t=np.zeros(3)):
 
 def _independent_fk(m: Serial, q, theta):
     """Tool frame as the literal product Trans(o) Rot(rpy) M(q) ... Trans(t) Rot(rpy_t), written here
-    with scipy rotations and 4x4 matrices; the perturbations applied as FORMATS.md names them."""
+    with scipy rotations and 4x4 matrices; the perturbations applied as docs/formats.md section 5 names them."""
     E = np.eye(3)
     T = np.eye(4)
     for i, jt in enumerate(m.joint_type):

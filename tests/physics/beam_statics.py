@@ -1,6 +1,6 @@
 """An independent multi-body statics simulator for tests: a serial chain of rigid bodies and elastic beams under gravity.
 
-Written from FORMATS.md sections 5 and 8 (joint transforms, mimic joints) and
+Written from docs/formats.md sections 5 and 8 (joint transforms, mimic joints) and
 textbook beam statics, without bayescal's kinematics or effect code: the
 machine file is parsed with ``tomllib``, each joint's transform
 ``T_i = Trans(origin) Rot(rpy) M(q_i)`` composed here with 4x4 matrices,

@@ -1,6 +1,6 @@
 """An independent statics simulator for tests: a serial chain whose joints yield under the weight of its links.
 
-Written from FORMATS.md section 5 alone, without bayescal's kinematics or
+Written from docs/formats.md section 5 alone, without bayescal's kinematics or
 effect code: the machine file is parsed with ``tomllib`` and each joint's
 transform ``T_i = Trans(origin) Rot(rpy) M(q_i)`` composed here with 4x4
 matrices (``Rot(r, p, y) = Rz(y) Ry(p) Rx(r)``; ``M`` a Rodrigues rotation

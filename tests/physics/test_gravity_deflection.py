@@ -1,6 +1,6 @@
 """gravity_deflection against an independent multi-body statics simulation (tests/physics/beam_statics.py).
 
-The simulator composes FORMATS.md section 5's transforms itself (mimic joints
+The simulator composes docs/formats.md section 5's transforms itself (mimic joints
 included), cuts every member into 400 elements and turns everything beyond
 each element by the moment of the loads beyond it in the already deflected
 configuration; it never calls the effect, the machine's kinematics or any

@@ -1,6 +1,6 @@
 """joint_compliance with link weights on a 6R arm, against an independent statics simulation (tests/physics/serial_statics.py).
 
-The independent code composes FORMATS.md section 5's transforms itself and
+The independent code composes docs/formats.md section 5's transforms itself and
 takes the gravity torques from the potential energy by finite differences;
 it never calls the effect's ``delta_q``, the machine's weight bodies or its
 Jacobians.

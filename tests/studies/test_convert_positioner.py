@@ -1,8 +1,10 @@
-"""The real positioner conversion (studies/convert_positioner.py): the shipped example is the
-converter's output, the numbers round-trip to the source YAML, the URDF-style machine equals the
-source's DH model, and after a rigid alignment the nominal machine explains the recording as
-nominal.md says it should."""
+"""The real positioner conversion (studies/convert_positioner.py): the bundled source is the upstream
+files, the shipped example is the converter's output, the numbers round-trip to the source YAML, the
+URDF-style machine equals the source's DH model, and after a rigid alignment the nominal machine explains
+the recording as nominal.md says it should.  Everything runs from the bundled example (Apache-2.0,
+``examples/positioner/source/``); the shared copy, when present, is checked to be the same bytes."""
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -16,12 +18,12 @@ from tests.studies.conftest import load_study
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "positioner"
-SOURCE = next(
+SOURCE = EXAMPLE / "source"  # the upstream YAML, bundled byte for byte (Apache-2.0)
+SHARED = next(
     (p / "shared" / "data" / "real" / "positioner" for p in (ROOT.parent, ROOT.parent.parent) if (p / "shared").is_dir()),
     ROOT.parent / "shared" / "data" / "real" / "positioner",
 )
-# the source is read from ../shared (never copied into the repository except as the converted example)
-needs_source = pytest.mark.skipif(not (SOURCE / "measurements.yaml").is_file(), reason="shared positioner data absent")
+needs_shared = pytest.mark.skipif(not (SHARED / "measurements.yaml").is_file(), reason="shared positioner data absent")
 
 
 def _converter():
@@ -51,19 +53,38 @@ def _dh(d, theta, r, alpha):
     return np.array([[ct, -st * ca, st * sa, r * ct], [st, ct * ca, -ct * sa, r * st], [0, sa, ca, d], [0, 0, 0, 1.0]])
 
 
-@needs_source
+def _git_blob(data: bytes) -> str:
+    """The id git gives a file's content (sha1 of ``blob <size>\\0<data>``)."""
+    return hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
+
+
+def test_bundled_source_is_the_upstream_files():
+    conv = _converter()
+    for name in conv.SOURCE_FILES:
+        assert _git_blob((SOURCE / name).read_bytes()) == conv.BLOBS[name], name
+        assert conv.BLOBS[name] in (EXAMPLE / "README.md").read_text()
+
+
+@needs_shared
+def test_bundled_source_is_the_shared_copy():
+    for name in _converter().SOURCE_FILES:
+        assert (SOURCE / name).read_bytes() == (SHARED / name).read_bytes(), name
+    assert (EXAMPLE / "LICENSE").read_bytes() == (SHARED / "LICENSE").read_bytes()
+
+
 def test_shipped_example_is_the_converters_output(tmp_path):
     pytest.importorskip("yaml")
     _converter().convert(SOURCE, tmp_path)
     for name in ("machine.toml", "recording.csv", "README.md"):
         assert (tmp_path / name).read_text() == (EXAMPLE / name).read_text(), name
-    assert (EXAMPLE / "LICENSE").read_bytes() == (SOURCE / "LICENSE").read_bytes()
+    for name in _converter().SOURCE_FILES:
+        assert (tmp_path / "source" / name).read_bytes() == (SOURCE / name).read_bytes()
+    assert (tmp_path / "LICENSE").read_bytes() == (EXAMPLE / "LICENSE").read_bytes()
     assert "Apache License" in (EXAMPLE / "LICENSE").read_text()
     readme = (EXAMPLE / "README.md").read_text()
     assert "fe62b7c9b7b347ee047a6fee6f417cd8427b2836" in readme and "ros-industrial/industrial_calibration" in readme
 
 
-@needs_source
 def test_recording_round_trips_to_the_source(source):
     keys, meas, _ = source
     rec = read_recording(EXAMPLE / "recording.csv")
@@ -77,7 +98,6 @@ def test_recording_round_trips_to_the_source(source):
     assert np.array_equal(rec.aux["source_key"], [int(k) for k in keys])
 
 
-@needs_source
 def test_machine_is_the_sources_dh_model(source):
     """FK(q) = base_offset DH_1(q1) DH_2(q2) target_mount, in mm, for every recorded q."""
     keys, meas, guesses = source

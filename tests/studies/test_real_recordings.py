@@ -1,9 +1,8 @@
 """studies/real_recordings.py in its quick mode: the real positioner and TIAGo recordings end to end.
 
-The positioner example ships with the repository; its source YAML (for the
-independent scipy baseline) and the TIAGo data (CSV and the CC BY-NC-ND
-URDF, never copied) are read from ../shared, and those parts skip cleanly
-when it is absent.
+Both recordings ship with the repository (examples/positioner, with its source
+YAML for the independent scipy baseline, and examples/tiago; Apache-2.0), so
+every part runs on a fresh clone.
 """
 
 import json
@@ -17,12 +16,8 @@ from tests.studies.conftest import load_study
 
 ROOT = Path(__file__).resolve().parents[2]
 STUDIES = ROOT / "studies"
-SHARED = next(
-    (p / "shared" / "data" / "real" for p in (ROOT.parent, ROOT.parent.parent) if (p / "shared" / "data" / "real").is_dir()),
-    ROOT.parent / "shared" / "data" / "real",
-)
-HAVE_POSITIONER_SOURCE = (SHARED / "positioner" / "measurements.yaml").is_file()
-HAVE_TIAGO = (SHARED / "tiago" / "tiago_48_schunk.urdf").is_file()
+HAVE_POSITIONER_SOURCE = (ROOT / "examples" / "positioner" / "source" / "measurements.yaml").is_file()
+HAVE_TIAGO = (ROOT / "examples" / "tiago" / "recording.csv").is_file()
 # the study fits the instrument frame (--frame fit, bayescal.instrument)
 pytest.importorskip("bayescal.instrument", reason="bayescal.instrument (--frame fit) not in this checkout")
 
@@ -91,7 +86,7 @@ def test_figures_written(quick):
         assert (out / "tiago_per_line.png").stat().st_size > 1000
 
 
-@pytest.mark.skipif(not HAVE_TIAGO, reason="shared TIAGo data absent")
+@pytest.mark.skipif(not HAVE_TIAGO, reason="examples/tiago absent")
 def test_tiago_registration_and_full_fit(quick):
     _, res = quick
     t = res["tiago"]
@@ -118,7 +113,7 @@ def test_tiago_registration_and_full_fit(quick):
     assert staged["rms_after"]["position"] < min(2.71, t["in_sample"]["map"]["pos_rms"] + 0.15)
 
 
-@pytest.mark.skipif(not HAVE_TIAGO, reason="shared TIAGo data absent")
+@pytest.mark.skipif(not HAVE_TIAGO, reason="examples/tiago absent")
 def test_tiago_outlier_screen_names_the_bad_row(quick):
     _, res = quick
     scr = res["tiago"]["outlier_screen"]
