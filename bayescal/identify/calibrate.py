@@ -235,8 +235,17 @@ def _fit_once(model, method, *, lam, k, free, rule, prior_scale, max_iter, outli
     elif auto:
         # the rules see the recording with the weights of a robust MAP pass: one gross pose must not choose lambda or k
         handling = robust_map_weights(model, free, max_iter=max_iter, **outlier_kw)
-        choice, res = choose_regularisation(handling.weighted_model(model), method, rule=rule, free=free,
-                                            max_iter=max_iter)
+        weighted = handling.weighted_model(model)
+        order = canonical_order(weighted)
+        # a batch answer must not depend on the order of the rows: the rules' folds and draws follow the rows,
+        # so they see them in one canonical order (sorted by the commanded actuators, then the measurement)
+        choice, res = choose_regularisation(weighted if order is None else weighted.subset(order), method, rule=rule,
+                                            free=free, max_iter=max_iter)
+        if order is not None:
+            from .gauss_newton import identify
+
+            chosen = {"lam": float(choice.value)} if method == "ridge" else {"k": int(choice.value)}
+            res = identify(weighted, method=method, free=free, max_iter=max_iter, **chosen)
         handling = handling.retested(model, res, fit_system(res))
         res = replace(res, extras={**res.extras, **handling.to_dict()})
     else:
@@ -332,6 +341,19 @@ def calibrate(
     cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}),
                   model=model)
     return cal.with_variance_factor(model)
+
+
+def canonical_order(model):
+    """The rows sorted by commanded actuators, then by the measured values (None: already in that order).
+
+    Only for a recording whose order carries no physics (no effects read the time order, one pose per
+    row); otherwise None, and the rows stay as recorded.
+    """
+    if model.machine.effects or np.asarray(model.pose_q).shape[0] != model.n_poses or model.y_measured is None:
+        return None
+    keys = np.hstack([np.asarray(model.q, dtype=float), np.asarray(model.y_measured, dtype=float)])
+    order = np.lexsort(keys.T[::-1])
+    return None if np.array_equal(order, np.arange(order.size)) else order
 
 
 def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
