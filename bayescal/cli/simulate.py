@@ -150,6 +150,11 @@ def run(args) -> int:
         from ..effects.stored import StoredEffectsTransform
 
         stored = [StoredEffectsTransform(machine, machine.effects)]
+    if machine.discrepancy is not None:
+        # a calibrated machine's model discrepancy moves its simulated tool as it moves the real one
+        from ..discrepancy.model import DiscrepancyTransform
+
+        stored.append(DiscrepancyTransform(machine.discrepancy))
     if args.effect or aux:
         from ..effects.simulate import parse_effect_spec, simulate_with_effects
 
@@ -169,7 +174,9 @@ def run(args) -> int:
     write_files_atomic([
         (out, recording_to_csv(sim.recording)),
         (truth, json_text({"machine": machine.name, "dof": args.dof, **sim.truth_dict()})),
-        (truth.with_suffix(".toml"), machine_file_text(machine, sim.theta_true)),  # with its [effect.*]
+        # with its [effect.*] and [discrepancy], not the calibration's uncertainty (this is the truth, not an estimate)
+        (truth.with_suffix(".toml"), machine_file_text(machine.with_calibration(None, machine.discrepancy),
+                                                       sim.theta_true)),
     ])
     if not args.quiet:
         err = np.linalg.norm(sim.recording.position - machine.forward(sim.recording.q).position, axis=1)

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from .kernel import nystrom_features
 
-__all__ = ["Discrepancy", "OUTPUT_NAMES", "weight_names"]
+__all__ = ["Discrepancy", "DiscrepancyTransform", "OUTPUT_NAMES", "weight_names"]
 
 #: The components ``delta`` may have: tool point (mm) and small rotation (rad), base frame.
 OUTPUT_NAMES = ("x", "y", "z", "rx", "ry", "rz")
@@ -139,6 +139,30 @@ class Discrepancy:
         z = (np.asarray(X_raw, dtype=float) - self.center) / self.scale
         return nystrom_features(z, self.inducing, self.length_scales, chol=self._chol)[0]
 
+    def tool_offset(self, q: NDArray, aux: dict | None = None) -> NDArray:
+        """The discrepancy's mean at commanded ``q`` (n, N) and channels ``aux``: base-frame tool offset (n, 6).
+
+        Rows 0-2 the tool point (mm), 3-5 the small rotation (rad); components
+        the discrepancy does not model are zero.  InputError naming an input
+        the channels lack.
+        """
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        n = q.shape[0]
+        cols = []
+        for name in self.inputs:
+            if name.startswith("q") and name[1:].isdigit() and int(name[1:]) <= q.shape[1]:
+                cols.append(q[:, int(name[1:]) - 1])
+            elif aux is not None and name in aux:
+                cols.append(np.broadcast_to(np.asarray(aux[name], dtype=float), (n,)))
+            else:
+                raise InputError(f"discrepancy input {name!r}: no such actuator or channel (give the channel)")
+        phi = self.features(np.column_stack(cols))
+        m = self.n_inducing
+        out = np.zeros((n, 6))
+        for k, o in enumerate(self.outputs):
+            out[:, OUTPUT_NAMES.index(o)] = self.output_scales[k] * (phi @ self.weights[k * m:(k + 1) * m])
+        return out
+
     # ------------------------------------------------------------- rows
     def tool_map(self, model, theta, prediction) -> NDArray:
         """``(n_solved, dof, n_out)``: each pose's measured rows per unit of each component of ``delta``."""
@@ -221,3 +245,16 @@ def output_rows_map(model, theta, prediction, outputs) -> NDArray:
     rows = model.rows_jacobian(unit, prediction)  # (n_rows, dof, 6)
     idx = [OUTPUT_NAMES.index(o) for o in outputs]
     return rows[:, :, idx]
+
+
+@dataclass(frozen=True, eq=False)
+class DiscrepancyTransform:
+    """A discrepancy as a :class:`bayescal.simulate.PoseTransform`: simulating a machine that carries one."""
+
+    discrepancy: Discrepancy
+
+    def transform(self, q: NDArray, theta: NDArray, aux: dict, order: NDArray) -> tuple[NDArray, NDArray]:
+        return q, theta
+
+    def pose_offset(self, q: NDArray, theta: NDArray, aux: dict, order: NDArray) -> NDArray:
+        return self.discrepancy.tool_offset(q, aux)

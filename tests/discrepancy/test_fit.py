@@ -145,3 +145,18 @@ def test_discrepancy_table_round_trips(prs3, bumped, tmp_path):
     pred = model.predict(th)
     for a, b in zip(disc.rows(model, th, pred), back.rows(model, th, pred)):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
+def test_simulated_machine_carries_its_discrepancy(prs3, bumped):
+    """The simulator's tool offset (tool_offset, from q and channels) is the rows' mean (rows, from the model)."""
+    from bayescal.discrepancy.model import DiscrepancyTransform
+    from bayescal.simulate import measure
+
+    model, _ = bumped
+    cal = calibrate(model, method="map", prior_scale="tolerance", robust="off", discrepancy="on")
+    disc, th = cal.discrepancy.discrepancy, cal.result.theta
+    mean = disc.rows(model, th, model.predict(th))[0]
+    offset = DiscrepancyTransform(disc).pose_offset(model.q, None, {}, None)
+    np.testing.assert_allclose(offset[:, :3], mean, rtol=1e-10, atol=1e-14)
+    rec = measure(prs3, model.q, th, 3, None, effects=[DiscrepancyTransform(disc)])
+    np.testing.assert_allclose(rec.position, model.predict(th).y + mean, atol=1e-9)
