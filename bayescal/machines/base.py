@@ -466,13 +466,19 @@ class Machine(ABC):
         Shape (n, 6), or None when no effect moves the tool (a link or
         column bending under gravity: :attr:`bayescal.effects.Effect.moves_tool`);
         a grid adds it to the tool point the drives reach
-        (:func:`bayescal.effects.stored.static_effect_delta_x`).
+        (:func:`bayescal.effects.stored.static_effect_delta_x`).  A machine
+        that carries a model discrepancy (``[discrepancy]``) adds its mean at
+        the nodes' actuators and channels (its std is not in the grid's).
         """
-        if not self.effects:
-            return None
-        from ..effects.stored import static_effect_delta_x
+        out = None
+        if self.effects:
+            from ..effects.stored import static_effect_delta_x
 
-        return static_effect_delta_x(self, self.effects, q, aux)
+            out = static_effect_delta_x(self, self.effects, q, aux)
+        if self.discrepancy is not None:
+            d = self.discrepancy.tool_offset(q, aux)
+            out = d if out is None else out + d
+        return out
 
     def guess_from_measurement(
         self, q: NDArray, position: NDArray, rotation: NDArray | None = None, axis: NDArray | None = None
