@@ -42,6 +42,9 @@ def model_from_recording(machine: Machine, rec: Recording | ConstraintRecording,
     """The measurement model of ``rec``: a :class:`~bayescal.constraint_model.ConstraintModel` for measured
     relations, a :class:`~bayescal.measurement.MeasurementModel` for measured poses.
 
+    ``check`` rows (a ``role`` column, docs/formats.md section 8) are left out: the model is of the
+    ``fit`` rows, the rows anything is identified from.
+
     Raises a BayescalError naming the recording's file and line when the
     machine cannot assemble one of its poses at the nominal geometry (for
     measured poses only with ``check``; a constraint recording is always checked).
@@ -52,6 +55,11 @@ def model_from_recording(machine: Machine, rec: Recording | ConstraintRecording,
         return ConstraintModel.from_recording(machine, rec, dof=dof)
     from .measurement import MeasurementModel, check_recording_solves
 
+    if rec.is_check.any():
+        # docs/formats.md section 8: check rows are never used to identify anything
+        import numpy as np
+
+        rec = rec.subset(np.flatnonzero(~rec.is_check))
     model = MeasurementModel.from_recording(machine, rec, dof=dof)
     if check:
         check_recording_solves(model, rec)

@@ -145,16 +145,21 @@ def geometry_confound(machine: Machine, q: np.ndarray, final: EffectFit, geometr
     # the fits' parameters: the machine's, then a model's own nuisance parameters (ballbar pivots), then the effects'
     Pm = final.theta.size
     theta = final.theta[:P]
-    q = np.asarray(q, float) if keep is None else np.asarray(q, float)[keep]
+    # the machine stays bound to the poses it evaluates (an instrument with several stations: Machine.for_poses)
+    q = np.asarray(q, float)
+    if keep is not None:
+        q, machine = q[keep], machine.for_poses(keep)
     if q.shape[0] > MAX_POSES:
         # an RMS over the workspace: evenly spread poses of a tracker-size recording give it to a percent,
         # without a (n, 6, P) Jacobian of 50,000 poses
-        q = q[np.linspace(0, q.shape[0] - 1, MAX_POSES).astype(int)]
+        sel = np.linspace(0, q.shape[0] - 1, MAX_POSES).astype(int)
+        q, machine = q[sel], machine.for_poses(sel)
     poses = machine.forward(q, theta)
     if not poses.success.all():
         # the fits solved the poses with the effects applied; without them a pose near the workspace's edge may
         # not assemble: average over those that do
-        q = q[poses.success]
+        ok = np.flatnonzero(poses.success)
+        q, machine = q[ok], machine.for_poses(ok)
         poses = machine.forward(q, theta)
     n = q.shape[0]
     if n == 0:
