@@ -65,7 +65,8 @@ def run(name: str, machine, rec, k: int, modes=("off", "auto")) -> dict:
     for mode, o in out.items():
         e = o["err"][np.isfinite(o["err"])]
         p = o["inside"][np.isfinite(o["err"])].astype(float)
-        res[mode] = {"mean_error_mm": float(e.mean()), "p95_error_mm": float(np.percentile(e, 95)),
+        res[mode] = {"mean_error_mm": float(e.mean()), "rms_error_mm": float(np.sqrt(np.mean(e**2))),
+                     "p95_error_mm": float(np.percentile(e, 95)),
                      "coverage_90": float(p.mean()), "coverage_se": float(np.sqrt(p.mean() * (1 - p.mean()) / p.size)),
                      "discrepancy_kept_folds": o["kept"], "sigma_factor_median": float(np.median(o["scale"]))}
     print(f"{name}: " + "; ".join(f"{m}: mean {res[m]['mean_error_mm']:.3f} mm, p95 {res[m]['p95_error_mm']:.3f}, "
@@ -78,14 +79,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="3 folds each, not written to studies/data")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--only", choices=("positioner", "tiago"), help="run one of the two (the other's results kept)")
     args = ap.parse_args(argv)
-    results = {}
+    import json
+
+    results = json.loads(Path(args.out).read_text()) if args.only and Path(args.out).is_file() else {}
     pos_m = load_machine(ROOT / "examples" / "positioner" / "machine.toml")
     pos_r = read_recording(ROOT / "examples" / "positioner" / "recording.csv")
-    results["positioner"] = run("positioner", pos_m, pos_r, 3 if args.quick else 10)
-    tiago = ROOT / "examples" / "tiago"  # bundled (studies/convert_tiago.py); the CC BY-NC-ND URDF is not used
-    m, r = load_machine(tiago / "machine.toml"), read_recording(tiago / "recording.csv")
-    results["tiago"] = run("tiago", m, r, 3 if args.quick else r.n_poses)
+    if args.only in (None, "positioner"):
+        results["positioner"] = run("positioner", pos_m, pos_r, 3 if args.quick else 10)
+    if args.only in (None, "tiago"):
+        tiago = ROOT / "examples" / "tiago"  # bundled (studies/convert_tiago.py); the CC BY-NC-ND URDF is not used
+        m, r = load_machine(tiago / "machine.toml"), read_recording(tiago / "recording.csv")
+        results["tiago"] = run("tiago", m, r, 3 if args.quick else r.n_poses)
     if not args.quick:
         write_json_atomic(args.out, results)
     return 0
