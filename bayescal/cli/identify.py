@@ -32,12 +32,13 @@ kept); ridge, tsvd, map and kalman estimate every parameter the measurement
 sees and let the prior decide those combinations (fixing them made a MAP
 calibration from a ballbar worse than the nominal machine; docs/delta.md).
 
-Methods: ls (Gauss-Newton least squares), ridge (Tikhonov towards nominal;
---lam 1 is the MAP estimate under the machine file's tolerance prior), tsvd
-(least squares on the k best-determined directions), map (the MAP estimate
-under the [tolerance] prior, with its Laplace covariance), kalman (a
-recursive EKF/UKF, one update per pose, with the uncertainty after each
-pose), mcmc (emcee posterior, refused unless converged). See docs/bayes.md.
+Methods: map (the default: the MAP estimate under the [tolerance] prior,
+with its Laplace covariance), ls (Gauss-Newton least squares), ridge
+(Tikhonov towards nominal; --lam 1 is the MAP estimate under the machine
+file's tolerance prior), tsvd (least squares on the k best-determined
+directions), kalman (a recursive EKF/UKF, one update per pose, with the
+uncertainty after each pose), mcmc (emcee posterior, refused unless
+converged). See docs/bayes.md.
 
 --lam auto / --k auto choose the regularisation from the data by a rule
 (--rule): cv (K-fold cross-validation over held-out poses), lcurve (L-curve
@@ -106,7 +107,8 @@ def register(sub) -> None:
     )
     p.add_argument("recording", help="recording CSV (docs/formats.md section 2)")
     p.add_argument("--machine", required=True, help="machine file TOML (docs/formats.md section 1)")
-    p.add_argument("--method", choices=("ls", "ridge", "tsvd", "map") + METHODS, default="ls", help="solver (default: ls)")
+    p.add_argument("--method", choices=("ls", "ridge", "tsvd", "map") + METHODS, default="map",
+                   help="solver (default: map, the MAP estimate under the tolerance prior with its Laplace covariance)")
     p.add_argument(
         "--lam", type=_lam_arg, metavar="LAM|auto",
         help="ridge parameter, dimensionless (1 = MAP under the tolerance prior), or 'auto'",

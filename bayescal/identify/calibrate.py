@@ -245,7 +245,7 @@ def _fit_once(model, method, *, lam, k, free, rule, prior_scale, max_iter, outli
             from .gauss_newton import identify
 
             chosen = {"lam": float(choice.value)} if method == "ridge" else {"k": int(choice.value)}
-            res = identify(weighted, method=method, free=free, max_iter=max_iter, **chosen)
+            res = replace(identify(weighted, method=method, free=free, max_iter=max_iter, **chosen), extras=res.extras)
         handling = handling.retested(model, res, fit_system(res))
         res = replace(res, extras={**res.extras, **handling.to_dict()})
     else:

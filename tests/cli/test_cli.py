@@ -45,7 +45,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
 def test_ls_ill_posed_exit_1(tmp_path, capsys):
     rec = tmp_path / "rec5.csv"
     main(["simulate", "--machine", str(PRS3_FILE), "--poses", "30", "--seed", "2", "--dof", "5", "--out", str(rec), "--quiet"])
-    assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--free", "all"]) == 1
+    assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--method", "ls", "--free", "all"]) == 1
     assert "ill-posed" in capsys.readouterr().out
 
 
