@@ -118,7 +118,8 @@ def calibrated_machine(machine: Machine, diagnosis: Diagnosis) -> CalibratedMach
         raise InputError("this diagnosis carries no fitted geometry (theta_final); run bayescal.diagnose.diagnose")
     base = machine.with_effects(())
     selected = tuple(diagnosis.selected)
-    theta = np.asarray(diagnosis.theta_final if selected else diagnosis.theta_geometric, float)
+    # the final model's geometry: with the selected effects and the discrepancy; the geometric MAP when neither
+    theta = np.asarray(diagnosis.theta_final, float)
     trials = {t.name: t for t in diagnosis.effects}
     stored = tuple(
         StoredEffect(

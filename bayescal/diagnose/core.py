@@ -345,7 +345,10 @@ def diagnose(
                        f"(it resembles {disc_trial.resembles})") if not selected else (
                 f"{', '.join(c.effect.name for c in selected)} and a model discrepancy together explain the mismatch "
                 "out of sample")
+    kept_disc = disc_trial is not None and disc_trial.kept
     record = _record(machine, final_model, cur_fit, disc_trial)
+    # the written geometry: the final fit's, corrected by the joint fit with the discrepancy when it is kept
+    theta_final = (disc_trial.theta if kept_disc else cur_fit.theta)[: machine.n_params]
 
     sel_names = [c.effect.name for c in selected]
     confound = None
@@ -388,7 +391,7 @@ def diagnose(
         seed=seed,
         message=message,
         # the machine's parameters only: a model's own nuisance parameters (ballbar pivots) follow them
-        theta_final=cur_fit.theta[: machine.n_params],
+        theta_final=theta_final,
         theta_geometric=fit0.theta[: machine.n_params],
         effect_settings={k: dict(v) for k, v in settings.items()},
         outliers=screen,
@@ -452,8 +455,9 @@ def _record(machine, final_model, fit: EffectFit, disc_trial):
     kappa = 1.0
     if final_model is not None:
         scaled = final_model.with_pose_sigma(np.asarray(final_model.row_sigma, dtype=float) * scale)
+        theta = disc_trial.theta[:P] if disc is not None else fit.theta[:P]
         try:
-            kappa, _ = loo_variance_factor(scaled, fit.theta[:P], cov, machine_index=np.arange(P), discrepancy=disc)
+            kappa, _ = loo_variance_factor(scaled, theta, cov, machine_index=np.arange(P), discrepancy=disc)
         except (np.linalg.LinAlgError, ValueError, KinematicsError):
             kappa = 1.0
     return record_from_result(base_machine(machine), names, free, cov[:P, :P] if not extra else None,

@@ -50,6 +50,8 @@ class DiscrepancyTrial:
     rms_cv_after: float
     resembles: str
     why: str = ""
+    #: The geometry of the joint fit (the final model's, corrected with the discrepancy: ``theta + dtheta``).
+    theta: object = None
 
     def to_dict(self) -> dict:
         d = self.fit.discrepancy
@@ -93,6 +95,12 @@ def try_discrepancy(model, theta, folds, rms_cv_before: float, *, location=None,
     sd = np.asarray(model.machine.tolerance, dtype=float)
     try:
         fitted = fit_discrepancy(model, theta, free, sd, seed=seed)
+        # the joint posterior's geometry, relinearised there once (the written machine's geometry)
+        c = fitted.noise_factor
+        joint = np.asarray(theta, dtype=float) + fitted.dtheta
+        fitted = fit_discrepancy(model, joint, free, sd, hyper=fitted.discrepancy, noise_factor=c)
+        joint = joint + fitted.dtheta
+        fitted = fit_discrepancy(model, joint, free, sd, hyper=fitted.discrepancy, noise_factor=c)
         cv = _cv_rms(model, theta, free, sd, fitted, folds)
     except (InputError, KinematicsError, np.linalg.LinAlgError) as exc:
         del exc
@@ -102,7 +110,8 @@ def try_discrepancy(model, theta, folds, rms_cv_before: float, *, location=None,
         why = f"evidence {fitted.discrepancy.log_evidence_gain:.1f} nats, below the bar"
     elif not cv < rms_cv_before:
         why = "no better out of sample"
-    return DiscrepancyTrial(fitted, not why, rms_cv_before, cv, resembles(fitted.discrepancy, location, units), why)
+    return DiscrepancyTrial(fitted, not why, rms_cv_before, cv, resembles(fitted.discrepancy, location, units), why,
+                            theta=joint)
 
 
 def _cv_rms(model, theta, free, sd, fitted: DiscrepancyFit, folds) -> float:
@@ -114,7 +123,7 @@ def _cv_rms(model, theta, free, sd, fitted: DiscrepancyFit, folds) -> float:
     for test in folds:
         train = np.setdiff1d(np.arange(n), test)
         tr = model.subset(train)
-        f = fit_discrepancy(tr, theta, free, sd, hyper=hyper)
+        f = fit_discrepancy(tr, theta, free, sd, hyper=hyper, noise_factor=fitted.noise_factor)
         th = theta.copy()
         th[idx] += f.dtheta
         te = model.subset(test)

@@ -229,7 +229,7 @@ def _optimise(prob: _Problem, U, x0, bounds, d, n_groups, groups, fit_noise, max
 
 def fit_discrepancy(model, theta, free, prior_sd, *, prior_mean=None, inputs=None, n_inducing: int | None = None,
                     fit_noise: bool = True, seed: int = 0, maxiter: int = 40,
-                    hyper: Discrepancy | None = None) -> DiscrepancyFit:
+                    hyper: Discrepancy | None = None, noise_factor: float = 1.0) -> DiscrepancyFit:
     """Fit a discrepancy jointly with the geometry's linearisation at a calibration (module docstring).
 
     Parameters
@@ -259,7 +259,9 @@ def fit_discrepancy(model, theta, free, prior_sd, *, prior_mean=None, inputs=Non
     hyper : Discrepancy, optional
         Keep this discrepancy's inputs, standardisation, inducing points,
         length and output scales (no search) and refit only the joint
-        posterior, with the noise factor 1 (the model's sigma as it is).
+        posterior, with the noise factor ``noise_factor``.
+    noise_factor : float
+        With ``hyper``: ``c`` (default 1: the model's sigma as it is).
 
     Returns
     -------
@@ -282,7 +284,7 @@ def fit_discrepancy(model, theta, free, prior_sd, *, prior_mean=None, inputs=Non
                 raise InputError("fit_discrepancy: a pose cannot be solved at the calibrated geometry")
             prob = _Problem(model, theta, pred, free_idx, hyper.inputs, hyper.outputs, hyper.center, hyper.scale,
                             prior_sd, shift)
-            return _posterior(model, prob, hyper, free_idx, prior_sd, shift, 1.0, hyper.log_evidence_gain)
+            return _posterior(model, prob, hyper, free_idx, prior_sd, shift, float(noise_factor), hyper.log_evidence_gain)
         return _fit(model, theta, free_idx, prior_sd, shift, inputs, n_inducing, fit_noise, seed, maxiter)
 
 
