@@ -22,17 +22,33 @@ def evaluation_poses(machine: Machine, n: int = 50, *, seed: int = 0, fallback: 
         if fallback is None:
             raise InputError(f"{machine.source}: no [workspace] q_limits to draw evaluation poses from")
         return np.asarray(fallback, dtype=float)
-    return draw_poses(machine, n, np.random.default_rng(seed))
+    # drawn on the geometry (a fitted instrument's stations are bound to the recording's poses, not these)
+    return draw_poses(machine.geometry_part[0], n, np.random.default_rng(seed))
 
 
 def tool_point_jacobian(machine: Machine, q: ArrayLike, theta: ArrayLike, idx: ArrayLike) -> NDArray:
-    """Tool-point rows of the machine's Jacobian, columns ``idx``: shape (n, 3, n_idx), mm per unit."""
-    q = machine.check_q(q)
-    poses = machine.forward(q, theta)
+    """Tool-point rows of the machine's geometry Jacobian, columns ``idx``: shape (n, 3, n_idx), mm per unit.
+
+    Evaluated on the geometry part (:attr:`Machine.geometry_part`): the accuracy of the machine at poses
+    it was not measured at, in its base frame; a fitted instrument frame (the session's) and other nuisance
+    parameters get zero columns.
+    """
+    geo, gidx = machine.geometry_part
+    q = geo.check_q(q)
+    theta = np.asarray(theta, dtype=float)
+    th = theta[..., gidx]
+    poses = geo.forward(q, th)
     if not poses.success.all():
         i = int(np.flatnonzero(~poses.success)[0])
         raise InputError(f"evaluation pose {i + 1} (q = {q[i].tolist()}) cannot be solved: {poses.message[i]}")
-    return machine.tool_jacobian(q, theta, poses)[:, :3][:, :, np.asarray(idx, dtype=int)]
+    Jg = geo.tool_jacobian(q, th, poses)[:, :3]
+    pos = {int(j): k for k, j in enumerate(gidx)}
+    idx = np.asarray(idx, dtype=int)
+    out = np.zeros((q.shape[0], 3, idx.size))
+    for k, j in enumerate(idx):
+        if int(j) in pos:
+            out[:, :, k] = Jg[:, :, pos[int(j)]]
+    return out
 
 
 def tool_point_std(G: NDArray, cov: NDArray) -> NDArray:

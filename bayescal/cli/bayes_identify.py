@@ -60,7 +60,7 @@ def check_method_options(args) -> None:
             raise InputError(f"{option} goes with --method {method}; it does nothing with --method {args.method}")
 
 
-def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
+def run_bayes(args, machine, model, free, check=None, outliers=None, session=None, noise=None) -> int:
     """Run kalman or mcmc; ``outliers`` (an OutlierHandling of a robust MAP pass) weights the poses and is reported."""
     from . import EXIT_FAILED, EXIT_OK
     from .effect_options import with_fitted_effects
@@ -95,6 +95,15 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
         outlier_text = outliers.report()
     extra, plaus = judge(machine, base_model, res, check)  # instrument frame and plausibility
     answer.update(extra)
+    from ..prediction.recording import held_out_report, score_held_out
+
+    # the noise and the leave-one-out factor of the MAP the method started from (the same model and prior)
+    scale, kappa = (1.0, 1.0) if noise is None else (noise.noise_scale, noise.variance_factor)
+    held_out = (score_held_out(res, session, noise_scale=scale, variance_factor=kappa)
+                if session is not None and not args.fit_effects else {})
+    answer.update(held_out)
+    if noise is not None:
+        answer.update(noise.noise_dict())
     write_json(args, answer)  # before printing: a closed stdout (`| head`) must not cost the answer
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
@@ -112,9 +121,13 @@ def run_bayes(args, machine, model, free, check=None, outliers=None) -> int:
             made = [plot_trace(res, out / "mcmc_trace.png"), *plot_trace_pages(res, out), plot_pair(res, out / "mcmc_pair.png")]
     if not args.quiet:
         print(res.report())
+        if noise is not None:
+            print(noise.noise_report())
         print(instrument_report(extra, plaus))
         if outlier_text:
             print(outlier_text)
+        if text := held_out_report(held_out):
+            print(text)
         if made:
             print("\nfigures: " + ", ".join(str(m) for m in made))
     if (args.write_machine or getattr(args, "posterior", None)) and not res.success and not args.quiet:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+
+import numpy as np
 from dataclasses import replace
 
 from ..bayes.priors import PRIOR_SCALES
@@ -221,8 +223,16 @@ def run(args) -> int:
     if args.method in METHODS:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
+        # the stated noise, tested by the MAP the filter and the sampler start from; where the data contradict it
+        # they run with the estimated noise (bayescal/identify/noise.py)
+        noise_cal = None
+        if not args.fit_effects and args.method in ("kalman", "mcmc"):
+            noise_cal = calibrate(model, method="map", max_iter=args.max_iter, noise=args.noise, free=free, **okw)
+            if noise_cal.noise_scale != 1.0:
+                model = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * noise_cal.noise_scale)
         return run_bayes(args, machine, model, free, check,
-                         outliers=robust_map_weights(model, free, max_iter=args.max_iter, **okw))
+                         outliers=robust_map_weights(model, free, max_iter=args.max_iter, **okw), session=session,
+                         noise=noise_cal)
     auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
     if not auto and (args.rule or args.figures):
         raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
@@ -242,7 +252,9 @@ def run(args) -> int:
                     fit_effects=args.fit_effects, discrepancy=args.discrepancy,
                     discrepancy_inputs=name_list(args.discrepancy_inputs) if args.discrepancy_inputs else None, **okw)
     res, handling, choice = cal.result, cal.handling, cal.choice
-    held_out = score_held_out(cal, session) if session is not None else {}
+    written = with_fitted_effects(machine, model, res)
+    fitted_effects = tuple(written.effects) if args.fit_effects else None
+    held_out = score_held_out(cal, session, effects=fitted_effects) if session is not None else {}
     if hasattr(model, "pivot_positions"):  # a constraint recording's fitted ballbar pivots
         res = replace(res, extras={**res.extras, "pivots": model.pivot_positions(res.theta)})
     # the answers are written before anything is printed, so that a reader of stdout that
@@ -250,7 +262,6 @@ def run(args) -> int:
     # instrument frame and plausibility (docs/real-instruments.md)
     extra, plaus = judge(machine, model, res, check)
     write_json(args, {**res.to_dict(), **extra, **held_out})
-    written = with_fitted_effects(machine, model, res)
     write_calibrated_files(args, written.with_calibration(cal.record(base_machine(written)), cal.discrepancy_model),
                            res, plaus)
     write_report(args, "identify", res, machine=machine, model=model, choice=choice, answer_extra=extra)

@@ -56,9 +56,12 @@ def _reference_link_factors(machine: Machine, q0: NDArray, theta: NDArray, K: ND
     if machine.q_limits is not None:
         if theta is not None and np.ndim(theta) == 2:  # per-pose geometry (a growing machine): its mean
             theta = np.mean(theta, axis=0)
-        home = machine.forward(q0[None], theta)
+        # the home pose is the machine's, not a measured one: its geometry (no instrument station is bound to it)
+        geo, gidx = machine.geometry_part
+        th = None if theta is None else np.asarray(theta, dtype=float)[gidx]
+        home = geo.forward(q0[None], th)
         if home.success.all():
-            Kh = link_factors(machine, q0[None], theta, home)
+            Kh = link_factors(geo, q0[None], th, home)
             if Kh is not None:
                 return Kh[0]
     return K.mean(axis=0)

@@ -327,15 +327,26 @@ def calibrate(
     res, handling, choice = _fit_once(model, method, **kw)
     first = noise_check_of(model, res)
     if discrepancy != "off" and res.success:
-        got = _with_discrepancy(model, method, kw, (res, handling, choice), discrepancy, discrepancy_inputs, noise)
+        # a noise not stated is estimated first: the geometry's prior must be a prior, not a noise ratio, before it
+        # decides with the discrepancy's what each may take
+        base = 1.0
+        fit_d, model_d = (res, handling, choice), model
+        if first.verdict == "not_stated" and noise == "auto":
+            r2, h2, c2, base = _with_noise_scale(model, method, kw, first.scale, (res, handling, choice))
+            fit_d, model_d = (r2, h2, c2), model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * base)
+        got = _with_discrepancy(model_d, method, kw, fit_d, discrepancy, discrepancy_inputs, noise)
         if got is not None:
+            if base != 1.0:
+                got = replace(got, noise=first, noise_scale=got.noise_scale * base, model=model)
+                got = replace(got, result=replace(got.result, extras={**got.result.extras, **got.noise_dict()}))
             return got
         note = "considered, not supported by the data (--discrepancy auto)"
     else:
         note = ""
     scale = 1.0
-    # without a stated noise ([measurement] absent) the sigmas are weights and the covariance is already scaled
-    if noise == "auto" and first.contradicted and res.success:
+    # without a stated noise ([measurement] absent) the sigmas are weights: the noise is estimated the same way,
+    # so that everything downstream (the record's noise scale, predictions, the discrepancy's prior) sees it
+    if noise == "auto" and (first.contradicted or first.verdict == "not_stated") and res.success:
         res, handling, choice, scale = _with_noise_scale(model, method, kw, first.scale, (res, handling, choice))
     cal = Calibration(result=res, handling=handling, choice=choice, noise=first, noise_scale=scale, discrepancy_note=note)
     cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}),
@@ -369,13 +380,16 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
     prior_sd = np.asarray(machine.tolerance, dtype=float)[idx] / math.sqrt(res.lam)
     mean = getattr(machine, "prior_mean", None)
     prior_mean = None if mean is None else np.asarray(mean, dtype=float)[idx]
-    df = fit_discrepancy(model, res.theta, res.free, prior_sd, prior_mean=prior_mean, inputs=inputs)
+    # the hyperparameters and the noise are estimated with the poses weighted as the geometry's robust fit weighted
+    # them: one gross pose must not shorten the length scales and raise the noise (seen: 0.0088 -> 0.0138 mm)
+    weighted = handling.weighted_model(model) if hasattr(handling, "weighted_model") else model
+    df = fit_discrepancy(weighted, res.theta, res.free, prior_sd, prior_mean=prior_mean, inputs=inputs)
     if mode == "auto" and not df.supported:
         return None
     # the stated noise, tested with the discrepancy accounted for (the joint fit's effective parameters)
     n_distinct = distinct_rows(model.q, model.y_measured) * model.dof
     check = check_noise(df.chi2, n_distinct - df.effective_params, stated=bool(machine.noise.given))
-    scale = check.scale if (noise == "auto" and check.contradicted) else 1.0
+    scale = check.scale if (noise == "auto" and (check.contradicted or check.verdict == "not_stated")) else 1.0
     scaled = model if scale == 1.0 else model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
     # the joint posterior at the noise used, relinearised once at its own geometry
     theta = res.theta.copy()
@@ -425,6 +439,9 @@ def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outli
     weights = np.where(flagged, 1e-12, 1.0)
     excluded = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) / np.sqrt(weights)[:, None])
     idx = np.flatnonzero(res.free)
+    # the hyperparameters again, without the poses no model explains
+    searched = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, inputs=df.discrepancy.inputs)
+    df = replace(df, discrepancy=searched.discrepancy)
     for _ in range(2):
         df = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
         theta = theta.copy()

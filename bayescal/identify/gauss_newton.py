@@ -89,7 +89,8 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool 
     return np.sort(idx), None
 
 
-def posterior_covariance(final, method: str, *, lam: float | None, noise_var: float = 1.0) -> tuple[NDArray, str]:
+def posterior_covariance(final, method: str, *, lam: float | None, noise_var: float = 1.0,
+                         ratio: bool = False) -> tuple[NDArray, str]:
     """Covariance of the scaled parameters ``phi = theta / S`` of one linearised solve, and how it was built.
 
     The thin SVD ``A = U diag(s) V^T`` of the whitened, tolerance-scaled
@@ -118,6 +119,11 @@ def posterior_covariance(final, method: str, *, lam: float | None, noise_var: fl
     noise_var : float
         Factor on the instrument variance (the reduced chi-square when the
         noise is estimated).
+    ratio : bool
+        ``lam`` is a noise-to-prior variance ratio (the noise not stated: the
+        sigmas are weights and the empirical prior scale sets ``lam``), so the
+        whole posterior scales with ``noise_var``: ``c (A^T A + lam I)^-1``.
+        Otherwise ``lam`` is the prior precision in tolerance units.
 
     Returns
     -------
@@ -126,7 +132,11 @@ def posterior_covariance(final, method: str, *, lam: float | None, noise_var: fl
     V, s = final.V, final.s
     n = V.shape[0]
     outside = np.eye(n) - V @ V.T  # projector on what the rows do not see (zero when they see everything)
-    if method in ("map", "ridge") and lam:
+    if method in ("map", "ridge") and lam and ratio:
+        cov = noise_var * ((V / (s**2 + lam)) @ V.T + outside / lam)
+        kind = ("Laplace posterior c (A^T A + lam I)^-1 (noise and prior scale estimated together)" if method == "map"
+                else "Laplace (ridge as MAP: c (A^T A + lam I)^-1)")
+    elif method in ("map", "ridge") and lam:
         cov = (V / (s**2 / noise_var + lam)) @ V.T + outside / lam
         kind = ("Laplace posterior (A^T A + I)^-1 under the tolerance prior" if method == "map"
                 else "Laplace (ridge as MAP: (A^T A + lam I)^-1)")
@@ -374,7 +384,7 @@ def identify(
     chi2 = float(r @ r)
     # without a stated noise the sigmas are weights: the noise variance is estimated from the fit
     noise_var = 1.0 if noise_given else chi2 / dof_fit
-    cov_phi, kind = posterior_covariance(final, method, lam=lam, noise_var=noise_var)
+    cov_phi, kind = posterior_covariance(final, method, lam=lam, noise_var=noise_var, ratio=not noise_given)
     cov = cov_phi * np.outer(S, S)
     determined, s_data = data_determined(A)
     determined_all = np.zeros(P, dtype=bool)

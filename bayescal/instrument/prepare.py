@@ -118,10 +118,7 @@ def prepare_session(
     if frame == "fit":
         machine, unfitted = station_frames(machine, rec, dof=dof)
     else:
-        check = check_frame(machine, fit_rec)
-        if check is not None and check.refuses:
-            # metres off, tens of degrees turned: no calibration in the base frame can mean anything
-            raise RecordingError(rec.path, None, None, check.message())
+        check = _base_frame_check(machine, fit_rec)
     model = MeasurementModel.from_recording(machine, rec, dof=dof)
     if strict:
         usable = np.ones(rec.n_poses, dtype=bool)
@@ -139,6 +136,31 @@ def prepare_session(
             # started from poses measured in another frame, the kinematics land nowhere: say why
             raise RecordingError(rec.path, None, None, check.message()) from exc
     return Session(machine, model, rec, check, unfitted)
+
+
+def _base_frame_check(machine: Machine, rec: Recording) -> FrameCheck | None:
+    """The rigid-transform check of a recording said to be in the base frame, per station when it has several.
+
+    Several stations in the base frame are legitimate (sessions of one frame), but a station measured in its own
+    instrument frame would otherwise pass unnoticed: no one rigid transform explains two stations at once.
+    """
+    subsets = [rec]
+    if len(rec.stations) > 1:
+        idx = rec.station_index
+        subsets = [rec.subset(np.flatnonzero(idx == k)) for k in range(len(rec.stations))
+                   if np.count_nonzero(idx == k) >= 3]
+    first = None
+    for k, sub in enumerate(subsets):
+        check = check_frame(machine, sub)
+        if check is None:
+            continue
+        where = f"station {sub.station[0]!r}: " if len(subsets) > 1 and sub.station else ""
+        if check.refuses:
+            # metres off, tens of degrees turned: no calibration in the base frame can mean anything
+            raise RecordingError(rec.path, None, None, where + check.message())
+        if first is None or (check.fires and not first.fires):
+            first = check
+    return first
 
 
 def prepare_model(

@@ -216,16 +216,24 @@ class InstrumentFrame(Machine):
 
         return replace(self, pose_station=None if pose_station is None else np.asarray(pose_station, dtype=int))
 
-    def _station_of(self, n: int) -> NDArray | None:
-        """Station index of each of ``n`` poses (the binding tiled for stacked parameter sets), or None for one station."""
+    def _station_of(self, n: int, stacked: bool = False) -> NDArray | None:
+        """Station index of each of ``n`` poses, or None for one station.
+
+        ``stacked``: the poses are parameter sets stacked in blocks of the bound poses (per-pose ``theta`` of
+        ``k n`` rows, as a sampler evaluates them), so the binding repeats; otherwise ``n`` must be the bound count:
+        poses the stations were not bound to have no station, and tiling would give them one silently.
+        """
         if self.n_stations == 1:
             return None
         ps = self.pose_station
         if ps is None:
             raise InputError("InstrumentFrame: several stations, but no station is bound to the poses (pose_station)")
-        if ps.size == 0 or n % ps.size:
-            raise InputError(f"InstrumentFrame: {n} poses, but stations are bound to {ps.size}")
-        return ps if n == ps.size else np.tile(ps, n // ps.size)
+        if n == ps.size:
+            return ps
+        if stacked and ps.size and n % ps.size == 0:
+            return np.tile(ps, n // ps.size)
+        raise InputError(f"InstrumentFrame: {n} poses, but stations are bound to {ps.size}; evaluate the machine's "
+                         "geometry (Machine.geometry_part) at poses the recording did not measure")
 
     # ----------------------------------------------------------- delegation
     @property
@@ -339,7 +347,7 @@ class InstrumentFrame(Machine):
 
     def _pose_frame_params(self, tf: NDArray, n: int) -> tuple[NDArray | None, NDArray | None]:
         """Each pose's own frame correction (n, 6) from all stations' (..., 6 S), and its station (n,) or None."""
-        st = self._station_of(n)
+        st = self._station_of(n, stacked=np.ndim(tf) == 2)
         if st is None:
             return tf, None
         tf = np.asarray(tf)

@@ -145,8 +145,9 @@ def predictive_rows(
         s_idx = np.asarray(session_index, dtype=int)
         Js = J[:, :, s_idx]
         fr = np.ones(sub.n_poses, dtype=bool) if fit_rows is None else np.asarray(fit_rows, dtype=bool)[ok]
-        As = (Js[fr] / sig[fr][:, :, None]).reshape(-1, s_idx.size)
-        Am = (Jm[fr] / sig[fr][:, :, None]).reshape(-1, Jm.shape[2])
+        rows = int(fr.sum()) * dof
+        As = (Js[fr] / sig[fr][:, :, None]).reshape(rows, s_idx.size)
+        Am = (Jm[fr] / sig[fr][:, :, None]).reshape(rows, Jm.shape[2])  # explicit rows: no machine parameter is fine
         Minv = np.linalg.pinv(As.T @ As)
         K = Minv @ (As.T @ Am)
         G = Jm - Js @ K

@@ -244,14 +244,26 @@ def _in_recording_terms(rec, model, pr):
     return measured, predicted
 
 
-def score_held_out(cal, session) -> dict:
+def score_held_out(cal, session, *, effects=None, noise_scale: float | None = None,
+                   variance_factor: float | None = None) -> dict:
     """The ``check`` rows of a calibration's own recording, predicted and scored as ``predict`` scores them.
 
     Parameters
     ----------
-    cal : bayescal.identify.calibrate.Calibration
-        Fitted on the session's ``fit`` rows (its frames are the session's).
+    cal : Calibration, or any result with ``theta``, ``free``, ``covariance`` and ``success``
+        Fitted on the session's ``fit`` rows (its frames are the session's): a
+        :class:`~bayescal.identify.calibrate.Calibration` (its noise scale,
+        discrepancy and variance factor are used), or a Kalman or MCMC result
+        (its covariance as it is).
     session : bayescal.instrument.prepare.Session
+    effects : tuple of StoredEffect, optional
+        Effects fitted with the geometry (``--fit-effects``): the check rows are
+        predicted with them at their fitted values (their parameters' uncertainty
+        is not carried).
+    noise_scale : float, optional
+        Factor on the recording's sigma (default: the calibration's, 1 for another result).
+    variance_factor : float, optional
+        The leave-one-out factor on the predictive covariance (default: the calibration's, 1 for another result).
 
     Returns
     -------
@@ -259,24 +271,47 @@ def score_held_out(cal, session) -> dict:
         ``{"check": {"summary": {...}, "rows": [...]}}``, or ``{}`` when the
         recording has no ``check`` row.
     """
+    from ..measurement import MeasurementModel
+
     rec = session.recording
     if not rec.is_check.any():
         return {}
-    res = cal.result
+    res = getattr(cal, "result", cal)
     idx = np.flatnonzero(rec.is_check)
-    model = session.model.subset(idx)
-    if cal.noise_scale != 1.0:
-        model = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * cal.noise_scale)
+    model_all = session.model
+    if effects:
+        model_all = MeasurementModel.from_recording(model_all.machine.with_effects(tuple(effects)), rec,
+                                                    dof=model_all.dof)
+    model = model_all.subset(idx)
+    scale = float(getattr(cal, "noise_scale", 1.0) if noise_scale is None else noise_scale)
+    if scale != 1.0:
+        model = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
     sub_rec = rec.subset(idx)
-    errors = [None] * idx.size
-    if not res.success or cal.joint_covariance is None:
-        errors = ["the calibration did not succeed"] * idx.size
+    P = model.n_params
+    theta, free = np.asarray(res.theta, dtype=float), np.asarray(res.free, dtype=bool)
+    cov = getattr(cal, "joint_covariance", None) if cal is not res else None
+    if cov is None:
+        cov = getattr(res, "covariance", None)
+    if cov is None and getattr(res, "covariances", None) is not None:  # a Kalman filter: its state after the last pose
+        cov = np.asarray(res.covariances)[-1]
+    disc = getattr(cal, "discrepancy_model", None)
+    if theta.size != P:
+        # parameters beyond the machine's (fitted effects): their block of the covariance leaves, their values act
+        keep = np.flatnonzero(free)
+        inner = keep < P
+        n_w = 0 if disc is None else disc.n_features
+        sel = np.concatenate([np.flatnonzero(inner), keep.size + np.arange(n_w)])
+        cov = None if cov is None else np.asarray(cov)[np.ix_(sel, sel)]
+        theta, free = theta[:P], free[:P]
+    if not res.success or cov is None:
+        why = "the calibration did not succeed" if not res.success else "the method gives no covariance"
+        errors = [why] * idx.size
         pr = PredictiveRows(np.full((idx.size, model.dof), np.nan), np.full((idx.size, model.dof, model.dof), np.nan),
                             np.zeros(idx.size, dtype=bool), ("",) * idx.size)
     else:
-        disc = cal.discrepancy.discrepancy if cal.discrepancy is not None else None
-        pr = predictive_rows(model, res.theta, cal.joint_covariance, machine_index=np.flatnonzero(res.free),
-                             discrepancy=disc, variance_factor=cal.variance_factor)
+        pr = predictive_rows(model, theta, cov, machine_index=np.flatnonzero(free), discrepancy=disc,
+                             variance_factor=float(getattr(cal, "variance_factor", 1.0) if variance_factor is None
+                                                   else variance_factor))
         errors = [None if ok else f"cannot be predicted: {m}" for ok, m in zip(pr.success, pr.message)]
     failed = np.array([e is not None for e in errors])
     scores = score_rows(model.y_measured, pr.mean, pr.cov)
