@@ -2,12 +2,14 @@
 
 The central object is a :class:`MeasurementModel` ``y = h(q, theta)`` with
 its analytic Jacobian; every solver, filter, sampler and study consumes it.
+
+The names below are imported on first use (``bayescal._lazy``): ``import
+bayescal`` alone loads neither numpy nor scipy, so the command line starts
+fast.
 """
 
+from ._lazy import lazy_attributes
 from .errors import BayescalError, InputError, KinematicsError, MachineFileError, RecordingError
-from .io import Recording, read_recording, write_recording
-from .machines import KINDS, Machine, Prs3, Raspm, load_machine
-from .measurement import MeasurementModel
 
 __version__ = "0.1.0"
 
@@ -27,3 +29,9 @@ __all__ = [
     "load_machine",
     "MeasurementModel",
 ]
+
+__getattr__, __dir__ = lazy_attributes(__name__, {
+    "Recording": ".io", "read_recording": ".io", "write_recording": ".io",
+    "KINDS": ".machines", "Machine": ".machines", "Prs3": ".machines", "Raspm": ".machines",
+    "load_machine": ".machines", "MeasurementModel": ".measurement",
+})

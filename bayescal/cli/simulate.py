@@ -12,6 +12,7 @@ from ..errors import InputError
 from ..io import write_json_atomic, write_recording, write_text_atomic
 from ..machines import load_machine
 from ..simulate import simulate_recording
+from . import SUMMARIES
 from .inputs import name_list
 from .outputs import add_output_options
 
@@ -57,7 +58,7 @@ examples:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "simulate", help="simulate a recording of a machine with drawn errors", description=HELP, epilog=EXAMPLES,
+        "simulate", help=SUMMARIES["simulate"], description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--machine", required=True, help="nominal machine file TOML (docs/formats.md section 1)")
