@@ -241,8 +241,8 @@ def _slices(effects, model) -> list[slice]:
 
 
 #: Rows from which ``A^T A`` is BLAS's: below, einsum (a threaded BLAS spin-waits on a shared machine for
-#: matrices this small); above, einsum's unblocked loop costs five times BLAS (50 ms a call at 10,000 poses).
-_GRAM_BLAS_ROWS = 20_000
+#: matrices this small); above, einsum's unblocked loop costs five to seven times BLAS (at 1,000 poses and more).
+_GRAM_BLAS_ROWS = 4_000
 
 
 def _gram(A: NDArray) -> NDArray:
