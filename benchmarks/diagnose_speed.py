@@ -173,7 +173,9 @@ def main(argv=None) -> int:
 
     lines = [
         f"diagnosis of the 3-PRS with 20 um backlash, 6-DOF, aux time_s/temp_C/payload_kg; OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}",
-        f"baseline: commit {args.baseline_ref[:7]} (full-matrix permutation tests), measured up to {args.baseline_max} poses"
+        f"baseline: commit {args.baseline_ref[:7]}"
+        + (" (full-matrix permutation tests)" if args.baseline_ref == BASELINE_REF else "")
+        + f", measured up to {args.baseline_max} poses"
         + (f"; above: extrapolated t = {extrap[0]:.3g} n + {extrap[1]:.3g} n^2 s (marked ~)" if extrap else ""),
         "",
         "| poses | current CPU [s] | slope | wall [s] (load) | peak [MB] | identify CPU [s] | verdict | baseline CPU [s] | slope | baseline wall [s] | baseline peak [MB] | baseline verdict | speed-up (CPU) |",

@@ -182,8 +182,8 @@ def run_one(args: list, json_path: Path | None) -> dict:
     return {"wall": wall, "cpu": ru.ru_utime + ru.ru_stime, "peak_mb": ru.ru_maxrss / 1024, "exit": p.returncode}
 
 
-def stages(rec: Path, machine: Path, method: list, frame: str, repeat: int = 3) -> dict:
-    """Seconds of each stage in one process (best of ``repeat``), imports excluded."""
+def stages(rec: Path, machine: Path, method: list, frame: str, repeat: int = 1) -> dict:
+    """Seconds of each stage in one process (best of ``repeat``; 1: the first, cold run), imports excluded."""
     code = f"""
 import json, time, sys
 sys.path.insert(0, {str(ROOT)!r})
@@ -269,7 +269,7 @@ def main(argv=None) -> int:
             if f"arm7 {k}" in med:
                 print(f"  arm7 {k}: {med[f'arm7 {k}'] / m:.2f}x arm7 map (target < 3)")
     if args.stages:
-        print("\n  stages in one process, imports excluded (best of 3) [s]:")
+        print("\n  stages in one process, imports excluded (one cold run) [s]:")
         for name, cmd in todo:
             rec, machine = cmd[1], cmd[3]
             method = cmd[4:cmd.index("--frame")] if "--frame" in cmd else cmd[4:]

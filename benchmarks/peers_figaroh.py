@@ -290,7 +290,8 @@ def report(problems: dict, runs: dict) -> str:
                 f = np.asarray(last["fresh"]) * (1000.0 if who == "figaroh" else 1.0)
                 e = np.linalg.norm(f - np.asarray(p["fresh_p"]), axis=1)
                 acc = f"{e.max():.3f} / {np.sqrt(np.mean(e**2)):.3f}"
-            evals = f"{last['iterations']} GN iterations" if who == "bayescal" else f"{last['nfev']} cost evaluations"
+            evals = (f"{last['iterations']} GN iterations" + ("" if last["success"] else ", not converged")
+                     if who == "bayescal" else f"{last['nfev']} cost evaluations (last fit), status {last['status']}")
             t = [x["seconds"] for x in rs]
             lines.append(f"| {name} ({p['n']} poses) | {who} ({last['n_params']} parameters) | {med[who]:.3f} "
                          f"({min(t):.3f}-{max(t):.3f}) | {statistics.median(x['wall'] for x in rs):.2f} | "
@@ -316,6 +317,8 @@ def main(argv=None) -> int:
             f"{os.getloadavg()[0]:.2f} at end, OPENBLAS_NUM_THREADS=1\n\n" + report(problems, runs))
     print(text)
     (args.out / "table.md").write_text(text + "\n")
+    (args.out / "runs.json").write_text(json.dumps({f"{k[0]} {k[1]}": [{x: y for x, y in r.items() if x not in ("fit", "fresh")}
+                                                                    for r in v] for k, v in runs.items()}, indent=1))
     return 0
 
 

@@ -237,15 +237,19 @@ def main(argv=None) -> int:
     ap.add_argument("--bench-python", default=str(ROOT / ".venv-bench" / "bin" / "python"))
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--nuts-chains", type=int, default=2, help="NUTS chains, run one after the other (default 2)")
-    ap.add_argument("--nuts-warmup", type=int, default=150, help="NUTS warm-up draws per chain (default 150)")
-    ap.add_argument("--nuts-samples", type=int, default=150, help="NUTS draws kept per chain (default 150)")
+    ap.add_argument("--nuts-warmup", type=int, default=500, help="whitened NUTS: warm-up draws per chain (default 500)")
+    ap.add_argument("--nuts-samples", type=int, default=500, help="whitened NUTS: draws kept per chain (default 500)")
+    ap.add_argument("--default-warmup", type=int, default=150,
+                    help="default NUTS: warm-up draws per chain (default 150: it saturates its tree depth, 1,023 "
+                         "gradient evaluations per draw, so longer runs cost minutes and do not converge either)")
+    ap.add_argument("--default-samples", type=int, default=150, help="default NUTS: draws kept per chain (default 150)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     data = args.out / "positioner.npz"
     info = _child(sys.executable, EXPORT, {"root": str(ROOT), "out": str(data)})
     chk = _child(args.bench_python, NUMPYRO, {"data": str(data), "mode": "check"})
-    print(f"positioner posterior: {info['n_free']} free of {info['n_params']} parameters; jax model against "
+    print(f"positioner posterior: {info['n_free']} parameters sampled; jax model against "
           f"bayescal's predict: largest row difference {chk['max_row_difference']:.2e} (must be < 1e-9)")
     todo = ["bayescal", "nuts", "nuts-whitened"]
     runs = {k: [] for k in todo}
@@ -258,8 +262,9 @@ def main(argv=None) -> int:
             else:
                 res = _child(args.bench_python, NUMPYRO, {
                     "data": str(data), "mode": "whitened" if who == "nuts-whitened" else "default", "seed": r,
-                    "draws": str(draws), "chains": args.nuts_chains, "warmup": args.nuts_warmup,
-                    "samples": args.nuts_samples})
+                    "draws": str(draws), "chains": args.nuts_chains,
+                    "warmup": args.nuts_warmup if who == "nuts-whitened" else args.default_warmup,
+                    "samples": args.nuts_samples if who == "nuts-whitened" else args.default_samples})
             res["ess"], res["rhat"] = _ess(np.load(draws))
             x = np.load(draws).reshape(-1, info["n_free"])
             res["mean"], res["std"] = x.mean(0).tolist(), x.std(0).tolist()
@@ -267,6 +272,8 @@ def main(argv=None) -> int:
     ref = runs["bayescal"][-1]
     lines = [f"MCMC on the real positioner ({info['n_free']} parameters), {args.repeats} interleaved rounds, load "
              f"{load0:.2f} at start, {os.getloadavg()[0]:.2f} at end; end to end (set-up, compilation, warm-up, sampling)",
+             f"NUTS: {args.nuts_chains} chains one after the other; default {args.default_warmup} warm-up + "
+             f"{args.default_samples} draws per chain, whitened {args.nuts_warmup} + {args.nuts_samples}",
              "", "| sampler | seconds median (range) | min bulk ESS | ESS/s median | max R-hat | peak [MB] | "
              "means vs bayescal [MC sd] | stds ratio to bayescal | ratio (bayescal ESS/s over this) |",
              "|---|---|---|---|---|---|---|---|---|"]
