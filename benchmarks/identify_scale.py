@@ -48,7 +48,7 @@ exactly), so a speed change can be shown not to change the answers.
 
 Run (from the repository root)::
 
-    python benchmarks/identify_scale.py                         # about 2 minutes
+    python benchmarks/identify_scale.py                         # about 3 minutes on a shared machine
     python benchmarks/identify_scale.py --urdf ../shared/data/real/tiago/tiago.urdf --repeats 5
 """
 
