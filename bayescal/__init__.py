@@ -4,12 +4,14 @@ The front door (:mod:`bayescal.api`): ``load``, ``calibrate``, ``predict``,
 ``diagnose``, the command line's own policy as functions.  The central object
 is a :class:`MeasurementModel` ``y = h(q, theta)`` with its analytic
 Jacobian; every solver, filter, sampler and study consumes it.
+
+The names below are imported on first use (``bayescal._lazy``): ``import
+bayescal`` alone loads neither numpy nor scipy, so the command line starts
+fast.
 """
 
+from ._lazy import lazy_attributes
 from .errors import BayescalError, InputError, KinematicsError, MachineFileError, RecordingError
-from .io import Recording, read_recording, write_recording
-from .machines import KINDS, Machine, Prs3, Raspm, load_machine
-from .measurement import MeasurementModel
 
 __version__ = "0.1.0"
 
@@ -34,16 +36,18 @@ __all__ = [
     "diagnose",
 ]
 
+_lazy_getattr, __dir__ = lazy_attributes(__name__, {
+    "Recording": ".io", "read_recording": ".io", "write_recording": ".io",
+    "KINDS": ".machines", "Machine": ".machines", "Prs3": ".machines", "Raspm": ".machines",
+    "load_machine": ".machines", "MeasurementModel": ".measurement",
+    "load": ".api", "calibrate": ".api", "predict": ".api",
+})
+
 
 def __getattr__(name):
-    # the verbs load their machinery on first use (the command line's start-up does not pay for them)
-    if name in ("load", "calibrate", "predict"):
-        from . import api
-
-        return getattr(api, name)
     if name == "diagnose":
         # the package, callable as the verb (bayescal/diagnose/__init__.py): bayescal.diagnose(machine, recording)
         import importlib
 
         return importlib.import_module(".diagnose", __name__)
-    raise AttributeError(f"module 'bayescal' has no attribute {name!r}")
+    return _lazy_getattr(name)

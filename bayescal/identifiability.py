@@ -228,18 +228,19 @@ def analyse_identifiability(
     s_all = np.linalg.svd(Js[:, order], compute_uv=False)
     rank = int(np.sum(s_all > rtol * s_all[0])) if s_all.size and s_all[0] > 0 else 0
     kept: list[int] = []
-    Q = np.zeros((J.shape[0], 0))
+    Q_all = np.zeros((J.shape[0], P), order="F")  # the kept columns' orthonormal basis, filled in place
     fixed: list[int] = []
     for j in order:
         if norms[j] <= 1e-12 * max(norms.max(), 1e-300):
             fixed.append(j)
             continue
+        Q = Q_all[:, : len(kept)]
         c = Js[:, j]
         res = c - Q @ (Q.T @ c)
         res = res - Q @ (Q.T @ res)  # re-orthogonalise (classical Gram-Schmidt twice)
         if np.linalg.norm(res) > 10 * rtol:
+            Q_all[:, len(kept)] = res / np.linalg.norm(res)
             kept.append(j)
-            Q = np.column_stack([Q, res / np.linalg.norm(res)])
         else:
             fixed.append(j)
     # the greedy pass keeps at most `rank` columns; trim if round-off let one more through

@@ -72,8 +72,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
 
+from .distributions import chi2_median, chi2_ppf, chi2_sf, f_sf
 from .errors import InputError
 from .measurement import MeasurementModel
 
@@ -301,16 +301,16 @@ def pose_test_linear(
     # Cook: (x - x_(i))^T C^-1 (x - x_(i)) = w^2 sum_j a_j^2 g_j / (1 - w g_j)^2
     cook_num = np.sum(a2 * w[:, None] ** 2 * g / (1.0 - wg) ** 2, axis=1)
     if scale == "robust":
-        s2 = max(1.0, float(np.median(t)) / float(stats.chi2.median(dof)))
+        s2 = max(1.0, float(np.median(t)) / float(chi2_median(dof)))
         stat = t / s2
-        pval = stats.chi2.sf(stat, dof)
+        pval = chi2_sf(stat, dof)
         dist, df = "chi2", (float(dof),)
     elif scale != "given":
         raise InputError(f"scale: expected 'given' or 'robust', got {scale!r}")
     elif noise_known:
         s2 = 1.0
         stat = t
-        pval = stats.chi2.sf(t, dof)
+        pval = chi2_sf(t, dof)
         dist, df = "chi2", (float(dof),)
     else:
         # leave-one-out noise: weighted RSS of the other poses over its degrees of freedom
@@ -319,7 +319,7 @@ def pose_test_linear(
         dfd = max(N - trH - dof, 1.0)
         s2_i = np.clip(rss - drop, 1e-300, None) / dfd
         stat = (t / dof) / s2_i
-        pval = stats.f.sf(stat, dof, dfd)
+        pval = f_sf(stat, dof, dfd)
         s2 = rss / max(N - trH, 1.0)
         dist, df = "F", (float(dof), float(dfd))
     padj = _sidak(pval, n)
@@ -383,7 +383,7 @@ def loss_weights(u: NDArray, dof: int, *, loss: str = "t", nu: float = DEFAULT_N
     if loss == "t":
         return (nu + dof) / (nu + u / s2)
     if loss == "huber":
-        c = float(np.sqrt(stats.chi2.ppf(HUBER_QUANTILE, dof)))
+        c = float(np.sqrt(chi2_ppf(HUBER_QUANTILE, dof)))
         norm = np.sqrt(u / s2)
         return np.minimum(1.0, c / np.maximum(norm, 1e-300))
     raise InputError(f"loss: expected one of {', '.join(LOSSES)}, got {loss!r}")
@@ -460,7 +460,7 @@ def irls_weights(
             if loss == "t":
                 s2 = max(float(np.sum(w * u) / (n * d)), 1e-300)
             else:
-                s2 = max(float(np.median(u)) / float(stats.chi2.median(d)), 1e-300)
+                s2 = max(float(np.median(u)) / float(chi2_median(d)), 1e-300)
         w_new = loss_weights(u, d, loss=loss, nu=nu, s2=s2)
         change = float(np.max(np.abs(w_new - w)))
         w = w_new

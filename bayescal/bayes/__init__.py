@@ -10,9 +10,7 @@ Submodules not imported here (they pull in arviz/emcee or are rarely needed):
 :mod:`~bayescal.bayes.moves`, :mod:`~bayescal.bayes.accuracy`.  See docs/bayes.md.
 """
 
-from .kalman import FilterResult, kalman_filter
-from .linear import LinearisedModel, linearise
-from .priors import PRIOR_SCALES, GaussianPrior, empirical_bayes_map, map_estimate, prior_from_machine
+from .._lazy import lazy_attributes
 
 __all__ = [
     "FilterResult",
@@ -25,3 +23,11 @@ __all__ = [
     "empirical_bayes_map",
     "PRIOR_SCALES",
 ]
+
+# imported on first use: the Kalman filter pulls in filterpy and with it scipy.stats (seconds), which
+# ``identify --method map`` and the command line's start never need
+__getattr__, __dir__ = lazy_attributes(__name__, {
+    "FilterResult": ".kalman", "kalman_filter": ".kalman", "LinearisedModel": ".linear", "linearise": ".linear",
+    **{name: ".priors" for name in ("PRIOR_SCALES", "GaussianPrior", "empirical_bayes_map", "map_estimate",
+                                    "prior_from_machine")},
+})

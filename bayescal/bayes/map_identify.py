@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..identify.robust import map_system, robust_map_weights
+from ..identify.robust import map_system, robust_map_pass
 from ..measurement import MeasurementModel
 from .priors import map_estimate
 
@@ -76,10 +76,15 @@ def identify_map(model: MeasurementModel, free, *, prior_scale: str | None = Non
         chosen by the rule, ``prior_scale_note`` in ``extras``.
     """
     # the prior scale is set on the poses weighted as a robust MAP pass weights them: one gross pose must not set it
-    handling = robust_map_weights(model, free, max_iter=max_iter, robust=robust, **outlier_kw)
+    pass_fit, handling = robust_map_pass(model, free, max_iter=max_iter, robust=robust, **outlier_kw)
     scale, note = default_prior_scale(model)
     scale = prior_scale or scale
-    res = map_estimate(handling.weighted_model(model), free=free, max_iter=max_iter, prior_scale=scale)
+    # without weights the pass's fit is the first MAP below to the last bit (same model, tolerance prior,
+    # start and free set): reused, not redone.  A view with a prior mean of its own (effects) starts
+    # the MAP there instead of at the pass's start, so it is fitted anew
+    same = handling.weights is None and getattr(model.machine, "prior_mean", None) is None
+    res = map_estimate(handling.weighted_model(model), free=free, max_iter=max_iter, prior_scale=scale,
+                       first=pass_fit if same else None)
     if prior_scale is None and note is not None:
         res = replace(res, extras={**res.extras, "prior_scale_note": note})
     handling = handling.retested(model, res, map_system(res))

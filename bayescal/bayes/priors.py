@@ -140,6 +140,7 @@ def map_estimate(
     max_iter: int = 50,
     prior_scale: str = "tolerance",
     theta0: ArrayLike | None = None,
+    first: IdentificationResult | None = None,
 ) -> IdentificationResult:
     """Maximum a posteriori errors under a Gaussian prior (Gauss-Newton, Laplace covariance).
 
@@ -162,6 +163,11 @@ def map_estimate(
         parameters enter as products (an effect's mass times its
         compliances, :mod:`bayescal.effects.joint_model`) needs a start off
         the prior mean, where their gradient vanishes.
+    first : IdentificationResult, optional
+        This very MAP (``prior`` unscaled, from this start, with this
+        ``free``), already computed by the caller; used instead of fitting
+        it again (:func:`bayescal.bayes.map_identify.identify_map` has it
+        from its robust pass).
 
     Returns
     -------
@@ -175,9 +181,11 @@ def map_estimate(
     if start.shape != prior.mean.shape:
         raise InputError(f"theta0: expected shape {prior.mean.shape}, got {start.shape}")
     if prior_scale == "empirical":
-        return empirical_bayes_map(model, prior=prior, free=free, max_iter=max_iter, theta0=start)
+        return empirical_bayes_map(model, prior=prior, free=free, max_iter=max_iter, theta0=start, first=first)
     if prior_scale != "tolerance":
         raise InputError(f"prior_scale: expected one of {', '.join(PRIOR_SCALES)}, got {prior_scale!r}")
+    if first is not None:
+        return first
     return identify(
         model, method="map", free=free, theta0=start, scale=prior.std, prior_mean=prior.mean, max_iter=max_iter
     )
@@ -192,6 +200,7 @@ def empirical_bayes_map(
     max_rounds: int = 4,
     scale_bounds: tuple[float, float] = (0.05, 20.0),
     theta0: ArrayLike | None = None,
+    first: IdentificationResult | None = None,
 ) -> IdentificationResult:
     """MAP and Laplace covariance with the prior's scale estimated from the data (empirical Bayes).
 
@@ -223,6 +232,8 @@ def empirical_bayes_map(
         parameters cannot tell a scale of 1e-3 from 1e-4.
     theta0 : array_like, shape (P,), optional
         Where the first MAP starts (:func:`map_estimate`); the prior mean by default.
+    first : IdentificationResult, optional
+        The first MAP (scale 1, from ``theta0``, with ``free``) when the caller has it (:func:`map_estimate`).
 
     Returns
     -------
@@ -241,7 +252,9 @@ def empirical_bayes_map(
         return identify(model, method="map", free=free_now, theta0=start, scale=std, prior_mean=prior.mean,
                         max_iter=max_iter)
 
-    res = first = fit(1.0, prior.mean if theta0 is None else np.asarray(theta0, dtype=float), free)
+    if first is None:
+        first = fit(1.0, prior.mean if theta0 is None else np.asarray(theta0, dtype=float), free)
+    res = first
     c, rounds = 1.0, 0
     while res.success and rounds < max_rounds:
         rounds += 1

@@ -21,6 +21,20 @@ EXIT_OK, EXIT_FAILED, EXIT_INPUT = 0, 1, 2
 #: Subcommand modules, each with ``register(subparsers)`` setting ``func``.
 COMMANDS = ("identify", "predict", "simulate", "diagnose", "compensate", "grid", "plan", "compare", "klipper")
 
+#: The one-line help of each command in ``bayescal --help``, which imports no command module (each
+#: pulls in numpy and the library it drives); the modules' ``register`` use the same text
+#: (tests/cli/test_cli.py checks).
+SUMMARIES = {
+    "identify": "identify geometric errors from a recording",
+    "simulate": "simulate a recording of a machine with drawn errors",
+    "diagnose": "locate and name physics the geometric model leaves out",
+    "compensate": "write and evaluate BIC grids",
+    "grid": "compensation grid with uncertainty per node",
+    "plan": "choose measurement poses by information",
+    "compare": "compare identification methods statistically",
+    "klipper": "read a Klipper delta printer.cfg with a saved calibration",
+}
+
 _EPILOG = """\
 examples:
   bayescal simulate --machine examples/prs3/machine.toml --poses 36 --seed 1 --out rec.csv
@@ -39,7 +53,12 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_INPUT, f"{self.prog}: error: {message}\nRun '{self.prog} --help' for the options and examples.\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(commands=COMMANDS) -> argparse.ArgumentParser:
+    """The command line's parser with the full options of ``commands`` (default: every command).
+
+    The other commands are listed with their one-line help only (:data:`SUMMARIES`),
+    without importing their modules: :func:`main` registers just the command it runs.
+    """
     from .. import __version__
 
     parser = _Parser(
@@ -51,18 +70,29 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"bayescal {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        importlib.import_module(f".{name}", __name__).register(sub)
+        if name in commands:
+            importlib.import_module(f".{name}", __name__).register(sub)
+        else:
+            sub.add_parser(name, help=SUMMARIES[name])
     return parser
+
+
+def _command_in(argv: list[str]) -> str | None:
+    """The command ``argv`` names: its first word that is no option (the top level's take no values)."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit code."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    command = _command_in(words)
+    parser = build_parser(() if command is None else (command,))
+    args = parser.parse_args(words)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_INPUT
-    args.argv = list(sys.argv[1:] if argv is None else argv)  # for the report's inputs
+    args.argv = words  # for the report's inputs
     try:
         from ..io.safe_paths import run_scope
         from .outputs import check_option_values, check_run_paths

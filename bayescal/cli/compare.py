@@ -9,6 +9,7 @@ from ..compare import METHODS, METRICS, compare_methods
 from ..errors import InputError
 from ..io import write_json_atomic
 from ..machines import load_machine
+from . import SUMMARIES
 from .outputs import add_output_options, say, write_json, write_report
 
 HELP = """\
@@ -52,7 +53,7 @@ examples:
 def register(sub) -> None:
     known = "\n".join(f"  {m.name:<8}{m.help}" for m in METHODS.values())
     p = sub.add_parser(
-        "compare", help="compare identification methods statistically", description=HELP.format(methods=known),
+        "compare", help=SUMMARIES["compare"], description=HELP.format(methods=known),
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--machine", required=True, help="nominal machine file TOML with [workspace] q_limits")

@@ -7,6 +7,7 @@ import argparse
 
 from ..compensation import build_grid, evaluate_grid, read_grid, table_interpolator, write_grid
 from ..errors import InputError
+from . import SUMMARIES
 from .outputs import add_output_options, write_json, write_report
 
 HELP = """\
@@ -29,7 +30,7 @@ examples:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("compensate", help="write and evaluate BIC grids", description=HELP, epilog=EXAMPLES,
+    p = sub.add_parser("compensate", help=SUMMARIES["compensate"], description=HELP, epilog=EXAMPLES,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--errors", help="CSV x,z,ex,ez (mm) of measured residual errors to build a grid from")
     p.add_argument("--x-range", nargs=2, type=float, metavar=("MIN", "MAX"), help="translation range along x, mm")

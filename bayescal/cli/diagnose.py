@@ -7,6 +7,7 @@ import sys
 
 from ..effects import EFFECTS
 from ..errors import InputError
+from . import SUMMARIES
 from .inputs import add_frame_argument, name_list, recording_model
 from .outputs import add_output_options, write_json, write_report
 
@@ -56,7 +57,7 @@ examples:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "diagnose", help="locate and name physics the geometric model leaves out", description=HELP,
+        "diagnose", help=SUMMARIES["diagnose"], description=HELP,
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recording", help="recording CSV (docs/formats.md section 2, or a constraint recording, section 6), rows in measurement order")

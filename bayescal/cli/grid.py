@@ -7,6 +7,7 @@ import argparse
 import numpy as np
 
 from ..errors import InputError
+from . import SUMMARIES
 from .inputs import add_frame_argument, free_arg, recording_model
 from .outputs import add_output_options, say, write_json, write_report
 
@@ -67,7 +68,7 @@ examples:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "grid", help="compensation grid with uncertainty per node", description=HELP, epilog=EXAMPLES,
+        "grid", help=SUMMARIES["grid"], description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recording", help="recording CSV (docs/formats.md section 2, or a constraint recording, section 6)")

@@ -12,6 +12,7 @@ from ..errors import InputError
 from ..identify.calibrate import calibrate
 from ..identify.choose import DEFAULT_RULE, RULE_NAMES
 from ..identify.robust import robust_map_weights
+from . import SUMMARIES
 from .bayes_identify import METHODS, add_arguments, check_method_options, run_bayes
 from .effect_options import joint_effects_model, with_fitted_effects
 from .inputs import add_frame_argument, free_arg, inputs_with_session, name_list
@@ -104,7 +105,7 @@ examples:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "identify", help="identify geometric errors from a recording", description=HELP, epilog=EXAMPLES,
+        "identify", help=SUMMARIES["identify"], description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recording", help="recording CSV (docs/formats.md section 2)")

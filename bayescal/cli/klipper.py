@@ -8,6 +8,7 @@ from pathlib import Path
 from ..io import write_json_atomic
 from ..io.answers import write_files_atomic
 from ..io.constraints import constraints_to_csv
+from . import SUMMARIES
 
 HELP = """\
 Read a Klipper printer.cfg of a linear delta printer with a saved
@@ -49,7 +50,7 @@ examples:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "klipper", help="read a Klipper delta printer.cfg with a saved calibration", description=HELP, epilog=EXAMPLES,
+        "klipper", help=SUMMARIES["klipper"], description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("config", help="Klipper printer.cfg (with its SAVE_CONFIG block)")

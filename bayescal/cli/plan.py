@@ -7,6 +7,7 @@ import argparse
 from ..design import CRITERIA, SCALINGS, plan_poses, write_plan
 from ..errors import InputError
 from ..machines import load_machine
+from . import SUMMARIES
 from .outputs import add_output_options, write_json, write_report
 
 HELP = """\
@@ -62,7 +63,7 @@ constraint recording with an empty value column: fill in what you measure.
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "plan", help="choose measurement poses by information", description=HELP, epilog=EXAMPLES,
+        "plan", help=SUMMARIES["plan"], description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")

@@ -13,6 +13,7 @@ from ..io.answers import json_text, write_files_atomic
 from ..io.recording import recording_to_csv
 from ..machines import load_machine
 from ..simulate import simulate_recording
+from . import SUMMARIES
 from .inputs import name_list
 from .outputs import add_output_options
 
@@ -62,7 +63,7 @@ examples:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "simulate", help="simulate a recording of a machine with drawn errors", description=HELP, epilog=EXAMPLES,
+        "simulate", help=SUMMARIES["simulate"], description=HELP, epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--machine", required=True, help="nominal machine file TOML (docs/formats.md section 1)")

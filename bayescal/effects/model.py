@@ -267,6 +267,16 @@ def _slices(effects, model) -> list[slice]:
     return out
 
 
+#: Rows from which ``A^T A`` is BLAS's: below, einsum (a threaded BLAS spin-waits on a shared machine for
+#: matrices this small); above, einsum's unblocked loop costs five to seven times BLAS (at 1,000 poses and more).
+_GRAM_BLAS_ROWS = 4_000
+
+
+def _gram(A: NDArray) -> NDArray:
+    """``A^T A``."""
+    return A.T @ A if A.shape[0] >= _GRAM_BLAS_ROWS else np.einsum("ij,ik->jk", A, A)
+
+
 def fit_map(
     model: MeasurementModel,
     effects: Sequence[tuple[Effect, Features]] = (),
@@ -344,8 +354,7 @@ def fit_map(
     for it in range(1, max_iter + 1):
         phi = np.concatenate([theta, eta]) / scale
         # normal equations of [A; I] step ~ [r; mu - phi]: H is well conditioned (>= I)
-        # (einsum, not BLAS: a threaded BLAS spin-waits on a shared machine for matrices this small)
-        H = np.einsum("ij,ik->jk", A, A) + np.eye(P + K)
+        H = _gram(A) + np.eye(P + K)
         step = np.linalg.solve(H, np.einsum("ij,i->j", A, rw) + (mu - phi))
         cost = chi2 + pri
         for _ in range(8):
@@ -369,7 +378,7 @@ def fit_map(
             break
     else:
         message = f"did not converge in {max_iter} iterations"
-    AtA = np.einsum("ij,ik->jk", A, A)
+    AtA = _gram(A)
     s = np.sqrt(np.clip(np.linalg.eigvalsh(AtA), 0, None))[::-1]
     full = np.linalg.inv(AtA + np.eye(P + K)) * np.outer(scale, scale)
     cov = full[P:, P:]

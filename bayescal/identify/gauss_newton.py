@@ -42,7 +42,7 @@ def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tupl
     return r, J
 
 
-def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool = False):
+def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool = False, system=None):
     """Indices of the parameters to identify, and the identifiability analysis if automatic.
 
     Parameters
@@ -61,6 +61,9 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool 
         why).  Without, ``"auto"`` fixes enough parameters at ``theta0``
         for least squares to be well posed, nuisance parameters (ballbar
         pivots, a fitted instrument frame) kept in preference.
+    system : (Prediction, ndarray, ndarray), optional
+        ``model.predict(theta0)`` and its :func:`whitened_system`, when the
+        caller has them (``identify`` starts from the same point).
 
     Returns
     -------
@@ -68,8 +71,11 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool 
     """
     layout = model.machine.layout
     if free is None or (isinstance(free, str) and free == "auto"):
-        pred = model.predict(theta0)
-        _, J = whitened_system(model, theta0, pred) if model.y_measured is not None else (None, None)
+        if system is not None:
+            J = system[2]
+        else:
+            pred = model.predict(theta0)
+            _, J = whitened_system(model, theta0, pred) if model.y_measured is not None else (None, None)
         if J is None:
             J = (model.jacobian(theta0, pred) / model.row_sigma[:, :, None]).reshape(-1, model.n_params)
         geometry = model.machine.geometry_part[1]
@@ -170,7 +176,7 @@ def determined_at(model, theta: NDArray, free: NDArray, prediction=None) -> NDAr
     return out
 
 
-def data_determined(A: NDArray, rtol: float = STRUCTURAL_RTOL) -> tuple[NDArray, NDArray]:
+def data_determined(A: NDArray, rtol: float = STRUCTURAL_RTOL, *, svd=None) -> tuple[NDArray, NDArray]:
     """Which columns of ``A`` the rows determine alone, and the singular values of ``A``.
 
     Column ``i`` is determined when the unit vector ``e_i`` lies in the row
@@ -183,6 +189,8 @@ def data_determined(A: NDArray, rtol: float = STRUCTURAL_RTOL) -> tuple[NDArray,
     A : ndarray, shape (n_rows, n)
         Whitened identification matrix (column scaling does not change the answer).
     rtol : float
+    svd : (ndarray, ndarray), optional
+        ``(s, V)`` of ``numpy.linalg.svd(A, full_matrices=False)`` (``V = Vt.T``), when already computed.
 
     Returns
     -------
@@ -191,7 +199,10 @@ def data_determined(A: NDArray, rtol: float = STRUCTURAL_RTOL) -> tuple[NDArray,
     A = np.asarray(A, dtype=float)
     if A.size == 0:
         return np.zeros(A.shape[1], dtype=bool), np.zeros(0)
-    _, s, Vt = np.linalg.svd(A, full_matrices=False)
+    if svd is not None:
+        s, Vt = svd[0], svd[1].T
+    else:
+        _, s, Vt = np.linalg.svd(A, full_matrices=False)
     keep = s > rtol * s[0] if s.size and s[0] > 0 else np.zeros(s.size, dtype=bool)
     Vr = Vt[keep].T
     outside = 1.0 - np.sum(Vr**2, axis=1)  # squared length of e_i outside the row space
@@ -284,9 +295,16 @@ def identify(
     S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
     if np.any(S_all <= 0):
         raise InputError("scale: expected positive values")
+    # the start's prediction and linearisation serve the automatic free set and the first step
+    pred = model.predict(theta)
+    if not pred.success.all():
+        i = int(np.flatnonzero(~pred.success)[0])
+        raise InputError(f"pose {i + 1} (q = {model.q[i].tolist()}): {pred.poses.message[i]} at the start geometry")
+    r, J = whitened_system(model, theta, pred)
     # a prior (ridge, map) or a truncation in the tolerance-scaled metric (tsvd) decides the directions
     # the data do not see, so "auto" leaves them to it instead of fixing parameters (resolve_free)
-    idx, ida = resolve_free(model, free, theta, prior=(solver == "ridge" and lam > 0) or solver == "tsvd")
+    idx, ida = resolve_free(model, free, theta, prior=(solver == "ridge" and lam > 0) or solver == "tsvd",
+                            system=(pred, r, J))
     n_rows = model.n_poses * model.dof
     # a prior (map, ridge with lam > 0) makes fewer rows than parameters well posed, and so does
     # TSVD's truncation to k <= n_rows directions (the others stay at the start, in the scaled metric)
@@ -303,11 +321,6 @@ def identify(
     # ridge/MAP solve for the deviation from the prior mean c (phi = c + x)
     c = np.zeros(idx.size) if prior_mean is None else np.asarray(prior_mean, dtype=float).reshape(P)[idx] / S
 
-    pred = model.predict(theta)
-    if not pred.success.all():
-        i = int(np.flatnonzero(~pred.success)[0])
-        raise InputError(f"pose {i + 1} (q = {model.q[i].tolist()}): {pred.poses.message[i]} at the start geometry")
-    r, J = whitened_system(model, theta, pred)
     res_before = model.residual(pred)
     history, costs = [theta.copy()], [float(r @ r)]
     success, message, it = False, "", 0
@@ -386,7 +399,8 @@ def identify(
     noise_var = 1.0 if noise_given else chi2 / dof_fit
     cov_phi, kind = posterior_covariance(final, method, lam=lam, noise_var=noise_var, ratio=not noise_given)
     cov = cov_phi * np.outer(S, S)
-    determined, s_data = data_determined(A)
+    # the final ridge/LS solve took the SVD of this very A: no second factorisation
+    determined, s_data = data_determined(A, svd=(final.s, final.V) if basis is None else None)
     determined_all = np.zeros(P, dtype=bool)
     determined_all[idx] = determined
     if not success and sol is not None and method == "ls" and "ill-posed" in message:

@@ -31,7 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+
+from ..distributions import chi2_cdf, chi2_sf
 
 __all__ = ["NoiseCheck", "check_noise", "distinct_rows", "ALPHA", "OVERSTATED_BELOW"]
 
@@ -126,7 +127,7 @@ def check_noise(chi2: float, dof: float, *, alpha: float = ALPHA, stated: bool =
     if not (dof > 0.5 and math.isfinite(chi2) and chi2 >= 0):
         return NoiseCheck(chi2, dof, "untestable", float("nan"), 1.0)
     red = chi2 / dof
-    p_high, p_low = float(stats.chi2.sf(chi2, dof)), float(stats.chi2.cdf(chi2, dof))
+    p_high, p_low = float(chi2_sf(chi2, dof)), float(chi2_cdf(chi2, dof))
     if p_high < alpha:
         return NoiseCheck(chi2, dof, "understated", p_high, math.sqrt(red))
     if p_low < alpha and red < OVERSTATED_BELOW:

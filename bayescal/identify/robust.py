@@ -39,6 +39,7 @@ from .gauss_newton import identify
 
 __all__ = [
     "ROBUST_MODES", "OutlierHandling", "handle_outliers", "identify_with_outliers", "robust_map_weights",
+    "robust_map_pass",
     "fit_system", "map_system",
 ]
 
@@ -233,13 +234,24 @@ def handle_outliers(
 def robust_map_weights(model: MeasurementModel, free, *, robust="auto", nu=DEFAULT_NU, alpha=ALPHA, lines=None,
                        max_iter: int = 50) -> OutlierHandling:
     """The handling (weights) of a robust MAP pass, for methods that are not one cheap fit (auto rules, kalman, mcmc)."""
+    return robust_map_pass(model, free, robust=robust, nu=nu, alpha=alpha, lines=lines, max_iter=max_iter)[1]
+
+
+def robust_map_pass(model: MeasurementModel, free, *, robust="auto", nu=DEFAULT_NU, alpha=ALPHA, lines=None,
+                    max_iter: int = 50):
+    """:func:`robust_map_weights` and the pass's fit: ``(result, OutlierHandling)``.
+
+    Without weights (``handling.weights is None``) the result is the MAP of
+    the unweighted ``model`` under the tolerance prior, from the model's
+    start: ``identify(model, method="map", free=free, max_iter=max_iter)``.
+    """
     def fit(m):
         return identify(m, method="map", free=free, max_iter=max_iter)
 
     res, h = handle_outliers(model, fit, fit_system, robust=robust, nu=nu, alpha=alpha, lines=lines)
     if h.weights is not None:
         h = replace(h, action=h.action.replace("IRLS", "IRLS of a MAP pass"))
-    return h
+    return res, h
 
 
 def identify_with_outliers(

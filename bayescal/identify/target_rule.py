@@ -55,7 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from .ceiling import within_best
+from .ceiling import ratios_to_best
 
 __all__ = [
     "DEFAULT_SCALES",
@@ -231,15 +231,19 @@ def candidate_values(design: RuleDesign, beta: NDArray, scales, targets: RuleTar
     r = s.size
     est = design.estimates(beta)
     z0 = np.random.default_rng(seed).standard_normal((n_draws, p))
-    out = np.empty((len(scales), est.shape[0], 3))
+    # every scale's posterior draws in one array: one pass of the output errors for all of them
+    truths = np.empty((len(scales), n_draws, p))
     for j, c in enumerate(scales):
         prec = s**2 + 1.0 / c**2
         mean = np.concatenate([s * beta / prec, np.zeros(p - r)])
         sd = np.concatenate([1.0 / np.sqrt(prec), np.full(p - r, float(c))])
-        _, rel = within_best(mean + sd * z0, est, design.RV, targets.ratio)
-        out[j, :, 0] = np.mean(rel <= targets.ratio, axis=0)
-        out[j, :, 1] = rel.mean(axis=0)
-        out[j, :, 2] = np.mean(rel > targets.tail_ratio, axis=0)
+        np.add(mean, sd * z0, out=truths[j])
+    rel = ratios_to_best(truths.reshape(-1, p), est, design.RV).reshape(len(scales), n_draws, -1)
+    out = np.empty((len(scales), est.shape[0], 3))
+    # shares of draws as counts over n_draws: the same numbers as the mean of the booleans
+    out[:, :, 0] = np.count_nonzero(rel <= targets.ratio, axis=1) / n_draws
+    out[:, :, 1] = rel.mean(axis=1)
+    out[:, :, 2] = np.count_nonzero(rel > targets.tail_ratio, axis=1) / n_draws
     return out
 
 
@@ -282,7 +286,7 @@ def constraint_rows(phi: NDArray, w: NDArray, targets: RuleTargets) -> NDArray:
     return a.transpose(0, 2, 1, 3).reshape(n, V, 3 * S)
 
 
-def minimax_weights(a: NDArray, soft: NDArray | None = None) -> tuple[NDArray, float] | None:
+def minimax_weights(a: NDArray, soft: NDArray | None = None, *, prune: bool = True) -> tuple[NDArray, float] | None:
     """Lagrange weights of "meet the hard constraints, minimise the largest soft one", by one linear programme.
 
     Over rules (randomised choices of ``v`` per data set) the programme
@@ -296,6 +300,13 @@ def minimax_weights(a: NDArray, soft: NDArray | None = None) -> tuple[NDArray, f
     a : ndarray, shape (n, V, K)
     soft : ndarray of bool, shape (K,), optional
         Which constraints are soft (default all; at least one must be).
+    prune : bool
+        With every constraint soft, leave out the rows of candidates that
+        another candidate of the same data set beats in every constraint:
+        they are implied (``lam >= 0``), so the programme is the same, and
+        it is several times smaller.  Not with hard constraints: there the
+        solver stops within its tolerance (1e-8) at a point that depends on
+        the rows, and the feasibility test compares with 1e-12.
 
     Returns
     -------
@@ -312,14 +323,18 @@ def minimax_weights(a: NDArray, soft: NDArray | None = None) -> tuple[NDArray, f
     soft = np.ones(K, bool) if soft is None else np.asarray(soft, bool)
     if soft.shape != (K,) or not soft.any():
         raise InputError(f"soft: expected {K} flags, at least one True")
-    if not soft.all() and minimax_weights(a[:, :, ~soft])[1] > 1e-12:
+    if not soft.all() and minimax_weights(a[:, :, ~soft], prune=False)[1] > 1e-12:
         return None
-    rows = np.arange(n * V)
-    lam_part = scipy.sparse.csr_matrix(-a.reshape(n * V, K))
-    u_part = scipy.sparse.csr_matrix((np.ones(n * V), (rows, np.repeat(np.arange(n), V))), shape=(n * V, n))
+    # the rows u_z <= a[z, v] . lam of candidates another candidate of the same data set beats in every
+    # constraint are implied by that one's (lam >= 0): the programme without them has the same feasible
+    # set, so the same solution, and is several times smaller (most candidates are beaten everywhere)
+    z_idx, v_idx = np.nonzero(_undominated(a) if prune and soft.all() else np.ones((n, V), dtype=bool))
+    m = z_idx.size
+    lam_part = scipy.sparse.csr_matrix(-a[z_idx, v_idx])
+    u_part = scipy.sparse.csr_matrix((np.ones(m), (np.arange(m), z_idx)), shape=(m, n))
     res = scipy.optimize.linprog(
         np.concatenate([np.zeros(K), -np.ones(n) / n]),
-        A_ub=scipy.sparse.hstack([lam_part, u_part]).tocsr(), b_ub=np.zeros(n * V),
+        A_ub=scipy.sparse.hstack([lam_part, u_part]).tocsr(), b_ub=np.zeros(m),
         A_eq=np.concatenate([soft.astype(float), np.zeros(n)])[None, :], b_eq=[1.0],
         bounds=[(0, None) if f else (0, _HARD_BOUND) for f in soft] + [(None, None)] * n, method="highs")
     if not res.success:
@@ -328,6 +343,17 @@ def minimax_weights(a: NDArray, soft: NDArray | None = None) -> tuple[NDArray, f
     if np.any(lam[~soft] > 0.99 * _HARD_BOUND):  # feasible only at the edge: no usable weights
         return None
     return lam, float(-res.fun)
+
+
+def _undominated(a: NDArray) -> NDArray:
+    """``keep[z, v]``: no candidate ``u`` of data set ``z`` has ``a[z, u] <= a[z, v]`` everywhere and ``<`` somewhere."""
+    keep = np.ones(a.shape[:2], dtype=bool)
+    for z in range(a.shape[0]):
+        az = a[z]
+        # [v, u]: candidate u at most candidate v in every constraint, and below it in one
+        beaten = np.all(az[None, :, :] <= az[:, None, :], axis=2) & np.any(az[None, :, :] < az[:, None, :], axis=2)
+        keep[z] = ~beaten.any(axis=1)
+    return keep
 
 
 @dataclass(frozen=True)

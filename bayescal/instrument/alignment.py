@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
 from ..io.recording import Recording
@@ -63,6 +62,7 @@ def align_frame(
     A, B, W = np.concatenate(a), np.concatenate(b), np.concatenate(w)
     if np.linalg.norm(A) == 0 or np.linalg.norm(B) == 0:
         raise InputError("rigid alignment: the poses do not move (all tool points equal); an instrument frame cannot be fitted")
+    from scipy.spatial.transform import Rotation  # scipy.spatial: imported where used
     rot, _ = Rotation.align_vectors(A, B, weights=W)
     R = rot.as_matrix()
     return Frame(cb - R @ ci, R)
@@ -70,6 +70,7 @@ def align_frame(
 
 def _measured(rec: Recording, dof: int):
     """Measured directions per pose in the recording's frame: (n, k, 3) or None."""
+    from scipy.spatial.transform import Rotation  # scipy.spatial: imported where used
     if dof == 6 and rec.rotvec is not None:
         return np.swapaxes(Rotation.from_rotvec(rec.rotvec).as_matrix(), 1, 2)  # rows = platform axes
     if dof >= 5:

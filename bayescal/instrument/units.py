@@ -24,9 +24,9 @@ suffix, and all independent of the instrument frame:
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..errors import RecordingError
+from ..geometry import so3_exp, so3_log
 from ..io.recording import Recording
 from ..machines.base import Machine
 
@@ -48,7 +48,9 @@ def _spread(p: np.ndarray) -> float:
 
 def _relative_angles(R: np.ndarray) -> np.ndarray:
     """Angle (rad) of each rotation relative to the first, valid up to pi."""
-    return np.linalg.norm((Rotation.from_matrix(R) * Rotation.from_matrix(R[0]).inv()).as_rotvec(), axis=1)
+    # bayescal's own SO(3) log, not scipy's Rotation: a units heuristic needs no more, and scipy.spatial
+    # costs about half a second to import on every 6-DOF recording
+    return np.linalg.norm(so3_log(R @ np.swapaxes(R[0], -1, -2)), axis=1)
 
 
 def _axis_angles(a: np.ndarray) -> np.ndarray:
@@ -103,7 +105,7 @@ def check_recording_units(machine: Machine, rec: Recording) -> None:
                 "or name the columns rx_deg, ry_deg, rz_deg",
             )
         a_nom = _relative_angles(nom.rotation[ok])
-        a_meas = _relative_angles(Rotation.from_rotvec(rec.rotvec[ok]).as_matrix())
+        a_meas = _relative_angles(so3_exp(rec.rotvec[ok]))
         _angle_rule(rec, a_nom, a_meas, "rx", "the orientations look like degrees; expected rad, or name the columns rx_deg, ry_deg, rz_deg")
 
 

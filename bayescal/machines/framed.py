@@ -53,7 +53,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from ..errors import InputError, MachineFileError
 from ..geometry import left_jacobian_inverse, skew, so3_exp
@@ -95,11 +94,13 @@ class Frame:
 
     @classmethod
     def from_rotation_vector(cls, origin: ArrayLike, rotation_vector: ArrayLike) -> "Frame":
+        from scipy.spatial.transform import Rotation  # scipy.spatial: imported where used
         return cls(np.asarray(origin, dtype=float).reshape(3), Rotation.from_rotvec(np.asarray(rotation_vector, dtype=float)).as_matrix())
 
     @property
     def rotation_vector(self) -> NDArray:
         """Rotation vector of ``rotation`` (rad, norm in [0, pi]), valid up to 180 degrees."""
+        from scipy.spatial.transform import Rotation  # scipy.spatial: imported where used
         return Rotation.from_matrix(self.rotation).as_rotvec()
 
     def to_base(self, p_inst: NDArray) -> NDArray:

@@ -208,6 +208,11 @@ class Prs3(Machine):
     def _geometry(self, theta: NDArray) -> _Geometry:
         """Geometry for theta of shape (n, P)."""
         n = theta.shape[0]
+        if n > 1 and theta.strides[0] == 0:
+            # one geometry for every pose (``_theta_rows`` broadcast it): computed once and broadcast,
+            # not once per pose (the tilted directions alone cost more than a Newton step at 10,000 poses)
+            one = self._geometry(theta[:1])
+            return _Geometry(**{k: np.broadcast_to(v, (n,) + v.shape[1:]) for k, v in vars(one).items()})
         th = theta[:, : 3 * _PER_CHAIN].reshape(n, 3, _PER_CHAIN)
         a = self.sphere_center[None] + th[:, :, 0:3]
         B = self.rail_origin[None] + th[:, :, 3:6]

@@ -157,6 +157,26 @@ def _left_jacobian(phi: NDArray) -> NDArray:
     return np.eye(3) + a * K + b * (K @ K)
 
 
+def _rotate(R: NDArray, v: NDArray) -> NDArray:
+    """``R_i v_i`` for rotations (n, 3, 3) and vectors (n, 3) or (1, 3) (one vector for every pose), shape (n, 3)."""
+    return np.einsum("nij,nj->ni", R, np.broadcast_to(v, (R.shape[0], 3)))
+
+
+def _cross(w: NDArray, a: NDArray) -> NDArray:
+    """``w_i x a_i`` column by column: ``w`` (n, 3, c), ``a`` (n, 3); shape (n, 3, c).
+
+    ``numpy.cross(w, a[:, :, None], axis=1)`` written out: the same products
+    and differences, without its axis shuffling, which cost more than the
+    arithmetic on the chain's small arrays.
+    """
+    a0, a1, a2 = a[:, 0, None], a[:, 1, None], a[:, 2, None]
+    out = np.empty(np.broadcast_shapes(w.shape, a.shape[:2] + (1,)))
+    out[:, 0] = w[:, 1] * a2 - w[:, 2] * a1
+    out[:, 1] = w[:, 2] * a0 - w[:, 0] * a2
+    out[:, 2] = w[:, 0] * a1 - w[:, 1] * a0
+    return out
+
+
 @dataclass(frozen=True)
 class _Chain:
     """Frames of a solved chain, per pose (leading axis n) and joint (axis k)."""
@@ -441,10 +461,6 @@ class Serial(Machine):
             link_mass=inertial[0], link_com=inertial[1], mimic=tuple(mimic), joint_names=names,
         )
 
-    def _theta_rows(self, theta: ArrayLike | None, n: int) -> NDArray:
-        theta = self.check_theta(theta, n)
-        return np.broadcast_to(theta, (n, self.n_params)) if theta.ndim == 1 else theta
-
     def geometry_arrays(self, theta: ArrayLike | None = None) -> dict[str, NDArray]:
         """The machine-file arrays of ``nominal + theta`` with the zero offsets folded in (theta of shape (P,))."""
         th = self.check_theta(theta)
@@ -467,14 +483,21 @@ class Serial(Machine):
 
     # ------------------------------------------------------------ kinematics
     def _chain(self, q: NDArray, theta: NDArray) -> _Chain:
-        """The chain's frames for actuator positions ``q`` (n, N); mimic joints follow their drivers."""
+        """The chain's frames for actuator positions ``q`` (n, N); mimic joints follow their drivers.
+
+        ``theta`` of shape (P,) (one geometry for every pose, the usual case) or
+        (n, P).  A shared geometry's fixed transforms, axes and tool are computed
+        once, with a leading axis of length 1 that broadcasts against the poses'.
+        """
         n, m = q.shape[0], self.n_joints
-        tj = theta[:, : _PER_JOINT * m].reshape(n, m, _PER_JOINT)
-        ttool = theta[:, _PER_JOINT * m :]
+        th = theta[None] if theta.ndim == 1 else theta  # (g, P), g = 1 (shared) or n
+        g = th.shape[0]
+        tj = th[:, : _PER_JOINT * m].reshape(g, m, _PER_JOINT)
+        ttool = th[:, _PER_JOINT * m :]
         origin = self.origin[None] + tj[:, :, 3:6]
         rpy = self.rpy[None] + tj[:, :, 6:9]
-        axis = np.empty((n, m, 3))
-        daxis = np.empty((n, m, 3, 2))
+        axis = np.empty((g, m, 3))
+        daxis = np.empty((g, m, 3, 2))
         for k in range(m):
             axis[:, k], daxis[:, k] = tilted_direction(self.axis[k], self._tilt[k], tj[:, k, 1:3])
         qe = q @ self._q_map.T + self._q_shift + tj[:, :, 0]
@@ -488,16 +511,16 @@ class Serial(Machine):
         p = np.zeros((n, 3))
         for k in range(m):
             R_parent[:, k] = R
-            p = p + np.einsum("nij,nj->ni", R, origin[:, k])
+            p = p + _rotate(R, origin[:, k])
             R = R @ R_fix[:, k]
             R_joint[:, k], p_joint[:, k] = R, p
             if self.joint_type[k] == "revolute":
                 R = R @ so3_exp(axis[:, k] * qe[:, k, None])
             else:
-                p = p + np.einsum("nij,nj->ni", R, axis[:, k] * qe[:, k, None])
+                p = p + _rotate(R, axis[:, k] * qe[:, k, None])
             R_after[:, k], p_after[:, k] = R, p
         tool_rpy = self.tool_rpy[None] + ttool[:, 3:]
-        p_tool = p + np.einsum("nij,nj->ni", R, self.tool_point[None] + ttool[:, :3])
+        p_tool = p + _rotate(R, self.tool_point[None] + ttool[:, :3])
         return _Chain(
             R_parent=R_parent, R_joint=R_joint, p_joint=p_joint, rpy=rpy, axis=axis, daxis=daxis, qe=qe,
             R_end=R, R_after=R_after, p_after=p_after, tool_rpy=tool_rpy, p_tool=p_tool, R_tool=R @ rpy_matrix(tool_rpy),
@@ -521,16 +544,16 @@ class Serial(Machine):
         """
         q = self.check_q(q)
         n = q.shape[0]
-        c = self._chain(q, self._theta_rows(theta, n))
+        c = self._chain(q, self.check_theta(theta, n))
         ok = np.isfinite(c.p_tool).all(axis=1) & np.isfinite(c.R_tool).all(axis=(1, 2))
         msgs = tuple("" if o else "non-finite joint positions or geometry" for o in ok)
         return ToolPoses(position=c.p_tool, rotation=c.R_tool, success=ok, message=msgs, state=None)
 
     def _motion_columns(self, c: _Chain, k: int) -> tuple[NDArray, NDArray]:
         """Tool-point and rotation rates per unit of joint ``k``'s motion (its offset or q)."""
-        a_base = np.einsum("nij,nj->ni", c.R_joint[:, k], c.axis[:, k])
+        a_base = _rotate(c.R_joint[:, k], c.axis[:, k])
         if self.joint_type[k] == "revolute":
-            return np.cross(a_base, c.p_tool - c.p_joint[:, k]), a_base
+            return _cross(a_base[:, :, None], (c.p_tool - c.p_joint[:, k]))[:, :, 0], a_base
         return a_base, np.zeros_like(a_base)
 
     def tool_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
@@ -549,9 +572,9 @@ class Serial(Machine):
         """
         q = self.check_q(q)
         n, m = q.shape[0], self.n_joints
-        c = self._chain(q, self._theta_rows(theta, n))
+        c = self._chain(q, self.check_theta(theta, n))
         J = np.zeros((n, 6, self.n_params))
-        W = rpy_rates(c.rpy)  # (n, m, 3, 3), columns in the parent frame
+        W = rpy_rates(c.rpy)  # (g, m, 3, 3) (g = 1: one geometry for every pose), columns in the parent frame
         for k in range(m):
             o = _PER_JOINT * k
             J[:, :3, o], J[:, 3:, o] = self._motion_columns(c, k)
@@ -560,13 +583,13 @@ class Serial(Machine):
                 Jl = _left_jacobian(c.axis[:, k] * c.qe[:, k, None])
                 w = c.R_joint[:, k] @ Jl @ (c.daxis[:, k] * c.qe[:, k, None, None])  # (n, 3, 2)
                 J[:, 3:, o + 1 : o + 3] = w
-                J[:, :3, o + 1 : o + 3] = np.cross(w, arm[:, :, None], axis=1)
+                J[:, :3, o + 1 : o + 3] = _cross(w, arm)
             else:
                 J[:, :3, o + 1 : o + 3] = c.R_joint[:, k] @ (c.daxis[:, k] * c.qe[:, k, None, None])
             J[:, :3, o + 3 : o + 6] = c.R_parent[:, k]
             w = c.R_parent[:, k] @ W[:, k]
             J[:, 3:, o + 6 : o + 9] = w
-            J[:, :3, o + 6 : o + 9] = np.cross(w, arm[:, :, None], axis=1)
+            J[:, :3, o + 6 : o + 9] = _cross(w, arm)
         t = _PER_JOINT * m
         J[:, :3, t : t + 3] = c.R_end
         J[:, 3:, t + 3 : t + 6] = c.R_end @ rpy_rates(c.tool_rpy)
@@ -593,13 +616,13 @@ class Serial(Machine):
         """
         q = self.check_q(q)
         n, m = q.shape[0], self.n_joints
-        c = self._chain(q, self._theta_rows(theta, n))
+        c = self._chain(q, self.check_theta(theta, n))
         J = np.zeros((n, m, 6, m))
         for j in range(m):
-            a = np.einsum("nij,nj->ni", c.R_joint[:, j], c.axis[:, j])  # (n, 3) base frame
+            a = _rotate(c.R_joint[:, j], c.axis[:, j])  # (n, 3) base frame
             for k in range(j, m):
                 if self.joint_type[j] == "revolute":
-                    J[:, k, :3, j] = np.cross(a, c.p_after[:, k] - c.p_joint[:, j])
+                    J[:, k, :3, j] = _cross(a[:, :, None], c.p_after[:, k] - c.p_joint[:, j])[:, :, 0]
                     J[:, k, 3:, j] = a
                 else:
                     J[:, k, :3, j] = a
@@ -612,7 +635,7 @@ class Serial(Machine):
         """
         q = self.check_q(q)
         n, m = q.shape[0], self.n_joints
-        c = self._chain(q, self._theta_rows(theta, n))
+        c = self._chain(q, self.check_theta(theta, n))
         J = np.empty((n, 6, m))
         for k in range(m):
             J[:, :3, k], J[:, 3:, k] = self._motion_columns(c, k)

@@ -83,3 +83,21 @@ def test_outlier_retest_uses_the_estimated_prior_scale():
     np.testing.assert_allclose(t.cooks_distance, same.cooks_distance, rtol=1e-12)
     tol = pose_test(model, res.theta, lam=1.0, **kw)
     assert np.max(np.abs(t.cooks_distance / tol.cooks_distance - 1)) > 0.05
+
+
+def test_identify_map_reuses_its_robust_pass_as_the_first_map(prs3, sim6, monkeypatch):
+    """A clean recording: the robust pass's MAP is the empirical-Bayes search's first MAP (same model, prior,
+    start and free set), so it is not fitted twice (issue 32), and the answer is map_estimate's to the bit."""
+    import bayescal.bayes.priors as priors
+    from bayescal.measurement import MeasurementModel
+
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    ref = map_estimate(model, free="auto", prior_scale="empirical")
+    calls = []
+    real = priors.identify
+    monkeypatch.setattr(priors, "identify", lambda *a, **k: calls.append(1) or real(*a, **k))
+    res, handling = identify_map(model, "auto")
+    assert handling.weights is None and handling.test is not None and not handling.test.flagged.any()
+    assert np.array_equal(res.theta, ref.theta) and np.array_equal(res.covariance, ref.covariance)
+    assert res.extras["prior_scale"] == ref.extras["prior_scale"]
+    assert len(calls) == res.extras["prior_scale_rounds"]  # the rescaled MAPs only: the first came from the pass

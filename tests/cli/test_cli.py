@@ -148,3 +148,21 @@ def test_every_computing_command_takes_json(tmp_path, capsys):
     assert main(["simulate", "--machine", str(PRS3_FILE), "--poses", "3", "--seed", "1",
                  "--out", str(tmp_path / "r.csv"), "--json", str(ans), "--quiet"]) == 0
     assert len(json.loads(ans.read_text())["parameters"]) == 36 and (tmp_path / "truth.toml").exists()
+
+
+def test_top_level_help_imports_no_command_and_no_numpy():
+    """`bayescal --help` lists every command with its one-line help without importing the commands' modules
+    (each pulls in numpy and the library; issue 32); the one-liners are those the commands register."""
+    import subprocess
+    import sys
+
+    from bayescal.cli import COMMANDS, SUMMARIES, build_parser
+
+    code = ("import sys\nfrom bayescal.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "print('LOADED', sorted(m for m in sys.modules if m == 'numpy' or m.startswith('bayescal.cli.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "LOADED []"
+    for name in COMMANDS:
+        assert f"{name}" in out and SUMMARIES[name] in " ".join(out.split())
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    assert {c.dest: c.help for c in sub._choices_actions} == SUMMARIES

@@ -229,3 +229,17 @@ def test_effect_settings_are_checked_and_applied(prs3):
         get_effect("joint_compliance", gravity=[0.0, 0.0, 0.0])
     with pytest.raises(InputError, match="expected some of: none"):
         get_effect("backlash", gravity=[0.0, 0.0, -1.0])
+
+
+def test_gram_matrix_of_the_joint_fit_is_the_same_on_both_sides_of_the_blas_switch():
+    """fit_map's normal matrix comes from einsum below _GRAM_BLAS_ROWS rows and from BLAS above (issue 32):
+    both are A^T A, to round-off, against an independent column-by-column sum."""
+    import numpy as np
+
+    from bayescal.effects.model import _GRAM_BLAS_ROWS, _gram
+
+    rng = np.random.default_rng(3)
+    for rows in (_GRAM_BLAS_ROWS - 1, _GRAM_BLAS_ROWS):
+        A = rng.normal(size=(rows, 7))
+        ref = np.array([[float(np.dot(A[:, i], A[:, j])) for j in range(7)] for i in range(7)])
+        np.testing.assert_allclose(_gram(A), ref, rtol=1e-12, atol=1e-9)

@@ -253,3 +253,31 @@ def test_identification_recovers_the_true_chain(arm):
     a, b, nominal = arm.forward(q, res.theta), arm.forward(q, sim.theta_true), arm.forward(q)
     err = np.abs(a.position - b.position).max()
     assert err < 0.01 < np.abs(nominal.position - b.position).max() / 5
+
+
+def test_one_geometry_for_every_pose_equals_one_row_per_pose(arm):
+    """theta of shape (P,) is evaluated once per joint, broadcast over the poses (issue 32): the same numbers
+    as the same geometry given row by row, for the poses, the identification Jacobian, the actuator Jacobian
+    and the weight bodies; and per-pose geometries still give each pose its own chain."""
+    rng = np.random.default_rng(8)
+    q = arm.sample_q(9, rng)
+    theta = rng.normal(size=arm.n_params) * arm.tolerance * 30.0
+    rows = np.tile(theta, (9, 1))
+    shared, per_pose = arm.forward(q, theta), arm.forward(q, rows)
+    assert np.array_equal(shared.position, per_pose.position) and np.array_equal(shared.rotation, per_pose.rotation)
+    assert np.array_equal(arm.tool_jacobian(q, theta, shared), arm.tool_jacobian(q, rows, per_pose))
+    assert np.array_equal(arm.actuator_jacobian(q, theta, shared), arm.actuator_jacobian(q, rows, per_pose))
+    wb, wr = arm.weight_bodies(q, theta, shared), arm.weight_bodies(q, rows, per_pose)
+    assert np.array_equal(wb.jacobian, wr.jacobian) and np.array_equal(wb.origin, wr.origin)
+    rows[4] = 0.0  # pose 5 at the nominal geometry, the others at theta
+    mixed = arm.forward(q, rows)
+    assert np.array_equal(mixed.position[4], arm.forward(q[4:5]).position[0])
+    assert np.allclose(mixed.position[3], _independent_fk(arm, q[3], theta)[:3, 3], atol=1e-9)
+
+
+def test_written_out_cross_product_is_numpys():
+    from bayescal.machines.serial import _cross
+
+    rng = np.random.default_rng(2)
+    w, a = rng.normal(size=(7, 3, 4)), rng.normal(size=(7, 3))
+    assert np.array_equal(_cross(w, a), np.cross(w, a[:, :, None], axis=1))
