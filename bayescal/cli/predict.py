@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from . import SUMMARIES
 from .inputs import add_frame_argument
 from .outputs import add_output_options, write_json
 
@@ -36,7 +37,7 @@ examples:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "predict", help="predict a new recording from a calibrated machine, with 90 %% regions",
+        "predict", help=SUMMARIES["predict"],
         description=HELP, epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recording", help="recording CSV (docs/formats.md sections 2, 4 and 8: station and role columns)")
