@@ -398,8 +398,10 @@ def sample_posterior(
     if surrogate == "linear":
         model = linearise(model, start.theta)
     n_walkers = 2 * n + 2 if n_walkers is None else int(n_walkers)
-    if n_walkers < n + 2 or n_walkers % 2:
-        raise InputError(f"n_walkers: expected an even number >= {n + 2}, got {n_walkers}")
+    if n_walkers < max(2 * n, n + 2) or n_walkers % 2:
+        # emcee's red-blue moves refuse fewer walkers than twice the dimensions (a RuntimeError otherwise)
+        raise InputError(f"n_walkers: expected an even number >= {max(2 * n, n + 2)} (twice the {n} sampled "
+                         f"parameters), got {n_walkers}")
     from ..limits import check_memory
 
     # the chain and its log-probabilities, held by emcee and copied into the summary and the posterior tree

@@ -204,6 +204,11 @@ def run(args) -> int:
                          f"discrepancy may take (got --method {args.method})")
     if args.discrepancy_inputs and args.discrepancy == "off":
         raise InputError("--discrepancy-inputs goes with --discrepancy auto or on")
+    if args.discrepancy_inputs:
+        names = name_list(args.discrepancy_inputs)
+        if not names or len(set(names)) != len(names):
+            raise InputError(f"--discrepancy-inputs {args.discrepancy_inputs}: expected distinct comma-separated names "
+                             "(q1, q2, ... or auxiliary channels)")
     machine, rec, model, check, session = inputs_with_session(args, constraints=True)
     if args.write_klipper and machine.kind != "linear-delta":
         raise InputError(f"--write-klipper: Klipper's delta keys describe a linear-delta machine; {args.machine} is a {machine.kind}")

@@ -15,16 +15,12 @@ the same map every geometric parameter goes through.
 
 Component ``o`` of ``delta`` is ``s_o phi(x)^T v_o`` with the inducing-point
 basis of :mod:`bayescal.discrepancy.kernel`; the weights ``v`` (``n_out m``
-of them, prior ``N(0, I)``) are fitted with the geometry.  The gauge between
-geometry and discrepancy: at the calibration's poses the discrepancy is
-kept off everything a change of the geometry (or of a fitted instrument
-frame) can do, so it never takes what the geometry explains
-(:mod:`bayescal.discrepancy.fit`).  Written for any pose, that projection is
-``delta_rows(x) = F(x) v - J(x) B v`` with ``B`` the least-squares map from
-the features to the parameters; its mean needs only ``c = B mu``
-(:attr:`Discrepancy.shift`), and its uncertainty is carried by the joint
-covariance of the parameters and ``v`` in the machine file's
-``[calibration]`` table.
+of them, prior ``N(0, I)``) are fitted jointly with the geometry, the split
+between the two decided by their priors (:mod:`bayescal.discrepancy.fit`).
+The uncertainty of the weights, jointly with the parameters', is carried by
+the machine file's ``[calibration]`` table.  (:attr:`Discrepancy.shift`, a
+mean correction ``- J c`` on named parameters, is kept for tables that state
+one; the joint fit writes none.)
 """
 
 from __future__ import annotations

@@ -391,13 +391,11 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
     check = check_noise(df.chi2, n_distinct - df.effective_params, stated=bool(machine.noise.given))
     scale = check.scale if (noise == "auto" and (check.contradicted or check.verdict == "not_stated")) else 1.0
     scaled = model if scale == 1.0 else model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
-    # the joint posterior at the noise used, relinearised once at its own geometry
-    theta = res.theta.copy()
-    for _ in range(2):
-        df = fit_discrepancy(scaled, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
-        theta = theta.copy()
-        theta[idx] += df.dtheta
-    df = fit_discrepancy(scaled, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
+    # the joint posterior at the noise used, on the poses weighted as the robust geometry fit weighted them (a
+    # reference one gross pose cannot drag), relinearised at its own geometry; then every pose is judged against
+    # it at full weight, and the joint fit is redone with only the poses that test names left out
+    ref = handling.weighted_model(scaled) if hasattr(handling, "weighted_model") else scaled
+    theta, df = _relinearised(ref, res.theta.copy(), res.free, prior_sd, prior_mean, df.discrepancy)
     handling, df, theta = _joint_outliers(scaled, res, theta, df, prior_sd, prior_mean, handling, kw["outlier_kw"])
     res = _joint_result(scaled, res, theta, df)
     note = ("fitted (--discrepancy on)" if mode == "on" else "supported by the data (--discrepancy auto)")
@@ -405,6 +403,19 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
                       discrepancy=df, discrepancy_note=note, model=model)
     cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}))
     return cal.with_variance_factor(model)
+
+
+def _relinearised(model, theta, free, prior_sd, prior_mean, hyper, rounds: int = 2):
+    """The joint posterior at fixed hyperparameters, relinearised ``rounds`` times at its own geometry."""
+    from ..discrepancy import fit_discrepancy
+
+    idx = np.flatnonzero(free)
+    for _ in range(rounds):
+        df = fit_discrepancy(model, theta, free, prior_sd, prior_mean=prior_mean, hyper=hyper)
+        theta = theta.copy()
+        theta[idx] += df.dtheta
+        hyper = df.discrepancy
+    return theta, fit_discrepancy(model, theta, free, prior_sd, prior_mean=prior_mean, hyper=hyper)
 
 
 def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outlier_kw):
@@ -430,23 +441,23 @@ def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outli
     test = pose_test_linear(A, r, model.dof, lam=1.0, alpha=alpha, lines=lines)
     flagged = test.flagged
     judged = "judged against the model with its discrepancy"
-    if not flagged.any():
-        return OutlierHandling(test=test, mode=robust, action=f"none flagged, {judged}; every pose kept at full weight"), \
-            df, theta
-    if robust == "off" or flagged.sum() > MAX_FRACTION * model.n_poses:
-        why = "--robust off" if robust == "off" else f"{int(flagged.sum())} of {model.n_poses} stand out: structure"
-        return OutlierHandling(test=test, mode=robust, action=f"kept ({why}), {judged}"), df, theta
+    structure = flagged.sum() > MAX_FRACTION * model.n_poses
+    if not flagged.any() or robust == "off" or structure:
+        # every pose at full weight: the joint fit again from the robust reference
+        theta, df = _relinearised(model, theta, res.free, prior_sd, prior_mean, df.discrepancy)
+        A, r = joint_design(model, theta, df, prior_sd)
+        test = pose_test_linear(A, r, model.dof, lam=1.0, alpha=alpha, lines=lines)
+        if not test.flagged.any():
+            action = f"none flagged, {judged}; every pose kept at full weight"
+        else:
+            why = "--robust off" if robust == "off" else f"{int(test.flagged.sum())} of {model.n_poses} stand out: structure"
+            action = f"kept ({why}), {judged}"
+        return OutlierHandling(test=test, mode=robust, action=action), df, theta
     weights = np.where(flagged, 1e-12, 1.0)
     excluded = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) / np.sqrt(weights)[:, None])
-    idx = np.flatnonzero(res.free)
     # the hyperparameters again, without the poses no model explains
     searched = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, inputs=df.discrepancy.inputs)
-    df = replace(df, discrepancy=searched.discrepancy)
-    for _ in range(2):
-        df = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
-        theta = theta.copy()
-        theta[idx] += df.dtheta
-    df = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, hyper=df.discrepancy)
+    theta, df = _relinearised(excluded, theta, res.free, prior_sd, prior_mean, searched.discrepancy)
     A, r = joint_design(model, theta, df, prior_sd)
     test = pose_test_linear(A, r, model.dof, lam=1.0, weights=weights, alpha=alpha, lines=lines)
     action = f"excluded from the joint fit ({int(flagged.sum())} pose(s)), {judged}"

@@ -80,9 +80,10 @@ class NoiseCheck:
 
     def message(self) -> str:
         if self.verdict == "understated":
-            return (f"the residuals are {math.sqrt(self.reduced):.3g} times the stated noise (reduced chi-square "
-                    f"{self.reduced:.3g} on {self.dof:.0f} degrees of freedom, p = {self.p_value:.1e}): the instrument is "
-                    "noisier than stated or the model leaves something out; the uncertainties use the estimated noise")
+            return (f"the residuals are larger than the stated noise allows (reduced chi-square {self.reduced:.3g} on "
+                    f"{self.dof:.0f} degrees of freedom at the stated sigma, p = {self.p_value:.1e}): the instrument is "
+                    "noisier than stated or the model leaves something out; the fit and its uncertainties use the "
+                    "estimated noise")
         if self.verdict == "overstated":
             return (f"the stated sigma is too large: the residuals are far smaller (reduced chi-square {self.reduced:.3g} "
                     f"at the stated sigma, p = {self.p_value:.1e}); the fit and its uncertainties use the estimated noise")

@@ -42,7 +42,8 @@ class Session:
     check : FrameCheck or None
         The rigid-transform check of the ``fit`` rows (base frame only).
     unfitted_stations : tuple of str
-        Stations with no ``fit`` row: their frames cannot be fitted, their rows not predicted.
+        Stations with too few ``fit`` rows (none; or, for ``predict``, fewer than a frame needs): their
+        frames cannot be fitted, their rows not predicted.
     """
 
     machine: Machine
@@ -77,7 +78,7 @@ class Session:
         if not self.unfitted_stations or self.recording.station is None:
             return [None] * self.recording.n_poses
         bad = set(self.unfitted_stations)
-        return [f"station {s!r} has no fit rows to fit its frame" if s in bad else None for s in self.recording.station]
+        return [f"station {s!r} has too few fit rows to fit its frame" if s in bad else None for s in self.recording.station]
 
 
 def prepare_session(
@@ -116,7 +117,7 @@ def prepare_session(
     fit_rec = rec.subset(np.flatnonzero(~rec.is_check)) if rec.is_check.any() else rec
     check, unfitted = None, ()
     if frame == "fit":
-        machine, unfitted = station_frames(machine, rec, dof=dof)
+        machine, unfitted = station_frames(machine, rec, dof=dof, lenient=not strict)
     else:
         check = _base_frame_check(machine, fit_rec)
     model = MeasurementModel.from_recording(machine, rec, dof=dof)
@@ -187,7 +188,8 @@ def prepare_model(
     return s.machine, s.fit_model, s.check
 
 
-def station_frames(machine: Machine, rec: Recording, *, dof: int | None = None) -> tuple[InstrumentFrame, tuple[str, ...]]:
+def station_frames(machine: Machine, rec: Recording, *, dof: int | None = None,
+                   lenient: bool = False) -> tuple[InstrumentFrame, tuple[str, ...]]:
     """A fitted instrument frame per station of ``rec`` (docs/formats.md section 8), each started by its own alignment.
 
     One station (no ``station`` column, or one label) gives the single frame
@@ -217,6 +219,10 @@ def station_frames(machine: Machine, rec: Recording, *, dof: int | None = None) 
         rows = np.flatnonzero((idx == k) & fit)
         if rows.size == 0:
             unfitted.append(label)
+            frames.append(Frame.identity())
+            continue
+        if rows.size < need and lenient:
+            unfitted.append(label)  # predict: its rows say why, the others are predicted
             frames.append(Frame.identity())
             continue
         if rows.size < need:

@@ -42,15 +42,26 @@ MAX_COORDINATE = 1e9
 MAX_ROTATION = 1e6
 
 
-def _spread(p: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
+def _spread(p: np.ndarray, groups: np.ndarray | None = None) -> float:
+    """RMS distance of the points from their centre, each group (station: its own frame) about its own centre."""
+    if groups is None or np.unique(groups).size == 1:
+        return float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
+    centred = p.copy()
+    for g in np.unique(groups):
+        sel = groups == g
+        centred[sel] -= p[sel].mean(axis=0)
+    return float(np.sqrt(np.mean(np.sum(centred**2, axis=1))))
 
 
-def _relative_angles(R: np.ndarray) -> np.ndarray:
-    """Angle (rad) of each rotation relative to the first, valid up to pi."""
+def _relative_angles(R: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+    """Angle (rad) of each rotation relative to the first (of its group: a station's frame), valid up to pi."""
     # bayescal's own SO(3) log, not scipy's Rotation: a units heuristic needs no more, and scipy.spatial
     # costs about half a second to import on every 6-DOF recording
-    return np.linalg.norm(so3_log(R @ np.swapaxes(R[0], -1, -2)), axis=1)
+    if groups is None:
+        return np.linalg.norm(so3_log(R @ np.swapaxes(R[0], -1, -2)), axis=1)
+    first = {int(g): int(np.flatnonzero(groups == g)[0]) for g in np.unique(groups)}
+    ref = R[[first[int(g)] for g in groups]]
+    return np.linalg.norm(so3_log(R @ np.swapaxes(ref, -1, -2)), axis=1)
 
 
 def _axis_angles(a: np.ndarray) -> np.ndarray:
@@ -75,8 +86,10 @@ def check_recording_units(machine: Machine, rec: Recording) -> None:
     ok = nom.success
     if ok.sum() < 2:
         return
+    # stations measure in frames of their own, metres apart: spreads are taken about each station's centre
+    groups = rec.station_index[ok] if getattr(rec, "station", None) is not None else None
     if not any(declared.get(c) for c in ("x", "y", "z")):
-        s_nom, s_meas = _spread(nom.position[ok]), _spread(rec.position[ok])
+        s_nom, s_meas = _spread(nom.position[ok], groups), _spread(rec.position[ok], groups)
         if s_nom > 1e-6 and s_meas > 0:
             ratio = s_meas / s_nom
             if ratio < 1.0 / POSITION_RATIO:
@@ -104,8 +117,7 @@ def check_recording_units(machine: Machine, rec: Recording) -> None:
                 f"rotation vector of norm {norms[i]:.4g}, above pi: the orientations look like degrees; expected rad, "
                 "or name the columns rx_deg, ry_deg, rz_deg",
             )
-        a_nom = _relative_angles(nom.rotation[ok])
-        a_meas = _relative_angles(so3_exp(rec.rotvec[ok]))
+        a_nom, a_meas = _relative_angles(nom.rotation[ok], groups), _relative_angles(so3_exp(rec.rotvec[ok]), groups)
         _angle_rule(rec, a_nom, a_meas, "rx", "the orientations look like degrees; expected rad, or name the columns rx_deg, ry_deg, rz_deg")
 
 

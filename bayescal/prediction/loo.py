@@ -36,11 +36,23 @@ from .engine import predictive_rows
 #: The predictive regions' level, which the factor calibrates.
 LEVEL = 0.90
 
-__all__ = ["loo_variance_factor"]
+__all__ = ["loo_variance_factor", "loo_distances"]
 
 
 def loo_variance_factor(model, theta, covariance, *, machine_index, discrepancy=None) -> tuple[float, float]:
-    """``(kappa, q90(d^2) / chi2_3(0.90))`` of the module docstring for a calibration of ``model``.
+    """``(kappa, q90(d^2) / chi2_3(0.90))`` of the module docstring for a calibration of ``model``."""
+    d2 = loo_distances(model, theta, covariance, machine_index=machine_index, discrepancy=discrepancy)
+    if d2.size == 0:
+        return 1.0, 1.0
+    ratio = float(np.quantile(d2, LEVEL) / chi2.ppf(LEVEL, 3))
+    return max(1.0, ratio), ratio
+
+
+def loo_distances(model, theta, covariance, *, machine_index, discrepancy=None) -> np.ndarray:
+    """Leave-one-pose-out squared Mahalanobis distances ``d_i^2`` of the positions (module docstring).
+
+    Poses a fit cannot leave out (alone deciding a direction, ``I - H_ii`` singular) and poses that do not
+    solve are left out of the array.
 
     Parameters
     ----------
@@ -60,7 +72,7 @@ def loo_variance_factor(model, theta, covariance, *, machine_index, discrepancy=
         D = discrepancy.rows(model, theta, model.predict(theta))[2]
     ok = pr.success
     if not ok.any() or model.y_measured is None:
-        return 1.0, 1.0
+        return np.zeros(0)
     sig = np.asarray(model.row_sigma, dtype=float)[ok]
     r = (model.y_measured[ok] - pr.mean[ok]) / sig
     H = pr.cov[ok] / (sig[:, :, None] * sig[:, None, :])  # whitened parameter (and discrepancy) part: the hat block
@@ -68,12 +80,10 @@ def loo_variance_factor(model, theta, covariance, *, machine_index, discrepancy=
     IH = np.eye(dof) - H
     good = np.linalg.eigvalsh(0.5 * (IH + np.swapaxes(IH, 1, 2)))[:, 0] > 1e-6  # a pose alone deciding a direction
     if not good.any():
-        return 1.0, 1.0
+        return np.zeros(0)
     Dw = D[ok] / (sig[:, :, None] * sig[:, None, :])
     S = np.linalg.inv(IH[good]) + Dw[good]  # leave-one-out covariance, whitened
     e = np.einsum("nij,nj->ni", np.linalg.inv(IH[good]), r[good])
     p = slice(0, 3)
     Spp = S[:, p, p]
-    d2 = np.einsum("ni,ni->n", e[:, p], np.linalg.solve(Spp, e[:, p, None])[:, :, 0])
-    ratio = float(np.quantile(d2, LEVEL) / chi2.ppf(LEVEL, 3))
-    return max(1.0, ratio), ratio
+    return np.einsum("ni,ni->n", e[:, p], np.linalg.solve(Spp, e[:, p, None])[:, :, 0])

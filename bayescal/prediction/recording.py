@@ -35,7 +35,9 @@ class PredictionResult:
     machine_name : str
     rows : tuple of dict
         Per row: ``line``, ``station``, ``role``, ``measured``, ``predicted``,
-        ``std`` (one sigma per measured component), ``error_position_mm``,
+        ``std`` (one sigma per measured component: the position's x, y, z in mm, then the orientation's
+        small rotation about x, y, z (6-DOF) or the tool axis's two tangential directions (5-DOF), rad),
+        ``error_position_mm``,
         ``inside_90``; or ``error`` (why it could not be predicted).
     summary : dict
         ``{"check": {...}, "fit": {...}}``: counts, mean / median / p95
@@ -241,7 +243,24 @@ def _in_recording_terms(rec, model, pr):
         for i in range(rec.n_poses):
             measured[i] += rec.rotvec[i].tolist()
             predicted[i] += rv[i].tolist()
+    elif model.dof == 5:
+        # the rows are t_k . n on a tangent basis t_k of the measured axis: the predicted axis, to first order,
+        # is the measured one moved by sum_k y_k t_k
+        n_meas = rec.axis if rec.axis is not None else so3_exp_z(rec.rotvec)
+        T = model._tangent
+        n_pred = n_meas + np.einsum("nk,nkj->nj", pr.mean[:, 3:], T)
+        n_pred = n_pred / np.linalg.norm(n_pred, axis=1, keepdims=True)
+        for i in range(rec.n_poses):
+            measured[i] += np.asarray(n_meas[i], dtype=float).tolist()
+            predicted[i] += n_pred[i].tolist()
     return measured, predicted
+
+
+def so3_exp_z(rotvec) -> np.ndarray:
+    """The third column (tool axis) of the rotations ``exp(rotvec)``, shape (n, 3)."""
+    from ..geometry import so3_exp
+
+    return so3_exp(np.asarray(rotvec, dtype=float))[:, :, 2]
 
 
 def score_held_out(cal, session, *, effects=None, noise_scale: float | None = None,

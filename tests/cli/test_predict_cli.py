@@ -102,7 +102,7 @@ def test_rows_that_cannot_be_predicted_say_why(calibrated, tmp_path):
                  "--json", str(out), "--quiet"]) == 0
     ans = json.loads(out.read_text())
     ghost = [r for r in ans["rows"] if r["station"] == "ghost"]
-    assert len(ghost) == 4 and all("no fit rows" in r["error"] for r in ghost)
+    assert len(ghost) == 4 and all("too few fit rows" in r["error"] for r in ghost)
     assert ans["summary"]["check"]["n_failed"] == 4
 
 
