@@ -52,6 +52,11 @@ class DiscrepancyTrial:
     why: str = ""
     #: The geometry of the joint fit (the final model's, corrected with the discrepancy: ``theta + dtheta``).
     theta: object = None
+    #: Per pose: the discrepancy's mean in the position rows (mm), the residual it was fitted to (mm: the final
+    #: model without it), and its inputs' values; for the figure against its inputs.
+    pose_mean: object = None
+    pose_residual: object = None
+    input_values: object = None
 
     def to_dict(self) -> dict:
         d = self.fit.discrepancy
@@ -110,8 +115,12 @@ def try_discrepancy(model, theta, folds, rms_cv_before: float, *, location=None,
         why = f"evidence {fitted.discrepancy.log_evidence_gain:.1f} nats, below the bar"
     elif not cv < rms_cv_before:
         why = "no better out of sample"
+    pred = model.predict(joint)
+    mean = fitted.discrepancy.rows(model, joint, pred)[0][:, :3] if pred.success.all() else None
+    residual = model.residual(pred)[:, :3] if pred.success.all() else None
     return DiscrepancyTrial(fitted, not why, rms_cv_before, cv, resembles(fitted.discrepancy, location, units), why,
-                            theta=joint)
+                            theta=joint, pose_mean=mean, pose_residual=residual,
+                            input_values=fitted.discrepancy.raw_inputs(model))
 
 
 def _cv_rms(model, theta, free, sd, fitted: DiscrepancyFit, folds) -> float:

@@ -599,8 +599,9 @@ class Serial(Machine):
         """Every joint's and link's frame at actuator positions ``q`` (n, N) and geometric errors ``theta`` (:class:`ChainFrames`)."""
         q = self.check_q(q)
         n = q.shape[0]
-        c = self._chain(q, self._theta_rows(theta, n))
-        axis = np.einsum("nkij,nkj->nki", c.R_joint, c.axis)
+        c = self._chain(q, self.check_theta(theta, n))
+        # a shared geometry's axes come with a leading axis of 1 (the chain computes them once)
+        axis = np.einsum("nkij,nkj->nki", c.R_joint, np.broadcast_to(c.axis, c.R_joint.shape[:-1]))
         nxt = np.concatenate([c.p_joint[:, 1:], c.p_tool[:, None]], axis=1)
         return ChainFrames(c.p_joint, axis, c.p_after, c.R_after, c.qe, nxt, c.p_tool)
 

@@ -89,4 +89,29 @@ def plot_diagnosis(diagnosis, out_dir: str | os.PathLike, *, top: int = 6) -> li
     ax.legend(fontsize=7)
     fig.tight_layout()
     paths.append(_save(fig, out / "cv_rms.png"))
+    d = getattr(diagnosis, "discrepancy", None)
+    if d is not None and d.pose_mean is not None:
+        paths.append(_plot_discrepancy(plt, d, out / "discrepancy_vs_inputs.png"))
     return paths
+
+
+def _plot_discrepancy(plt, trial, path: Path) -> Path:
+    """The discrepancy's mean against its most relevant inputs, over the residual it was fitted to (mm)."""
+    disc = trial.fit.discrepancy
+    rel = disc.relevance()
+    order = sorted(range(len(disc.inputs)), key=lambda k: -rel[disc.inputs[k]])[:3]
+    fig, axes = plt.subplots(1, len(order), figsize=(4.2 * len(order), 3.2), squeeze=False)
+    for ax, k in zip(axes[0], order):
+        x = np.asarray(trial.input_values, float)[:, k]
+        for c, col in enumerate("xyz"):
+            ax.plot(x, 1e3 * trial.pose_residual[:, c], ".", ms=2.5, color=f"C{c}", alpha=0.35)
+            ax.plot(x, 1e3 * trial.pose_mean[:, c], "o", ms=2.5, color=f"C{c}", mfc="none",
+                    label=f"{col}: discrepancy" if k == order[0] else None)
+        ax.set_xlabel(f"{disc.inputs[k]} (relevance {rel[disc.inputs[k]]:.2g})")
+        ax.set_ylabel("position (um)")
+    axes[0][0].legend(fontsize=7, title="dots: residual without it", title_fontsize=7)
+    state = "kept" if trial.kept else "not kept"
+    fig.suptitle(f"model discrepancy ({state}): carries {100 * disc.explained:.0f} % of the residual; resembles "
+                 f"{trial.resembles[:70]}", fontsize=9)
+    fig.tight_layout()
+    return _save(fig, path)
