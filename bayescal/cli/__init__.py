@@ -26,7 +26,7 @@ COMMANDS = ("identify", "predict", "simulate", "diagnose", "compensate", "grid",
 #: (tests/cli/test_cli.py checks).
 SUMMARIES = {
     "identify": "identify geometric errors from a recording",
-    "predict": "predict a new recording from a calibrated machine, with 90 %% regions",
+    "predict": "predict a new recording from a calibrated machine, with its uncertainty",
     "simulate": "simulate a recording of a machine with drawn errors",
     "diagnose": "locate and name physics the geometric model leaves out",
     "compensate": "write and evaluate BIC grids",

@@ -213,7 +213,16 @@ def noise_check_of(model: MeasurementModel, res) -> NoiseCheck:
     """The chi-square test of ``res`` (a fit of ``model``), degrees of freedom among the distinct rows."""
     n_distinct = distinct_rows(model.q, model.y_measured) * model.dof
     p_eff = float(np.sum(res.filter_factors)) if np.size(getattr(res, "filter_factors", [])) else float(np.sum(res.free))
-    return check_noise(res.chi2, n_distinct - p_eff, stated=bool(model.machine.noise.given))
+    return check_noise(res.chi2, n_distinct - p_eff, stated=noise_stated(model))
+
+
+def noise_stated(model) -> bool:
+    """Whether the noise is stated: the machine file's ``[measurement]`` table.
+
+    Without it, per-row sigma columns are relative weights (``bayescal klipper`` writes them so for a printer's
+    heights and distances), and the evidence sets the prior against the noise.
+    """
+    return bool(model.machine.noise.given)
 
 
 def _fit_once(model, method, *, lam, k, free, rule, prior_scale, max_iter, outlier_kw, fit_effects):
@@ -327,14 +336,13 @@ def calibrate(
     res, handling, choice = _fit_once(model, method, **kw)
     first = noise_check_of(model, res)
     if discrepancy != "off" and res.success:
-        # a noise not stated is estimated first: the geometry's prior must be a prior, not a noise ratio, before it
-        # decides with the discrepancy's what each may take
-        base = 1.0
-        fit_d, model_d = (res, handling, choice), model
-        if first.verdict == "not_stated" and noise == "auto":
-            r2, h2, c2, base = _with_noise_scale(model, method, kw, first.scale, (res, handling, choice))
-            fit_d, model_d = (r2, h2, c2), model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * base)
-        got = _with_discrepancy(model_d, method, kw, fit_d, discrepancy, discrepancy_inputs, noise)
+        # a noise not stated: the sigmas are weights and lam the noise-to-prior ratio; on the sigma the residuals
+        # support, the geometry's prior is a prior (its std the tolerances times that scale over sqrt(lam)) before
+        # it decides with the discrepancy's what each may take
+        base = first.scale if first.verdict == "not_stated" and noise == "auto" else 1.0
+        model_d = model if base == 1.0 else model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * base)
+        got = _with_discrepancy(model_d, method, kw, (res, handling, choice), discrepancy, discrepancy_inputs, noise,
+                                lam_scale=base**2)
         if got is not None:
             if base != 1.0:
                 got = replace(got, noise=first, noise_scale=got.noise_scale * base, model=model)
@@ -344,9 +352,12 @@ def calibrate(
     else:
         note = ""
     scale = 1.0
-    # without a stated noise ([measurement] absent) the sigmas are weights: the noise is estimated the same way,
-    # so that everything downstream (the record's noise scale, predictions, the discrepancy's prior) sees it
-    if noise == "auto" and (first.contradicted or first.verdict == "not_stated") and res.success:
+    if noise == "auto" and first.verdict == "not_stated" and res.success:
+        # without a stated noise the sigmas are weights: the fit depends only on their ratio to the prior (which
+        # the empirical prior scale estimates) and its covariance is already scaled; what is carried forward is
+        # the noise the residuals support (the record's noise scale, every prediction's noise)
+        scale = first.scale
+    elif noise == "auto" and first.contradicted and res.success:
         res, handling, choice, scale = _with_noise_scale(model, method, kw, first.scale, (res, handling, choice))
     cal = Calibration(result=res, handling=handling, choice=choice, noise=first, noise_scale=scale, discrepancy_note=note)
     cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}),
@@ -367,7 +378,7 @@ def canonical_order(model):
     return None if np.array_equal(order, np.arange(order.size)) else order
 
 
-def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
+def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise, lam_scale: float = 1.0):
     """Step 4 of the module docstring; None when ``auto`` finds the discrepancy unsupported."""
     from ..discrepancy import fit_discrepancy
 
@@ -377,7 +388,8 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
                          f"prior; method {method!r} has none (use method 'map', or 'ridge' with lam > 0)")
     idx = np.flatnonzero(res.free)
     machine = model.machine
-    prior_sd = np.asarray(machine.tolerance, dtype=float)[idx] / math.sqrt(res.lam)
+    # lam relative to the model's sigma (lam_scale: the factor by which that sigma's variance was raised since)
+    prior_sd = np.asarray(machine.tolerance, dtype=float)[idx] / math.sqrt(res.lam / lam_scale)
     mean = getattr(machine, "prior_mean", None)
     prior_mean = None if mean is None else np.asarray(mean, dtype=float)[idx]
     # the hyperparameters and the noise are estimated with the poses weighted as the geometry's robust fit weighted
@@ -388,7 +400,7 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise):
         return None
     # the stated noise, tested with the discrepancy accounted for (the joint fit's effective parameters)
     n_distinct = distinct_rows(model.q, model.y_measured) * model.dof
-    check = check_noise(df.chi2, n_distinct - df.effective_params, stated=bool(machine.noise.given))
+    check = check_noise(df.chi2, n_distinct - df.effective_params, stated=noise_stated(model))
     scale = check.scale if (noise == "auto" and (check.contradicted or check.verdict == "not_stated")) else 1.0
     scaled = model if scale == 1.0 else model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
     # the joint posterior at the noise used, on the poses weighted as the robust geometry fit weighted them (a
