@@ -39,7 +39,7 @@ from .io.constraints import ConstraintRecording
 from .machines.base import Machine, ToolPoses
 from .params import ParamLayout, ParamSpec
 
-__all__ = ["ConstraintModel", "ConstraintPrediction", "PivotAugmented", "PIVOT_TOLERANCE"]
+__all__ = ["ConstraintModel", "ConstraintPrediction", "PivotAugmented", "PIVOT_TOLERANCE", "load_constraint_model"]
 
 #: One-sigma scale (mm) of a pivot's correction to its start estimate: column scaling and ridge prior.
 PIVOT_TOLERANCE = 1.0
@@ -550,3 +550,32 @@ class ConstraintModel:
         theta = np.asarray(theta, dtype=float)
         P = self.base.n_params
         return {p: (self.pivot_start[k] + theta[P + 3 * k : P + 3 * k + 3]).tolist() for k, p in enumerate(self.pivot_ids)}
+
+
+def load_constraint_model(machine, path, *, frame: str = "base", dof: int | None = None):
+    """The model of a constraint recording (docs/formats.md section 6) as every command makes it.
+
+    Parameters
+    ----------
+    machine : Machine
+    path : path
+        A recording with a ``measure`` column (distances, heights, ballbar radii).
+    frame : {"base", "fit"}
+        ``fit`` is refused: distances and radii see no instrument frame, heights are along the base z axis.
+    dof : int, optional
+
+    Returns
+    -------
+    (ConstraintRecording, ConstraintModel)
+    """
+    from .errors import InputError
+    from .io.constraints import read_constraints
+
+    if frame == "fit":
+        raise InputError(
+            f"frame fit: {path} is a constraint recording; distances and ballbar radii do not see an "
+            "instrument frame, and heights are measured along the base z axis (docs/formats.md section 6): "
+            "use the base frame"
+        )
+    rec = read_constraints(path)
+    return rec, ConstraintModel.from_recording(machine, rec, dof=dof)

@@ -464,7 +464,9 @@ def irls_weights(
         w_new = loss_weights(u, d, loss=loss, nu=nu, s2=s2)
         change = float(np.max(np.abs(w_new - w)))
         w = w_new
-        res = fit(model.with_pose_sigma(base / np.sqrt(w)[:, None]))
+        weighted = model.with_pose_sigma(base / np.sqrt(w)[:, None])
+        # a fit that can start anywhere (``warm_start``) starts where the last round ended
+        res = fit(weighted, theta0=res.theta) if getattr(fit, "warm_start", False) else fit(weighted)
         if change < tol:
             converged = True
             break

@@ -49,3 +49,27 @@ def test_the_library_snippet_of_the_docs_runs(tmp_path, monkeypatch, capsys):
     out = capsys.readouterr().out
     assert "bayescal identification" in out and "ParameterEstimate(name='chain1.link_length'" in out
     assert (tmp_path / "calibrated.toml").is_file()
+
+
+def test_load_takes_a_constraint_recording(tmp_path, capsys):
+    # a printer's heights through the front door, as `bayescal identify` takes them (docs/formats.md section 6)
+    machine = ROOT / "examples" / "delta" / "machine.toml"
+    m = bayescal.machines.load_machine(machine)
+    rng = np.random.default_rng(1)
+    q = m.sample_q(30, rng)
+    z = m.forward(q).position[:, 2] + rng.normal(scale=m.noise.sigma_position, size=30)
+    rows = ["measure,a_q1,a_q2,a_q3,value"] + [f"height,{a!r},{b!r},{c!r},{h!r}" for (a, b, c), h in zip(q.tolist(), z.tolist())]
+    rec = tmp_path / "h.csv"
+    rec.write_text("\n".join(rows) + "\n")
+    model = bayescal.load(machine, rec)
+    from bayescal.constraint_model import ConstraintModel
+
+    assert isinstance(model, ConstraintModel) and model.n_poses == 30
+    out = tmp_path / "a.json"
+    code = main(["identify", str(rec), "--machine", str(machine), "--json", str(out), "--quiet"])
+    assert code == 0, capsys.readouterr()
+    ans = json.loads(out.read_text())
+    lib = bayescal.calibrate(model).to_dict()
+    assert [p["value"] for p in lib["parameters"]] == [p["value"] for p in ans["parameters"]]
+    with pytest.raises(bayescal.errors.InputError, match="constraint recording"):
+        bayescal.load(machine, rec, frame="fit")

@@ -52,22 +52,22 @@ def _constraint_inputs(args: argparse.Namespace, machine: Machine, constraints: 
 
     if not is_constraint_recording(args.recording):
         return None
-    from ..constraint_model import ConstraintModel
+    from ..constraint_model import load_constraint_model
     from ..errors import InputError
-    from ..io.constraints import read_constraints
 
     if not constraints:
         raise InputError(
             f"{args.recording}: a constraint recording (distances, heights, ballbar); this command takes "
             "recordings of measured poses only (use bayescal identify)"
         )
-    if getattr(args, "frame", "base") == "fit":
-        raise InputError(
-            f"--frame fit: {args.recording} is a constraint recording; distances and ballbar radii do not see an "
-            "instrument frame, and heights are measured along the base z axis (docs/formats.md section 6): drop --frame fit"
-        )
-    crec = read_constraints(args.recording)
-    return machine, crec, ConstraintModel.from_recording(machine, crec, dof=getattr(args, "dof", None))
+    frame = getattr(args, "frame", "base")
+    try:
+        crec, model = load_constraint_model(machine, args.recording, frame=frame, dof=getattr(args, "dof", None))
+    except InputError as e:
+        if frame == "fit" and str(e).startswith("frame fit:"):
+            raise InputError("--" + str(e).replace("use the base frame", "drop --frame fit")) from None
+        raise
+    return machine, crec, model
 
 
 # ---------------------------------------------------------------- instrument frame (docs/formats.md section 4)

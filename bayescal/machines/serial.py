@@ -42,7 +42,8 @@ frame by that frame's pose, so every column costs a cross product.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import weakref
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -175,6 +176,12 @@ def _cross(w: NDArray, a: NDArray) -> NDArray:
     out[:, 1] = w[:, 2] * a0 - w[:, 0] * a2
     out[:, 2] = w[:, 0] * a1 - w[:, 1] * a0
     return out
+
+
+#: The last chain of each machine (:meth:`Serial._memo_chain`); weak, so a machine's memo goes with it.
+_CHAINS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+#: Poses times joints up to which a chain is remembered (its frames: about 300 bytes per joint and pose).
+_MEMO_MAX = 200_000
 
 
 @dataclass(frozen=True)
@@ -526,6 +533,26 @@ class Serial(Machine):
             R_end=R, R_after=R_after, p_after=p_after, tool_rpy=tool_rpy, p_tool=p_tool, R_tool=R @ rpy_matrix(tool_rpy),
         )
 
+    def _memo_chain(self, q: NDArray, theta: NDArray) -> _Chain:
+        """:meth:`_chain`, remembered for the last ``(q, theta)``.
+
+        A Gauss-Newton step evaluates the forward kinematics and then the
+        Jacobian at the same point; recomputing the chain for the Jacobian was
+        half the cost of identifying a serial arm.  The frames are kept
+        read-only, so a consumer that writes into them fails loudly instead of
+        corrupting the next answer.
+        """
+        hit = _CHAINS.get(self)
+        if (hit is not None and hit[0].shape == q.shape and hit[1].shape == theta.shape
+                and np.array_equal(hit[0], q) and np.array_equal(hit[1], theta)):
+            return hit[2]
+        c = self._chain(q, theta)
+        if q.shape[0] * max(self.n_joints, 1) <= _MEMO_MAX:
+            for f in fields(c):
+                getattr(c, f.name).setflags(write=False)
+            _CHAINS[self] = (q.copy(), theta.copy(), c)
+        return c
+
     def forward(self, q: ArrayLike, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> ToolPoses:
         """Tool poses by the product of the joint transforms (closed form; ``guess`` is not needed).
 
@@ -544,10 +571,10 @@ class Serial(Machine):
         """
         q = self.check_q(q)
         n = q.shape[0]
-        c = self._chain(q, self.check_theta(theta, n))
+        c = self._memo_chain(q, self.check_theta(theta, n))
         ok = np.isfinite(c.p_tool).all(axis=1) & np.isfinite(c.R_tool).all(axis=(1, 2))
         msgs = tuple("" if o else "non-finite joint positions or geometry" for o in ok)
-        return ToolPoses(position=c.p_tool, rotation=c.R_tool, success=ok, message=msgs, state=None)
+        return ToolPoses(position=c.p_tool.copy(), rotation=c.R_tool.copy(), success=ok, message=msgs, state=None)
 
     def _motion_columns(self, c: _Chain, k: int) -> tuple[NDArray, NDArray]:
         """Tool-point and rotation rates per unit of joint ``k``'s motion (its offset or q)."""
@@ -572,7 +599,7 @@ class Serial(Machine):
         """
         q = self.check_q(q)
         n, m = q.shape[0], self.n_joints
-        c = self._chain(q, self.check_theta(theta, n))
+        c = self._memo_chain(q, self.check_theta(theta, n))
         J = np.zeros((n, 6, self.n_params))
         W = rpy_rates(c.rpy)  # (g, m, 3, 3) (g = 1: one geometry for every pose), columns in the parent frame
         for k in range(m):
@@ -599,7 +626,7 @@ class Serial(Machine):
         """Every joint's and link's frame at actuator positions ``q`` (n, N) and geometric errors ``theta`` (:class:`ChainFrames`)."""
         q = self.check_q(q)
         n = q.shape[0]
-        c = self._chain(q, self.check_theta(theta, n))
+        c = self._memo_chain(q, self.check_theta(theta, n))
         # a shared geometry's axes come with a leading axis of 1 (the chain computes them once)
         axis = np.einsum("nkij,nkj->nki", c.R_joint, np.broadcast_to(c.axis, c.R_joint.shape[:-1]))
         nxt = np.concatenate([c.p_joint[:, 1:], c.p_tool[:, None]], axis=1)
@@ -617,7 +644,7 @@ class Serial(Machine):
         """
         q = self.check_q(q)
         n, m = q.shape[0], self.n_joints
-        c = self._chain(q, self.check_theta(theta, n))
+        c = self._memo_chain(q, self.check_theta(theta, n))
         J = np.zeros((n, m, 6, m))
         for j in range(m):
             a = _rotate(c.R_joint[:, j], c.axis[:, j])  # (n, 3) base frame
@@ -636,7 +663,7 @@ class Serial(Machine):
         """
         q = self.check_q(q)
         n, m = q.shape[0], self.n_joints
-        c = self._chain(q, self.check_theta(theta, n))
+        c = self._memo_chain(q, self.check_theta(theta, n))
         J = np.empty((n, 6, m))
         for k in range(m):
             J[:, :3, k], J[:, 3:, k] = self._motion_columns(c, k)
