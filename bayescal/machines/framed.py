@@ -55,7 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError, MachineFileError
-from ..geometry import left_jacobian_inverse, skew, so3_exp
+from ..geometry import left_jacobian_inverse, skew, so3_exp, so3_log
 from ..io.machine_file import format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, ToolPoses
@@ -94,14 +94,12 @@ class Frame:
 
     @classmethod
     def from_rotation_vector(cls, origin: ArrayLike, rotation_vector: ArrayLike) -> "Frame":
-        from scipy.spatial.transform import Rotation  # scipy.spatial: imported where used
-        return cls(np.asarray(origin, dtype=float).reshape(3), Rotation.from_rotvec(np.asarray(rotation_vector, dtype=float)).as_matrix())
+        return cls(np.asarray(origin, dtype=float).reshape(3), so3_exp(np.asarray(rotation_vector, dtype=float).reshape(3)))
 
     @property
     def rotation_vector(self) -> NDArray:
         """Rotation vector of ``rotation`` (rad, norm in [0, pi]), valid up to 180 degrees."""
-        from scipy.spatial.transform import Rotation  # scipy.spatial: imported where used
-        return Rotation.from_matrix(self.rotation).as_rotvec()
+        return so3_log(self.rotation)
 
     def to_base(self, p_inst: NDArray) -> NDArray:
         """Points (n, 3) from the instrument frame to the base frame, mm."""

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scipy.stats import chi2
+from ..distributions import chi2_ppf
 
 from .engine import predictive_rows
 
@@ -44,7 +44,7 @@ def loo_variance_factor(model, theta, covariance, *, machine_index, discrepancy=
     d2 = loo_distances(model, theta, covariance, machine_index=machine_index, discrepancy=discrepancy)
     if d2.size == 0:
         return 1.0, 1.0
-    ratio = float(np.quantile(d2, LEVEL) / chi2.ppf(LEVEL, 3))
+    ratio = float(np.quantile(d2, LEVEL) / chi2_ppf(LEVEL, 3))
     return max(1.0, ratio), ratio
 
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from ..distributions import chi2_ppf
 
 __all__ = ["RowScores", "score_rows", "summarise", "REGION_LEVEL"]
 
@@ -41,7 +41,7 @@ def score_rows(measured: NDArray, mean: NDArray, cov: NDArray, *, level: float =
     if ok.any():
         d2[ok] = np.einsum("ni,ni->n", e[ok], np.linalg.solve(S[ok], e[ok][:, :, None])[:, :, 0])
     err = np.linalg.norm(e, axis=1)
-    inside = np.where(ok, d2 <= stats.chi2.ppf(level, 3), False)
+    inside = np.where(ok, d2 <= chi2_ppf(level, 3), False)
     return RowScores(err, inside.astype(bool), d2)
 
 
