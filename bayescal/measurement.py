@@ -149,7 +149,8 @@ class MeasurementModel:
 
     # ----------------------------------------------------------- construction
     @classmethod
-    def from_recording(cls, machine: Machine, rec: Recording, *, dof: int | None = None) -> "MeasurementModel":
+    def from_recording(cls, machine: Machine, rec: Recording, *, dof: int | None = None,
+                       sensors: bool = True) -> "MeasurementModel":
         """The model of a recording, optionally using fewer DOF than were measured.
 
         Parameters
@@ -160,6 +161,12 @@ class MeasurementModel:
         dof : int, optional
             6, 5 or 3; at most what the recording holds (a 6-DOF recording
             can be used as 5-DOF or position-only).  Default: the recording's.
+        sensors : bool
+            Take the recording's body sensors (``accel.<body>.x/y/z`` on a
+            body other than the base, docs/formats.md section 8) as
+            measurements (default); False: read them as auxiliary channels
+            only (what ``predict`` does: a calibrated machine has no
+            mountings to predict them with).
 
         Notes
         -----
@@ -200,9 +207,9 @@ class MeasurementModel:
             guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
         from .sensors import attach_sensors
 
-        machine, sensors = attach_sensors(machine, rec, q)
+        machine, sensor_set = attach_sensors(machine, rec, q) if sensors else (machine, None)
         tool_dof = dof
-        dof = tool_dof + (0 if sensors is None else sensors.n_rows)
+        dof = tool_dof + (0 if sensor_set is None else sensor_set.n_rows)
         n = rec.n_poses
         y = np.zeros((n, dof))
         y[:, :3] = rec.position
@@ -215,7 +222,7 @@ class MeasurementModel:
             R_ref = _frame_with_z(axis)
         return cls(
             machine=machine, q=q, dof=dof, y_measured=y, R_ref=R_ref, aux=dict(rec.aux), guess=guess,
-            pose_sigma=_recording_pose_sigma(machine, rec, tool_dof, dof), pose_offset=offset, sensors=sensors,
+            pose_sigma=_recording_pose_sigma(machine, rec, tool_dof, dof), pose_offset=offset, sensors=sensor_set,
         )
 
     # ------------------------------------------------------------- properties
@@ -255,6 +262,21 @@ class MeasurementModel:
         from dataclasses import replace
 
         return replace(self, pose_sigma=pose_sigma)
+
+    def without_sensors(self) -> "MeasurementModel":
+        """The tool's rows only (the body sensors' tilt rows left out), the parameters unchanged.
+
+        What position and orientation summaries of a recording with body
+        sensors are computed on (held-out ``check`` rows, predictions).
+        """
+        if self.sensors is None:
+            return self
+        from dataclasses import replace
+
+        d = self.tool_dof
+        return replace(self, dof=d, sensors=None,
+                       y_measured=None if self.y_measured is None else self.y_measured[:, :d],
+                       pose_sigma=None if self.pose_sigma is None else self.pose_sigma[:, :d])
 
     def subset(self, idx) -> "MeasurementModel":
         """The model restricted to poses ``idx`` (order kept)."""

@@ -489,8 +489,16 @@ class InstrumentFrame(Machine):
 
 
 def base_machine(machine: Machine) -> Machine:
-    """The machine in its base frame (the inner machine of an :class:`InstrumentFrame`)."""
-    return machine.machine if isinstance(machine, InstrumentFrame) else machine
+    """The machine in its base frame (the inner machine of an :class:`InstrumentFrame`), without body sensors' mountings.
+
+    A measurement model's machine for a recording with body sensors is a
+    :class:`~bayescal.sensors.SensorMounts` view (inside any instrument
+    frame); its parameters are nuisance like the frame's, so this is the
+    machine under it.
+    """
+    from ..sensors.mounts import sensor_base
+
+    return sensor_base(machine.machine if isinstance(machine, InstrumentFrame) else machine)
 
 
 def read_instrument(doc, path: str) -> Frame | None:
