@@ -103,8 +103,9 @@ class MeasurementNoise:
         (``[measurement] sensor_turn``).
     base_level : float
         rad, one-sigma tolerance of each of the two tilts of up in the base
-        frame (``[measurement] base_level``): the level of the base, or the
-        mounting of a base sensor (started from its mean reading).
+        frame when there is no base sensor (``[measurement] base_level``):
+        how well the base is levelled.  A base sensor's two mounting tilts
+        take ``sensor_mount``.
     given : bool
         True when read from the machine file's ``[measurement]`` table, False
         for the documented defaults.
@@ -116,11 +117,12 @@ class MeasurementNoise:
     #: rad, per tilt angle of a body sensor's reading (docs/formats.md section 8)
     sigma_tilt: float = 1.0e-4
     #: rad, one-sigma tolerance of a body sensor's mounting (and of the base's level) about its start
-    sensor_mount: float = 1.0e-2
+    sensor_mount: float = 1.0e-3
     #: rad, one-sigma tolerance of a body sensor's turn about its reading (about up) from its start
-    sensor_turn: float = 0.5
-    #: rad, one-sigma tolerance of the base's level (up from the base sensor, else +z) where body sensors are fitted
-    base_level: float = 2.0e-4
+    sensor_turn: float = 1.0e-2
+    #: rad, one-sigma tolerance of the base's level (+z up) where body sensors are fitted without a base sensor
+    #: (2e-5 rad = 0.02 mm/m, a machine tool's usual levelling)
+    base_level: float = 2.0e-5
 
 
 @dataclass(frozen=True)

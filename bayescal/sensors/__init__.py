@@ -74,7 +74,8 @@ def attach_sensors(machine, rec, q: NDArray):
     tol = ()
     for t in sensors.turn:  # two tilts and (where fitted) the turn of each sensor, then the level
         tol += (nz.sensor_mount, nz.sensor_mount) + ((nz.sensor_turn,) if t else ())
-    tol += (nz.base_level, nz.base_level)
+    level = nz.sensor_mount if sensors.base_sensor else nz.base_level
+    tol += (level, level)
     view = SensorMounts(inner, sensors.names, tol)
     return (view if frame is None else dataclasses.replace(frame, machine=view)), sensors
 

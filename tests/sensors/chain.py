@@ -17,21 +17,21 @@ TOOL = [300.0, 0.0, 0.0]
 LIMITS = [[-3.0, 3.0], [0.0, 500.0], [-1.0, 1.0]]
 
 
-def machine_text(joints=JOINTS, sigma_tilt=2.0e-5, extra="") -> str:
+def machine_text(joints=JOINTS, sigma_tilt=2.0e-5, extra="", tool=TOOL, sigma_position=0.005) -> str:
     """The machine file of ``joints`` (a list like :data:`JOINTS`)."""
     out = ['kind = "serial"', 'name = "sensor test column"', ""]
     for t, o, r, a in joints:
         out += ["[[joint]]", f'type = "{t}"', f"origin = {list(map(float, o))}", f"rpy = {list(map(float, r))}",
                 f"axis = {list(map(float, a))}", ""]
-    out += ["[tool]", f"point = {TOOL}", "", "[measurement]", "sigma_position = 0.005", "sigma_angle = 5.0e-5",
+    out += ["[tool]", f"point = {list(map(float, tool))}", "", "[measurement]", f"sigma_position = {sigma_position}", "sigma_angle = 5.0e-5",
             f"sigma_tilt = {sigma_tilt}", extra, "", "[workspace]", f"q_limits = {LIMITS}", ""]
     return "\n".join(out)
 
 
-def transforms(joints, q: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+def transforms(joints, q: np.ndarray, tool=TOOL) -> tuple[list[np.ndarray], np.ndarray]:
     """Per pose, the 4x4 frame after every joint (base frame) and the tool point: an independent product."""
     q = np.atleast_2d(q)
-    frames, tool = [], []
+    frames, points = [], []
     for qi in q:
         T = np.eye(4)
         after = []
@@ -48,8 +48,8 @@ def transforms(joints, q: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
             T = T @ F @ M
             after.append(T.copy())
         frames.append(after)
-        tool.append((T @ np.r_[TOOL, 1.0])[:3])
-    return frames, np.array(tool)
+        points.append((T @ np.r_[tool, 1.0])[:3])
+    return frames, np.array(points)
 
 
 def poses(n: int, seed: int) -> np.ndarray:
