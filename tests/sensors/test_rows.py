@@ -113,3 +113,45 @@ def test_serial_lists_its_bodies_and_refuses_others(tmp_path):
     assert isinstance(m, Serial) and m.sensor_bodies == ("base", "joint1", "joint2", "joint3")
     with pytest.raises(Exception, match="joint4"):
         m.body_frame("joint4")
+
+
+URDF = """<?xml version="1.0"?>
+<robot name="column">
+  <link name="floor"/><link name="pedestal"/><link name="column"/><link name="stage"/><link name="column_tip"/>
+  <link name="arm"/>
+  <joint name="bolt" type="fixed"><parent link="floor"/><child link="pedestal"/>
+    <origin xyz="0 0 0.1" rpy="0.001 0 0.2"/></joint>
+  <joint name="turn" type="revolute"><parent link="pedestal"/><child link="column"/>
+    <origin xyz="0 0 0.2" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="lift" type="prismatic"><parent link="column"/><child link="stage"/>
+    <origin xyz="0 0 0.3" rpy="0 0.002 0"/><axis xyz="0 0 1"/><limit lower="0" upper="0.5" effort="1" velocity="1"/></joint>
+  <joint name="tip" type="fixed"><parent link="stage"/><child link="column_tip"/>
+    <origin xyz="0 0 0.05" rpy="0.3 -0.2 1.0"/></joint>
+  <joint name="swing" type="revolute"><parent link="column_tip"/><child link="arm"/>
+    <origin xyz="0.1 0 0" rpy="0 0 0"/><axis xyz="0 1 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+</robot>
+"""
+
+
+def test_urdf_links_are_bodies_with_yourdfpy_orientations(tmp_path):
+    """A sensor on a URDF link after fixed joints: its orientation is yourdfpy's transform (an independent chain)."""
+    import yourdfpy
+
+    from bayescal.machines import load_machine
+
+    (tmp_path / "column.urdf").write_text(URDF)
+    (tmp_path / "m.toml").write_text('kind = "serial"\nurdf = "column.urdf"\nbase_link = "floor"\ntip_link = "arm"\n\n'
+                                     "[tool]\npoint = [100.0, 0.0, 0.0]\n")
+    m = load_machine(tmp_path / "m.toml")
+    assert m.sensor_bodies == ("base", "joint1", "joint2", "joint3", "floor", "pedestal", "column", "stage",
+                               "column_tip", "arm")
+    robot = yourdfpy.URDF.load(str(tmp_path / "column.urdf"), build_scene_graph=True, load_meshes=False)
+    q = poses(5, 9)
+    q[:, 1] = np.clip(q[:, 1], 0.0, 500.0)
+    bodies = ["pedestal", "column", "column_tip", "joint2", "arm"]
+    R, _ = m.body_rotations(q, None, [m.body_frame(b) for b in bodies])
+    for i, qi in enumerate(q):
+        robot.update_cfg({"turn": qi[0], "lift": qi[1] / 1000.0, "swing": qi[2]})
+        for s, b in enumerate(bodies):
+            link = "stage" if b == "joint2" else b
+            np.testing.assert_allclose(R[i, s], robot.get_transform(link, "floor")[:3, :3], atol=1e-12, err_msg=b)
