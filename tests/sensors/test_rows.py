@@ -71,8 +71,8 @@ def test_noise_free_readings_give_zero_rows_at_the_truth(tmp_path):
     assert model.rms(r)["tilt"] < 1e-9
 
 
-@pytest.mark.parametrize("base", [False, True])
-def test_sensor_rows_jacobian_matches_finite_differences(tmp_path, base):
+@pytest.mark.parametrize("base, dof", [(False, 3), (True, 3), (False, 6), (True, 5)])
+def test_sensor_rows_jacobian_matches_finite_differences(tmp_path, base, dof):
     m = _machine(tmp_path)
     q = poses(9, 3)
     rng = np.random.default_rng(4)
@@ -80,7 +80,9 @@ def test_sensor_rows_jacobian_matches_finite_differences(tmp_path, base):
     if base:
         for i, a in enumerate("xyz"):
             aux[f"accel.base.{a}"] = rng.normal(size=9) * 0.01 + (9.81 if a == "z" else 0.0)
-    model = MeasurementModel.from_recording(m, Recording(q=q, position=tool, aux=aux))
+    rotvec = None if dof == 3 else Rotation.from_matrix(m.forward(q).rotation).as_rotvec()
+    model = MeasurementModel.from_recording(m, Recording(q=q, position=tool, rotvec=rotvec, aux=aux), dof=dof)
+    assert model.tool_dof == dof and model.dof == dof + 4
     assert model.machine.layout.names[-2].startswith("sensor.base.mount" if base else "gravity.tilt")
     th = rng.normal(size=model.n_params) * model.machine.tolerance * 3
     pred = model.predict(th)
@@ -89,8 +91,9 @@ def test_sensor_rows_jacobian_matches_finite_differences(tmp_path, base):
     for p in range(model.n_params):
         d = np.zeros(model.n_params)
         d[p] = h
-        fd = (model.predict(th + d).y[:, 3:] - model.predict(th - d).y[:, 3:]) / (2 * h)
-        np.testing.assert_allclose(J[:, 3:, p], fd, atol=1e-7, err_msg=model.machine.layout.names[p])
+        fd = (model.predict(th + d).y - model.predict(th - d).y) / (2 * h)
+        np.testing.assert_allclose(J[:, 3:, p], fd[:, 3:], atol=1e-7, err_msg=model.machine.layout.names[p])
+        np.testing.assert_allclose(J[:, :3, p], fd[:, :3], atol=1e-5, err_msg=model.machine.layout.names[p])  # mm
 
 
 def test_stacked_and_per_pose_theta_and_subsets(tmp_path):
