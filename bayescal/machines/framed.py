@@ -300,8 +300,12 @@ class InstrumentFrame(Machine):
 
     @property
     def geometry_part(self) -> tuple[Machine, NDArray]:
-        """The inner machine and the indices of its parameters (after the frame's, when fitted)."""
-        return self.machine, np.arange(self.n_frame, self.n_params)
+        """The inner machine and the indices of its parameters (after the frame's, when fitted).
+
+        Composed with the inner machine's own (a body sensors' view leaves its mountings out too).
+        """
+        inner, idx = self.machine.geometry_part
+        return inner, self.n_frame + np.asarray(idx)
 
     @property
     def layout(self) -> ParamLayout:  # type: ignore[override]
