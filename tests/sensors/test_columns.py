@@ -97,3 +97,40 @@ def test_a_kind_without_bodies_refuses_a_body_sensor(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "column 'accel.platform.x': no body 'platform' on this machine (this machine kind exposes no body but the " \
            "base)" in err
+
+
+def test_measurement_keys_are_read_written_and_checked(tmp_path):
+    from bayescal.errors import MachineFileError
+    from bayescal.machines import load_machine
+
+    p = tmp_path / "m.toml"
+    p.write_text(machine_text(JOINTS, sigma_tilt=3e-5, extra="base_level = 5.0e-5"))
+    m = load_machine(p)
+    assert (m.noise.sigma_tilt, m.noise.base_level, m.noise.sensor_mount) == (3e-5, 5e-5, 1e-3)
+    again = tmp_path / "again.toml"
+    again.write_text(m.to_toml())
+    m2 = load_machine(again)
+    assert (m2.noise.sigma_tilt, m2.noise.base_level) == (3e-5, 5e-5)
+    for extra, key in (("sensor_mount = 2.0", "sensor_mount"), ("sensor_turn = -1.0", "sensor_turn")):
+        p.write_text(machine_text(JOINTS, extra=extra))
+        with pytest.raises(MachineFileError, match=key):
+            load_machine(p)
+
+
+def test_fitted_frames_per_station_with_sensors(files, tmp_path, capsys):
+    """Stations in their own frames: the frames, the geometry and the mountings in one fit; the check rows scored."""
+    machine, rec = files
+    lines = rec.read_text().splitlines()
+    out = tmp_path / "stations.csv"
+    out.write_text("\n".join([lines[0] + ",station,role"] + [
+        ln + f",{'a' if i % 2 else 'b'},{'check' if i % 6 == 0 else 'fit'}" for i, ln in enumerate(lines[1:])]) + "\n")
+    answer = tmp_path / "answer.json"
+    assert main(["identify", str(out), "--machine", str(machine), "--frame", "fit", "--json", str(answer),
+                 "--quiet"]) == 0
+    import json
+
+    d = json.loads(answer.read_text())
+    names = [p["name"] for p in d["parameters"]]
+    assert names[0].startswith("frame.") and names[-2:] == ["gravity.tilt.rx", "gravity.tilt.ry"]
+    assert d["dof"] == 3 and d["tilt_rows_per_pose"] == 2 and d["rms_after"]["tilt"] < 1e-4
+    assert d["check"]["summary"]["n"] == 2
