@@ -222,7 +222,8 @@ class MeasurementModel:
             R_ref = _frame_with_z(axis)
         return cls(
             machine=machine, q=q, dof=dof, y_measured=y, R_ref=R_ref, aux=dict(rec.aux), guess=guess,
-            pose_sigma=_recording_pose_sigma(machine, rec, tool_dof, dof), pose_offset=offset, sensors=sensor_set,
+            pose_sigma=_recording_pose_sigma(machine, rec, tool_dof, dof, sensor_set), pose_offset=offset,
+            sensors=sensor_set,
         )
 
     # ------------------------------------------------------------- properties
@@ -244,7 +245,8 @@ class MeasurementModel:
         """The nominal one-sigma noise per row of a pose, shape (dof,): mm, then rad (tool angles, then sensor tilts)."""
         nz = self.machine.noise
         return np.array([nz.sigma_position] * 3 + [nz.sigma_angle] * (self.tool_dof - 3)
-                        + [nz.sigma_tilt] * (self.dof - self.tool_dof))
+                        + [self.sensors.row_sigma(nz.sigma_tilt) if self.sensors is not None else 0.0]
+                        * (self.dof - self.tool_dof))
 
     @property
     def row_sigma(self) -> NDArray:
@@ -562,12 +564,13 @@ def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:
         )
 
 
-def _recording_pose_sigma(machine: Machine, rec: Recording, dof: int, width: int | None = None) -> NDArray | None:
+def _recording_pose_sigma(machine: Machine, rec: Recording, dof: int, width: int | None = None,
+                          sensors=None) -> NDArray | None:
     """Per-pose noise from the recording's ``sigma_position`` / ``sigma_angle`` columns (docs/formats.md section 4).
 
     A missing column takes the machine's ``[measurement]`` value; a
     position-only model ignores ``sigma_angle``.  None when neither applies.
-    ``dof`` is the tool's rows, ``width`` all rows (the body sensors' take ``sigma_tilt``).
+    ``dof`` is the tool's rows, ``width`` all rows (the body sensors' take their rows' sigma from ``sigma_tilt``).
     """
     width = dof if width is None else width
     sp, sa = getattr(rec, "sigma_position", None), getattr(rec, "sigma_angle", None)
@@ -578,7 +581,8 @@ def _recording_pose_sigma(machine: Machine, rec: Recording, dof: int, width: int
     out[:, :3] = (np.full(rec.n_poses, nz.sigma_position) if sp is None else sp)[:, None]
     if dof > 3:
         out[:, 3:dof] = (np.full(rec.n_poses, nz.sigma_angle) if sa is None else sa)[:, None]
-    out[:, dof:] = nz.sigma_tilt
+    if sensors is not None:
+        out[:, dof:] = sensors.row_sigma(nz.sigma_tilt)
     return out
 
 

@@ -153,6 +153,15 @@ class SensorSet:
     def n_params(self) -> int:
         return len(self.names)
 
+    def row_sigma(self, sigma_tilt: float) -> float:
+        """One-sigma of a tilt row (rad) for sensors of noise ``sigma_tilt`` (rad per tilt angle).
+
+        With a base sensor, up itself is a reading: its noise enters every
+        row, so a row's sigma is ``sqrt(2) sigma_tilt`` (both sensors of the
+        stated noise).
+        """
+        return float(sigma_tilt) * (np.sqrt(2.0) if self.base_sensor else 1.0)
+
     def subset(self, idx) -> "SensorSet":
         """The poses ``idx``, the nominal mountings kept (they are fixed once, from all the rows)."""
         idx = np.asarray(idx)

@@ -109,6 +109,7 @@ def test_a_base_sensor_gives_every_pose_its_own_up(machine):
     """A base tilted differently at every pose (1e-4 rad): with its base sensor the tilt rows fit to the noise."""
     model_b, with_base = _fit(machine, _recording(13, base_tilt=1e-4, base_sensor=True))
     assert model_b.machine.layout.names[-2:] == ("sensor.base.mount.rx", "sensor.base.mount.ry")
+    assert model_b.sigma[3:] == pytest.approx([np.sqrt(2) * 1e-5] * 4)  # up is a reading too: its noise in every row
     assert with_base.rms_after["tilt"] < 3e-5
     rec = _recording(13, base_tilt=1e-4, base_sensor=False)
     _, blind = _fit(machine, rec, noise="stated", robust="off")  # a misfit: no noise rescaling, no outlier passes
