@@ -158,3 +158,18 @@ def test_urdf_links_are_bodies_with_yourdfpy_orientations(tmp_path):
         for s, b in enumerate(bodies):
             link = "stage" if b == "joint2" else b
             np.testing.assert_allclose(R[i, s], robot.get_transform(link, "floor")[:3, :3], atol=1e-12, err_msg=b)
+
+
+def test_readings_pointing_down_are_read_with_the_other_sign(tmp_path):
+    """Sensors that report gravity (down) rather than the specific force: told by the base sensor, same rows."""
+    m = _machine(tmp_path, TRUTH)
+    q = poses(10, 8)
+    aux, tool = _readings(TRUTH, q, [1, 2], [np.eye(3), Rotation.from_rotvec([0.3, 0.2, 0.1]).as_matrix()])
+    rng = np.random.default_rng(9)
+    for i, a in enumerate("xyz"):
+        aux[f"accel.base.{a}"] = rng.normal(size=10) * 1e-3 + (9.81 if a == "z" else 0.0)
+    up = MeasurementModel.from_recording(m, Recording(q=q, position=tool, aux=aux))
+    down = MeasurementModel.from_recording(m, Recording(q=q, position=tool, aux={k: -v for k, v in aux.items()}))
+    assert down.sensors.flipped and not up.sensors.flipped
+    th = rng.normal(size=up.n_params) * up.machine.tolerance
+    np.testing.assert_allclose(down.predict(th).y, up.predict(th).y, atol=1e-12)
