@@ -11,6 +11,13 @@ Per pose, the rows of ``y`` are
   ``n = R e_z`` on a tangent basis ``t_1, t_2`` of the reference axis (rad to
   first order); the torsion about the tool axis is not observed.
 
+Body sensors (docs/formats.md section 8; :mod:`bayescal.sensors`): a recording
+with ``accel.<body>.x/y/z`` columns on bodies other than the base adds two
+tilt rows (rad) per sensor after the tool rows of every pose, so ``dof`` (the
+rows per pose) is ``tool_dof + 2 S``; the machine is then a
+:class:`~bayescal.sensors.SensorMounts` view with the sensors' mounting
+parameters appended.  Position summaries read ``[:, :3]`` as before.
+
 Every consumer (solvers, filters, samplers, planning, diagnosis) works on
 this object and never on a machine directly.
 """
@@ -67,7 +74,7 @@ class MeasurementModel:
     q : ndarray, shape (n_poses, n_actuators)
         Commanded actuator positions.
     dof : int
-        6, 5 or 3.
+        Rows per pose: the tool's 6, 5 or 3, plus two per body sensor (``sensors``).
     y_measured : ndarray, shape (n_poses, dof), optional
         The measurement in the same rows as ``h`` (zeros in the orientation
         rows for a recording; see the module docstring).
@@ -91,6 +98,10 @@ class MeasurementModel:
         gravity) add after the forward kinematics.  :meth:`predict` rotates
         it into each pose's measurement frame (:func:`offset_poses`); it
         does not depend on ``theta``.  None: no offset.
+    sensors : SensorSet, optional
+        Body tilt sensors (:mod:`bayescal.sensors`): two rows each, after the
+        tool's; the machine must then carry their parameters
+        (:func:`bayescal.sensors.attach_sensors`).
     """
 
     machine: Machine
@@ -102,23 +113,26 @@ class MeasurementModel:
     guess: ToolPoses | None = None
     pose_sigma: NDArray | None = None
     pose_offset: NDArray | None = None
+    sensors: object | None = None
 
     def __post_init__(self) -> None:
         q = self.machine.check_q(self.q)
+        if self.sensors is not None and self.sensors.u.shape[0] != q.shape[0]:
+            raise InputError(f"sensors: {self.sensors.u.shape[0]} poses of readings for {q.shape[0]} poses")
         object.__setattr__(self, "q", q)
         if self.pose_offset is not None:
             off = np.asarray(self.pose_offset, dtype=float)
             if off.shape != (q.shape[0], 6) or not np.all(np.isfinite(off)):
                 raise InputError(f"pose_offset: expected finite values of shape ({q.shape[0]}, 6), got {off.shape}")
             object.__setattr__(self, "pose_offset", off)
-        rows_per_pose(self.dof)
-        if self.R_ref is None and self.dof != 3:
+        rows_per_pose(self.tool_dof)
+        if self.R_ref is None and self.tool_dof != 3:
             nominal = self.machine.forward(q, None, guess=self.guess)
             if not nominal.success.all():
                 i = int(np.flatnonzero(~nominal.success)[0])
                 raise KinematicsError(f"pose {i + 1} (q = {q[i].tolist()}): {nominal.message[i]}")
             object.__setattr__(self, "R_ref", nominal.rotation)
-        if self.dof == 5:
+        if self.tool_dof == 5:
             object.__setattr__(self, "_tangent", tangent_basis(self.R_ref[:, :, 2]))
         if self.y_measured is not None:
             y = np.asarray(self.y_measured, dtype=float)
@@ -135,7 +149,8 @@ class MeasurementModel:
 
     # ----------------------------------------------------------- construction
     @classmethod
-    def from_recording(cls, machine: Machine, rec: Recording, *, dof: int | None = None) -> "MeasurementModel":
+    def from_recording(cls, machine: Machine, rec: Recording, *, dof: int | None = None,
+                       sensors: bool = True) -> "MeasurementModel":
         """The model of a recording, optionally using fewer DOF than were measured.
 
         Parameters
@@ -146,6 +161,12 @@ class MeasurementModel:
         dof : int, optional
             6, 5 or 3; at most what the recording holds (a 6-DOF recording
             can be used as 5-DOF or position-only).  Default: the recording's.
+        sensors : bool
+            Take the recording's body sensors (``accel.<body>.x/y/z`` on a
+            body other than the base, docs/formats.md section 8) as
+            measurements (default); False: read them as auxiliary channels
+            only (what ``predict`` does: a calibrated machine has no
+            mountings to predict them with).
 
         Notes
         -----
@@ -184,19 +205,25 @@ class MeasurementModel:
                 dq, offset = effect_delta_q_and_x(machine, machine.effects, q, dict(rec.aux), poses=poses)
             q = q + dq
             guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
+        from .sensors import attach_sensors
+
+        machine, sensor_set = attach_sensors(machine, rec, q) if sensors else (machine, None)
+        tool_dof = dof
+        dof = tool_dof + (0 if sensor_set is None else sensor_set.n_rows)
         n = rec.n_poses
         y = np.zeros((n, dof))
         y[:, :3] = rec.position
         R_ref = None
-        if dof == 6:
+        if tool_dof == 6:
             R_ref = R_meas
-        elif dof == 5:
+        elif tool_dof == 5:
             axis = rec.axis if rec.axis is not None else R_meas[:, :, 2]
             # any rotation whose third column is the measured axis will do as a reference
             R_ref = _frame_with_z(axis)
         return cls(
             machine=machine, q=q, dof=dof, y_measured=y, R_ref=R_ref, aux=dict(rec.aux), guess=guess,
-            pose_sigma=_recording_pose_sigma(machine, rec, dof), pose_offset=offset,
+            pose_sigma=_recording_pose_sigma(machine, rec, tool_dof, dof, sensor_set), pose_offset=offset,
+            sensors=sensor_set,
         )
 
     # ------------------------------------------------------------- properties
@@ -209,10 +236,17 @@ class MeasurementModel:
         return self.machine.n_params
 
     @property
+    def tool_dof(self) -> int:
+        """The tool's rows per pose (6, 5 or 3): :attr:`dof` without the body sensors' tilt rows."""
+        return self.dof - (0 if self.sensors is None else self.sensors.n_rows)
+
+    @property
     def sigma(self) -> NDArray:
-        """The instrument's nominal one-sigma noise per row of a pose, shape (dof,): mm then rad."""
+        """The nominal one-sigma noise per row of a pose, shape (dof,): mm, then rad (tool angles, then sensor tilts)."""
         nz = self.machine.noise
-        return np.array([nz.sigma_position] * 3 + [nz.sigma_angle] * (self.dof - 3))
+        return np.array([nz.sigma_position] * 3 + [nz.sigma_angle] * (self.tool_dof - 3)
+                        + [self.sensors.row_sigma(nz.sigma_tilt) if self.sensors is not None else 0.0]
+                        * (self.dof - self.tool_dof))
 
     @property
     def row_sigma(self) -> NDArray:
@@ -231,6 +265,21 @@ class MeasurementModel:
 
         return replace(self, pose_sigma=pose_sigma)
 
+    def without_sensors(self) -> "MeasurementModel":
+        """The tool's rows only (the body sensors' tilt rows left out), the parameters unchanged.
+
+        What position and orientation summaries of a recording with body
+        sensors are computed on (held-out ``check`` rows, predictions).
+        """
+        if self.sensors is None:
+            return self
+        from dataclasses import replace
+
+        d = self.tool_dof
+        return replace(self, dof=d, sensors=None,
+                       y_measured=None if self.y_measured is None else self.y_measured[:, :d],
+                       pose_sigma=None if self.pose_sigma is None else self.pose_sigma[:, :d])
+
     def subset(self, idx) -> "MeasurementModel":
         """The model restricted to poses ``idx`` (order kept)."""
         idx = np.asarray(idx)
@@ -248,6 +297,7 @@ class MeasurementModel:
             guess=g,
             pose_sigma=None if self.pose_sigma is None else self.pose_sigma[idx],
             pose_offset=None if self.pose_offset is None else self.pose_offset[idx],
+            sensors=None if self.sensors is None else self.sensors.subset(idx),
         )
 
     # ------------------------------------------------- poses (what effects act on)
@@ -303,11 +353,13 @@ class MeasurementModel:
 
     # ---------------------------------------------------------------- the model
     def _rows(self, poses: ToolPoses) -> NDArray:
-        y = np.empty((poses.position.shape[0], self.dof))
+        """The tool's rows (n, tool_dof)."""
+        d = self.tool_dof
+        y = np.empty((poses.position.shape[0], d))
         y[:, :3] = poses.position
-        if self.dof == 6:
+        if d == 6:
             y[:, 3:] = so3_log(poses.rotation @ np.swapaxes(self._tile(self.R_ref, y.shape[0]), -1, -2))
-        elif self.dof == 5:
+        elif d == 5:
             y[:, 3:] = np.einsum("nkj,nj->nk", self._tile(self._tangent, y.shape[0]), poses.rotation[:, :, 2])
         return y
 
@@ -344,7 +396,12 @@ class MeasurementModel:
         poses = self.machine.forward(q, theta, guess=g)
         if self.pose_offset is not None:
             poses = offset_poses(self.machine, q, theta, poses, self.pose_offset)
-        return Prediction(y=self._rows(poses), poses=poses)
+        y = self._rows(poses)
+        if self.sensors is not None:
+            from .sensors import sensor_rows
+
+            y = np.concatenate([y, sensor_rows(self.machine, self.sensors, q, theta)], axis=1)
+        return Prediction(y=y, poses=poses)
 
     def jacobian(self, theta: ArrayLike | None, prediction: Prediction) -> NDArray:
         """``dh/dtheta`` at ``theta``, shape (n_poses, dof, P), analytic.
@@ -354,7 +411,13 @@ class MeasurementModel:
         platform's small-rotation Jacobian.
         """
         Jt = self.machine.tool_jacobian(self.q, theta, prediction.poses)
-        return self.rows_jacobian(Jt, prediction)
+        J = self.rows_jacobian(Jt, prediction)
+        if self.sensors is not None:
+            from .sensors import sensor_jacobian
+
+            th = self.machine.check_theta(theta)
+            J[:, self.tool_dof :] = sensor_jacobian(self.machine, self.sensors, self.q, th)
+        return J
 
     def rows_jacobian(self, Jt: NDArray, prediction: Prediction) -> NDArray:
         """Measurement-row derivative from a tool-pose derivative.
@@ -370,15 +433,19 @@ class MeasurementModel:
         Returns
         -------
         ndarray, shape (n_poses, dof, k)
+            The body sensors' rows are zero: a tool-pose derivative does not
+            say how the bodies turn (:meth:`jacobian` fills them for the
+            geometric parameters; an effect's actuator derivative does not
+            reach them).
         """
-        n = Jt.shape[0]
-        J = np.empty((n, self.dof, Jt.shape[2]))
+        n, d = Jt.shape[0], self.tool_dof
+        J = np.zeros((n, self.dof, Jt.shape[2]))
         J[:, :3] = Jt[:, :3]
-        if self.dof == 6:
-            J[:, 3:] = left_jacobian_inverse(prediction.y[:, 3:]) @ Jt[:, 3:]
-        elif self.dof == 5:
+        if d == 6:
+            J[:, 3:6] = left_jacobian_inverse(prediction.y[:, 3:6]) @ Jt[:, 3:]
+        elif d == 5:
             nvec = prediction.poses.rotation[:, :, 2]
-            J[:, 3:] = -np.einsum("nkj,nji,nip->nkp", self._tangent, skew(nvec), Jt[:, 3:])
+            J[:, 3:5] = -np.einsum("nkj,nji,nip->nkp", self._tangent, skew(nvec), Jt[:, 3:])
         return J
 
     def residual(self, prediction: Prediction) -> NDArray:
@@ -388,18 +455,26 @@ class MeasurementModel:
         return self.y_measured - prediction.y
 
     def errors(self, residual: NDArray) -> tuple[NDArray, NDArray | None]:
-        """Per-pose position error norm (mm) and orientation error norm (rad, None for 3-DOF)."""
+        """Per-pose position error norm (mm) and tool orientation error norm (rad, None for 3-DOF); sensor rows apart."""
         pos = np.linalg.norm(residual[:, :3], axis=1)
-        ang = np.linalg.norm(residual[:, 3:], axis=1) if self.dof > 3 else None
+        ang = np.linalg.norm(residual[:, 3 : self.tool_dof], axis=1) if self.tool_dof > 3 else None
         return pos, ang
 
     def rms(self, residual: NDArray) -> dict[str, float | None]:
-        """Root-mean-square of the per-pose error norms: ``{"position": mm, "angle": rad or None}``."""
+        """Root-mean-square of the per-pose error norms: ``{"position": mm, "angle": rad or None}``.
+
+        With body sensors also ``"tilt"`` (rad): the RMS over poses and
+        sensors of each reading's tilt error (the norm of its two rows).
+        """
         pos, ang = self.errors(residual)
-        return {
+        out = {
             "position": float(np.sqrt(np.mean(pos**2))),
             "angle": None if ang is None else float(np.sqrt(np.mean(ang**2))),
         }
+        if self.sensors is not None:
+            tilt = self.sensors.tilt_errors(np.asarray(residual)[:, self.tool_dof :])
+            out["tilt"] = float(np.sqrt(np.mean(tilt**2)))
+        return out
 
 
 def offset_poses(machine: Machine, q: NDArray, theta, poses: ToolPoses, offset: NDArray) -> ToolPoses:
@@ -489,20 +564,25 @@ def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:
         )
 
 
-def _recording_pose_sigma(machine: Machine, rec: Recording, dof: int) -> NDArray | None:
+def _recording_pose_sigma(machine: Machine, rec: Recording, dof: int, width: int | None = None,
+                          sensors=None) -> NDArray | None:
     """Per-pose noise from the recording's ``sigma_position`` / ``sigma_angle`` columns (docs/formats.md section 4).
 
     A missing column takes the machine's ``[measurement]`` value; a
     position-only model ignores ``sigma_angle``.  None when neither applies.
+    ``dof`` is the tool's rows, ``width`` all rows (the body sensors' take their rows' sigma from ``sigma_tilt``).
     """
+    width = dof if width is None else width
     sp, sa = getattr(rec, "sigma_position", None), getattr(rec, "sigma_angle", None)
     if sp is None and (sa is None or dof == 3):
         return None
     nz = machine.noise
-    out = np.empty((rec.n_poses, dof))
+    out = np.empty((rec.n_poses, width))
     out[:, :3] = (np.full(rec.n_poses, nz.sigma_position) if sp is None else sp)[:, None]
     if dof > 3:
-        out[:, 3:] = (np.full(rec.n_poses, nz.sigma_angle) if sa is None else sa)[:, None]
+        out[:, 3:dof] = (np.full(rec.n_poses, nz.sigma_angle) if sa is None else sa)[:, None]
+    if sensors is not None:
+        out[:, dof:] = sensors.row_sigma(nz.sigma_tilt)
     return out
 
 

@@ -97,6 +97,8 @@ class FilterResult:
     extras: dict = field(default_factory=dict)
     #: Which parameters the data determine alone (:func:`bayescal.identify.gauss_newton.data_determined`).
     determined: NDArray | None = None
+    #: the tool's rows per pose (None: ``dof``); ``dof`` adds the body sensors' tilt rows
+    tool_dof: int | None = None
 
     method = "kalman"
 
@@ -140,7 +142,7 @@ class FilterResult:
             "parameters": parameter_list(self.names, self.units, self.theta, self.std, self.free, self.determined),
             "rms_before": self.rms_before,
             "rms_after": self.rms_after,
-            "dof": self.dof,
+            "dof": self.dof if self.tool_dof is None else self.tool_dof,
             "n_poses": self.n_poses,
             "covariance_kind": "Kalman filter state covariance",
             "covariance": covariance_dict(self.names, self.units, self.free, self.covariance),
@@ -170,7 +172,8 @@ class FilterResult:
         if self.message:
             lines.append(f"  message         {self.message}")
         lines += [
-            f"  measurement     {self.dof}-DOF, {n} poses, {int(self.free.sum())} parameters in the state",
+            f"  measurement     {self.dof if self.tool_dof is None else self.tool_dof}-DOF"
+            f"{'' if self.tool_dof in (None, self.dof) else f' + {(self.dof - self.tool_dof) // 2} body sensor(s)'}, {n} poses, {int(self.free.sum())} parameters in the state",
             f"  process noise   {'none (static parameters)' if not np.any(self.process_noise) else 'random walk, max std per pose %.3g' % self.process_noise.max()}",
             f"  RMS position    {self.rms_before['position']:.6f} mm before, {self.rms_after['position']:.6f} mm after",
             f"  consistency     mean normalised innovation squared {np.mean(self.nis):.3g} (expected {self.dof})",
@@ -321,6 +324,7 @@ def kalman_filter(
         rms_before=model.rms(before),
         rms_after=model.rms(after),
         dof=dof,
+        tool_dof=getattr(model, "tool_dof", None),
         success=success,
         message=message,
         fixed=tuple(nm for nm, fr in zip(machine.layout.names, free_mask) if not fr),

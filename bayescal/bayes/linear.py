@@ -51,8 +51,10 @@ class LinearisedModel:
     y_measured: NDArray | None = None
     pose_sigma: NDArray | None = None
     noise_sigma: NDArray | None = None  # the linearised model's sigma when it is not MeasurementModel's (constraint rows)
+    sensors: object | None = None  # a MeasurementModel's body sensors (their tilt rows follow the tool's)
 
     # the parts of MeasurementModel that only use rows, sigma and dof
+    tool_dof = MeasurementModel.tool_dof
     @property
     def sigma(self) -> NDArray:
         return self.noise_sigma if self.noise_sigma is not None else MeasurementModel.sigma.fget(self)
@@ -100,6 +102,7 @@ class LinearisedModel:
             self.machine, self.q[idx], self.dof, self.y0[idx], self.J[idx], self.theta_ref,
             None if self.y_measured is None else self.y_measured[idx],
             None if self.pose_sigma is None else self.pose_sigma[idx], self.noise_sigma,
+            None if self.sensors is None else self.sensors.subset(idx),
         )
 
     def with_measured(self, y: ArrayLike) -> "LinearisedModel":
@@ -108,7 +111,7 @@ class LinearisedModel:
         if y.shape != self.y0.shape:
             raise InputError(f"y: expected shape {self.y0.shape}, got {y.shape}")
         return LinearisedModel(self.machine, self.q, self.dof, self.y0, self.J, self.theta_ref, y, self.pose_sigma,
-                               self.noise_sigma)
+                               self.noise_sigma, self.sensors)
 
 
 def linearise(model, theta_ref: ArrayLike | None = None) -> LinearisedModel:
@@ -122,6 +125,7 @@ def linearise(model, theta_ref: ArrayLike | None = None) -> LinearisedModel:
         model.machine, np.asarray(model.q), model.dof, pred.y, model.jacobian(ref, pred), ref, model.y_measured,
         getattr(model, "pose_sigma", None),
         None if isinstance(model, MeasurementModel) else np.asarray(model.sigma),
+        getattr(model, "sensors", None),
     )
 
 

@@ -581,7 +581,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         more_steps=more,
         rms_before=model.rms(before),
         rms_after=model.rms(after),
-        dof=model.dof,
+        dof=getattr(model, "tool_dof", model.dof),  # the tool's DOF (body sensors' tilt rows apart)
         n_poses=model.n_poses,
         tree=tree,
         seconds=seconds,

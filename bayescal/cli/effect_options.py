@@ -23,7 +23,7 @@ def joint_effects_model(args, machine, rec, model):
     if not isinstance(model, MeasurementModel):
         raise InputError(f"--fit-effects: {args.recording} is a constraint recording; fitting effects jointly works on "
                          "pose recordings")
-    return effect_model(model.machine, rec, dof=model.dof)
+    return effect_model(model.machine, rec, dof=model.tool_dof)
 
 
 def with_fitted_effects(machine, model, res):

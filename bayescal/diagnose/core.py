@@ -385,7 +385,7 @@ def diagnose(
         # distance), per row as the recording states them (not the exclusion weights of outliers)
         rms_noise=float(np.sqrt(np.mean(np.sum(np.asarray(base_model.row_sigma)[:, :3] ** 2, axis=1)))),
         n_poses=n,
-        dof=model.dof,
+        dof=getattr(model, "tool_dof", model.dof),  # the tool's DOF (body sensors' tilt rows apart)
         machine_name=machine.name,
         recording=recording.path,
         seed=seed,

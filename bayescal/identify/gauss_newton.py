@@ -441,6 +441,7 @@ def identify(
         unidentifiable=() if ida is None else ida.combinations,
         decided_by_prior=() if ida is None else ida.decided_by_prior,
         dof=model.dof,
+        tool_dof=getattr(model, "tool_dof", None),
         n_poses=model.n_poses,
         chi2=chi2,
         noise_given=noise_given,

@@ -99,7 +99,9 @@ class IdentificationResult:
         Combinations the data do not separate that the prior decided (map,
         ridge, tsvd with ``free="auto"``: estimated, not fixed), in words.
     dof : int
-        6, 5 or 3.
+        Rows per pose: the tool's 6, 5 or 3, plus two tilt rows per body sensor.
+    tool_dof : int, optional
+        The tool's rows per pose (6, 5 or 3); None: ``dof`` (no body sensors).
     n_poses : int
     chi2 : float
         Whitened sum of squared residuals after calibration.
@@ -150,6 +152,19 @@ class IdentificationResult:
     tolerance: NDArray | None = None
     determined: NDArray | None = None
     condition_number: float = float("nan")
+    tool_dof: int | None = None
+
+    @property
+    def tilt_rows(self) -> int:
+        """Body sensors' tilt rows per pose (two per sensor; 0 without sensors)."""
+        return 0 if self.tool_dof is None else self.dof - self.tool_dof
+
+    @property
+    def measurement_label(self) -> str:
+        """``3-DOF`` or, with body sensors, ``3-DOF + 2 body sensors``."""
+        k = self.tilt_rows // 2
+        base = f"{self.dof - self.tilt_rows}-DOF"
+        return base if not k else f"{base} + {k} body sensor{'s' if k > 1 else ''}"
 
     def poorly_determined(self, factor: float = POORLY_DETERMINED) -> tuple[str, ...]:
         """Identified parameters whose std exceeds ``factor`` times their tolerance.
@@ -235,7 +250,8 @@ class IdentificationResult:
             ],
             "rms_before": self.rms_before,
             "rms_after": self.rms_after,
-            "dof": self.dof,
+            "dof": self.dof - self.tilt_rows,
+            **({"tilt_rows_per_pose": self.tilt_rows} if self.tilt_rows else {}),
             "n_poses": self.n_poses,
             "iterations": self.iterations,
             "chi2": self.chi2,
@@ -273,7 +289,7 @@ class IdentificationResult:
         counted = (f"{nident} parameters identified by the data" if nident == nfree else
                    f"{nfree} parameters estimated: {nident} identified by the data, {nfree - nident} decided by the prior")
         lines += [
-            f"  measurement     {self.dof}-DOF, {self.n_poses} poses, {rows} residuals, {counted}",
+            f"  measurement     {self.measurement_label}, {self.n_poses} poses, {rows} residuals, {counted}",
             f"  chi-square      {self.chi2:.4g} (reduced {self.reduced_chi2:.4g} on {self.dof_fit:.1f} degrees of freedom, "
             f"{self.effective_params:.1f} effective parameters); "
             f"noise sigma {'from the machine file' if self.noise_given else 'default, covariance scaled by reduced chi-square'}",
@@ -282,6 +298,11 @@ class IdentificationResult:
         if self.rms_before.get("angle") is not None:
             lines.append(
                 f"  RMS angle       {self.rms_before['angle']:.3e} rad before, {self.rms_after['angle']:.3e} rad after"
+            )
+        if self.rms_before.get("tilt") is not None:
+            lines.append(
+                f"  RMS tilt        {self.rms_before['tilt']:.3e} rad before, {self.rms_after['tilt']:.3e} rad after "
+                "(body sensors)"
             )
         if self.rank:
             lines.append(f"  identification matrix: rank {self.rank} of {nfree}, condition number {self.condition_number:.3g} "

@@ -83,6 +83,7 @@ class Session:
 
 def prepare_session(
     machine: Machine, rec: Recording, *, dof: int | None = None, frame: str = "base", strict: bool = True,
+    sensors: bool = True,
 ) -> Session:
     """Check a recording's units and build the model of all its rows, with the instrument frame(s) asked for.
 
@@ -101,6 +102,9 @@ def prepare_session(
     strict : bool
         Refuse a recording with a pose the nominal machine cannot solve
         (``predict`` reports such rows instead).
+    sensors : bool
+        Body sensors as measurements (:meth:`MeasurementModel.from_recording`);
+        ``predict`` reads them as auxiliary channels only.
 
     Raises
     ------
@@ -120,7 +124,7 @@ def prepare_session(
         machine, unfitted = station_frames(machine, rec, dof=dof, lenient=not strict)
     else:
         check = _base_frame_check(machine, fit_rec)
-    model = MeasurementModel.from_recording(machine, rec, dof=dof)
+    model = MeasurementModel.from_recording(machine, rec, dof=dof, sensors=sensors)
     if strict:
         usable = np.ones(rec.n_poses, dtype=bool)
         if unfitted and rec.station is not None:

@@ -93,6 +93,19 @@ class MeasurementNoise:
         mm, per axis.
     sigma_angle : float
         rad, per component of the small orientation error.
+    sigma_tilt : float
+        rad, per tilt angle of a body sensor's reading (``[measurement] sigma_tilt``).
+    sensor_mount : float
+        rad, one-sigma tolerance of each of a body sensor's two mounting
+        tilts (``[measurement] sensor_mount``).
+    sensor_turn : float
+        rad, one-sigma tolerance of a body sensor's turn about its reading
+        (``[measurement] sensor_turn``).
+    base_level : float
+        rad, one-sigma tolerance of each of the two tilts of up in the base
+        frame when there is no base sensor (``[measurement] base_level``):
+        how well the base is levelled.  A base sensor's two mounting tilts
+        take ``sensor_mount``.
     given : bool
         True when read from the machine file's ``[measurement]`` table, False
         for the documented defaults.
@@ -101,6 +114,15 @@ class MeasurementNoise:
     sigma_position: float = 0.005
     sigma_angle: float = 5.0e-5
     given: bool = False
+    #: rad, per tilt angle of a body sensor's reading (docs/formats.md section 8)
+    sigma_tilt: float = 1.0e-4
+    #: rad, one-sigma tolerance of a body sensor's mounting (and of the base's level) about its start
+    sensor_mount: float = 1.0e-3
+    #: rad, one-sigma tolerance of a body sensor's turn about its reading (about up) from its start
+    sensor_turn: float = 1.0e-2
+    #: rad, one-sigma tolerance of the base's level (+z up) where body sensors are fitted without a base sensor
+    #: (2e-5 rad = 0.02 mm/m, a machine tool's usual levelling)
+    base_level: float = 2.0e-5
 
 
 @dataclass(frozen=True)
@@ -361,6 +383,16 @@ class Machine(ABC):
     def weight_body_names(self) -> tuple[str, ...]:
         """Names of the bodies :meth:`weight_bodies` returns, in order (the platform alone by default)."""
         return ("platform",)
+
+    @property
+    def sensor_bodies(self) -> tuple[str, ...]:
+        """Bodies a tilt sensor may be fixed to (docs/formats.md section 8): ``base`` alone by default.
+
+        A kind that exposes its bodies (the serial chain) lists them and gives
+        their orientations (``body_frame``, ``body_rotations``); a sensor on
+        any other body of a kind that does not is refused by name.
+        """
+        return ("base",)
 
     @property
     def body_inertials(self) -> "BodyInertials | None":

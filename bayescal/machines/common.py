@@ -13,19 +13,34 @@ __all__ = ["read_noise", "read_q_limits", "read_tolerance", "common_toml"]
 
 
 def read_noise(doc: TomlTable) -> MeasurementNoise:
-    """The optional ``[measurement]`` table (sigma_position mm, sigma_angle rad)."""
+    """The optional ``[measurement]`` table.
+
+    ``sigma_position`` (mm) and ``sigma_angle`` (rad): the instrument;
+    ``sigma_tilt`` (rad, per tilt angle), ``sensor_mount``, ``sensor_turn`` and
+    ``base_level`` (rad, one-sigma tolerances of a mounting's tilts and turn
+    and of the base's level): body sensors (docs/formats.md section 8).
+    """
     t = doc.table("measurement", required=False)
     if t is None:
         return MeasurementNoise()
-    t.reject_unknown({"sigma_position", "sigma_angle"})
+    t.reject_unknown({"sigma_position", "sigma_angle", "sigma_tilt", "sensor_mount", "sensor_turn", "base_level"})
     d = MeasurementNoise()
     sp = t.number("sigma_position", d.sigma_position, positive=True)
     sa = t.number("sigma_angle", d.sigma_angle, positive=True)
+    st = t.number("sigma_tilt", d.sigma_tilt, positive=True)
+    sm = t.number("sensor_mount", d.sensor_mount, positive=True)
+    sturn = t.number("sensor_turn", d.sensor_turn, positive=True)
+    level = t.number("base_level", d.base_level, positive=True)
     # a stated noise outside the plausible range (bayescal.limits) would whiten residuals into overflow
-    for key, value, kind in (("sigma_position", sp, "position"), ("sigma_angle", sa, "angle")):
+    for key, value, kind in (("sigma_position", sp, "position"), ("sigma_angle", sa, "angle"), ("sigma_tilt", st, "angle")):
         if (problem := sigma_problem(value, kind)) is not None:
             raise t.error(key, problem)
-    return MeasurementNoise(sigma_position=sp, sigma_angle=sa, given=True)
+    for key, value in (("sensor_mount", sm), ("sensor_turn", sturn), ("base_level", level)):
+        if value > 1.0:
+            raise t.error(key, f"expected a one-sigma mounting tolerance of at most 1 rad (the mounting is started "
+                          f"from the data; this is what remains), got {value!r}")
+    return MeasurementNoise(sigma_position=sp, sigma_angle=sa, given=True, sigma_tilt=st, sensor_mount=sm,
+                            sensor_turn=sturn, base_level=level)
 
 
 def read_q_limits(doc: TomlTable, n_actuators: int) -> NDArray | None:
@@ -64,8 +79,12 @@ def common_toml(machine, tolerance_groups: dict[str, float]) -> str:
             "[measurement]",
             f"sigma_position = {format_toml_value(machine.noise.sigma_position)}",
             f"sigma_angle = {format_toml_value(machine.noise.sigma_angle)}",
-            "",
         ]
+        d = MeasurementNoise()
+        for key in ("sigma_tilt", "sensor_mount", "sensor_turn", "base_level"):
+            if getattr(machine.noise, key) != getattr(d, key):
+                out.append(f"{key} = {format_toml_value(getattr(machine.noise, key))}")
+        out.append("")
     if machine.q_limits is not None:
         out += ["[workspace]", f"q_limits = {format_toml_value(machine.q_limits)}", ""]
     if tolerance_groups:

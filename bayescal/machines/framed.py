@@ -298,8 +298,12 @@ class InstrumentFrame(Machine):
 
     @property
     def geometry_part(self) -> tuple[Machine, NDArray]:
-        """The inner machine and the indices of its parameters (after the frame's, when fitted)."""
-        return self.machine, np.arange(self.n_frame, self.n_params)
+        """The inner machine and the indices of its parameters (after the frame's, when fitted).
+
+        Composed with the inner machine's own (a body sensors' view leaves its mountings out too).
+        """
+        inner, idx = self.machine.geometry_part
+        return inner, self.n_frame + np.asarray(idx)
 
     @property
     def layout(self) -> ParamLayout:  # type: ignore[override]
@@ -487,8 +491,16 @@ class InstrumentFrame(Machine):
 
 
 def base_machine(machine: Machine) -> Machine:
-    """The machine in its base frame (the inner machine of an :class:`InstrumentFrame`)."""
-    return machine.machine if isinstance(machine, InstrumentFrame) else machine
+    """The machine in its base frame (the inner machine of an :class:`InstrumentFrame`), without body sensors' mountings.
+
+    A measurement model's machine for a recording with body sensors is a
+    :class:`~bayescal.sensors.SensorMounts` view (inside any instrument
+    frame); its parameters are nuisance like the frame's, so this is the
+    machine under it.
+    """
+    from ..sensors.mounts import sensor_base
+
+    return sensor_base(machine.machine if isinstance(machine, InstrumentFrame) else machine)
 
 
 def read_instrument(doc, path: str) -> Frame | None:

@@ -321,6 +321,9 @@ class Serial(Machine):
     link_com: NDArray | None = None
     mimic: tuple = ()
     joint_names: tuple | None = None
+    #: URDF links along the chain (name, moving joint k it is fixed to (-1: base), orientation in that frame),
+    #: from :attr:`bayescal.machines.urdf.UrdfChain.links`: the bodies a sensor may be named after
+    link_bodies: tuple = ()
 
     def __post_init__(self) -> None:
         m = len(self.joint_type)
@@ -443,7 +446,9 @@ class Serial(Machine):
             types, origin, rpy, axis = chain.joint_type, chain.origin, chain.rpy, chain.axis
             tail, limits, mimic, names = chain.tail, chain.q_limits, chain.mimic, chain.names
             inertial = (chain.link_mass, chain.link_com) if chain.link_mass is not None else (None, None)
+            links = chain.links
         else:
+            links = ()
             for k in ("base_link", "tip_link"):
                 if doc.has(k):
                     raise doc.error(k, "only allowed together with urdf = \"...\"")
@@ -465,7 +470,7 @@ class Serial(Machine):
             joint_type=tuple(types), origin=np.array(origin), rpy=np.array(rpy), axis=np.array(axis),
             tool_point=tp, tool_rpy=tr, name=doc.string("name", "serial chain"), noise=read_noise(doc),
             q_limits=q_limits, tolerance_groups=read_tolerance(doc, SERIAL_TOLERANCE_DEFAULTS), source=path,
-            link_mass=inertial[0], link_com=inertial[1], mimic=tuple(mimic), joint_names=names,
+            link_mass=inertial[0], link_com=inertial[1], mimic=tuple(mimic), joint_names=names, link_bodies=links,
         )
 
     def geometry_arrays(self, theta: ArrayLike | None = None) -> dict[str, NDArray]:
@@ -631,6 +636,69 @@ class Serial(Machine):
         axis = np.einsum("nkij,nkj->nki", c.R_joint, np.broadcast_to(c.axis, c.R_joint.shape[:-1]))
         nxt = np.concatenate([c.p_joint[:, 1:], c.p_tool[:, None]], axis=1)
         return ChainFrames(c.p_joint, axis, c.p_after, c.R_after, c.qe, nxt, c.p_tool)
+
+    @property
+    def sensor_bodies(self) -> tuple[str, ...]:
+        """Bodies a sensor may be fixed to (docs/formats.md section 8): ``base``, ``joint1`` ... ``joint<m>``, URDF link names.
+
+        ``joint<i>`` is the body joint ``i`` moves (the frame after its
+        motion, the URDF child link of that joint).
+        """
+        names = ["base"] + [f"joint{k + 1}" for k in range(self.n_joints)]
+        return tuple(names + [n for n, _, _ in self.link_bodies if n not in names])
+
+    def body_frame(self, name: str) -> tuple[int, NDArray]:
+        """The moving joint (0-based, -1: the base) whose frame body ``name`` is fixed to, and its orientation in that frame."""
+        if name == "base":
+            return -1, np.eye(3)
+        if name.startswith("joint") and name[5:].isdigit() and 1 <= int(name[5:]) <= self.n_joints:
+            return int(name[5:]) - 1, np.eye(3)
+        for n, k, R in self.link_bodies:
+            if n == name:
+                return int(k), np.asarray(R, dtype=float)
+        raise InputError(f"body {name!r}: expected one of {', '.join(self.sensor_bodies)}")
+
+    def body_rotations(self, q: ArrayLike, theta: ArrayLike | None, frames: list) -> tuple[NDArray, NDArray]:
+        """Orientations of bodies in the base frame and their small-rotation Jacobian.
+
+        Parameters
+        ----------
+        q : array_like, shape (n, N)
+        theta : array_like, shape (P,) or (n, P), optional
+        frames : list of (int, ndarray (3, 3))
+            Per body, :meth:`body_frame`'s joint index and fixed orientation.
+
+        Returns
+        -------
+        R : ndarray, shape (n, S, 3, 3)
+            Body orientation ``R_after[k] R_fixed`` (the identity on the base).
+        J : ndarray, shape (n, S, 3, P)
+            ``R(theta + d) = exp([J d]x) R(theta)`` (rad per parameter unit):
+            joint ``j <= k`` turns the body by its motion (offset, axis tilt:
+            as in :meth:`tool_jacobian`) and its fixed rpy; origins and the
+            tool do not turn it.
+        """
+        q = self.check_q(q)
+        n = q.shape[0]
+        c = self._chain(q, self.check_theta(theta, n))
+        W = rpy_rates(c.rpy)
+        cols = np.zeros((n, self.n_joints, 3, self.n_params))  # link k's rotation columns, built base outward
+        acc = np.zeros((n, 3, self.n_params))
+        for j in range(self.n_joints):
+            o = _PER_JOINT * j
+            acc[:, :, o + 6 : o + 9] = c.R_parent[:, j] @ W[:, j]
+            if self.joint_type[j] == "revolute":
+                acc[:, :, o] = _rotate(c.R_joint[:, j], c.axis[:, j])
+                Jl = _left_jacobian(c.axis[:, j] * c.qe[:, j, None])
+                acc[:, :, o + 1 : o + 3] = c.R_joint[:, j] @ Jl @ (c.daxis[:, j] * c.qe[:, j, None, None])
+            cols[:, j] = acc
+        R = np.empty((n, len(frames), 3, 3))
+        J = np.zeros((n, len(frames), 3, self.n_params))
+        for s, (k, R_fix) in enumerate(frames):
+            R[:, s] = (np.eye(3) if k < 0 else c.R_after[:, k]) @ np.asarray(R_fix, dtype=float)
+            if k >= 0:
+                J[:, s] = cols[:, k]
+        return R, J
 
     def weight_bodies(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> WeightBodies:
         """Every moving link: link ``k`` in the frame after joint ``k``, moved by joints ``1 .. k`` (joint twists).

@@ -71,6 +71,11 @@ class UrdfChain:
         moving link has an ``<inertial>`` mass.
     link_com : ndarray, shape (m, 3) or None
         Its centre of mass in the frame after moving joint ``k``, mm.
+    links : tuple of (str, int, ndarray (3, 3))
+        Every link from ``base_link`` to ``tip_link``: its name, the moving
+        joint ``k`` (0-based) whose frame it is fixed to (-1: the base) and
+        its orientation in that frame (fixed joints folded); what a body
+        sensor named after a URDF link is read on (docs/formats.md section 8).
     """
 
     joint_type: tuple
@@ -83,6 +88,7 @@ class UrdfChain:
     link_mass: NDArray | None = None
     link_com: NDArray | None = None
     mimic: tuple = ()
+    links: tuple = ()
 
 
 def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, path: str = "") -> UrdfChain:
@@ -110,10 +116,13 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
     chain = _joints_between(robot, base_link, tip_link, urdf_path, path)
     types, origin, rpy, axis, lim, moving = [], [], [], [], [], []
     pending = np.eye(4)  # fixed transforms not yet folded into a moving joint (mm)
+    links = [(base_link, -1, np.eye(3))]
     for j in chain:
         T = _transform_mm(j.origin)
         if j.type == "fixed":
             pending = pending @ T
+            # a link after fixed joints only: fixed to the last moving joint's frame (the base before any)
+            links.append((j.child, len(types) - 1, pending[:3, :3].copy()))
             continue
         if j.type not in _REVOLUTE + ("prismatic",):
             raise MachineFileError(path, "urdf", f"joint {j.name!r} is of type {j.type!r}; supported: revolute, continuous, prismatic, fixed")
@@ -127,6 +136,7 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
         rpy.append(rpy_from_matrix(T[:3, :3]))
         axis.append(a / np.linalg.norm(a))
         moving.append(j)
+        links.append((j.child, len(types) - 1, np.eye(3)))
         scale = _M_TO_MM if j.type == "prismatic" else 1.0
         if j.type == "continuous" or j.limit is None or j.limit.lower is None or j.limit.upper is None:
             lim.append(None)
@@ -141,7 +151,7 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
     return UrdfChain(
         joint_type=tuple(types), origin=np.array(origin), rpy=np.array(rpy), axis=np.array(axis),
         tail=(pending[:3, :3], pending[:3, 3]), q_limits=np.array(lim, dtype=float) if ok else None,
-        names=tuple(j.name for j in moving), link_mass=mass, link_com=com, mimic=mimic,
+        names=tuple(j.name for j in moving), link_mass=mass, link_com=com, mimic=mimic, links=tuple(links),
     )
 
 

@@ -100,7 +100,8 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     from ..instrument.plausibility import frame_answer
     from ..instrument.prepare import prepare_session
 
-    session = prepare_session(machine, rec, dof=dof, frame=frame, strict=False)
+    # body sensors are read as auxiliary channels: the calibrated machine has no mountings to predict them with
+    session = prepare_session(machine, rec, dof=dof, frame=frame, strict=False, sensors=False)
     fm, model = session.machine, session.model
     errors = session.row_errors()
     usable = np.array([e is None for e in errors])
@@ -300,8 +301,10 @@ def score_held_out(cal, session, *, effects=None, noise_scale: float | None = No
     model_all = session.model
     if effects:
         model_all = MeasurementModel.from_recording(model_all.machine.with_effects(tuple(effects)), rec,
-                                                    dof=model_all.dof)
+                                                    dof=getattr(model_all, "tool_dof", model_all.dof))
+    # the check rows' tool poses are predicted and scored (a body sensor's tilt rows are not)
     model = model_all.subset(idx)
+    model = model.without_sensors() if hasattr(model, "without_sensors") else model
     scale = float(getattr(cal, "noise_scale", 1.0) if noise_scale is None else noise_scale)
     if scale != 1.0:
         model = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
