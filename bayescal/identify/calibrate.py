@@ -41,6 +41,11 @@ __all__ = ["Calibration", "calibrate", "noise_check_of", "DETERMINISTIC_METHODS"
 DETERMINISTIC_METHODS = ("ls", "ridge", "tsvd", "map")
 #: Rounds of noise-scale re-estimation at most (the scale settles in one for ls and tsvd).
 MAX_NOISE_ROUNDS = 6
+#: Smallest factor on a stated noise: residuals a thousand times below it come from a noise-free (simulated)
+#: recording or from copied rows, and regions narrower than that would claim more than any instrument gives.
+MIN_NOISE_SCALE = 1e-3
+#: Smallest estimate of an unstated noise, relative to the row weights (the calibration record's lower bound).
+MIN_UNSTATED_SCALE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -356,9 +361,10 @@ def calibrate(
         # without a stated noise the sigmas are weights: the fit depends only on their ratio to the prior (which
         # the empirical prior scale estimates) and its covariance is already scaled; what is carried forward is
         # the noise the residuals support (the record's noise scale, every prediction's noise)
-        scale = first.scale
+        scale = max(first.scale, MIN_UNSTATED_SCALE)
     elif noise == "auto" and first.contradicted and res.success:
-        res, handling, choice, scale = _with_noise_scale(model, method, kw, first.scale, (res, handling, choice))
+        res, handling, choice, scale = _with_noise_scale(model, method, kw, max(first.scale, MIN_NOISE_SCALE),
+                                                         (res, handling, choice))
     cal = Calibration(result=res, handling=handling, choice=choice, noise=first, noise_scale=scale, discrepancy_note=note)
     cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}),
                   model=model)
@@ -402,6 +408,7 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise, lam_sca
     n_distinct = distinct_rows(model.q, model.y_measured) * model.dof
     check = check_noise(df.chi2, n_distinct - df.effective_params, stated=noise_stated(model))
     scale = check.scale if (noise == "auto" and (check.contradicted or check.verdict == "not_stated")) else 1.0
+    scale = max(scale, MIN_UNSTATED_SCALE if check.verdict == "not_stated" else MIN_NOISE_SCALE)
     scaled = model if scale == 1.0 else model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
     # the joint posterior at the noise used, on the poses weighted as the robust geometry fit weighted them (a
     # reference one gross pose cannot drag), relinearised at its own geometry; then every pose is judged against
@@ -517,7 +524,7 @@ def _with_noise_scale(model, method, kw, scale, fallback):
         check = noise_check_of(trial, res_s)
         if check.verdict == "untestable" or not math.isfinite(check.reduced) or check.reduced <= 0:
             break
-        new = scale * math.sqrt(check.reduced)
+        new = max(scale * math.sqrt(check.reduced), MIN_NOISE_SCALE)
         done = abs(math.log(new / scale)) < math.log(1.02)
         scale = new
         if done:

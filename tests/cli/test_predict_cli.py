@@ -110,3 +110,23 @@ def test_predict_refuses_a_calibrated_machine_of_another_kind(calibrated, capsys
     code = main(["predict", str(calibrated / "new.csv"), "--machine", "examples/arm6/machine.toml", "--quiet"])
     assert code == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_noise_free_recording_identifies_and_predicts(tmp_path, capsys):
+    # a simulated recording without noise: the stated noise is far overstated; the scale found is held at its
+    # floor (bayescal.identify.calibrate.MIN_NOISE_SCALE), so the written record stays one predict reads
+    prs3 = load_machine(PRS3_FILE)
+    truth = np.random.default_rng(4).normal(size=prs3.n_params) * prs3.tolerance * 0.3
+    r = simulate_recording(prs3, 40, seed=5, dof=6, theta_true=truth).recording
+    exact = prs3.forward(r.q, truth)
+    rec = tmp_path / "r.csv"
+    write_recording(rec, replace(r, position=exact.position, rotvec=so3_log(exact.rotation)))
+    cal, out = tmp_path / "cal.toml", tmp_path / "a.json"
+    assert main(["identify", str(rec), "--machine", str(PRS3_FILE), "--write-machine", str(cal),
+                 "--json", str(out), "--quiet"]) == 0
+    ans = json.loads(out.read_text())
+    assert ans["noise"]["verdict"] == "overstated" and ans["noise"]["scale_used"] == pytest.approx(1e-3)
+    pout = tmp_path / "p.json"
+    assert main(["predict", str(rec), "--machine", str(cal), "--json", str(pout), "--quiet"]) == 0, capsys.readouterr().err
+    fit = json.loads(pout.read_text())["summary"]["fit"]
+    assert fit["n"] == 40 and fit["mean_error_position_mm"] < 1e-3
