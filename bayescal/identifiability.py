@@ -248,13 +248,17 @@ def analyse_identifiability(
         fixed.append(kept.pop())
     combos, relations, no_effect = [], [], []
     names, units = layout.names, layout.units
+    seen = [j for j in fixed if norms[j] > 1e-12 * max(norms.max(), 1e-300)]
+    # J_j = J_K c: changing theta_j by 1 looks like changing the kept ones by c; one factorisation for every
+    # fixed column (column by column it was a sixth of identifying a 23-pose arm)
+    C = np.linalg.lstsq(J[:, kept], J[:, seen], rcond=None)[0] if seen and kept else np.zeros((len(kept), len(seen)))
+    coef = dict(zip(seen, C.T))
     for j in fixed:
-        if norms[j] <= 1e-12 * max(norms.max(), 1e-300):
+        if j not in coef:
             combos.append(f"{names[j]} does not affect the measurement at these poses")
             no_effect.append(j)
             continue
-        # J_j = J_K c: changing theta_j by 1 looks like changing the kept ones by c
-        c, *_ = np.linalg.lstsq(J[:, kept], J[:, j], rcond=None)
+        c = coef[j]
         big = np.flatnonzero(np.abs(c) * safe[kept] > 1e-6 * norms[j])
         terms = ", ".join(f"{names[kept[i]]} by {c[i]:+.4g} {units[kept[i]]}" for i in big[np.argsort(-np.abs(c[big]) * safe[np.array(kept)[big]])])
         relations.append(f"{names[j]}: a change of 1 {units[j]} looks the same to the measurement as changing {terms}")
