@@ -180,13 +180,15 @@ register_method("ls", _ls, help="Gauss-Newton least squares")
 register_method("ridge", _ridge, lam=1.0, check=_check_ridge, help="ridge towards nominal (lam=1: MAP under the tolerance prior; "
                 "lam=auto chooses lam by a rule, rule=evidence by default)")
 def _map(model, *, free):
-    # the identify core scales columns by the tolerances, so ridge with lam = 1 is exactly the MAP
-    # estimate under the tolerance prior (bayescal.identify.gauss_newton); point this entry at a
-    # dedicated MAP solver when bayescal.identify has one
-    return identify(model, method="ridge", lam=1.0, free=free)
+    # what `bayescal identify --method map` answers (bayescal.identify.calibrate: the prior scale from the data
+    # where it can be estimated, the outlier test and robust refit, the noise test): a comparison of "map" must
+    # compare what a user gets, not ridge with lam = 1 under the machine file's tolerances
+    from ..identify.calibrate import calibrate
+
+    return calibrate(model, method="map", free=free).result
 
 
-register_method("map", _map, help="MAP under the tolerance prior (ridge with lam=1)")
+register_method("map", _map, help="MAP as identify --method map computes it (prior scale, outliers, noise test)")
 register_method("tsvd", _tsvd, k="snr", check=_check_tsvd,
                 help="truncated SVD; k=snr keeps singular values > 1 of the tolerance-scaled matrix, k=auto chooses "
                 "k by a rule (rule=cv|lcurve|gcv|discrepancy|evidence|risk)")

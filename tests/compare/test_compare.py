@@ -189,3 +189,19 @@ def test_a_worker_dying_mid_trial_does_not_stop_the_comparison(prs3, reference, 
     assert killed in pids_before  # one of the two original workers died mid-task ...
     assert survived.info["ran"] == TINY["trials"]  # ... and every trial still finished, with the same table
     assert json.dumps(survived.table(), default=str) == json.dumps(reference.table(), default=str)
+
+
+def test_compare_map_is_identify_map():
+    # `compare --methods map` compares what `identify --method map` answers (issue 31: it was ridge lam=1)
+    import bayescal
+    from bayescal.compare.methods import METHODS
+    from bayescal.identify.calibrate import calibrate
+
+    from ..conftest import PRS3_FILE, ROOT
+
+    model = bayescal.load(PRS3_FILE, ROOT / "examples" / "prs3" / "recording.csv").fit_model
+    got = METHODS["map"].fn(model, free="auto")
+    want = calibrate(model, method="map").result
+    np.testing.assert_array_equal(got.theta, want.theta)
+    ridge = identify(model, method="ridge", lam=1.0, free="auto")
+    assert np.max(np.abs(ridge.theta - got.theta)) > 0  # the old entry's answer differs on this recording
