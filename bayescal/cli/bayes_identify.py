@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from .outputs import write_json, write_report
+from .outputs import say, write_json, write_report
 
 __all__ = ["add_arguments", "check_method_options", "run_bayes", "METHODS"]
 
@@ -107,6 +107,7 @@ def run_bayes(args, machine, model, free, check=None, outliers=None, session=Non
     write_json(args, answer)  # before printing: a closed stdout (`| head`) must not cost the answer
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
+        say(args, f"wrote {args.posterior} (posterior draws, NetCDF)")
     write_calibrated_files(args, with_fitted_effects(machine, base_model, res), res, plaus)
     write_report(args, "identify", res, machine=machine, model=base_model, answer_extra=extra)
     made = []

@@ -263,7 +263,8 @@ def run_trials(
     if progress and todo:
         from tqdm import tqdm
 
-        bar = tqdm(total=config.trials, initial=len(done), desc="trials", unit="trial", file=sys.stderr)
+        # disable=None: no bar when stderr is not a terminal (a log file gets no carriage-return lines)
+        bar = tqdm(total=config.trials, initial=len(done), desc="trials", unit="trial", file=sys.stderr, disable=None)
     try:
         for rec in it if todo else ():
             rec = _normalise(rec)

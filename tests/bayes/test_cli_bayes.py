@@ -47,7 +47,7 @@ def test_strong_correlations_flagged():
     assert pairs[1][2] == pytest.approx(-0.96)
 
 
-def test_identify_mcmc_refuses_then_writes(tmp_path, rec_file):
+def test_identify_mcmc_refuses_then_writes(tmp_path, rec_file, capsys):
     out = tmp_path / "m.json"
     args = ["identify", str(rec_file), "--machine", str(PRS3_FILE), "--method", "mcmc", "--surrogate", "linear",
             "--free", "chain1.link_length,chain2.link_length,chain3.link_length", "--json", str(out), "--quiet"]
@@ -56,8 +56,12 @@ def test_identify_mcmc_refuses_then_writes(tmp_path, rec_file):
     assert not d["success"] and "more steps" in d["message"]
     assert all(p["std"] is None for p in d["parameters"])
     assert not (tmp_path / "no.nc").exists()
-    rc = main(args + ["--steps", "600", "--walkers", "10", "--posterior", str(tmp_path / "p.nc"), "--figures", str(tmp_path)])
+    capsys.readouterr()
+    loud = [a for a in args if a != "--quiet"]
+    rc = main(loud + ["--steps", "600", "--walkers", "10", "--posterior", str(tmp_path / "p.nc"), "--figures", str(tmp_path)])
     assert rc == 0
+    assert f"wrote {tmp_path / 'p.nc'} (posterior draws, NetCDF)" in capsys.readouterr().err
+    assert (tmp_path / "p.nc").stat().st_mode & 0o644 == 0o644  # readable like every other output
     d = json.loads(out.read_text())
     assert d["success"] and len(d["interval_90"]) == 3
     assert (tmp_path / "p.nc").exists() and (tmp_path / "mcmc_trace.png").exists() and (tmp_path / "mcmc_pair.png").exists()
