@@ -288,6 +288,10 @@ class IdentificationResult:
             lines.append(f"  message         {self.message}")
         counted = (f"{nident} parameters identified by the data" if nident == nfree else
                    f"{nfree} parameters estimated: {nident} identified by the data, {nfree - nident} decided by the prior")
+        if nident < self.rank < nfree:
+            # a parameter counts as identified only when the data determine it alone; with a fitted frame every
+            # parameter may share a gauge, while the data still determine `rank` combinations of them
+            counted += f" in part (the data determine {self.rank} combinations)"
         lines += [
             f"  measurement     {self.measurement_label}, {self.n_poses} poses, {rows} residuals, {counted}",
             f"  chi-square      {self.chi2:.4g} (reduced {self.reduced_chi2:.4g} on {self.dof_fit:.1f} degrees of freedom, "
