@@ -450,6 +450,14 @@ class Machine(ABC):
         object.__setattr__(out, "effects", tuple(effects))
         return out
 
+    def with_noise(self, noise: "MeasurementNoise") -> "Machine":
+        """A copy of this machine with the instrument noise ``noise`` (the noise the data support)."""
+        import copy
+
+        out = copy.copy(self)
+        object.__setattr__(out, "noise", noise)
+        return out
+
     def with_calibration(self, calibration=None, discrepancy=None) -> "Machine":
         """A copy carrying a calibration record and a model discrepancy (None: none).
 

@@ -277,6 +277,11 @@ class InstrumentFrame(Machine):
 
         return replace(self, machine=self.machine.with_effects(effects))
 
+    def with_noise(self, noise) -> "InstrumentFrame":
+        from dataclasses import replace
+
+        return replace(self, machine=self.machine.with_noise(noise))
+
     @property
     def calibration(self):  # type: ignore[override]
         """The inner machine's calibration record: it describes the machine, whatever frame measures it."""

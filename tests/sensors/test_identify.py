@@ -117,3 +117,45 @@ def test_a_base_sensor_gives_every_pose_its_own_up(machine):
     for combo, truth in zip(WOBBLE, WOBBLE_TRUE):
         v, s = _combo(with_base, combo)
         assert abs(v - truth) < 3 * s
+
+
+def test_a_misstated_sigma_tilt_is_rescaled_on_its_own(tmp_path):
+    # the machine file says 1e-6 rad, the sensors have 1e-5: the tilt rows alone contradict it, their sigma is
+    # rescaled by itself (about 10x) and the tool rows keep the stated noise, so the geometry and its position
+    # uncertainty come out as with sigma_tilt stated right
+    p = tmp_path / "column.toml"
+    p.write_text(machine_text(JOINTS, sigma_tilt=1e-6, sigma_position=0.05))
+    wrong = load_machine(p)
+    q = tmp_path / "right.toml"
+    q.write_text(machine_text(JOINTS, sigma_tilt=1e-5, sigma_position=0.05))
+    rec = _recording(11)
+    model_w = MeasurementModel.from_recording(wrong, rec)
+    cal_w = calibrate(model_w, method="map", prior_scale="tolerance")
+    cal_r = calibrate(MeasurementModel.from_recording(load_machine(q), rec), method="map", prior_scale="tolerance")
+    tilt = cal_w.result.extras["tilt_noise"]
+    assert tilt["verdict"] == "understated" and 6 < tilt["scale_used"] < 15
+    assert cal_r.result.extras["tilt_noise"]["scale_used"] == 1.0
+    assert cal_w.noise_scale == 1.0 and "sigma_tilt used" in cal_w.noise_report()
+    # the same geometry to a small part of its uncertainty
+    free = cal_r.result.free
+    assert np.array_equal(free, cal_w.result.free)
+    d = np.abs(cal_w.result.theta - cal_r.result.theta)[free] / np.sqrt(np.diag(cal_r.result.covariance))
+    assert np.max(d) < 0.3
+
+
+def test_diagnose_rescales_a_misstated_sigma_tilt(tmp_path):
+    from bayescal.diagnose.core import _sensor_noise
+    from bayescal.models import model_from_recording
+
+    p = tmp_path / "column.toml"
+    p.write_text(machine_text(JOINTS, sigma_tilt=1e-6, sigma_position=0.05))
+    wrong = load_machine(p)
+    rec = _recording(11)
+    m2, model2 = _sensor_noise(wrong, rec, model_from_recording(wrong, rec, check=False))
+    assert 6e-6 < m2.noise.sigma_tilt < 1.5e-5 and m2.noise.sigma_position == wrong.noise.sigma_position
+    tool = model2.tool_dof
+    assert np.allclose(model2.row_sigma[:, tool:], m2.noise.sigma_tilt)
+    q = tmp_path / "right.toml"
+    q.write_text(machine_text(JOINTS, sigma_tilt=1e-5, sigma_position=0.05))
+    right = load_machine(q)
+    assert _sensor_noise(right, rec, model_from_recording(right, rec, check=False))[0] is right
