@@ -79,6 +79,18 @@ def so3_log(R: ArrayLike) -> NDArray:
     return out
 
 
+def left_jacobian(phi: ArrayLike) -> NDArray:
+    """Left Jacobian of SO(3): ``exp([phi + d]x) = exp([J_l(phi) d]x) exp([phi]x) + O(d^2)``, shape (..., 3, 3)."""
+    phi = np.asarray(phi, dtype=float)
+    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = skew(phi)
+    small = th < 1e-5
+    ts = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    b = np.where(small, 1.0 / 6.0 - th**2 / 120.0, (ts - np.sin(ts)) / ts**3)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
 def left_jacobian_inverse(phi: ArrayLike) -> NDArray:
     """Inverse left Jacobian of SO(3): ``log(exp(d) exp(phi)) = phi + J_l^-1(phi) d + O(d^2)``."""
     phi = np.asarray(phi, dtype=float)

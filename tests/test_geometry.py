@@ -94,3 +94,18 @@ def test_log_accurate_near_a_half_turn():
     assert np.allclose(so3_exp(w), R, atol=1e-14)
     assert np.allclose(w[:-1], th[:-1, None] * a, atol=1e-12)
     assert np.allclose(np.abs(w[-1]), np.pi * np.abs(a), atol=1e-12)  # at pi either sign is the same rotation
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-7, 1e-3, 0.5, 2.5])
+def test_left_jacobian_against_finite_differences_and_its_inverse(scale):
+    from bayescal.geometry import left_jacobian, left_jacobian_inverse, so3_exp, so3_log
+
+    phi = np.array([0.3, -0.7, 0.5]) * scale
+    J = left_jacobian(phi)
+    np.testing.assert_allclose(J @ left_jacobian_inverse(phi), np.eye(3), atol=1e-12)
+    h = 1e-6
+    for k in range(3):
+        d = np.eye(3)[k] * h
+        # exp(phi + d) exp(phi)^T = exp([J d]x): its rotation vector over h is J's column k
+        col = so3_log(so3_exp(phi + d) @ so3_exp(phi).T) / h
+        np.testing.assert_allclose(col, J[:, k], atol=1e-6)

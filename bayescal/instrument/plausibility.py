@@ -42,9 +42,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ..geometry import left_jacobian_inverse
+from ..geometry import left_jacobian, left_jacobian_inverse
 from ..machines.base import Machine
-from ..machines.framed import InstrumentFrame, _left_jacobian, is_frame_parameter
+from ..machines.framed import InstrumentFrame, is_frame_parameter
 from ..identify.noise import distinct_rows
 from ..measurement import MeasurementModel
 from .alignment import FrameCheck
@@ -270,7 +270,7 @@ def _one_frame(machine: InstrumentFrame, theta: NDArray, C: NDArray | None, k: i
         Cf = C[6 * k: 6 * k + 6, 6 * k: 6 * k + 6]
         std_o = np.sqrt(np.clip(np.diag(Cf[:3, :3]), 0, None))
         with np.errstate(all="ignore"):
-            M = left_jacobian_inverse(rv) @ _left_jacobian(theta[6 * k + 3: 6 * k + 6])
+            M = left_jacobian_inverse(rv) @ left_jacobian(theta[6 * k + 3: 6 * k + 6])
             std_r = np.sqrt(np.clip(np.diag(M @ Cf[3:, 3:] @ M.T), 0, None))
         clean = lambda v: [float(x) if np.isfinite(x) else None for x in v]  # noqa: E731
         out["std"] = {"origin": clean(std_o), "rotation_vector": clean(std_r)}

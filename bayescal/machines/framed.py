@@ -55,7 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError, MachineFileError
-from ..geometry import left_jacobian_inverse, skew, so3_exp, so3_log
+from ..geometry import left_jacobian, skew, so3_exp, so3_log
 from ..io.machine_file import format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, ToolPoses
@@ -134,11 +134,6 @@ def _frame_layout(stations: tuple[str, ...] = ("",)) -> ParamLayout:
     groups = (["frame_origin"] * 3 + ["frame_rotation"] * 3) * len(stations)
     units = (["mm"] * 3 + ["rad"] * 3) * len(stations)
     return ParamLayout(tuple(ParamSpec(n, u, g) for n, u, g in zip(frame_names(stations), units, groups)))
-
-
-def _left_jacobian(phi: NDArray) -> NDArray:
-    """Left Jacobian of SO(3), (..., 3, 3): ``exp(phi + e) = exp(J_l(phi) e) exp(phi)`` to first order."""
-    return np.linalg.inv(left_jacobian_inverse(phi))
 
 
 @dataclass(frozen=True, eq=False)
@@ -421,7 +416,7 @@ class InstrumentFrame(Machine):
         J[:, 3:, k:] = Rt @ Jm[:, 3:]
         if self.fit:
             tfp, st = self._pose_frame_params(tf, n)
-            Jl = np.broadcast_to(_left_jacobian(tfp[..., 3:]), (n, 3, 3))
+            Jl = np.broadcast_to(left_jacobian(tfp[..., 3:]), (n, 3, 3))
             Jf = np.zeros((n, 6, 6))
             Jf[:, :3, :3] = -Rt
             Jf[:, :3, 3:6] = Rt @ skew(base.position - o) @ Jl

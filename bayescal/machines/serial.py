@@ -50,7 +50,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from ..geometry import skew, so3_exp, tilt_axes, tilted_direction
+from ..geometry import left_jacobian, skew, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
@@ -145,17 +145,6 @@ def mimic_problem(mimic: tuple, i: int) -> str | None:
     if not (np.isfinite(k) and np.isfinite(o)):
         return f"joint {i + 1}: mimic multiplier and offset must be finite numbers, got {k!r} and {o!r}"
     return None
-
-
-def _left_jacobian(phi: NDArray) -> NDArray:
-    """Left Jacobian of SO(3): ``exp(phi + d) = exp([J_l(phi) d]x) exp(phi) + O(d^2)``."""
-    th = np.linalg.norm(phi, axis=-1)[..., None, None]
-    K = skew(phi)
-    small = th < 1e-5
-    ts = np.where(small, 1.0, th)
-    a = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
-    b = np.where(small, 1.0 / 6.0 - th**2 / 120.0, (ts - np.sin(ts)) / ts**3)
-    return np.eye(3) + a * K + b * (K @ K)
 
 
 def _rotate(R: NDArray, v: NDArray) -> NDArray:
@@ -612,7 +601,7 @@ class Serial(Machine):
             J[:, :3, o], J[:, 3:, o] = self._motion_columns(c, k)
             arm = c.p_tool - c.p_joint[:, k]
             if self.joint_type[k] == "revolute":
-                Jl = _left_jacobian(c.axis[:, k] * c.qe[:, k, None])
+                Jl = left_jacobian(c.axis[:, k] * c.qe[:, k, None])
                 w = c.R_joint[:, k] @ Jl @ (c.daxis[:, k] * c.qe[:, k, None, None])  # (n, 3, 2)
                 J[:, 3:, o + 1 : o + 3] = w
                 J[:, :3, o + 1 : o + 3] = _cross(w, arm)
@@ -689,7 +678,7 @@ class Serial(Machine):
             acc[:, :, o + 6 : o + 9] = c.R_parent[:, j] @ W[:, j]
             if self.joint_type[j] == "revolute":
                 acc[:, :, o] = _rotate(c.R_joint[:, j], c.axis[:, j])
-                Jl = _left_jacobian(c.axis[:, j] * c.qe[:, j, None])
+                Jl = left_jacobian(c.axis[:, j] * c.qe[:, j, None])
                 acc[:, :, o + 1 : o + 3] = c.R_joint[:, j] @ Jl @ (c.daxis[:, j] * c.qe[:, j, None, None])
             cols[:, j] = acc
         R = np.empty((n, len(frames), 3, 3))

@@ -47,27 +47,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from ..geometry import skew, so3_exp, tangent_basis, tilt_axes
+from ..geometry import left_jacobian, skew, so3_exp, tangent_basis, tilt_axes
 
-__all__ = ["SensorSet", "WAHBA_SPREAD", "UP", "left_jacobian", "smallest_rotation"]
+__all__ = ["SensorSet", "WAHBA_SPREAD", "UP", "smallest_rotation"]
 
 #: rad: body-frame up directions spread at least this far from their mean fix a sensor's rotation about up
 WAHBA_SPREAD = 0.05
 #: The machine's nominal up in its base frame (gravity along -z, as the gravity-driven effects assume).
 UP = np.array([0.0, 0.0, 1.0])
 _XYZ = "xyz"
-
-
-def left_jacobian(phi: NDArray) -> NDArray:
-    """Left Jacobian of SO(3), ``exp([phi + d]x) = exp([J_l(phi) d]x) exp([phi]x)``, shape (..., 3, 3)."""
-    phi = np.asarray(phi, dtype=float)
-    th = np.linalg.norm(phi, axis=-1)[..., None, None]
-    K = skew(phi)
-    small = th < 1e-5
-    ts = np.where(small, 1.0, th)
-    a = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
-    b = np.where(small, 1.0 / 6.0 - th**2 / 120.0, (ts - np.sin(ts)) / ts**3)
-    return np.eye(3) + a * K + b * (K @ K)
 
 
 def smallest_rotation(a: NDArray, b: NDArray) -> NDArray:
