@@ -27,8 +27,6 @@ tolerances plus the pivots'.
 
 from __future__ import annotations
 
-import dataclasses
-
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,8 +34,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import InputError, RecordingError
 from .io.constraints import ConstraintRecording
+from .machines.appended import AppendedParameters
 from .machines.base import Machine, ToolPoses
-from .params import ParamLayout, ParamSpec
+from .params import ParamSpec
 
 __all__ = ["ConstraintModel", "ConstraintPrediction", "PivotAugmented", "PIVOT_TOLERANCE", "load_constraint_model"]
 
@@ -47,74 +46,17 @@ _CODES = {"distance": 0, "height": 1, "ballbar": 2}
 
 
 @dataclass(frozen=True, eq=False)
-class PivotAugmented:
-    """A machine's parameter layout extended by ballbar pivots.
+class PivotAugmented(AppendedParameters):
+    """A machine's parameter layout extended by ballbar pivots (:class:`~bayescal.machines.appended.AppendedParameters`).
 
-    Identification reads ``name``, ``kind``, ``layout``, ``tolerance``,
-    ``noise``, ``n_params`` and ``to_toml`` from the model's machine; this
-    view gives them for machine plus pivots.  ``base`` is the machine.
+    ``base`` is the machine; the pivots' parameters are ``pivot.<id>.x/y/z`` (mm).
     """
 
-    base: Machine
-    pivot_ids: tuple[str, ...]
+    pivot_ids: tuple[str, ...] = ()
 
-    def __post_init__(self) -> None:
-        specs = [ParamSpec(f"pivot.{p}.{c}", "mm", "pivot") for p in self.pivot_ids for c in "xyz"]
-        object.__setattr__(self, "layout", self.base.layout + ParamLayout(tuple(specs)))
-        tol = np.concatenate([self.base.tolerance, np.full(len(specs), PIVOT_TOLERANCE)])
-        object.__setattr__(self, "tolerance", tol)
-
-    def __getattr__(self, name):
-        # everything else (name, kind, noise, q_limits, source, ...) is the machine's
-        if name == "base" or name.startswith("__"):
-            raise AttributeError(name)  # not set yet (copy, pickle): no recursion
-        return getattr(self.base, name)
-
-    @property
-    def n_params(self) -> int:
-        return len(self.layout)
-
-    def for_poses(self, idx) -> "PivotAugmented":
-        """This view over the base machine bound to the poses ``idx`` (stations: :meth:`Machine.for_poses`)."""
-        inner = self.base.for_poses(idx)
-        return self if inner is self.base else dataclasses.replace(self, base=inner)
-
-    def measurement_rotation(self, q, theta):
-        return self.base.measurement_rotation(q, None if theta is None else np.asarray(theta, dtype=float)[..., : self.base.n_params])
-
-    def check_theta(self, theta, n_poses=None) -> NDArray:
-        if theta is None:
-            return np.zeros(self.n_params)
-        theta = np.asarray(theta, dtype=float)
-        if theta.ndim not in (1, 2) or theta.shape[-1] != self.n_params:
-            raise InputError(f"theta: expected shape ({self.n_params},) or (n, {self.n_params}), got {theta.shape}")
-        return theta
-
-    def _machine_theta(self, theta):
-        return None if theta is None else np.asarray(theta, dtype=float)[..., : self.base.n_params]
-
-    def forward(self, q, theta=None, *, guess=None) -> ToolPoses:
-        """The machine's tool poses (pivots do not move the tool)."""
-        return self.base.forward(q, self._machine_theta(theta), guess=guess)
-
-    def tool_jacobian(self, q, theta, poses) -> NDArray:
-        """The machine's tool Jacobian with zero columns for the pivots, shape (n, 6, P + 3K)."""
-        J = self.base.tool_jacobian(q, self._machine_theta(theta), poses)
-        return np.concatenate([J, np.zeros(J.shape[:2] + (self.n_params - self.base.n_params,))], axis=2)
-
-    def actuator_jacobian(self, q, theta, poses) -> NDArray:
-        """The machine's ``d pose / d q`` (pivots do not enter it)."""
-        return self.base.actuator_jacobian(q, self._machine_theta(theta), poses)
-
-    @property
-    def geometry_part(self) -> tuple[Machine, NDArray]:
-        """The machine whose geometry the parameters describe, and their indices (the pivots are nuisance)."""
-        return self.base, np.arange(self.base.n_params)
-
-    def to_toml(self, theta: ArrayLike | None = None) -> str:
-        """The calibrated machine file (pivots are not part of the machine)."""
-        theta = self.check_theta(theta)
-        return self.base.to_toml(theta[: self.base.n_params])
+    def appended(self):
+        specs = tuple(ParamSpec(f"pivot.{p}.{c}", "mm", "pivot") for p in self.pivot_ids for c in "xyz")
+        return specs, np.full(len(specs), PIVOT_TOLERANCE)
 
 
 @dataclass(frozen=True)
