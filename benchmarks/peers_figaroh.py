@@ -49,7 +49,6 @@ import json
 import os
 import shutil
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -57,6 +56,8 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out" / "peers_figaroh"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from peer_child import run_child  # noqa: E402
 SIGMA_MM, SIGMA_RAD = 1.0, 0.002  # FIGAROH's example weights position 1 per m and orientation 0.5 per rad
 
 # ------------------------------------------------------------------ run inside the bench environment
@@ -153,16 +154,7 @@ print("RESULT " + json.dumps(out))
 
 
 def _child(python: str, code: str, args: dict, env_root: bool = False) -> dict:
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-    if env_root:
-        env["PYTHONPATH"] = str(ROOT)
-    t0 = time.perf_counter()
-    p = subprocess.run([python, "-c", code, json.dumps(args)], capture_output=True, text=True, env=env)
-    wall = time.perf_counter() - t0
-    for line in p.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return {**json.loads(line[7:]), "wall": wall}
-    raise RuntimeError(f"child failed ({p.returncode}):\n{p.stderr[-3000:]}")
+    return run_child(python, code, args, {"PYTHONPATH": str(ROOT)} if env_root else None)
 
 
 # ------------------------------------------------------------------ the problems

@@ -42,7 +42,6 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -50,6 +49,8 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out" / "peers_numpyro"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from peer_child import run_child  # noqa: E402
 
 EXPORT = r'''
 import json, sys, numpy as np
@@ -208,15 +209,7 @@ print("RESULT " + json.dumps({"seconds": t, "import_seconds": t1 - t0, "max_row_
 
 
 def _child(python: str, code: str, args: dict) -> dict:
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
-           "PYTHONPATH": str(ROOT)}
-    t0 = time.perf_counter()
-    p = subprocess.run([python, "-c", code, json.dumps(args)], capture_output=True, text=True, env=env)
-    wall = time.perf_counter() - t0
-    for line in p.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return {**json.loads(line[7:]), "wall": wall}
-    raise RuntimeError(f"child failed ({p.returncode}):\n{p.stderr[-3000:]}")
+    return run_child(python, code, args, {"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false", "PYTHONPATH": str(ROOT)})
 
 
 def _ess(draws):

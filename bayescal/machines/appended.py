@@ -12,6 +12,7 @@ not hold them.  Everything else is forwarded to the machine.
 from __future__ import annotations
 
 import dataclasses
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,14 +26,14 @@ __all__ = ["AppendedParameters"]
 
 
 @dataclass(frozen=True, eq=False)
-class AppendedParameters:
+class AppendedParameters(ABC):
     """``base`` with the parameters :meth:`appended` gives after its own (subclasses say which)."""
 
     base: Machine
 
+    @abstractmethod
     def appended(self) -> tuple[tuple[ParamSpec, ...], NDArray]:
-        """The appended parameters and their one-sigma tolerances."""
-        raise NotImplementedError
+        """The appended parameters (names and units) and their one-sigma tolerances (in those units)."""
 
     def __post_init__(self) -> None:
         specs, tol = self.appended()
