@@ -39,7 +39,7 @@ __all__ = [
 _lazy_getattr, __dir__ = lazy_attributes(__name__, {
     "Recording": ".io", "read_recording": ".io", "write_recording": ".io",
     "KINDS": ".machines", "Machine": ".machines", "Prs3": ".machines", "Raspm": ".machines",
-    "load_machine": ".machines", "MeasurementModel": ".measurement",
+    "load_machine": ".machines.files", "MeasurementModel": ".measurement",
     "load": ".api", "calibrate": ".api", "predict": ".api",
 })
 

@@ -27,7 +27,7 @@ __all__ = ["load", "calibrate", "predict", "diagnose"]
 
 
 def _machine(machine) -> Machine:
-    from .machines import load_machine
+    from .machines.files import load_machine
 
     return machine if isinstance(machine, Machine) else load_machine(machine)
 
@@ -129,10 +129,9 @@ def predict(machine: str | os.PathLike | Machine, recording: str | os.PathLike |
 def diagnose(machine: str | os.PathLike | Machine, recording, **options):
     """Locate a model mismatch, name the missing physics, model it, as ``bayescal diagnose`` does.
 
-    ``recording``: a path or a Recording; ``options`` of :func:`bayescal.diagnose.diagnose`.
+    ``recording``: a path or a Recording; ``options`` of :func:`bayescal.diagnose.diagnose`
+    (:func:`bayescal.diagnose.diagnose_files`).
     """
-    from .diagnose import diagnose as _diagnose
-    from .models import read_any_recording
+    from .diagnose.verb import diagnose_files
 
-    rec = recording if not isinstance(recording, (str, os.PathLike)) else read_any_recording(recording)
-    return _diagnose(_machine(machine), rec, **options)
+    return diagnose_files(machine, recording, **options)

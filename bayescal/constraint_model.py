@@ -157,13 +157,11 @@ class ConstraintModel:
         """
         if dof not in (None, 1):
             raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
-        from .machines.framed import InstrumentFrame
-
-        if isinstance(machine, InstrumentFrame):
+        if machine.framed:
             if machine.fit:
                 raise InputError("a constraint recording does not see an instrument frame (heights are along the base z "
                                  "axis, docs/formats.md section 6): there is no frame to fit")
-            machine = machine.machine
+            machine = machine.inside
         rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
         model = cls(
             base=machine, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot,
@@ -325,7 +323,7 @@ class ConstraintModel:
             guess = None
         poses = self.base.forward(Q, th_m, guess=guess)
         if self.pose_offset is not None:
-            from .measurement import offset_poses
+            from .machines.base import offset_poses
 
             poses = offset_poses(self.base, Q, th_m, poses, self.pose_offset)
         n, nd = self.n_poses, self._dist.size

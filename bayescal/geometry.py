@@ -10,6 +10,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
+    "rpy_matrix",
+    "rpy_from_matrix",
     "skew",
     "so3_exp",
     "so3_log",
@@ -218,3 +220,31 @@ def tilt_torsion_angles(R: ArrayLike) -> NDArray:
     psi = psi_minus_phi + phi
     psi = (psi + np.pi) % (2 * np.pi) - np.pi
     return np.stack([phi, theta, psi], axis=-1)
+
+
+def rpy_matrix(rpy: ArrayLike) -> NDArray:
+    """``Rz(y) Ry(p) Rx(r)`` for ``rpy = (r, p, y)`` (rad, URDF convention), shape ``(..., 3, 3)``."""
+    rpy = np.asarray(rpy, dtype=float)
+    cr, sr = np.cos(rpy[..., 0]), np.sin(rpy[..., 0])
+    cp, sp = np.cos(rpy[..., 1]), np.sin(rpy[..., 1])
+    cy, sy = np.cos(rpy[..., 2]), np.sin(rpy[..., 2])
+    R = np.empty(rpy.shape[:-1] + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = -sp, cp * sr, cp * cr
+    return R
+
+
+def rpy_from_matrix(R: ArrayLike) -> NDArray:
+    """URDF ``(r, p, y)`` of a rotation matrix (one of the two solutions; ``|p| <= pi/2``).
+
+    Written out rather than taken from scipy's ``as_euler``, which warns at
+    gimbal lock (``p = +-pi/2``); there the roll is set to zero and the yaw
+    carries the rotation about the common axis.
+    """
+    R = np.asarray(R, dtype=float)
+    p = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 0, 0], R[..., 1, 0]))
+    locked = np.hypot(R[..., 0, 0], R[..., 1, 0]) < 1e-12
+    r = np.where(locked, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
+    y = np.where(locked, np.arctan2(-R[..., 0, 1], R[..., 1, 1]), np.arctan2(R[..., 1, 0], R[..., 0, 0]))
+    return np.stack([r, p, y], axis=-1)

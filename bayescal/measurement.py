@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import InputError, KinematicsError
 from .geometry import left_jacobian_inverse, skew, so3_exp, so3_log, tangent_basis
 from .io.recording import Recording
-from .machines.base import Machine, ToolPoses, map_state
+from .machines.base import Machine, ToolPoses, map_state, offset_poses
 
 __all__ = ["MeasurementModel", "Prediction", "rows_per_pose", "offset_poses", "pose_offset_rows"]
 
@@ -191,12 +191,10 @@ class MeasurementModel:
             # actuator positions the effects make of the commanded ones, and the tool the perturbation
             # of those that move it, so every consumer applies them
             from .effects.stored import effect_delta_q_and_x
-            from .machines.framed import InstrumentFrame, base_machine
-
-            if isinstance(machine, InstrumentFrame):
+            if machine.framed:
                 # loads and growth live in the base frame: evaluate the effects on the base machine
                 # (started from its own assembly, since the measured poses are in the instrument frame)
-                base = base_machine(machine)
+                base = machine.base_machine()
                 poses = base.forward(q, None)
                 poses = poses if poses.success.all() else None
                 dq, offset = effect_delta_q_and_x(base, machine.effects, q, dict(rec.aux), poses=poses)
@@ -475,39 +473,6 @@ class MeasurementModel:
             tilt = self.sensors.tilt_errors(np.asarray(residual)[:, self.tool_dof :])
             out["tilt"] = float(np.sqrt(np.mean(tilt**2)))
         return out
-
-
-def offset_poses(machine: Machine, q: NDArray, theta, poses: ToolPoses, offset: NDArray) -> ToolPoses:
-    """Solved poses moved by base-frame tool-pose perturbations, in the frame the poses are measured in.
-
-    Parameters
-    ----------
-    machine : Machine
-        The machine ``poses`` were solved on (:meth:`Machine.measurement_rotation`
-        takes the base-frame perturbation into each pose's measurement frame).
-    q : ndarray, shape (n, N)
-    theta : ndarray, shape (P,) or (n, P), or None
-    poses : ToolPoses
-        ``machine.forward(q, theta)``.
-    offset : ndarray, shape (n_0, 6)
-        Base-frame displacement of the tool point (mm) and small rotation of
-        the tool frame (rad) per pose; tiled when ``n`` is a multiple of
-        ``n_0`` (stacked parameter sets).
-
-    Returns
-    -------
-    ToolPoses
-        Position ``p + R_m dx``, rotation ``exp([R_m w]x) R`` with ``R_m`` the
-        measurement rotation; the kind's state (warm start) is kept.
-    """
-    n = poses.position.shape[0]
-    off = np.asarray(offset, dtype=float)
-    if off.shape[0] != n:
-        off = np.tile(off, (n // off.shape[0], 1))
-    Rm = machine.measurement_rotation(q, theta)
-    dp = np.einsum("nij,nj->ni", Rm, off[:, :3])
-    w = np.einsum("nij,nj->ni", Rm, off[:, 3:])
-    return ToolPoses(poses.position + dp, so3_exp(w) @ poses.rotation, poses.success, poses.message, poses.state)
 
 
 def pose_offset_rows(model, theta, prediction, dX: NDArray) -> NDArray:

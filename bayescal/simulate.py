@@ -126,7 +126,7 @@ def measure(
         i = int(np.flatnonzero(~poses.success)[0])
         raise InputError(f"simulated pose {i + 1} (q = {q[i].tolist()}) cannot be solved: {poses.message[i]}")
     if offset is not None:
-        from .measurement import offset_poses
+        from .machines.base import offset_poses
 
         poses = offset_poses(machine, q_true, th, poses, offset)
     sp, sa = machine.noise.sigma_position, machine.noise.sigma_angle

@@ -66,7 +66,7 @@ def _child(args) -> int:
     sys.path.insert(0, args.src)
     from bayescal.diagnose import diagnose
     from bayescal.io.recording import read_recording
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     machine = load_machine(ROOT / "examples" / "prs3" / "machine.toml")
     rec = read_recording(args.recording)
@@ -119,7 +119,7 @@ def _recording(n: int) -> Path:
         sys.path.insert(0, str(ROOT))
         from bayescal.effects.simulate import simulate_with_effects
         from bayescal.io import write_recording
-        from bayescal.machines import load_machine
+        from bayescal.machines.files import load_machine
 
         machine = load_machine(ROOT / "examples" / "prs3" / "machine.toml")
         sim = simulate_with_effects(machine, n, seed=1, dof=6, effects=[("backlash", 20.0)],

@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "studies"))
 from bayescal.identify.calibrate import calibrate  # noqa: E402
 from bayescal.instrument.prepare import prepare_session  # noqa: E402
 from bayescal.io.recording import Recording  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.simulate import draw_errors, draw_poses  # noqa: E402
 
 import discrepancy_coverage as dc  # noqa: E402

@@ -45,7 +45,7 @@ from bayescal.design import draw_candidates  # noqa: E402
 from bayescal.design.exact_bound import exact_design_bound, orthant_cells  # noqa: E402
 from bayescal.design.exact_decision import exact_design_below, stroke_fractions  # noqa: E402
 from bayescal.io import write_json_atomic  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 
 
 def enumerate_min(B: np.ndarray, Q: np.ndarray, n: int, chunk: int = 20000) -> tuple[float, int]:

@@ -187,7 +187,7 @@ def stages(rec: Path, machine: Path, method: list, frame: str, repeat: int = 1) 
     code = f"""
 import json, time, sys
 sys.path.insert(0, {str(ROOT)!r})
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.io import read_recording
 from bayescal.instrument import prepare_model
 from bayescal.identify.calibrate import calibrate

@@ -60,7 +60,7 @@ sys.path.insert(0, str(ROOT))
 
 from bayescal.identify import identify, resolve_free, whitened_system  # noqa: E402
 from bayescal.io import write_json_atomic  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.simulate import simulate_recording  # noqa: E402
 

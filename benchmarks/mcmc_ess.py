@@ -84,7 +84,7 @@ from bayescal.bayes import linearise, map_estimate, prior_from_machine  # noqa: 
 from bayescal.bayes.mcmc import log_posterior_function, sample_posterior  # noqa: E402
 from bayescal.bayes.moves import default_moves  # noqa: E402
 from bayescal.io import read_recording  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 
 MACHINE = ROOT / "examples" / "prs3" / "machine.toml"

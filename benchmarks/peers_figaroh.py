@@ -137,7 +137,7 @@ sys.path.insert(0, a["root"])
 from bayescal.identify import identify
 from bayescal.instrument import prepare_model
 from bayescal.io import read_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 machine = load_machine(a["machine"]); rec = read_recording(a["recording"])
 t0 = time.perf_counter()
 m2, model, _ = prepare_model(machine, rec, frame="fit")

@@ -59,7 +59,7 @@ sys.path.insert(0, a["root"])
 from bayescal.bayes.priors import map_estimate, prior_from_machine
 from bayescal.instrument import prepare_model
 from bayescal.io import read_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 ex = a["root"] + "/examples/positioner/"
 m2, model, _ = prepare_model(load_machine(ex + "machine.toml"), read_recording(ex + "recording.csv"), frame="fit")
 res = map_estimate(model, free="auto")
@@ -86,7 +86,7 @@ t0 = time.perf_counter()
 from bayescal.bayes.mcmc import sample_posterior
 from bayescal.instrument import prepare_model
 from bayescal.io import read_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 ex = a["root"] + "/examples/positioner/"
 t1 = time.perf_counter()
 m2, model, _ = prepare_model(load_machine(ex + "machine.toml"), read_recording(ex + "recording.csv"), frame="fit")

@@ -46,7 +46,7 @@ from bayescal.compare import compare_methods  # noqa: E402
 from bayescal.design import draw_candidates, greedy_select, utility  # noqa: E402
 from bayescal.design.plan import DELTA_REL  # noqa: E402
 from bayescal.io import write_json_atomic  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 
 
 def per_candidate_seconds(fn, n_cand: int, repeat: int = 1) -> float:

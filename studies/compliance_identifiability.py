@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bayescal.effects import get_effect  # noqa: E402
 from bayescal.effects.joint_compliance import GRAVITY  # noqa: E402
-from bayescal.machines import machine_from_text  # noqa: E402
+from bayescal.machines.files import machine_from_text  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.simulate import draw_poses  # noqa: E402
 from tests.physics.statics_3prs import random_prs3_text, tilted_down  # noqa: E402

@@ -49,7 +49,7 @@ sys.path.insert(0, str(ROOT))
 from bayescal.bayes.accuracy import tool_point_draws  # noqa: E402
 from bayescal.bayes.mcmc import sample_posterior  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.simulate import draw_poses, simulate_recording  # noqa: E402
 from coverage_common import Z90, fit_methods, parameter_target, z_scores  # noqa: E402

@@ -69,7 +69,7 @@ from studies.targets import verdict  # noqa: E402
 from bayescal.identify import resolve_free  # noqa: E402
 from bayescal.identify.choose import evidence_lambda  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.simulate import draw_poses, simulate_recording  # noqa: E402
 from coverage_common import Z90, fit_methods, parameter_target, z_scores  # noqa: E402

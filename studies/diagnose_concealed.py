@@ -154,7 +154,7 @@ def random_raspm_text(rng: np.random.Generator) -> str:
     some pose of the drawn workspace, or with a near-singular pose, are
     redrawn; ``q_limits`` enclose the strokes the workspace needs.
     """
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     for _ in range(200):
         xo, xi = rng.uniform(900, 1300), rng.uniform(380, 620)
@@ -362,7 +362,7 @@ def run_case(case: dict) -> dict:
 def _run_case(case: dict) -> dict:
     from bayescal.diagnose import diagnose
     from bayescal.effects.simulate import simulate_with_effects
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     machine = machine_from_text(case["machine"], f"random-{case['cls']}-{case['i']}.toml")
     cls, rng = case["cls"], np.random.default_rng(case["seed"])

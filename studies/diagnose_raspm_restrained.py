@@ -63,7 +63,7 @@ def run(case, n: int) -> dict:
     from bayescal.effects import fit_map
     from bayescal.effects.stored import predict_poses
     from bayescal.io.recording import Recording
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from bayescal.measurement import MeasurementModel
     from bayescal.redundant.physics import solve_restrained
     from bayescal.redundant.restrained_recording import restrained_recording, true_effect_values
@@ -106,7 +106,7 @@ def run_clean(seed: int, n: int) -> str:
     """The verdict on a clean recording of a module (redundant drive released: the non-redundant physics)."""
     from bayescal.diagnose import diagnose
     from bayescal.io.recording import Recording
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from bayescal.redundant.restrained_recording import restrained_recording
 
     m = load_machine(ROOT / "examples" / "raspm" / "machine.toml")

@@ -44,7 +44,7 @@ import numpy as np
 from bayescal.identify.calibrate import calibrate
 from bayescal.instrument.prepare import prepare_session
 from bayescal.io.recording import Recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.prediction.recording import score_held_out
 from bayescal.simulate import draw_errors, draw_poses
 

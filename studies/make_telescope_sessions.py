@@ -36,7 +36,7 @@ import numpy as np
 
 from bayescal.geometry import so3_exp
 from bayescal.io.recording import Recording, write_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.machines.framed import Frame
 from bayescal.simulate import draw_errors, draw_poses
 

@@ -67,7 +67,7 @@ from bayescal.design.exact_decision import exact_design_below, stroke_fractions 
 from bayescal.design.relations import grid_points, relation_candidates, relaxed_relations, _scaled_rows  # noqa: E402
 from bayescal.identify import identify  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.plots.design import plot_error_vs_poses  # noqa: E402
 from bayescal.simulate import draw_errors, draw_poses, measure  # noqa: E402

@@ -29,7 +29,7 @@ import numpy as np
 
 import bayescal
 from bayescal.io import read_recording, write_json_atomic
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

@@ -62,7 +62,7 @@ sys.path.insert(0, str(ROOT / "studies"))
 
 from bayescal.io.answers import write_json_atomic, write_text_atomic  # noqa: E402
 from bayescal.io.recording import read_recording  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 
 import real_common as rc  # noqa: E402

@@ -30,7 +30,7 @@ if str(ROOT) not in sys.path:  # run from a checkout without installing
 
 from bayescal.identifiability import analyse_identifiability  # noqa: E402
 from bayescal.io import write_json_atomic, write_text_atomic  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.simulate import draw_errors, draw_poses  # noqa: E402
 

@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 
 from bayescal.compensation import write_grid  # noqa: E402
 from bayescal.io import write_json_atomic  # noqa: E402
-from bayescal.machines import load_machine  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.redundant.physics import TrueModule  # noqa: E402
 from bayescal.redundant.grid_std import predicted_grid  # noqa: E402
 from bayescal.redundant.procedure import compare_methods, run_procedure  # noqa: E402

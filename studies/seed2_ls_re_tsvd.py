@@ -77,7 +77,8 @@ from bayescal.identify.choose import (  # noqa: E402
     linearised_problem,
 )
 from bayescal.io import Recording, write_json_atomic, write_text_atomic  # noqa: E402
-from bayescal.machines import KINDS, MeasurementNoise, load_machine  # noqa: E402
+from bayescal.machines import KINDS, MeasurementNoise  # noqa: E402
+from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.plots import regularisation as plots  # noqa: E402
 from bayescal.simulate import draw_errors, draw_poses  # noqa: E402

@@ -112,7 +112,7 @@ def sequence_of(variant: str, mod=None, case: dict | None = None):
     if variant == "random order":
         return lambda q: np.array(q, float, copy=True)
     if variant == "serpentine":
-        from bayescal.machines import machine_from_text
+        from bayescal.machines.files import machine_from_text
 
         machine = machine_from_text(case["machine"], "serpentine.toml")
         rng = np.random.default_rng([case["seed"], 5])
@@ -202,7 +202,7 @@ def analyse(mod, case: dict, n_draws: int) -> dict:
     from bayescal.diagnose import diagnose
     from bayescal.effects import get_effect
     from bayescal.effects.model import fit_map
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
     from bayescal.measurement import MeasurementModel
     from bayescal.simulate import draw_poses, measure
 
@@ -298,7 +298,7 @@ def centred_check(mod, case: dict) -> tuple[float, float] | None:
 
     from bayescal.effects import get_effect
     from bayescal.effects.model import fit_map
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
     from bayescal.measurement import MeasurementModel
     from bayescal.simulate import draw_poses, measure
 

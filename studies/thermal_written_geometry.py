@@ -81,7 +81,7 @@ def run_one(mod, case: dict) -> dict:
     """Simulate, diagnose and score one case; also the written geometry against the truth at the mean temperature."""
     from bayescal.diagnose import diagnose
     from bayescal.diagnose.calibrated import calibrated_machine
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
     from bayescal.simulate import draw_poses, measure
 
     machine = machine_from_text(case["machine"], f"random-{case['cls']}-{case['i']}.toml")

@@ -14,7 +14,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.simulate import simulate_recording
 
 ROOT = Path(__file__).resolve().parents[1]

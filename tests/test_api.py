@@ -54,7 +54,7 @@ def test_the_library_snippet_of_the_docs_runs(tmp_path, monkeypatch, capsys):
 def test_load_takes_a_constraint_recording(tmp_path, capsys):
     # a printer's heights through the front door, as `bayescal identify` takes them (docs/formats.md section 6)
     machine = ROOT / "examples" / "delta" / "machine.toml"
-    m = bayescal.machines.load_machine(machine)
+    m = bayescal.machines.files.load_machine(machine)
     rng = np.random.default_rng(1)
     q = m.sample_q(30, rng)
     z = m.forward(q).position[:, 2] + rng.normal(scale=m.noise.sigma_position, size=30)

@@ -10,7 +10,7 @@ from bayescal.constraint_model import ConstraintModel
 from bayescal.identify import identify
 from bayescal.identify.gauss_newton import whitened_system
 from bayescal.io.constraints import ConstraintRecording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.simulate_constraints import circle_points, simulate_ballbar, simulate_distances, solve_q_for_points
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -166,7 +166,7 @@ def test_a_machine_files_instrument_frame_does_not_move_heights():
     # table (the pose recordings' frame) must not turn it into the instrument's z (before: heights were
     # predicted 48-50 mm off with this frame, and identify fitted nonsense)
     from bayescal.errors import InputError
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
     from bayescal.machines.framed import Frame, InstrumentFrame
 
     path = PRS3

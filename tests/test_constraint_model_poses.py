@@ -11,7 +11,7 @@ from bayescal.constraint_model import ConstraintModel
 from bayescal.effects import get_effect
 from bayescal.effects.model import _slices, effect_jacobian, effect_residual
 from bayescal.io.constraints import ConstraintRecording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 
 ROOT = Path(__file__).resolve().parents[1]
 DELTA = ROOT / "examples" / "delta" / "machine.toml"

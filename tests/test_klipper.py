@@ -15,7 +15,8 @@ from bayescal.constraint_model import ConstraintModel
 from bayescal.io.constraints import read_constraints
 from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, KlipperConfigError, parse_klipper_text, read_klipper_config
 from bayescal.klipper import klipper_machine, klipper_recording, read_klipper_delta
-from bayescal.machines import check_machine, load_machine
+from bayescal.machines.check import check_machine
+from bayescal.machines.files import load_machine
 from tests import klipper_configs as synth
 
 # the checkout sits beside shared/ (<clone>/../shared); BAYESCAL_SHARED points elsewhere (a git worktree)

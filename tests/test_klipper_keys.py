@@ -11,7 +11,7 @@ from bayescal.errors import InputError
 from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, read_klipper_config
 from bayescal.klipper import klipper_machine, klipper_recording, read_klipper_delta
 from bayescal.klipper_keys import klipper_keys, klipper_text, klipper_values
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from tests import klipper_configs as synth
 from tests.conftest import ROOT
 

@@ -8,7 +8,7 @@ import pytest
 
 from bayescal.errors import InputError
 from bayescal.io.constraints import DEFAULT_PIVOT
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.simulate_constraints import circle_points, simulate_ballbar
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -13,7 +13,7 @@ def _study():
 
 
 def test_random_machines_are_valid_and_varied():
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     study = _study()
     cases = [study.make_case("none", i, 1) for i in range(4)]
@@ -38,7 +38,7 @@ def test_quick_mode_runs_and_writes_its_tables(tmp_path):
 def test_random_raspms_are_reachable_varied_and_within_their_limits():
     import numpy as np
 
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     study = _study()
     cases = [study.make_case("raspm_redundancy_preload", i, 1) for i in range(3)]
@@ -72,7 +72,7 @@ def test_restrained_raspm_cross_check_quick(tmp_path):
 def test_physics_classes_come_from_the_independent_simulators():
     import numpy as np
 
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
     from bayescal.simulate import measure
 
     study = _study()
@@ -94,7 +94,7 @@ def test_physics_classes_come_from_the_independent_simulators():
 def test_serpentine_is_a_raster_of_the_poses():
     import numpy as np
 
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     study = _study()
     m = machine_from_text(study.make_case("none", 0, 1)["machine"])

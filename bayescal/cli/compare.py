@@ -8,7 +8,7 @@ from pathlib import Path
 from ..compare import METHODS, METRICS, compare_methods
 from ..errors import InputError
 from ..io import write_json_atomic
-from ..machines import load_machine
+from ..machines.files import load_machine
 from . import SUMMARIES
 from .outputs import add_output_options, say, write_json, write_report
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 
 from ..io import Recording, read_recording
-from ..machines import Machine, load_machine
+from ..machines import Machine
+from ..machines.files import load_machine
 from ..measurement import MeasurementModel, check_recording_solves
 
 

@@ -113,9 +113,7 @@ def fitted_frame_answer(machine, model) -> dict:
     starting point), with its Laplace std.
     """
     from ..bayes.priors import map_estimate
-    from ..machines.framed import InstrumentFrame
-
-    if not isinstance(machine, InstrumentFrame) or not machine.fit:
+    if not machine.framed or not machine.fit:
         return {}
     res = map_estimate(model, free="auto")
     return frame_answer(machine, res.theta, res.free, res.covariance)

@@ -6,7 +6,7 @@ import argparse
 
 from ..design import CRITERIA, SCALINGS, plan_poses, write_plan
 from ..errors import InputError
-from ..machines import load_machine
+from ..machines.files import load_machine
 from . import SUMMARIES
 from .outputs import add_output_options, write_json, write_report
 

@@ -52,7 +52,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from ..io import read_recording
-    from ..machines import load_machine
+    from ..machines.files import load_machine
     from ..prediction.recording import predict_recording
     from . import EXIT_OK
 

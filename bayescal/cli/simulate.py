@@ -11,7 +11,7 @@ from ..effects.stored import machine_file_text
 from ..errors import InputError
 from ..io.answers import json_text, write_files_atomic
 from ..io.recording import recording_to_csv
-from ..machines import load_machine
+from ..machines.files import load_machine
 from ..simulate import simulate_recording
 from . import SUMMARIES
 from .inputs import name_list

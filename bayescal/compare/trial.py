@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import BayescalError
 from ..geometry import so3_log
 from ..identify import resolve_free
-from ..machines import machine_from_text
+from ..machines.files import machine_from_text
 from ..measurement import MeasurementModel
 from ..simulate import draw_errors, draw_poses, measure
 from .methods import MethodSpec, parse_methods

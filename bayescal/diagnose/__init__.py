@@ -3,9 +3,10 @@
 from .core import DECISIVE, EXPLAINED_FRACTION, P_MISMATCH, diagnose
 from .locate import ChannelDependence, Location, distance_correlation, holm, locate
 from .result import Diagnosis, EffectTrial, ParameterValue
+from .verb import diagnose_files
 
 __all__ = [
-    "diagnose", "Diagnosis", "EffectTrial", "ParameterValue", "locate", "Location", "ChannelDependence",
+    "diagnose", "diagnose_files", "Diagnosis", "EffectTrial", "ParameterValue", "locate", "Location", "ChannelDependence",
     "distance_correlation", "holm", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION",
 ]
 
@@ -19,9 +20,7 @@ class _CallablePackage(type(__import__("sys"))):
     """
 
     def __call__(self, machine, recording, **options):
-        from ..api import diagnose as verb
-
-        return verb(machine, recording, **options)
+        return diagnose_files(machine, recording, **options)
 
 
 __import__("sys").modules[__name__].__class__ = _CallablePackage

@@ -137,7 +137,7 @@ def calibrated_machine(machine: Machine, diagnosis: Diagnosis) -> CalibratedMach
     text = machine_file_text(base, theta, stored)
     header = _header(diagnosis)
     text = header + text
-    from ..machines import machine_from_text
+    from ..machines.files import machine_from_text
 
     again = machine_from_text(text, path="<calibrated machine of the diagnosis>")  # round trip: refuse to write what cannot be read
     warning = ""

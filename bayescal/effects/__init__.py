@@ -1,12 +1,11 @@
 """Physical effects beyond the geometric model, as plug-ins to the measurement model.
 
 Adding an effect: one module with an :class:`Effect` subclass, one entry in
-:data:`EFFECTS`, and :func:`check_effect` must pass for it.
+:data:`EFFECTS` (``registry.py``), and :func:`check_effect` must pass for it.
 """
 
 from __future__ import annotations
 
-from ..errors import InputError
 from .backlash import Backlash
 from .base import BoundEffect, Effect, EffectParam, Features, approach_direction
 from .check import check_effect
@@ -14,6 +13,7 @@ from .gravity_backlash import GravityBacklash
 from .gravity_deflection import GravityDeflection
 from .joint_compliance import JointCompliance, actuator_loads
 from .model import EffectFit, fit_map
+from .registry import EFFECTS, get_effect
 from .redundancy_preload import RedundancyPreload
 from .screw_periodic_error import ScrewPeriodicError
 from .thermal_expansion import ThermalExpansion
@@ -24,30 +24,3 @@ __all__ = [
     "JointCompliance", "ThermalExpansion", "Backlash", "ScrewPeriodicError", "RedundancyPreload", "GravityDeflection",
     "GravityBacklash",
 ]
-
-#: The library, by stable name (docs/formats.md section 3), in the order they are tried.
-EFFECTS: dict[str, type[Effect]] = {
-    cls.name: cls for cls in (JointCompliance, ThermalExpansion, Backlash, ScrewPeriodicError, RedundancyPreload,
-                              GravityDeflection, GravityBacklash)
-}
-
-
-def get_effect(name: str, **settings) -> Effect:
-    """An effect of the library by its name, with default settings unless given.
-
-    Parameters
-    ----------
-    name : str
-    **settings
-        The effect's inputs (its constructor's keyword arguments, e.g.
-        ``gravity=[0, 0, -1]`` for ``joint_compliance``); unknown keys are an
-        :class:`~bayescal.errors.InputError`.
-    """
-    if name not in EFFECTS:
-        raise InputError(f"unknown effect {name!r}; expected one of: {', '.join(EFFECTS)}")
-    cls = EFFECTS[name]
-    bad = sorted(set(settings) - set(cls.settings_keys))
-    if bad:
-        allowed = ", ".join(cls.settings_keys) or "none"
-        raise InputError(f"effect {name}: unknown setting(s) {', '.join(bad)}; expected some of: {allowed}")
-    return cls(**settings)

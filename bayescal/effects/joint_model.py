@@ -349,7 +349,6 @@ def effect_model(machine: Machine, rec, *, dof: int | None = None) -> EffectMode
     EffectModel
         Searches start at the stored values (:attr:`EffectModel.theta_start`).
     """
-    from ..machines.framed import InstrumentFrame, base_machine
 
     if not machine.effects:
         raise InputError(f"{machine.source}: the machine file has no [effect.*] tables to fit")
@@ -358,8 +357,8 @@ def effect_model(machine: Machine, rec, *, dof: int | None = None) -> EffectMode
     q = geo.q
     # features where the stored effects are applied (MeasurementModel.from_recording): loads and growth
     # live in the base frame, so a machine seen from an instrument frame is evaluated on its base machine
-    if isinstance(machine, InstrumentFrame):
-        fm = base_machine(machine).with_effects(())
+    if machine.framed:
+        fm = machine.base_machine().with_effects(())
         poses = fm.forward(q, None)
     else:
         fm = geo.machine

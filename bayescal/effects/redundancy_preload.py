@@ -56,11 +56,7 @@ def orient_directions(nu: NDArray) -> NDArray:
 
 def _inner(machine: Machine) -> tuple[Machine, int]:
     """The kinematic machine (inside an instrument frame) and the number of frame parameters before its own."""
-    from ..machines.framed import InstrumentFrame
-
-    if isinstance(machine, InstrumentFrame):
-        return machine.machine, machine.n_frame
-    return machine, 0
+    return machine.inside, machine.n_frame
 
 
 def _probe_planar(inner) -> NDArray:

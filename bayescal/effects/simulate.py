@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from ..machines.base import Machine
 from ..simulate import SimulatedRecording, draw_errors, draw_poses, measure
-from . import get_effect
+from .registry import get_effect
 from .thermal_expansion import warmup_temperature
 
 __all__ = ["AUX_CHANNELS", "simulate_aux", "parse_effect_spec", "simulate_with_effects"]

@@ -50,8 +50,9 @@ from numpy.typing import NDArray
 
 from ..errors import BayescalError, InputError, MachineFileError
 from ..io.machine_file import TomlTable, format_toml_value
-from ..machines.base import Machine, ToolPoses
+from ..machines.base import Machine, ToolPoses, offset_poses
 from .base import Effect, EffectParam
+from .registry import EFFECTS, get_effect
 
 __all__ = [
     "StoredEffect", "PROBE_CHANNELS", "read_effect_tables", "effect_tables_toml", "effect_delta_q",
@@ -90,9 +91,17 @@ class StoredEffect:
 
     def effect(self) -> Effect:
         """The library effect with the table's stated inputs (documented defaults for the others)."""
-        from . import get_effect
-
         return get_effect(self.name, **{k: (np.asarray(v, float) if isinstance(v, (list, tuple)) else v) for k, v in self.settings})
+
+    @staticmethod
+    def static_delta_q(machine: Machine, effects: tuple["StoredEffect", ...], q: NDArray, aux: dict | None = None) -> NDArray:
+        """:func:`static_effect_delta_q`, reached from a machine's ``effects`` (machines do not import effects)."""
+        return static_effect_delta_q(machine, effects, q, aux)
+
+    @staticmethod
+    def static_delta_x(machine: Machine, effects: tuple["StoredEffect", ...], q: NDArray, aux: dict | None = None) -> NDArray | None:
+        """:func:`static_effect_delta_x`, reached from a machine's ``effects``."""
+        return static_effect_delta_x(machine, effects, q, aux)
 
     def key(self, param: str | None = None) -> str:
         """The dotted machine-file key of the table or of one of its parameters."""
@@ -161,8 +170,6 @@ def _probe_sets(effect: Effect, machine: Machine) -> list[tuple[EffectParam, ...
 
 
 def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEffect:
-    from . import EFFECTS, get_effect
-
     key = f"{TABLE}.{name}"
     if name not in EFFECTS:
         raise MachineFileError(path, key, f"unknown effect {name!r}; expected one of: {', '.join(EFFECTS)}")
@@ -498,7 +505,6 @@ def predict_poses(machine: Machine, q: NDArray, aux: dict | None = None, *, thet
     poses = machine.forward(q + dq, theta)
     if dx is None:
         return poses
-    from ..measurement import offset_poses
 
     return offset_poses(machine, q + dq, theta, poses, dx)
 

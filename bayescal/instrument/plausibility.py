@@ -246,7 +246,7 @@ def frame_answer(machine: Machine, theta: NDArray, free: NDArray, covariance: ND
     frame: the origin's is the correction's, the rotation vector's
     ``r = log(exp(d_phi) R0)`` is propagated through ``dr/de = J_l^-1(r) J_l(d_phi)``.
     """
-    if not isinstance(machine, InstrumentFrame):
+    if not machine.framed:
         return {}
     theta = np.asarray(theta, dtype=float)
     C = None

@@ -50,6 +50,21 @@ class AppendedParameters(ABC):
     def n_params(self) -> int:
         return len(self.layout)
 
+    # the instrument frame's layer (Machine.framed ...): a view is inside any frame, never around one
+    framed = False
+    n_frame = 0
+
+    @property
+    def inside(self):
+        return self
+
+    def rewrapped(self, inner):
+        return inner
+
+    def base_machine(self):
+        """The view itself: its appended parameters belong to the measurement (a subclass may strip them)."""
+        return self
+
     @property
     def n_base(self) -> int:
         """Parameters of the machine (before the appended ones)."""

@@ -18,10 +18,11 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import InputError
+from ..errors import InputError, MachineFileError
+from ..geometry import so3_exp, so3_log
 from ..params import ParamLayout
 
-__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "map_state", "ActuatorUnit", "ACTUATOR_UNITS", "WeightBodies", "BodyInertials"]
+__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "map_state", "ActuatorUnit", "ACTUATOR_UNITS", "WeightBodies", "BodyInertials", "offset_poses", "KINDS", "machine_from_table"]
 
 
 @dataclass(frozen=True)
@@ -237,6 +238,11 @@ def map_state(fn, state, *others):
     return state
 
 
+#: Machine kinds by the ``kind`` string of the machine file; every subclass of :class:`Machine` that
+#: sets a ``kind`` adds itself (a new kind plugs in by being defined).
+KINDS: dict[str, type["Machine"]] = {}
+
+
 class Machine(ABC):
     """A kinematic family with its nominal geometry.
 
@@ -245,6 +251,14 @@ class Machine(ABC):
     """
 
     kind: ClassVar[str] = ""
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        kind = cls.__dict__.get("kind")
+        if isinstance(kind, str) and kind:  # a wrapper's kind is its machine's (a property): not a kind
+            if kind in KINDS and KINDS[kind].__qualname__ != cls.__qualname__:
+                raise TypeError(f"machine kind {kind!r} is already {KINDS[kind].__qualname__}")
+            KINDS[kind] = cls
 
     #: Physical effects at fixed values, from the machine file's ``[effect.<name>]`` tables
     #: (docs/formats.md section 7; tuple of :class:`bayescal.effects.stored.StoredEffect`).  Not a
@@ -297,6 +311,33 @@ class Machine(ABC):
         an output error is the geometry's alone.
         """
         return self, np.arange(self.n_params)
+
+    # ------------------------------------------------- the instrument frame's layer
+    # A machine measured in an instrument frame (bayescal.machines.framed.InstrumentFrame) is this
+    # machine wrapped; consumers ask these members instead of checking the type.
+
+    @property
+    def framed(self) -> bool:
+        """Whether an instrument frame wraps the machine (its parameters then lead ``theta``)."""
+        return False
+
+    @property
+    def n_frame(self) -> int:
+        """Number of instrument-frame parameters before the machine's own: 0 without a fitted frame."""
+        return 0
+
+    @property
+    def inside(self) -> "Machine":
+        """The machine under an instrument frame; a machine without one is its own inside."""
+        return self
+
+    def rewrapped(self, inner: "Machine") -> "Machine":
+        """``inner`` in this machine's instrument frame (``inner`` itself without one)."""
+        return inner
+
+    def base_machine(self) -> "Machine":
+        """The machine in its base frame, without nuisance views (instrument frame, body sensors' mountings)."""
+        return self
 
     def check_theta(self, theta: ArrayLike | None, n_poses: int | None = None) -> NDArray:
         """``theta`` as an array of shape ``(P,)`` or ``(n_poses, P)``; zeros if None."""
@@ -364,7 +405,6 @@ class Machine(ABC):
             rotation of the platform in the base frame, as in
             :meth:`tool_jacobian`.
         """
-        from ..geometry import so3_log
 
         q = self.check_q(q)
         n, m = q.shape
@@ -488,7 +528,7 @@ class Machine(ABC):
         -------
         q_actual : ndarray, shape (n, n_actuators)
             ``q`` plus the stored effects' ``dq`` under ``aux``, each node a
-            session of its own (:func:`bayescal.effects.stored.static_effect_delta_q`).
+            session of its own (``bayescal.effects.stored.static_effect_delta_q``).
         dq_dtheta : ndarray, shape (n, n_actuators, P), or None
             None here: stored effects are fixed values, not parameters.  A
             view whose parameters include effect parameters gives their
@@ -496,9 +536,8 @@ class Machine(ABC):
         """
         if not self.effects:
             return q, None
-        from ..effects.stored import static_effect_delta_q
-
-        return q + static_effect_delta_q(self, self.effects, q, aux), None
+        # the stored effects apply themselves (StoredEffect.static_delta_q): effects sit above machines
+        return q + type(self.effects[0]).static_delta_q(self, self.effects, q, aux), None
 
     def node_tool_offset(self, q: NDArray, theta: NDArray | None = None, aux: dict | None = None) -> NDArray | None:
         """Base-frame tool displacement (mm) and rotation (rad) of the stored effects that move the tool, at grid nodes.
@@ -506,15 +545,13 @@ class Machine(ABC):
         Shape (n, 6), or None when no effect moves the tool (a link or
         column bending under gravity: :attr:`bayescal.effects.Effect.moves_tool`);
         a grid adds it to the tool point the drives reach
-        (:func:`bayescal.effects.stored.static_effect_delta_x`).  A machine
+        (``bayescal.effects.stored.static_effect_delta_x``).  A machine
         that carries a model discrepancy (``[discrepancy]``) adds its mean at
         the nodes' actuators and channels (its std is not in the grid's).
         """
         out = None
         if self.effects:
-            from ..effects.stored import static_effect_delta_x
-
-            out = static_effect_delta_x(self, self.effects, q, aux)
+            out = type(self.effects[0]).static_delta_x(self, self.effects, q, aux)
         if self.discrepancy is not None:
             d = self.discrepancy.tool_offset(q, aux)
             out = d if out is None else out + d
@@ -579,3 +616,50 @@ class Machine(ABC):
             raise InputError(f"{self.source}: the machine file has no [workspace] q_limits; they are needed to draw poses")
         lo, hi = self.q_limits[:, 0], self.q_limits[:, 1]
         return lo + (hi - lo) * rng.random((n, self.n_actuators))
+
+
+def offset_poses(machine: Machine, q: NDArray, theta, poses: ToolPoses, offset: NDArray) -> ToolPoses:
+    """Solved poses moved by base-frame tool-pose perturbations, in the frame the poses are measured in.
+
+    Parameters
+    ----------
+    machine : Machine
+        The machine ``poses`` were solved on (:meth:`Machine.measurement_rotation`
+        takes the base-frame perturbation into each pose's measurement frame).
+    q : ndarray, shape (n, N)
+    theta : ndarray, shape (P,) or (n, P), or None
+    poses : ToolPoses
+        ``machine.forward(q, theta)``.
+    offset : ndarray, shape (n_0, 6)
+        Base-frame displacement of the tool point (mm) and small rotation of
+        the tool frame (rad) per pose; tiled when ``n`` is a multiple of
+        ``n_0`` (stacked parameter sets).
+
+    Returns
+    -------
+    ToolPoses
+        Position ``p + R_m dx``, rotation ``exp([R_m w]x) R`` with ``R_m`` the
+        measurement rotation; the kind's state (warm start) is kept.
+    """
+    n = poses.position.shape[0]
+    off = np.asarray(offset, dtype=float)
+    if off.shape[0] != n:
+        off = np.tile(off, (n // off.shape[0], 1))
+    Rm = machine.measurement_rotation(q, theta)
+    dp = np.einsum("nij,nj->ni", Rm, off[:, :3])
+    w = np.einsum("nij,nj->ni", Rm, off[:, 3:])
+    return ToolPoses(poses.position + dp, so3_exp(w) @ poses.rotation, poses.success, poses.message, poses.state)
+
+
+def machine_from_table(doc, path: str) -> Machine:
+    """The geometry of a machine-file table, built by the kind its ``kind`` key names (:data:`KINDS`).
+
+    Raises
+    ------
+    MachineFileError
+        Key ``kind``: unknown, naming the kinds there are.
+    """
+    kind = doc.string("kind")
+    if kind not in KINDS:
+        raise MachineFileError(path, "kind", f"unknown kind {kind!r}; expected one of: {', '.join(KINDS)}")
+    return KINDS[kind].from_toml(doc, path)

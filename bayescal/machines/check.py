@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from ..errors import BayescalError
 from ..geometry import so3_log
 from .base import Machine, ToolPoses
+from .files import machine_from_text
 
 __all__ = ["check_machine", "MachineCheckError", "KNOWN_UNITS", "PARAM_NAME"]
 
@@ -144,8 +145,6 @@ def _check_jacobian(machine: Machine, q: NDArray, theta: NDArray, poses: ToolPos
 
 
 def _check_file_round_trip(machine: Machine, q: NDArray, theta: NDArray, poses: ToolPoses) -> list[str]:
-    from . import machine_from_text
-
     try:
         again = machine_from_text(machine.to_toml(theta), path=f"<{machine.kind} to_toml>")
     except BayescalError as exc:
@@ -244,7 +243,8 @@ def check_machine(machine: Machine, *, seed: int = 0, n_poses: int = 8, strict: 
 
     Examples
     --------
-    >>> from bayescal.machines import load_machine, check_machine
+    >>> from bayescal.machines.check import check_machine
+    >>> from bayescal.machines.files import load_machine
     >>> check_machine(load_machine("examples/prs3/machine.toml"))
     []
     """

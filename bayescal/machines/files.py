@@ -1,4 +1,8 @@
-"""Write a calibrated machine as machine files: one file, or a hybrid in docs/formats.md section 5's file-per-module form.
+"""Machine files in and out: read one of any kind with its tables, write a calibrated machine as one or several files.
+
+:func:`load_machine` reads the geometry (by its kind, :data:`bayescal.machines.KINDS`)
+and the tables every kind may carry: ``[instrument]`` (section 4),
+``[effect.*]`` (section 7), ``[calibration]`` and ``[discrepancy]`` (section 8).
 
 One place for what ``--write-machine`` of every command and
 :meth:`bayescal.diagnose.calibrated.CalibratedMachine.write` write, so that
@@ -13,22 +17,62 @@ file renamed last (:func:`bayescal.io.answers.write_files_atomic`).
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from numpy.typing import ArrayLike
 
+from ..discrepancy.table import read_discrepancy
+from ..effects.stored import calibration_tables_toml, effect_tables_toml, machine_file_text, read_effect_tables
 from ..io.answers import write_files_atomic, write_text_atomic
-from .base import Machine
+from ..io.machine_file import TomlTable, parse_toml_text, read_toml
+from ..prediction.record import check_record, read_calibration
+from .base import Machine, machine_from_table
+from .framed import InstrumentFrame, instrument_toml, read_instrument
+from .hybrid import Hybrid, machine_files_text
 
-__all__ = ["write_calibrated_machine_files", "written_as_modules"]
+__all__ = ["load_machine", "machine_from_text", "write_calibrated_machine_files", "written_as_modules"]
+
+#: Tables of a machine file read here, around the geometry its kind reads.
+_TABLES = ("effect", "instrument", "calibration", "discrepancy")
+
+
+def _build(doc: TomlTable, path: str) -> Machine:
+    # docs/formats.md section 4: an optional [instrument] table (the recordings' frame) for every kind;
+    # [effect.<name>] tables (section 7) are read for every kind alike, after the geometry
+    frame = read_instrument(doc, path)
+    geometry = type(doc)({k: v for k, v in doc.data.items() if k not in _TABLES}, doc.path, doc.prefix)
+    machine = machine_from_table(geometry, path)
+    if "effect" in doc.data:
+        machine = machine.with_effects(read_effect_tables(doc, machine))
+    if "calibration" in doc.data or "discrepancy" in doc.data:
+        # the calibration's uncertainty and model discrepancy, for bayescal predict (docs/formats.md section 8)
+        record = read_calibration(doc, path)
+        if record is not None:
+            check_record(record, path)
+        machine = machine.with_calibration(record, read_discrepancy(doc, path, machine))
+    return machine if frame is None else InstrumentFrame(machine, frame, fit=False)
+
+
+def load_machine(path: str | os.PathLike) -> Machine:
+    """Read a machine file (docs/formats.md section 1) of any shipped kind.
+
+    Raises
+    ------
+    MachineFileError
+        Naming the file, the key and what was expected.
+    """
+    return _build(read_toml(path), str(path))
+
+
+def machine_from_text(text: str, path: str = "<memory>") -> Machine:
+    """Build a machine from machine-file text (as written by ``Machine.to_toml``)."""
+    return _build(TomlTable(parse_toml_text(text, path), path, ""), path)
 
 
 def written_as_modules(machine: Machine) -> bool:
     """Whether ``machine`` (possibly in an instrument frame) is written as a main file plus module files."""
-    from .framed import InstrumentFrame
-    from .hybrid import Hybrid
-
-    return isinstance(machine.machine if isinstance(machine, InstrumentFrame) else machine, Hybrid)
+    return isinstance(machine.inside, Hybrid)
 
 
 def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | None = None, *,
@@ -51,16 +95,11 @@ def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | No
     list of Path
         The files written, the main file first.
     """
-    from ..effects.stored import calibration_tables_toml, effect_tables_toml, machine_file_text
-    from .framed import InstrumentFrame, instrument_toml
-    from .hybrid import machine_files_text
-
     if not written_as_modules(machine):
         return [write_text_atomic(path, header + machine_file_text(machine, theta))]
     th = machine.check_theta(theta)
-    framed = isinstance(machine, InstrumentFrame)
-    inner = machine.machine if framed else machine
-    files = machine_files_text(path, inner, th[machine.n_frame:] if framed else th)
+    framed = machine.framed
+    files = machine_files_text(path, machine.inside, th[machine.n_frame:])
     # the main file carries what belongs to the whole machine: its [effect.*] tables and its [instrument] frame
     extra = []
     if machine.effects:

@@ -169,7 +169,7 @@ class InstrumentFrame(Machine):
     pose_station: NDArray | None = None
 
     def __post_init__(self) -> None:
-        if isinstance(self.machine, InstrumentFrame):
+        if self.machine.framed:
             raise InputError("InstrumentFrame: the machine already has an instrument frame; wrap its base machine")
         stations = tuple(str(s) for s in self.stations)
         if not stations or len(set(stations)) != len(stations):
@@ -295,6 +295,22 @@ class InstrumentFrame(Machine):
     def n_frame(self) -> int:
         """Number of frame parameters: 6 per station when fitted, 0 when known."""
         return 6 * self.n_stations if self.fit else 0
+
+    @property
+    def framed(self) -> bool:
+        return True
+
+    @property
+    def inside(self) -> Machine:
+        return self.machine
+
+    def rewrapped(self, inner: Machine) -> "InstrumentFrame":
+        from dataclasses import replace
+
+        return replace(self, machine=inner)
+
+    def base_machine(self) -> Machine:
+        return self.machine.base_machine()
 
     @property
     def geometry_part(self) -> tuple[Machine, NDArray]:
@@ -487,7 +503,7 @@ class InstrumentFrame(Machine):
 
     @classmethod
     def from_toml(cls, table, path: str) -> "InstrumentFrame":
-        raise MachineFileError(path, "instrument", "read through bayescal.machines.load_machine")
+        raise MachineFileError(path, "instrument", "read through bayescal.machines.files.load_machine")
 
 
 def base_machine(machine: Machine) -> Machine:
@@ -498,9 +514,7 @@ def base_machine(machine: Machine) -> Machine:
     frame); its parameters are nuisance like the frame's, so this is the
     machine under it.
     """
-    from ..sensors.mounts import sensor_base
-
-    return sensor_base(machine.machine if isinstance(machine, InstrumentFrame) else machine)
+    return machine.base_machine()
 
 
 def read_instrument(doc, path: str) -> Frame | None:

@@ -53,7 +53,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..io.machine_file import TomlTable, format_toml_value, read_toml
 from ..params import ParamLayout, ParamSpec
-from .base import Machine, MeasurementNoise, ToolPoses
+from .base import Machine, MeasurementNoise, ToolPoses, machine_from_table
 from .common import common_toml, read_noise, read_q_limits
 
 __all__ = ["Hybrid", "ROLES", "MAX_NESTING", "write_machine_files"]
@@ -116,8 +116,6 @@ def _refuse_cycle(mt: TomlTable, f: Path) -> None:
 
 def _read_modules(doc: TomlTable, path: str) -> tuple[list, list]:
     """The modules and roles of the ``[[module]]`` tables, each module built by its own kind."""
-    from . import _build
-
     modules, roles = [], []
     for mt in doc.array_of_tables("module"):
         mt.reject_unknown({"file", "role", "machine"})
@@ -135,7 +133,7 @@ def _read_modules(doc: TomlTable, path: str) -> tuple[list, list]:
             sub, sub_path = mt.table("machine"), path
         if role == "table":
             sub = _table_tool_default(sub)
-        modules.append(_build(sub, sub_path))
+        modules.append(machine_from_table(sub, sub_path))  # a module is geometry: its machine's tables are the main file's
         roles.append(role)
     return modules, roles
 

@@ -50,11 +50,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from ..geometry import left_jacobian, skew, so3_exp, tilt_axes, tilted_direction
+from ..geometry import left_jacobian, rpy_from_matrix, rpy_matrix, skew, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
+from .urdf import chain_from_urdf
 
 __all__ = ["Serial", "ChainFrames", "SERIAL_TOLERANCE_DEFAULTS", "JOINT_TYPES", "rpy_matrix", "rpy_from_matrix", "mimic_problem"]
 
@@ -75,19 +76,6 @@ _RPY = "rpy"
 _PER_JOINT = 9  # offset, 2 axis tilts, 3 origin, 3 rpy
 
 
-def rpy_matrix(rpy: ArrayLike) -> NDArray:
-    """``Rz(y) Ry(p) Rx(r)`` for ``rpy = (r, p, y)`` (rad, URDF convention), shape ``(..., 3, 3)``."""
-    rpy = np.asarray(rpy, dtype=float)
-    cr, sr = np.cos(rpy[..., 0]), np.sin(rpy[..., 0])
-    cp, sp = np.cos(rpy[..., 1]), np.sin(rpy[..., 1])
-    cy, sy = np.cos(rpy[..., 2]), np.sin(rpy[..., 2])
-    R = np.empty(rpy.shape[:-1] + (3, 3))
-    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
-    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
-    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = -sp, cp * sr, cp * cr
-    return R
-
-
 def rpy_rates(rpy: NDArray) -> NDArray:
     """Angular velocity per unit rate of ``r``, ``p``, ``y``, in the frame the rotation acts in.
 
@@ -101,21 +89,6 @@ def rpy_rates(rpy: NDArray) -> NDArray:
     W[..., 0, 1], W[..., 1, 1] = -sy, cy
     W[..., 2, 2] = 1.0
     return W
-
-
-def rpy_from_matrix(R: ArrayLike) -> NDArray:
-    """URDF ``(r, p, y)`` of a rotation matrix (one of the two solutions; ``|p| <= pi/2``).
-
-    Written out rather than taken from scipy's ``as_euler``, which warns at
-    gimbal lock (``p = +-pi/2``); there the roll is set to zero and the yaw
-    carries the rotation about the common axis.
-    """
-    R = np.asarray(R, dtype=float)
-    p = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 0, 0], R[..., 1, 0]))
-    locked = np.hypot(R[..., 0, 0], R[..., 1, 0]) < 1e-12
-    r = np.where(locked, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
-    y = np.where(locked, np.arctan2(-R[..., 0, 1], R[..., 1, 1]), np.arctan2(R[..., 1, 0], R[..., 0, 0]))
-    return np.stack([r, p, y], axis=-1)
 
 
 def mimic_problem(mimic: tuple, i: int) -> str | None:
@@ -427,8 +400,6 @@ class Serial(Machine):
         if doc.has("urdf"):
             if doc.has("joint"):
                 raise doc.error("joint", "[[joint]] tables and urdf are both given; expected one of them")
-            from .urdf import chain_from_urdf
-
             urdf = doc.string("urdf")
             urdf_path = Path(urdf) if Path(urdf).is_absolute() else Path(path).parent / urdf
             chain = chain_from_urdf(urdf_path, doc.string("base_link"), doc.string("tip_link"), path=path)

@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import MachineFileError
+from ..geometry import rpy_from_matrix
 
 __all__ = ["UrdfChain", "chain_from_urdf"]
 
@@ -109,7 +110,6 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
         Naming the machine file, the key (``urdf``, ``base_link``, ``tip_link``)
         and, for an unsupported joint, its URDF name and type.
     """
-    from .serial import rpy_from_matrix
 
     urdf_path = Path(urdf_path)
     robot = _load(urdf_path, path)

@@ -81,7 +81,7 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     Parameters
     ----------
     machine : Machine
-        As loaded from a calibrated machine file (``bayescal.machines.load_machine``):
+        As loaded from a calibrated machine file (``bayescal.machines.files.load_machine``):
         its ``calibration`` record gives the parameters' covariance and noise
         scale, its ``discrepancy`` the model discrepancy (either may be absent).
     rec : Recording

@@ -10,7 +10,6 @@ of the model fits the geometry from the tool and the sensors together.
 
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,15 +20,6 @@ from .rows import SensorSet
 
 __all__ = ["SENSOR_COLUMN", "SensorMounts", "SensorSet", "attach_sensors", "sensor_readings", "sensor_rows",
            "sensor_jacobian", "sensor_base"]
-
-
-def _layers(machine):
-    """(instrument frame or None, the SensorMounts view or the machine under it)."""
-    from ..machines.framed import InstrumentFrame
-
-    if isinstance(machine, InstrumentFrame):
-        return machine, machine.machine
-    return None, machine
 
 
 def attach_sensors(machine, rec, q: NDArray):
@@ -57,11 +47,8 @@ def attach_sensors(machine, rec, q: NDArray):
         A body the machine does not expose (naming the column and the bodies
         it has), an incomplete x/y/z set, a zero-length reading.
     """
-    frame, inner = _layers(machine)
-    inner = sensor_base(inner)  # a model's machine again: its sensors are replaced, not added twice
-    if frame is not None:
-        frame = dataclasses.replace(frame, machine=inner)
-    machine = inner if frame is None else frame
+    inner = sensor_base(machine.inside)  # a model's machine again: its sensors are replaced, not added twice
+    machine = machine.rewrapped(inner)
     readings = sensor_readings(dict(rec.aux), rec.path, rec.lines, tuple(inner.sensor_bodies))
     bodies = tuple(b for b in readings if b != "base")
     if not bodies:
@@ -77,13 +64,13 @@ def attach_sensors(machine, rec, q: NDArray):
     level = nz.sensor_mount if sensors.base_sensor else nz.base_level
     tol += (level, level)
     view = SensorMounts(inner, sensors.names, tol)
-    return (view if frame is None else dataclasses.replace(frame, machine=view)), sensors
+    return machine.rewrapped(view), sensors
 
 
 def _split(machine, theta: NDArray):
     """The chain, its part of ``theta``, the sensors' part, and where the chain's columns start."""
-    frame, view = _layers(machine)
-    off = 0 if frame is None else frame.n_frame
+    view = machine.inside
+    off = machine.n_frame
     th = np.asarray(theta, dtype=float)
     return view.base, th[..., off : off + view.n_base], th[..., off + view.n_base :], off
 

@@ -34,6 +34,10 @@ class SensorMounts(AppendedParameters):
     names: tuple[str, ...] = ()
     tolerances: tuple[float, ...] = ()
 
+    def base_machine(self) -> Machine:
+        """The machine under the mountings: a sensor's mounting is the measurement's, not the machine's."""
+        return self.base.base_machine()
+
     def appended(self):
         return tuple(ParamSpec(n, "rad", "sensor_mount") for n in self.names), np.asarray(self.tolerances, dtype=float)
 

@@ -160,7 +160,7 @@ def test_to_w_inverts_to_x_and_no_prior_decided_direction_means_no_bend():
 def test_the_posterior_gradient_matches_finite_differences_of_the_log_posterior():
     from bayescal.io import read_recording
     from bayescal.instrument import prepare_model
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     machine, model, _ = prepare_model(load_machine(EXAMPLE / "machine.toml"),
                                       read_recording(EXAMPLE / "recording.csv"), frame="fit")
@@ -182,7 +182,7 @@ def test_on_a_real_recording_the_bent_sampler_mixes_where_the_straight_one_stick
     # the bundled positioner (Apache-2.0) with the prior-decided parameters sampled too: 16 of 30 free
     from bayescal.io import read_recording
     from bayescal.instrument import prepare_model
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     machine, model, _ = prepare_model(load_machine(EXAMPLE / "machine.toml"),
                                       read_recording(EXAMPLE / "recording.csv"), frame="fit")

@@ -95,7 +95,7 @@ def test_coverage_rows_do_not_depend_on_the_number_of_workers():
 
     args = argparse.Namespace(machine=str(PRS3_FILE), seed=1234, poses=36, dof=6, n_machines=2, n_mcmc=0,
                               mcmc_steps=60, surrogate="linear", workers=1)
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from bayescal.simulate import draw_poses
 
     q = draw_poses(load_machine(PRS3_FILE), 3, np.random.default_rng(0))

@@ -73,7 +73,7 @@ def test_cli_prior_scale_option(tmp_path, capsys):
 
     from bayescal.cli import main
     from bayescal.io import read_recording
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from tests.conftest import PRS3_FILE, ROOT
 
     rec = ROOT / "examples" / "prs3" / "recording.csv"

@@ -66,7 +66,7 @@ def test_outlier_retest_uses_the_estimated_prior_scale():
     # the pose test after an empirical-Bayes MAP must use that fit's prior (lam = 1 / c^2), not the tolerances'
     from pathlib import Path
 
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from bayescal.models import model_from_recording, read_any_recording
     from bayescal.outliers import pose_test
 

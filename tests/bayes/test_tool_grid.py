@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from bayescal.bayes.tool_grid import solve_tool_points, tool_grid
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from tests.conftest import ROOT
 
 

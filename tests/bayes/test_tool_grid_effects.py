@@ -23,7 +23,7 @@ from bayescal.bayes.grid import compensation_grid
 from bayescal.bayes.tool_grid import tool_grid
 from bayescal.effects.joint_compliance import GRAVITY
 from bayescal.errors import InputError, MachineFileError
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.redundant.physics import solve_restrained
 from bayescal.redundant.restrained_recording import true_effect_values
 from bayescal.simulate import draw_errors

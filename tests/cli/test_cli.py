@@ -24,7 +24,7 @@ def test_simulate_identify_end_to_end(tmp_path, capsys):
     assert ans["rms_after"]["position"] < 0.2 * ans["rms_before"]["position"]
     assert len(ans["parameters"]) == len(truth["parameters"])
     # the calibrated machine file alone predicts the true machine on fresh poses
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     nominal, calibrated, true = load_machine(PRS3_FILE), load_machine(cal), load_machine(tmp_path / "rec.truth.toml")
     q = nominal.sample_q(200, np.random.default_rng(0))
@@ -100,7 +100,7 @@ def test_closed_pipe_does_not_cost_the_answers(monkeypatch, tmp_path):
     import os
     import sys
 
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from tests.conftest import ROOT
 
     class ClosedPipe:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bayescal.cli import main
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 
 DELTA = Path(__file__).resolve().parents[2] / "examples" / "delta" / "machine.toml"
 

@@ -12,7 +12,7 @@ import pytest
 
 from bayescal.cli import main
 from bayescal.io.constraints import write_constraints
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.simulate_constraints import simulate_distances
 
 EX = Path(__file__).resolve().parents[2] / "examples"

@@ -8,7 +8,7 @@ import pytest
 from bayescal.cli import main
 from bayescal.cli.diagnose import effect_inputs
 from bayescal.errors import InputError
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from tests.conftest import PRS3_FILE
 
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from bayescal.cli import main
 from bayescal.io import read_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from tests.conftest import PRS3_FILE
 
 

@@ -8,7 +8,7 @@ import pytest
 from bayescal.cli import main
 from bayescal.effects.stored import StoredEffectsTransform
 from bayescal.io.recording import write_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.simulate import simulate_recording
 from tests.conftest import PRS3_FILE
 

@@ -5,7 +5,7 @@ import json
 import numpy as np
 
 from bayescal.cli import main
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.redundant.restrained_recording import true_effect_values
 from bayescal.simulate import draw_errors
 from tests.conftest import PRS3_FILE, ROOT

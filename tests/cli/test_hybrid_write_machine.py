@@ -6,7 +6,7 @@ import tomllib
 import numpy as np
 
 from bayescal.cli import main
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from tests.conftest import ROOT
 
 HYB = ROOT / "examples" / "hybrid_table"

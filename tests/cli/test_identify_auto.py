@@ -8,7 +8,7 @@ import pytest
 from bayescal.cli import main
 from bayescal.identify.choose import DEFAULT_RULE, RULES, choose_regularisation
 from bayescal.io import read_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.measurement import MeasurementModel
 from tests.conftest import PRS3_FILE, ROOT
 
@@ -66,7 +66,7 @@ def test_auto_lambda_reports_rms_before_against_the_start():
     from bayescal.identify import identify
     from bayescal.identify.choose import choose_regularisation
     from bayescal.io import read_recording
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from bayescal.measurement import MeasurementModel
     from tests.conftest import PRS3_FILE, ROOT
 

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from bayescal.cli import main
 from bayescal.io import read_recording, write_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from tests.conftest import PRS3_FILE
 from tests.instrument.frames import random_frame, to_instrument
 

@@ -10,7 +10,8 @@ import pytest
 
 from bayescal.cli import main
 from bayescal.errors import InputError
-from bayescal.machines import load_machine, write_machine_files
+from bayescal.machines import write_machine_files
+from bayescal.machines.files import load_machine
 from tests.conftest import PRS3_FILE, ROOT
 
 REC = ROOT / "examples" / "prs3" / "recording.csv"

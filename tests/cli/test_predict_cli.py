@@ -12,7 +12,7 @@ from bayescal.cli import main
 from bayescal.geometry import so3_exp, so3_log
 from bayescal.io import read_recording
 from bayescal.io.recording import write_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.machines.framed import Frame
 from bayescal.prediction.recording import predict_recording
 from bayescal.simulate import simulate_recording

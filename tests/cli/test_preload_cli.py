@@ -7,7 +7,7 @@ import numpy as np
 from bayescal.cli import main
 from bayescal.io import read_recording
 from bayescal.io.recording import write_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.redundant.restrained_recording import restrained_recording
 from tests.conftest import ROOT
 

@@ -4,7 +4,7 @@ as a URDF whose yourdfpy kinematics is the calibrated machine file's; other kind
 import numpy as np
 
 from bayescal.cli import main
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from tests.conftest import ROOT
 from tests.machines.test_mimic import TELESCOPE
 

@@ -13,7 +13,7 @@ from bayescal.compare.trial import trial_rng
 from bayescal.constraint_model import ConstraintModel
 from bayescal.errors import InputError
 from bayescal.io.constraints import ConstraintRecording, read_constraints, write_constraints
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.simulate import draw_poses
 from bayescal.simulate_constraints import simulate_ballbar, simulate_distances
 

@@ -149,7 +149,7 @@ def test_cli_plan_exact_bound(tmp_path, capsys):
 
 
 def test_exact_bound_refuses_many_actuators():
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     arm = load_machine("examples/arm6/machine.toml")
     with pytest.raises(InputError, match="practical up to 4 actuators; this machine has 6"):

@@ -5,7 +5,7 @@ import numpy as np
 from bayescal.constraint_model import ConstraintModel
 from bayescal.design.relations import _given_rows, plan_relations
 from bayescal.io.constraints import read_constraints
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from tests.conftest import PRS3_FILE
 
 

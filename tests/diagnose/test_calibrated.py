@@ -11,7 +11,7 @@ from bayescal.effects import fit_map, get_effect
 from bayescal.effects.simulate import simulate_with_effects
 from bayescal.effects.stored import machine_file_text
 from bayescal.identify import identify
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import draw_poses
 
@@ -93,7 +93,7 @@ def test_write_puts_a_hybrid_in_module_files_and_keeps_its_header(tmp_path):
     import tomllib
 
     from bayescal.diagnose.calibrated import CalibratedMachine
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from tests.conftest import ROOT
 
     nominal = load_machine(ROOT / "examples" / "hybrid_table" / "machine.toml")

@@ -134,7 +134,7 @@ RASPM_FILE = PRS3_FILE.parent.parent / "raspm" / "machine.toml"
 
 def test_redundancy_preload_direction_is_an_internal_force_on_the_raspm():
     from bayescal.effects import get_effect
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     m = load_machine(RASPM_FILE)
     sim = simulate_with_effects(m, 12, seed=4, dof=6)
@@ -149,7 +149,7 @@ def test_redundancy_preload_direction_is_an_internal_force_on_the_raspm():
 
 
 def test_clean_raspm_names_no_effect():
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     m = load_machine(RASPM_FILE)
     sim = simulate_with_effects(m, 40, seed=5, dof=6)
@@ -206,7 +206,7 @@ def test_raspm_preload_signature_is_nearly_but_not_exactly_geometric(dof):
     # docs/diagnose.md: about 99 % of the preload's signature lies in the span of the geometric
     # parameters, so a preload is visible only from deflections of some hundred um; but it is not
     # exactly absorbed (the joint system has full column rank), so it is identifiable in principle
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     frac = _raspm_signature_fractions(load_machine(RASPM_FILE), dof)
     assert np.all(frac < 0.05), frac
@@ -217,7 +217,7 @@ def test_raspm_preload_unabsorbed_part_is_second_order_in_the_workspace_size():
     # why 99 % is absorbed: d_i nu_i(x) = constant (an actuator zero offset) + linear in the pose
     # (spanned by each chain's rail, tilt, link and platform-joint parameters) + O(|x - x0|^2);
     # only the quadratic remainder is left, so halving the workspace quarters it
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     text = RASPM_FILE.read_text()
     rng_lines = {"x = [-300.0, 300.0]": (300.0, "x"), "z = [-200.0, 200.0]": (200.0, "z"),
@@ -234,7 +234,7 @@ def test_raspm_preload_unabsorbed_part_is_second_order_in_the_workspace_size():
 
 
 def test_recording_of_another_machine_is_a_clear_error(prs3):
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     sim = simulate_with_effects(prs3, 20, seed=3, dof=3)
     short = machine_from_text(PRS3_FILE.read_text().replace("link_length    = 400.0", "link_length    = 120.0"), "short.toml")

@@ -12,7 +12,7 @@ from bayescal.constraint_model import ConstraintModel
 from bayescal.diagnose import diagnose
 from bayescal.diagnose.calibrated import calibrated_machine
 from bayescal.io.constraints import ConstraintRecording
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.simulate import draw_errors, draw_poses
 from bayescal.simulate_constraints import simulate_distances
 from tests.physics.nut_screw import LostMotion

@@ -6,7 +6,7 @@ import pytest
 from bayescal.diagnose import diagnose
 from bayescal.diagnose.calibrated import calibrated_machine
 from bayescal.effects.stored import predict_poses
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.redundant.physics import solve_restrained
 from bayescal.redundant.restrained_recording import restrained_recording
 from bayescal.io.recording import Recording

@@ -13,7 +13,7 @@ from bayescal.discrepancy import fit as F
 from bayescal.discrepancy import fit_discrepancy
 from bayescal.discrepancy.kernel import farthest_points, nystrom_features, se_kernel
 from bayescal.identify.calibrate import calibrate
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import simulate_recording
 

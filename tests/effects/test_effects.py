@@ -168,7 +168,7 @@ def test_nonphysical_flags_only_parameters_significantly_below_their_bound(prs3)
 def test_preload_compliance_ratios_must_not_be_negative():
     # a compliance ratio c_s / c_r is a ratio of two positive compliances; the offset and geometry take either sign
     from bayescal.effects import get_effect as ge
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from tests.conftest import ROOT
 
     m = load_machine(ROOT / "examples" / "raspm" / "machine.toml")
@@ -186,7 +186,7 @@ def test_preload_compliance_ratios_must_not_be_negative():
 def test_joint_compliance_inadmissible_when_no_drive_carries_the_weight():
     # RU-PUS-PRS: a weight at the platform origin (the centre of the passive post's universal joint) loads
     # only the post; a changing payload at the tool point (50 mm above it) loads the drives through its moment
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from tests.conftest import PRS3_FILE
 
     m = load_machine(PRS3_FILE.parent.parent / "rupus_prs" / "machine.toml")
@@ -200,7 +200,7 @@ def test_joint_compliance_inadmissible_when_no_drive_carries_the_weight():
 
 
 def test_simulating_an_effect_that_cannot_act_is_an_error():
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from tests.conftest import PRS3_FILE
 
     m = load_machine(PRS3_FILE.parent.parent / "rupus_prs" / "machine.toml")

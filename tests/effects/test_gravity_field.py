@@ -8,7 +8,7 @@ import pytest
 from bayescal.effects import get_effect
 from bayescal.effects.gravity_field import gravity_per_pose, tilt_basis, tilted_gravity
 from bayescal.errors import InputError
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 
 ROOT = Path(__file__).resolve().parents[2]
 TELESCOPE = ROOT / "examples" / "telescope" / "machine.toml"
@@ -84,7 +84,7 @@ def test_a_base_sensor_drives_each_pose_with_its_own_gravity(rng, name):
 def test_links_stated_unknown_are_fitted_and_read_back_from_a_table(rng, name):
     from bayescal.effects import check_effect
     from bayescal.effects.stored import StoredEffect, machine_file_text, predict_poses
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     m = load_machine(TELESCOPE)
     com = [[0, 0, 20.0], [40.0, 0, 10], [100.0, 0, 0], [20.0, 5, 0]]

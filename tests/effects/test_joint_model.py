@@ -235,7 +235,7 @@ def test_parameters_not_sampled_stay_where_the_answer_holds_them(prs3):
 ])
 def test_tables_a_machine_file_cannot_define_alone_are_refused(kind, name, mag, why):
     from bayescal.effects.simulate import simulate_with_effects
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from tests.conftest import ROOT
 
     m = load_machine(ROOT / "examples" / kind / "machine.toml")

@@ -6,7 +6,7 @@ import pytest
 from bayescal.effects import check_effect, fit_map, get_effect
 from bayescal.effects.check import EffectCheckError
 from bayescal.effects.redundancy_preload import RedundancyPreload
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.measurement import MeasurementModel
 from bayescal.redundant.physics import solve_restrained
 from bayescal.redundant.restrained_recording import restrained_recording, true_effect_values

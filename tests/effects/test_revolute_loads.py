@@ -8,7 +8,7 @@ import pytest
 
 from bayescal.effects import check_effect, get_effect
 from bayescal.effects.joint_compliance import GRAVITY
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.simulate import draw_poses
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -7,7 +7,7 @@ import pytest
 
 from bayescal.diagnose import diagnose
 from bayescal.effects import get_effect
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.machines.base import ACTUATOR_UNITS
 from bayescal.simulate import draw_errors, draw_poses, measure
 

@@ -11,7 +11,7 @@ from bayescal.effects.stored import (
     static_effect_delta_q,
 )
 from bayescal.errors import InputError, MachineFileError
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import simulate_recording
 from tests.conftest import PRS3_FILE

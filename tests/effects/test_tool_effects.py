@@ -18,7 +18,7 @@ from bayescal.effects.model import effect_columns, _slices
 from bayescal.effects.stored import StoredEffect, StoredEffectsTransform, machine_file_text, predict_poses
 from bayescal.geometry import so3_exp, so3_log
 from bayescal.io.recording import Recording
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import measure
 

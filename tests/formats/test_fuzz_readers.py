@@ -54,7 +54,7 @@ def recording_text(draw):
 def _read_and_model(path: str, text: str | None = None) -> None:
     from bayescal.instrument import prepare_model
     from bayescal.io import read_recording
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     try:
         rec = read_recording(path, text=text)
@@ -130,7 +130,7 @@ def machine_text(draw):
 @FUZZ
 @given(machine_text())
 def test_machine_files_are_read_or_refused(text):
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     try:
         m = machine_from_text(text, "fuzz.toml")
@@ -146,7 +146,7 @@ def test_machine_files_are_read_or_refused(text):
 @FUZZ
 @given(st.binary(max_size=200))
 def test_machine_file_bytes_are_read_or_refused(data):
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "m.toml"

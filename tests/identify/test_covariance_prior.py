@@ -18,7 +18,7 @@ from bayescal.identify.calibrate import calibrate
 from bayescal.identify.gauss_newton import data_determined
 from bayescal.identify.noise import check_noise, distinct_rows
 from bayescal.io import read_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.measurement import MeasurementModel
 
 EX = Path(__file__).resolve().parents[2] / "examples" / "prs3"

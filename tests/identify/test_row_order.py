@@ -7,7 +7,7 @@ import pytest
 
 from bayescal.identify.calibrate import calibrate
 from bayescal.io import read_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.measurement import MeasurementModel
 
 from ..conftest import PRS3_FILE, ROOT

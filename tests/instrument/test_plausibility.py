@@ -134,7 +134,7 @@ def test_tool_offset_of_the_check_is_the_true_one(prs3, tmp_path):
     text = (ROOT / "examples" / "prs3" / "machine.toml").read_text()
     d = np.array([1.5, -0.5, -20.0])
     (tmp_path / "long.toml").write_text(text.replace("point = [0.0, 0.0, -100.0]", "point = [1.5, -0.5, -120.0]"))
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     rec = simulate_recording(prs3, 30, seed=8, dof=3).recording
     exact = replace(rec, position=load_machine(tmp_path / "long.toml").forward(rec.q).position)
@@ -146,7 +146,7 @@ def test_tool_offset_of_the_check_is_the_true_one(prs3, tmp_path):
 def test_an_exchange_a_rotation_undoes_is_a_frame():
     """Points in a plane (the planar RASPM module moves in x and z): exchanging x and y is a turn by 90 degrees,
     so the recording is in another frame, not mirrored, and --frame fit is the right advice."""
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     m = load_machine(ROOT / "examples" / "raspm" / "machine.toml")
     rec = simulate_recording(m, 30, seed=2, dof=3).recording

@@ -5,7 +5,7 @@ import numpy as np
 from bayescal.identify import identify
 from bayescal.instrument import prepare_model
 from bayescal.instrument.alignment import align_frame, frame_start
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.simulate import measure
 from tests.instrument.frames import random_frame, to_instrument
 from tests.machines.test_serial import ARM

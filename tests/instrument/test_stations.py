@@ -13,7 +13,7 @@ from bayescal.geometry import so3_exp, so3_log
 from bayescal.identify.calibrate import calibrate
 from bayescal.instrument.prepare import prepare_model
 from bayescal.io.recording import read_recording, recording_to_csv
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.machines.framed import Frame
 from bayescal.simulate import simulate_recording
 

@@ -12,7 +12,7 @@ from bayescal.errors import RecordingError
 from bayescal.instrument import check_recording_units, prepare_model
 from bayescal.io import read_recording
 from bayescal.io.recording import recording_to_csv
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.simulate import measure, simulate_recording
 from tests.instrument.frames import random_frame, to_instrument
 

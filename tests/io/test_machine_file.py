@@ -1,7 +1,7 @@
 import pytest
 
 from bayescal.errors import MachineFileError
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from tests.conftest import PRS3_FILE
 
 GOOD = PRS3_FILE.read_text()

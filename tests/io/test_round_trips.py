@@ -10,7 +10,8 @@ from hypothesis import strategies as st
 from bayescal.io import Recording, read_recording
 from bayescal.io.recording import recording_to_csv
 from bayescal.limits import SIGMA_ANGLE_RANGE, SIGMA_POSITION_RANGE
-from bayescal.machines import Prs3, machine_from_text
+from bayescal.machines import Prs3
+from bayescal.machines.files import machine_from_text
 from bayescal.machines.base import MeasurementNoise
 from bayescal.machines.prs3 import PRS3_TOLERANCE_DEFAULTS
 

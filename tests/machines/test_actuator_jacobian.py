@@ -26,7 +26,7 @@ def test_actuator_jacobian_per_pose_theta(prs3, rng):
 
 def test_raspm_actuator_jacobian_matches_finite_differences(rng):
     # analytic dx/dq_s = J_s^-1 of the non-redundant drives; the redundant drive's column is zero
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from tests.conftest import ROOT
 
     m = load_machine(ROOT / "examples" / "raspm" / "machine.toml")

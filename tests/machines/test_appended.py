@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayescal.constraint_model import PIVOT_TOLERANCE, PivotAugmented
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.machines.appended import AppendedParameters
 
 from ..conftest import PRS3_FILE

@@ -5,7 +5,9 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 import pytest
 
-from bayescal.machines import MachineCheckError, Prs3, check_machine, load_machine
+from bayescal.machines import Prs3
+from bayescal.machines.check import MachineCheckError, check_machine
+from bayescal.machines.files import load_machine
 from tests.conftest import ROOT
 from bayescal.params import ParamLayout, ParamSpec
 

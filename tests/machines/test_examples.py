@@ -5,7 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayescal.machines import check_machine, load_machine
+from bayescal.machines.check import check_machine
+from bayescal.machines.files import load_machine
 from tests.conftest import ROOT
 
 FILES = sorted(p for p in (ROOT / "examples").glob("*/machine.toml"))

@@ -13,7 +13,8 @@ from bayescal.bayes.priors import map_estimate
 from bayescal.errors import MachineFileError
 from bayescal.geometry import so3_log
 from bayescal.instrument import align_frame, prepare_model
-from bayescal.machines import check_machine, load_machine, machine_from_text
+from bayescal.machines.check import check_machine
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.machines.framed import FRAME_NAMES, Frame, InstrumentFrame
 from bayescal.simulate import simulate_recording
 from tests.instrument.frames import random_frame, to_instrument

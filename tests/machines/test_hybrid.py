@@ -11,7 +11,9 @@ import pytest
 from bayescal.errors import MachineFileError
 from bayescal.geometry import so3_log
 from bayescal.identifiability import analyse_identifiability
-from bayescal.machines import KINDS, Hybrid, check_machine, load_machine, machine_from_text
+from bayescal.machines import KINDS, Hybrid
+from bayescal.machines.check import check_machine
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.machines.base import Machine
 from bayescal.measurement import MeasurementModel
 

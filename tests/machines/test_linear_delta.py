@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from bayescal.errors import MachineFileError
-from bayescal.machines import KINDS, LinearDelta, check_machine, load_machine, machine_from_text
+from bayescal.machines import KINDS, LinearDelta
+from bayescal.machines.check import check_machine
+from bayescal.machines.files import load_machine, machine_from_text
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "delta" / "machine.toml"
 

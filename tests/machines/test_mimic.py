@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 from bayescal.errors import InputError, MachineFileError
 from bayescal.geometry import so3_log
 from bayescal.identifiability import analyse_identifiability
-from bayescal.machines import check_machine, load_machine, machine_from_text
+from bayescal.machines.check import check_machine
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.machines.serial import Serial
 from bayescal.measurement import MeasurementModel
 

@@ -4,7 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bayescal.geometry import so3_log
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 
 
 def test_symmetric_closed_form(prs3):

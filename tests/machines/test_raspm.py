@@ -3,7 +3,8 @@ import pytest
 
 from bayescal.errors import MachineFileError
 from bayescal.geometry import so3_log
-from bayescal.machines import KINDS, load_machine, machine_from_text
+from bayescal.machines import KINDS
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.machines.raspm import Raspm
 from tests.conftest import ROOT
 

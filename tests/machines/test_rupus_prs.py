@@ -11,7 +11,8 @@ from bayescal.errors import MachineFileError
 from bayescal.geometry import rotation_from_tilt_torsion, so3_exp, so3_log, tilt_torsion_angles
 from bayescal.identifiability import analyse_identifiability
 from bayescal.identify import identify
-from bayescal.machines import KINDS, load_machine, machine_from_text
+from bayescal.machines import KINDS
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.machines.rupus_prs import RupusPrs, rotate_about
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import measure, simulate_recording

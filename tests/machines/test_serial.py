@@ -7,7 +7,9 @@ from scipy.spatial.transform import Rotation
 
 from bayescal.errors import MachineFileError
 from bayescal.identifiability import analyse_identifiability
-from bayescal.machines import KINDS, check_machine, machine_from_text
+from bayescal.machines import KINDS
+from bayescal.machines.check import check_machine
+from bayescal.machines.files import machine_from_text
 from bayescal.machines.serial import Serial, rpy_from_matrix, rpy_matrix
 from bayescal.measurement import MeasurementModel
 

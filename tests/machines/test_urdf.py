@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from bayescal.errors import MachineFileError
-from bayescal.machines import check_machine, load_machine, machine_from_text
+from bayescal.machines.check import check_machine
+from bayescal.machines.files import load_machine, machine_from_text
 
 URDF = """<?xml version="1.0"?>
 <robot name="test_arm">

@@ -7,7 +7,7 @@ import pytest
 
 from bayescal.effects import get_effect
 from bayescal.effects.stored import machine_file_text
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from tests.machines.test_urdf import FROM_URDF, URDF
 
 # masses (kg) and centres of mass (m, rpy ignored by the centre) of links on and off the chain: the pedestal is

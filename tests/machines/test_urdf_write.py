@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayescal.errors import InputError
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.machines.framed import Frame, InstrumentFrame
 from bayescal.machines.urdf_write import urdf_text, write_calibrated_urdf
 from tests.conftest import ROOT

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayescal.geometry import so3_log
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.machines.framed import Frame, InstrumentFrame
 from bayescal.simulate import draw_poses
 from tests.conftest import ROOT

@@ -5,7 +5,7 @@ import pytest
 
 from bayescal.diagnose import diagnose
 from bayescal.effects.backlash import play_operator
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.simulate import draw_poses, measure
 from tests.physics.nut_screw import LostMotion, NutScrew
 from tests.physics.statics_3prs import random_prs3_text

@@ -6,7 +6,7 @@ import pytest
 from bayescal.diagnose import diagnose
 from bayescal.effects import get_effect
 from bayescal.effects.joint_compliance import GRAVITY, gravity_direction
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.simulate import draw_poses, measure
 from tests.physics.statics_3prs import CompliantDrives, GravityLoad, deflected_q, link_forces, random_prs3_text, tilted_down
 

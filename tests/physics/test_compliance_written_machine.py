@@ -21,7 +21,7 @@ from bayescal.diagnose import diagnose
 from bayescal.diagnose.calibrated import calibrated_machine
 from bayescal.diagnose.confound import geometry_confound
 from bayescal.effects import fit_map, get_effect
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import draw_poses, measure
 from tests.physics.statics_3prs import CompliantDrives, GravityLoad, random_prs3_text, tilted_down

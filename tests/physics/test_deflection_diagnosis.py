@@ -17,7 +17,7 @@ from bayescal.effects import fit_map
 from bayescal.effects.stored import predict_poses
 from bayescal.geometry import so3_log
 from bayescal.io.recording import write_recording
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import draw_errors, draw_poses, measure
 from tests.physics.beam_statics import Member, MimicChain, deflected_tool

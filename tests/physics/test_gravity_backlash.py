@@ -14,7 +14,7 @@ import pytest
 
 from bayescal.effects import check_effect, get_effect
 from bayescal.effects.gravity_backlash import gravity_play
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from pathlib import Path
 
 G = 9.80665

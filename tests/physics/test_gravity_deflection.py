@@ -14,7 +14,7 @@ import pytest
 
 from bayescal.effects import check_effect, get_effect
 from bayescal.effects.gravity_deflection import FLEX_PER_BENDING, member_response
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.simulate import draw_errors
 from tests.physics.beam_statics import Member, MimicChain, deflected_tool, generalized_gravity, rotvec
 

@@ -15,7 +15,7 @@ import pytest
 from bayescal.cli import main
 from bayescal.effects import fit_map, get_effect
 from bayescal.io.recording import write_recording
-from bayescal.machines import load_machine, machine_from_text
+from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import draw_errors, draw_poses, measure
 from tests.physics.serial_statics import Chain, CompliantJoints, Weights, gravity_torques

@@ -6,7 +6,7 @@ import pytest
 from bayescal.diagnose import diagnose
 from bayescal.effects import get_effect
 from bayescal.effects.thermal_expansion import link_factors
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.simulate import draw_poses, measure
 from tests.physics.statics_3prs import random_prs3_text
 from tests.physics.thermal_growth import PartGrowth

@@ -10,7 +10,7 @@ import pytest
 from bayescal.geometry import so3_exp, so3_log
 from bayescal.identify import identify
 from bayescal.instrument.prepare import prepare_session
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.machines.framed import Frame
 from bayescal.measurement import MeasurementModel
 from bayescal.prediction.engine import predictive_rows

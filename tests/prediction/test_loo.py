@@ -9,7 +9,7 @@ import pytest
 
 from bayescal.identify import identify
 from bayescal.identify.calibrate import calibrate
-from bayescal.machines import machine_from_text
+from bayescal.machines.files import machine_from_text
 from bayescal.measurement import MeasurementModel
 from bayescal.prediction.engine import predictive_rows
 from bayescal.prediction.loo import loo_distances

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bayescal.errors import InputError
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.redundant import PoseModel, TrueModule
 from bayescal.redundant.grid_std import predicted_grid
 from bayescal.redundant.models import ZeroPosition

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from bayescal.errors import RecordingError
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.redundant import PoseModel, TrueModule, applicable_error_model, geometric_error_model, solve_restrained
 from bayescal.redundant.relative_io import read_relative_recording, relative_to_csv
 from bayescal.redundant.steps import INSTRUMENTS, design_rm1, identify_step, measure_relative

@@ -66,7 +66,7 @@ def test_residual_rows_and_outliers_marked(reports):
     """A result with an ``outliers`` list (0-based poses) gets those rows marked."""
     from bayescal.identify import identify
     from bayescal.io import read_recording
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from bayescal.measurement import MeasurementModel
     from tests.conftest import PRS3_FILE, ROOT
 
@@ -156,7 +156,7 @@ def test_noise_yardstick_of_a_distance_and_height_recording_is_sigma():
 
     from bayescal.constraint_model import ConstraintModel
     from bayescal.identify import identify
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from bayescal.machines.base import MeasurementNoise
     from bayescal.simulate_constraints import simulate_distances
     from tests.conftest import PRS3_FILE
@@ -174,7 +174,7 @@ def test_noise_yardstick_of_a_distance_and_height_recording_is_sigma():
 
 def _delta_ballbar():
     from bayescal.constraint_model import ConstraintModel
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
     from bayescal.simulate_constraints import simulate_ballbar
     from tests.conftest import ROOT
 

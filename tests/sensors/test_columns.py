@@ -101,7 +101,7 @@ def test_a_kind_without_bodies_refuses_a_body_sensor(tmp_path, capsys):
 
 def test_measurement_keys_are_read_written_and_checked(tmp_path):
     from bayescal.errors import MachineFileError
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     p = tmp_path / "m.toml"
     p.write_text(machine_text(JOINTS, sigma_tilt=3e-5, extra="base_level = 5.0e-5"))

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from bayescal.geometry import so3_exp, so3_log
 from bayescal.identify.calibrate import calibrate
 from bayescal.io.recording import Recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 from bayescal.measurement import MeasurementModel
 
 from .chain import JOINTS, machine_text, poses, transforms

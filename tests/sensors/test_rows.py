@@ -21,7 +21,7 @@ TRUTH = (
 
 
 def _machine(tmp_path, joints=JOINTS, **kw):
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     p = tmp_path / "m.toml"
     p.write_text(machine_text(joints, **kw))
@@ -140,7 +140,7 @@ def test_urdf_links_are_bodies_with_yourdfpy_orientations(tmp_path):
     """A sensor on a URDF link after fixed joints: its orientation is yourdfpy's transform (an independent chain)."""
     import yourdfpy
 
-    from bayescal.machines import load_machine
+    from bayescal.machines.files import load_machine
 
     (tmp_path / "column.urdf").write_text(URDF)
     (tmp_path / "m.toml").write_text('kind = "serial"\nurdf = "column.urdf"\nbase_link = "floor"\ntip_link = "arm"\n\n'

@@ -13,7 +13,8 @@ from scipy.optimize import least_squares
 
 from bayescal.geometry import so3_exp, so3_log
 from bayescal.io.recording import read_recording
-from bayescal.machines import check_machine, load_machine
+from bayescal.machines.check import check_machine
+from bayescal.machines.files import load_machine
 from tests.studies.conftest import load_study
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from bayescal.io import read_recording
-from bayescal.machines import load_machine
+from bayescal.machines.files import load_machine
 
 from ..conftest import ROOT
 from .conftest import load_study

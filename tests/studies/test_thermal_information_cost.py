@@ -48,7 +48,7 @@ def test_sampling_covariance_matches_noise_draws():
 
 def test_sequences_and_library_recording():
     from bayescal.effects.simulate import simulate_with_effects
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     st = _study()
     mod = st._concealed()
@@ -94,7 +94,7 @@ def test_quick_run_writes_the_table(tmp_path):
 
 
 def test_physics_sequence_hook_keeps_the_other_draws():
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     st = _study()
     mod = st._concealed()

@@ -21,7 +21,7 @@ def test_variants_change_only_the_start_and_the_channels():
 
 
 def test_start_override_keeps_the_other_draws_and_truth_at_temperature():
-    from bayescal.machines import machine_from_text
+    from bayescal.machines.files import machine_from_text
 
     st = _study()
     mod = st._concealed()

@@ -1,0 +1,33 @@
+"""The diagnosis as the front door calls it: a machine file or Machine, and a recording path or Recording."""
+
+from __future__ import annotations
+
+import os
+
+from ..machines import Machine
+from ..machines.files import load_machine
+from ..models import read_any_recording
+from .core import diagnose as diagnose_model
+
+__all__ = ["diagnose_files"]
+
+
+def diagnose_files(machine: str | os.PathLike | Machine, recording, **options):
+    """Locate a model mismatch, name the missing physics, model it, as ``bayescal diagnose`` does.
+
+    Parameters
+    ----------
+    machine : path or Machine
+        Machine file (docs/formats.md sections 1, 5, 7) or a machine.
+    recording : path or Recording or ConstraintRecording
+        A pose or constraint recording (sections 2, 4, 6, 8).
+    **options
+        Of :func:`bayescal.diagnose.diagnose`.
+
+    Returns
+    -------
+    bayescal.diagnose.Diagnosis
+    """
+    m = machine if isinstance(machine, Machine) else load_machine(machine)
+    rec = read_any_recording(recording) if isinstance(recording, (str, os.PathLike)) else recording
+    return diagnose_model(m, rec, **options)
