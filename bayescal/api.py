@@ -55,7 +55,7 @@ def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Re
 
     Returns
     -------
-    bayescal.instrument.prepare.Session or bayescal.constraint_model.ConstraintModel
+    bayescal.instrument.prepare.Session or bayescal.constraints.model.ConstraintModel
         ``.fit_model`` (the rows to identify from), ``.check_model`` (held-out rows), ``.machine``, ``.check``
         (the rigid-transform check: ``check.fires`` suggests ``frame="fit"``); a constraint recording
         (section 6: heights, distances, ballbar radii) gives its model, which :func:`calibrate` takes as well.
@@ -66,7 +66,7 @@ def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Re
         from .io.constraints import is_constraint_recording
 
         if is_constraint_recording(recording):
-            from .constraint_model import load_constraint_model
+            from .constraints.model import load_constraint_model
 
             return load_constraint_model(_machine(machine), recording, frame=frame, dof=dof)[1]
 

@@ -39,7 +39,7 @@ def read_any_recording(path: str | os.PathLike, *, text: str | None = None) -> R
 
 
 def model_from_recording(machine: Machine, rec: Recording | ConstraintRecording, *, dof: int | None = None, check: bool = True):
-    """The measurement model of ``rec``: a :class:`~bayescal.constraint_model.ConstraintModel` for measured
+    """The measurement model of ``rec``: a :class:`~bayescal.constraints.model.ConstraintModel` for measured
     relations, a :class:`~bayescal.measurement.MeasurementModel` for measured poses.
 
     ``check`` rows (a ``role`` column, docs/formats.md section 8) are left out: the model is of the
@@ -50,7 +50,7 @@ def model_from_recording(machine: Machine, rec: Recording | ConstraintRecording,
     measured poses only with ``check``; a constraint recording is always checked).
     """
     if isinstance(rec, ConstraintRecording):
-        from .constraint_model import ConstraintModel
+        from .constraints.model import ConstraintModel
 
         return ConstraintModel.from_recording(machine, rec, dof=dof)
     from .measurement import MeasurementModel, check_recording_solves

@@ -40,14 +40,14 @@ sys.path.insert(0, str(ROOT / "studies"))
 from studies.targets import exit_code, verdict  # noqa: E402
 
 from bayescal.bayes.map_identify import identify_map  # noqa: E402
-from bayescal.constraint_model import ConstraintModel  # noqa: E402
+from bayescal.constraints.model import ConstraintModel  # noqa: E402
 from bayescal.design.relations import plan_relations  # noqa: E402
 from bayescal.identifiability import analyse_identifiability  # noqa: E402
-from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, parse_klipper_text, read_klipper_config  # noqa: E402
+from bayescal.klipper.cfg import AUTOSAVE_HEADER, parse_klipper_text, read_klipper_config  # noqa: E402
 from bayescal.klipper import klipper_machine, klipper_recording, read_klipper_delta  # noqa: E402
-from bayescal.klipper_keys import klipper_values  # noqa: E402
-from bayescal.klipper_fit import KLIPPER_PARAMS, _values, _with  # noqa: E402
-from bayescal.klipper_loo import klipper_predict, loo_bayescal, loo_klipper, rms  # noqa: E402
+from bayescal.klipper.keys import klipper_values  # noqa: E402
+from bayescal.klipper.baseline import KLIPPER_PARAMS, _values, _with  # noqa: E402
+from bayescal.klipper.loo import klipper_predict, loo_bayescal, loo_klipper, rms  # noqa: E402
 from bayescal.params import ParamLayout, ParamSpec  # noqa: E402
 
 import delta_klipper_floor as floor  # noqa: E402  (studies/ is on sys.path when run as a script)

@@ -3,7 +3,7 @@
 Part of ``studies/delta_klipper.py``.  The delta model linearised at the
 printer's geometry (``y = J theta + e``; checked against the nonlinear fits
 on the same draws by :func:`nonlinear_check`) makes every leave-one-out
-error a matrix times the data (:mod:`bayescal.loo_linear`), so the
+error a matrix times the data (:mod:`studies.loo_linear`), so the
 calibrations are compared on the same splits, the same printers and the
 same noise:
 
@@ -32,10 +32,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.identifiability import analyse_identifiability
-from bayescal.klipper_fit import KLIPPER_PARAMS, MEASURE_WEIGHT
-from bayescal.loo_linear import (
+from bayescal.klipper.baseline import KLIPPER_PARAMS, MEASURE_WEIGHT
+from studies.loo_linear import (
     evidence_map_gain, expected_sq_error, log_evidence, loo_errors, loo_operator, map_gain, wls_gain,
 )
 

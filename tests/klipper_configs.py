@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayescal.io.klipper_cfg import AUTOSAVE_HEADER
+from bayescal.klipper.cfg import AUTOSAVE_HEADER
 
 R = 100.123456
 ANGLES = np.array([210.1, 329.8, 90.0])

@@ -62,7 +62,7 @@ def test_load_takes_a_constraint_recording(tmp_path, capsys):
     rec = tmp_path / "h.csv"
     rec.write_text("\n".join(rows) + "\n")
     model = bayescal.load(machine, rec)
-    from bayescal.constraint_model import ConstraintModel
+    from bayescal.constraints.model import ConstraintModel
 
     assert isinstance(model, ConstraintModel) and model.n_poses == 30
     out = tmp_path / "a.json"

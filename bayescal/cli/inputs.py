@@ -26,7 +26,7 @@ def recording_model(args: argparse.Namespace, *, constraints: bool = False) -> t
     Raises a BayescalError naming the recording's file and line when the
     machine cannot assemble one of its poses at the nominal geometry.  A
     constraint recording (docs/formats.md section 6, a ``measure`` column) gives a
-    :class:`~bayescal.constraint_model.ConstraintModel` when the command
+    :class:`~bayescal.constraints.model.ConstraintModel` when the command
     takes one (``constraints=True``), and a clear error otherwise.
     With ``args.frame`` (``--frame base|fit``) see :func:`instrument_inputs`.
     """
@@ -53,7 +53,7 @@ def _constraint_inputs(args: argparse.Namespace, machine: Machine, constraints: 
 
     if not is_constraint_recording(args.recording):
         return None
-    from ..constraint_model import load_constraint_model
+    from ..constraints.model import load_constraint_model
     from ..errors import InputError
 
     if not constraints:

@@ -67,7 +67,7 @@ def write_calibrated_files(args, machine, res, plaus: Plausibility) -> None:
         write_calibrated_machine(args, machine, theta)  # [effect.*] and [instrument] kept
     if getattr(args, "write_klipper", None) and res.success and plaus.plausible:
         from ..io import write_text_atomic
-        from ..klipper_keys import klipper_text
+        from ..klipper.keys import klipper_text
 
         say(args, f"wrote {write_text_atomic(args.write_klipper, klipper_text(machine, theta))} (Klipper keys)")
     if getattr(args, "write_urdf", None) and res.success and (plaus.plausible or getattr(args, "force", False)):

@@ -81,8 +81,8 @@ _TOLERANCE_NOTE = """\
 
 def run(args) -> int:
     from ..errors import InputError
-    from ..io.klipper_cfg import read_klipper_config
-    from ..klipper import SIGMA_DISTANCE, SIGMA_HEIGHT, klipper_machine, klipper_recording, read_klipper_delta
+    from ..klipper.cfg import read_klipper_config
+    from ..klipper.printer import SIGMA_DISTANCE, SIGMA_HEIGHT, klipper_machine, klipper_recording, read_klipper_delta
     from . import EXIT_OK
 
     sh = SIGMA_HEIGHT if args.sigma_height is None else args.sigma_height

@@ -193,7 +193,7 @@ def _run_ballbar(args, machine) -> int:
     """``simulate --ballbar``: circles about a pivot, read as distances (a constraint recording)."""
     from . import EXIT_OK
     from ..io.constraints import constraints_to_csv
-    from ..simulate_constraints import simulate_ballbar
+    from ..constraints.simulate import simulate_ballbar
 
     if args.effect or args.aux or args.dof != 6:
         raise InputError("--ballbar records distances to a pivot; it does not take --effect, --aux or --dof")

@@ -4,7 +4,7 @@ Candidates are *relations*, not poses: a probe height at a point of a
 horizontal grid, or the distance between two grid points (a caliper on a
 printed part, a length bar).  Each candidate contributes one row of the
 whitened, tolerance-scaled Jacobian ``a = J diag(tol) / sigma``
-(:class:`bayescal.constraint_model.ConstraintModel`), and the selection is
+(:class:`bayescal.constraints.model.ConstraintModel`), and the selection is
 the same greedy rank-one update as for poses
 (:func:`bayescal.design.select.greedy_select`), started from the information
 the user already has: ``M0 = I + A_given^T A_given`` (the tolerance prior
@@ -27,12 +27,12 @@ from itertools import combinations
 import numpy as np
 from numpy.typing import NDArray
 
-from ..constraint_model import ConstraintModel
+from ..constraints.model import ConstraintModel
 from ..errors import InputError
 from ..identifiability import analyse_identifiability
 from ..io.constraints import ConstraintRecording
 from ..machines.base import Machine
-from ..simulate_constraints import solve_q_for_points
+from ..constraints.simulate import solve_q_for_points
 from .criteria import check_criterion
 from .select import greedy_select
 

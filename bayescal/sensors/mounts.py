@@ -4,7 +4,7 @@ The measurement model's machine when a recording has body sensors: what
 identification reads (``layout``, ``tolerance``, ``n_params``, ``to_toml``)
 covers the geometry and the sensors' parameters, appended last; the
 kinematics are the machine's, which the mountings do not move.  Like the
-ballbar pivots (:class:`bayescal.constraint_model.PivotAugmented`), the
+ballbar pivots (:class:`bayescal.constraints.model.PivotAugmented`), the
 sensors' parameters are nuisance: :attr:`geometry_part` leaves them out and
 the calibrated machine file does not hold them.
 """

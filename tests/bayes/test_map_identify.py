@@ -8,11 +8,11 @@ import numpy as np
 from bayescal.bayes.map_identify import MIN_ROWS_PER_PARAM, default_prior_scale, identify_map
 from bayescal.bayes.priors import map_estimate
 from bayescal.cli import main
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.io.constraints import constraints_to_csv
 from bayescal.klipper import klipper_machine
 from bayescal.machines.base import MeasurementNoise
-from tests.test_klipper_loo import NOMINAL, TRUE, _pattern_on
+from tests.klipper.test_loo import NOMINAL, TRUE, _pattern_on
 
 
 def _printer(noise_given: bool):

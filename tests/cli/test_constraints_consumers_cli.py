@@ -13,7 +13,7 @@ import pytest
 from bayescal.cli import main
 from bayescal.io.constraints import write_constraints
 from bayescal.machines.files import load_machine
-from bayescal.simulate_constraints import simulate_distances
+from bayescal.constraints.simulate import simulate_distances
 
 EX = Path(__file__).resolve().parents[2] / "examples"
 # kind: (machine file, simulate arguments or None for distances and heights)
@@ -153,7 +153,7 @@ def test_identify_writes_the_machine_of_a_ballbar_recording(tmp_path, method, in
 
 def test_kalman_writes_klipper_keys_as_the_other_methods(tmp_path):
     # --write-klipper was silently ignored by kalman and mcmc (exit 0, no file); the keys are the geometry's
-    from bayescal.klipper_keys import klipper_text
+    from bayescal.klipper.keys import klipper_text
 
     delta = EX / "delta"
     cfg = tmp_path / "k.cfg"

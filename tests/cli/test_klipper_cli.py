@@ -8,7 +8,7 @@ import json
 import numpy as np
 
 from bayescal.cli import main
-from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, read_klipper_config
+from bayescal.klipper.cfg import AUTOSAVE_HEADER, read_klipper_config
 from bayescal.klipper import read_klipper_delta
 from tests import klipper_configs as synth
 

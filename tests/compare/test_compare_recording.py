@@ -10,12 +10,12 @@ import pytest
 from bayescal.cli import main
 from bayescal.compare import compare_methods
 from bayescal.compare.trial import trial_rng
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.errors import InputError
 from bayescal.io.constraints import ConstraintRecording, read_constraints, write_constraints
 from bayescal.machines.files import load_machine
 from bayescal.simulate import draw_poses
-from bayescal.simulate_constraints import simulate_ballbar, simulate_distances
+from bayescal.constraints.simulate import simulate_ballbar, simulate_distances
 
 DELTA = Path(__file__).resolve().parents[2] / "examples" / "delta" / "machine.toml"
 

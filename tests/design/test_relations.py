@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from bayescal.cli import main
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.design.relations import grid_points, plan_relations, relation_candidates
 from bayescal.errors import RecordingError
 from bayescal.io.constraints import read_constraints
 from bayescal.machines.files import load_machine
-from bayescal.simulate_constraints import simulate_distances
+from bayescal.constraints.simulate import simulate_distances
 
 DELTA = Path(__file__).resolve().parents[2] / "examples" / "delta" / "machine.toml"
 

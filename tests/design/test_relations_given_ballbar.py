@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.design.relations import _given_rows, plan_relations
 from bayescal.io.constraints import read_constraints
 from bayescal.machines.files import load_machine

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.diagnose import diagnose
 from bayescal.diagnose.calibrated import calibrated_machine
 from bayescal.io.constraints import ConstraintRecording
 from bayescal.machines.files import load_machine, machine_from_text
 from bayescal.simulate import draw_errors, draw_poses
-from bayescal.simulate_constraints import simulate_distances
+from bayescal.constraints.simulate import simulate_distances
 from tests.physics.nut_screw import LostMotion
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -107,7 +107,7 @@ def test_ballbar_session_with_lost_motion_reports_the_written_geometry():
     # a ballbar model carries its pivot's 3 coordinates after the machine's parameters: the written
     # geometry's uncertainty is of the machine's parameters alone, and the trade-off's effect components
     # are the effect's (before: machine.forward with the pivots' theta raised InputError)
-    from bayescal.simulate_constraints import circle_points, solve_q_for_points
+    from bayescal.constraints.simulate import circle_points, solve_q_for_points
 
     m = load_machine(PRS3)
     rng = np.random.default_rng(3)

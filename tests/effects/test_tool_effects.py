@@ -127,7 +127,7 @@ def test_effect_columns_of_a_pose_model_equal_finite_differences(rng):
 
 
 def test_constraint_recordings_see_the_tool_moved(rng):
-    from bayescal.constraint_model import ConstraintModel
+    from bayescal.constraints.model import ConstraintModel
     from bayescal.io.constraints import ConstraintRecording
 
     base = machine_from_text(TELESCOPE, "t.toml")

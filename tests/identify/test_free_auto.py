@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 
 from bayescal.compare import compare_methods
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.errors import InputError
 from bayescal.identify import identify, resolve_free
 from bayescal.io.constraints import write_constraints
 from bayescal.machines.files import load_machine
-from bayescal.simulate_constraints import simulate_ballbar, simulate_distances
+from bayescal.constraints.simulate import simulate_ballbar, simulate_distances
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bayescal.constraint_model import PIVOT_TOLERANCE, PivotAugmented
+from bayescal.constraints.model import PIVOT_TOLERANCE, PivotAugmented
 from bayescal.machines.files import load_machine
 from bayescal.machines.appended import AppendedParameters
 

@@ -154,11 +154,11 @@ def test_noise_yardstick_of_a_distance_and_height_recording_is_sigma():
     # machine that states no noise gets no yardstick
     from dataclasses import replace
 
-    from bayescal.constraint_model import ConstraintModel
+    from bayescal.constraints.model import ConstraintModel
     from bayescal.identify import identify
     from bayescal.machines.files import load_machine
     from bayescal.machines.base import MeasurementNoise
-    from bayescal.simulate_constraints import simulate_distances
+    from bayescal.constraints.simulate import simulate_distances
     from tests.conftest import PRS3_FILE
 
     m = load_machine(PRS3_FILE)
@@ -173,9 +173,9 @@ def test_noise_yardstick_of_a_distance_and_height_recording_is_sigma():
 
 
 def _delta_ballbar():
-    from bayescal.constraint_model import ConstraintModel
+    from bayescal.constraints.model import ConstraintModel
     from bayescal.machines.files import load_machine
-    from bayescal.simulate_constraints import simulate_ballbar
+    from bayescal.constraints.simulate import simulate_ballbar
     from tests.conftest import ROOT
 
     m = load_machine(ROOT / "examples" / "delta" / "machine.toml")

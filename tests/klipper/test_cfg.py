@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from bayescal.errors import BayescalError
-from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, KlipperConfigError, parse_klipper_text, read_klipper_config
+from bayescal.klipper.cfg import AUTOSAVE_HEADER, KlipperConfigError, parse_klipper_text, read_klipper_config
 from bayescal.klipper import klipper_recording, read_klipper_delta
 from tests.klipper_configs import MAIN, saved_block, write_config
 

@@ -4,8 +4,8 @@ Klipper parses its config with Python's ``configparser`` (sections may
 repeat and merge, a later value overrides an earlier one, a value may
 continue over indented lines, ``;`` starts a comment at the start of a line
 or after a space), after its own passes: ``#`` comments and ``[include ...]``
-files (:mod:`bayescal.io.klipper_source`) and the ``SAVE_CONFIG`` block at
-the end of the file (:mod:`bayescal.io.klipper_autosave`).  This module does
+files (:mod:`bayescal.klipper.source`) and the ``SAVE_CONFIG`` block at
+the end of the file (:mod:`bayescal.klipper.autosave`).  This module does
 the same with the same parser and settings and returns the merged sections,
 remembering where every key was set (file and line) so that an error about
 a value names them.  It checks no values beyond their form as numbers
@@ -19,8 +19,8 @@ import math
 import os
 from dataclasses import dataclass, field
 
-from .klipper_autosave import AUTOSAVE_HEADER, split_autosave, without_overridden
-from .klipper_source import Chunk, KlipperConfigError, config_source, normalize_text, read_main_text
+from .autosave import AUTOSAVE_HEADER, split_autosave, without_overridden
+from .source import Chunk, KlipperConfigError, config_source, normalize_text, read_main_text
 
 __all__ = ["KlipperConfig", "Origin", "read_klipper_config", "parse_klipper_text", "KlipperConfigError", "AUTOSAVE_HEADER"]
 
@@ -280,7 +280,7 @@ def read_klipper_config(path: str | os.PathLike) -> KlipperConfig:
     KlipperConfigError
         For a file that is missing, not a regular file, not UTF-8 text, or
         not a config ``configparser`` accepts; for an include cycle, or an
-        include tree beyond bayescal's limits (:mod:`bayescal.io.klipper_source`);
+        include tree beyond bayescal's limits (:mod:`bayescal.klipper.source`);
         naming the file and line.
     """
     path = os.fspath(path)

@@ -6,14 +6,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.identify import identify
 from bayescal.identify.gauss_newton import whitened_system
 from bayescal.io.constraints import ConstraintRecording
 from bayescal.machines.files import load_machine
-from bayescal.simulate_constraints import circle_points, simulate_ballbar, simulate_distances, solve_q_for_points
+from bayescal.constraints.simulate import circle_points, simulate_ballbar, simulate_distances, solve_q_for_points
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DELTA = ROOT / "examples" / "delta" / "machine.toml"
 PRS3 = ROOT / "examples" / "prs3" / "machine.toml"
 

@@ -14,7 +14,7 @@ bayescal's linear-delta machine with ``zero_i = E_i`` and actuator
 ``q_i = -s_i step_dist_i`` (mm, carriage travel from the endstop, positive
 up) is the same model; the stored heights and distances become a constraint
 recording (docs/formats.md section 6).  The calibrated geometry goes back
-into Klipper's keys with :mod:`bayescal.klipper_keys`.
+into Klipper's keys with :mod:`bayescal.klipper.keys`.
 """
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .io.constraints import ConstraintRecording
-from .io.klipper_cfg import KlipperConfig
-from .machines.base import MeasurementNoise
-from .machines.linear_delta import LinearDelta
+from ..io.constraints import ConstraintRecording
+from .cfg import KlipperConfig
+from ..machines.base import MeasurementNoise
+from ..machines.linear_delta import LinearDelta
 
 __all__ = [
     "KlipperDelta", "read_klipper_delta", "klipper_recording", "klipper_machine", "saved_counts",

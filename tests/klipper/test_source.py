@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from bayescal.cli import main
-from bayescal.io.klipper_cfg import KlipperConfigError, read_klipper_config
-from bayescal.io.klipper_source import MAX_INCLUDE_DEPTH, MAX_INCLUDED_FILES
+from bayescal.klipper.cfg import KlipperConfigError, read_klipper_config
+from bayescal.klipper.source import MAX_INCLUDE_DEPTH, MAX_INCLUDED_FILES
 
 
 def _refused(path: Path, capsys) -> str:

@@ -8,13 +8,13 @@ import pytest
 
 from bayescal.bayes.map_identify import identify_map
 from bayescal.bayes.priors import map_estimate
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.design.relations import grid_points, relation_candidates
 from bayescal.io.constraints import ConstraintRecording
 from bayescal.errors import InputError
-from bayescal.io.klipper_cfg import read_klipper_config
+from bayescal.klipper.cfg import read_klipper_config
 from bayescal.klipper import KlipperDelta, klipper_machine, klipper_recording, read_klipper_delta
-from bayescal.klipper_loo import loo_bayescal, loo_klipper, noise_scale_map, rms
+from bayescal.klipper.loo import loo_bayescal, loo_klipper, noise_scale_map, rms
 from tests import klipper_configs as synth
 
 NOMINAL = KlipperDelta(

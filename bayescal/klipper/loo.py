@@ -8,7 +8,7 @@ calibrations are re-fitted on the other rows and then predict row ``i``:
   tolerance prior as it is (:func:`bayescal.bayes.priors.map_estimate`),
   the rows weighted by their ``sigma_position``;
 * **Klipper**: ``DELTA_CALIBRATE``'s objective, weights and parameter set
-  (:func:`bayescal.klipper_fit.fit_klipper`), started from the config's
+  (:func:`bayescal.klipper.baseline.fit_klipper`), started from the config's
   geometry.
 
 The prediction error ``measured - predicted`` of the left-out row is what a
@@ -23,14 +23,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from .bayes.map_identify import identify_map
-from .bayes.priors import map_estimate, prior_from_machine
-from .constraint_model import ConstraintModel
-from .errors import InputError
-from .io.constraints import ConstraintRecording
-from .klipper import KlipperDelta, klipper_machine
-from .klipper_fit import fit_klipper
-from .machines.base import Machine
+from ..bayes.map_identify import identify_map
+from ..bayes.priors import map_estimate, prior_from_machine
+from ..constraints.model import ConstraintModel
+from ..errors import InputError
+from ..io.constraints import ConstraintRecording
+from .printer import KlipperDelta, klipper_machine
+from .baseline import fit_klipper
+from ..machines.base import Machine
 
 __all__ = ["LooResult", "loo_bayescal", "noise_scale_map", "loo_klipper", "klipper_predict", "rms"]
 

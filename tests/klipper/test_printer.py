@@ -11,16 +11,16 @@ import numpy as np
 import pytest
 
 from bayescal.cli import main
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.io.constraints import read_constraints
-from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, KlipperConfigError, parse_klipper_text, read_klipper_config
+from bayescal.klipper.cfg import AUTOSAVE_HEADER, KlipperConfigError, parse_klipper_text, read_klipper_config
 from bayescal.klipper import klipper_machine, klipper_recording, read_klipper_delta
 from bayescal.machines.check import check_machine
 from bayescal.machines.files import load_machine
 from tests import klipper_configs as synth
 
 # the checkout sits beside shared/ (<clone>/../shared); BAYESCAL_SHARED points elsewhere (a git worktree)
-SHARED = Path(os.environ.get("BAYESCAL_SHARED", Path(__file__).resolve().parents[1] / ".." / "shared"))
+SHARED = Path(os.environ.get("BAYESCAL_SHARED", Path(__file__).resolve().parents[2] / ".." / "shared"))
 DATA = SHARED / "data" / "real" / "delta_flsun_q5"
 POST = DATA / "printer-post-calibration.cfg"
 PRE = DATA / "printer-pre-calibration.cfg"

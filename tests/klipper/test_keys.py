@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from bayescal.errors import InputError
-from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, read_klipper_config
+from bayescal.klipper.cfg import AUTOSAVE_HEADER, read_klipper_config
 from bayescal.klipper import klipper_machine, klipper_recording, read_klipper_delta
-from bayescal.klipper_keys import klipper_keys, klipper_text, klipper_values
+from bayescal.klipper.keys import klipper_keys, klipper_text, klipper_values
 from bayescal.machines.files import load_machine
 from tests import klipper_configs as synth
 from tests.conftest import ROOT

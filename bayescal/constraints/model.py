@@ -32,11 +32,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import InputError, RecordingError
-from .io.constraints import ConstraintRecording
-from .machines.appended import AppendedParameters
-from .machines.base import Machine, ToolPoses
-from .params import ParamSpec
+from ..errors import InputError, RecordingError
+from ..io.constraints import ConstraintRecording
+from ..machines.appended import AppendedParameters
+from ..machines.base import Machine, ToolPoses
+from ..params import ParamSpec
 
 __all__ = ["ConstraintModel", "ConstraintPrediction", "PivotAugmented", "PIVOT_TOLERANCE", "load_constraint_model"]
 
@@ -170,7 +170,7 @@ class ConstraintModel:
         if machine.effects:
             # the machine file's [effect.*] tables at their stored values (docs/formats.md section 7), as for pose
             # recordings: every solved pose moves by the effects' dq, driven by its row's channels, in time order
-            from .effects.stored import effect_delta_q_and_x
+            from ..effects.stored import effect_delta_q_and_x
 
             pose_aux = {k: np.asarray(v)[model.pose_row] for k, v in model.aux.items()}
             dq, dx = effect_delta_q_and_x(machine, machine.effects, model.pose_q, pose_aux, order=model.pose_order)
@@ -323,7 +323,7 @@ class ConstraintModel:
             guess = None
         poses = self.base.forward(Q, th_m, guess=guess)
         if self.pose_offset is not None:
-            from .machines.base import offset_poses
+            from ..machines.base import offset_poses
 
             poses = offset_poses(self.base, Q, th_m, poses, self.pose_offset)
         n, nd = self.n_poses, self._dist.size
@@ -508,8 +508,8 @@ def load_constraint_model(machine, path, *, frame: str = "base", dof: int | None
     -------
     (ConstraintRecording, ConstraintModel)
     """
-    from .errors import InputError
-    from .io.constraints import read_constraints
+    from ..errors import InputError
+    from ..io.constraints import read_constraints
 
     if frame == "fit":
         raise InputError(

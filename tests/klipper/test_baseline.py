@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayescal.io.klipper_cfg import AUTOSAVE_HEADER, parse_klipper_text
-from bayescal.io.klipper_cfg import read_klipper_config
+from bayescal.klipper.cfg import AUTOSAVE_HEADER, parse_klipper_text
+from bayescal.klipper.cfg import read_klipper_config
 from bayescal.klipper import klipper_machine, klipper_recording, read_klipper_delta
-from bayescal.klipper_fit import fit_klipper, klipper_objective
+from bayescal.klipper.baseline import fit_klipper, klipper_objective
 from tests import klipper_configs as synth
 
-SHARED = Path(os.environ.get("BAYESCAL_SHARED", Path(__file__).resolve().parents[1] / ".." / "shared"))
+SHARED = Path(os.environ.get("BAYESCAL_SHARED", Path(__file__).resolve().parents[2] / ".." / "shared"))
 DATA = SHARED / "data" / "real" / "delta_flsun_q5"
 q5 = pytest.mark.skipif(not (DATA / "printer-post-calibration.cfg").exists(), reason="../shared data not present")
 

@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayescal.constraint_model import ConstraintModel
+from bayescal.constraints.model import ConstraintModel
 from bayescal.effects import get_effect
 from bayescal.effects.model import _slices, effect_jacobian, effect_residual
 from bayescal.io.constraints import ConstraintRecording
 from bayescal.machines.files import load_machine
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DELTA = ROOT / "examples" / "delta" / "machine.toml"
 PRS3 = ROOT / "examples" / "prs3" / "machine.toml"
 

@@ -25,9 +25,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from .constraint_model import ConstraintModel
-from .io.constraints import ConstraintRecording
-from .klipper import KlipperDelta, klipper_machine
+from ..constraints.model import ConstraintModel
+from ..io.constraints import ConstraintRecording
+from .printer import KlipperDelta, klipper_machine
 
 __all__ = ["KlipperFit", "klipper_residuals", "klipper_objective", "fit_klipper", "KLIPPER_PARAMS", "MEASURE_WEIGHT"]
 

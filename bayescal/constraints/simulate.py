@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import InputError, KinematicsError
-from .io.constraints import DEFAULT_PIVOT, ConstraintRecording
-from .machines.base import Machine
-from .simulate import draw_errors, draw_poses
+from ..errors import InputError, KinematicsError
+from ..io.constraints import DEFAULT_PIVOT, ConstraintRecording
+from ..machines.base import Machine
+from ..simulate import draw_errors, draw_poses
 
 __all__ = ["solve_q_for_points", "simulate_distances", "simulate_ballbar", "ConstraintSimulation", "circle_points"]
 

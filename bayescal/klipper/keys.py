@@ -36,9 +36,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import InputError
-from .klipper import STEPPERS
-from .machines.linear_delta import LinearDelta
+from ..errors import InputError
+from .printer import STEPPERS
+from ..machines.linear_delta import LinearDelta
 
 __all__ = ["KlipperKeys", "klipper_keys", "klipper_values", "klipper_text"]
 

@@ -1,9 +1,9 @@
-"""Closed-form leave-one-out errors of linear estimators (bayescal.loo_linear) against textbook identities."""
+"""Closed-form leave-one-out errors of linear estimators (studies.loo_linear) against textbook identities."""
 
 import numpy as np
 from scipy.stats import multivariate_normal
 
-from bayescal.loo_linear import expected_sq_error, log_evidence, loo_errors, loo_operator, map_gain, wls_gain
+from studies.loo_linear import expected_sq_error, log_evidence, loo_errors, loo_operator, map_gain, wls_gain
 
 
 def _problem(seed=0, n=12, p=4):
@@ -59,7 +59,7 @@ def test_log_evidence_is_the_gaussian_log_density():
 def test_profiled_evidence_is_the_maximum_over_the_noise_scale():
     from scipy.optimize import minimize_scalar
 
-    from bayescal.loo_linear import evidence_ratio, profiled_log_evidence
+    from studies.loo_linear import evidence_ratio, profiled_log_evidence
 
     J, y = _problem(4, n=9, p=3)
     tol, sigma = np.array([1.0, 0.5, 2.0]), np.linspace(0.2, 0.5, 9)

@@ -9,9 +9,9 @@ import pytest
 from bayescal.errors import InputError
 from bayescal.io.constraints import DEFAULT_PIVOT
 from bayescal.machines.files import load_machine
-from bayescal.simulate_constraints import circle_points, simulate_ballbar
+from bayescal.constraints.simulate import circle_points, simulate_ballbar
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PRS3 = ROOT / "examples" / "prs3" / "machine.toml"
 
 

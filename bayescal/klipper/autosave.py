@@ -23,7 +23,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from .klipper_source import Chunk
+from .source import Chunk
 
 __all__ = ["AUTOSAVE_HEADER", "SplitConfig", "split_autosave", "without_overridden"]
 
