@@ -234,6 +234,11 @@ class MeasurementModel:
         return self.machine.n_params
 
     @property
+    def theta_start(self) -> None:
+        """Where a search starts: None, the nominal (zero errors); a model with nuisance start values overrides it."""
+        return None
+
+    @property
     def tool_dof(self) -> int:
         """The tool's rows per pose (6, 5 or 3): :attr:`dof` without the body sensors' tilt rows."""
         return self.dof - (0 if self.sensors is None else self.sensors.n_rows)
@@ -502,7 +507,7 @@ def pose_offset_rows(model, theta, prediction, dX: NDArray) -> NDArray:
     J = np.empty_like(np.asarray(dX, dtype=float))
     J[:, :3] = np.einsum("nij,njk->nik", Rm, dX[:, :3])
     J[:, 3:] = np.einsum("nij,njk->nik", Rm, dX[:, 3:])
-    own = getattr(model, "pose_offset", None)
+    own = model.pose_offset
     if own is not None:
         phi = np.einsum("nij,nj->ni", Rm, own[:, 3:])
         J[:, 3:] = np.linalg.solve(left_jacobian_inverse(phi), J[:, 3:])

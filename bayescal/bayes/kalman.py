@@ -324,7 +324,7 @@ def kalman_filter(
         rms_before=model.rms(before),
         rms_after=model.rms(after),
         dof=dof,
-        tool_dof=getattr(model, "tool_dof", None),
+        tool_dof=model.tool_dof,
         success=success,
         message=message,
         fixed=tuple(nm for nm, fr in zip(machine.layout.names, free_mask) if not fr),

@@ -76,6 +76,11 @@ class LinearisedModel:
     def guess(self) -> None:
         return None
 
+    #: The model contract's start (None: the nominal, as for the model linearised) and tool-pose
+    #: perturbation (None: the linearisation holds it in ``y0``).
+    theta_start = None
+    pose_offset = None
+
     def predict(self, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> Prediction:
         """Rows ``y0 + J (theta - theta_ref)``; theta (P,), (n_poses, P) or stacked (k * n_poses, P)."""
         theta = np.zeros(self.n_params) if theta is None else np.asarray(theta, dtype=float)
@@ -123,9 +128,9 @@ def linearise(model, theta_ref: ArrayLike | None = None) -> LinearisedModel:
         raise InputError(f"pose {i + 1}: cannot be solved at the linearisation point")
     return LinearisedModel(
         model.machine, np.asarray(model.q), model.dof, pred.y, model.jacobian(ref, pred), ref, model.y_measured,
-        getattr(model, "pose_sigma", None),
+        model.pose_sigma,
         None if isinstance(model, MeasurementModel) else np.asarray(model.sigma),
-        getattr(model, "sensors", None),
+        model.sensors,
     )
 
 

@@ -502,7 +502,7 @@ def sample_posterior(
 
 def _reference(model, prior) -> NDArray:
     """What "before" means: the machine file as given (a model's ``theta_start``: its stored effect values), else the prior mean."""
-    ref = getattr(model, "theta_start", None)
+    ref = model.theta_start
     return prior.mean if ref is None else np.asarray(ref, dtype=float)
 
 
@@ -581,7 +581,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         more_steps=more,
         rms_before=model.rms(before),
         rms_after=model.rms(after),
-        dof=getattr(model, "tool_dof", model.dof),  # the tool's DOF (body sensors' tilt rows apart)
+        dof=model.tool_dof,  # the tool's DOF (body sensors' tilt rows apart)
         n_poses=model.n_poses,
         tree=tree,
         seconds=seconds,

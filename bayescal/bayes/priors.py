@@ -176,7 +176,7 @@ def map_estimate(
     """
     prior = prior_from_machine(model.machine) if prior is None else prior
     if theta0 is None:
-        theta0 = getattr(model, "theta_start", None)
+        theta0 = model.theta_start
     start = prior.mean if theta0 is None else np.asarray(theta0, dtype=float)
     if start.shape != prior.mean.shape:
         raise InputError(f"theta0: expected shape {prior.mean.shape}, got {start.shape}")

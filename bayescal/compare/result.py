@@ -240,7 +240,7 @@ def compare_methods(
         rec_text = read_input_text(recording, "a recording (CSV)", limit=MAX_CSV_BYTES)
         # checked here (bad input is an error before any trial), and its size and DOF recorded
         model = model_from_recording(machine, read_any_recording(rec_name, text=rec_text), dof=dof)
-        n_poses, dof = model.n_poses, getattr(model, "tool_dof", model.dof)  # the tool's DOF (body sensors apart)
+        n_poses, dof = model.n_poses, model.tool_dof  # the tool's DOF (body sensors apart)
     elif dof is None:
         dof = 6
     config = CompareConfig(machine_text=machine.to_toml(), methods=methods, trials=int(trials), dof=int(dof),

@@ -248,6 +248,19 @@ class ConstraintModel:
             return self.pose_sigma
         return np.broadcast_to(self.sigma, (self.n_poses, 1))
 
+    #: A relation has no body sensors' rows, and a search starts at the nominal geometry (the pivots'
+    #: start estimates are the nominal of their parameters): the model contract's members, fixed here.
+    sensors = None
+    theta_start = None
+
+    @property
+    def tool_dof(self) -> int:
+        """Rows of the measurement itself per row: :attr:`dof` (no sensor rows)."""
+        return self.dof
+
+    def without_sensors(self) -> "ConstraintModel":
+        return self
+
     def with_pose_sigma(self, pose_sigma: NDArray | None) -> "ConstraintModel":
         """The same model with other per-row noise (None: the machine's)."""
         from dataclasses import replace

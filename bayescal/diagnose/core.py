@@ -89,7 +89,7 @@ def _sensor_noise(machine: Machine, recording: Recording, model: MeasurementMode
     the tilt rows dominate every fit and test, and a bending the tool rows showed plainly was called
     "unexplained" (held-out 0.0174 against 0.0047 mm with the sigma stated right).
     """
-    tool = getattr(model, "tool_dof", model.dof)
+    tool = model.tool_dof
     if tool >= model.dof:
         return machine, model
     from dataclasses import replace as _replace
@@ -413,7 +413,7 @@ def diagnose(
         # distance), per row as the recording states them (not the exclusion weights of outliers)
         rms_noise=float(np.sqrt(np.mean(np.sum(np.asarray(base_model.row_sigma)[:, :3] ** 2, axis=1)))),
         n_poses=n,
-        dof=getattr(model, "tool_dof", model.dof),  # the tool's DOF (body sensors' tilt rows apart)
+        dof=model.tool_dof,  # the tool's DOF (body sensors' tilt rows apart)
         machine_name=machine.name,
         recording=recording.path,
         seed=seed,

@@ -194,6 +194,11 @@ def _sub_model(model: MeasurementModel, q: NDArray, guess: ToolPoses | None) -> 
                                pose_offset=None if own is None else np.tile(own, (reps, 1)))
 
 
+def _of_geo(name: str) -> property:
+    """The geometric model's member ``name``, read through (the effects do not change it)."""
+    return property(lambda self: getattr(self.geo, name), doc=f"The geometric model's ``{name}``.")
+
+
 @dataclass(frozen=True, eq=False)
 class EffectModel:
     """``h(q + dq(eta), theta)`` with ``(theta, eta)`` the unknowns (see the module docstring).
@@ -227,11 +232,38 @@ class EffectModel:
         object.__setattr__(self, "machine", EffectAugmented(self.geo.machine, tuple(params), tuple(owners), self.stored))
         object.__setattr__(self, "_slices", _slices(list(self.effects), self.geo))
 
-    # everything a consumer reads of a measurement model that the effects do not change
-    def __getattr__(self, name):
-        if name in ("geo", "effects", "stored", "machine", "_slices") or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.geo, name)
+    # the model contract's members the effects do not change are the geometric model's (bayescal.contract)
+    q = _of_geo("q")
+    dof = _of_geo("dof")
+    tool_dof = _of_geo("tool_dof")
+    n_poses = _of_geo("n_poses")
+    y_measured = _of_geo("y_measured")
+    aux = _of_geo("aux")
+    guess = _of_geo("guess")
+    sensors = _of_geo("sensors")
+    R_ref = _of_geo("R_ref")
+    sigma = _of_geo("sigma")
+    row_sigma = _of_geo("row_sigma")
+    pose_sigma = _of_geo("pose_sigma")
+    pose_offset = _of_geo("pose_offset")
+    pose_q = _of_geo("pose_q")
+    pose_row = _of_geo("pose_row")
+    pose_order = _of_geo("pose_order")
+    poses_of = _of_geo("poses_of")
+    residual = _of_geo("residual")
+    errors = _of_geo("errors")
+    rms = _of_geo("rms")
+    region = _of_geo("region")
+    rows_jacobian = _of_geo("rows_jacobian")
+    effect_inputs = _of_geo("effect_inputs")
+
+    def with_pose_q(self, pose_q: NDArray, *, keep_guess: bool = True) -> "EffectModel":
+        """The same effects on the geometric model at other actuator positions (their features kept)."""
+        return dataclasses.replace(self, geo=self.geo.with_pose_q(pose_q, keep_guess=keep_guess))
+
+    def with_pose_offset(self, pose_offset: NDArray | None) -> "EffectModel":
+        """The same effects with a tool-pose perturbation of the geometric model's poses (the effects' own added)."""
+        return dataclasses.replace(self, geo=self.geo.with_pose_offset(pose_offset))
 
     @property
     def n_params(self) -> int:
@@ -299,6 +331,12 @@ class EffectModel:
 
     def with_pose_sigma(self, pose_sigma: NDArray | None) -> "EffectModel":
         return dataclasses.replace(self, geo=self.geo.with_pose_sigma(pose_sigma))
+
+    def without_sensors(self) -> "EffectModel":
+        """The same effects on the tool rows alone (a sensor's mounting is no effect's parameter)."""
+        if self.geo.sensors is None:
+            return self
+        return EffectModel(self.geo.without_sensors(), self.effects, self.stored)
 
     @property
     def theta_start(self) -> NDArray:

@@ -127,7 +127,7 @@ def _at(model: MeasurementModel, q_eff: NDArray, dx: NDArray | None, *, keep_gue
     """``model`` at the solved poses' actuator positions ``q_eff`` with the tool perturbation ``dx`` added to its own."""
     sub = model.with_pose_q(q_eff, keep_guess=keep_guess)
     if dx is not None:
-        own = getattr(model, "pose_offset", None)
+        own = model.pose_offset
         sub = sub.with_pose_offset(dx if own is None else own + dx)
     return sub
 

@@ -232,7 +232,7 @@ def tilt_noise_check(model, res) -> NoiseCheck | None:
     Their degrees of freedom are their rows less the parameters only they see (the sensors' mountings and
     the level of up: ``sensor.*``, ``gravity.tilt.*``).
     """
-    tool = getattr(model, "tool_dof", model.dof)
+    tool = model.tool_dof
     if tool >= model.dof or not res.success or res.residuals_after is None:
         return None
     r = np.asarray(res.residuals_after, dtype=float)[:, tool:] / np.asarray(model.row_sigma, dtype=float)[:, tool:]

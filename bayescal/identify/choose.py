@@ -789,7 +789,7 @@ def choose_regularisation(
     known = bool(machine.noise.given)
     kw = dict(rule=rule, noise_known=known, folds=folds, seed=seed, hyperprior=hyperprior,
               target_calibration=target_calibration,
-              output_map=_tool_output_map(machine, getattr(model, "q", None) if eval_q is None else eval_q, idx, S_all))
+              output_map=_tool_output_map(machine, model.q if eval_q is None else eval_q, idx, S_all))
     if method == "tsvd":
         A, z, groups = linearised_problem(model, theta, idx, S_all)
         choice = choose_linear(A, z, "tsvd", groups=groups, linearisation="linearised at the start geometry", **kw)

@@ -287,7 +287,7 @@ def identify(
         raise InputError(f"max_iter: expected a whole number >= 1, got {max_iter!r}")
     if theta0 is None:
         # a model may say where its search must start (effect parameters that enter as products: off zero)
-        theta0 = getattr(model, "theta_start", None)
+        theta0 = model.theta_start
     if prior_mean is None:
         prior_mean = getattr(machine, "prior_mean", None)  # a view's parameters centred elsewhere (effects)
     theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float)
@@ -447,7 +447,7 @@ def identify(
         unidentifiable=() if ida is None else ida.combinations,
         decided_by_prior=() if ida is None else ida.decided_by_prior,
         dof=model.dof,
-        tool_dof=getattr(model, "tool_dof", None),
+        tool_dof=model.tool_dof,
         n_poses=model.n_poses,
         chi2=chi2,
         noise_given=noise_given,

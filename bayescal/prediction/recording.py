@@ -301,10 +301,10 @@ def score_held_out(cal, session, *, effects=None, noise_scale: float | None = No
     model_all = session.model
     if effects:
         model_all = MeasurementModel.from_recording(model_all.machine.with_effects(tuple(effects)), rec,
-                                                    dof=getattr(model_all, "tool_dof", model_all.dof))
+                                                    dof=model_all.tool_dof)
     # the check rows' tool poses are predicted and scored (a body sensor's tilt rows are not)
     model = model_all.subset(idx)
-    model = model.without_sensors() if hasattr(model, "without_sensors") else model
+    model = model.without_sensors()
     scale = float(getattr(cal, "noise_scale", 1.0) if noise_scale is None else noise_scale)
     if scale != 1.0:
         model = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)

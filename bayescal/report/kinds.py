@@ -119,7 +119,7 @@ def _residual_section(result, model, sigma) -> dict | None:
         pred = model.predict(result.theta)
         after = model.residual(pred) if pred.success.all() else None
         # "before": the machine file as given (a model's theta_start: its stored effect values), else nominal
-        ref = getattr(model, "theta_start", None)
+        ref = model.theta_start
         before = model.residual(model.predict(np.zeros(model.machine.n_params) if ref is None else ref))
     if after is None:
         return None

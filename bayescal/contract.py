@@ -1,0 +1,243 @@
+"""The model contract: what every solver, filter, sampler, report and study may ask of a measurement model.
+
+A *model* is ``h(theta)`` for a fixed list of measurements with its analytic
+Jacobian: :class:`bayescal.measurement.MeasurementModel` (tool poses, body
+sensors), :class:`bayescal.constraints.model.ConstraintModel` (heights, distances,
+ballbar radii, with fitted pivots) and
+:class:`bayescal.effects.joint_model.EffectModel` (geometry and physical
+effects fitted together) are three.  :class:`Model` names the members they
+share; :func:`check_model` checks one against finite differences and
+against itself (a subset predicts its rows of the whole, a noise scale
+scales the row sigma), as :func:`bayescal.machines.check.check_machine`
+checks a machine kind.  A new model kind passes ``check_model(model) == []``
+and every consumer takes it.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import BayescalError
+
+__all__ = ["Model", "check_model", "ModelCheckError", "JACOBIAN_RTOL"]
+
+#: Largest relative difference between the analytic Jacobian and central differences.
+JACOBIAN_RTOL = 2e-4
+
+
+@runtime_checkable
+class Model(Protocol):
+    """``h(theta)`` of ``n_poses`` measurements with ``dof`` rows each (mm for lengths, rad for angles).
+
+    Attributes
+    ----------
+    machine : Machine
+        The machine whose parameters ``theta`` are (a view carries nuisance
+        parameters after the geometry's: instrument frames first, then
+        pivots, sensor mountings or effect parameters).
+    n_params : int
+        ``P``, the length of ``theta``; ``machine.n_params``.
+    n_poses, dof, tool_dof : int
+        Measurements, rows per measurement, and the tool's rows among them
+        (body sensors' tilt rows are the rest).
+    q, pose_q : ndarray
+        Commanded actuator positions of the measurements, and of every pose
+        the model solves (a distance row solves two).
+    y_measured : ndarray (n_poses, dof) or None
+        The measured values in ``h``'s rows.
+    sigma, row_sigma : ndarray
+        Nominal one-sigma per row (dof,), and per row of every measurement
+        (n_poses, dof): what whitens residuals.
+    pose_sigma, pose_offset, aux, guess, sensors, theta_start
+        Per-measurement sigma, tool-pose perturbation (n_poses, 6) in mm and
+        rad, auxiliary channels, kinematic start, body sensors, and the
+        parameter vector a search starts from; each may be None.
+    """
+
+    machine: Any
+    dof: int
+    y_measured: NDArray | None
+    pose_sigma: NDArray | None
+    pose_offset: NDArray | None
+    aux: dict | None
+
+    @property
+    def n_params(self) -> int: ...
+    @property
+    def n_poses(self) -> int: ...
+    @property
+    def tool_dof(self) -> int: ...
+    @property
+    def q(self) -> NDArray: ...
+    @property
+    def pose_q(self) -> NDArray: ...
+    @property
+    def pose_row(self) -> NDArray: ...
+    @property
+    def pose_order(self) -> NDArray | None: ...
+    @property
+    def sigma(self) -> NDArray: ...
+    @property
+    def row_sigma(self) -> NDArray: ...
+    @property
+    def guess(self) -> Any: ...
+    @property
+    def sensors(self) -> Any: ...
+    @property
+    def theta_start(self) -> NDArray | None: ...
+
+    def predict(self, theta: ArrayLike | None = None, *, guess: Any = None) -> Any:
+        """``h(theta)``: an object with ``y`` (n_poses, dof) and ``success`` (n_poses,)."""
+
+    def jacobian(self, theta: ArrayLike | None, prediction: Any) -> NDArray:
+        """``d h / d theta`` at ``prediction``'s poses, shape (n_poses, dof, n_params)."""
+
+    def rows_jacobian(self, Jt: NDArray, prediction: Any) -> NDArray:
+        """Rows of ``h`` moved by tool-pose perturbations ``Jt`` of every solved pose."""
+
+    def residual(self, prediction: Any) -> NDArray:
+        """``y_measured - h``, shape (n_poses, dof)."""
+
+    def errors(self, residual: NDArray) -> tuple[NDArray, NDArray | None]:
+        """Per-measurement position error (mm) and tool orientation error (rad, or None)."""
+
+    def rms(self, residual: NDArray) -> dict: ...
+
+    def region(self, prediction: Any) -> NDArray: ...
+
+    def poses_of(self, rows: Any) -> NDArray: ...
+
+    def effect_inputs(self, theta: NDArray, prediction: Any) -> tuple: ...
+
+    def subset(self, idx: Any) -> "Model": ...
+
+    def with_pose_sigma(self, pose_sigma: NDArray | None) -> "Model": ...
+
+    def with_pose_q(self, pose_q: NDArray, *, keep_guess: bool = True) -> "Model": ...
+
+    def with_pose_offset(self, pose_offset: NDArray | None) -> "Model": ...
+
+    def without_sensors(self) -> "Model": ...
+
+
+class ModelCheckError(BayescalError):
+    """A model fails :func:`check_model` (``strict=True``); ``problems`` lists why."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = problems
+        super().__init__("model check failed:\n  " + "\n  ".join(problems))
+
+
+def _members() -> list[str]:
+    return sorted(n for n in Model.__protocol_attrs__ if not n.startswith("_"))
+
+
+def check_model(model, theta: ArrayLike | None = None, *, strict: bool = False, step: float = 1e-3) -> list[str]:
+    """What ``model`` does not do that the contract (:class:`Model`) asks; an empty list when it conforms.
+
+    Checks, each from first principles rather than from the model's own code:
+    every member is there; ``n_params`` is the machine's; ``predict`` gives
+    ``(n_poses, dof)`` finite rows; ``jacobian`` agrees with central
+    differences of ``predict`` (steps of ``step`` times each parameter's
+    tolerance); ``residual`` is ``y_measured - h``; ``row_sigma`` is positive
+    of ``h``'s shape and scales with ``with_pose_sigma``; ``subset`` predicts
+    its rows of the whole model.
+
+    Parameters
+    ----------
+    model : Model
+    theta : array_like, shape (n_params,), optional
+        Where to check (default: :attr:`Model.theta_start` or zero, moved by a
+        quarter of each tolerance with alternating signs so that no
+        parameter sits at its start, and kept a quarter tolerance inside a
+        physical lower bound, ``machine.prior_lower``).
+    strict : bool
+        Raise :class:`ModelCheckError` instead of returning the problems.
+    step : float
+        Central-difference step as a fraction of each parameter's tolerance.
+    """
+    problems: list[str] = []
+    missing = [n for n in _members() if not hasattr(model, n)]
+    if missing:
+        problems.append(f"missing member(s) of the model contract: {', '.join(missing)}")
+        return _done(problems, strict)
+    P = model.n_params
+    if P != model.machine.n_params:
+        problems.append(f"n_params {P} is not the machine's {model.machine.n_params}")
+    tol = np.asarray(model.machine.tolerance, dtype=float)
+    tol = np.where(np.isfinite(tol) & (tol > 0), tol, 1.0)
+    if theta is None:
+        start = np.zeros(P) if model.theta_start is None else np.asarray(model.theta_start, dtype=float)
+        theta = start + 0.25 * tol * np.where(np.arange(P) % 2, -1.0, 1.0)
+        # a parameter with a physical bound (a dead band, a mass: prior_lower) is checked inside it
+        low = np.asarray(getattr(model.machine, "prior_lower", np.full(P, -np.inf)), dtype=float)
+        theta = np.where(np.isfinite(low), np.maximum(theta, low + 0.25 * tol), theta)
+    theta = np.asarray(theta, dtype=float)
+    pred = model.predict(theta)
+    shape = (model.n_poses, model.dof)
+    if pred.y.shape != shape:
+        problems.append(f"predict: y has shape {pred.y.shape}, expected (n_poses, dof) = {shape}")
+        return _done(problems, strict)
+    if not np.all(pred.success) or not np.all(np.isfinite(pred.y)):
+        problems.append("predict: not every measurement solved to finite rows at the check's theta")
+        return _done(problems, strict)
+    if not 0 < model.tool_dof <= model.dof:
+        problems.append(f"tool_dof {model.tool_dof} not in 1..dof ({model.dof})")
+    sig = np.asarray(model.row_sigma)
+    if sig.shape != shape or not np.all(sig > 0):
+        problems.append(f"row_sigma: expected positive values of shape {shape}, got shape {sig.shape}")
+    else:
+        scaled = model.with_pose_sigma(2.0 * sig).row_sigma
+        if not np.allclose(scaled, 2.0 * sig, rtol=1e-12):
+            problems.append("with_pose_sigma(2 row_sigma).row_sigma is not 2 row_sigma")
+    if model.y_measured is not None:
+        r = model.residual(pred)
+        if not np.allclose(r, model.y_measured - pred.y, rtol=0, atol=1e-12 * (1 + np.abs(pred.y).max())):
+            problems.append("residual is not y_measured - predict(theta).y")
+    J = model.jacobian(theta, pred)
+    if J.shape != shape + (P,):
+        problems.append(f"jacobian: shape {J.shape}, expected (n_poses, dof, n_params) = {shape + (P,)}")
+    else:
+        problems += _jacobian_problems(model, theta, J, tol * step)
+    problems += _subset_problems(model, theta, pred)
+    return _done(problems, strict)
+
+
+def _jacobian_problems(model, theta: NDArray, J: NDArray, h: NDArray) -> list[str]:
+    out = []
+    names = model.machine.layout.names
+    for k in range(theta.size):
+        e = np.zeros_like(theta)
+        e[k] = h[k]
+        plus, minus = model.predict(theta + e), model.predict(theta - e)
+        fd = (plus.y - minus.y) / (2 * h[k])
+        scale = max(float(np.abs(fd).max()), float(np.abs(J[..., k]).max()))
+        err = float(np.abs(J[..., k] - fd).max())
+        if err > JACOBIAN_RTOL * scale + 1e-9:
+            out.append(f"jacobian: column {k} ({names[k]}) differs from central differences by {err:.3e} "
+                       f"(largest entry {scale:.3e})")
+    return out
+
+
+def _subset_problems(model, theta: NDArray, pred) -> list[str]:
+    n = model.n_poses
+    if n < 2:
+        return []
+    idx = np.arange(n)[::-2][::-1]  # every other row, the last included
+    sub = model.subset(idx)
+    if sub.n_poses != idx.size:
+        return [f"subset: {sub.n_poses} measurements, expected {idx.size}"]
+    y = sub.predict(theta).y
+    if not np.allclose(y, pred.y[idx], rtol=1e-9, atol=1e-9):
+        return [f"subset: predicts its rows of the whole model differently (largest difference "
+                f"{float(np.abs(y - pred.y[idx]).max()):.3e})"]
+    return []
+
+
+def _done(problems: list[str], strict: bool) -> list[str]:
+    if strict and problems:
+        raise ModelCheckError(problems)
+    return problems
