@@ -196,9 +196,97 @@ def diagnose(
         Unknown effect names, a forced effect that needs a missing channel,
         too few poses for a forced effect or for cross-validation.
     """
+    again = dict(effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm, effect_settings=effect_settings)
+    s = _setup(machine, recording, effects, effect_settings, n_folds, _screen)
+    g = _geometric_stage(s, seed)
+    cands, skipped = _candidates(s, g)
+    # excluded poses are never held out: their residual would be the gross error, not the model's
+    perm = s.kept[np.random.default_rng(seed).permutation(s.kept.size)]
+    folds = [np.sort(perm[i::n_folds]) for i in range(n_folds)]
+    cv0 = _cv_rms(s.model, [], folds, g.fit0.theta, None)
+    single = _single_trials(s.model, cands, skipped, folds, g.fit0)
+    selected, cur_fit, cur_cv = _forward_selection(s, cands, single, folds, g.fit0, cv0)
+    v = _verdict(s, g, selected, cur_fit)
+
+    if s.screen is not None and _screen is None and selected:
+        # outliers are judged against the final model; if that names other poses, diagnose once more
+        final = retest_with_effects(s.base_model, [(c.effect, c.features) for c in selected], cur_fit, s.screen)
+        if final is not None:
+            return diagnose(s.machine, recording, **again, _screen=final, _disc_retested=_disc_retested)
+
+    # the last step (bayescal/diagnose/discrepancy.py): a mismatch no effect explains is modelled all the same
+    located_sig = g.location.strongest is not None and g.location.strongest.significant
+    disc_trial, final_model = None, _final_model(s.machine, recording, s.model, selected, cur_fit, s.settings, s.screen)
+    if (v.p_final < P_MISMATCH or located_sig) and final_model is not None:
+        disc_trial = try_discrepancy(final_model, cur_fit.theta, folds, cur_cv, location=g.location,
+                                     units=s.machine.actuator_units, seed=seed)
+    kept_disc = disc_trial is not None and disc_trial.kept
+    if kept_disc and s.screen is not None and not _disc_retested:
+        # poses the discrepancy explains are physics, not gross errors: judge the outliers against it
+        plain = _final_model(s.machine, recording, s.base_model, selected, cur_fit, s.settings, None)
+        final = retest_with_discrepancy(plain, cur_fit.theta, disc_trial.fit, s.screen) if plain is not None else None
+        if final is not None:
+            return diagnose(s.machine, recording, **again, _screen=final, _disc_retested=True)
+    verdict, message = v.verdict, v.message
+    if kept_disc:
+        cur_cv = disc_trial.rms_cv_after
+        if verdict == "unexplained":
+            verdict, message = _with_discrepancy(selected, disc_trial)
+    return Diagnosis(
+        verdict=verdict,
+        effects=_trials(cands, single, selected, cur_fit, cv0),
+        selected=tuple(c.effect.name for c in selected),
+        location=g.location,
+        skipped=tuple(skipped),
+        chi2_geometric=g.fit0.chi2,
+        chi2_final=cur_fit.chi2,
+        dof_geometric=v.dof_geometric,
+        dof_final=v.dof_final,
+        p_geometric=v.p_geometric,
+        p_final=v.p_final,
+        rms_cv_geometric=cv0,
+        rms_cv_final=cur_cv,
+        # expected per-pose position RMS of pure noise: the position rows' sigmas (3 for a pose, 1 for a
+        # distance), per row as the recording states them (not the exclusion weights of outliers)
+        rms_noise=float(np.sqrt(np.mean(np.sum(np.asarray(s.base_model.row_sigma)[:, :3] ** 2, axis=1)))),
+        n_poses=s.model.n_poses,
+        dof=s.model.tool_dof,  # the tool's DOF (body sensors' tilt rows apart)
+        machine_name=s.machine.name,
+        recording=recording.path,
+        seed=seed,
+        message=message,
+        # the machine's parameters only (a model's own nuisance parameters, ballbar pivots, follow them); the
+        # written geometry is the final fit's, corrected by the joint fit with the discrepancy when it is kept
+        theta_final=(disc_trial.theta if kept_disc else cur_fit.theta)[: s.machine.n_params],
+        theta_geometric=g.fit0.theta[: s.machine.n_params],
+        effect_settings={k: dict(val) for k, val in s.settings.items()},
+        outliers=s.screen,
+        confound=_confound(s, selected, cur_fit, g.fit0),
+        discrepancy=disc_trial,
+        record=_record(s.machine, final_model, cur_fit, disc_trial),
+    )
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """What every stage of a diagnosis works on: the model (outliers down-weighted) and the effects to try."""
+
+    machine: Machine
+    model: MeasurementModel
+    base_model: MeasurementModel  # before the outlier screen's weights
+    screen: object  # OutlierScreen or None
+    kept: NDArray  # poses not excluded as gross errors
+    aux: dict
+    lib: list
+    forced: bool
+    settings: dict
+    path: str
+
+
+def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_folds: int, screen) -> _Setup:
+    """The geometry-only model of ``recording`` with its sensors' noise tested and gross errors screened."""
     # the diagnosis starts from the geometry: effects a machine file carries ([effect.*]) are fitted afresh
     machine = machine.with_effects(())
-    forced = effects is not None
     names = list(EFFECTS) if effects is None else list(dict.fromkeys(effects))
     settings = dict(effect_settings or {})
     lib = [get_effect(n, **settings.get(n, {})) for n in names]  # raises on unknown names and settings
@@ -207,68 +295,88 @@ def diagnose(
     n = model.n_poses
     if n < 2 * n_folds:
         raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
-    aux = dict(recording.aux)
-
     # gross errors are not physics (docs/outliers.md): flagged poses leave every fit and test
     base_model = model
-    try:
-        screen = _screen if _screen is not None else screen_outliers(model, lines=recording_lines(n, recording))
-    except (KinematicsError, InputError):
-        screen = None  # the nominal machine cannot solve the recording: fit_map below says so
+    if screen is None:
+        try:
+            screen = screen_outliers(model, lines=recording_lines(n, recording))
+        except (KinematicsError, InputError):
+            screen = None  # the nominal machine cannot solve the recording: the geometric fit says so
     if screen is not None:
         model = screen.weighted_model(model)
     kept = np.arange(n) if screen is None else np.flatnonzero(~screen.excluded)
+    return _Setup(machine, model, base_model, screen, kept, dict(recording.aux), lib, effects is not None, settings,
+                  recording.path)
 
+
+@dataclass(frozen=True)
+class _Geometric:
+    """The geometry-only fit, the actuator-space residual and where the mismatch sits."""
+
+    fit0: EffectFit
+    dq_res: NDArray
+    location: object  # Location
+    inputs: tuple  # the model's effect_inputs at fit0: (machine, theta, poses)
+
+
+def _geometric_stage(s: _Setup, seed: int) -> _Geometric:
+    model = s.model
     try:
-        fit0 = screen.fit if screen is not None and screen.fit is not None else fit_map(model)
+        fit0 = s.screen.fit if s.screen is not None and s.screen.fit is not None else fit_map(model)
     except KinematicsError as exc:
         raise InputError(
-            f"{recording.path}: the machine {machine.source} cannot solve this recording at its nominal geometry "
+            f"{s.path}: the machine {s.machine.source} cannot solve this recording at its nominal geometry "
             f"({exc}); expected a recording taken on this machine (check the machine file)"
         ) from exc
     pred0 = model.predict(fit0.theta)
     dq_res = actuator_residual(model, fit0.theta, fit0.residual, pred0)
-    if screen is not None:
+    if s.screen is not None:
         # per-pose least squares undoes the exclusion's scaling: an excluded pose's gross error must not
         # reach the actuator-space tests (periodogram, pitch search); zero is "no actuator error"
-        dq_res[screen.excluded] = 0.0
-    # effects act on every solved pose (a distance row has two), in time order, with its row's channels
-    pose_aux = {k: np.asarray(v)[model.pose_row] for k, v in aux.items()}
-    direction = approach_direction(model.pose_q, model.pose_order)[:n]
-    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, aux, model.region(pred0), seed=seed,
-                      direction=direction, units=machine.actuator_units)
-    eff_machine, eff_theta, eff_poses = model.effect_inputs(fit0.theta, pred0)
+        dq_res[s.screen.excluded] = 0.0
+    direction = approach_direction(model.pose_q, model.pose_order)[: model.n_poses]
+    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, s.aux, model.region(pred0), seed=seed,
+                      direction=direction, units=s.machine.actuator_units)
+    return _Geometric(fit0, dq_res, location, model.effect_inputs(fit0.theta, pred0))
 
+
+def _candidates(s: _Setup, g: _Geometric) -> tuple[list[_Candidate], list[tuple[str, str]]]:
+    """The effects that can be modelled on this recording, and why each of the others cannot."""
+    model, machine, n = s.model, s.machine, s.model.n_poses
+    eff_machine, eff_theta, eff_poses = g.inputs
+    # effects act on every solved pose (a distance row has two), in time order, with its row's channels
+    pose_aux = {k: np.asarray(v)[model.pose_row] for k, v in s.aux.items()}
     cands: list[_Candidate] = []
     skipped: list[tuple[str, str]] = []
-    for eff in lib:
-        why = eff.not_applicable(machine, aux)
+    for eff in s.lib:
+        why = eff.not_applicable(machine, s.aux)
         if why is None:
             if eff.features_at_nominal:
-                f = eff.features(eff_machine, model.pose_q, np.zeros_like(np.asarray(eff_theta, float)), pose_aux, model.pose_order,
-                                 None if eff.needs_poses else eff_poses)
+                f = eff.features(eff_machine, model.pose_q, np.zeros_like(np.asarray(eff_theta, float)), pose_aux,
+                                 model.pose_order, None if eff.needs_poses else eff_poses)
             else:
                 f = eff.features(eff_machine, model.pose_q, eff_theta, pose_aux, model.pose_order, eff_poses)
-            f = eff.refine(f, model.q, dq_res)
+            f = eff.refine(f, model.q, g.dq_res)
             why = eff.inadmissible(f)
         if why is None:
             k = len(eff.params(machine, f))
             if n < eff.min_poses(k):
                 why = f"too few poses: {n} for {k} parameters (at least {eff.min_poses(k)} needed)"
         if why is not None:
-            if forced:
-                raise InputError(f"{recording.path}: effect {eff.name} was asked for (--effects) but cannot be modelled: {why}")
+            if s.forced:
+                raise InputError(f"{s.path}: effect {eff.name} was asked for (--effects) but cannot be modelled: {why}")
             skipped.append((eff.name, why))
             continue
         cands.append(_Candidate(eff, f, eff.occam_penalty(f, model.q)))
+    return cands, skipped
 
-    # excluded poses are never held out: their residual would be the gross error, not the model's
-    perm = kept[np.random.default_rng(seed).permutation(kept.size)]
-    folds = [np.sort(perm[i::n_folds]) for i in range(n_folds)]
-    cv0 = _cv_rms(model, [], folds, fit0.theta, None)
 
+def _single_trials(model, cands: list[_Candidate], skipped: list, folds, fit0: EffectFit) -> dict:
+    """Each candidate fitted alone with the geometry: ``{name: (fit, evidence, CV RMS)}``.
+
+    A candidate whose fit fails or needs non-physical values leaves ``cands`` for ``skipped``.
+    """
     single: dict[str, tuple[EffectFit, float, float]] = {}
-    failed: dict[str, str] = {}
     for c in list(cands):
         try:
             fit = fit_map(model, [(c.effect, c.features)], theta0=fit0.theta)
@@ -280,44 +388,52 @@ def diagnose(
             # the fitted effect moved a pose out of the workspace: it cannot be the explanation
             why = f"fit failed: {exc}"
         if why is not None:
-            failed[c.effect.name] = why
-            skipped.append((c.effect.name, failed[c.effect.name]))
+            skipped.append((c.effect.name, why))
             cands.remove(c)
             continue
         single[c.effect.name] = (fit, ev, cv)
+    return single
 
-    # greedy forward selection
+
+def _combined(s: _Setup, selected: list[_Candidate], c: _Candidate, cur_fit: EffectFit):
+    """``c`` fitted together with the effects already selected: (fit, evidence), or None when that fails."""
+    combo = selected + [c]
+    try:
+        fit = fit_map(s.model, [(x.effect, x.features) for x in combo], theta0=cur_fit.theta,
+                      eta0=np.concatenate([cur_fit.eta, [p.start_value for p in c.effect.params(s.machine, c.features)]]))
+    except KinematicsError:
+        return None
+    sl = dict(fit.effect_slices)[c.effect.name]
+    if c.effect.inadmissible(c.features, fit.eta[sl]) is not None or _nonphysical(fit, combo) is not None:
+        return None  # a combination that needs non-physical values of any member is no explanation
+    return fit, _evidence(fit, cur_fit, c.penalty)
+
+
+def _forward_selection(s: _Setup, cands, single, folds, fit0: EffectFit, cv0: float):
+    """Greedy forward selection: the most evident effect while it is decisive and lowers the CV RMS."""
     selected: list[_Candidate] = []
     cur_fit, cur_cv = fit0, cv0
-    remaining = [c for c in cands]
+    remaining = list(cands)
     while remaining:
         best = None
         for c in remaining:
             if not selected:
                 fit, ev, cv = single[c.effect.name]
+            elif single[c.effect.name][1] < DECISIVE:
+                continue  # not decisive alone: not worth a combined fit
             else:
-                if single[c.effect.name][1] < DECISIVE:
-                    continue  # not decisive alone: not worth a combined fit
-                combo = selected + [c]
-                try:
-                    fit = fit_map(model, [(x.effect, x.features) for x in combo], theta0=cur_fit.theta,
-                                  eta0=np.concatenate([cur_fit.eta, [p.start_value for p in c.effect.params(machine, c.features)]]))
-                except KinematicsError:
+                both = _combined(s, selected, c, cur_fit)
+                if both is None:
                     continue
-                sl = dict(fit.effect_slices)[c.effect.name]
-                if c.effect.inadmissible(c.features, fit.eta[sl]) is not None or _nonphysical(fit, combo) is not None:
-                    continue  # a combination that needs non-physical values of any member is no explanation
-                ev = _evidence(fit, cur_fit, c.penalty)
-                cv = None
+                (fit, ev), cv = both, None
             if ev > DECISIVE and (best is None or ev > best[2]):
                 best = (c, fit, ev, cv)
         if best is None:
             break
         c, fit, ev, cv = best
         if cv is None:
-            combo = selected + [c]
             try:
-                cv = _cv_rms(model, combo, folds, fit.theta, fit.eta)
+                cv = _cv_rms(s.model, selected + [c], folds, fit.theta, fit.eta)
             except KinematicsError:
                 cv = np.inf
         if not cv < cur_cv:
@@ -325,12 +441,26 @@ def diagnose(
         selected.append(c)
         remaining.remove(c)
         cur_fit, cur_cv = fit, cv
+    return selected, cur_fit, cur_cv
 
-    n_out = 0 if screen is None else int(screen.excluded.sum()) * model.dof
-    dof0, p0 = _chi2_test(fit0, n_out)
+
+@dataclass(frozen=True)
+class _Verdict:
+    verdict: str
+    message: str
+    dof_geometric: float
+    p_geometric: float
+    dof_final: float
+    p_final: float
+
+
+def _verdict(s: _Setup, g: _Geometric, selected: list[_Candidate], cur_fit: EffectFit) -> _Verdict:
+    """The verdict before the discrepancy: the first selected effect if it explains the excess chi-square."""
+    n_out = 0 if s.screen is None else int(s.screen.excluded.sum()) * s.model.dof
+    dof0, p0 = _chi2_test(g.fit0, n_out)
     dof_f, p_f = _chi2_test(cur_fit, n_out)
-    excess = fit0.chi2 - dof0
-    explained = (fit0.chi2 - cur_fit.chi2) / excess if excess > 0 else 1.0
+    excess = g.fit0.chi2 - dof0
+    explained = (g.fit0.chi2 - cur_fit.chi2) / excess if excess > 0 else 1.0
     message = ""
     if selected:
         if p_f > P_MISMATCH or explained >= EXPLAINED_FRACTION:
@@ -342,50 +472,34 @@ def diagnose(
                 f"chi-square; a structured mismatch remains (final chi-square p = {p_f:.2g})"
             )
     else:
-        loc = location.strongest
+        loc = g.location.strongest
         verdict = "unexplained" if p0 < P_MISMATCH or (loc is not None and loc.significant) else "none"
+    return _Verdict(verdict, message, dof0, p0, dof_f, p_f)
 
-    if screen is not None and _screen is None and selected:
-        # outliers are judged against the final model; if that names other poses, diagnose once more
-        final = retest_with_effects(base_model, [(c.effect, c.features) for c in selected], cur_fit, screen)
-        if final is not None:
-            return diagnose(machine, recording, effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm,
-                            effect_settings=effect_settings, _screen=final, _disc_retested=_disc_retested)
 
-    # the last step (bayescal/diagnose/discrepancy.py): a mismatch no effect explains is modelled all the same
-    located_sig = location.strongest is not None and location.strongest.significant
-    disc_trial, final_model = None, _final_model(machine, recording, model, selected, cur_fit, settings, screen)
-    if (p_f < P_MISMATCH or located_sig) and final_model is not None:
-        disc_trial = try_discrepancy(final_model, cur_fit.theta, folds, cur_cv, location=location,
-                                     units=machine.actuator_units, seed=seed)
-    if disc_trial is not None and disc_trial.kept and screen is not None and not _disc_retested:
-        # poses the discrepancy explains are physics, not gross errors: judge the outliers against it
-        plain = _final_model(machine, recording, base_model, selected, cur_fit, settings, None)
-        final = retest_with_discrepancy(plain, cur_fit.theta, disc_trial.fit, screen) if plain is not None else None
-        if final is not None:
-            return diagnose(machine, recording, effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm,
-                            effect_settings=effect_settings, _screen=final, _disc_retested=True)
-    if disc_trial is not None and disc_trial.kept:
-        cur_cv = disc_trial.rms_cv_after
-        if verdict == "unexplained":
-            verdict = selected[0].effect.name if selected else "discrepancy"
-            message = ("no effect of the library explains the located mismatch; a model discrepancy does, out of sample "
-                       f"(it resembles {disc_trial.resembles})") if not selected else (
-                f"{', '.join(c.effect.name for c in selected)} and a model discrepancy together explain the mismatch "
-                "out of sample")
-    kept_disc = disc_trial is not None and disc_trial.kept
-    record = _record(machine, final_model, cur_fit, disc_trial)
-    # the written geometry: the final fit's, corrected by the joint fit with the discrepancy when it is kept
-    theta_final = (disc_trial.theta if kept_disc else cur_fit.theta)[: machine.n_params]
+def _with_discrepancy(selected: list[_Candidate], disc_trial) -> tuple[str, str]:
+    """Verdict and message when a kept model discrepancy explains what the effects left unexplained."""
+    if not selected:
+        return "discrepancy", ("no effect of the library explains the located mismatch; a model discrepancy does, "
+                               f"out of sample (it resembles {disc_trial.resembles})")
+    return selected[0].effect.name, (f"{', '.join(c.effect.name for c in selected)} and a model discrepancy together "
+                                     "explain the mismatch out of sample")
 
+
+def _confound(s: _Setup, selected: list[_Candidate], cur_fit: EffectFit, fit0: EffectFit):
+    """How the selected effects and the geometry are confounded (None without effects or poses to average over)."""
+    if not selected:
+        return None
+    try:
+        return geometry_confound(s.machine, s.model.q, cur_fit, fit0, [c.effect for c in selected],
+                                 noise_scale2=_scale2(cur_fit), keep=s.kept)
+    except KinematicsError:
+        return None  # nothing to average over; the answer's written_geometry is then null
+
+
+def _trials(cands: list[_Candidate], single: dict, selected: list[_Candidate], cur_fit: EffectFit, cv0: float) -> tuple:
+    """Every effect tried, most evident first (docs/formats.md section 3)."""
     sel_names = [c.effect.name for c in selected]
-    confound = None
-    if selected:
-        try:
-            confound = geometry_confound(machine, model.q, cur_fit, fit0, [c.effect for c in selected],
-                                         noise_scale2=_scale2(cur_fit), keep=kept)
-        except KinematicsError:
-            confound = None  # nothing to average over; the answer's written_geometry is then null
     trials = []
     for c in cands:
         name = c.effect.name
@@ -394,39 +508,8 @@ def diagnose(
         note = "; ".join(filter(None, ["look-elsewhere penalty %.1f nats" % c.penalty if c.penalty else "",
                                        c.effect.model_note(c.features)]))
         trials.append(EffectTrial(name, name in sel_names, float(ev), params, cv0, cv, note))
-    trials.sort(key=lambda t: -t.evidence)  # docs/formats.md section 3: most evident first
-    return Diagnosis(
-        verdict=verdict,
-        effects=tuple(trials),
-        selected=tuple(sel_names),
-        location=location,
-        skipped=tuple(skipped),
-        chi2_geometric=fit0.chi2,
-        chi2_final=cur_fit.chi2,
-        dof_geometric=dof0,
-        dof_final=dof_f,
-        p_geometric=p0,
-        p_final=p_f,
-        rms_cv_geometric=cv0,
-        rms_cv_final=cur_cv,
-        # expected per-pose position RMS of pure noise: the position rows' sigmas (3 for a pose, 1 for a
-        # distance), per row as the recording states them (not the exclusion weights of outliers)
-        rms_noise=float(np.sqrt(np.mean(np.sum(np.asarray(base_model.row_sigma)[:, :3] ** 2, axis=1)))),
-        n_poses=n,
-        dof=model.tool_dof,  # the tool's DOF (body sensors' tilt rows apart)
-        machine_name=machine.name,
-        recording=recording.path,
-        seed=seed,
-        message=message,
-        # the machine's parameters only: a model's own nuisance parameters (ballbar pivots) follow them
-        theta_final=theta_final,
-        theta_geometric=fit0.theta[: machine.n_params],
-        effect_settings={k: dict(v) for k, v in settings.items()},
-        outliers=screen,
-        confound=confound,
-        discrepancy=disc_trial,
-        record=record,
-    )
+    trials.sort(key=lambda t: -t.evidence)
+    return tuple(trials)
 
 
 def _stored(selected, fit: EffectFit, settings: dict) -> tuple:

@@ -21,6 +21,7 @@ nearly equal singular values from one iteration to the next.)
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -272,19 +273,7 @@ def identify(
     """
     machine = model.machine
     P = machine.n_params
-    if model.y_measured is None:
-        raise InputError("identify: the measurement model has no measured values")
-    if method not in ("ls", "ridge", "tsvd", "map"):
-        raise InputError(f"method: expected 'ls', 'ridge', 'tsvd' or 'map', got {method!r}")
-    if method == "map":
-        if lam is not None and lam != 1:
-            raise InputError(f"lam: map is ridge with lam = 1 (the prior fixes the weight), got {lam!r}")
-        lam = 1.0
-    solver = "ridge" if method == "map" else method
-    if method == "ridge" and (lam is None or not np.isfinite(lam) or lam < 0):
-        raise InputError(f"lam: ridge needs a number >= 0, got {lam!r}")
-    if int(max_iter) != max_iter or max_iter < 1:
-        raise InputError(f"max_iter: expected a whole number >= 1, got {max_iter!r}")
+    solver, lam = _check_options(model, method, lam, max_iter)
     if theta0 is None:
         # a model may say where its search must start (effect parameters that enter as products: off zero)
         theta0 = model.theta_start
@@ -311,32 +300,143 @@ def identify(
     # the data do not see, so "auto" leaves them to it instead of fixing parameters (resolve_free)
     idx, ida = resolve_free(model, free, theta, prior=(solver == "ridge" and lam > 0) or solver == "tsvd",
                             system=(pred, r, J))
-    n_rows = model.n_poses * model.dof
-    # a prior (map, ridge with lam > 0) makes fewer rows than parameters well posed, and so does
-    # TSVD's truncation to k <= n_rows directions (the others stay at the start, in the scaled metric)
-    if n_rows < idx.size and not (solver == "ridge" and lam > 0) and method != "tsvd":
-        raise InputError(
-            f"{model.n_poses} poses give {n_rows} measured components for {idx.size} parameters; "
-            f"expected at least {idx.size // model.dof + 1} poses"
-        )
-    k_max = min(idx.size, n_rows)
-    if method == "tsvd" and (k is None or int(k) != k or not 1 <= k <= k_max):
-        raise InputError(f"k: tsvd needs an integer from 1 to {k_max} (identified parameters, measured components), "
-                         f"got {k!r}")
+    _check_size(model, method, solver, lam, k, idx.size)
     S = S_all[idx]
     # ridge/MAP solve for the deviation from the prior mean c (phi = c + x)
     c = np.zeros(idx.size) if prior_mean is None else np.asarray(prior_mean, dtype=float).reshape(P)[idx] / S
-
-    res_before = model.residual(pred)
-    history, costs = [theta.copy()], [float(r @ r)]
-    success, message, it = False, "", 0
-    sol = None
     basis = None  # TSVD: the fixed subspace V_k, in scaled coordinates
     if method == "tsvd":
         basis = np.linalg.svd(J[:, idx] * S, full_matrices=False)[2][: int(k)].T
+    res_before = model.residual(pred)
+    it = _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol)
+    return _result(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before)
+
+
+def _check_options(model, method: str, lam, max_iter) -> tuple[str, float | None]:
+    """The solver a method uses and its lambda, or InputError naming the argument."""
+    if model.y_measured is None:
+        raise InputError("identify: the measurement model has no measured values")
+    if method not in ("ls", "ridge", "tsvd", "map"):
+        raise InputError(f"method: expected 'ls', 'ridge', 'tsvd' or 'map', got {method!r}")
+    if method == "map":
+        if lam is not None and lam != 1:
+            raise InputError(f"lam: map is ridge with lam = 1 (the prior fixes the weight), got {lam!r}")
+        lam = 1.0
+    if method == "ridge" and (lam is None or not np.isfinite(lam) or lam < 0):
+        raise InputError(f"lam: ridge needs a number >= 0, got {lam!r}")
+    if int(max_iter) != max_iter or max_iter < 1:
+        raise InputError(f"max_iter: expected a whole number >= 1, got {max_iter!r}")
+    return ("ridge" if method == "map" else method), lam
+
+
+def _check_size(model, method: str, solver: str, lam, k, n_free: int) -> None:
+    """InputError when the rows cannot determine ``n_free`` parameters, or ``k`` is out of range."""
+    n_rows = model.n_poses * model.dof
+    # a prior (map, ridge with lam > 0) makes fewer rows than parameters well posed, and so does
+    # TSVD's truncation to k <= n_rows directions (the others stay at the start, in the scaled metric)
+    if n_rows < n_free and not (solver == "ridge" and lam > 0) and method != "tsvd":
+        raise InputError(
+            f"{model.n_poses} poses give {n_rows} measured components for {n_free} parameters; "
+            f"expected at least {n_free // model.dof + 1} poses"
+        )
+    k_max = min(n_free, n_rows)
+    if method == "tsvd" and (k is None or int(k) != k or not 1 <= k <= k_max):
+        raise InputError(f"k: tsvd needs an integer from 1 to {k_max} (identified parameters, measured components), "
+                         f"got {k!r}")
+
+
+def _result(model, method, solver, lam, k, it: "_Iterated", idx, S, c, basis, ida, res_before) -> IdentificationResult:
+    """The answer at the iteration's end: covariance and singular values from the final linearisation."""
+    machine = model.machine
+    P = machine.n_params
+    theta, pred, r, J = it.theta, it.pred, it.r, it.J
+    # final linearisation at the solution, for singular values and covariance
+    A = J[:, idx] * S
+    if basis is None:
+        final = filtered_solve(A, r + A @ (theta[idx] / S - c), solver, lam=lam, k=k)
+    else:
+        sub = filtered_solve(A @ basis, r, "ls")
+        final = type(sub)(x=sub.x, s=sub.s, f=sub.f, V=basis @ sub.V, Utz=sub.Utz)
+    noise_given = machine.noise.given
+    n_rows = model.n_poses * model.dof
+    dof_fit = max(n_rows - float(final.f.sum()), 1.0)
+    chi2 = float(r @ r)
+    # without a stated noise the sigmas are weights: the noise variance is estimated from the fit
+    noise_var = 1.0 if noise_given else chi2 / dof_fit
+    cov_phi, kind = posterior_covariance(final, method, lam=lam, noise_var=noise_var, ratio=not noise_given)
+    cov = cov_phi * np.outer(S, S)
+    # the final ridge/LS solve took the SVD of this very A: no second factorisation
+    determined, s_data = data_determined(A, svd=(final.s, final.V) if basis is None else None)
+    determined_all = np.zeros(P, dtype=bool)
+    determined_all[idx] = determined
+    if not it.success and it.ill_posed:
+        cov = None
+    if not it.success:
+        warnings.warn(it.message, ConvergenceWarning, stacklevel=2)
+    res_after = model.residual(pred)
+    free_mask = np.zeros(P, dtype=bool)
+    free_mask[idx] = True
+    return IdentificationResult(
+        machine_name=machine.name,
+        kind=machine.kind,
+        method=method,
+        lam=None if method not in ("ridge", "map") else float(lam),
+        k=None if method != "tsvd" else int(k),
+        names=machine.layout.names,
+        units=machine.layout.units,
+        theta=theta,
+        free=free_mask,
+        covariance=cov,
+        covariance_kind=kind if noise_given else kind + ", scaled by reduced chi-square",
+        rms_before=model.rms(res_before),
+        rms_after=model.rms(res_after),
+        residuals_before=res_before,
+        residuals_after=res_after,
+        singular_values=final.s,
+        filter_factors=final.f,
+        rank=int(np.sum(s_data > STRUCTURAL_RTOL * s_data[0])) if s_data.size and s_data[0] > 0 else 0,
+        determined=determined_all,
+        condition_number=_condition(s_data),
+        iterations=len(it.history) - 1,
+        history=np.array(it.history),
+        cost_history=np.array(it.costs),
+        success=it.success,
+        message=it.message,
+        fixed=tuple(n for n, f in zip(machine.layout.names, free_mask) if not f),
+        unidentifiable=() if ida is None else ida.combinations,
+        decided_by_prior=() if ida is None else ida.decided_by_prior,
+        dof=model.dof,
+        tool_dof=model.tool_dof,
+        n_poses=model.n_poses,
+        chi2=chi2,
+        noise_given=noise_given,
+        tolerance=machine.tolerance.copy(),
+    )
+
+
+@dataclass
+class _Iterated:
+    """Where the Gauss-Newton iteration stopped, and why."""
+
+    theta: NDArray
+    pred: object
+    r: NDArray
+    J: NDArray
+    history: list
+    costs: list
+    success: bool
+    message: str
+    ill_posed: bool
+
+
+def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol) -> _Iterated:
+    """Gauss-Newton steps of ``method`` in the scaled coordinates ``phi = theta[idx] / S`` until convergence."""
+    machine = model.machine
+    history, costs = [theta.copy()], [float(r @ r)]
+    success, message, ill_posed = False, "", False
     phi0 = theta[idx] / S
     step = np.zeros(idx.size)
-    for it in range(1, max_iter + 1):
+    for _ in range(1, max_iter + 1):
         A = J[:, idx] * S
         phi = theta[idx] / S
         if basis is None:
@@ -354,6 +454,7 @@ def identify(
                 f"(smallest/largest singular value {sol.s[-1] / sol.s[0]:.1e}); the measurement does not "
                 f"separate {names}. Use ridge or tsvd, or let bayescal reduce the parameter set (free='auto')"
             )
+            ill_posed = True
             break
         step = sol.x - phi
         if not np.all(np.isfinite(step)) or np.max(np.abs(sol.x)) > 1e6:
@@ -391,65 +492,4 @@ def identify(
             break
     else:
         message = f"did not converge in {max_iter} iterations (last step {np.max(np.abs(step)):.2e} tolerances)"
-    # final linearisation at the solution, for singular values and covariance
-    A = J[:, idx] * S
-    if basis is None:
-        final = filtered_solve(A, r + A @ (theta[idx] / S - c), solver, lam=lam, k=k)
-    else:
-        sub = filtered_solve(A @ basis, r, "ls")
-        final = type(sub)(x=sub.x, s=sub.s, f=sub.f, V=basis @ sub.V, Utz=sub.Utz)
-    noise_given = machine.noise.given
-    dof_fit = max(n_rows - float(final.f.sum()), 1.0)
-    chi2 = float(r @ r)
-    # without a stated noise the sigmas are weights: the noise variance is estimated from the fit
-    noise_var = 1.0 if noise_given else chi2 / dof_fit
-    cov_phi, kind = posterior_covariance(final, method, lam=lam, noise_var=noise_var, ratio=not noise_given)
-    cov = cov_phi * np.outer(S, S)
-    # the final ridge/LS solve took the SVD of this very A: no second factorisation
-    determined, s_data = data_determined(A, svd=(final.s, final.V) if basis is None else None)
-    determined_all = np.zeros(P, dtype=bool)
-    determined_all[idx] = determined
-    if not success and sol is not None and method == "ls" and "ill-posed" in message:
-        cov = None
-    if not success:
-        warnings.warn(message, ConvergenceWarning, stacklevel=2)
-    res_after = model.residual(pred)
-    free_mask = np.zeros(P, dtype=bool)
-    free_mask[idx] = True
-    fixed = tuple(n for n, f in zip(machine.layout.names, free_mask) if not f)
-    return IdentificationResult(
-        machine_name=machine.name,
-        kind=machine.kind,
-        method=method,
-        lam=None if method not in ("ridge", "map") else float(lam),
-        k=None if method != "tsvd" else int(k),
-        names=machine.layout.names,
-        units=machine.layout.units,
-        theta=theta,
-        free=free_mask,
-        covariance=cov,
-        covariance_kind=kind if noise_given else kind + ", scaled by reduced chi-square",
-        rms_before=model.rms(res_before),
-        rms_after=model.rms(res_after),
-        residuals_before=res_before,
-        residuals_after=res_after,
-        singular_values=final.s,
-        filter_factors=final.f,
-        rank=int(np.sum(s_data > STRUCTURAL_RTOL * s_data[0])) if s_data.size and s_data[0] > 0 else 0,
-        determined=determined_all,
-        condition_number=_condition(s_data),
-        iterations=len(history) - 1,
-        history=np.array(history),
-        cost_history=np.array(costs),
-        success=success,
-        message=message,
-        fixed=fixed,
-        unidentifiable=() if ida is None else ida.combinations,
-        decided_by_prior=() if ida is None else ida.decided_by_prior,
-        dof=model.dof,
-        tool_dof=model.tool_dof,
-        n_poses=model.n_poses,
-        chi2=chi2,
-        noise_given=noise_given,
-        tolerance=machine.tolerance.copy(),
-    )
+    return _Iterated(theta, pred, r, J, history, costs, success, message, ill_posed)

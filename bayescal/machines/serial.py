@@ -50,7 +50,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from ..geometry import left_jacobian, rpy_from_matrix, rpy_matrix, skew, so3_exp, tilt_axes, tilted_direction
+from ..geometry import left_jacobian, rpy_from_matrix, rpy_matrix, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
