@@ -18,7 +18,6 @@ so a study gets the number a user gets.
 from __future__ import annotations
 
 import os
-from dataclasses import replace
 
 from .io.recording import Recording
 from .machines.base import Machine
@@ -97,18 +96,19 @@ def calibrate(data, *, method: str = "map", **options):
         ``report()``, ``to_dict()``, ``parameters`` by name, ``write_machine(path)``; with a session
         holding ``check`` rows, ``result.extras["check"]`` holds their scores.
     """
+    from .identify.answer import identify_answer
     from .identify.calibrate import calibrate as _calibrate
     from .instrument.prepare import Session
 
     if isinstance(data, Session):
-        cal = _calibrate(data.fit_model, method=method, **options)
-        from .prediction.recording import score_held_out
+        from .outliers import recording_lines
 
-        held = score_held_out(cal, data)
-        if held:
-            cal = replace(cal, result=replace(cal.result, extras={**cal.result.extras, **held}))
-        return cal
-    return _calibrate(data, method=method, **options)
+        # the outlier test names poses by their line in the recording file (held-out rows skipped)
+        options.setdefault("lines", recording_lines(data.fit_model.n_poses, data.fit_recording))
+        cal = _calibrate(data.fit_model, method=method, **options)
+        return identify_answer(cal, data.fit_model.machine, data.fit_model, check=data.check, session=data)[0]
+    cal = _calibrate(data, method=method, **options)
+    return identify_answer(cal, data.machine, data)[0]
 
 
 def predict(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Recording, *, frame: str = "base",

@@ -122,6 +122,9 @@ class Model(Protocol):
 
     def without_sensors(self) -> "Model": ...
 
+    def answer_extras(self, theta: NDArray) -> dict:
+        """JSON keys an answer carries for the model's own nuisance parameters (a ballbar's pivots)."""
+
 
 class ModelCheckError(BayescalError):
     """A model fails :func:`check_model` (``strict=True``); ``problems`` lists why."""

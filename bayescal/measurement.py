@@ -233,6 +233,10 @@ class MeasurementModel:
     def n_params(self) -> int:
         return self.machine.n_params
 
+    def answer_extras(self, theta) -> dict:
+        """JSON keys of the model's own nuisance parameters at ``theta`` for an answer: none here."""
+        return {}
+
     @property
     def theta_start(self) -> None:
         """Where a search starts: None, the nominal (zero errors); a model with nuisance start values overrides it."""

@@ -15,17 +15,68 @@ from .conftest import PRS3_FILE, ROOT
 REC = ROOT / "examples" / "prs3" / "recording.csv"
 
 
-def test_calibrate_is_identify(tmp_path):
-    s = bayescal.load(PRS3_FILE, REC)
-    cal = bayescal.calibrate(s, method="map")
-    out = tmp_path / "a.json"
-    assert main(["identify", str(REC), "--machine", str(PRS3_FILE), "--method", "map", "--json", str(out), "--quiet"]) == 0
-    ans = json.loads(out.read_text())
-    lib = {p["name"]: p for p in json.loads(json.dumps(cal.to_dict(), default=lambda o: np.asarray(o).tolist()))["parameters"]}
-    for p in ans["parameters"]:
-        assert lib[p["name"]]["value"] == p["value"] and lib[p["name"]]["std"] == p["std"]
-    assert cal.parameters["chain1.link_length"].unit == "mm"
-    assert "<table>" in cal._repr_html_()
+def _positioner_with_roles(tmp_path):
+    """The real positioner recording with every fourth row held out (role = check), as a file."""
+    from dataclasses import replace
+
+    rec = bayescal.read_recording(ROOT / "examples" / "positioner" / "recording.csv")
+    rec = replace(rec, role=tuple("check" if i % 4 == 3 else "fit" for i in range(rec.n_poses)))
+    path = tmp_path / "positioner.csv"
+    bayescal.write_recording(path, rec)
+    return ROOT / "examples" / "positioner" / "machine.toml", path
+
+
+def _delta_distances(tmp_path):
+    from bayescal.constraints.simulate import simulate_distances
+    from bayescal.io.constraints import write_constraints
+
+    machine = ROOT / "examples" / "delta" / "machine.toml"
+    path = tmp_path / "distances.csv"
+    write_constraints(path, simulate_distances(bayescal.load_machine(machine), 30, seed=2, heights=10).recording)
+    return machine, path
+
+
+CASES = {
+    "3-PRS, base frame": (lambda tmp: (PRS3_FILE, REC), {}, []),
+    "positioner, fitted frame, held-out rows": (_positioner_with_roles, {"frame": "fit"}, ["--frame", "fit"]),
+    "delta, heights and distances": (_delta_distances, {}, []),
+    "3-PRS, ridge lam=auto": (lambda tmp: (PRS3_FILE, REC), {"method": "ridge", "lam": "auto"},
+                              ["--method", "ridge", "--lam", "auto"]),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_calibrate_writes_the_json_identify_writes_byte_for_byte(tmp_path, case):
+    from bayescal.io.answers import json_text
+
+    files, options, flags = CASES[case]
+    machine, rec = files(tmp_path)
+    load_kw = {k: v for k, v in options.items() if k == "frame"}
+    cal_kw = {k: v for k, v in options.items() if k != "frame"}
+    cal = bayescal.calibrate(bayescal.load(machine, rec, **load_kw), **cal_kw)
+    out = tmp_path / "cli.json"
+    code = main(["identify", str(rec), "--machine", str(machine), "--json", str(out), "--quiet", *flags])
+    assert code == 0 and cal.plausibility.plausible
+    assert json_text(cal.to_dict()) == out.read_text()
+    assert json.loads(json.dumps(cal.to_dict(), allow_nan=False))  # the library's answer is plain JSON
+    if case.startswith("positioner"):
+        assert cal.to_dict()["check"]["summary"]["n"] == 51 and "frame" in cal.to_dict()
+    if case.startswith("delta"):
+        assert "pivots" in cal.to_dict()
+
+
+def test_an_implausible_calibration_is_not_written(tmp_path):
+    from dataclasses import replace
+
+    from bayescal.instrument.plausibility import Plausibility
+
+    cal = bayescal.calibrate(bayescal.load(PRS3_FILE, REC), method="map")
+    bad = replace(cal, plausibility=Plausibility(False, ("chain1.link_length is 40 tolerances from nominal",)))
+    with pytest.raises(bayescal.InputError, match="not plausible.*40 tolerances"):
+        bad.write_machine(tmp_path / "m.toml")
+    assert not (tmp_path / "m.toml").exists()
+    assert bad.write_machine(tmp_path / "m.toml", force=True)[0].is_file()
+    assert cal.parameters["chain1.link_length"].unit == "mm" and "<table>" in cal._repr_html_()
 
 
 def test_write_machine_then_predict(tmp_path):

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from dataclasses import replace
 
 from ..bayes.priors import PRIOR_SCALES
 from ..errors import InputError
+from ..identify.answer import identify_answer
 from ..identify.calibrate import calibrate
 from ..identify.choose import DEFAULT_RULE, RULE_NAMES
 from ..identify.robust import robust_map_weights
@@ -16,11 +16,11 @@ from . import SUMMARIES
 from .bayes_identify import METHODS, add_arguments, check_method_options, run_bayes
 from .effect_options import joint_effects_model, with_fitted_effects
 from .inputs import add_frame_argument, free_arg, inputs_with_session, name_list
-from .instrument import add_force_argument, instrument_report, judge, refusal_note, write_calibrated_files
+from .instrument import add_force_argument, instrument_report, refusal_note, write_calibrated_files
 from .outlier_options import add_outlier_arguments, outlier_kwargs
 from .outputs import add_output_options, write_json, write_report
 from ..machines.framed import base_machine
-from ..prediction.recording import held_out_report, score_held_out
+from ..prediction.recording import held_out_report
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -260,14 +260,12 @@ def run(args) -> int:
     res, handling, choice = cal.result, cal.handling, cal.choice
     written = with_fitted_effects(machine, model, res)
     fitted_effects = tuple(written.effects) if args.fit_effects else None
-    held_out = score_held_out(cal, session, effects=fitted_effects) if session is not None else {}
-    if hasattr(model, "pivot_positions"):  # a constraint recording's fitted ballbar pivots
-        res = replace(res, extras={**res.extras, "pivots": model.pivot_positions(res.theta)})
+    # the whole answer (pivots, instrument frame, plausibility, held-out rows) as the library gives it
+    cal, extra, held_out = identify_answer(cal, machine, model, check=check, session=session, effects=fitted_effects)
+    res, plaus = cal.result, cal.plausibility
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
-    # instrument frame and plausibility (docs/real-instruments.md)
-    extra, plaus = judge(machine, model, res, check)
-    write_json(args, {**res.to_dict(), **extra, **held_out})
+    write_json(args, cal.to_dict())
     write_calibrated_files(args, written.with_calibration(cal.record(base_machine(written)), cal.discrepancy_model),
                            res, plaus)
     write_report(args, "identify", res, machine=machine, model=model, choice=choice, answer_extra=extra)

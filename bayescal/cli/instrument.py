@@ -8,9 +8,9 @@ JSON answer says ``"plausible": false`` with the reasons, the command exits
 
 from __future__ import annotations
 
-import numpy as np
 
-from ..instrument import Plausibility, assess_plausibility, frame_answer
+from ..instrument import Plausibility, frame_answer
+from ..instrument.plausibility import judge_fit as judge
 
 __all__ = [
     "add_force_argument", "judge", "may_write_machine", "refusal_note", "instrument_report", "instrument_frame_line",
@@ -24,29 +24,6 @@ def add_force_argument(p) -> None:
         help="write --write-machine even when the calibration is not plausible (errors beyond 10 tolerances, "
         "or no residual degrees of freedom)",
     )
-
-
-def judge(machine, model, res, check) -> tuple[dict, Plausibility]:
-    """The answer's ``frame``, ``plausible`` and ``frame_check`` entries, and the verdict."""
-    theta = np.asarray(res.theta, dtype=float)
-    if np.all(np.isfinite(theta)):
-        plaus = assess_plausibility(model, theta, res.free, getattr(res, "residuals_after", None), check=check,
-                                    effective_params=_effective_params(res))
-    else:
-        plaus = Plausibility(False, ("the identified values are not finite",))
-    extra = {**frame_answer(machine, theta, res.free, getattr(res, "covariance", None)), **plaus.to_dict()}
-    if check is not None:
-        extra["frame_check"] = check.to_dict()
-    return extra, plaus
-
-
-def _effective_params(res) -> float | None:
-    """A regularised fit's effective number of parameters (its filter factors summed), else None."""
-    f = getattr(res, "filter_factors", None)
-    if getattr(res, "method", "ls") not in ("ridge", "tsvd", "map") or f is None:
-        return None
-    f = np.asarray(f, dtype=float)
-    return float(f.sum()) if f.size and np.all(np.isfinite(f)) else None
 
 
 def may_write_machine(args, res, plaus: Plausibility) -> bool:

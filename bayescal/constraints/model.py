@@ -261,6 +261,10 @@ class ConstraintModel:
     def without_sensors(self) -> "ConstraintModel":
         return self
 
+    def answer_extras(self, theta) -> dict:
+        """The answer's ``pivots``: each ballbar pivot's fitted position (mm), ``{}`` without ballbar rows."""
+        return {"pivots": self.pivot_positions(theta)}
+
     def with_pose_sigma(self, pose_sigma: NDArray | None) -> "ConstraintModel":
         """The same model with other per-row noise (None: the machine's)."""
         from dataclasses import replace

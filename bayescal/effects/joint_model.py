@@ -256,6 +256,7 @@ class EffectModel:
     region = _of_geo("region")
     rows_jacobian = _of_geo("rows_jacobian")
     effect_inputs = _of_geo("effect_inputs")
+    answer_extras = _of_geo("answer_extras")
 
     def with_pose_q(self, pose_q: NDArray, *, keep_guess: bool = True) -> "EffectModel":
         """The same effects on the geometric model at other actuator positions (their features kept)."""

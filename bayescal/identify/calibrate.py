@@ -81,6 +81,9 @@ class Calibration:
     variance_factor: float = 1.0
     loo_ratio: float = 1.0
     model: object = field(default=None, repr=False, compare=False)
+    #: The plausibility verdict (:func:`bayescal.identify.answer.identify_answer` sets it): an implausible
+    #: calibration is not written by :meth:`write_machine` unless forced.
+    plausibility: object | None = None
 
     # ------------------------------------------------------------ the answer
     @property
@@ -89,8 +92,17 @@ class Calibration:
         return {p.name: p for p in self.result.parameters}
 
     def to_dict(self) -> dict:
-        """The JSON answer of ``bayescal identify`` (docs/formats.md section 3), without the instrument keys."""
-        return self.result.to_dict()
+        """The JSON answer of ``bayescal identify`` (docs/formats.md section 3), in JSON's own types.
+
+        From :func:`bayescal.calibrate` (which passes it through
+        :func:`bayescal.identify.answer.identify_answer`) it holds every key the
+        command writes, the instrument frame, plausibility and held-out rows
+        included: ``bayescal.io.answers.json_text(cal.to_dict())`` is the
+        command's ``--json`` file, byte for byte.
+        """
+        from ..io.answers import to_jsonable
+
+        return to_jsonable(self.result.to_dict())
 
     def report(self) -> str:
         """The report ``bayescal identify`` prints: fit, parameters, noise, discrepancy, outliers."""
@@ -118,16 +130,20 @@ class Calibration:
         machine = self.model.machine if machine is None else machine
         return machine.with_calibration(self.record(base_machine(machine)), self.discrepancy_model)
 
-    def write_machine(self, path, machine=None) -> list:
+    def write_machine(self, path, machine=None, *, force: bool = False) -> list:
         """Write the calibrated machine file (geometry folded in, ``[calibration]``, ``[discrepancy]``), atomically.
 
         ``machine``: the machine that was calibrated (default: the model's).
         Returns the files written (a hybrid machine writes one per module).
+        A calibration judged implausible (:attr:`plausibility`) is refused, as
+        ``bayescal identify --write-machine`` refuses it, unless ``force``.
         """
         from ..machines.files import write_calibrated_machine_files
+        from .answer import refuse_implausible
 
         if not self.result.success:
             raise InputError(f"write_machine: the calibration did not succeed ({self.result.message})")
+        refuse_implausible(self.plausibility, force)
         m = self.machine_with_record(machine)
         return write_calibrated_machine_files(path, m, self.result.theta[: m.n_params])
 

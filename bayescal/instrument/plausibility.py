@@ -49,7 +49,7 @@ from ..identify.noise import distinct_rows
 from ..measurement import MeasurementModel
 from .alignment import FrameCheck
 
-__all__ = ["Plausibility", "assess_plausibility", "frame_answer", "PLAUSIBLE_SIGMAS"]
+__all__ = ["Plausibility", "assess_plausibility", "frame_answer", "judge_fit", "PLAUSIBLE_SIGMAS"]
 
 #: |value| above this many tolerances (prior sigmas) makes a calibration implausible.
 PLAUSIBLE_SIGMAS = 10.0
@@ -275,3 +275,42 @@ def _one_frame(machine: InstrumentFrame, theta: NDArray, C: NDArray | None, k: i
         clean = lambda v: [float(x) if np.isfinite(x) else None for x in v]  # noqa: E731
         out["std"] = {"origin": clean(std_o), "rotation_vector": clean(std_r)}
     return out
+
+
+def judge_fit(machine, model, res, check=None) -> tuple[dict, "Plausibility"]:
+    """The answer's ``frame``, ``plausible`` and ``frame_check`` entries of a fit, and the verdict.
+
+    Parameters
+    ----------
+    machine : Machine
+        As calibrated (an instrument frame's parameters lead ``res.theta``).
+    model : Model
+    res : IdentificationResult, or a Kalman or MCMC result
+    check : FrameCheck, optional
+        The rigid-transform check of a base-frame recording (``Session.check``).
+
+    Returns
+    -------
+    (dict, Plausibility)
+        The JSON keys every identify answer carries, and the verdict that decides whether a
+        calibrated machine may be written.
+    """
+    theta = np.asarray(res.theta, dtype=float)
+    if np.all(np.isfinite(theta)):
+        plaus = assess_plausibility(model, theta, res.free, getattr(res, "residuals_after", None), check=check,
+                                    effective_params=_effective_params(res))
+    else:
+        plaus = Plausibility(False, ("the identified values are not finite",))
+    extra = {**frame_answer(machine, theta, res.free, getattr(res, "covariance", None)), **plaus.to_dict()}
+    if check is not None:
+        extra["frame_check"] = check.to_dict()
+    return extra, plaus
+
+
+def _effective_params(res) -> float | None:
+    """A regularised fit's effective number of parameters (its filter factors summed), else None."""
+    f = getattr(res, "filter_factors", None)
+    if getattr(res, "method", "ls") not in ("ridge", "tsvd", "map") or f is None:
+        return None
+    f = np.asarray(f, dtype=float)
+    return float(f.sum()) if f.size and np.all(np.isfinite(f)) else None

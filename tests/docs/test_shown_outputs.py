@@ -14,7 +14,7 @@ import pytest
 
 from tests.docs.shown_outputs import ROOT, blocks, check_page, compare, refreshed, steps
 
-PAGES = ["getting-started.md", "cli.md", "real-setup.md", "discrepancy.md"]
+PAGES = ["getting-started.md", "cli.md", "real-setup.md", "discrepancy.md", "tutorial.md"]
 
 
 @pytest.mark.parametrize("page", PAGES)
