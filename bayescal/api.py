@@ -96,9 +96,16 @@ def calibrate(data, *, method: str = "map", **options):
         ``report()``, ``to_dict()``, ``parameters`` by name, ``write_machine(path)``; with a session
         holding ``check`` rows, ``result.extras["check"]`` holds their scores.
     """
+    from .contract import Model
+    from .errors import InputError
     from .identify.answer import identify_answer
     from .identify.calibrate import calibrate as _calibrate
     from .instrument.prepare import Session
+
+    if not isinstance(data, (Session, Model)):
+        raise InputError(f"calibrate: expected what bayescal.load returns (or a measurement model), got "
+                         f"{type(data).__name__} {data!r:.80}; for files: bayescal.calibrate(bayescal.load(machine, "
+                         "recording))")
 
     if isinstance(data, Session):
         from .outliers import recording_lines

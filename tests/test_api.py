@@ -124,3 +124,15 @@ def test_load_takes_a_constraint_recording(tmp_path, capsys):
     assert [p["value"] for p in lib["parameters"]] == [p["value"] for p in ans["parameters"]]
     with pytest.raises(bayescal.errors.InputError, match="constraint recording"):
         bayescal.load(machine, rec, frame="fit")
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda s: bayescal.calibrate(s, method="ridge", lam="abc"), "lam: expected a number >= 0 or 'auto', got 'abc'"),
+    (lambda s: bayescal.calibrate(s, method="tsvd", k="many"), "k: expected a whole number or 'auto'"),
+    (lambda s: bayescal.calibrate(s, method="map", lamda=1), r"unknown option\(s\) lamda; expected method, lam"),
+    (lambda s: bayescal.calibrate(str(REC)), "expected what bayescal.load returns .* got str"),
+    (lambda s: bayescal.diagnose(PRS3_FILE, REC, n_folds=0), "n_folds: expected a whole number >= 2"),
+])
+def test_the_front_door_refuses_bad_arguments_by_name(call, match):
+    with pytest.raises(bayescal.InputError, match=match):
+        call(bayescal.load(PRS3_FILE, REC))

@@ -196,6 +196,8 @@ def diagnose(
         Unknown effect names, a forced effect that needs a missing channel,
         too few poses for a forced effect or for cross-validation.
     """
+    if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
+        raise InputError(f"n_folds: expected a whole number >= 2 (folds of the cross-validation), got {n_folds!r}")
     again = dict(effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm, effect_settings=effect_settings)
     s = _setup(machine, recording, effects, effect_settings, n_folds, _screen)
     g = _geometric_stage(s, seed)

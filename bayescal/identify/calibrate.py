@@ -311,6 +311,15 @@ def _fit_once(model, method, *, lam, k, free, rule, prior_scale, max_iter, outli
     return res, handling, choice
 
 
+#: Options of :func:`calibrate` passed on to the outlier handling (:mod:`bayescal.identify.robust`).
+OUTLIER_OPTIONS = ("nu", "alpha", "lines")
+
+
+def _real(x) -> bool:
+    """A finite real number (not a bool, not a string)."""
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and math.isfinite(x)
+
+
 def calibrate(
     model: MeasurementModel,
     *,
@@ -363,6 +372,15 @@ def calibrate(
     """
     if method not in DETERMINISTIC_METHODS:
         raise InputError(f"method: expected one of {', '.join(DETERMINISTIC_METHODS)}, got {method!r}")
+    bad = sorted(set(outlier_kw) - set(OUTLIER_OPTIONS))
+    if bad:
+        raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, rule, "
+                         f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
+                         f"{', '.join(OUTLIER_OPTIONS)}")
+    if lam is not None and lam != "auto" and not _real(lam):
+        raise InputError(f"lam: expected a number >= 0 or 'auto', got {lam!r}")
+    if k is not None and k != "auto" and not (_real(k) and float(k) == int(k)):
+        raise InputError(f"k: expected a whole number or 'auto', got {k!r}")
     if method == "ridge" and lam is None:
         raise InputError("lam: required with method ridge (1: MAP under the tolerance prior, or 'auto')")
     if method == "tsvd" and k is None:
