@@ -136,3 +136,13 @@ def test_load_takes_a_constraint_recording(tmp_path, capsys):
 def test_the_front_door_refuses_bad_arguments_by_name(call, match):
     with pytest.raises(bayescal.InputError, match=match):
         call(bayescal.load(PRS3_FILE, REC))
+
+
+def test_diagnose_gives_the_json_diagnose_writes_byte_for_byte(tmp_path):
+    from bayescal.io.answers import json_text
+
+    d = bayescal.diagnose(PRS3_FILE, REC, seed=0)
+    out = tmp_path / "d.json"
+    assert main(["diagnose", str(REC), "--machine", str(PRS3_FILE), "--json", str(out), "--quiet"]) in (0, 1)
+    assert json.loads(json.dumps(d.to_dict(), allow_nan=False))
+    assert json_text(d.to_dict()) == out.read_text()

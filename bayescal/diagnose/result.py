@@ -134,7 +134,16 @@ class Diagnosis:
         return self.location.strongest
 
     def to_dict(self) -> dict:
-        """The JSON answer of docs/formats.md section 3 (plus documented extra keys)."""
+        """The JSON answer of docs/formats.md section 3 (plus documented extra keys), in JSON's own types.
+
+        ``bayescal diagnose --json`` writes ``json_text`` of it (with the fitted
+        instrument frame's keys when ``--frame fit``).
+        """
+        from ..io.answers import to_jsonable
+
+        return to_jsonable(self._answer())
+
+    def _answer(self) -> dict:
         loc = self.located
         return {
             "verdict": self.verdict,
