@@ -372,7 +372,7 @@ def _result(model, method, solver, lam, k, it: "_Iterated", idx, S, c, basis, id
     if not it.success and it.ill_posed:
         cov = None
     if not it.success:
-        warnings.warn(it.message, ConvergenceWarning, stacklevel=2)
+        warnings.warn(it.message, ConvergenceWarning, stacklevel=3)  # at identify's caller
     res_after = model.residual(pred)
     free_mask = np.zeros(P, dtype=bool)
     free_mask[idx] = True

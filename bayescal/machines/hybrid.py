@@ -114,6 +114,11 @@ def _refuse_cycle(mt: TomlTable, f: Path) -> None:
             raise mt.error("file", f"{f} {what} ({loop}); expected a module file that is not one of the files including it")
 
 
+#: Tables a machine file may carry around its geometry (docs/formats.md sections 4, 7, 8): in a hybrid they
+#: describe the whole machine and live in its main file.
+_MAIN_FILE_TABLES = ("effect", "instrument", "calibration", "discrepancy")
+
+
 def _read_modules(doc: TomlTable, path: str) -> tuple[list, list]:
     """The modules and roles of the ``[[module]]`` tables, each module built by its own kind."""
     modules, roles = [], []
@@ -131,6 +136,11 @@ def _read_modules(doc: TomlTable, path: str) -> tuple[list, list]:
             sub, sub_path = read_toml(f), str(f)
         else:
             sub, sub_path = mt.table("machine"), path
+        for key in _MAIN_FILE_TABLES:
+            if sub.has(key):
+                raise mt.error("file" if mt.has("file") else "machine",
+                               f"a module has a [{key}] table; expected it in the hybrid machine's own file ({path}): "
+                               "effects, the instrument frame and the calibration belong to the whole machine")
         if role == "table":
             sub = _table_tool_default(sub)
         modules.append(machine_from_table(sub, sub_path))  # a module is geometry: its machine's tables are the main file's

@@ -293,3 +293,18 @@ def test_a_fifo_or_device_module_file_is_refused_unread(tmp_path):
     if os.path.exists("/dev/null"):  # a character device (reading /dev/zero instead never ended)
         with pytest.raises(MachineFileError, match="not a regular file"):
             load_machine(_hybrid_of(tmp_path / "d.toml", "/dev/null"))
+
+
+def test_a_module_file_with_a_whole_machine_table_is_refused_by_name(tmp_path):
+    import shutil
+
+    from bayescal.errors import MachineFileError
+    from bayescal.machines.files import load_machine
+
+    src = Path(__file__).resolve().parents[2] / "examples" / "hybrid_table"
+    for f in src.glob("*.toml"):
+        shutil.copy(f, tmp_path / f.name)
+    head = tmp_path / "head.toml"
+    head.write_text(head.read_text() + "\n[instrument]\norigin = [0.0, 0.0, 0.0]\n")
+    with pytest.raises(MachineFileError, match=r"a module has a \[instrument\] table; expected it in the hybrid"):
+        load_machine(tmp_path / "machine.toml")
