@@ -19,7 +19,6 @@ from .inputs import add_frame_argument, free_arg, inputs_with_session, name_list
 from .instrument import add_force_argument, instrument_report, refusal_note, write_calibrated_files
 from .outlier_options import add_outlier_arguments, outlier_kwargs
 from .outputs import add_output_options, write_json, write_report
-from ..machines.framed import base_machine
 from ..prediction.recording import held_out_report
 
 HELP = """\
@@ -266,7 +265,7 @@ def run(args) -> int:
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
     write_json(args, cal.to_dict())
-    write_calibrated_files(args, written.with_calibration(cal.record(base_machine(written)), cal.discrepancy_model),
+    write_calibrated_files(args, written.with_calibration(cal.record(written.base_machine()), cal.discrepancy_model),
                            res, plaus)
     write_report(args, "identify", res, machine=machine, model=model, choice=choice, answer_extra=extra)
     path = None

@@ -181,10 +181,10 @@ def run(args) -> int:
         raise InputError(f"--random-sets: expected >= 0, got {args.random_sets}")
     machine = load_machine(args.machine)
     if args.frame == "fit":
-        from ..machines.framed import Frame, InstrumentFrame, base_machine
+        from ..machines.framed import Frame, InstrumentFrame
 
         # where the instrument stands does not change the information; identity is as good as any frame
-        machine = InstrumentFrame(base_machine(machine), Frame.identity(), fit=True)
+        machine = InstrumentFrame(machine.base_machine(), Frame.identity(), fit=True)
     plan = plan_poses(
         machine, args.n, criterion=args.criterion or "D", dof=args.dof, n_candidates=args.candidates, seed=args.seed,
         scaling=args.scaling, n_random=args.random_sets, exchange=not args.no_exchange,

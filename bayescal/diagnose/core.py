@@ -548,7 +548,6 @@ def _final_model(machine, recording, model, selected, fit: EffectFit, settings, 
 def _record(machine, final_model, fit: EffectFit, disc_trial):
     """The ``[calibration]`` record the calibrated machine carries (its covariance, noise scale, variance factor)."""
     from ..discrepancy import weight_names
-    from ..machines.framed import base_machine
     from ..prediction.loo import loo_variance_factor
     from ..prediction.record import record_from_result
 
@@ -573,6 +572,6 @@ def _record(machine, final_model, fit: EffectFit, disc_trial):
             kappa, _ = loo_variance_factor(scaled, theta, cov, machine_index=np.arange(P), discrepancy=disc)
         except (np.linalg.LinAlgError, ValueError, KinematicsError):
             kappa = 1.0
-    return record_from_result(base_machine(machine), names, free, cov[:P, :P] if not extra else None,
+    return record_from_result(machine.base_machine(), names, free, cov[:P, :P] if not extra else None,
                               noise_scale=scale, method="diagnose", extra_names=extra,
                               extra_cov=cov if extra else None, variance_factor=kappa)

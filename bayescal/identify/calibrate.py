@@ -125,10 +125,9 @@ class Calibration:
 
     def machine_with_record(self, machine=None):
         """The calibrated machine as it is written: ``nominal + theta`` folded later, its record and discrepancy attached."""
-        from ..machines.framed import base_machine
 
         machine = self.model.machine if machine is None else machine
-        return machine.with_calibration(self.record(base_machine(machine)), self.discrepancy_model)
+        return machine.with_calibration(self.record(machine.base_machine()), self.discrepancy_model)
 
     def write_machine(self, path, machine=None, *, force: bool = False) -> list:
         """Write the calibrated machine file (geometry folded in, ``[calibration]``, ``[discrepancy]``), atomically.

@@ -21,7 +21,7 @@ from ..errors import InputError
 from ..geometry import so3_exp
 from ..io.recording import Recording
 from ..machines.base import Machine
-from ..machines.framed import Frame, base_machine
+from ..machines.framed import Frame
 
 __all__ = ["align_frame", "frame_start", "FrameCheck", "check_frame"]
 
@@ -100,7 +100,7 @@ def frame_start(machine: Machine, rec: Recording, *, dof: int | None = None) -> 
     Frame
         Pose of the instrument frame in the base frame.
     """
-    base = base_machine(machine)
+    base = machine.base_machine()
     dof = rec.dof if dof is None else min(dof, rec.dof)
     nom = base.forward(base.check_q(rec.q))
     ok = nom.success

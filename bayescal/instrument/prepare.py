@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import InputError, RecordingError
 from ..io.recording import Recording
 from ..machines.base import Machine
-from ..machines.framed import Frame, InstrumentFrame, base_machine
+from ..machines.framed import Frame, InstrumentFrame
 from ..measurement import MeasurementModel, check_recording_solves
 from .alignment import FrameCheck, check_frame, frame_start
 from .units import check_recording_units
@@ -213,7 +213,7 @@ def station_frames(machine: Machine, rec: Recording, *, dof: int | None = None,
         A station with too few ``fit`` poses to align a frame (at least 3
         points, or 2 with orientations), naming the station.
     """
-    base = base_machine(machine)
+    base = machine.base_machine()
     stations = rec.stations
     idx = rec.station_index
     fit = ~rec.is_check

@@ -60,7 +60,7 @@ from ..io.machine_file import format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, ToolPoses
 
-__all__ = ["Frame", "InstrumentFrame", "FRAME_NAMES", "FRAME_TOLERANCE", "base_machine", "instrument_toml",
+__all__ = ["Frame", "InstrumentFrame", "FRAME_NAMES", "FRAME_TOLERANCE", "instrument_toml",
            "frame_names", "is_frame_parameter"]
 
 #: The frame parameters, in layout order (first in a fitted frame's layout).
@@ -504,17 +504,6 @@ class InstrumentFrame(Machine):
     @classmethod
     def from_toml(cls, table, path: str) -> "InstrumentFrame":
         raise MachineFileError(path, "instrument", "read through bayescal.machines.files.load_machine")
-
-
-def base_machine(machine: Machine) -> Machine:
-    """The machine in its base frame (the inner machine of an :class:`InstrumentFrame`), without body sensors' mountings.
-
-    A measurement model's machine for a recording with body sensors is a
-    :class:`~bayescal.sensors.SensorMounts` view (inside any instrument
-    frame); its parameters are nuisance like the frame's, so this is the
-    machine under it.
-    """
-    return machine.base_machine()
 
 
 def read_instrument(doc, path: str) -> Frame | None:
