@@ -53,7 +53,7 @@ from scipy import linalg, optimize
 from threadpoolctl import threadpool_limits
 
 from ..errors import InputError
-from .kernel import farthest_points, nystrom_features
+from .kernel import JITTER, farthest_points, nystrom_features, se_kernel
 from .model import OUTPUT_NAMES, Discrepancy, discrepancy_inputs, output_rows_map
 
 __all__ = ["DiscrepancyFit", "fit_discrepancy", "default_inputs", "joint_design", "MIN_EVIDENCE_GAIN", "MAX_HYPER_POSES"]
@@ -214,17 +214,73 @@ def _optimise(prob: _Problem, U, x0, bounds, d, n_groups, groups, fit_noise, max
     rr = float(prob.r @ prob.r)
 
     def f(x):
-        ls, s, c = _unpack(x, d, n_groups, groups, fit_noise)
         try:
-            phi, _ = nystrom_features(prob.Z, U, ls)
+            return _neg_log_ml_and_gradient(prob, U, x, d, n_groups, groups, fit_noise, rr)
         except linalg.LinAlgError:
-            return 1e300
-        M, b = prob.pieces(phi, s)
-        v = _neg_log_ml(M, b, rr, prob.N, c)
-        return v if np.isfinite(v) else 1e300
+            return 1e300, np.zeros_like(x)
 
-    res = optimize.minimize(f, x0, method="L-BFGS-B", bounds=bounds, options={"maxiter": maxiter})
+    # the analytic gradient (not L-BFGS-B's finite differences): a tenth of the likelihood evaluations, and
+    # a search path that does not move with round-off elsewhere (the marginal likelihood is flat near its top)
+    res = optimize.minimize(f, x0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": maxiter})
     return res.x, float(res.fun)
+
+
+def _neg_log_ml_and_gradient(prob: _Problem, U, x, d, n_groups, groups, fit_noise, rr) -> tuple[float, NDArray]:
+    """:func:`_neg_log_ml` at the hyperparameters ``x`` (log length scales, log group scales, log noise factor) and its gradient.
+
+    With ``K = c I + M``, ``y = K^-1 b``: ``d nll = <G_M, dM> + g_b . db (+ the noise factor's own term)`` with
+    ``G_M = (y y^T / c + K^-1) / 2`` and ``g_b = -y / c``; ``M`` and ``b`` are quadratic and linear in the
+    features ``phi = k(X, U) L^-T`` and scale with the output scales; ``phi`` depends on the length scales
+    through ``k(X, U)`` and the Cholesky factor ``L`` of ``k(U, U) + jitter I`` (its derivative
+    ``dL = L Phi(L^-1 dK_UU L^-T)``, ``Phi`` the lower triangle with half the diagonal).  Checked against
+    central differences in tests/discrepancy.
+    """
+    ls, s, c = _unpack(x, d, n_groups, groups, fit_noise)
+    Kuu = se_kernel(U, U, ls)
+    L = linalg.cholesky(Kuu + JITTER * np.eye(U.shape[0]), lower=True)
+    Kxu = se_kernel(prob.Z, U, ls)
+    phi = linalg.solve_triangular(L, Kxu.T, lower=True).T
+    M, b = prob.pieces(phi, s)
+    n_all = M.shape[0]
+    Lk = linalg.cholesky(np.eye(n_all) + M / c, lower=True)
+    y = linalg.cho_solve((Lk, True), b) / c
+    bty = float(b @ y)
+    nll = 0.5 * ((rr - bty) / c + prob.N * math.log(c) + 2.0 * np.sum(np.log(np.diag(Lk))))
+    Kinv = linalg.cho_solve((Lk, True), np.eye(n_all)) / c
+    GM = 0.5 * (np.outer(y, y) / c + Kinv)
+    gb = -y / c
+    grad = np.zeros_like(x)
+    if fit_noise:  # d nll / d log c
+        grad[-1] = 0.5 * c * (-(rr - bty) / c**2 + float(y @ y) / c + prob.N / c + np.trace(Kinv) - n_all / c)
+    # output scales: M = D M~ D, b = D b~ with D = diag(1, s_o on block o)
+    p, m, o = prob.AtA.shape[0], phi.shape[1], prob.n_out
+    per_row = 2.0 * np.sum(M * GM, axis=1) + gb * b
+    per_out = per_row[p:].reshape(o, m).sum(axis=1)
+    np.add.at(grad, d + groups, per_out)
+    # features: d nll / d phi
+    psi = np.zeros_like(phi)
+    for a in range(o):
+        blk_a = slice(p + a * m, p + (a + 1) * m)
+        psi += (2.0 * s[a]) * (prob.H[:, a, :] @ GM[:p, blk_a])
+        psi += s[a] * np.outer(prob.Gr[:, a], gb[blk_a])
+        for cc in range(o):
+            if prob.coupled[a, cc]:
+                G_ac = GM[blk_a, p + cc * m:p + (cc + 1) * m]
+                psi += (s[a] * s[cc]) * ((phi * prob.g[:, a, cc][:, None]) @ (G_ac + G_ac.T))
+    # through phi = k(X, U) L^-T to the kernels: d nll = <P, dk(X, U)> + <Q, dk(U, U)>
+    P = linalg.solve_triangular(L, psi.T, lower=True, trans="T").T
+    B = psi.T @ phi
+    Bt = np.tril(B, -1) + 0.5 * np.diag(np.diag(B))
+    C = 0.5 * (Bt + Bt.T)
+    Q = -linalg.solve_triangular(L, linalg.solve_triangular(L, C, lower=True, trans="T").T, lower=True, trans="T")
+    # d k / d log l_j = k (x_j - u_j)^2 / l_j^2
+    grad[:d] = (_weighted_sq_dist(P * Kxu, prob.Z, U) + _weighted_sq_dist(Q * Kuu, U, U)) / ls**2
+    return float(nll), grad
+
+
+def _weighted_sq_dist(W: NDArray, X: NDArray, Y: NDArray) -> NDArray:
+    """``sum_{n,i} W_ni (X_nj - Y_ij)^2`` for every input ``j``."""
+    return W.sum(axis=1) @ X**2 - 2.0 * np.sum(X * (W @ Y), axis=0) + W.sum(axis=0) @ Y**2
 
 
 def fit_discrepancy(model, theta, free, prior_sd, *, prior_mean=None, inputs=None, n_inducing: int | None = None,

@@ -160,3 +160,47 @@ def test_simulated_machine_carries_its_discrepancy(prs3, bumped):
     np.testing.assert_allclose(offset[:, :3], mean, rtol=1e-10, atol=1e-14)
     rec = measure(prs3, model.q, th, 3, None, effects=[DiscrepancyTransform(disc)])
     np.testing.assert_allclose(rec.position, model.predict(th).y + mean, atol=1e-9)
+
+
+@pytest.mark.parametrize("fit_noise,dof", [(True, 3), (False, 3), (True, 6)])
+def test_marginal_likelihood_gradient_matches_central_differences(bumped, prs3, fit_noise, dof):
+    # the optimiser's analytic gradient (length scales through the Nystrom features and their Cholesky
+    # factor, output scales, noise factor) against central differences of the likelihood itself; 6-DOF:
+    # six outputs in two scale groups, rotation rows coupling outputs
+    if dof == 3:
+        sub = bumped[0].subset(np.arange(60))
+    else:
+        sim = simulate_recording(prs3, 60, seed=5, dof=6)
+        rec = replace(sim.recording, position=sim.recording.position + _bump(sim.recording.q))
+        sub = MeasurementModel.from_recording(prs3, rec)
+    res = calibrate(sub, method="map", prior_scale="tolerance", robust="off", noise="stated").result
+    inputs = ("q1", "q2", "q3")
+    outputs = F._outputs(sub.dof)
+    X = F.discrepancy_inputs(sub, inputs)
+    idx = np.flatnonzero(res.free)
+    sd = sub.machine.tolerance[idx]
+    prob = F._Problem(sub, res.theta, sub.predict(res.theta), idx, inputs, outputs, X.mean(0), X.std(0), sd,
+                      -res.theta[idx])
+    U = prob.Z[farthest_points(prob.Z, 10)]
+    groups = F._groups(outputs)
+    n_groups = int(groups.max()) + 1
+    rr = float(prob.r @ prob.r)
+    x = np.array([math.log(0.8), math.log(1.7), math.log(0.5), math.log(3.0), math.log(0.2)][: 3 + n_groups]
+                 + ([math.log(1.4)] if fit_noise else []))
+
+    def unpack(xx):
+        return F._unpack(xx, 3, n_groups, groups, fit_noise)
+
+    value, grad = F._neg_log_ml_and_gradient(prob, U, x, 3, n_groups, groups, fit_noise, rr)
+    ls, s, c = unpack(x)
+    assert value == pytest.approx(F._neg_log_ml(*prob.pieces(nystrom_features(prob.Z, U, ls)[0], s), rr, prob.N, c),
+                                  rel=1e-12)
+
+    def f(xx):
+        lsx, sx, cx = unpack(xx)
+        return F._neg_log_ml(*prob.pieces(nystrom_features(prob.Z, U, lsx)[0], sx), rr, prob.N, cx)
+
+    h = 1e-5
+    fd = np.array([(f(x + h * e) - f(x - h * e)) / (2 * h) for e in np.eye(x.size)])
+    assert np.all(np.abs(fd) > 1e-3)  # every hyperparameter moves the likelihood here: the check has teeth
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
