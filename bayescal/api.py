@@ -122,6 +122,19 @@ def predict(machine: str | os.PathLike | Machine, recording: str | os.PathLike |
             dof: int | None = None):
     """Predict every row of a recording from a calibrated machine, as ``bayescal predict`` does.
 
+    Parameters
+    ----------
+    machine : path or Machine
+        The calibrated machine file (its ``[calibration]`` record gives the uncertainty; docs/formats.md
+        section 8), or a machine.
+    recording : path or Recording
+        The recording to predict (docs/formats.md sections 2, 4, 8), with optional ``station`` and
+        ``role`` columns.
+    frame : {"base", "fit"}
+        ``fit``: each station's instrument frame is fitted on its ``fit`` rows, the machine held fixed.
+    dof : int, optional
+        6, 5 or 3 (default: what the recording holds).
+
     Returns
     -------
     bayescal.prediction.recording.PredictionResult
@@ -136,8 +149,19 @@ def predict(machine: str | os.PathLike | Machine, recording: str | os.PathLike |
 def diagnose(machine: str | os.PathLike | Machine, recording, **options):
     """Locate a model mismatch, name the missing physics, model it, as ``bayescal diagnose`` does.
 
-    ``recording``: a path or a Recording; ``options`` of :func:`bayescal.diagnose.diagnose`
-    (:func:`bayescal.diagnose.diagnose_files`).
+    Parameters
+    ----------
+    machine : path or Machine
+        Machine file (docs/formats.md sections 1, 5, 7) or a machine.
+    recording : path or Recording or ConstraintRecording
+        A pose or constraint recording (sections 2, 4, 6, 8).
+    **options
+        Of :func:`bayescal.diagnose.core.diagnose`: ``effects``, ``seed``, ``n_folds``, ``effect_settings``.
+
+    Returns
+    -------
+    bayescal.diagnose.result.Diagnosis
+        ``verdict``, ``effects``, ``report()``, ``to_dict()`` (what ``bayescal diagnose --json`` writes).
     """
     from .diagnose.verb import diagnose_files
 

@@ -358,8 +358,12 @@ def sample_posterior(
     seed : int
     progress : bool
         Show a tqdm progress bar.
-    max_rhat, min_ess, tau_factor : float
-        Convergence thresholds (see the module docstring).
+    max_rhat : float
+        Largest rank-normalised R-hat over the walkers (see the module docstring).
+    min_ess : float
+        Smallest bulk and tail effective sample size.
+    tau_factor : float
+        Chain length after burn-in, in integrated autocorrelation times, at least.
     moves : emcee moves, optional
         Default :func:`bayescal.bayes.moves.default_moves` with the MAP and its
         Laplace covariance: independence MH 0.9, ``DEMove`` 0.07, corrected

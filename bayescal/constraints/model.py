@@ -82,7 +82,9 @@ class ConstraintModel:
 
     Parameters
     ----------
-    machine : Machine
+    base : Machine
+        The machine measured; ``model.machine`` is it with the ballbar pivots'
+        parameters appended (the model's ``theta``).
     measure : tuple of str
         ``distance``, ``height`` or ``ballbar`` per row.
     qa, qb : ndarray, shape (n, N)

@@ -342,7 +342,7 @@ def calibrate(
     ----------
     model : MeasurementModel or ConstraintModel
         With measured values (``bayescal.load`` or ``MeasurementModel.from_recording``).
-    method : {"ls", "ridge", "tsvd", "map"}
+    method : {"map", "ls", "ridge", "tsvd"}
     lam : float or "auto"
         Ridge parameter (dimensionless, 1 = MAP under the tolerance prior); required for ridge.
     k : int or "auto"
@@ -350,8 +350,8 @@ def calibrate(
     free : "auto", "all" or names
     rule : str, optional
         Rule for ``"auto"`` (:data:`bayescal.identify.choose.RULE_NAMES`).
-    prior_scale : {"empirical", "tolerance"}, optional
-        map only (default: :func:`bayescal.bayes.map_identify.default_prior_scale`).
+    prior_scale : "empirical", "tolerance" or None
+        map only (None: what :func:`bayescal.bayes.map_identify.default_prior_scale` chooses).
     max_iter : int
     robust : {"auto", "t", "huber", "off"}
         Outlier handling; ``nu``, ``alpha`` and ``lines`` pass through ``outlier_kw``.
