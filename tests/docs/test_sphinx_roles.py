@@ -1,6 +1,6 @@
 """The API reference's griffe extension (docs/hooks/sphinx_roles.py) turns Sphinx roles into autorefs links.
 
-Skipped where griffe is not installed (it comes with the ``docs`` extra, not ``test``).
+griffe comes with the ``test`` extra (and with ``docs``).
 """
 
 import importlib.util
