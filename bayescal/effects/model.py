@@ -32,7 +32,7 @@ from ..machines.base import ToolPoses, map_state
 from ..measurement import MeasurementModel, Prediction, pose_offset_rows
 from .base import Effect, EffectParam, Features
 
-__all__ = ["EffectFit", "fit_map", "effect_residual", "actuator_residual", "effect_jacobian", "actuator_rows_jacobian"]
+__all__ = ["EffectFit", "fit_map", "linear_fold_residuals", "effect_residual", "actuator_residual", "effect_jacobian", "actuator_rows_jacobian"]
 
 
 @dataclass(frozen=True)
@@ -277,6 +277,58 @@ def _gram(A: NDArray) -> NDArray:
     return A.T @ A if A.shape[0] >= _GRAM_BLAS_ROWS else np.einsum("ij,ik->jk", A, A)
 
 
+@dataclass(frozen=True)
+class _Joint:
+    """The joint fit's pieces for a model and its effects: prior scales and means, and the whitened system."""
+
+    model: MeasurementModel
+    effects: tuple
+    slices: tuple
+    params: tuple
+    scale: NDArray
+    mu: NDArray
+
+    @classmethod
+    def of(cls, model: MeasurementModel, effects) -> "_Joint":
+        effects = tuple(effects)
+        params: list[EffectParam] = []
+        for eff, f in effects:
+            params += list(eff.params(model.machine, f))
+        P = model.machine.n_params
+        scale = np.concatenate([model.machine.tolerance, [p.prior_sd for p in params]])
+        mu = np.concatenate([np.zeros(P), [p.prior_mean for p in params]]) / scale
+        return cls(model, effects, tuple(_slices(effects, model)), tuple(params), scale, mu)
+
+    @property
+    def P(self) -> int:
+        return self.model.machine.n_params
+
+    @property
+    def K(self) -> int:
+        return len(self.params)
+
+    def evaluate(self, theta, eta, guess):
+        """``(model at the effects, prediction, residual, whitened residual, chi2, prior term)`` at ``(theta, eta)``."""
+        model, effects, slices = self.model, self.effects, self.slices
+        q_eff = model.pose_q + _dq(effects, slices, eta, model.pose_q.shape, _effect_theta(model, theta))
+        sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if self.K else "",
+                             dx=_dx(effects, slices, eta, model.pose_q.shape[0]))
+        r = model.residual(pred)
+        rw = (r / model.row_sigma).reshape(-1)
+        phi = np.concatenate([theta, eta]) / self.scale
+        return sub, pred, r, rw, float(rw @ rw), float(np.sum((phi - self.mu) ** 2))
+
+    def system(self, sub, pred, theta, eta):
+        """The whitened Jacobian in the scaled coordinates, shape (rows, P + K)."""
+        Jg = sub.jacobian(theta, pred)
+        cols = [Jg]
+        if self.K:
+            Je, Jt = effect_columns(sub, theta, pred, self.effects, self.slices, eta)
+            cols = [Jg if Jt is None else Jg + Jt] + Je
+        J = np.concatenate(cols, axis=2) / self.model.row_sigma[:, :, None]
+        return J.reshape(-1, self.P + self.K) * self.scale
+
+
 def fit_map(
     model: MeasurementModel,
     effects: Sequence[tuple[Effect, Features]] = (),
@@ -317,36 +369,11 @@ def fit_map(
     test_negative_compliance_is_not_reported_as_a_detection).  Values within
     a few sigma below the bound are noise and reported as fitted (unbiased).
     """
-    machine = model.machine
-    P = machine.n_params
-    params: list[EffectParam] = []
-    slices = _slices(effects, model)
-    for eff, f in effects:
-        params += list(eff.params(machine, f))
-    K = len(params)
-    scale = np.concatenate([machine.tolerance, [p.prior_sd for p in params]])
-    mu = np.concatenate([np.zeros(P), [p.prior_mean for p in params]]) / scale
+    joint = _Joint.of(model, effects)
+    P, K, scale, mu = joint.P, joint.K, joint.scale, joint.mu
     theta = np.zeros(P) if theta0 is None else np.asarray(theta0, float).copy()
-    eta = np.array([p.start_value for p in params]) if eta0 is None else np.asarray(eta0, float).copy()
-    sig = model.row_sigma
-
-    def evaluate(theta, eta, guess):
-        q_eff = model.pose_q + _dq(effects, slices, eta, model.pose_q.shape, _effect_theta(model, theta))
-        sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if K else "",
-                             dx=_dx(effects, slices, eta, model.pose_q.shape[0]))
-        r = model.residual(pred)
-        rw = (r / sig).reshape(-1)
-        phi = np.concatenate([theta, eta]) / scale
-        return sub, pred, r, rw, float(rw @ rw), float(np.sum((phi - mu) ** 2))
-
-    def system(sub, pred, theta, eta):
-        Jg = sub.jacobian(theta, pred)
-        cols = [Jg]
-        if K:
-            Je, Jt = effect_columns(sub, theta, pred, effects, slices, eta)
-            cols = [Jg if Jt is None else Jg + Jt] + Je
-        J = np.concatenate(cols, axis=2) / sig[:, :, None]
-        return J.reshape(-1, P + K) * scale
+    eta = np.array([p.start_value for p in joint.params]) if eta0 is None else np.asarray(eta0, float).copy()
+    evaluate, system = joint.evaluate, joint.system
 
     sub, pred, r, rw, chi2, pri = evaluate(theta, eta, None)
     success, message, it = False, "", 0
@@ -382,9 +409,55 @@ def fit_map(
     s = np.sqrt(np.clip(np.linalg.eigvalsh(AtA), 0, None))[::-1]
     full = np.linalg.inv(AtA + np.eye(P + K)) * np.outer(scale, scale)
     cov = full[P:, P:]
-    names = tuple((eff.name, sl) for (eff, _), sl in zip(effects, slices))
+    names = tuple((eff.name, sl) for (eff, _), sl in zip(effects, joint.slices))
     return EffectFit(
-        theta=theta, eta=eta, params=tuple(params), effect_slices=names, cov_eta=cov, residual=r,
+        theta=theta, eta=eta, params=joint.params, effect_slices=names, cov_eta=cov, residual=r,
         chi2=chi2, prior_term=pri, singular_values=s, n_rows=rw.size, success=success, message=message,
         iterations=it, covariance=full,
     )
+
+
+def linear_fold_residuals(model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray,
+                          eta: NDArray, folds: Sequence[NDArray]) -> list[NDArray]:
+    """Held-out residuals of a K-fold cross-validation, each fold's fit one Gauss-Newton step from the full fit.
+
+    At the full fit ``(theta, eta)`` (the MAP of every row) the whitened
+    system ``A``, ``r`` is evaluated once; a fold's fit on the other rows is
+    the step ``(A_t^T A_t + I)^-1 (A_t^T r_t + mu - phi)`` (``t`` the
+    training rows: the full Gram matrix less the fold's), and its held-out
+    residual ``r_f - A_f step``.  This is the first iteration
+    :func:`fit_map` takes on the fold from the same start, without the
+    iterations after it and with the held-out rows linearised: the
+    difference is second order in the step, which is a fraction of a
+    standard deviation when a fold leaves out a fifth of many poses.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+    effects : sequence of (Effect, Features)
+        Features for the model's poses (all of them).
+    theta, eta : ndarray
+        The full fit.
+    folds : sequence of ndarray of int
+        Held-out rows of each fold.
+
+    Returns
+    -------
+    list of ndarray, shape (len(fold), dof)
+        ``y - h`` of each fold's held-out rows after its fit, mm and rad.
+    """
+    joint = _Joint.of(model, effects)
+    theta, eta = np.asarray(theta, float), np.asarray(eta, float)
+    sub, pred, _, rw, _, _ = joint.evaluate(theta, eta, None)
+    A = joint.system(sub, pred, theta, eta)
+    dof = model.dof
+    prior = joint.mu - np.concatenate([theta, eta]) / joint.scale
+    G, g, eye = _gram(A), A.T @ rw, np.eye(A.shape[1])
+    out = []
+    for test in folds:
+        test = np.asarray(test, dtype=int)
+        rows = (test[:, None] * dof + np.arange(dof)[None, :]).reshape(-1)
+        At, rt = A[rows], rw[rows]
+        step = np.linalg.solve(G - _gram(At) + eye, g - At.T @ rt + prior)
+        out.append((rt - At @ step).reshape(-1, dof) * model.row_sigma[test])
+    return out

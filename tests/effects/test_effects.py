@@ -243,3 +243,30 @@ def test_gram_matrix_of_the_joint_fit_is_the_same_on_both_sides_of_the_blas_swit
         A = rng.normal(size=(rows, 7))
         ref = np.array([[float(np.dot(A[:, i], A[:, j])) for j in range(7)] for i in range(7)])
         np.testing.assert_allclose(_gram(A), ref, rtol=1e-12, atol=1e-9)
+
+
+@pytest.mark.parametrize("effects", [[], [("backlash", 20.0)]])
+def test_linearised_fold_fits_match_refits(prs3, effects):
+    # the diagnosis' cross-validation on large recordings: each fold's fit one Gauss-Newton step from the
+    # full fit.  Against the refit of every fold (fit_map on the training rows, then the held-out rows
+    # predicted through the kinematics): the held-out residuals agree to a small fraction of how far the
+    # fold's fit moved them away from the full fit's
+    from bayescal.effects.model import effect_residual, linear_fold_residuals
+
+    sim = simulate_with_effects(prs3, 300, seed=8, dof=6, effects=effects)
+    model = MeasurementModel.from_recording(prs3, sim.recording)
+    pairs = []
+    if effects:
+        eff = get_effect("backlash")
+        f = eff.features(prs3, model.pose_q, np.zeros(prs3.n_params), {}, model.pose_order, None)
+        pairs = [(eff, f)]
+    full = fit_map(model, pairs)
+    folds = [np.arange(i, model.n_poses, 5) for i in range(5)]
+    linear = linear_fold_residuals(model, pairs, full.theta, full.eta, folds)
+    for test, lin in zip(folds, linear):
+        train = np.setdiff1d(np.arange(model.n_poses), test)
+        fit = fit_map(model.subset(train), [(e, f.subset(train)) for e, f in pairs], theta0=full.theta, eta0=full.eta)
+        exact = effect_residual(model.subset(test), [(e, f.subset(test)) for e, f in pairs], fit.theta, fit.eta)
+        moved = np.abs(exact - full.residual[test]).max()
+        assert moved > 1e-5  # leaving a fold out changes its residuals: the comparison has teeth
+        np.testing.assert_allclose(lin, exact, rtol=0, atol=2e-3 * moved)  # 0.8-2e-4 of it measured
