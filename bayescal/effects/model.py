@@ -378,12 +378,19 @@ def fit_map(
     sub, pred, r, rw, chi2, pri = evaluate(theta, eta, None)
     success, message, it = False, "", 0
     A = system(sub, pred, theta, eta)
+    # the share of the Gauss-Newton step the last iteration took: the next one first tries twice that.  Where
+    # full steps lower the cost this is always 1 (the plain iteration); in a curved valley (an effect that
+    # multiplies two unknowns, a compliance and a mass) the step is cut alike every time, and starting near
+    # that cut saves the evaluations of halving down to it again (1,000 poses: 5 evaluations per iteration -> 2)
+    share = 1.0
     for it in range(1, max_iter + 1):
         phi = np.concatenate([theta, eta]) / scale
         # normal equations of [A; I] step ~ [r; mu - phi]: H is well conditioned (>= I)
         H = _gram(A) + np.eye(P + K)
         step = np.linalg.solve(H, np.einsum("ij,i->j", A, rw) + (mu - phi))
         cost = chi2 + pri
+        share = min(1.0, 2.0 * share)
+        step = step * share
         for _ in range(8):
             new = (phi + step) * scale
             try:
@@ -393,6 +400,7 @@ def fit_map(
             if trial is not None and trial[4] + trial[5] <= cost * (1 + 1e-12):
                 break
             step = step / 2
+            share = share / 2
         else:
             message = "no step lowers the cost (stopped)"
             success = bool(np.max(np.abs(step)) < 1e3 * xtol)
