@@ -58,7 +58,7 @@ def _fitted_frame():
     return prepare_model(m, rec, frame="fit")[1]
 
 
-def _sensors():
+def _sensors(effect: StoredEffect | None = None):
     from tests.sensors.chain import JOINTS, machine_text, poses, transforms
 
     import tempfile
@@ -76,7 +76,12 @@ def _sensors():
         aux.update({f"accel.joint{k + 1}.{a}": 9.81 * u[:, i] for i, a in enumerate("xyz")})
     from bayescal.io.recording import Recording
 
-    model = MeasurementModel.from_recording(m, Recording(q=q, position=tool, aux=aux))
+    rec = Recording(q=q, position=tool, aux=aux)
+    if effect is not None:  # the sensors' rows move with the effect's dq too (joint2 and joint3 turn with q1, q3)
+        model = effect_model(m.with_effects((effect,)), rec)
+        assert model.geo.sensors is not None
+        return model
+    model = MeasurementModel.from_recording(m, rec)
     assert model.sensors is not None and model.dof > model.tool_dof
     return model
 
@@ -95,6 +100,9 @@ BACKLASH = StoredEffect("backlash", (("backlash.q1", 20.0), ("backlash.q2", 30.0
 COMPLIANCE = StoredEffect("joint_compliance", (("compliance.q1", 0.4), ("compliance.q2", 0.6), ("compliance.q3", 0.5),
                                                ("platform_mass", 30.0), ("com.x", 5.0), ("com.y", -3.0), ("com.z", 10.0),
                                                ("gravity.tilt_1", 0.01), ("gravity.tilt_2", -0.02)))
+
+
+SERIAL_BACKLASH = StoredEffect("backlash", (("backlash.q1", 0.002), ("backlash.q2", 30.0), ("backlash.q3", 0.003)))
 
 
 def _effects(stored: StoredEffect, aux_name: str | None):
@@ -121,6 +129,7 @@ CASES = {
     "constraints-ballbar-pivots": lambda: _constraints("ballbar"),
     "effect-backlash": lambda: _effects(BACKLASH, None),
     "effect-compliance": lambda: _effects(COMPLIANCE, "payload_kg"),
+    "effect-backlash-body-sensors": lambda: _sensors(SERIAL_BACKLASH),
 }
 
 

@@ -217,7 +217,24 @@ def actuator_rows_jacobian(model: MeasurementModel, theta: NDArray, prediction: 
     if own_pose_only:
         Ja = Ja.copy()
         Ja[model.n_poses :] = 0.0
-    return model.rows_jacobian(Ja, prediction)
+    return _sensor_rows_added(model, theta, model.rows_jacobian(Ja, prediction), None)
+
+
+def _sensor_rows_added(model: MeasurementModel, theta: NDArray, rows: NDArray, dq_jacobian: NDArray | None) -> NDArray:
+    """``rows`` (n, dof, k) with the body sensors' tilt rows filled in: ``d tilt / d q`` (times ``dq_jacobian``).
+
+    :meth:`MeasurementModel.rows_jacobian` maps a tool-pose derivative, which leaves the sensors' rows at
+    zero; an effect's ``dq`` turns the bodies the sensors sit on as it moves the tool (recordings with body
+    sensors are one pose per row).
+    """
+    if model.sensors is None:
+        return rows
+    from ..sensors import sensor_actuator_jacobian
+
+    Sq = sensor_actuator_jacobian(model.machine, model.sensors, model.q, model.machine.check_theta(theta))
+    rows = rows.copy()
+    rows[:, model.tool_dof :] = Sq if dq_jacobian is None else np.einsum("pmn,pnk->pmk", Sq, dq_jacobian)
+    return rows
 
 
 def effect_columns(model: MeasurementModel, theta: NDArray, prediction: Prediction, effects, slices, eta) -> tuple[list[NDArray], NDArray | None]:
@@ -237,14 +254,15 @@ def effect_columns(model: MeasurementModel, theta: NDArray, prediction: Predicti
     Ja = machine.actuator_jacobian(model.pose_q, th, poses)
     cols, extra = [], None
     for (eff, f), sl in zip(effects, slices):
-        col = model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, eff.delta_q_jacobian_at(f, eta[sl], th)), prediction)
+        dq_jac = eff.delta_q_jacobian_at(f, eta[sl], th)
+        col = _sensor_rows_added(model, theta, model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, dq_jac), prediction), dq_jac)
         if eff.moves_tool:
             # the tool perturbation reaches the rows through each pose's measurement rotation
             col = col + pose_offset_rows(model, theta, prediction, eff.delta_x_jacobian(f, eta[sl]))
         cols.append(col)
         Jt = eff.delta_q_theta_jacobian(f, eta[sl], th)
         if Jt is not None:
-            add = model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, Jt), prediction)
+            add = _sensor_rows_added(model, theta, model.rows_jacobian(np.einsum("pmn,pnk->pmk", Ja, Jt), prediction), Jt)
             P = model.machine.n_params
             if add.shape[2] < P:
                 # the effects see the leading geometry only; nuisance parameters (pivots) come last

@@ -660,6 +660,36 @@ class Serial(Machine):
                 J[:, s] = cols[:, k]
         return R, J
 
+    def body_actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, frames: list) -> NDArray:
+        """Small rotation of bodies per unit actuator position: ``R(q + dq) = exp([J dq]x) R(q)``.
+
+        Parameters
+        ----------
+        q : array_like, shape (n, N)
+        theta : array_like, shape (P,) or (n, P), optional
+        frames : list of (int, ndarray (3, 3))
+            Per body, :meth:`body_frame`'s joint index and fixed orientation.
+
+        Returns
+        -------
+        ndarray, shape (n, S, 3, N)
+            rad per actuator unit: a revolute joint ``j <= k`` turns the body
+            of joint ``k`` about its base-frame axis, a prismatic one does not;
+            per actuator the joints' columns are summed through the mimic map.
+        """
+        q = self.check_q(q)
+        n, m = q.shape[0], self.n_joints
+        c = self._memo_chain(q, self.check_theta(theta, n))
+        acc = np.zeros((n, m, 3, m))  # joint k's body: the axes of the revolute joints up to k
+        for j in range(m):
+            if self.joint_type[j] == "revolute":
+                acc[:, j:, :, j] = _rotate(c.R_joint[:, j], c.axis[:, j])[:, None, :]
+        J = np.zeros((n, len(frames), 3, m))
+        for s, (k, _) in enumerate(frames):
+            if k >= 0:
+                J[:, s] = acc[:, k]
+        return J @ self._q_map
+
     def weight_bodies(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> WeightBodies:
         """Every moving link: link ``k`` in the frame after joint ``k``, moved by joints ``1 .. k`` (joint twists).
 

@@ -19,7 +19,7 @@ from .mounts import SensorMounts, sensor_base
 from .rows import SensorSet
 
 __all__ = ["SENSOR_COLUMN", "SensorMounts", "SensorSet", "attach_sensors", "sensor_readings", "sensor_rows",
-           "sensor_jacobian", "sensor_base"]
+           "sensor_jacobian", "sensor_actuator_jacobian", "sensor_base"]
 
 
 def attach_sensors(machine, rec, q: NDArray):
@@ -91,3 +91,10 @@ def sensor_jacobian(machine, sensors: SensorSet, q: NDArray, theta: NDArray) -> 
     J[:, :, off : off + Jm.shape[2]] = Jm
     J[:, :, machine.n_params - Js.shape[2] :] = Js
     return J
+
+
+def sensor_actuator_jacobian(machine, sensors: SensorSet, q: NDArray, theta: NDArray) -> NDArray:
+    """``d rows / d q`` (N, 2 S, n_actuators): how the tilt rows move with the actuators (an effect's ``dq``)."""
+    chain, th_m, th_s, _ = _split(machine, theta)
+    R, _ = chain.body_rotations(q, th_m, list(sensors.frames))
+    return sensors.jacobian(R, chain.body_actuator_jacobian(q, th_m, list(sensors.frames)), th_s)[0]

@@ -52,6 +52,38 @@ def test_body_rotations_match_an_independent_chain(tmp_path):
     np.testing.assert_allclose(m.forward(q).position, tool, atol=1e-9)
 
 
+@pytest.mark.parametrize("mimic", [False, True])
+def test_body_rotations_per_actuator_match_the_independent_chain(tmp_path, mimic):
+    # d R_body / d q (what an effect's dq does to a sensor's body) against central differences of the
+    # independent 4x4 chain; with a mimic, joint 3 turns by 0.5 q1 + 0.1 and has no actuator of its own
+    text = machine_text(TRUTH)
+    if mimic:
+        text = text.replace('axis = [0.0001, 1.0, 0.0]', 'axis = [0.0001, 1.0, 0.0]\nmimic = 1\nmultiplier = 0.5\noffset = 0.1')
+        text = text.replace("q_limits = [[-3.0, 3.0], [0.0, 500.0], [-1.0, 1.0]]", "q_limits = [[-3.0, 3.0], [0.0, 500.0]]")
+    path = tmp_path / "m.toml"
+    path.write_text(text)
+    from bayescal.machines.files import load_machine
+
+    m = load_machine(path)
+    assert m.n_actuators == (2 if mimic else 3)
+    q = poses(6, 3)[:, : m.n_actuators]
+    J = m.body_actuator_jacobian(q, None, [m.body_frame(f"joint{k + 1}") for k in range(3)])
+
+    def bodies(qa):
+        qj = np.column_stack([qa, 0.5 * qa[:, 0] + 0.1]) if mimic else qa
+        frames, _ = transforms(TRUTH, qj)
+        return np.array([[f[k][:3, :3] for k in range(3)] for f in frames])
+
+    h = 1e-6
+    for i in range(m.n_actuators):
+        e = np.zeros(m.n_actuators)
+        e[i] = h
+        Rp, Rm = bodies(q + e), bodies(q - e)
+        fd = np.array([[Rotation.from_matrix(a @ b.T).as_rotvec() / (2 * h) for a, b in zip(rp, rm)] for rp, rm in zip(Rp, Rm)])
+        np.testing.assert_allclose(J[..., i], fd, atol=1e-7)
+    assert np.abs(J[:, 2, :, 0]).max() > 0.5  # joint 3's body turns with q1 (and by 1.5 q1 with the mimic)
+
+
 def test_noise_free_readings_give_zero_rows_at_the_truth(tmp_path):
     """Readings from the independent chain: the model at the truth (sensor parameters at their start) reproduces them."""
     m = _machine(tmp_path, TRUTH)
