@@ -122,6 +122,20 @@ def predict(machine: str | os.PathLike | Machine, recording: str | os.PathLike |
             dof: int | None = None):
     """Predict every row of a recording from a calibrated machine, as ``bayescal predict`` does.
 
+    ``bayescal predict`` calls this function: ``json_text(predict(...).to_dict())`` is its ``--json`` file.
+
+    Parameters
+    ----------
+    machine : path or Machine
+        A calibrated machine file (``write_machine``, ``identify --write-machine``): its ``[calibration]``
+        covariance and ``[discrepancy]`` are used when present.
+    recording : path or Recording
+        Rows to predict (docs/formats.md section 8: ``role = check`` rows are never fitted, only scored).
+    frame : {"base", "fit"}
+        ``fit``: each station's instrument frame is fitted on its ``fit`` rows, the machine held fixed.
+    dof : int, optional
+        6, 5 or 3 (default: what the recording holds).
+
     Returns
     -------
     bayescal.prediction.recording.PredictionResult

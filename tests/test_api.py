@@ -146,3 +146,53 @@ def test_diagnose_gives_the_json_diagnose_writes_byte_for_byte(tmp_path):
     assert main(["diagnose", str(REC), "--machine", str(PRS3_FILE), "--json", str(out), "--quiet"]) in (0, 1)
     assert json.loads(json.dumps(d.to_dict(), allow_nan=False))
     assert json_text(d.to_dict()) == out.read_text()
+
+
+# ------------------------------------------------------------------ predict: the library's answer is the command's
+@pytest.fixture(scope="module")
+def calibrated_machines(tmp_path_factory):
+    """Calibrated machine files of the bundled examples, with the recordings to predict (and the options)."""
+    d = tmp_path_factory.mktemp("calibrated")
+    prs3_cli, prs3_lib = d / "cli" / "prs3.toml", d / "lib" / "prs3.toml"
+    prs3_cli.parent.mkdir()
+    assert main(["identify", str(REC), "--machine", str(PRS3_FILE), "--discrepancy", "on", "--write-machine",
+                 str(prs3_cli), "--quiet"]) == 0
+    bayescal.calibrate(bayescal.load(PRS3_FILE, REC), discrepancy="on").write_machine(prs3_lib)
+    pos_machine, pos_rec = _positioner_with_roles(d)
+    bayescal.calibrate(bayescal.load(pos_machine, pos_rec, frame="fit")).write_machine(d / "positioner.toml")
+    table = ROOT / "examples" / "hybrid_table"
+    bayescal.calibrate(bayescal.load(table / "machine.toml", table / "recording.csv")).write_machine(d / "table.toml")
+    return {
+        "3-PRS, written by identify --discrepancy on": (prs3_cli, REC, {}, prs3_lib),
+        "positioner, fitted frame, held-out rows": (d / "positioner.toml", pos_rec, {"frame": "fit"}, None),
+        "hybrid table, a file per module": (d / "table.toml", table / "recording.csv", {}, None),
+        "3-PRS nominal machine, 5-DOF": (PRS3_FILE, REC, {"dof": 5}, None),
+    }
+
+
+PREDICT_CASES = ("3-PRS, written by identify --discrepancy on", "positioner, fitted frame, held-out rows",
+                 "hybrid table, a file per module", "3-PRS nominal machine, 5-DOF")
+
+
+@pytest.mark.parametrize("case", PREDICT_CASES)
+def test_predict_gives_the_json_predict_writes_byte_for_byte(calibrated_machines, tmp_path, case):
+    from bayescal.io.answers import json_text
+
+    machine, rec, options, library_written = calibrated_machines[case]
+    p = bayescal.predict(machine, rec, **options)
+    out = tmp_path / "p.json"
+    flags = [x for k, v in options.items() for x in (f"--{k}", str(v))]
+    assert main(["predict", str(rec), "--machine", str(machine), "--json", str(out), "--quiet", *flags]) == 0
+    assert json_text(p.to_dict()) == out.read_text()
+    assert json.loads(json.dumps(p.to_dict(), allow_nan=False)) == json.loads(out.read_text())  # plain JSON
+    ans = p.to_dict()
+    if library_written is not None:
+        # the machine file bayescal.calibrate(...).write_machine writes is the one identify --write-machine writes
+        assert library_written.read_bytes() == machine.read_bytes() and "[discrepancy]" in machine.read_text()
+        assert ans["notes"] == [] and ans["summary"]["fit"]["n"] == 36
+    if case.startswith("positioner"):
+        assert ans["summary"]["check"]["n"] == 51 and ans["summary"]["fit"]["n"] == 154 and ans["frame"]["fitted"]
+    if case.startswith("hybrid"):
+        assert ans["summary"]["fit"]["n"] == 60 and ans["summary"]["fit"]["coverage_90"] > 0.8
+    if case.endswith("5-DOF"):
+        assert all(len(r["std"]) == 5 for r in ans["rows"]) and "no [calibration]" in ans["notes"][0]
