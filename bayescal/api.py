@@ -10,8 +10,10 @@
     cal.write_machine("calibrated.toml")
     p = bayescal.predict("calibrated.toml", "new.csv", frame="fit")  # what `bayescal predict` runs
     p.summary["check"]["coverage_90"]
+    g = bayescal.grid(s, nodes=9)                                      # what `bayescal grid` runs
+    g.write_csv("grid.csv"); g.grid.std
 
-``bayescal identify``, ``predict`` and ``diagnose`` call the same functions,
+``bayescal identify``, ``predict``, ``grid`` and ``diagnose`` call the same functions,
 so a study gets the number a user gets.
 """
 
@@ -22,7 +24,7 @@ import os
 from .io.recording import Recording
 from .machines.base import Machine
 
-__all__ = ["load", "calibrate", "predict", "diagnose"]
+__all__ = ["load", "calibrate", "predict", "grid", "diagnose"]
 
 
 def _machine(machine) -> Machine:
@@ -145,6 +147,32 @@ def predict(machine: str | os.PathLike | Machine, recording: str | os.PathLike |
     from .prediction.recording import predict_recording
 
     return predict_recording(_machine(machine), _recording(recording), frame=frame, dof=dof)
+
+
+def grid(data, **options):
+    """Identify a recording's errors and span a compensation grid with its std, as ``bayescal grid`` does.
+
+    ``bayescal grid`` calls :func:`bayescal.bayes.recording_grid.recording_grid` with its options:
+    ``json_text(grid(...).to_dict())`` is its ``--json`` file.
+
+    Parameters
+    ----------
+    data : Session or Model
+        From :func:`load` (its ``fit`` rows are used), or a measurement or constraint model.
+    **options
+        Of :func:`~bayescal.bayes.recording_grid.recording_grid`: ``method`` ("map", "kalman", "mcmc"),
+        ``free``, ``nodes``, ``space`` ("auto", "actuator", "tool"), ``ranges``, ``aux``, ``steps``,
+        ``surrogate``, ``seed``, ``fit_effects``.
+
+    Returns
+    -------
+    bayescal.bayes.recording_grid.GridAnswer
+        ``grid.correction`` and ``grid.std`` at every node (mm), ``to_dict()``, ``report()``,
+        ``write_csv(path)``, ``write_nc_csv(path)`` (tool space).
+    """
+    from .bayes.recording_grid import recording_grid
+
+    return recording_grid(data, **options)
 
 
 def diagnose(machine: str | os.PathLike | Machine, recording, **options):

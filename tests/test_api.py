@@ -196,3 +196,84 @@ def test_predict_gives_the_json_predict_writes_byte_for_byte(calibrated_machines
         assert ans["summary"]["fit"]["n"] == 60 and ans["summary"]["fit"]["coverage_90"] > 0.8
     if case.endswith("5-DOF"):
         assert all(len(r["std"]) == 5 for r in ans["rows"]) and "no [calibration]" in ans["notes"][0]
+
+
+# ------------------------------------------------------------------ grid: the library's answer is the command's
+def _prs3_with_compliance(tmp_path):
+    """The 3-PRS with a joint-compliance table, and a recording under varying payloads simulated from it."""
+    from .cli.test_grid_effects_cli import COMPLIANCE
+
+    machine, rec = tmp_path / "compliance.toml", tmp_path / "payload.csv"
+    machine.write_text(PRS3_FILE.read_text() + COMPLIANCE)
+    assert main(["simulate", "--machine", str(machine), "--poses", "40", "--seed", "2", "--aux", "payload_kg",
+                 "--out", str(rec), "--quiet"]) == 0
+    return machine, rec
+
+
+GRID_CASES = {
+    "3-PRS, map": (lambda tmp: (PRS3_FILE, REC), {}, {"nodes": 3}, ["--nodes", "3"]),
+    "3-PRS, kalman, a narrowed q1": (lambda tmp: (PRS3_FILE, REC), {}, {"nodes": 3, "method": "kalman",
+                                                                        "ranges": {"q1": (460.0, 540.0)}},
+                                     ["--nodes", "3", "--method", "kalman", "--range", "q1=460:540"]),
+    "positioner, fitted frame, held-out rows": (_positioner_with_roles, {"frame": "fit"}, {"nodes": 4},
+                                                ["--nodes", "4", "--frame", "fit"]),
+    "delta, heights and distances (tool space)": (_delta_distances, {}, {"nodes": 3}, ["--nodes", "3"]),
+    "3-PRS with a compliance table, tool space, 25 kg": (
+        _prs3_with_compliance, {}, {"nodes": 3, "space": "tool", "aux": {"payload_kg": 25.0}},
+        ["--nodes", "3", "--space", "tool", "--aux", "payload_kg=25"]),
+}
+
+
+@pytest.mark.parametrize("case", list(GRID_CASES))
+def test_grid_gives_the_json_grid_writes_byte_for_byte(tmp_path, case):
+    from bayescal.io.answers import json_text
+
+    files, load_kw, options, flags = GRID_CASES[case]
+    machine, rec = files(tmp_path)
+    g = bayescal.grid(bayescal.load(machine, rec, **load_kw), **options)
+    out, csv = tmp_path / "g.json", tmp_path / "g.csv"
+    assert main(["grid", str(rec), "--machine", str(machine), "--json", str(out), "--out", str(csv), "--quiet",
+                 *flags]) == 0
+    assert json_text(g.to_dict()) == out.read_text()
+    assert json.loads(json.dumps(g.to_dict(), allow_nan=False))  # plain JSON
+    assert g.grid.to_csv() == csv.read_text()
+    ans = g.to_dict()
+    assert ans["method"] == options.get("method", "map") and ans["max_std_mm"] > 0
+    if case.startswith("delta"):
+        assert g.space == "tool"  # a linear delta's q_limits box is not all reachable
+    if "narrowed" in case:
+        assert ans["axes"]["q1"] == [460.0, 500.0, 540.0]
+    if "compliance" in case:
+        assert ans["effects"] == ["joint_compliance"] and ans["aux"] == {"payload_kg": 25.0}
+
+
+def test_grid_from_posterior_draws_gives_the_json_grid_writes(tmp_path):
+    from bayescal.io.answers import json_text
+
+    g = bayescal.grid(bayescal.load(PRS3_FILE, REC), method="mcmc", steps=200, surrogate="linear", nodes=3)
+    out = tmp_path / "g.json"
+    assert main(["grid", str(REC), "--machine", str(PRS3_FILE), "--method", "mcmc", "--steps", "200",
+                 "--surrogate", "linear", "--nodes", "3", "--json", str(out), "--quiet"]) == 0
+    assert json_text(g.to_dict()) == out.read_text()
+    # the chain thinned to about 400 draws (bayescal.bayes.recording_grid.GRID_DRAWS)
+    assert g.to_dict()["std_source"].startswith("sample std over") and 400 <= int(g.grid.source.split()[3]) < 800
+
+
+@pytest.mark.parametrize("options, match", [
+    ({"method": "ls"}, r"method \(--method\): expected one of map, kalman, mcmc, got 'ls'"),
+    ({"ranges": {"x": (0, 1)}}, r"ranges \(--range\) x: actuator space has the axes q1, q2, q3"),
+    ({"ranges": {"q1": (540, 460)}}, r"ranges \(--range\) q1=540:460: expected finite LO < HI"),
+    ({"aux": {"payload_kg": 5}}, r"aux \(--aux\): .*machine.toml carries no \[effect"),
+    ({"nodes": 1}, r"n \(--nodes\): expected at least 2"),
+    ({"method": "kalman", "fit_effects": True}, r"fit_effects \(--fit-effects\) goes with method map or mcmc"),
+])
+def test_grid_refuses_bad_arguments_by_name(options, match):
+    with pytest.raises(bayescal.InputError, match=match):
+        bayescal.grid(bayescal.load(PRS3_FILE, REC), **options)
+
+
+def test_grid_nc_csv_goes_with_tool_space(tmp_path):
+    g = bayescal.grid(bayescal.load(PRS3_FILE, REC), nodes=2)
+    with pytest.raises(bayescal.InputError, match="space 'tool'"):
+        g.write_nc_csv(tmp_path / "nc.csv")
+    assert not (tmp_path / "nc.csv").exists()
