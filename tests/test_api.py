@@ -277,3 +277,91 @@ def test_grid_nc_csv_goes_with_tool_space(tmp_path):
     with pytest.raises(bayescal.InputError, match="space 'tool'"):
         g.write_nc_csv(tmp_path / "nc.csv")
     assert not (tmp_path / "nc.csv").exists()
+
+
+# ------------------------------------------------------------------ identify --method kalman | mcmc, --fit-effects
+BAYES_CASES = {
+    "3-PRS, kalman": (lambda tmp: (PRS3_FILE, REC), {"method": "kalman"}, ["--method", "kalman"]),
+    "3-PRS, unscented kalman with process noise": (
+        lambda tmp: (PRS3_FILE, REC), {"method": "kalman", "variant": "ukf", "process_noise": 0.01},
+        ["--method", "kalman", "--variant", "ukf", "--process-noise", "0.01"]),
+    "delta, heights and distances, kalman": (_delta_distances, {"method": "kalman"}, ["--method", "kalman"]),
+}
+
+
+@pytest.mark.parametrize("case", list(BAYES_CASES))
+def test_calibrate_kalman_writes_the_json_identify_writes_byte_for_byte(tmp_path, case):
+    from bayescal.io.answers import json_text
+
+    files, options, flags = BAYES_CASES[case]
+    machine, rec = files(tmp_path)
+    cal = bayescal.calibrate(bayescal.load(machine, rec), **options)
+    out = tmp_path / "cli.json"
+    assert main(["identify", str(rec), "--machine", str(machine), "--json", str(out), "--quiet", *flags]) == 0
+    assert cal.result.success and cal.plausibility.plausible
+    assert json_text(cal.to_dict()) == out.read_text()
+    ans = json.loads(json.dumps(cal.to_dict(), allow_nan=False))  # plain JSON
+    assert ans["method"].startswith("kalman") and "outlier_handling" in ans and "noise" in ans
+
+
+def test_calibrate_mcmc_writes_the_json_identify_writes(tmp_path):
+    import re
+
+    from bayescal.io.answers import json_text
+
+    cal = bayescal.calibrate(bayescal.load(PRS3_FILE, REC), method="mcmc", steps=200, surrogate="linear")
+    out, written = tmp_path / "cli.json", tmp_path / "cli.toml"
+    assert main(["identify", str(REC), "--machine", str(PRS3_FILE), "--method", "mcmc", "--steps", "200",
+                 "--surrogate", "linear", "--json", str(out), "--write-machine", str(written), "--quiet"]) == 0
+    # the same bytes but for the sampler's wall-clock time
+    def clock(text):
+        return re.sub(r'"seconds": [0-9.e+-]+', '"seconds": 0', text)
+
+    assert '"seconds": ' in out.read_text() and clock(json_text(cal.to_dict())) == clock(out.read_text())
+    assert cal.result.success and cal.to_dict()["noise"]["verdict"] == json.loads(out.read_text())["noise"]["verdict"]
+    assert cal.write_machine(tmp_path / "lib.toml")[0].read_bytes() == written.read_bytes()
+
+
+def test_calibrate_fits_effect_tables_as_identify_fit_effects_does(tmp_path):
+    from bayescal.effects.stored import StoredEffectsTransform
+    from bayescal.io.answers import json_text
+    from bayescal.simulate import simulate_recording
+
+    from .cli.test_fit_effects_cli import NAMES, TABLE
+
+    machine, truth, rec = tmp_path / "m.toml", tmp_path / "truth.toml", tmp_path / "rec.csv"
+    machine.write_text(PRS3_FILE.read_text() + TABLE)
+    truth.write_text(PRS3_FILE.read_text() + TABLE.replace("20.0", "8.0").replace("30.0", "12.0").replace("25.0", "10.0"))
+    m = bayescal.load_machine(truth)
+    sim = simulate_recording(m, 40, seed=21, effects=[StoredEffectsTransform(m, m.effects)], theta_true=np.zeros(m.n_params))
+    bayescal.write_recording(rec, sim.recording)
+    cal = bayescal.calibrate(bayescal.load(machine, rec), method="map", fit_effects=True)
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "cli").mkdir()
+    out = tmp_path / "cli" / "a.json"
+    assert main(["identify", str(rec), "--machine", str(machine), "--method", "map", "--fit-effects", "--json",
+                 str(out), "--write-machine", str(tmp_path / "cli" / "cal.toml"), "--quiet"]) == 0
+    assert json_text(cal.to_dict()) == out.read_text()
+    # the effects' parameters are identified (they were silently left at the file's values before)
+    fitted = {p["name"]: p["value"] for p in cal.to_dict()["parameters"] if p["name"].startswith("effect.")}
+    assert sorted(fitted) == NAMES[2:] and abs(fitted[NAMES[2]] - 8.0) < abs(fitted[NAMES[2]] - 20.0)
+    # and written into the calibrated machine's table, as identify --write-machine writes it
+    path = cal.write_machine(tmp_path / "lib" / "cal.toml")[0]
+    assert path.read_bytes() == (tmp_path / "cli" / "cal.toml").read_bytes()
+    assert dict(bayescal.load_machine(path).effects[0].values)["backlash.q1"] == pytest.approx(fitted[NAMES[2]])
+
+
+@pytest.mark.parametrize("options, match", [
+    ({"method": "mcmc", "variant": "ukf"}, "variant: goes with method 'kalman'; it does nothing with method 'mcmc'"),
+    ({"method": "kalman", "steps": 100}, "steps: goes with method 'mcmc'"),
+    ({"method": "kalman", "lam": 1.0}, "lam: goes with method 'ridge'; it does nothing with method 'kalman'"),
+    ({"method": "kalman", "discrepancy": "auto"}, "discrepancy: goes with method 'map' or 'ridge'"),
+    ({"method": "mcmc", "steps": 5}, r"steps \(--steps\): expected a whole number of at least 20, got 5"),
+    ({"method": "mcmc", "resume": True}, r"resume \(--resume\): needs checkpoint"),
+    ({"method": "kalman", "walk": 3}, "unknown option 'walk' of method 'kalman'; expected free, "),
+    ({"method": "kalman", "fit_effects": True}, r"fit_effects \(--fit-effects\) goes with method map or mcmc"),
+    ({"method": "kalman", "alpha": "0.01"}, r"alpha \(--outlier-alpha\): expected a level between 0 and 1"),
+])
+def test_calibrate_kalman_and_mcmc_refuse_bad_arguments_by_name(options, match):
+    with pytest.raises(bayescal.InputError, match=match):
+        bayescal.calibrate(bayescal.load(PRS3_FILE, REC), **options)

@@ -252,7 +252,7 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
 
         model = joint_effects_model(model, rec, method=method)
     res, kw = _identify(model, method, free, steps=steps, seed=seed, surrogate=surrogate)
-    effects = dict(effects=tuple(e.name for e in machine.effects), aux=aux, effects_fitted=bool(fit_effects))
+    effects = {"effects": tuple(e.name for e in machine.effects), "aux": aux, "effects_fitted": bool(fit_effects)}
     if not res.success:
         return GridAnswer(None, res, method, space, machine.geometry_part[0], **effects)
     # the grid is over the machine in its base frame: an instrument frame (fitted or known) is left out

@@ -110,7 +110,7 @@ def run(args) -> int:
 
     aux = parse_aux_values(args.aux)  # bad --aux is bad input before any work
     ranges = _ranges(args.ranges)
-    machine, rec, model, _, session = inputs_with_session(args, constraints=True)
+    machine, _, model, _, session = inputs_with_session(args, constraints=True)
     if args.nc and grid_space(model.machine, args.space) != "tool":
         raise InputError("--nc goes with --space tool (an NC system compensates tool points)")
     # the checks, the identification and the grid: one library call, so a notebook gets this grid and JSON
