@@ -10,8 +10,10 @@
     cal.write_machine("calibrated.toml")
     p = bayescal.predict("calibrated.toml", "new.csv", frame="fit")  # what `bayescal predict` runs
     p.summary["check"]["coverage_90"]
+    g = bayescal.grid(s, nodes=9)                                      # what `bayescal grid` runs
+    g.write_csv("grid.csv"); g.grid.std
 
-``bayescal identify``, ``predict`` and ``diagnose`` call the same functions,
+``bayescal identify``, ``predict``, ``grid`` and ``diagnose`` call the same functions,
 so a study gets the number a user gets.
 """
 
@@ -22,7 +24,7 @@ import os
 from .io.recording import Recording
 from .machines.base import Machine
 
-__all__ = ["load", "calibrate", "predict", "diagnose"]
+__all__ = ["load", "calibrate", "predict", "grid", "diagnose"]
 
 
 def _machine(machine) -> Machine:
@@ -81,55 +83,69 @@ def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Re
 def calibrate(data, *, method: str = "map", **options):
     """Identify a recording's errors as ``bayescal identify`` does (method, outliers, prior scale, noise, discrepancy).
 
+    ``bayescal identify`` calls the same functions: ``json_text(calibrate(...).to_dict())`` is its ``--json`` file.
+
     Parameters
     ----------
     data : Session or MeasurementModel
         From :func:`load` (its ``check`` rows are then scored as ``identify`` scores them), or a model.
-    method : {"map", "ridge", "tsvd", "ls"}
+    method : {"map", "ridge", "tsvd", "ls", "kalman", "mcmc"}
     **options
         Of :func:`bayescal.identify.calibrate.calibrate`: ``lam``, ``k``, ``free``, ``rule``,
-        ``prior_scale``, ``robust``, ``noise``, ``discrepancy``, ``discrepancy_inputs``, ...
+        ``prior_scale``, ``robust``, ``noise``, ``discrepancy``, ``discrepancy_inputs``, ``fit_effects``, ...;
+        for kalman and mcmc, of :func:`bayescal.identify.probabilistic.calibrate_bayes`: ``free``,
+        ``noise``, ``robust``, ``variant``, ``process_noise`` (kalman), ``steps``, ``walkers``, ``seed``,
+        ``surrogate``, ``checkpoint``, ``resume`` (mcmc), ``fit_effects``.  With ``fit_effects=True`` (map,
+        mcmc) the machine file's ``[effect.*]`` parameters are identified with the geometry.
 
     Returns
     -------
-    bayescal.identify.calibrate.Calibration
-        ``report()``, ``to_dict()``, ``parameters`` by name, ``write_machine(path)``; with a session
-        holding ``check`` rows, ``result.extras["check"]`` holds their scores.
+    bayescal.identify.calibrate.Calibration or bayescal.identify.probabilistic.BayesCalibration
+        ``report()``, ``to_dict()``, ``write_machine(path)``; a ``Calibration`` has ``parameters`` by
+        name; with a session holding ``check`` rows, ``to_dict()["check"]`` holds their scores.
     """
     from .contract import Model
     from .errors import InputError
-    from .identify.answer import identify_answer
-    from .identify.calibrate import calibrate as _calibrate
+    from .identify.probabilistic import BAYES_METHODS, calibrate_bayes
     from .instrument.prepare import Session
 
     if not isinstance(data, (Session, Model)):
         raise InputError(f"calibrate: expected what bayescal.load returns (or a measurement model), got "
                          f"{type(data).__name__} {data!r:.80}; for files: bayescal.calibrate(bayescal.load(machine, "
                          "recording))")
+    session = data if isinstance(data, Session) else None
+    model = data.fit_model if session is not None else data
+    machine = model.machine
+    if options.get("fit_effects"):
+        from .effects.joint_model import joint_effects_model
 
-    if isinstance(data, Session):
+        model = joint_effects_model(model, None if session is None else session.fit_recording, method=method)
+    if session is not None:
         from .outliers import recording_lines
 
         # the outlier test names poses by their line in the recording file (held-out rows skipped)
-        options.setdefault("lines", recording_lines(data.fit_model.n_poses, data.fit_recording))
-        cal = _calibrate(data.fit_model, method=method, **options)
-        return identify_answer(cal, data.fit_model.machine, data.fit_model, check=data.check, session=data)[0]
-    cal = _calibrate(data, method=method, **options)
-    return identify_answer(cal, data.machine, data)[0]
+        options.setdefault("lines", recording_lines(model.n_poses, session.fit_recording))
+    check = None if session is None else session.check
+    if method in BAYES_METHODS:
+        return calibrate_bayes(model, method=method, machine=machine, check=check, session=session, **options)
+    from .identify.answer import calibration_answer
+
+    return calibration_answer(model, machine, method=method, session=session, check=check, **options)[0]
 
 
 def predict(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Recording, *, frame: str = "base",
             dof: int | None = None):
     """Predict every row of a recording from a calibrated machine, as ``bayescal predict`` does.
 
+    ``bayescal predict`` calls this function: ``json_text(predict(...).to_dict())`` is its ``--json`` file.
+
     Parameters
     ----------
     machine : path or Machine
-        The calibrated machine file (its ``[calibration]`` record gives the uncertainty; docs/formats.md
-        section 8), or a machine.
+        A calibrated machine file (``write_machine``, ``identify --write-machine``): its ``[calibration]``
+        covariance and ``[discrepancy]`` are used when present.
     recording : path or Recording
-        The recording to predict (docs/formats.md sections 2, 4, 8), with optional ``station`` and
-        ``role`` columns.
+        Rows to predict (docs/formats.md section 8: ``role = check`` rows are never fitted, only scored).
     frame : {"base", "fit"}
         ``fit``: each station's instrument frame is fitted on its ``fit`` rows, the machine held fixed.
     dof : int, optional
@@ -144,6 +160,32 @@ def predict(machine: str | os.PathLike | Machine, recording: str | os.PathLike |
     from .prediction.recording import predict_recording
 
     return predict_recording(_machine(machine), _recording(recording), frame=frame, dof=dof)
+
+
+def grid(data, **options):
+    """Identify a recording's errors and span a compensation grid with its std, as ``bayescal grid`` does.
+
+    ``bayescal grid`` calls :func:`bayescal.bayes.recording_grid.recording_grid` with its options:
+    ``json_text(grid(...).to_dict())`` is its ``--json`` file.
+
+    Parameters
+    ----------
+    data : Session or Model
+        From :func:`load` (its ``fit`` rows are used), or a measurement or constraint model.
+    **options
+        Of :func:`~bayescal.bayes.recording_grid.recording_grid`: ``method`` ("map", "kalman", "mcmc"),
+        ``free``, ``nodes``, ``space`` ("auto", "actuator", "tool"), ``ranges``, ``aux``, ``steps``,
+        ``surrogate``, ``seed``, ``fit_effects``.
+
+    Returns
+    -------
+    bayescal.bayes.recording_grid.GridAnswer
+        ``grid.correction`` and ``grid.std`` at every node (mm), ``to_dict()``, ``report()``,
+        ``write_csv(path)``, ``write_nc_csv(path)`` (tool space).
+    """
+    from .bayes.recording_grid import recording_grid
+
+    return recording_grid(data, **options)
 
 
 def diagnose(machine: str | os.PathLike | Machine, recording, **options):

@@ -146,3 +146,222 @@ def test_diagnose_gives_the_json_diagnose_writes_byte_for_byte(tmp_path):
     assert main(["diagnose", str(REC), "--machine", str(PRS3_FILE), "--json", str(out), "--quiet"]) in (0, 1)
     assert json.loads(json.dumps(d.to_dict(), allow_nan=False))
     assert json_text(d.to_dict()) == out.read_text()
+
+
+# ------------------------------------------------------------------ predict: the library's answer is the command's
+@pytest.fixture(scope="module")
+def calibrated_machines(tmp_path_factory):
+    """Calibrated machine files of the bundled examples, with the recordings to predict (and the options)."""
+    d = tmp_path_factory.mktemp("calibrated")
+    prs3_cli, prs3_lib = d / "cli" / "prs3.toml", d / "lib" / "prs3.toml"
+    prs3_cli.parent.mkdir()
+    assert main(["identify", str(REC), "--machine", str(PRS3_FILE), "--discrepancy", "on", "--write-machine",
+                 str(prs3_cli), "--quiet"]) == 0
+    bayescal.calibrate(bayescal.load(PRS3_FILE, REC), discrepancy="on").write_machine(prs3_lib)
+    pos_machine, pos_rec = _positioner_with_roles(d)
+    bayescal.calibrate(bayescal.load(pos_machine, pos_rec, frame="fit")).write_machine(d / "positioner.toml")
+    table = ROOT / "examples" / "hybrid_table"
+    bayescal.calibrate(bayescal.load(table / "machine.toml", table / "recording.csv")).write_machine(d / "table.toml")
+    return {
+        "3-PRS, written by identify --discrepancy on": (prs3_cli, REC, {}, prs3_lib),
+        "positioner, fitted frame, held-out rows": (d / "positioner.toml", pos_rec, {"frame": "fit"}, None),
+        "hybrid table, a file per module": (d / "table.toml", table / "recording.csv", {}, None),
+        "3-PRS nominal machine, 5-DOF": (PRS3_FILE, REC, {"dof": 5}, None),
+    }
+
+
+PREDICT_CASES = ("3-PRS, written by identify --discrepancy on", "positioner, fitted frame, held-out rows",
+                 "hybrid table, a file per module", "3-PRS nominal machine, 5-DOF")
+
+
+@pytest.mark.parametrize("case", PREDICT_CASES)
+def test_predict_gives_the_json_predict_writes_byte_for_byte(calibrated_machines, tmp_path, case):
+    from bayescal.io.answers import json_text
+
+    machine, rec, options, library_written = calibrated_machines[case]
+    p = bayescal.predict(machine, rec, **options)
+    out = tmp_path / "p.json"
+    flags = [x for k, v in options.items() for x in (f"--{k}", str(v))]
+    assert main(["predict", str(rec), "--machine", str(machine), "--json", str(out), "--quiet", *flags]) == 0
+    assert json_text(p.to_dict()) == out.read_text()
+    assert json.loads(json.dumps(p.to_dict(), allow_nan=False)) == json.loads(out.read_text())  # plain JSON
+    ans = p.to_dict()
+    if library_written is not None:
+        # the machine file bayescal.calibrate(...).write_machine writes is the one identify --write-machine writes
+        assert library_written.read_bytes() == machine.read_bytes() and "[discrepancy]" in machine.read_text()
+        assert ans["notes"] == [] and ans["summary"]["fit"]["n"] == 36
+    if case.startswith("positioner"):
+        assert ans["summary"]["check"]["n"] == 51 and ans["summary"]["fit"]["n"] == 154 and ans["frame"]["fitted"]
+    if case.startswith("hybrid"):
+        assert ans["summary"]["fit"]["n"] == 60 and ans["summary"]["fit"]["coverage_90"] > 0.8
+    if case.endswith("5-DOF"):
+        assert all(len(r["std"]) == 5 for r in ans["rows"]) and "no [calibration]" in ans["notes"][0]
+
+
+# ------------------------------------------------------------------ grid: the library's answer is the command's
+def _prs3_with_compliance(tmp_path):
+    """The 3-PRS with a joint-compliance table, and a recording under varying payloads simulated from it."""
+    from .cli.test_grid_effects_cli import COMPLIANCE
+
+    machine, rec = tmp_path / "compliance.toml", tmp_path / "payload.csv"
+    machine.write_text(PRS3_FILE.read_text() + COMPLIANCE)
+    assert main(["simulate", "--machine", str(machine), "--poses", "40", "--seed", "2", "--aux", "payload_kg",
+                 "--out", str(rec), "--quiet"]) == 0
+    return machine, rec
+
+
+GRID_CASES = {
+    "3-PRS, map": (lambda tmp: (PRS3_FILE, REC), {}, {"nodes": 3}, ["--nodes", "3"]),
+    "3-PRS, kalman, a narrowed q1": (lambda tmp: (PRS3_FILE, REC), {}, {"nodes": 3, "method": "kalman",
+                                                                        "ranges": {"q1": (460.0, 540.0)}},
+                                     ["--nodes", "3", "--method", "kalman", "--range", "q1=460:540"]),
+    "positioner, fitted frame, held-out rows": (_positioner_with_roles, {"frame": "fit"}, {"nodes": 4},
+                                                ["--nodes", "4", "--frame", "fit"]),
+    "delta, heights and distances (tool space)": (_delta_distances, {}, {"nodes": 3}, ["--nodes", "3"]),
+    "3-PRS with a compliance table, tool space, 25 kg": (
+        _prs3_with_compliance, {}, {"nodes": 3, "space": "tool", "aux": {"payload_kg": 25.0}},
+        ["--nodes", "3", "--space", "tool", "--aux", "payload_kg=25"]),
+}
+
+
+@pytest.mark.parametrize("case", list(GRID_CASES))
+def test_grid_gives_the_json_grid_writes_byte_for_byte(tmp_path, case):
+    from bayescal.io.answers import json_text
+
+    files, load_kw, options, flags = GRID_CASES[case]
+    machine, rec = files(tmp_path)
+    g = bayescal.grid(bayescal.load(machine, rec, **load_kw), **options)
+    out, csv = tmp_path / "g.json", tmp_path / "g.csv"
+    assert main(["grid", str(rec), "--machine", str(machine), "--json", str(out), "--out", str(csv), "--quiet",
+                 *flags]) == 0
+    assert json_text(g.to_dict()) == out.read_text()
+    assert json.loads(json.dumps(g.to_dict(), allow_nan=False))  # plain JSON
+    assert g.grid.to_csv() == csv.read_text()
+    ans = g.to_dict()
+    assert ans["method"] == options.get("method", "map") and ans["max_std_mm"] > 0
+    if case.startswith("delta"):
+        assert g.space == "tool"  # a linear delta's q_limits box is not all reachable
+    if "narrowed" in case:
+        assert ans["axes"]["q1"] == [460.0, 500.0, 540.0]
+    if "compliance" in case:
+        assert ans["effects"] == ["joint_compliance"] and ans["aux"] == {"payload_kg": 25.0}
+
+
+def test_grid_from_posterior_draws_gives_the_json_grid_writes(tmp_path):
+    from bayescal.io.answers import json_text
+
+    g = bayescal.grid(bayescal.load(PRS3_FILE, REC), method="mcmc", steps=200, surrogate="linear", nodes=3)
+    out = tmp_path / "g.json"
+    assert main(["grid", str(REC), "--machine", str(PRS3_FILE), "--method", "mcmc", "--steps", "200",
+                 "--surrogate", "linear", "--nodes", "3", "--json", str(out), "--quiet"]) == 0
+    assert json_text(g.to_dict()) == out.read_text()
+    # the chain thinned to about 400 draws (bayescal.bayes.recording_grid.GRID_DRAWS)
+    assert g.to_dict()["std_source"].startswith("sample std over") and 400 <= int(g.grid.source.split()[3]) < 800
+
+
+@pytest.mark.parametrize("options, match", [
+    ({"method": "ls"}, r"method \(--method\): expected one of map, kalman, mcmc, got 'ls'"),
+    ({"ranges": {"x": (0, 1)}}, r"ranges \(--range\) x: actuator space has the axes q1, q2, q3"),
+    ({"ranges": {"q1": (540, 460)}}, r"ranges \(--range\) q1=540:460: expected finite LO < HI"),
+    ({"aux": {"payload_kg": 5}}, r"aux \(--aux\): .*machine.toml carries no \[effect"),
+    ({"nodes": 1}, r"n \(--nodes\): expected at least 2"),
+    ({"method": "kalman", "fit_effects": True}, r"fit_effects \(--fit-effects\) goes with method map or mcmc"),
+])
+def test_grid_refuses_bad_arguments_by_name(options, match):
+    with pytest.raises(bayescal.InputError, match=match):
+        bayescal.grid(bayescal.load(PRS3_FILE, REC), **options)
+
+
+def test_grid_nc_csv_goes_with_tool_space(tmp_path):
+    g = bayescal.grid(bayescal.load(PRS3_FILE, REC), nodes=2)
+    with pytest.raises(bayescal.InputError, match="space 'tool'"):
+        g.write_nc_csv(tmp_path / "nc.csv")
+    assert not (tmp_path / "nc.csv").exists()
+
+
+# ------------------------------------------------------------------ identify --method kalman | mcmc, --fit-effects
+BAYES_CASES = {
+    "3-PRS, kalman": (lambda tmp: (PRS3_FILE, REC), {"method": "kalman"}, ["--method", "kalman"]),
+    "3-PRS, unscented kalman with process noise": (
+        lambda tmp: (PRS3_FILE, REC), {"method": "kalman", "variant": "ukf", "process_noise": 0.01},
+        ["--method", "kalman", "--variant", "ukf", "--process-noise", "0.01"]),
+    "delta, heights and distances, kalman": (_delta_distances, {"method": "kalman"}, ["--method", "kalman"]),
+}
+
+
+@pytest.mark.parametrize("case", list(BAYES_CASES))
+def test_calibrate_kalman_writes_the_json_identify_writes_byte_for_byte(tmp_path, case):
+    from bayescal.io.answers import json_text
+
+    files, options, flags = BAYES_CASES[case]
+    machine, rec = files(tmp_path)
+    cal = bayescal.calibrate(bayescal.load(machine, rec), **options)
+    out = tmp_path / "cli.json"
+    assert main(["identify", str(rec), "--machine", str(machine), "--json", str(out), "--quiet", *flags]) == 0
+    assert cal.result.success and cal.plausibility.plausible
+    assert json_text(cal.to_dict()) == out.read_text()
+    ans = json.loads(json.dumps(cal.to_dict(), allow_nan=False))  # plain JSON
+    assert ans["method"].startswith("kalman") and "outlier_handling" in ans and "noise" in ans
+
+
+def test_calibrate_mcmc_writes_the_json_identify_writes(tmp_path):
+    import re
+
+    from bayescal.io.answers import json_text
+
+    cal = bayescal.calibrate(bayescal.load(PRS3_FILE, REC), method="mcmc", steps=200, surrogate="linear")
+    out, written = tmp_path / "cli.json", tmp_path / "cli.toml"
+    assert main(["identify", str(REC), "--machine", str(PRS3_FILE), "--method", "mcmc", "--steps", "200",
+                 "--surrogate", "linear", "--json", str(out), "--write-machine", str(written), "--quiet"]) == 0
+    # the same bytes but for the sampler's wall-clock time
+    def clock(text):
+        return re.sub(r'"seconds": [0-9.e+-]+', '"seconds": 0', text)
+
+    assert '"seconds": ' in out.read_text() and clock(json_text(cal.to_dict())) == clock(out.read_text())
+    assert cal.result.success and cal.to_dict()["noise"]["verdict"] == json.loads(out.read_text())["noise"]["verdict"]
+    assert cal.write_machine(tmp_path / "lib.toml")[0].read_bytes() == written.read_bytes()
+
+
+def test_calibrate_fits_effect_tables_as_identify_fit_effects_does(tmp_path):
+    from bayescal.effects.stored import StoredEffectsTransform
+    from bayescal.io.answers import json_text
+    from bayescal.simulate import simulate_recording
+
+    from .cli.test_fit_effects_cli import NAMES, TABLE
+
+    machine, truth, rec = tmp_path / "m.toml", tmp_path / "truth.toml", tmp_path / "rec.csv"
+    machine.write_text(PRS3_FILE.read_text() + TABLE)
+    truth.write_text(PRS3_FILE.read_text() + TABLE.replace("20.0", "8.0").replace("30.0", "12.0").replace("25.0", "10.0"))
+    m = bayescal.load_machine(truth)
+    sim = simulate_recording(m, 40, seed=21, effects=[StoredEffectsTransform(m, m.effects)], theta_true=np.zeros(m.n_params))
+    bayescal.write_recording(rec, sim.recording)
+    cal = bayescal.calibrate(bayescal.load(machine, rec), method="map", fit_effects=True)
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "cli").mkdir()
+    out = tmp_path / "cli" / "a.json"
+    assert main(["identify", str(rec), "--machine", str(machine), "--method", "map", "--fit-effects", "--json",
+                 str(out), "--write-machine", str(tmp_path / "cli" / "cal.toml"), "--quiet"]) == 0
+    assert json_text(cal.to_dict()) == out.read_text()
+    # the effects' parameters are identified (they were silently left at the file's values before)
+    fitted = {p["name"]: p["value"] for p in cal.to_dict()["parameters"] if p["name"].startswith("effect.")}
+    assert sorted(fitted) == NAMES[2:] and abs(fitted[NAMES[2]] - 8.0) < abs(fitted[NAMES[2]] - 20.0)
+    # and written into the calibrated machine's table, as identify --write-machine writes it
+    path = cal.write_machine(tmp_path / "lib" / "cal.toml")[0]
+    assert path.read_bytes() == (tmp_path / "cli" / "cal.toml").read_bytes()
+    assert dict(bayescal.load_machine(path).effects[0].values)["backlash.q1"] == pytest.approx(fitted[NAMES[2]])
+
+
+@pytest.mark.parametrize("options, match", [
+    ({"method": "mcmc", "variant": "ukf"}, "variant: goes with method 'kalman'; it does nothing with method 'mcmc'"),
+    ({"method": "kalman", "steps": 100}, "steps: goes with method 'mcmc'"),
+    ({"method": "kalman", "lam": 1.0}, "lam: goes with method 'ridge'; it does nothing with method 'kalman'"),
+    ({"method": "kalman", "discrepancy": "auto"}, "discrepancy: goes with method 'map' or 'ridge'"),
+    ({"method": "mcmc", "steps": 5}, r"steps \(--steps\): expected a whole number of at least 20, got 5"),
+    ({"method": "mcmc", "resume": True}, r"resume \(--resume\): needs checkpoint"),
+    ({"method": "kalman", "walk": 3}, "unknown option 'walk' of method 'kalman'; expected free, "),
+    ({"method": "kalman", "fit_effects": True}, r"fit_effects \(--fit-effects\) goes with method map or mcmc"),
+    ({"method": "kalman", "alpha": "0.01"}, r"alpha \(--outlier-alpha\): expected a level between 0 and 1"),
+])
+def test_calibrate_kalman_and_mcmc_refuse_bad_arguments_by_name(options, match):
+    with pytest.raises(bayescal.InputError, match=match):
+        bayescal.calibrate(bayescal.load(PRS3_FILE, REC), **options)

@@ -9,7 +9,7 @@ from pathlib import Path
 from ..errors import InputError
 from .outputs import say, write_json, write_report
 
-__all__ = ["add_arguments", "check_method_options", "run_bayes", "METHODS"]
+__all__ = ["add_arguments", "check_method_options", "bayes_options", "run_bayes", "METHODS"]
 
 METHODS = ("kalman", "mcmc")
 
@@ -60,56 +60,29 @@ def check_method_options(args) -> None:
             raise InputError(f"{option} goes with --method {method}; it does nothing with --method {args.method}")
 
 
-def run_bayes(args, machine, model, free, check=None, outliers=None, session=None, noise=None) -> int:
-    """Run kalman or mcmc; ``outliers`` (an OutlierHandling of a robust MAP pass) weights the poses and is reported."""
-    from . import EXIT_FAILED, EXIT_OK
-    from .effect_options import with_fitted_effects
-    from .instrument import instrument_report, judge, refusal_note, write_calibrated_files
-    from ..bayes.kalman import kalman_filter
-    from ..bayes.mcmc import sample_posterior, write_posterior
-
-    if args.method != "mcmc" and (args.checkpoint or args.resume):
-        raise InputError("--checkpoint and --resume go with --method mcmc")
-    if args.resume and not args.checkpoint:
-        raise InputError("--resume needs --checkpoint PATH (the checkpoint to continue)")
-    base_model = model
-    if outliers is not None:
-        model = outliers.weighted_model(model)  # the robust MAP pass's weights (docs/outliers.md)
+def bayes_options(args) -> dict:
+    """The options of ``args.method`` for :func:`bayescal.identify.probabilistic.calibrate_bayes`."""
     if args.method == "kalman":
-        res = kalman_filter(model, variant=args.variant, free=free, process_noise=args.process_noise)
-    else:
-        if args.steps < 20:
-            # fewer steps cannot even estimate an autocorrelation time
-            raise InputError(f"--steps: expected at least 20, got {args.steps}")
-        res = sample_posterior(
-            model, free=free, n_steps=args.steps, n_walkers=args.walkers, seed=args.seed,
-            progress=sys.stderr.isatty() if args.progress is None else args.progress, surrogate=args.surrogate,
-            checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every, resume=args.resume,
-        )
-    answer, outlier_text = res.to_dict(), ""
-    if outliers is not None:
-        from ..identify.robust import map_system
+        return {"variant": args.variant, "process_noise": args.process_noise}
+    return {"steps": args.steps, "walkers": args.walkers, "seed": args.seed, "surrogate": args.surrogate,
+            "progress": sys.stderr.isatty() if args.progress is None else args.progress,
+            "checkpoint": args.checkpoint, "checkpoint_every": args.checkpoint_every, "resume": args.resume}
 
-        outliers = outliers.retested(base_model, res, map_system(res))
-        answer.update(outliers.to_dict())
-        outlier_text = outliers.report()
-    extra, plaus = judge(machine, base_model, res, check)  # instrument frame and plausibility
-    answer.update(extra)
-    from ..prediction.recording import held_out_report, score_held_out
 
-    # the noise and the leave-one-out factor of the MAP the method started from (the same model and prior)
-    scale, kappa = (1.0, 1.0) if noise is None else (noise.noise_scale, noise.variance_factor)
-    held_out = (score_held_out(res, session, noise_scale=scale, variance_factor=kappa)
-                if session is not None and not args.fit_effects else {})
-    answer.update(held_out)
-    if noise is not None:
-        answer.update(noise.noise_dict())
-    write_json(args, answer)  # before printing: a closed stdout (`| head`) must not cost the answer
+def run_bayes(args, machine, answer) -> int:
+    """Write and print the answer of kalman or mcmc (:class:`bayescal.identify.probabilistic.BayesCalibration`)."""
+    from . import EXIT_FAILED, EXIT_OK
+    from .instrument import instrument_report, refusal_note, write_calibrated_files
+    from ..bayes.mcmc import write_posterior
+    from ..prediction.recording import held_out_report
+
+    res, plaus = answer.result, answer.plausibility
+    write_json(args, answer.to_dict())  # before printing: a closed stdout (`| head`) must not cost the answer
     if args.method == "mcmc" and args.posterior and res.success:
         write_posterior(res, args.posterior)
         say(args, f"wrote {args.posterior} (posterior draws, NetCDF)")
-    write_calibrated_files(args, with_fitted_effects(machine, base_model, res), res, plaus)
-    write_report(args, "identify", res, machine=machine, model=base_model, answer_extra=extra)
+    write_calibrated_files(args, answer.machine, res, plaus)
+    write_report(args, "identify", res, machine=machine, model=answer.model, answer_extra=answer.frame)
     made = []
     if args.figures:
         from ..plots.bayes import plot_filter_history, plot_pair, plot_trace, plot_trace_pages
@@ -122,12 +95,11 @@ def run_bayes(args, machine, model, free, check=None, outliers=None, session=Non
             made = [plot_trace(res, out / "mcmc_trace.png"), *plot_trace_pages(res, out), plot_pair(res, out / "mcmc_pair.png")]
     if not args.quiet:
         print(res.report())
-        if noise is not None:
-            print(noise.noise_report())
-        print(instrument_report(extra, plaus))
-        if outlier_text:
-            print(outlier_text)
-        if text := held_out_report(held_out):
+        if answer.noise is not None:
+            print(answer.noise.noise_report())
+        print(instrument_report(answer.frame, plaus))
+        print(answer.handling.report())
+        if text := held_out_report(answer.held_out):
             print(text)
         if made:
             print("\nfigures: " + ", ".join(str(m) for m in made))

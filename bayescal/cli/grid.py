@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
-
 from ..errors import InputError
 from . import SUMMARIES
-from .inputs import add_frame_argument, free_arg, recording_model
+from .inputs import add_frame_argument, free_arg, inputs_with_session
 from .outputs import add_output_options, say, write_json, write_report
 
 HELP = """\
@@ -107,133 +105,53 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
-    from ..bayes.grid import compensation_grid
-    from ..bayes.kalman import kalman_filter
-    from ..bayes.mcmc import sample_posterior
-    from ..bayes.priors import map_estimate
-
+    from ..bayes.recording_grid import grid_space, recording_grid
     from ..effects.stored import parse_aux_values
 
     aux = parse_aux_values(args.aux)  # bad --aux is bad input before any work
-    machine, rec, model = recording_model(args, constraints=True)
-    if aux and not machine.effects:
-        raise InputError(f"--aux: {args.machine} carries no [effect.*] tables, so the grid depends on no channel")
-    from ..effects.stored import PROBE_CHANNELS
-
-    known = dict.fromkeys([*PROBE_CHANNELS, *rec.aux])
-    typo = [k for k in aux if k not in known]
-    if typo:  # a misspelt channel would silently leave the effect at its default
-        raise InputError(f"--aux {typo[0]}: unknown channel; expected one of: {', '.join(known)}")
-    from ..bayes.grid import check_grid_size
-
-    # --nodes checked (at least 2, and arrays that fit in memory) before the identification runs
-    check_grid_size(model.machine.geometry_part[0], args.nodes, args.space,
-                    n_samples=400 if args.method == "mcmc" else 0)
-    if args.fit_effects:
-        from .effect_options import joint_effects_model
-
-        model = joint_effects_model(args, machine, rec, model)
-    free = free_arg(args.free)
-    if args.method == "mcmc" and free == "all":
-        free = "auto"  # sampling parameters the measurement does not see only explores the prior
-    if args.method == "map":
-        res = map_estimate(model, free=free)
-        ok, kw = res.success, {"covariance": res.covariance}
-    elif args.method == "kalman":
-        res = kalman_filter(model, free=free)
-        ok, kw = res.success, {"covariance": res.covariance}
-    else:
-        res = sample_posterior(model, free=free, n_steps=args.steps, seed=args.seed, surrogate=args.surrogate)
-        ok, kw = res.success, {"samples": res.samples[:: max(1, res.samples.shape[0] // 400)]}
-    if not ok:
+    ranges = _ranges(args.ranges)
+    machine, _, model, _, session = inputs_with_session(args, constraints=True)
+    if args.nc and grid_space(model.machine, args.space) != "tool":
+        raise InputError("--nc goes with --space tool (an NC system compensates tool points)")
+    # the checks, the identification and the grid: one library call, so a notebook gets this grid and JSON
+    answer = recording_grid(session if session is not None else model, method=args.method, free=free_arg(args.free),
+                            nodes=args.nodes, space=args.space, ranges=ranges, aux=aux, steps=args.steps,
+                            surrogate=args.surrogate, seed=args.seed, fit_effects=args.fit_effects)
+    res, grid = answer.identification, answer.grid
+    if grid is None:
         if not args.quiet:
             print(res.report())
         print(f"bayescal grid: the identification did not succeed ({res.message}); no grid written")
         return EXIT_FAILED
-    # the grid is over the machine in its base frame: an instrument frame (fitted or known) is left out
-    base, theta, free_mask, kw = base_frame_parts(model.machine, res.theta, res.free, kw)
-    space = args.space
-    if space == "auto":
-        # the machine says whether its whole q_limits box assembles (base.Machine.actuator_box_reachable)
-        space = "actuator" if base.actuator_box_reachable else "tool"
-    ranges = _ranges(args.ranges, space, base.n_actuators)
-    if space == "tool":
-        from ..bayes.tool_grid import tool_grid
-
-        grid = tool_grid(base, theta, free=free_mask, n=args.nodes, ranges=ranges, aux=aux, **kw)
-    else:
-        if args.nc:
-            raise InputError("--nc goes with --space tool (an NC system compensates tool points)")
-        axes = None
-        if ranges:
-            if base.q_limits is None:
-                raise InputError(f"{args.machine}: no [workspace] q_limits to span a grid")
-            lim = {f"q{i + 1}": tuple(b) for i, b in enumerate(base.q_limits)}
-            lim.update(ranges)
-            axes = tuple(np.linspace(*lim[f"q{i + 1}"], args.nodes) for i in range(base.n_actuators))
-        grid = compensation_grid(base, theta, free=free_mask, n=args.nodes, axes=axes, aux=aux, **kw)
     # outputs first: a closed stdout (`| head`) must not cost them
     if args.out:
-        grid.write_csv(args.out)
-        say(args, f"wrote {args.out} (grid CSV, {space} space)")
+        answer.write_csv(args.out)
+        say(args, f"wrote {args.out} (grid CSV, {answer.space} space)")
     if args.nc:
-        grid.write_nc_csv(args.nc)
+        answer.write_nc_csv(args.nc)
         say(args, f"wrote {args.nc} (NC-loadable grid CSV, docs/formats.md section E8)")
     if args.figure:
         from ..plots.bayes import plot_grid
 
-        plot_grid(grid, args.figure, units=base.actuator_units if space == "actuator" else None)
+        plot_grid(grid, args.figure, units=answer.machine.actuator_units if answer.space == "actuator" else None)
         say(args, f"wrote {args.figure} (figure)")
-    extra = ({"effects": [e.name for e in machine.effects], "aux": aux, "effects_fitted": bool(args.fit_effects)}
-             if machine.effects else {})
-    write_json(args, {**grid.to_dict(), "method": args.method, **extra})
+    write_json(args, answer.to_dict())
     write_report(args, "grid", grid, identification=res, machine=machine)
     if not args.quiet:
-        print(grid.report())
-        if machine.effects:
-            at = ", ".join(f"{k} = {v:g}" for k, v in aux.items()) or "no auxiliary channel"
-            how = "fitted with the geometry, " if args.fit_effects else ""
-            print(f"  effects         {', '.join(e.name for e in machine.effects)} {how}applied at {at}")
+        print(answer.report())
     return EXIT_OK
 
 
-def base_frame_parts(machine, theta, free, kw: dict):
-    """The geometry's machine, its part of ``theta`` / ``free``, and of the covariance or samples.
-
-    Nuisance parameters of the model's machine (a fitted instrument frame,
-    ballbar pivots: :attr:`bayescal.machines.Machine.geometry_part`) are dropped.
-    """
-    base, idx = machine.geometry_part
-    if idx.size == machine.n_params:
-        return base, theta, free, kw
-    keep = np.zeros(machine.n_params, dtype=bool)
-    keep[idx] = True
-    inner = keep[np.flatnonzero(free)]  # which columns of the covariance / samples are the geometry's
-    out = {}
-    if kw.get("covariance") is not None:
-        out["covariance"] = kw["covariance"][np.ix_(inner, inner)]
-    if kw.get("samples") is not None:
-        out["samples"] = kw["samples"][:, inner]
-    return base, np.asarray(theta)[idx], np.asarray(free)[idx], out
-
-
-def _ranges(items: list[str], space: str, n_act: int) -> dict:
-    """``["x=-10:10", "q1=450:500"]`` -> ``{"x": (-10.0, 10.0), ...}``; names checked against the space."""
-    names = ("x", "y", "z") if space == "tool" else tuple(f"q{i + 1}" for i in range(n_act))
+def _ranges(items: list[str]) -> dict:
+    """``["x=-10:10", "q1=450:500"]`` -> ``{"x": (-10.0, 10.0), ...}`` (the names are checked by the library)."""
     out = {}
     for item in items:
         name, eq, span = item.partition("=")
         lo, colon, hi = span.partition(":")
-        name = name.strip()
         try:
-            if not eq or not colon:
+            if not eq or not colon or not name.strip():
                 raise ValueError
-            a, b = float(lo), float(hi)
+            out[name.strip()] = (float(lo), float(hi))
         except ValueError:
-            raise InputError(f"--range {item!r}: expected NAME=LO:HI, e.g. {names[0]}=-100:100") from None
-        if name not in names:
-            raise InputError(f"--range {item!r}: {space} space has the axes {', '.join(names)}")
-        if not a < b:
-            raise InputError(f"--range {item!r}: expected LO < HI")
-        out[name] = (a, b)
+            raise InputError(f"--range {item!r}: expected NAME=LO:HI, e.g. x=-100:100 or q1=450:550") from None
     return out

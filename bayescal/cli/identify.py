@@ -4,17 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
-
 from ..bayes.priors import PRIOR_SCALES
 from ..errors import InputError
-from ..identify.answer import identify_answer
-from ..identify.calibrate import calibrate
+from ..identify.answer import calibration_answer
 from ..identify.choose import DEFAULT_RULE, RULE_NAMES
-from ..identify.robust import robust_map_weights
+from ..identify.probabilistic import calibrate_bayes
 from . import SUMMARIES
-from .bayes_identify import METHODS, add_arguments, check_method_options, run_bayes
-from .effect_options import joint_effects_model, with_fitted_effects
+from .bayes_identify import METHODS, add_arguments, bayes_options, check_method_options, run_bayes
+from .effect_options import joint_effects_model
 from .inputs import add_frame_argument, free_arg, inputs_with_session, name_list
 from .instrument import add_force_argument, instrument_report, refusal_note, write_calibrated_files
 from .outlier_options import add_outlier_arguments, outlier_kwargs
@@ -225,48 +222,40 @@ def run(args) -> int:
     okw = outlier_kwargs(args, rec, model.n_poses)
     if args.method != "mcmc" and (args.checkpoint or args.resume):
         raise InputError("--checkpoint and --resume go with --method mcmc")
-    if args.method in METHODS:
-        if args.rule:
-            raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
-        # the stated noise, tested by the MAP the filter and the sampler start from; where the data contradict it
-        # they run with the estimated noise (bayescal/identify/noise.py)
-        noise_cal = None
-        if not args.fit_effects and args.method in ("kalman", "mcmc"):
-            noise_cal = calibrate(model, method="map", max_iter=args.max_iter, noise=args.noise, free=free, **okw)
-            if noise_cal.noise_scale != 1.0:
-                model = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * noise_cal.noise_scale)
-        return run_bayes(args, machine, model, free, check,
-                         outliers=robust_map_weights(model, free, max_iter=args.max_iter, **okw), session=session,
-                         noise=noise_cal)
-    auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
-    if not auto and (args.rule or args.figures):
-        raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
+    # options of another method are refused, not ignored (kalman and mcmc too)
     if args.prior_scale is not None and args.method != "map":
         raise InputError("--prior-scale goes with --method map")
     if args.lam is not None and args.method != "ridge":
         raise InputError(f"--lam goes with --method ridge (got --method {args.method})")
     if args.k is not None and args.method != "tsvd":
         raise InputError(f"--k goes with --method tsvd (got --method {args.method})")
+    if args.method in METHODS:
+        if args.rule:
+            raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
+        # the noise test, the outliers, the filter or sampler and the whole answer: one library call
+        answer = calibrate_bayes(model, method=args.method, free=free, max_iter=args.max_iter, noise=args.noise,
+                                 fit_effects=args.fit_effects, machine=machine, check=check, session=session,
+                                 **okw, **bayes_options(args))
+        return run_bayes(args, machine, answer)
+    auto = (args.method == "ridge" and args.lam == "auto") or (args.method == "tsvd" and args.k == "auto")
+    if not auto and (args.rule or args.figures):
+        raise InputError("--rule and --figures go with --lam auto, --k auto, --method kalman or --method mcmc")
     if args.fit_effects and args.prior_scale == "empirical":
         # one factor estimated for every prior would rescale the effects' priors with the geometry's tolerances
         raise InputError("--prior-scale empirical does not go with --fit-effects: the effects' priors are not "
                          "the machine file's tolerances (use --prior-scale tolerance)")
     # method dispatch, outliers, the prior scale and the noise check: one library call (bayescal.identify.calibrate)
-    cal = calibrate(model, method=args.method, lam=args.lam, k=args.k, free=free, rule=args.rule,
-                    prior_scale=args.prior_scale, max_iter=args.max_iter, noise=args.noise,
-                    fit_effects=args.fit_effects, discrepancy=args.discrepancy,
-                    discrepancy_inputs=name_list(args.discrepancy_inputs) if args.discrepancy_inputs else None, **okw)
-    res, handling, choice = cal.result, cal.handling, cal.choice
-    written = with_fitted_effects(machine, model, res)
-    fitted_effects = tuple(written.effects) if args.fit_effects else None
-    # the whole answer (pivots, instrument frame, plausibility, held-out rows) as the library gives it
-    cal, extra, held_out = identify_answer(cal, machine, model, check=check, session=session, effects=fitted_effects)
-    res, plaus = cal.result, cal.plausibility
+    # ... and the whole answer (pivots, instrument frame, plausibility, held-out rows), as bayescal.calibrate gives it
+    cal, extra, held_out = calibration_answer(
+        model, machine, method=args.method, session=session, check=check, lam=args.lam, k=args.k, free=free,
+        rule=args.rule, prior_scale=args.prior_scale, max_iter=args.max_iter, noise=args.noise,
+        fit_effects=args.fit_effects, discrepancy=args.discrepancy,
+        discrepancy_inputs=name_list(args.discrepancy_inputs) if args.discrepancy_inputs else None, **okw)
+    res, handling, choice, plaus = cal.result, cal.handling, cal.choice, cal.plausibility
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
     write_json(args, cal.to_dict())
-    write_calibrated_files(args, written.with_calibration(cal.record(written.base_machine()), cal.discrepancy_model),
-                           res, plaus)
+    write_calibrated_files(args, cal.machine_with_record(), res, plaus)
     write_report(args, "identify", res, machine=machine, model=model, choice=choice, answer_extra=extra)
     path = None
     if choice is not None and args.figures:

@@ -51,14 +51,11 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..io import read_recording
-    from ..machines.files import load_machine
-    from ..prediction.recording import predict_recording
+    from ..api import predict
     from . import EXIT_OK
 
-    machine = load_machine(args.machine)
-    rec = read_recording(args.recording)
-    result = predict_recording(machine, rec, frame=args.frame, dof=args.dof)
+    # the library's front door: a notebook's bayescal.predict gives this JSON, byte for byte
+    result = predict(args.machine, args.recording, frame=args.frame, dof=args.dof)
     write_json(args, result.to_dict())
     if not args.quiet:
         print(result.report())

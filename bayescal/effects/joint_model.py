@@ -56,7 +56,11 @@ from .base import Effect, EffectParam, Features
 from .model import _at, _dq, _dx, _effect_theta, _slices, effect_columns
 from .stored import StoredEffect
 
-__all__ = ["EffectAugmented", "EffectModel", "effect_model"]
+__all__ = ["EffectAugmented", "EffectModel", "effect_model", "joint_effects_model", "with_fitted_effects",
+           "FIT_EFFECTS_METHODS"]
+
+#: Methods with a prior, which the effects' parameters need (their priors decide what the data do not).
+FIT_EFFECTS_METHODS = ("map", "mcmc")
 
 #: Tolerance group of the effect parameters in the layout.
 EFFECT_GROUP = "effect"
@@ -415,3 +419,48 @@ def effect_model(machine: Machine, rec, *, dof: int | None = None) -> EffectMode
         st.vector(tuple(eff.params(fm, f)), f" for {rec.path}")  # the table's parameters are the set this recording calls for
         effects.append((eff, f))
     return EffectModel(geo, tuple(effects), tuple(machine.effects))
+
+
+def joint_effects_model(model, rec, *, method: str) -> EffectModel:
+    """The joint model of geometry and stored effects a fit with ``fit_effects`` (``--fit-effects``) identifies.
+
+    Parameters
+    ----------
+    model : Model
+        The recording's model (its ``fit`` rows), on a machine with ``[effect.*]`` tables.
+    rec : Recording or None
+        Its recording (``Session.fit_recording``); None for a model given without one.
+    method : str
+        The identification method: one with a prior (:data:`FIT_EFFECTS_METHODS`).
+
+    Returns
+    -------
+    EffectModel
+
+    Raises
+    ------
+    InputError
+        Another method, a machine without tables, a constraint recording, no recording.
+    """
+    if method not in FIT_EFFECTS_METHODS:
+        raise InputError(f"fit_effects (--fit-effects) goes with method {' or '.join(FIT_EFFECTS_METHODS)} (the "
+                         f"effects' parameters are fitted under their priors), got method {method!r}")
+    machine = model.machine
+    if not machine.effects:
+        raise InputError(f"fit_effects (--fit-effects): {machine.source} has no [effect.*] tables (diagnose "
+                         "--write-machine writes them)")
+    if not isinstance(model, MeasurementModel):
+        where = getattr(rec, "path", None) or "the recording"
+        raise InputError(f"fit_effects (--fit-effects): {where} is a constraint recording; fitting effects jointly "
+                         "works on pose recordings")
+    if rec is None:
+        raise InputError("fit_effects: the effects are fitted on a recording: pass what bayescal.load returns")
+    return effect_model(machine, rec, dof=model.tool_dof)
+
+
+def with_fitted_effects(machine: Machine, model, res) -> Machine:
+    """``machine`` carrying the effect tables at ``res``'s values when ``model`` fitted them, else as it is."""
+    stored = getattr(model, "stored_effects", None)
+    if stored is None or res.theta is None:
+        return machine
+    return machine.with_effects(stored(res.theta))

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..instrument.plausibility import Plausibility, judge_fit
+from ..instrument.plausibility import judge_fit, refuse_implausible
 from ..prediction.recording import score_held_out
 
-__all__ = ["identify_answer", "refuse_implausible"]
+__all__ = ["identify_answer", "calibration_answer", "refuse_implausible"]
 
 
 def identify_answer(cal, machine, model, *, check=None, session=None, effects=None) -> tuple:
@@ -51,10 +51,32 @@ def identify_answer(cal, machine, model, *, check=None, session=None, effects=No
     return out, frame, held
 
 
-def refuse_implausible(plaus: Plausibility | None, force: bool = False) -> None:
-    """InputError when a calibration judged implausible would be written (``force`` writes it anyway)."""
-    from ..errors import InputError
+def calibration_answer(model, machine, *, method: str, session=None, check=None, **options) -> tuple:
+    """A deterministic method's calibration with the whole identify answer, and the machine it writes.
 
-    if plaus is not None and not plaus.plausible and not force:
-        raise InputError("write_machine: the calibration is not plausible (" + "; ".join(plaus.reasons)
-                         + "); pass force=True to write it anyway")
+    Parameters
+    ----------
+    model : Model
+        The ``fit`` rows' model (an effect model when ``options["fit_effects"]``).
+    machine : Machine
+        The machine calibrated (in its instrument frame, if one was fitted).
+    method : {"ls", "ridge", "tsvd", "map"}
+    session, check
+        As for :func:`identify_answer`.
+    **options
+        Of :func:`bayescal.identify.calibrate.calibrate`.
+
+    Returns
+    -------
+    (Calibration, dict, dict)
+        As :func:`identify_answer`; the calibration's ``machine`` is ``machine`` carrying the effect
+        tables at their fitted values when they were fitted with the geometry.
+    """
+    from ..effects.joint_model import with_fitted_effects
+    from .calibrate import calibrate
+
+    cal = calibrate(model, method=method, **options)
+    written = with_fitted_effects(machine, model, cal.result)
+    effects = tuple(written.effects) if options.get("fit_effects") else None
+    cal, frame, held = identify_answer(cal, machine, model, check=check, session=session, effects=effects)
+    return replace(cal, machine=written), frame, held

@@ -84,6 +84,9 @@ class Calibration:
     #: The plausibility verdict (:func:`bayescal.identify.answer.identify_answer` sets it): an implausible
     #: calibration is not written by :meth:`write_machine` unless forced.
     plausibility: object | None = None
+    #: The machine :meth:`write_machine` writes by default (None: the model's); with effects fitted with the
+    #: geometry, the file's machine carrying the fitted tables (:func:`bayescal.calibrate` sets it).
+    machine: object | None = field(default=None, repr=False, compare=False)
 
     # ------------------------------------------------------------ the answer
     @property
@@ -126,19 +129,20 @@ class Calibration:
     def machine_with_record(self, machine=None):
         """The calibrated machine as it is written: ``nominal + theta`` folded later, its record and discrepancy attached."""
 
-        machine = self.model.machine if machine is None else machine
+        if machine is None:
+            machine = self.model.machine if self.machine is None else self.machine
         return machine.with_calibration(self.record(machine.base_machine()), self.discrepancy_model)
 
     def write_machine(self, path, machine=None, *, force: bool = False) -> list:
         """Write the calibrated machine file (geometry folded in, ``[calibration]``, ``[discrepancy]``), atomically.
 
-        ``machine``: the machine that was calibrated (default: the model's).
+        ``machine``: the machine that was calibrated (default: :attr:`machine`, else the model's).
         Returns the files written (a hybrid machine writes one per module).
         A calibration judged implausible (:attr:`plausibility`) is refused, as
         ``bayescal identify --write-machine`` refuses it, unless ``force``.
         """
         from ..machines.files import write_calibrated_machine_files
-        from .answer import refuse_implausible
+        from ..instrument.plausibility import refuse_implausible
 
         if not self.result.success:
             raise InputError(f"write_machine: the calibration did not succeed ({self.result.message})")

@@ -49,7 +49,7 @@ from ..identify.noise import distinct_rows
 from ..measurement import MeasurementModel
 from .alignment import FrameCheck
 
-__all__ = ["Plausibility", "assess_plausibility", "frame_answer", "judge_fit", "PLAUSIBLE_SIGMAS"]
+__all__ = ["Plausibility", "assess_plausibility", "frame_answer", "judge_fit", "refuse_implausible", "PLAUSIBLE_SIGMAS"]
 
 #: |value| above this many tolerances (prior sigmas) makes a calibration implausible.
 PLAUSIBLE_SIGMAS = 10.0
@@ -314,3 +314,12 @@ def _effective_params(res) -> float | None:
         return None
     f = np.asarray(f, dtype=float)
     return float(f.sum()) if f.size and np.all(np.isfinite(f)) else None
+
+
+def refuse_implausible(plaus: Plausibility | None, force: bool = False) -> None:
+    """InputError when a calibration judged implausible would be written (``force`` writes it anyway)."""
+    from ..errors import InputError
+
+    if plaus is not None and not plaus.plausible and not force:
+        raise InputError("write_machine: the calibration is not plausible (" + "; ".join(plaus.reasons)
+                         + "); pass force=True to write it anyway")

@@ -55,8 +55,14 @@ class PredictionResult:
     notes: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
-        return {"machine": self.machine_name, "rows": list(self.rows), "summary": self.summary, **self.frames,
-                "notes": list(self.notes), "region_level": REGION_LEVEL}
+        """The JSON answer of ``bayescal predict`` (docs/formats.md section 8), in JSON's own types.
+
+        ``bayescal.io.answers.json_text(result.to_dict())`` is the command's ``--json`` file, byte for byte.
+        """
+        from ..io.answers import to_jsonable
+
+        return to_jsonable({"machine": self.machine_name, "rows": list(self.rows), "summary": self.summary,
+                            **self.frames, "notes": list(self.notes), "region_level": REGION_LEVEL})
 
     def report(self) -> str:
         lines = [f"bayescal prediction with '{self.machine_name}'"]

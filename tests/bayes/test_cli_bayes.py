@@ -38,6 +38,18 @@ def test_identify_map_and_kalman(tmp_path, rec_file, capsys):
     assert "predicted workspace accuracy" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("method, option, match", [
+    ("kalman", ["--prior-scale", "tolerance"], "--prior-scale goes with --method map"),
+    ("mcmc", ["--lam", "1"], "--lam goes with --method ridge (got --method mcmc)"),
+    ("kalman", ["--k", "3"], "--k goes with --method tsvd (got --method kalman)"),
+    ("mcmc", ["--steps", "5"], "steps (--steps): expected a whole number of at least 20, got 5"),
+])
+def test_an_option_kalman_and_mcmc_do_not_use_is_refused_not_ignored(rec_file, capsys, method, option, match):
+    # --prior-scale, --lam and --k were silently ignored with kalman and mcmc
+    assert main(["identify", str(rec_file), "--machine", str(PRS3_FILE), "--method", method, *option]) == 2
+    assert match in capsys.readouterr().err
+
+
 def test_strong_correlations_flagged():
     from bayescal.bayes.summary import strong_correlations
 

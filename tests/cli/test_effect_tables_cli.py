@@ -53,7 +53,7 @@ def test_diagnose_writes_a_machine_that_identify_grid_and_simulate_apply(tmp_pat
     assert main(["grid", str(rec), "--machine", str(cal), "--aux", "payload_kg"]) == 2
     assert "--aux payload_kg: expected NAME=VALUE" in capsys.readouterr().err
     assert main(["grid", str(rec), "--machine", str(cal), "--aux", "payload=5"]) == 2
-    assert "--aux payload: unknown channel; expected one of: time_s, temp_C, payload_kg" in capsys.readouterr().err
+    assert "(--aux) payload: unknown channel; expected one of: time_s, temp_C, payload_kg" in capsys.readouterr().err
     assert main(["grid", str(rec), "--machine", str(PRS3_FILE), "--aux", "payload_kg=5"]) == 2
     assert "carries no [effect.*] tables" in capsys.readouterr().err
 

@@ -76,7 +76,7 @@ def test_mcmc_samples_effects_with_the_geometry(files, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args,message", [
-    (["--method", "ls"], "--fit-effects goes with --method map or mcmc"),
+    (["--method", "ls"], "(--fit-effects) goes with method map or mcmc"),
     (["--method", "map", "--prior-scale", "empirical"], "--prior-scale empirical does not go with --fit-effects"),
 ])
 def test_fit_effects_refuses_what_it_cannot_do(files, capsys, args, message):
@@ -100,4 +100,4 @@ def test_grid_fits_the_tables_and_refuses_kalman(files, tmp_path, capsys):
     answer = json.loads((tmp_path / "g.json").read_text())
     assert answer["effects_fitted"] is True and answer["effects"] == ["backlash"]
     assert main(["grid", str(rec), "--machine", str(machine), "--fit-effects", "--method", "kalman"]) == 2
-    assert "--fit-effects goes with --method map or mcmc" in capsys.readouterr().err
+    assert "(--fit-effects) goes with method map or mcmc" in capsys.readouterr().err
