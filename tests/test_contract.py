@@ -102,6 +102,10 @@ COMPLIANCE = StoredEffect("joint_compliance", (("compliance.q1", 0.4), ("complia
                                                ("gravity.tilt_1", 0.01), ("gravity.tilt_2", -0.02)))
 
 
+# the column's stage and the arm bend; the sensors on joint2 (the stage's tip) and joint3 turn with them
+DEFLECTION = StoredEffect("gravity_deflection", (("bending.joint2", 40.0), ("bending.link1", 10.0), ("bending.link3", 60.0),
+                                                 ("gravity.tilt_1", 0.01), ("gravity.tilt_2", -0.02)),
+                          settings=(("link_mass_kg", [20.0, 15.0, 8.0]),))
 SERIAL_BACKLASH = StoredEffect("backlash", (("backlash.q1", 0.002), ("backlash.q2", 30.0), ("backlash.q3", 0.003)))
 
 
@@ -130,6 +134,7 @@ CASES = {
     "effect-backlash": lambda: _effects(BACKLASH, None),
     "effect-compliance": lambda: _effects(COMPLIANCE, "payload_kg"),
     "effect-backlash-body-sensors": lambda: _sensors(SERIAL_BACKLASH),
+    "effect-deflection-body-sensors": lambda: _sensors(DEFLECTION),
 }
 
 

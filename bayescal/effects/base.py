@@ -230,6 +230,23 @@ class Effect(ABC):
         dx = self.delta_x(features, eta)
         return np.zeros(dx.shape + (len(np.asarray(eta)),))
 
+    #: Whether the effect also turns bodies that carry tilt sensors (:meth:`body_rotation`): a member that
+    #: bends turns every body beyond it, and a sensor on one of them reads that turn.
+    bends_bodies: ClassVar[bool] = False
+
+    def body_rotation(self, features: Features, eta: NDArray) -> dict[str, NDArray]:
+        """Small base-frame rotation of every sensor-carrying body the effect turns, ``{body: (n_poses, 3)}`` rad.
+
+        First order, like :meth:`delta_x`: the body's orientation is
+        ``exp([w]x) R``.  Bodies the effect does not turn are left out
+        (empty unless :attr:`bends_bodies`).
+        """
+        return {}
+
+    def body_rotation_jacobian(self, features: Features, eta: NDArray) -> dict[str, NDArray]:
+        """``d w / d eta`` per body of :meth:`body_rotation`, ``{body: (n_poses, 3, n_params)}``."""
+        return {}
+
     #: Whether ``dq`` also depends on the geometric errors ``theta`` being fitted (then the effect overrides
     #: :meth:`delta_q_at`, :meth:`delta_q_jacobian_at` and :meth:`delta_q_theta_jacobian`, and
     #: :meth:`delta_q` is ``dq`` at the geometry its features were computed at).

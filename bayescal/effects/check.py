@@ -100,6 +100,8 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
         _check_geometry_dependence(effect, machine, feats, eta, theta, rng, rtol, fail)
     if effect.moves_tool:
         _check_tool_motion(effect, feats, zero, lin.all(), eta, sd, rtol, fail)
+    if effect.bends_bodies:
+        _check_body_turns(effect, feats, eta, sd, rtol, fail)
     idx = np.arange(0, n_poses, 2)
     sub = feats.subset(idx)
     if not np.allclose(effect.delta_q(sub, eta), effect.delta_q(feats, eta)[idx]):
@@ -138,6 +140,26 @@ def _check_tool_motion(effect: Effect, feats: Features, zero, linear: bool, eta,
     scale = max(np.max(np.abs(Jfd)), 1e-300)
     if np.max(np.abs(J - Jfd)) > rtol * scale:
         fail(f"delta_x_jacobian differs from finite differences by {np.max(np.abs(J - Jfd)) / scale:.1e} (relative)")
+
+
+def _check_body_turns(effect: Effect, feats: Features, eta, sd, rtol: float, fail) -> None:
+    """An effect that turns sensor-carrying bodies: one (n, 3) turn per body, its Jacobian against central differences."""
+    n = next(iter(feats.per_pose.values())).shape[0]
+    turns, jac = effect.body_rotation(feats, eta), effect.body_rotation_jacobian(feats, eta)
+    if set(turns) != set(jac):
+        fail(f"body_rotation and its Jacobian name different bodies: {sorted(turns)} and {sorted(jac)}")
+    K = len(sd)
+    for body, w in turns.items():
+        if w.shape != (n, 3) or jac[body].shape != (n, 3, K):
+            fail(f"body_rotation {body}: expected shapes {(n, 3)} and {(n, 3, K)}, got {w.shape} and {jac[body].shape}")
+        fd = np.empty((n, 3, K))
+        for k in range(K):
+            e = np.zeros(K)
+            e[k] = 1e-4 * sd[k]
+            fd[..., k] = (effect.body_rotation(feats, eta + e)[body] - effect.body_rotation(feats, eta - e)[body]) / (2 * e[k])
+        scale = max(np.max(np.abs(fd)), 1e-300)
+        if np.max(np.abs(jac[body] - fd)) > rtol * scale:
+            fail(f"body_rotation_jacobian {body} differs from finite differences by {np.max(np.abs(jac[body] - fd)) / scale:.1e} (relative)")
 
 
 def _check_geometry_dependence(effect: Effect, machine: Machine, feats: Features, eta, theta, rng, rtol: float, fail) -> None:

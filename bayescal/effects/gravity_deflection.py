@@ -9,7 +9,7 @@ from ..errors import InputError
 from ..geometry import skew
 from ..machines.base import Machine, ToolPoses
 from .base import Effect, EffectParam, Features
-from .gravity_field import chain_masses, gravity_per_pose, serial_part, tilt_basis, tilted_gravity
+from .gravity_field import chain_masses, gravity_per_pose, sensor_bodies, serial_part, tilt_basis, tilted_gravity
 from .joint_compliance import DEFAULT_GRAVITY_DIRECTION, GRAVITY, _unit
 
 __all__ = ["GravityDeflection", "member_response", "FLEX_PER_BENDING"]
@@ -133,6 +133,7 @@ class GravityDeflection(Effect):
     magnitude_unit = "um/N"
     default_magnitude = 5.0
     moves_tool = True
+    bends_bodies = True
     features_at_nominal = True
     settings_keys = ("gravity", "link_mass_kg", "link_com_mm", "free_length_mm", "min_link_length_mm")
 
@@ -243,7 +244,12 @@ class GravityDeflection(Effect):
         x = np.concatenate([fr.link_origin + np.einsum("nbij,bj->nbi", fr.link_rotation, com), fr.tool_point[:, None]], axis=1)
         members = self.members(chain)
         L0 = self._free_length(chain)
-        resp = np.zeros((n, len(members), m + 1, 6, 3))
+        # the bodies carrying tilt sensors (accel.<body>.* channels; not the base, which no member turns) and the
+        # joint whose frame each is fixed to
+        bodies = sensor_bodies(chain, aux)
+        at = [chain.body_frame(b)[0] for b in bodies]
+        # rows: the tool's displacement and rotation, then each sensor body's rotation
+        resp = np.zeros((n, len(members), m + 1, 6 + 3 * len(bodies), 3))
         for j, (_, kind, joints) in enumerate(members):
             for k in joints:
                 if kind == "stage":
@@ -257,13 +263,21 @@ class GravityDeflection(Effect):
                 # bodies from link k outward load the member (link k itself along it), and the payload
                 own = np.zeros(m + 1 - k, bool)
                 own[0] = True
-                resp[:, j, k:] += member_response(root, a, length, x[:, k:], own, fr.tool_point)
+                seg = member_response(root, a, length, x[:, k:], own, fr.tool_point)
+                resp[:, j, k:, :6] += seg
+                # a body turns with the member's tip when its frame is beyond the tip: the frames of later
+                # joints, and a stage's own frame (the moving stage's frame sits at its tip; a link's frame at
+                # its root, which the link's bending does not turn)
+                for s_, kb in enumerate(at):
+                    if kb > k or (kb == k and kind == "stage"):
+                        resp[:, j, k:, 6 + 3 * s_: 9 + 3 * s_] += seg[:, :, 3:]
         payload = np.asarray(aux["payload_kg"], float) if "payload_kg" in aux else np.zeros(n)
         down, sensor = gravity_per_pose(aux, self.down, n)
         basis = tilt_basis(self.down)
         K0 = payload[:, None, None, None] * resp[:, :, m]  # (n, J, 6, 3) the payload's load
         const = {"members": tuple(name for name, _, _ in members), "sensor": sensor, "basis": basis, "source": source,
-                 "tilt_sd": 0.02 if (self.gravity_stated or sensor) else self.TILT_PRIOR, "n_actuators": q.shape[1]}
+                 "tilt_sd": 0.02 if (self.gravity_stated or sensor) else self.TILT_PRIOR, "n_actuators": q.shape[1],
+                 "sensor_bodies": bodies}
         unknown = np.ones(m, bool) if mass is None else np.isnan(mass)
         K = K0 + np.einsum("b,njbac->njac", np.zeros(m) if mass is None else np.nan_to_num(mass), resp[:, :, :m])
         if not unknown.any():
@@ -302,19 +316,35 @@ class GravityDeflection(Effect):
         n = features.per_pose["down"].shape[0]
         return np.zeros((n, features.const["n_actuators"], len(np.asarray(eta))))
 
-    def delta_x(self, features: Features, eta: NDArray) -> NDArray:
+    def _all_rows(self, features: Features, eta: NDArray) -> NDArray:
+        """The tool's ``dx`` rows, then every sensor body's rotation, (n, 6 + 3 S)."""
         _, _, flex, d, _, K = self._terms(features, eta)
         return GRAVITY * np.einsum("j,njac,nc->na", flex, K, d)
 
-    def delta_x_jacobian(self, features: Features, eta: NDArray) -> NDArray:
+    def _all_rows_jacobian(self, features: Features, eta: NDArray) -> NDArray:
         J, F, flex, d, dd, K = self._terms(features, eta)
         n = d.shape[0]
-        out = np.zeros((n, 6, J + F + 2))
+        out = np.zeros((n, K.shape[2], J + F + 2))
         out[:, :, :J] = GRAVITY * FLEX_PER_BENDING * np.einsum("njac,nc->naj", K, d)
         if F:
             out[:, :, J : J + F] = GRAVITY * np.einsum("j,njfac,nc->naf", flex, features.per_pose["Rb"], d)
         out[:, :, J + F :] = GRAVITY * np.einsum("j,njac,nct->nat", flex, K, dd)
         return out
+
+    def delta_x(self, features: Features, eta: NDArray) -> NDArray:
+        return self._all_rows(features, eta)[:, :6]
+
+    def delta_x_jacobian(self, features: Features, eta: NDArray) -> NDArray:
+        return self._all_rows_jacobian(features, eta)[:, :6]
+
+    def body_rotation(self, features: Features, eta: NDArray) -> dict[str, NDArray]:
+        """The members' tip rotations every sensor body beyond them turns by (the tool's rotation rows' physics)."""
+        rows = self._all_rows(features, eta)
+        return {b: rows[:, 6 + 3 * s: 9 + 3 * s] for s, b in enumerate(features.const.get("sensor_bodies", ()))}
+
+    def body_rotation_jacobian(self, features: Features, eta: NDArray) -> dict[str, NDArray]:
+        jac = self._all_rows_jacobian(features, eta)
+        return {b: jac[:, 6 + 3 * s: 9 + 3 * s] for s, b in enumerate(features.const.get("sensor_bodies", ()))}
 
     def inadmissible(self, features: Features, eta: NDArray | None = None) -> str | None:
         J, F = len(features.const["members"]), len(features.const["bodies"])

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from ..machines.base import Machine
 
-__all__ = ["BASE_SENSOR", "gravity_per_pose", "tilt_basis", "tilted_gravity", "serial_part", "chain_masses",
+__all__ = ["BASE_SENSOR", "gravity_per_pose", "sensor_bodies", "tilt_basis", "tilted_gravity", "serial_part", "chain_masses",
            "link_middles", "check_masses"]
 
 #: The recording columns of a base tilt sensor (docs/formats.md section 8).
@@ -112,6 +112,18 @@ def serial_part(machine: Machine, theta) -> tuple[object, NDArray | None]:
     if theta is None:
         return inner, None
     return inner, np.asarray(theta, float)[..., np.asarray(idx)]
+
+
+def sensor_bodies(chain, aux: dict) -> tuple[str, ...]:
+    """The bodies of ``chain`` carrying a tilt sensor in ``aux`` (``accel.<body>.x``; the base apart), channel order."""
+    from ..sensors.columns import SENSOR_COLUMN
+
+    out = []
+    for key in aux:
+        m = SENSOR_COLUMN.fullmatch(key)
+        if m and m["axis"] == "x" and m["body"] != "base" and m["body"] in chain.sensor_bodies and m["body"] not in out:
+            out.append(m["body"])
+    return tuple(out)
 
 
 def link_middles(chain) -> NDArray:

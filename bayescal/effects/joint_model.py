@@ -53,7 +53,7 @@ from ..machines.base import Machine, ToolPoses
 from ..measurement import MeasurementModel, Prediction
 from ..params import ParamLayout, ParamSpec
 from .base import Effect, EffectParam, Features
-from .model import _at, _dq, _dx, _effect_theta, _slices, effect_columns
+from .model import _at, _bend, _dq, _dx, _effect_theta, _slices, effect_columns
 from .stored import StoredEffect
 
 __all__ = ["EffectAugmented", "EffectModel", "effect_model", "joint_effects_model", "with_fitted_effects",
@@ -294,7 +294,9 @@ class EffectModel:
 
     def at(self, theta: ArrayLike) -> MeasurementModel:
         """The geometric model at the actuator positions and tool perturbation the effects make at ``theta`` (measured values kept)."""
-        return _at(self.geo, self.geo.pose_q + self.delta_q(theta), self.delta_x(theta))
+        eta = self._split(self.machine.check_theta(theta))[1]
+        return _at(self.geo, self.geo.pose_q + self.delta_q(theta), self.delta_x(theta),
+                   bend=_bend(list(self.effects), self._slices, eta, self.geo))
 
     def predict(self, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> Prediction:
         """``h`` at ``theta`` of shape (P + K,) or (n_sets * n_poses, P + K) (one block of equal rows per set)."""

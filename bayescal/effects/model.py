@@ -123,12 +123,48 @@ def _dx(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, n: int
     return out
 
 
-def _at(model: MeasurementModel, q_eff: NDArray, dx: NDArray | None, *, keep_guess: bool = True) -> MeasurementModel:
-    """``model`` at the solved poses' actuator positions ``q_eff`` with the tool perturbation ``dx`` added to its own."""
+def _bend(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, model: MeasurementModel) -> NDArray | None:
+    """``sum_e w_e``: how the effects that bend the structure turn the bodies of ``model``'s sensors, (n, S, 3) or None."""
+    sensors = model.sensors
+    if sensors is None:
+        return None
+    out = None
+    for (eff, f), sl in zip(effects, slices):
+        if eff.bends_bodies:
+            for body, w in eff.body_rotation(f, eta[sl]).items():
+                out = np.zeros((w.shape[0], sensors.n_sensors, 3)) if out is None else out
+                out[:, sensors.bodies.index(body)] += w
+    return out
+
+
+def _bend_rows(model: MeasurementModel, theta: NDArray, eff: Effect, f: Features, eta: NDArray) -> NDArray | None:
+    """``d (sensor rows) / d eta`` of an effect that bends bodies, (n, 2 S, k), or None."""
+    if model.sensors is None or not eff.bends_bodies:
+        return None
+    from ..sensors import sensor_rotation_rows
+
+    jac = eff.body_rotation_jacobian(f, eta)
+    if not jac:
+        return None
+    k = next(iter(jac.values())).shape[2]
+    rot = np.zeros((model.n_poses, model.sensors.n_sensors, 3, k))
+    for body, w in jac.items():
+        rot[:, model.sensors.bodies.index(body)] = w
+    return sensor_rotation_rows(model.machine, model.sensors, model.q, model.machine.check_theta(theta), rot)
+
+
+def _at(model: MeasurementModel, q_eff: NDArray, dx: NDArray | None, *, keep_guess: bool = True,
+        bend: NDArray | None = None) -> MeasurementModel:
+    """``model`` at the solved poses' actuator positions ``q_eff`` with the tool perturbation ``dx`` added to its own
+    (and its sensors' bodies turned by ``bend``)."""
     sub = model.with_pose_q(q_eff, keep_guess=keep_guess)
     if dx is not None:
         own = model.pose_offset
         sub = sub.with_pose_offset(dx if own is None else own + dx)
+    if bend is not None:
+        from dataclasses import replace
+
+        sub = replace(sub, sensors=sub.sensors.with_bend(bend))
     return sub
 
 
@@ -159,10 +195,10 @@ def _merge(pred: Prediction, other: Prediction) -> Prediction:
 
 
 def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, note: str = " (with the effect applied)",
-             dx: NDArray | None = None) -> tuple[MeasurementModel, Prediction]:
+             dx: NDArray | None = None, bend: NDArray | None = None) -> tuple[MeasurementModel, Prediction]:
     # q_eff: every solved pose's actuator positions (model.pose_q + dq), as effects act on poses, not rows;
-    # dx: the tool perturbation of effects that move the tool (None: none)
-    sub = _at(model, q_eff, dx)
+    # dx: the tool perturbation of effects that move the tool (None: none); bend: their turn of sensor bodies
+    sub = _at(model, q_eff, dx, bend=bend)
     pred = sub.predict(theta, guess=guess)
     if not pred.success.all():
         # Newton from a given start can miss a pose that a nearby start solves: retry from the
@@ -171,7 +207,7 @@ def _predict(model: MeasurementModel, q_eff: NDArray, theta: NDArray, guess, not
         if base.success.any():
             pred = _merge(pred, sub.predict(theta, guess=base.poses))
         if not pred.success.all():
-            pred = _merge(pred, _at(model, q_eff, dx, keep_guess=False).predict(theta, guess=None))
+            pred = _merge(pred, _at(model, q_eff, dx, keep_guess=False, bend=bend).predict(theta, guess=None))
     if not pred.success.all():
         i = int(np.flatnonzero(~pred.success)[0])
         raise KinematicsError(f"pose {i + 1}: {pred.poses.message[i]}{note}")
@@ -188,7 +224,8 @@ def effect_residual(
     slices = _slices(effects, model)
     eta = np.asarray(eta, float)
     q_eff = model.pose_q + _dq(effects, slices, eta, model.pose_q.shape, _effect_theta(model, theta))
-    _, pred = _predict(model, q_eff, theta, None, dx=_dx(effects, slices, eta, model.pose_q.shape[0]))
+    _, pred = _predict(model, q_eff, theta, None, dx=_dx(effects, slices, eta, model.pose_q.shape[0]),
+                       bend=_bend(effects, slices, eta, model))
     return model.residual(pred)
 
 
@@ -259,6 +296,10 @@ def effect_columns(model: MeasurementModel, theta: NDArray, prediction: Predicti
         if eff.moves_tool:
             # the tool perturbation reaches the rows through each pose's measurement rotation
             col = col + pose_offset_rows(model, theta, prediction, eff.delta_x_jacobian(f, eta[sl]))
+        bent = _bend_rows(model, theta, eff, f, eta[sl])
+        if bent is not None:
+            col = col.copy()
+            col[:, model.tool_dof :] += bent
         cols.append(col)
         Jt = eff.delta_q_theta_jacobian(f, eta[sl], th)
         if Jt is not None:
@@ -330,7 +371,7 @@ class _Joint:
         model, effects, slices = self.model, self.effects, self.slices
         q_eff = model.pose_q + _dq(effects, slices, eta, model.pose_q.shape, _effect_theta(model, theta))
         sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if self.K else "",
-                             dx=_dx(effects, slices, eta, model.pose_q.shape[0]))
+                             dx=_dx(effects, slices, eta, model.pose_q.shape[0]), bend=_bend(effects, slices, eta, model))
         r = model.residual(pred)
         rw = (r / model.row_sigma).reshape(-1)
         phi = np.concatenate([theta, eta]) / self.scale

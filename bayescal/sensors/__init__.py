@@ -19,7 +19,7 @@ from .mounts import SensorMounts, sensor_base
 from .rows import SensorSet
 
 __all__ = ["SENSOR_COLUMN", "SensorMounts", "SensorSet", "attach_sensors", "sensor_readings", "sensor_rows",
-           "sensor_jacobian", "sensor_actuator_jacobian", "sensor_base"]
+           "sensor_jacobian", "sensor_actuator_jacobian", "sensor_rotation_rows", "sensor_base"]
 
 
 def attach_sensors(machine, rec, q: NDArray):
@@ -78,14 +78,14 @@ def _split(machine, theta: NDArray):
 def sensor_rows(machine, sensors: SensorSet, q: NDArray, theta: NDArray) -> NDArray:
     """Predicted tilt rows (N, 2 S), rad, for the model's machine (a :class:`SensorMounts` view, maybe framed)."""
     chain, th_m, th_s, _ = _split(machine, theta)
-    R, _ = chain.body_rotations(q, th_m, list(sensors.frames))
-    return sensors.rows(R, th_s)
+    R, Jb = chain.body_rotations(q, th_m, list(sensors.frames))
+    return sensors.rows(sensors.bent(R, Jb)[0], th_s)
 
 
 def sensor_jacobian(machine, sensors: SensorSet, q: NDArray, theta: NDArray) -> NDArray:
     """``d rows / d theta`` (N, 2 S, P) over the model machine's whole parameter vector."""
     chain, th_m, th_s, off = _split(machine, theta)
-    R, Jb = chain.body_rotations(q, th_m, list(sensors.frames))
+    R, Jb = sensors.bent(*chain.body_rotations(q, th_m, list(sensors.frames)))
     Jm, Js = sensors.jacobian(R, Jb, th_s)
     J = np.zeros(Jm.shape[:2] + (machine.n_params,))
     J[:, :, off : off + Jm.shape[2]] = Jm
@@ -96,5 +96,23 @@ def sensor_jacobian(machine, sensors: SensorSet, q: NDArray, theta: NDArray) -> 
 def sensor_actuator_jacobian(machine, sensors: SensorSet, q: NDArray, theta: NDArray) -> NDArray:
     """``d rows / d q`` (N, 2 S, n_actuators): how the tilt rows move with the actuators (an effect's ``dq``)."""
     chain, th_m, th_s, _ = _split(machine, theta)
-    R, _ = chain.body_rotations(q, th_m, list(sensors.frames))
-    return sensors.jacobian(R, chain.body_actuator_jacobian(q, th_m, list(sensors.frames)), th_s)[0]
+    frames = list(sensors.frames)
+    R, Jq = sensors.bent(chain.body_rotations(q, th_m, frames)[0], chain.body_actuator_jacobian(q, th_m, frames))
+    return sensors.jacobian(R, Jq, th_s)[0]
+
+
+def sensor_rotation_rows(machine, sensors: SensorSet, q: NDArray, theta: NDArray, rotation: NDArray) -> NDArray:
+    """``d rows / d w`` times ``rotation``: the tilt rows' change when the bodies turn by small base-frame rotations.
+
+    Parameters
+    ----------
+    rotation : ndarray, shape (N, S, 3, k)
+        Per pose and sensor, ``k`` small rotations of the sensor's body (rad per unit of what they are columns of).
+
+    Returns
+    -------
+    ndarray, shape (N, 2 S, k)
+    """
+    chain, th_m, th_s, _ = _split(machine, theta)
+    R, _ = sensors.bent(*chain.body_rotations(q, th_m, list(sensors.frames)))
+    return sensors.jacobian(R, rotation, th_s)[0]

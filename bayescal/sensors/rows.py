@@ -127,6 +127,26 @@ class SensorSet:
     turn: tuple = ()
     base_sensor: bool = False
     flipped: bool = False
+    bend: NDArray | None = None
+
+    def with_bend(self, bend: NDArray | None) -> "SensorSet":
+        """The same sensors with their bodies turned further by ``bend`` (n, S, 3), a small base-frame rotation
+        per pose and sensor (what an effect that bends the structure adds; None: none)."""
+        if bend is not None:
+            bend = np.asarray(bend, dtype=float)
+            if bend.shape != (self.u.shape[0], self.n_sensors, 3) or not np.all(np.isfinite(bend)):
+                raise ValueError(f"bend: expected finite values of shape {(self.u.shape[0], self.n_sensors, 3)}, got {bend.shape}")
+        return replace(self, bend=bend)
+
+    def bent(self, body_R: NDArray, body_J: NDArray) -> tuple[NDArray, NDArray]:
+        """Body orientations (N, S, 3, 3) and their Jacobian (N, S, 3, k) with :attr:`bend` applied.
+
+        ``R' = exp([w]x) R``; a small rotation ``J d`` of ``R`` is ``exp([w]x) J d`` of ``R'``.
+        """
+        if self.bend is None:
+            return body_R, body_J
+        E = so3_exp(self._tiled(self.bend, body_R.shape[0]).reshape(-1, 3)).reshape(body_R.shape)
+        return E @ body_R, E @ body_J
 
     @property
     def n_sensors(self) -> int:
@@ -153,7 +173,8 @@ class SensorSet:
     def subset(self, idx) -> "SensorSet":
         """The poses ``idx``, the nominal mountings kept (they are fixed once, from all the rows)."""
         idx = np.asarray(idx)
-        return replace(self, u=self.u[idx], tangent=self.tangent[idx], g0=self.g0[idx])
+        return replace(self, u=self.u[idx], tangent=self.tangent[idx], g0=self.g0[idx],
+                       bend=None if self.bend is None else self.bend[idx])
 
     @classmethod
     def start(cls, bodies, frames, readings: NDArray, base_reading: NDArray | None, body_R: NDArray) -> "SensorSet":

@@ -134,13 +134,18 @@ class Member:
 
 
 def deflected_tool(chain: MimicChain, q: NDArray, members: list[Member], mass_kg: NDArray, com_mm: NDArray,
-                   down: NDArray, payload_kg: float = 0.0, n_elements: int = 400) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+                   down: NDArray, payload_kg: float = 0.0, n_elements: int = 400, bodies=()):
     """Tool point and orientation of the rigid chain and of the deflected one, at one actuator vector ``q``.
+
+    ``bodies``: joints (0-based) whose frames after the motion are also followed (a tilt sensor fixed there):
+    a frame turns with every element it lies beyond (its origin further along the member, or on a later link).
 
     Returns
     -------
     p0, R0 : the rigid tool point (mm) and tool frame
     p1, R1 : deflected
+    turns : ndarray (len(bodies), 3), only when ``bodies`` are given: each followed frame's rotation vector
+        from rigid to deflected, base frame
     """
     before, after, Tt = chain.frames(q)
     m = len(chain.joints)
@@ -162,6 +167,8 @@ def deflected_tool(chain: MimicChain, q: NDArray, members: list[Member], mass_kg
         else:
             geo.append([after[k][:3, 3].copy(), np.array(nxt[k], float)])
     p0, R0 = tool.copy(), tool_R.copy()
+    body_R = {b: after[b][:3, :3].copy() for b in bodies}
+    body_o = {b: after[b][:3, 3].copy() for b in bodies}
     F = G * np.asarray(down, float)
     # members from the base outward: a member nearer the base is turned before those it carries
     order = sorted(range(len(members)), key=lambda i: (members[i].joint, members[i].kind != "stage"))
@@ -176,6 +183,7 @@ def deflected_tool(chain: MimicChain, q: NDArray, members: list[Member], mass_kg
         # which loads act beyond the member's elements: bodies of later links whole; the own link's body from its
         # projection on the member onward (fixed once, on the undeflected member)
         s_own = np.clip((com[mb.joint] - root) @ a0, 0.0, L)
+        s_frame = {b: (body_o[b] - root) @ a0 for b in bodies}  # where a followed frame of this member's own link sits
         for e in range(n_elements):
             root, tip = geo[i]
             a = (tip - root) / np.linalg.norm(tip - root)
@@ -195,9 +203,16 @@ def deflected_tool(chain: MimicChain, q: NDArray, members: list[Member], mass_kg
                     com[b] = r + Rd @ (com[b] - r)
             tool = r + Rd @ (tool - r)
             tool_R = Rd @ tool_R
+            for b in bodies:
+                if b > mb.joint or (b == mb.joint and s_frame[b] > s_mid):
+                    body_o[b] = r + Rd @ (body_o[b] - r)
+                    body_R[b] = Rd @ body_R[b]
             geo[i][1] = r + Rd @ (geo[i][1] - r)
             for j in order[order.index(i) + 1 :]:
                 geo[j] = [r + Rd @ (geo[j][0] - r), r + Rd @ (geo[j][1] - r)]
+    if bodies:
+        turns = np.array([rotvec(body_R[b] @ after[b][:3, :3].T) for b in bodies])
+        return p0, R0, tool, tool_R, turns
     return p0, R0, tool, tool_R
 
 

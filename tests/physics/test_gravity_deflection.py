@@ -110,6 +110,41 @@ def test_column_boom_and_wrist_bend_as_the_element_by_element_statics(seed):
     np.testing.assert_allclose(got[:, 3:], sim[:, 3:], atol=3e-3 * np.abs(sim[:, 3:]).max())
 
 
+@pytest.mark.parametrize("seed", [3, 4])
+def test_sensor_bodies_turn_as_the_element_by_element_statics(seed):
+    # tilt sensors on the column's stages, the bracket and the wrist: each body's turn under the bending
+    # (what its sensor reads) against the simulator's frames, followed element by element
+    rng = np.random.default_rng(seed)
+    m = machine_from_text(_column_text(rng), f"column{seed}.toml")
+    theta = draw_errors(m, rng)
+    q = m.sample_q(5, rng)
+    mass = rng.uniform(2.0, 60.0, 4)
+    com = rng.uniform(-150.0, 150.0, (4, 3))
+    down = _tilted(rng, 20.0)
+    payload = rng.uniform(0.0, 30.0, 5)
+    b_col, b_boom = rng.uniform(0.05, 0.3), rng.uniform(0.2, 1.0)
+    members = [Member("stage", 0, 1e12 / (3 * b_col)), Member("stage", 1, 1e12 / (3 * b_col)),
+               Member("link", 2, 1e12 / (3 * b_boom))]
+    eff = get_effect("gravity_deflection", link_mass_kg=mass, link_com_mm=com, gravity=down)
+    bodies = ("joint1", "joint2", "joint3", "joint4")
+    aux = {"payload_kg": payload} | {f"accel.{b}.{a}": np.ones(5) for b in bodies for a in "xyz"}
+    f = eff.features(m, q, theta, aux, None, None)
+    names = [p.name for p in eff.params(m, f)]
+    eta = np.array([{"bending.joint1": b_col, "bending.link3": b_boom}.get(nm, 0.0) for nm in names])
+    got = eff.body_rotation(f, eta)
+    assert tuple(got) == bodies
+    chain = MimicChain.from_text(m.to_toml(theta))
+    sim = np.array([deflected_tool(chain, q[i], members, mass, com, down, payload[i], 100, bodies=(0, 1, 2, 3))[4]
+                    for i in range(q.shape[0])])  # (n, 4, 3)
+    for s_, b in enumerate(bodies):
+        np.testing.assert_allclose(got[b], sim[:, s_], atol=3e-3 * np.abs(sim).max())
+    # the column's lower stage turns its own frame (at its tip) and every body above it; the boom's bending
+    # turns the wrist, not the boom's own frame (at its root)
+    assert np.abs(sim[:, 0]).max() > 1e-4 and np.abs(sim[:, 3] - sim[:, 2]).max() > 1e-4
+    # the tool turns as the wrist's body does (nothing bends beyond the wrist)
+    np.testing.assert_allclose(eff.delta_x(f, eta)[:, 3:], got["joint4"], atol=1e-12)
+
+
 def test_arm_links_bend_as_the_element_by_element_statics():
     rng = np.random.default_rng(7)
     m = load_machine(ARM6)
@@ -156,6 +191,9 @@ def test_the_effect_passes_the_interface_check(path):
     m = load_machine(path)
     check_effect(get_effect("gravity_deflection"), m)
     check_effect(get_effect("gravity_deflection"), m, aux={"payload_kg": np.linspace(0, 20, 12)})
+    # with tilt sensors on bodies (their turns and the Jacobian of the turns)
+    sensors = {f"accel.{b}.{a}": np.ones(12) for b in m.sensor_bodies[1:] for a in "xyz"}
+    check_effect(get_effect("gravity_deflection"), m, aux={"payload_kg": np.linspace(0, 20, 12)} | sensors)
     n = m.n_joints
     check_effect(get_effect("gravity_deflection", link_mass_kg=np.full(n, 5.0)), m)
 
