@@ -191,10 +191,9 @@ def _k_arg(text: str):
         raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {text!r}") from None
 
 
-def run(args) -> int:
-    from . import EXIT_FAILED, EXIT_OK
-
-    check_method_options(args)  # e.g. --posterior with a method other than mcmc: refused, not ignored
+def _check_options(args) -> None:
+    """Options that do not go together, refused before anything is read (exit 2), not ignored."""
+    check_method_options(args)  # e.g. --posterior with a method other than mcmc
     if args.discrepancy != "off" and args.method not in ("map", "ridge"):
         raise InputError(f"--discrepancy goes with --method map or ridge: the geometry's prior decides what the "
                          f"discrepancy may take (got --method {args.method})")
@@ -205,21 +204,14 @@ def run(args) -> int:
         if not names or len(set(names)) != len(names):
             raise InputError(f"--discrepancy-inputs {args.discrepancy_inputs}: expected distinct comma-separated names "
                              "(q1, q2, ... or auxiliary channels)")
-    machine, rec, model, check, session = inputs_with_session(args, constraints=True)
-    if args.write_klipper and machine.kind != "linear-delta":
-        raise InputError(f"--write-klipper: Klipper's delta keys describe a linear-delta machine; {args.machine} is a {machine.kind}")
-    if args.write_urdf:
-        from ..machines.urdf_write import serial_part
 
-        serial_part(machine, what="--write-urdf: a URDF")  # InputError (exit 2) for other kinds, before any fit
-    free = free_arg(args.free)
+
+def _check_method_arguments(args) -> None:
+    """Each method's own options: required where the method needs them, refused with another method."""
     if args.method == "ridge" and args.lam is None:
         raise InputError("--lam is required with --method ridge (try --lam 1: MAP under the tolerance prior, or --lam auto)")
     if args.method == "tsvd" and args.k is None:
         raise InputError("--k is required with --method tsvd (a number, or --k auto)")
-    if args.fit_effects:
-        model = joint_effects_model(args, machine, rec, model)
-    okw = outlier_kwargs(args, rec, model.n_poses)
     if args.method != "mcmc" and (args.checkpoint or args.resume):
         raise InputError("--checkpoint and --resume go with --method mcmc")
     # options of another method are refused, not ignored (kalman and mcmc too)
@@ -229,6 +221,24 @@ def run(args) -> int:
         raise InputError(f"--lam goes with --method ridge (got --method {args.method})")
     if args.k is not None and args.method != "tsvd":
         raise InputError(f"--k goes with --method tsvd (got --method {args.method})")
+
+
+def run(args) -> int:
+    from . import EXIT_FAILED, EXIT_OK
+
+    _check_options(args)
+    machine, rec, model, check, session = inputs_with_session(args, constraints=True)
+    if args.write_klipper and machine.kind != "linear-delta":
+        raise InputError(f"--write-klipper: Klipper's delta keys describe a linear-delta machine; {args.machine} is a {machine.kind}")
+    if args.write_urdf:
+        from ..machines.urdf_write import serial_part
+
+        serial_part(machine, what="--write-urdf: a URDF")  # InputError (exit 2) for other kinds, before any fit
+    free = free_arg(args.free)
+    _check_method_arguments(args)
+    if args.fit_effects:
+        model = joint_effects_model(args, machine, rec, model)
+    okw = outlier_kwargs(args, rec, model.n_poses)
     if args.method in METHODS:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
@@ -251,7 +261,7 @@ def run(args) -> int:
         rule=args.rule, prior_scale=args.prior_scale, max_iter=args.max_iter, noise=args.noise,
         fit_effects=args.fit_effects, discrepancy=args.discrepancy,
         discrepancy_inputs=name_list(args.discrepancy_inputs) if args.discrepancy_inputs else None, **okw)
-    res, handling, choice, plaus = cal.result, cal.handling, cal.choice, cal.plausibility
+    res, choice, plaus = cal.result, cal.choice, cal.plausibility
     # the answers are written before anything is printed, so that a reader of stdout that
     # goes away early (`| head`) cannot cost the JSON or the calibrated machine file
     write_json(args, cal.to_dict())
@@ -263,32 +273,38 @@ def run(args) -> int:
 
         path = plot_choice(choice, f"{args.figures}/regularisation_{args.method}.png")
     if not args.quiet:
-        print(res.report())
-        print(cal.noise_report())
-        if text := cal.discrepancy_report():
-            print(text)
-        if text := held_out_report(held_out):
-            print(text)
-        print(handling.report())
-        print(instrument_report(extra, plaus))
-        if machine.effects:
-            how = "fitted with the geometry (--fit-effects)" if args.fit_effects else "applied at their stored values"
-            print(f"\neffects {how} ({args.machine}): {', '.join(e.name for e in machine.effects)}")
-        if "prior_scale_note" in res.extras:
-            print("\n" + res.extras["prior_scale_note"])
-        if "prior_scale" in res.extras:
-            print(f"\nprior scale: {res.extras['prior_scale']:.3g} x the machine file's tolerances "
-                  f"(estimated from the data; --prior-scale tolerance to use them as they are)")
-        if choice is not None:
-            print("\n" + choice.report())
-        if path is not None:
-            print(f"\nwrote {path}")
-        if args.write_machine and not res.success:
-            print(f"\nnot writing {args.write_machine}: the identification did not succeed")
-        if note := refusal_note(args, res, plaus):
-            print("\n" + note)
-        if args.write_klipper and not (res.success and plaus.plausible):
-            print(f"\nnot writing {args.write_klipper}: the identification did not succeed or is not plausible")
-        if args.write_urdf and not (res.success and (plaus.plausible or args.force)):
-            print(f"\nnot writing {args.write_urdf}: the identification did not succeed or is not plausible (--force)")
+        _print_answer(args, machine, cal, extra, held_out, path)
     return EXIT_OK if res.success and plaus.plausible else EXIT_FAILED
+
+
+def _print_answer(args, machine, cal, extra: dict, held_out, figure) -> None:
+    """The answer on stdout: the identification, noise, discrepancy, held-out rows, outliers, frame and notes."""
+    res, handling, choice, plaus = cal.result, cal.handling, cal.choice, cal.plausibility
+    print(res.report())
+    print(cal.noise_report())
+    if text := cal.discrepancy_report():
+        print(text)
+    if text := held_out_report(held_out):
+        print(text)
+    print(handling.report())
+    print(instrument_report(extra, plaus))
+    if machine.effects:
+        how = "fitted with the geometry (--fit-effects)" if args.fit_effects else "applied at their stored values"
+        print(f"\neffects {how} ({args.machine}): {', '.join(e.name for e in machine.effects)}")
+    if "prior_scale_note" in res.extras:
+        print("\n" + res.extras["prior_scale_note"])
+    if "prior_scale" in res.extras:
+        print(f"\nprior scale: {res.extras['prior_scale']:.3g} x the machine file's tolerances "
+              f"(estimated from the data; --prior-scale tolerance to use them as they are)")
+    if choice is not None:
+        print("\n" + choice.report())
+    if figure is not None:
+        print(f"\nwrote {figure}")
+    if args.write_machine and not res.success:
+        print(f"\nnot writing {args.write_machine}: the identification did not succeed")
+    if note := refusal_note(args, res, plaus):
+        print("\n" + note)
+    if args.write_klipper and not (res.success and plaus.plausible):
+        print(f"\nnot writing {args.write_klipper}: the identification did not succeed or is not plausible")
+    if args.write_urdf and not (res.success and (plaus.plausible or args.force)):
+        print(f"\nnot writing {args.write_urdf}: the identification did not succeed or is not plausible (--force)")
