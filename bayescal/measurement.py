@@ -185,7 +185,7 @@ class MeasurementModel:
         R_meas = so3_exp(rec.rotvec) if rec.rotvec is not None else None
         guess = machine.guess_from_measurement(rec.q, rec.position, R_meas, rec.axis)
         q = rec.q
-        offset = None
+        offset, bend = None, {}
         if machine.effects:
             # the machine file's [effect.*] tables at their stored values: the kinematics sees the
             # actuator positions the effects make of the commanded ones, and the tool the perturbation
@@ -197,15 +197,25 @@ class MeasurementModel:
                 base = machine.base_machine()
                 poses = base.forward(q, None)
                 poses = poses if poses.success.all() else None
-                dq, offset = effect_delta_q_and_x(base, machine.effects, q, dict(rec.aux), poses=poses)
             else:
+                base = machine
                 poses = machine.forward(q, None, guess=guess) if guess is not None else None
-                dq, offset = effect_delta_q_and_x(machine, machine.effects, q, dict(rec.aux), poses=poses)
+            dq, offset = effect_delta_q_and_x(base, machine.effects, q, dict(rec.aux), poses=poses)
+            if sensors:  # a structure that bends turns the bodies tilt sensors sit on (as the joint fit models it)
+                from .effects.stored import effect_body_rotation
+
+                bend = effect_body_rotation(base, machine.effects, q, dict(rec.aux), poses=poses)
             q = q + dq
             guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
         from .sensors import attach_sensors
 
         machine, sensor_set = attach_sensors(machine, rec, q) if sensors else (machine, None)
+        if sensor_set is not None and bend:
+            turns = np.zeros((rec.n_poses, sensor_set.n_sensors, 3))
+            for body, w in bend.items():
+                if body in sensor_set.bodies:
+                    turns[:, sensor_set.bodies.index(body)] = w
+            sensor_set = sensor_set.with_bend(turns)
         tool_dof = dof
         dof = tool_dof + (0 if sensor_set is None else sensor_set.n_rows)
         n = rec.n_poses

@@ -58,7 +58,8 @@ def _fitted_frame():
     return prepare_model(m, rec, frame="fit")[1]
 
 
-def _sensors(effect: StoredEffect | None = None):
+def sensor_column():
+    """The sensor test column (tests/sensors/chain.py) and a recording with tilt sensors on joints 2 and 3."""
     from tests.sensors.chain import JOINTS, machine_text, poses, transforms
 
     import tempfile
@@ -76,7 +77,11 @@ def _sensors(effect: StoredEffect | None = None):
         aux.update({f"accel.joint{k + 1}.{a}": 9.81 * u[:, i] for i, a in enumerate("xyz")})
     from bayescal.io.recording import Recording
 
-    rec = Recording(q=q, position=tool, aux=aux)
+    return m, Recording(q=q, position=tool, aux=aux)
+
+
+def _sensors(effect: StoredEffect | None = None):
+    m, rec = sensor_column()
     if effect is not None:  # the sensors' rows move with the effect's dq too (joint2 and joint3 turn with q1, q3)
         model = effect_model(m.with_effects((effect,)), rec)
         assert model.geo.sensors is not None

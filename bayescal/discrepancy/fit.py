@@ -215,9 +215,11 @@ def _optimise(prob: _Problem, U, x0, bounds, d, n_groups, groups, fit_noise, max
 
     def f(x):
         try:
-            return _neg_log_ml_and_gradient(prob, U, x, d, n_groups, groups, fit_noise, rr)
+            value, grad = _neg_log_ml_and_gradient(prob, U, x, d, n_groups, groups, fit_noise, rr)
         except linalg.LinAlgError:
             return 1e300, np.zeros_like(x)
+        # a factor that lost its positive definiteness to round-off gives no usable value: a wall, not a NaN
+        return (value, grad) if np.isfinite(value) and np.all(np.isfinite(grad)) else (1e300, np.zeros_like(x))
 
     # the analytic gradient (not L-BFGS-B's finite differences): a tenth of the likelihood evaluations, and
     # a search path that does not move with round-off elsewhere (the marginal likelihood is flat near its top)

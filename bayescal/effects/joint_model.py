@@ -190,12 +190,20 @@ class EffectAugmented:
         return self.base.to_toml(self._base_theta(self.check_theta(theta)))
 
 
-def _sub_model(model: MeasurementModel, q: NDArray, guess: ToolPoses | None) -> MeasurementModel:
-    """``model`` at the actuator positions ``q`` (a multiple of its poses: stacked blocks), without measured values."""
+def _sub_model(model: MeasurementModel, q: NDArray, guess: ToolPoses | None, bend: NDArray | None = None) -> MeasurementModel:
+    """``model`` at the actuator positions ``q`` (a multiple of its poses: stacked blocks), without measured values.
+
+    Its body sensors are stacked alike, their bodies turned by ``bend`` (stacked, or None: as they are).
+    """
     own = model.pose_offset
     reps = q.shape[0] // model.q.shape[0]
+    sensors = model.sensors
+    if sensors is not None:
+        sensors = sensors.tiled(reps)
+        if bend is not None:
+            sensors = sensors.with_bend(bend)
     return dataclasses.replace(model, q=q, y_measured=None, pose_sigma=None, aux=None, guess=guess,
-                               pose_offset=None if own is None else np.tile(own, (reps, 1)))
+                               pose_offset=None if own is None else np.tile(own, (reps, 1)), sensors=sensors)
 
 
 def _of_geo(name: str) -> property:
@@ -312,7 +320,8 @@ class EffectModel:
             raise InputError("theta: the effects take one parameter vector per block of poses, not per pose")
         q = np.concatenate([self.geo.pose_q + self.delta_q(b[0]) for b in blocks])
         g = guess if guess is not None else self.geo.guess
-        sub = _sub_model(self.geo, q, g)
+        bends = [_bend(list(self.effects), self._slices, self._split(b[0])[1], self.geo) for b in blocks]
+        sub = _sub_model(self.geo, q, g, None if bends[0] is None else np.concatenate(bends))
         dx = [self.delta_x(b[0]) for b in blocks]
         if dx[0] is not None:
             own = self.geo.pose_offset

@@ -56,7 +56,7 @@ from .registry import EFFECTS, get_effect
 
 __all__ = [
     "StoredEffect", "PROBE_CHANNELS", "read_effect_tables", "effect_tables_toml", "effect_delta_q",
-    "static_effect_delta_q", "static_effect_delta_x", "effect_delta_q_jacobian", "effect_delta_q_and_x", "effect_delta_x_jacobian", "static_effect_delta_q_and_jacobian", "StoredEffectsTransform", "machine_file_text", "parse_aux_values", "predict_poses",
+    "static_effect_delta_q", "static_effect_delta_x", "effect_delta_q_jacobian", "effect_delta_q_and_x", "effect_body_rotation", "effect_delta_x_jacobian", "static_effect_delta_q_and_jacobian", "StoredEffectsTransform", "machine_file_text", "parse_aux_values", "predict_poses",
 ]
 
 #: Auxiliary channels whose presence can change an effect's parameter set (docs/formats.md section 2).
@@ -385,6 +385,33 @@ def effect_delta_q_and_x(
         if eff.moves_tool:
             dx = (0.0 if dx is None else dx) + eff.delta_x(f, eta)
     return dq, dx
+
+
+def effect_body_rotation(
+    machine: Machine,
+    effects: tuple[StoredEffect, ...],
+    q: NDArray,
+    aux: dict | None = None,
+    *,
+    theta: NDArray | None = None,
+    order: NDArray | None = None,
+    poses: ToolPoses | None = None,
+) -> dict[str, NDArray]:
+    """The stored effects' turn of the bodies that carry tilt sensors in ``aux``, ``{body: (n_poses, 3)}`` rad.
+
+    Base-frame small rotations (:meth:`Effect.body_rotation`) of the effects
+    that bend the structure (:attr:`Effect.bends_bodies`), summed; empty when
+    none does.  Arguments and errors as :func:`effect_delta_q`.
+    """
+    q = machine.check_q(q)
+    out: dict[str, NDArray] = {}
+    if not any(st.effect().bends_bodies for st in effects):
+        return out
+    for _, eff, f, eta in _effect_terms(machine, effects, q, aux, theta, order, poses):
+        if eff.bends_bodies:
+            for body, w in eff.body_rotation(f, eta).items():
+                out[body] = out[body] + w if body in out else w
+    return out
 
 
 def effect_delta_x_jacobian(

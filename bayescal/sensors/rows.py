@@ -170,6 +170,11 @@ class SensorSet:
         """
         return float(sigma_tilt) * (np.sqrt(2.0) if self.base_sensor else 1.0)
 
+    def tiled(self, reps: int) -> "SensorSet":
+        """The readings of ``reps`` stacked copies of the poses (parameter sets evaluated in one call, set-major)."""
+        t = lambda a: None if a is None else np.tile(a, (reps,) + (1,) * (a.ndim - 1))  # noqa: E731
+        return replace(self, u=t(self.u), tangent=t(self.tangent), g0=t(self.g0), bend=t(self.bend))
+
     def subset(self, idx) -> "SensorSet":
         """The poses ``idx``, the nominal mountings kept (they are fixed once, from all the rows)."""
         idx = np.asarray(idx)

@@ -47,21 +47,50 @@ def compliance_case(prs3):
     return m, rec, effect_model(m, rec)
 
 
+def _sensor_case(stored: StoredEffect):
+    """The sensor test column (tests/sensors/chain.py) with tilt sensors on its turning bodies and a stored table."""
+    from tests.test_contract import sensor_column
+
+    m, rec = sensor_column()
+    m = m.with_effects((stored,))
+    return m, rec, effect_model(m, rec)
+
+
+@pytest.fixture(scope="module")
+def deflection_sensor_case():
+    from tests.test_contract import DEFLECTION
+
+    return _sensor_case(DEFLECTION)
+
+
+@pytest.fixture(scope="module")
+def backlash_sensor_case():
+    from tests.test_contract import SERIAL_BACKLASH
+
+    return _sensor_case(SERIAL_BACKLASH)
+
+
 def _at(machine, stored, eta):
     """The stored tables of ``stored`` at the values ``eta`` (in parameter order)."""
     out, k = [], 0
     for st in stored:
         n = len(st.values)
-        out.append(StoredEffect(st.name, tuple((name, float(v)) for (name, _), v in zip(st.values, eta[k:k + n]))))
+        out.append(StoredEffect(st.name, tuple((name, float(v)) for (name, _), v in zip(st.values, eta[k:k + n])),
+                                settings=st.settings))
         k += n
     return machine.with_effects(tuple(out))
 
 
-@pytest.mark.parametrize("case", ["backlash_case", "compliance_case"])
+@pytest.mark.parametrize("case", ["backlash_case", "compliance_case", "backlash_sensor_case", "deflection_sensor_case"])
 def test_prediction_is_the_stored_effects_prediction_at_any_values(case, request):
-    """h(q + dq(eta), theta) equals the commands' prediction of a machine file holding eta as its tables."""
+    """h(q + dq(eta), theta) equals the commands' prediction of a machine file holding eta as its tables.
+
+    With body tilt sensors too: their rows see an effect's dq and a bending member's turn of their bodies the
+    same way in the joint fit, in a written machine's tables and in stacked blocks (a sampler's walkers).
+    """
     m, rec, em = request.getfixturevalue(case)
-    P = m.n_params
+    P = em.geo.n_params  # the geometry, with the sensors' mountings where there are sensors
+    assert P == m.n_params + (0 if em.geo.sensors is None else em.geo.sensors.n_params)
     assert em.n_params == P + len(em.effect_params)
     assert em.machine.layout.names[P:][0].startswith(f"effect.{m.effects[0].name}.")
     rng = np.random.default_rng(3)
