@@ -1,28 +1,47 @@
-"""Benchmark: bayescal's MCMC against NumPyro's NUTS on the same posterior (the real positioner).
+"""Benchmark: bayescal's MCMC against NumPyro's NUTS on the same posterior (the real positioner, the 3-PRS example).
 
-The posterior is what ``bayescal identify --method mcmc --frame fit`` samples
-on ``examples/positioner`` (205 real poses, 6-DOF, the instrument frame
-fitted, ``free = auto``: 30 parameters, 16 of them decided by the prior):
-the exact-kinematics likelihood with the instrument's sigmas, under the
-machine file's tolerance prior, the other parameters held at the MAP.
+Two problems (``--problems``, one after the other):
 
-NumPyro needs the model in ``jax.numpy``: the serial chain (URDF joint
-semantics, tilted axes, zero offsets, rpy, tool), the fitted frame and the
-6-DOF rows (tool point, ``log(R R_ref^T)``) are written out below from the
-arrays bayescal exports, and checked against bayescal's
-``MeasurementModel.predict`` at the MAP and at random draws (largest row
-difference printed; it must be below 1e-9 or the script stops).
+* ``positioner``: what ``bayescal identify --method mcmc --frame fit``
+  samples on ``examples/positioner`` (205 real poses, 6-DOF, the instrument
+  frame fitted, ``free = auto``: 30 parameters, 16 of them decided by the
+  prior);
+* ``prs3``: what ``bayescal identify --method mcmc`` samples on the bundled
+  3-PRS recording ``examples/prs3`` (36 poses, 6-DOF, base frame, ``free =
+  auto``: all 36 parameters); its forward kinematics is implicit (Newton on
+  six constraints), see :mod:`numpyro_prs3`.
+
+Each posterior is the exact-kinematics likelihood with the instrument's
+sigmas, under the machine file's tolerance prior, the other parameters held
+at the MAP.
+
+NumPyro needs the model in ``jax.numpy``.  Positioner: the serial chain
+(URDF joint semantics, tilted axes, zero offsets, rpy, tool), the fitted
+frame and the 6-DOF rows (tool point, ``log(R R_ref^T)``) are written out
+below from the arrays bayescal exports.  3-PRS: the geometry as
+``Prs3._geometry`` maps theta, Newton on the constraints under
+``jax.lax.while_loop`` and the implicit-function theorem as its derivative
+(a ``jax.custom_jvp``), in ``numpyro_prs3.py``.  Both are checked against
+bayescal's ``MeasurementModel.predict`` at the MAP and at random draws
+(3-PRS: also draws from the prior): the largest row difference must be
+below 1e-9 (mm, rad), and JAX's reverse-mode Jacobian of the rows must agree
+with bayescal's analytic ``MeasurementModel.jacobian`` to 1e-6 of each
+column's largest entry, or the script stops.
 
 Contestants (``--repeats`` rounds, interleaved, each in its own process,
-end to end: set-up, JIT compilation, warm-up and sampling all counted):
+end to end: set-up, JIT compilation, warm-up and sampling all counted;
+imports not):
 
 * bayescal ``sample_posterior`` with its defaults (the command's sampler);
 * NumPyro NUTS with its defaults (diagonal mass matrix adapted in warm-up,
-  ``--nuts-warmup`` / ``--nuts-samples`` per chain, ``--nuts-chains``
+  ``--default-warmup`` / ``--default-samples`` per chain, ``--nuts-chains``
   chains one after the other, started at the MAP);
 * NumPyro NUTS whitened by bayescal's Laplace covariance: sampled in
   ``z`` with ``theta = MAP + L z`` (``L L^T`` the MAP's covariance), step
-  size adapted, no mass-matrix adaptation.
+  size adapted, no mass-matrix adaptation (``--nuts-warmup`` /
+  ``--nuts-samples``); with ``--long-samples N`` also a longer run of it
+  (``nuts-whitened-long``: N draws kept per chain), which spreads its fixed
+  cost (compilation, warm-up) over more draws.
 
 Figures: the smallest bulk ESS over the parameters (arviz, chains or
 walkers as chains), ESS per second, R-hat, peak memory; the posterior
@@ -34,26 +53,26 @@ extra: ``pip install numpyro jax``).
 Run::
 
     python benchmarks/peers_numpyro.py --repeats 3
+    python benchmarks/peers_numpyro.py --problems prs3 --repeats 3 --long-samples 2500
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
-import time
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out" / "peers_numpyro"
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from peer_child import run_child  # noqa: E402
+from peer_child import run_child
 
-EXPORT = r'''
-import json, sys, numpy as np
+# the positioner's arrays, MAP, covariance and test points with bayescal's rows
+POSITIONER_EXPORT = r'''
+import json, sys, time, numpy as np
 a = json.loads(sys.argv[1])
 sys.path.insert(0, a["root"])
 from bayescal.bayes.priors import map_estimate, prior_from_machine
@@ -61,8 +80,10 @@ from bayescal.instrument import prepare_model
 from bayescal.io import read_recording
 from bayescal.machines.files import load_machine
 ex = a["root"] + "/examples/positioner/"
+t0 = time.perf_counter()
 m2, model, _ = prepare_model(load_machine(ex + "machine.toml"), read_recording(ex + "recording.csv"), frame="fit")
 res = map_estimate(model, free="auto")
+map_seconds = time.perf_counter() - t0
 idx = np.flatnonzero(res.free)
 s = m2.machine
 prior = prior_from_machine(m2)
@@ -74,8 +95,9 @@ np.savez(a["out"], q=model.q, y=model.y_measured, sig=model.row_sigma, R_ref=mod
          o0=m2._o0[0], R0=m2._R0[0], origin=s.origin, rpy=s.rpy, axis=s.axis, tilt=np.array(s._tilt),
          q_map=s._q_map, q_shift=s._q_shift, revolute=np.array([t == "revolute" for t in s.joint_type]),
          tool_point=s.tool_point, tool_rpy=s.tool_rpy, idx=idx, theta_map=res.theta, cov=res.covariance,
-         prior_mean=prior.mean, prior_std=prior.std, tests=tests, ys=ys)
-print("RESULT " + json.dumps({"n_free": int(idx.size), "n_params": int(res.theta.size)}))
+         prior_mean=prior.mean, prior_std=prior.std, tests=tests, ys=ys,
+         jac=model.jacobian(tests[1], model.predict(tests[1])))   # bayescal's analytic Jacobian, 3 sds out
+print("RESULT " + json.dumps({"n_free": int(idx.size), "n_params": int(res.theta.size), "map_seconds": map_seconds}))
 '''
 
 BAYESCAL = r'''
@@ -87,9 +109,9 @@ from bayescal.bayes.mcmc import sample_posterior
 from bayescal.instrument import prepare_model
 from bayescal.io import read_recording
 from bayescal.machines.files import load_machine
-ex = a["root"] + "/examples/positioner/"
+ex = a["root"] + "/examples/" + a["example"] + "/"
 t1 = time.perf_counter()
-m2, model, _ = prepare_model(load_machine(ex + "machine.toml"), read_recording(ex + "recording.csv"), frame="fit")
+m2, model, _ = prepare_model(load_machine(ex + "machine.toml"), read_recording(ex + "recording.csv"), frame=a["frame"])
 r = sample_posterior(model, free="auto", seed=a["seed"])
 t = time.perf_counter() - t1
 chain = r.tree["posterior"]["theta"].values  # (walkers, draws, n)
@@ -98,7 +120,8 @@ print("RESULT " + json.dumps({"seconds": t, "import_seconds": t1 - t0, "success"
       "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 '''
 
-NUMPYRO = r'''
+# NumPyro's process: header (imports, data, SO(3) helpers), then a problem's MODEL (predict), then NUMPYRO_TAIL
+NUMPYRO_HEAD = r'''
 import json, sys, time, resource
 a = json.loads(sys.argv[1])
 t0 = time.perf_counter()
@@ -110,11 +133,7 @@ import numpyro
 from numpyro.infer import MCMC, NUTS
 t1 = time.perf_counter()
 d = dict(np.load(a["data"]))
-q, y, sig, R_ref = (jnp.asarray(d[k]) for k in ("q", "y", "sig", "R_ref"))
 idx, theta_map = d["idx"], jnp.asarray(d["theta_map"])
-m = d["origin"].shape[0]
-E = np.eye(3)
-G = [np.stack([np.cross(E[d["tilt"][k][0]], d["axis"][k]), np.cross(E[d["tilt"][k][1]], d["axis"][k])], -1) for k in range(m)]
 
 def skew(w):
     z = jnp.zeros_like(w[..., 0])
@@ -137,6 +156,15 @@ def so3_log(R):  # small rotations only (the rows are relative to the measured o
     small = th < 1e-6
     ts = jnp.where(small, 1.0, th)
     return jnp.where(small, 0.5 + th**2 / 12.0, ts / (2.0 * jnp.sin(ts)))[..., None] * v
+
+'''
+
+# the positioner's serial chain, the fitted frame and the 6-DOF rows
+POSITIONER_MODEL = r'''
+q, y, sig, R_ref = (jnp.asarray(d[k]) for k in ("q", "y", "sig", "R_ref"))
+m = d["origin"].shape[0]
+E = np.eye(3)
+G = [np.stack([np.cross(E[d["tilt"][k][0]], d["axis"][k]), np.cross(E[d["tilt"][k][1]], d["axis"][k])], -1) for k in range(m)]
 
 def rpy_matrix(rpy):
     cr, sr = jnp.cos(rpy[..., 0]), jnp.sin(rpy[..., 0])
@@ -170,17 +198,27 @@ def predict(theta):
     p_inst = (p_tool - o) @ Rf        # R^T (p - o), row-wise
     R_inst = Rf.T @ R_tool
     rows = jnp.concatenate([p_inst, so3_log(R_inst @ jnp.swapaxes(R_ref, -1, -2))], axis=1)
-    return rows
+    return rows, jnp.bool_(True)
+'''
 
+# shared by the problems: the log posterior, the check against bayescal's rows, the sampling
+NUMPYRO_TAIL = r'''
 pm, ps = jnp.asarray(d["prior_mean"][idx]), jnp.asarray(d["prior_std"][idx])
 def log_post(x):
     theta = theta_map.at[idx].set(x)
-    r = (predict(theta) - y) / sig
-    return -0.5 * jnp.sum(r**2) - 0.5 * jnp.sum(((x - pm) / ps) ** 2)
+    rows, ok = predict(theta)
+    r = (rows - y) / sig
+    lp = -0.5 * jnp.sum(r**2) - 0.5 * jnp.sum(((x - pm) / ps) ** 2)
+    return jnp.where(ok, lp, -jnp.inf)   # a pose that does not solve: zero density, as in bayescal
 
-check = max(float(jnp.max(jnp.abs(predict(jnp.asarray(t)) - yb))) for t, yb in zip(d["tests"], d["ys"]))
+pred = jax.jit(predict)
+outs = [pred(jnp.asarray(t)) for t in d["tests"]]
+check = max(float(jnp.max(jnp.abs(o[0] - yb))) if bool(o[1]) else float("inf") for o, yb in zip(outs, d["ys"]))
 if a["mode"] == "check":
-    print("RESULT " + json.dumps({"max_row_difference": check}))
+    # the gradient NUTS follows: JAX's reverse-mode Jacobian of the rows against bayescal's analytic one
+    J = np.asarray(jax.jit(jax.jacrev(lambda th: predict(th)[0]))(jnp.asarray(d["tests"][1])))
+    jac = float(np.max(np.abs(J - d["jac"]) / np.abs(d["jac"]).max(axis=(0, 1), keepdims=True)))
+    print("RESULT " + json.dumps({"max_row_difference": check, "max_jacobian_difference": jac}))
     sys.exit(0)
 if not check < 1e-9:
     raise SystemExit(f"the jax model differs from bayescal's predict by {check:.3g}")
@@ -223,11 +261,84 @@ def _ess(draws):
     return float(np.min(ess)), float(np.max(rhat))
 
 
-def main(argv=None) -> int:
+def _problems() -> dict:
+    """Per problem: export code, JAX model code, the example directory, the frame, a title."""
+    import numpyro_prs3
+
+    return {
+        "positioner": {"export": POSITIONER_EXPORT, "model": POSITIONER_MODEL, "example": "positioner", "frame": "fit",
+                       "title": "the real positioner"},
+        "prs3": {"export": numpyro_prs3.EXPORT, "model": numpyro_prs3.MODEL, "example": "prs3", "frame": "base",
+                 "title": "the 3-PRS example recording (examples/prs3, 36 poses, 6-DOF)"},
+    }
+
+
+def _contestant(who: str, r: int, prob: dict, data: Path, args) -> dict:
+    """One end-to-end run of ``who`` in round ``r``: its result with ESS, R-hat, means and standard deviations."""
     import numpy as np
 
+    draws = args.out / f"{prob['name']}_{who}_{r}.npy"
+    if who == "bayescal":
+        res = _child(sys.executable, BAYESCAL, {"root": str(ROOT), "seed": r, "draws": str(draws),
+                                                "example": prob["example"], "frame": prob["frame"]})
+    else:
+        whitened = who.startswith("nuts-whitened")
+        samples = {"nuts": args.default_samples, "nuts-whitened": args.nuts_samples,
+                   "nuts-whitened-long": args.long_samples}[who]
+        res = _child(args.bench_python, NUMPYRO_HEAD + prob["model"] + NUMPYRO_TAIL, {
+            "data": str(data), "mode": "whitened" if whitened else "default", "seed": r,
+            "draws": str(draws), "chains": args.nuts_chains,
+            "warmup": args.nuts_warmup if whitened else args.default_warmup, "samples": samples})
+    x = np.load(draws)
+    res["ess"], res["rhat"] = _ess(x)
+    x = x.reshape(-1, x.shape[-1])
+    res["mean"], res["std"] = x.mean(0).tolist(), x.std(0).tolist()
+    return res
+
+
+def _table(prob: dict, info: dict, chk: dict, runs: dict, load0: float, args) -> str:
+    """The markdown table of one problem: medians and ranges over the rounds, the posteriors against bayescal's."""
+    import numpy as np
+
+    def rng(v, f):
+        return f"{statistics.median(v):{f}} ({min(v):{f}}-{max(v):{f}})"
+
+    long = f" (long: {args.nuts_warmup} + {args.long_samples})" if args.long_samples > 0 else ""
+    head = (f"MCMC on {prob['title']} ({info['n_free']} parameters), {args.repeats} interleaved rounds, load "
+            f"{load0:.2f} at start, {os.getloadavg()[0]:.2f} at end; end to end (set-up, compilation, warm-up, sampling)")
+    nuts = (f"NUTS: {args.nuts_chains} chains one after the other; default {args.default_warmup} warm-up + "
+            f"{args.default_samples} draws per chain, whitened {args.nuts_warmup} + {args.nuts_samples}{long}; jax model "
+            f"against bayescal's predict: largest row difference {chk['max_row_difference']:.1e}, Jacobian "
+            f"{chk['max_jacobian_difference']:.1e}; bayescal's MAP and Laplace covariance (given to whitened NUTS, "
+            f"not in its time) took {info['map_seconds']:.2f} s")
+    columns = ("| sampler | seconds median (range) | min bulk ESS median (range) | ESS/s median (range) | max R-hat "
+               "(worst run) | peak [MB] | means vs bayescal [MC sd] | stds ratio to bayescal | tree depth saturated | "
+               "ratio (bayescal ESS/s over this) |")
+    lines = [head, nuts, "", columns, "|---|---|---|---|---|---|---|---|---|---|"]
+    eps_b = statistics.median(x["ess"] / x["seconds"] for x in runs["bayescal"])
+    ref = runs["bayescal"][-1]
+    for who, rs in runs.items():
+        eps = [x["ess"] / x["seconds"] for x in rs]
+        # the last round against bayescal's last round; Monte Carlo error of the difference from both ESS
+        last = rs[-1]
+        m1, s1 = np.asarray(last["mean"]), np.asarray(last["std"])
+        m0, s0 = np.asarray(ref["mean"]), np.asarray(ref["std"])
+        z = float(np.max(np.abs(m1 - m0) / np.sqrt(s0**2 / ref["ess"] + s1**2 / max(last["ess"], 1.0))))
+        depth = (f"{100 * max(x['tree_depth_saturated'] for x in rs):.0f}% of draws"
+                 if "tree_depth_saturated" in last else "-")
+        lines.append(f"| {who} | {rng([x['seconds'] for x in rs], '.1f')} | {rng([x['ess'] for x in rs], '.0f')} | "
+                     f"{rng(eps, '.1f')} | {max(x['rhat'] for x in rs):.3f} | {max(x['peak_mb'] for x in rs):.0f} | "
+                     f"{z:.1f} | {float(np.median(s1 / s0)):.3f} | {depth} | "
+                     f"{eps_b / max(statistics.median(eps), 1e-300):.1f}x |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--bench-python", default=str(ROOT / ".venv-bench" / "bin" / "python"))
+    ap.add_argument("--bench-python", default=str(ROOT / ".venv-bench" / "bin" / "python"),
+                    help="the python of the environment with numpyro and jax (default .venv-bench/bin/python)")
+    ap.add_argument("--problems", default="positioner,prs3",
+                    help="comma-separated: positioner, prs3 (default both, one after the other)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--nuts-chains", type=int, default=2, help="NUTS chains, run one after the other (default 2)")
     ap.add_argument("--nuts-warmup", type=int, default=500, help="whitened NUTS: warm-up draws per chain (default 500)")
@@ -236,59 +347,41 @@ def main(argv=None) -> int:
                     help="default NUTS: warm-up draws per chain (default 150: it saturates its tree depth, 1,023 "
                          "gradient evaluations per draw, so longer runs cost minutes and do not converge either)")
     ap.add_argument("--default-samples", type=int, default=150, help="default NUTS: draws kept per chain (default 150)")
+    ap.add_argument("--long-samples", type=int, default=0,
+                    help="also run whitened NUTS keeping this many draws per chain (contestant nuts-whitened-long: "
+                         "its compilation and warm-up spread over more draws; default 0, not run)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
+    problems = _problems()
+    names = [n.strip() for n in args.problems.split(",") if n.strip()]
+    unknown = [n for n in names if n not in problems]
+    if unknown or not names:
+        ap.error(f"--problems: expected names among {', '.join(problems)}, got {args.problems!r}")
     args.out.mkdir(parents=True, exist_ok=True)
-    data = args.out / "positioner.npz"
-    info = _child(sys.executable, EXPORT, {"root": str(ROOT), "out": str(data)})
-    chk = _child(args.bench_python, NUMPYRO, {"data": str(data), "mode": "check"})
-    print(f"positioner posterior: {info['n_free']} parameters sampled; jax model against "
-          f"bayescal's predict: largest row difference {chk['max_row_difference']:.2e} (must be < 1e-9)")
-    todo = ["bayescal", "nuts", "nuts-whitened"]
-    runs = {k: [] for k in todo}
-    load0 = os.getloadavg()[0]
-    for r in range(args.repeats):
-        for who in todo[r % 3:] + todo[: r % 3]:
-            draws = args.out / f"{who}_{r}.npy"
-            if who == "bayescal":
-                res = _child(sys.executable, BAYESCAL, {"root": str(ROOT), "seed": r, "draws": str(draws)})
-            else:
-                res = _child(args.bench_python, NUMPYRO, {
-                    "data": str(data), "mode": "whitened" if who == "nuts-whitened" else "default", "seed": r,
-                    "draws": str(draws), "chains": args.nuts_chains,
-                    "warmup": args.nuts_warmup if who == "nuts-whitened" else args.default_warmup,
-                    "samples": args.nuts_samples if who == "nuts-whitened" else args.default_samples})
-            res["ess"], res["rhat"] = _ess(np.load(draws))
-            x = np.load(draws).reshape(-1, info["n_free"])
-            res["mean"], res["std"] = x.mean(0).tolist(), x.std(0).tolist()
-            runs[who].append(res)
-    ref = runs["bayescal"][-1]
-    lines = [f"MCMC on the real positioner ({info['n_free']} parameters), {args.repeats} interleaved rounds, load "
-             f"{load0:.2f} at start, {os.getloadavg()[0]:.2f} at end; end to end (set-up, compilation, warm-up, sampling)",
-             f"NUTS: {args.nuts_chains} chains one after the other; default {args.default_warmup} warm-up + "
-             f"{args.default_samples} draws per chain, whitened {args.nuts_warmup} + {args.nuts_samples}",
-             "", "| sampler | seconds median (range) | min bulk ESS | ESS/s median | max R-hat | peak [MB] | "
-             "means vs bayescal [MC sd] | stds ratio to bayescal | ratio (bayescal ESS/s over this) |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    eps_b = statistics.median(x["ess"] / x["seconds"] for x in runs["bayescal"])
-    for who in todo:
-        rs = runs[who]
-        t = [x["seconds"] for x in rs]
-        eps = statistics.median(x["ess"] / x["seconds"] for x in rs)
-        last = rs[-1]
-        m1, s1 = np.asarray(last["mean"]), np.asarray(last["std"])
-        m0, s0 = np.asarray(ref["mean"]), np.asarray(ref["std"])
-        mc = np.sqrt(s0**2 / ref["ess"] + s1**2 / max(last["ess"], 1.0))
-        z = float(np.max(np.abs(m1 - m0) / mc))
-        ratio = float(np.median(s1 / s0))
-        lines.append(f"| {who} | {statistics.median(t):.1f} ({min(t):.1f}-{max(t):.1f}) | {last['ess']:.0f} | {eps:.1f} | "
-                     f"{last['rhat']:.3f} | {max(x['peak_mb'] for x in rs):.0f} | {z:.1f} | {ratio:.3f} | "
-                     f"{eps_b / eps:.1f}x |")
-        if "tree_depth_saturated" in last:
-            lines[-1] += f" tree depth saturated in {100 * last['tree_depth_saturated']:.0f}% of draws"
-    text = "\n".join(lines)
-    print(text)
-    (args.out / "table.md").write_text(text + "\n")
+    tables = []
+    for name in names:
+        prob = {**problems[name], "name": name}
+        data = args.out / f"{name}.npz"
+        info = _child(sys.executable, prob["export"], {"root": str(ROOT), "out": str(data)})
+        chk = _child(args.bench_python, NUMPYRO_HEAD + prob["model"] + NUMPYRO_TAIL, {"data": str(data), "mode": "check"})
+        print(f"{name} posterior: {info['n_free']} parameters sampled; jax model against bayescal's predict: "
+              f"largest row difference {chk['max_row_difference']:.2e} (must be < 1e-9), Jacobian "
+              f"{chk['max_jacobian_difference']:.2e} of each column's largest entry (must be < 1e-6)", flush=True)
+        if not (chk["max_row_difference"] < 1e-9 and chk["max_jacobian_difference"] < 1e-6):
+            raise SystemExit(f"{name}: the jax model differs from bayescal's predict by {chk['max_row_difference']:.3g} "
+                             f"(rows) and {chk['max_jacobian_difference']:.3g} (Jacobian)")
+        todo = ["bayescal", "nuts", "nuts-whitened"] + (["nuts-whitened-long"] if args.long_samples > 0 else [])
+        runs = {k: [] for k in todo}
+        load0 = os.getloadavg()[0]
+        for r in range(args.repeats):
+            k = r % len(todo)
+            for who in todo[k:] + todo[:k]:
+                runs[who].append(_contestant(who, r, prob, data, args))
+                print(f"  round {r + 1}, {who}: {runs[who][-1]['seconds']:.1f} s, min bulk ESS "
+                      f"{runs[who][-1]['ess']:.0f}", flush=True)
+        tables.append(_table(prob, info, chk, runs, load0, args))
+        print(tables[-1], flush=True)
+        (args.out / f"table_{name}.md").write_text(tables[-1] + "\n")
     return 0
 
 
