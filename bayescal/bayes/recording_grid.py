@@ -6,8 +6,9 @@ command's grid and JSON:
 1. the arguments checked before any work: the auxiliary channels the
    machine file's ``[effect.*]`` tables act at (known channels, and only
    with tables), the grid's size, its space and ranges;
-2. the identification: ``map`` (:func:`bayescal.bayes.priors.map_estimate`
-   under the machine file's tolerance prior, with its Laplace covariance),
+2. the identification: ``map`` (:func:`bayescal.identify.calibrate.calibrate`,
+   what ``bayescal identify --method map`` runs: the noise test, outliers and
+   prior scale, with the Laplace covariance),
    ``kalman`` (:func:`bayescal.bayes.kalman.kalman_filter`) or ``mcmc``
    (:func:`bayescal.bayes.mcmc.sample_posterior`, with ``free="all"`` taken
    as ``"auto"``: sampling what the measurement does not see only explores
@@ -179,12 +180,14 @@ def _parts(data):
                      f"{type(data).__name__} {data!r:.80}; for files: bayescal.grid(bayescal.load(machine, recording))")
 
 
-def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str):
+def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str, fit_effects: bool):
     """The fit the grid is computed from and the grid's keyword for its std (a covariance or thinned draws)."""
     if method == "map":
-        from .priors import map_estimate
+        # identify --method map's own answer (its noise test, outliers and prior scale), so that the grid's
+        # correction and std are those of the calibration a user writes with the same command
+        from ..identify.calibrate import calibrate
 
-        res = map_estimate(model, free=free)
+        res = calibrate(model, method="map", free=free, fit_effects=fit_effects).result
         return res, {"covariance": res.covariance}
     if method == "kalman":
         from .kalman import kalman_filter
@@ -251,7 +254,7 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
         from ..effects.joint_model import joint_effects_model
 
         model = joint_effects_model(model, rec, method=method)
-    res, kw = _identify(model, method, free, steps=steps, seed=seed, surrogate=surrogate)
+    res, kw = _identify(model, method, free, steps=steps, seed=seed, surrogate=surrogate, fit_effects=fit_effects)
     effects = {"effects": tuple(e.name for e in machine.effects), "aux": aux, "effects_fitted": bool(fit_effects)}
     if not res.success:
         return GridAnswer(None, res, method, space, machine.geometry_part[0], **effects)

@@ -76,3 +76,20 @@ def test_node_std_against_finite_differences_and_a_loop_over_draws(prs3):
 
     free = np.arange(prs3.n_params) % 3 == 0
     assert_grid_std_is_direct(prs3, lambda th, **kw: compensation_grid(prs3, th, n=2, **kw), free, 5, "compensation_grid")
+
+
+def test_the_grid_carries_identify_map_answer():
+    # bayescal grid --method map spans the calibration identify --method map writes: the same noise test
+    # (the positioner's stated sigma is far too large: the estimated one is used), outliers and prior scale
+    import bayescal
+    from tests.conftest import ROOT
+
+    s = bayescal.load(ROOT / "examples" / "positioner" / "machine.toml", ROOT / "examples" / "positioner" / "recording.csv",
+                      frame="fit")
+    answer = bayescal.grid(s, nodes=3)
+    cal = bayescal.calibrate(s, method="map", free="all")
+    np.testing.assert_array_equal(answer.identification.theta, cal.result.theta)
+    np.testing.assert_array_equal(answer.identification.covariance, cal.result.covariance)
+    # which is not the plain MAP under the stated noise: the std the grid carries is several times smaller
+    plain = map_estimate(s.fit_model, free="all")
+    assert np.trace(answer.identification.covariance) < 0.2 * np.trace(plain.covariance)
