@@ -8,9 +8,10 @@ command's grid and JSON:
    with tables), the grid's size, its space and ranges;
 2. the identification: ``map`` (:func:`bayescal.identify.calibrate.calibrate`,
    what ``bayescal identify --method map`` runs: the noise test, outliers and
-   prior scale, with the Laplace covariance),
-   ``kalman`` (:func:`bayescal.bayes.kalman.kalman_filter`) or ``mcmc``
-   (:func:`bayescal.bayes.mcmc.sample_posterior`, with ``free="all"`` taken
+   prior scale, with the Laplace covariance), ``kalman`` or ``mcmc``
+   (:func:`bayescal.identify.probabilistic.calibrate_bayes`, what ``identify``
+   runs: the stated noise tested by a MAP, the robust pass's weights, then
+   the filter or the sampler; ``mcmc`` with ``free="all"`` taken
    as ``"auto"``: sampling what the measurement does not see only explores
    the prior; the chain thinned to about :data:`GRID_DRAWS` draws); with
    ``fit_effects`` the effect tables' parameters are identified with the
@@ -189,16 +190,18 @@ def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str
 
         res = calibrate(model, method="map", free=free, fit_effects=fit_effects).result
         return res, {"covariance": res.covariance}
+    # kalman, mcmc: identify --method kalman | mcmc's own answer (the noise-testing MAP, the robust pass's
+    # weights, then the filter or the sampler)
+    from ..identify.probabilistic import calibrate_bayes
+
+    opts = {}
+    if method == "mcmc":
+        opts = {"steps": steps, "seed": seed, "surrogate": surrogate}
+        if free == "all":
+            free = "auto"  # sampling parameters the measurement does not see only explores the prior
+    res = calibrate_bayes(model, method=method, free=free, fit_effects=fit_effects, **opts).result
     if method == "kalman":
-        from .kalman import kalman_filter
-
-        res = kalman_filter(model, free=free)
         return res, {"covariance": res.covariance}
-    from .mcmc import sample_posterior
-
-    if free == "all":
-        free = "auto"  # sampling parameters the measurement does not see only explores the prior
-    res = sample_posterior(model, free=free, n_steps=steps, seed=seed, surrogate=surrogate)
     if not res.success:
         return res, {}
     return res, {"samples": res.samples[:: max(1, res.samples.shape[0] // GRID_DRAWS)]}

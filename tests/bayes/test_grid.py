@@ -93,3 +93,6 @@ def test_the_grid_carries_identify_map_answer():
     # which is not the plain MAP under the stated noise: the std the grid carries is several times smaller
     plain = map_estimate(s.fit_model, free="all")
     assert np.trace(answer.identification.covariance) < 0.2 * np.trace(plain.covariance)
+    # the filter too: identify --method kalman's filter, run on the noise the MAP found
+    kal = bayescal.grid(s, nodes=3, method="kalman")
+    np.testing.assert_array_equal(kal.identification.theta, bayescal.calibrate(s, method="kalman", free="all").result.theta)
