@@ -17,6 +17,7 @@ message that states the limit (docs/cli.md, "Limits"):
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from .errors import InputError
 
 __all__ = [
     "SEED_MAX", "check_seed", "SIGMA_POSITION_RANGE", "SIGMA_ANGLE_RANGE", "sigma_problem", "memory_budget",
-    "check_memory", "check_count",
+    "check_memory", "check_count", "finite_real",
 ]
 
 #: Largest random seed (numpy's legacy RandomState, which emcee draws from, takes 32 bits).
@@ -33,6 +34,12 @@ SEED_MAX = 2**32 - 1
 SIGMA_POSITION_RANGE = (1e-6, 1e3)
 #: A stated angle noise (one sigma), rad: 1 nrad to 1 rad.
 SIGMA_ANGLE_RANGE = (1e-9, 1.0)
+
+
+def finite_real(x) -> bool:
+    """Whether ``x`` is a finite real number (an int or float, numpy's too; not a bool, not a string)."""
+    # numbers.Real holds numpy's integer and floating scalars too (without importing numpy here: start-up)
+    return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
 
 
 def check_seed(seed, option: str = "seed") -> int:

@@ -210,11 +210,7 @@ class MeasurementModel:
         from .sensors import attach_sensors
 
         machine, sensor_set = attach_sensors(machine, rec, q) if sensors else (machine, None)
-        if sensor_set is not None and bend:
-            turns = np.zeros((rec.n_poses, sensor_set.n_sensors, 3))
-            for body, w in bend.items():
-                if body in sensor_set.bodies:
-                    turns[:, sensor_set.bodies.index(body)] = w
+        if sensor_set is not None and (turns := sensor_set.per_sensor(bend)) is not None:
             sensor_set = sensor_set.with_bend(turns)
         tool_dof = dof
         dof = tool_dof + (0 if sensor_set is None else sensor_set.n_rows)

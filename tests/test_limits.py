@@ -45,3 +45,12 @@ def test_memory_budget_refuses_what_cannot_fit_and_names_the_option():
     check_memory(1e6, "a small request", "lower --n")
     with pytest.raises(InputError, match=r"a grid needs about .* TiB of memory, more than the .* available; lower --nodes"):
         check_memory(32 * 2**40 + budget, "a grid", "lower --nodes")
+
+
+def test_finite_real_takes_numbers_and_numpy_scalars_only():
+    import numpy as np
+
+    from bayescal.limits import finite_real
+
+    assert all(finite_real(x) for x in (1, -2.5, np.int64(3), np.float32(0.5)))
+    assert not any(finite_real(x) for x in (True, np.bool_(True), "1", None, float("nan"), np.inf, [1.0]))

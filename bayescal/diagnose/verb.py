@@ -13,21 +13,7 @@ __all__ = ["diagnose_files"]
 
 
 def diagnose_files(machine: str | os.PathLike | Machine, recording, **options):
-    """Locate a model mismatch, name the missing physics, model it, as ``bayescal diagnose`` does.
-
-    Parameters
-    ----------
-    machine : path or Machine
-        Machine file (docs/formats.md sections 1, 5, 7) or a machine.
-    recording : path or Recording or ConstraintRecording
-        A pose or constraint recording (sections 2, 4, 6, 8).
-    **options
-        Of :func:`bayescal.diagnose.diagnose`.
-
-    Returns
-    -------
-    bayescal.diagnose.Diagnosis
-    """
+    """:func:`bayescal.api.diagnose` (the front door documents its parameters): files or objects in, a Diagnosis out."""
     m = machine if isinstance(machine, Machine) else load_machine(machine)
     rec = read_any_recording(recording) if isinstance(recording, (str, os.PathLike)) else recording
     return diagnose_model(m, rec, **options)

@@ -125,15 +125,13 @@ def _dx(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, n: int
 
 def _bend(effects: Sequence[tuple[Effect, Features]], slices, eta: NDArray, model: MeasurementModel) -> NDArray | None:
     """``sum_e w_e``: how the effects that bend the structure turn the bodies of ``model``'s sensors, (n, S, 3) or None."""
-    sensors = model.sensors
-    if sensors is None:
+    if model.sensors is None:
         return None
     out = None
     for (eff, f), sl in zip(effects, slices):
-        if eff.bends_bodies:
-            for body, w in eff.body_rotation(f, eta[sl]).items():
-                out = np.zeros((w.shape[0], sensors.n_sensors, 3)) if out is None else out
-                out[:, sensors.bodies.index(body)] += w
+        w = model.sensors.per_sensor(eff.body_rotation(f, eta[sl])) if eff.bends_bodies else None
+        if w is not None:
+            out = w if out is None else out + w
     return out
 
 
@@ -143,13 +141,9 @@ def _bend_rows(model: MeasurementModel, theta: NDArray, eff: Effect, f: Features
         return None
     from ..sensors import sensor_rotation_rows
 
-    jac = eff.body_rotation_jacobian(f, eta)
-    if not jac:
+    rot = model.sensors.per_sensor(eff.body_rotation_jacobian(f, eta))
+    if rot is None:
         return None
-    k = next(iter(jac.values())).shape[2]
-    rot = np.zeros((model.n_poses, model.sensors.n_sensors, 3, k))
-    for body, w in jac.items():
-        rot[:, model.sensors.bodies.index(body)] = w
     return sensor_rotation_rows(model.machine, model.sensors, model.q, model.machine.check_theta(theta), rot)
 
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import InputError
+from ..limits import finite_real
 from ..measurement import MeasurementModel
 from .noise import NoiseCheck, check_noise, distinct_rows
 from .result import IdentificationResult
@@ -318,11 +319,6 @@ def _fit_once(model, method, *, lam, k, free, rule, prior_scale, max_iter, outli
 OUTLIER_OPTIONS = ("nu", "alpha", "lines")
 
 
-def _real(x) -> bool:
-    """A finite real number (not a bool, not a string)."""
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and math.isfinite(x)
-
-
 def calibrate(
     model: MeasurementModel,
     *,
@@ -380,9 +376,9 @@ def calibrate(
         raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, rule, "
                          f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
                          f"{', '.join(OUTLIER_OPTIONS)}")
-    if lam is not None and lam != "auto" and not _real(lam):
+    if lam is not None and lam != "auto" and not finite_real(lam):
         raise InputError(f"lam: expected a number >= 0 or 'auto', got {lam!r}")
-    if k is not None and k != "auto" and not (_real(k) and float(k) == int(k)):
+    if k is not None and k != "auto" and not (finite_real(k) and float(k) == int(k)):
         raise InputError(f"k: expected a whole number or 'auto', got {k!r}")
     if method == "ridge" and lam is None:
         raise InputError("lam: required with method ridge (1: MAP under the tolerance prior, or 'auto')")

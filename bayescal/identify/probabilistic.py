@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from ..limits import finite_real
 from ..outliers import ALPHA, DEFAULT_NU
 
 __all__ = ["BayesCalibration", "calibrate_bayes", "BAYES_METHODS", "METHOD_OPTIONS", "MIN_STEPS"]
@@ -139,11 +140,6 @@ def _method_options(method: str, options: dict) -> dict:
     return got
 
 
-def _number(x) -> bool:
-    """A finite real number (not a bool, not a string)."""
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and bool(np.isfinite(x))
-
-
 def _run(model, method: str, free, o: dict):
     if method == "kalman":
         from ..bayes.kalman import kalman_filter
@@ -200,9 +196,9 @@ def calibrate_bayes(model, *, method: str, free="auto", max_iter: int = 50, nois
     o = _method_options(method, options)
     if noise not in ("auto", "stated"):
         raise InputError(f"noise: expected 'auto' or 'stated', got {noise!r}")
-    if not (_number(alpha) and 0 < alpha < 1):
+    if not (finite_real(alpha) and 0 < alpha < 1):
         raise InputError(f"alpha (--outlier-alpha): expected a level between 0 and 1, got {alpha!r}")
-    if not (_number(nu) and nu > 0):
+    if not (finite_real(nu) and nu > 0):
         raise InputError(f"nu (--nu): expected a number > 0, got {nu!r}")
     machine = model.machine if machine is None else machine
     okw = {"robust": robust, "nu": nu, "alpha": alpha, "lines": lines}

@@ -138,6 +138,21 @@ class SensorSet:
                 raise ValueError(f"bend: expected finite values of shape {(self.u.shape[0], self.n_sensors, 3)}, got {bend.shape}")
         return replace(self, bend=bend)
 
+    def per_sensor(self, per_body: dict) -> NDArray | None:
+        """``{body: (n, ...)}`` (an effect's turn of bodies, or its Jacobian) as (n, S, ...) in sensor order.
+
+        Sensors on bodies ``per_body`` leaves out get zeros, bodies without a sensor are dropped; None when
+        ``per_body`` names no sensor's body.
+        """
+        mine = {b: np.asarray(v, dtype=float) for b, v in per_body.items() if b in self.bodies}
+        if not mine:
+            return None
+        first = next(iter(mine.values()))
+        out = np.zeros((first.shape[0], self.n_sensors) + first.shape[1:])
+        for body, v in mine.items():
+            out[:, self.bodies.index(body)] = v
+        return out
+
     def bent(self, body_R: NDArray, body_J: NDArray) -> tuple[NDArray, NDArray]:
         """Body orientations (N, S, 3, 3) and their Jacobian (N, S, 3, k) with :attr:`bend` applied.
 
