@@ -115,7 +115,7 @@ def calibrate(data, *, method: str = "map", **options):
                          "recording))")
     session = data if isinstance(data, Session) else None
     model = data.fit_model if session is not None else data
-    machine = model.machine
+    machine = model.calibrated_machine
     if options.get("fit_effects"):
         from .effects.joint_model import joint_effects_model
 

@@ -125,6 +125,10 @@ class Model(Protocol):
     def answer_extras(self, theta: NDArray) -> dict:
         """JSON keys an answer carries for the model's own nuisance parameters (a ballbar's pivots)."""
 
+    @property
+    def calibrated_machine(self) -> Any:
+        """The machine a calibration of this model reports and writes (its frame; not the model's pivots)."""
+
 
 class ModelCheckError(BayescalError):
     """A model fails :func:`check_model` (``strict=True``); ``problems`` lists why."""

@@ -244,6 +244,11 @@ class MeasurementModel:
         return {}
 
     @property
+    def calibrated_machine(self) -> Machine:
+        """The machine a calibration of this model reports and writes: :attr:`machine` (frame included)."""
+        return self.machine
+
+    @property
     def theta_start(self) -> None:
         """Where a search starts: None, the nominal (zero errors); a model with nuisance start values overrides it."""
         return None

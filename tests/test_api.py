@@ -65,6 +65,31 @@ def test_calibrate_writes_the_json_identify_writes_byte_for_byte(tmp_path, case)
         assert "pivots" in cal.to_dict()
 
 
+def test_a_ballbar_recordings_machine_keeps_its_known_frame_through_either_door(tmp_path):
+    # a machine file's [instrument] table (a known frame, which ballbar rows do not see): the library reported no
+    # frame, wrote the machine without [instrument] and put the pivots into [calibration] (24 names for 21
+    # parameters), where the command reported the frame as known and kept it
+    from bayescal.io.answers import json_text
+
+    machine = tmp_path / "m.toml"
+    machine.write_text((ROOT / "examples" / "delta" / "machine.toml").read_text()
+                       + "\n[instrument]\norigin = [10.0, 0.0, 0.0]\nrotation_vector = [0.0, 0.0, 0.1]\n")
+    rec = tmp_path / "bb.csv"
+    assert main(["simulate", "--machine", str(machine), "--ballbar", "40", "--planes", "xy,xz", "--poses", "12",
+                 "--pivot", "1,2,80", "--seed", "3", "--out", str(rec), "--quiet"]) == 0
+    out, cli_machine = tmp_path / "cli.json", tmp_path / "cli.toml"
+    assert main(["identify", str(rec), "--machine", str(machine), "--json", str(out), "--write-machine",
+                 str(cli_machine), "--quiet"]) == 0
+    cal = bayescal.calibrate(bayescal.load(machine, rec))
+    assert json_text(cal.to_dict()) == out.read_text()
+    assert cal.to_dict()["frame"]["fitted"] is False
+    lib_machine = cal.write_machine(tmp_path / "lib.toml")[0]
+    assert lib_machine.read_text() == cli_machine.read_text()
+    written = bayescal.load_machine(lib_machine)
+    assert written.framed and not written.fit
+    assert len(written.calibration.names) == bayescal.load_machine(ROOT / "examples" / "delta" / "machine.toml").n_params
+
+
 def test_an_implausible_calibration_is_not_written(tmp_path):
     from dataclasses import replace
 

@@ -68,7 +68,7 @@ def _constraint_inputs(args: argparse.Namespace, machine: Machine, constraints: 
         if frame == "fit" and str(e).startswith("frame fit:"):
             raise InputError("--" + str(e).replace("use the base frame", "drop --frame fit")) from None
         raise
-    return machine, crec, model
+    return model.calibrated_machine, crec, model
 
 
 # ---------------------------------------------------------------- instrument frame (docs/formats.md section 4)

@@ -119,6 +119,9 @@ class ConstraintModel:
     #: or None: what effects that move the tool add after the kinematics (as
     #: :attr:`bayescal.measurement.MeasurementModel.pose_offset`).
     pose_offset: NDArray | None = None
+    #: The machine as the caller gave it, when it differs from :attr:`base`: a machine file's known
+    #: ``[instrument]`` frame, which the rows do not see (:meth:`from_recording`).
+    given: Machine | None = None
 
     def __post_init__(self) -> None:
         qa = self.base.check_q(self.qa)
@@ -159,15 +162,16 @@ class ConstraintModel:
         """
         if dof not in (None, 1):
             raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
+        given = None
         if machine.framed:
             if machine.fit:
                 raise InputError("a constraint recording does not see an instrument frame (heights are along the base z "
                                  "axis, docs/formats.md section 6): there is no frame to fit")
-            machine = machine.inside
+            given, machine = machine, machine.inside
         rec.check_machine(machine.n_actuators, machine.q_limits, machine.source)
         model = cls(
             base=machine, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot,
-            y_measured=rec.value[:, None], pose_sigma=rec.sigma, aux=dict(rec.aux),
+            y_measured=rec.value[:, None], pose_sigma=rec.sigma, aux=dict(rec.aux), given=given,
         )
         if machine.effects:
             # the machine file's [effect.*] tables at their stored values (docs/formats.md section 7), as for pose
@@ -266,6 +270,16 @@ class ConstraintModel:
     def answer_extras(self, theta) -> dict:
         """The answer's ``pivots``: each ballbar pivot's fitted position (mm), ``{}`` without ballbar rows."""
         return {"pivots": self.pivot_positions(theta)}
+
+    @property
+    def calibrated_machine(self) -> Machine:
+        """The machine a calibration reports and writes: as given (its known ``[instrument]`` kept), without pivots.
+
+        The rows do not see an instrument frame, so a calibration leaves a
+        machine file's ``[instrument]`` table as it was: a later pose
+        recording from that instrument still reads in its frame.
+        """
+        return self.base if self.given is None else self.given
 
     def with_pose_sigma(self, pose_sigma: NDArray | None) -> "ConstraintModel":
         """The same model with other per-row noise (None: the machine's)."""

@@ -270,6 +270,11 @@ class EffectModel:
     effect_inputs = _of_geo("effect_inputs")
     answer_extras = _of_geo("answer_extras")
 
+    @property
+    def calibrated_machine(self) -> EffectAugmented:
+        """The machine a calibration reports and writes: :attr:`machine` (the effects' tables filled from theta)."""
+        return self.machine
+
     def with_pose_q(self, pose_q: NDArray, *, keep_guess: bool = True) -> "EffectModel":
         """The same effects on the geometric model at other actuator positions (their features kept)."""
         return dataclasses.replace(self, geo=self.geo.with_pose_q(pose_q, keep_guess=keep_guess))
