@@ -71,13 +71,7 @@ def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Re
 
             return load_constraint_model(_machine(machine), recording, frame=frame, dof=dof)[1]
 
-    session = prepare_session(_machine(machine), _recording(recording), dof=dof, frame=frame)
-    if session.unfitted_stations:
-        from .errors import RecordingError
-
-        raise RecordingError(session.recording.path, None, "station", f"station {session.unfitted_stations[0]!r} has "
-                             "no fit rows; its frame cannot be fitted")
-    return session
+    return prepare_session(_machine(machine), _recording(recording), dof=dof, frame=frame).with_fitted_stations()
 
 
 def calibrate(data, *, method: str = "map", **options):
@@ -198,7 +192,9 @@ def diagnose(machine: str | os.PathLike | Machine, recording, **options):
     recording : path or Recording or ConstraintRecording
         A pose or constraint recording (sections 2, 4, 6, 8).
     **options
-        Of :func:`bayescal.diagnose.core.diagnose`: ``effects``, ``seed``, ``n_folds``, ``effect_settings``.
+        ``frame`` (``"base"`` or ``"fit"``: one instrument frame per station fitted with the geometry, as
+        ``--frame fit``; its keys are in ``to_dict()``), and those of :func:`bayescal.diagnose.core.diagnose`:
+        ``effects``, ``seed``, ``n_folds``, ``effect_settings``.
 
     Returns
     -------

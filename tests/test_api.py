@@ -149,6 +149,8 @@ def test_load_takes_a_constraint_recording(tmp_path, capsys):
     assert [p["value"] for p in lib["parameters"]] == [p["value"] for p in ans["parameters"]]
     with pytest.raises(bayescal.errors.InputError, match="constraint recording"):
         bayescal.load(machine, rec, frame="fit")
+    with pytest.raises(bayescal.errors.InputError, match="constraint recording"):
+        bayescal.diagnose(machine, rec, frame="fit")
 
 
 @pytest.mark.parametrize("call, match", [

@@ -87,7 +87,7 @@ def run(args) -> int:
     from ..diagnose import diagnose
     from . import EXIT_OK
 
-    machine, rec, model = recording_model(args, constraints=True)
+    machine, rec, _ = recording_model(args, constraints=True)
     effects = None
     if args.effects is not None:
         effects = name_list(args.effects)
@@ -99,16 +99,12 @@ def run(args) -> int:
     if machine.effects and not args.quiet:
         print(f"note: the [effect.*] tables of {args.machine} are not applied: the diagnosis fits every effect afresh")
     result = diagnose(machine, rec, effects=effects, seed=args.seed, effect_settings=effect_inputs(machine, args.effect_input))
-    # --frame fit: the fitted instrument frame (docs/formats.md section 4)
-    from .instrument import fitted_frame_answer, instrument_frame_line
-
-    frame = fitted_frame_answer(machine, model)
     calibrated = None
     if args.write_machine:
         from ..diagnose.calibrated import calibrated_machine
 
         calibrated = calibrated_machine(machine, result)
-    answer = {**result.to_dict(), **frame}
+    answer = result.to_dict()  # with --frame fit, the fitted instrument frame's keys (docs/formats.md section 4)
     if calibrated is not None:
         answer["written_machine"] = {
             "path": str(args.write_machine), "effects": list(calibrated.effects), "warning": calibrated.warning,
@@ -126,8 +122,10 @@ def run(args) -> int:
         written = plot_diagnosis(result, args.figures)
     if not args.quiet:
         print(result.report())
-        if frame:
-            print(instrument_frame_line(frame))
+        if result.frame:
+            from .instrument import instrument_frame_line
+
+            print(instrument_frame_line(result.frame))
         for path in written:
             print(f"figure: {path}")
         if calibrated is not None:

@@ -104,12 +104,7 @@ def inputs_with_session(args: argparse.Namespace, *, constraints: bool = False):
     constrained = _constraint_inputs(args, machine, constraints)
     if constrained is not None:
         return (*constrained, None, None)
-    session = instrument_session(args, machine)
-    if session.unfitted_stations:
-        from ..errors import RecordingError
-
-        raise RecordingError(args.recording, None, "station", f"station {session.unfitted_stations[0]!r} has no fit "
-                             "rows; its frame cannot be fitted (give it fit rows, or leave its rows out)")
+    session = instrument_session(args, machine).with_fitted_stations()
     # the machine bound to the fit rows' stations (a command that rebuilds the model from the recording it gets)
     fit_model = session.fit_model
     return fit_model.machine, session.fit_recording, fit_model, session.check, session

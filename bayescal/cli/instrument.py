@@ -9,12 +9,11 @@ JSON answer says ``"plausible": false`` with the reasons, the command exits
 from __future__ import annotations
 
 
-from ..instrument import Plausibility, frame_answer
+from ..instrument import Plausibility
 from ..instrument.plausibility import judge_fit as judge
 
 __all__ = [
     "add_force_argument", "judge", "may_write_machine", "refusal_note", "instrument_report", "instrument_frame_line",
-    "fitted_frame_answer",
 ]
 
 
@@ -83,14 +82,3 @@ def instrument_frame_line(extra: dict) -> str:
     return "\n".join(lines)
 
 
-def fitted_frame_answer(machine, model) -> dict:
-    """``{"frame": ...}`` for a command that fits the frame inside its own model (diagnose), else ``{}``.
-
-    The frame is that of the geometric MAP calibration (the diagnosis's
-    starting point), with its Laplace std.
-    """
-    from ..bayes.priors import map_estimate
-    if not machine.framed or not machine.fit:
-        return {}
-    res = map_estimate(model, free="auto")
-    return frame_answer(machine, res.theta, res.free, res.covariance)

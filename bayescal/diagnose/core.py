@@ -282,7 +282,17 @@ def diagnose(
         confound=_confound(s, selected, cur_fit, g.fit0),
         discrepancy=disc_trial,
         record=_record(s.machine, final_model, cur_fit, disc_trial),
+        frame=_frame(s.machine, g.fit0),
     )
+
+
+def _frame(machine: Machine, fit0: EffectFit) -> dict:
+    """The answer's frame keys of a fitted instrument frame: the geometric fit's (the diagnosis' start)."""
+    if not (machine.framed and machine.fit):
+        return {}
+    from ..instrument.plausibility import frame_answer
+
+    return frame_answer(machine, fit0.theta, np.ones(fit0.theta.size, dtype=bool), fit0.covariance)
 
 
 @dataclass(frozen=True)

@@ -128,6 +128,9 @@ class Diagnosis:
     discrepancy: object = None
     #: The calibration's uncertainty the written machine carries (bayescal.prediction.record.CalibrationRecord).
     record: object = None
+    #: The answer's ``frame`` (or ``frames``) keys of a fitted instrument frame (docs/formats.md sections 4, 8):
+    #: the geometric fit's, with its Laplace std; ``{}`` in the base frame.
+    frame: dict = field(default_factory=dict)
 
     @property
     def located(self) -> ChannelDependence | None:
@@ -136,8 +139,8 @@ class Diagnosis:
     def to_dict(self) -> dict:
         """The JSON answer of docs/formats.md section 3 (plus documented extra keys), in JSON's own types.
 
-        ``bayescal diagnose --json`` writes ``json_text`` of it (with the fitted
-        instrument frame's keys when ``--frame fit``).
+        ``bayescal diagnose --json`` writes ``json_text`` of it (the fitted
+        instrument frame's keys included when ``--frame fit``).
         """
         from ..io.answers import to_jsonable
 
@@ -172,6 +175,7 @@ class Diagnosis:
             "written_geometry": None if self.confound is None else self.confound.to_dict(),
             "discrepancy": None if self.discrepancy is None else self.discrepancy.to_dict(),
             **self._outlier_keys(),
+            **self.frame,
         }
 
     def _outlier_keys(self) -> dict:

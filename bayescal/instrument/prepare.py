@@ -73,6 +73,19 @@ class Session:
         rows = self.recording.is_check
         return self.model.subset(np.flatnonzero(rows)) if rows.any() else None
 
+    def with_fitted_stations(self) -> "Session":
+        """This session, refused when a station has no ``fit`` rows (its frame could not be fitted).
+
+        Raises
+        ------
+        RecordingError
+            Naming the recording and the station.
+        """
+        if self.unfitted_stations:
+            raise RecordingError(self.recording.path, None, "station", f"station {self.unfitted_stations[0]!r} has no "
+                                 "fit rows; its frame cannot be fitted (give it fit rows, or leave its rows out)")
+        return self
+
     def row_errors(self) -> list[str | None]:
         """Per row, why it cannot be predicted from this session (its station has no ``fit`` row), else None."""
         if not self.unfitted_stations or self.recording.station is None:
