@@ -122,6 +122,8 @@ class ConstraintModel:
     #: The machine as the caller gave it, when it differs from :attr:`base`: a machine file's known
     #: ``[instrument]`` frame, which the rows do not see (:meth:`from_recording`).
     given: Machine | None = None
+    #: The recording's file (:attr:`ConstraintRecording.path`), named in messages; None for a model built in code.
+    path: str | None = None
 
     def __post_init__(self) -> None:
         qa = self.base.check_q(self.qa)
@@ -172,6 +174,7 @@ class ConstraintModel:
         model = cls(
             base=machine, measure=rec.measure, qa=rec.qa, qb=rec.qb, pivot=rec.pivot,
             y_measured=rec.value[:, None], pose_sigma=rec.sigma, aux=dict(rec.aux), given=given,
+            path=rec.path,
         )
         if machine.effects:
             # the machine file's [effect.*] tables at their stored values (docs/formats.md section 7), as for pose

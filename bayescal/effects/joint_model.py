@@ -466,7 +466,7 @@ def joint_effects_model(model, rec, *, method: str) -> EffectModel:
         raise InputError(f"fit_effects (--fit-effects): {machine.source} has no [effect.*] tables (diagnose "
                          "--write-machine writes them)")
     if not isinstance(model, MeasurementModel):
-        where = getattr(rec, "path", None) or "the recording"
+        where = model.path or "the recording"  # the constraint model's file (grid passes no recording)
         raise InputError(f"fit_effects (--fit-effects): {where} is a constraint recording; fitting effects jointly "
                          "works on pose recordings")
     if rec is None:

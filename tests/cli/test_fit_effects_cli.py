@@ -101,3 +101,18 @@ def test_grid_fits_the_tables_and_refuses_kalman(files, tmp_path, capsys):
     assert answer["effects_fitted"] is True and answer["effects"] == ["backlash"]
     assert main(["grid", str(rec), "--machine", str(machine), "--fit-effects", "--method", "kalman"]) == 2
     assert "(--fit-effects) goes with method map or mcmc" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["identify", "grid"])
+def test_fit_effects_on_a_constraint_recording_names_its_file(tmp_path, capsys, command):
+    # grid passes the model without its recording: the refusal said "the recording is a constraint recording"
+    from bayescal.constraints.simulate import simulate_distances
+    from bayescal.io.constraints import write_constraints
+
+    machine = tmp_path / "m.toml"
+    machine.write_text(PRS3_FILE.read_text() + TABLE)
+    rec = tmp_path / "heights.csv"
+    write_constraints(rec, simulate_distances(load_machine(PRS3_FILE), 8, seed=1, heights=4).recording)
+    assert main([command, str(rec), "--machine", str(machine), "--fit-effects", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{rec} is a constraint recording" in err[0]
