@@ -201,7 +201,7 @@ def _read_joint_tables(joints: list[TomlTable]) -> tuple[list, list, list, list,
     """Types, origins (mm), rpy (rad), unit axes, mimic entries and names of ``[[joint]]`` tables."""
     types, origin, rpy, axis, mimic, names = [], [], [], [], [], []
     for jt in joints:
-        jt.reject_unknown({"type", "origin", "rpy", "axis", "name", "mimic", "multiplier", "offset"})
+        jt.reject_unknown({"type", "origin", "rpy", "axis", "name", "mimic", "multiplier", "offset", "mass", "com"})
         t = jt.string("type")
         if t not in JOINT_TYPES:
             raise jt.error("type", f"expected \"revolute\" or \"prismatic\", got {t!r}")
@@ -234,6 +234,51 @@ def _read_joint_tables(joints: list[TomlTable]) -> tuple[list, list, list, list,
             that = f"joint {k + 1}'s name" if names[k] is not None else f"the default name of unnamed joint {k + 1}"
             raise joints[i].error("name", f"{this} is also {that}; expected distinct names")
     return types, origin, rpy, axis, mimic, full
+
+
+def _read_inertials(joints: list[TomlTable]) -> tuple[NDArray | None, NDArray | None]:
+    """``[[joint]] mass`` (kg) and ``com`` (mm, the frame after the joint): every joint's or none (bayescal's keys).
+
+    Link ``k`` is what joint ``k`` moves up to joint ``k + 1``, as a URDF's
+    ``<inertial>`` elements give it (:attr:`Serial.link_mass`): a machine
+    written from a URDF keeps its weights, so that the gravity effects of a
+    calibrated machine load its links as the URDF did.
+    """
+    given = [jt.has("mass") or jt.has("com") for jt in joints]
+    if not any(given):
+        return None, None
+    for jt, g in zip(joints, given):
+        for key in ("mass", "com"):
+            if not jt.has(key):
+                raise jt.error(key, "missing; expected every joint's mass (kg, 0 for a link that weighs nothing) "
+                                    "and centre of mass com (mm, the frame after the joint), or none")
+    mass = np.array([jt.number("mass") for jt in joints])
+    for jt, m in zip(joints, mass):
+        if m < 0:
+            raise jt.error("mass", f"expected a mass >= 0 kg, got {m!r}")
+    return mass, np.array([jt.vector("com") for jt in joints])
+
+
+def _read_bodies(doc: TomlTable, n_joints: int) -> tuple:
+    """``[[body]]`` tables (bayescal's): named bodies a sensor may be fixed to, as a URDF's links are.
+
+    ``name``; ``joint``, the moving joint whose frame (after its motion) the
+    body is fixed to, 1-based, 0 for the base; ``rpy``, its orientation in
+    that frame (rad, default zero).  Returns :attr:`Serial.link_bodies`.
+    """
+    if not doc.has("body"):
+        return ()
+    out = []
+    for bt in doc.array_of_tables("body"):
+        bt.reject_unknown({"name", "joint", "rpy"})
+        name = bt.string("name")
+        k = bt.data.get("joint")
+        if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k <= n_joints:
+            raise bt.error("joint", f"expected the index of a joint (1 to {n_joints}; 0: the base), got {k!r}")
+        if name == "base" or (name.startswith("joint") and name[5:].isdigit()) or name in [b[0] for b in out]:
+            raise bt.error("name", f"{name!r} is taken (base, joint<i> or another body); expected a distinct name")
+        out.append((name, k - 1, rpy_matrix(bt.vector("rpy", default=np.zeros(3)))))
+    return tuple(out)
 
 
 @dataclass(frozen=True, eq=False)
@@ -394,12 +439,14 @@ class Serial(Machine):
     def from_toml(cls, doc: TomlTable, path: str) -> "Serial":
         """Read ``[[joint]]`` tables, or ``urdf``/``base_link``/``tip_link`` standing in for them."""
         doc.reject_unknown(
-            {"kind", "name", "joint", "urdf", "base_link", "tip_link", "tool", "measurement", "workspace", "tolerance"}
+            {"kind", "name", "joint", "body", "urdf", "base_link", "tip_link", "tool", "measurement", "workspace",
+             "tolerance"}
         )
         limits = None
         if doc.has("urdf"):
-            if doc.has("joint"):
-                raise doc.error("joint", "[[joint]] tables and urdf are both given; expected one of them")
+            for k in ("joint", "body"):
+                if doc.has(k):
+                    raise doc.error(k, f"[[{k}]] tables and urdf are both given; the URDF's joints and links stand for them")
             urdf = doc.string("urdf")
             urdf_path = Path(urdf) if Path(urdf).is_absolute() else Path(path).parent / urdf
             chain = chain_from_urdf(urdf_path, doc.string("base_link"), doc.string("tip_link"), path=path)
@@ -408,12 +455,13 @@ class Serial(Machine):
             inertial = (chain.link_mass, chain.link_com) if chain.link_mass is not None else (None, None)
             links = chain.links
         else:
-            links = ()
             for k in ("base_link", "tip_link"):
                 if doc.has(k):
                     raise doc.error(k, "only allowed together with urdf = \"...\"")
-            inertial = (None, None)
-            types, origin, rpy, axis, mimic, names = _read_joint_tables(doc.array_of_tables("joint"))
+            joints = doc.array_of_tables("joint")
+            types, origin, rpy, axis, mimic, names = _read_joint_tables(joints)
+            inertial = _read_inertials(joints)
+            links = _read_bodies(doc, len(joints))
             tail = None
         tool = doc.table("tool")
         tool.reject_unknown({"point", "rpy"})
@@ -733,7 +781,8 @@ class Serial(Machine):
 
         A chain read from a URDF file is written out as ``[[joint]]`` tables
         (fixed joints already folded in, the URDF joint names kept as
-        ``name``), so the file stands alone.  Mimic joints keep ``mimic``,
+        ``name``, its links' weights as ``mass`` and ``com``, its link names
+        as ``[[body]]`` tables for the sensors named after them), so the file stands alone.  Mimic joints keep ``mimic``,
         ``multiplier`` and ``offset``; their zero offsets are folded like any
         joint's.
         """
@@ -746,6 +795,11 @@ class Serial(Machine):
             if self.mimic[i] is not None:
                 d, k, o = self.mimic[i]
                 out += [f"mimic = {d + 1}", f"multiplier = {f(k)}", f"offset = {f(o)}"]
+            if self.link_mass is not None:
+                out += [f"mass = {f(float(self.link_mass[i]))}", f"com = {f(np.asarray(self.link_com)[i])}"]
             out.append("")
+        for name, k, R in self.link_bodies:
+            if name not in ("base", *(f"joint{j + 1}" for j in range(self.n_joints))):
+                out += ["[[body]]", f"name = {f(name)}", f"joint = {k + 1}", f"rpy = {f(rpy_from_matrix(R))}", ""]
         out += ["[tool]", f"point = {f(g['tool_point'])}", f"rpy = {f(g['tool_rpy'])}", ""]
         return "\n".join(out) + common_toml(self, self.tolerance_groups)

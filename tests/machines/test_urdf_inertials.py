@@ -148,3 +148,39 @@ def test_tiago_link_masses_are_everything_above_the_torso_lift(tmp_path):
         total += mass.get(link, 0.0)
         stack += children.get(link, [])
     assert known.mass_kg.sum() == pytest.approx(total, rel=1e-12)
+
+
+def test_a_written_calibrated_urdf_machine_keeps_its_links_and_their_weights(arm):
+    # a URDF chain is written as [[joint]] tables: before, its link names (the bodies sensors are named after) and
+    # its links' weights were lost, so a calibrated machine could not read its own recording's accel.<link> columns
+    # and its gravity effects no longer knew the masses; checked against the URDF machine at the calibrated theta
+    m, _ = arm
+    rng = np.random.default_rng(3)
+    theta = rng.normal(size=m.n_params) * m.tolerance
+    again = machine_from_text(m.to_toml(theta), "written.toml")
+    assert again.sensor_bodies == m.sensor_bodies and "tool_link" in again.sensor_bodies
+    np.testing.assert_allclose(again.body_inertials.mass_kg, m.body_inertials.mass_kg, rtol=0, atol=0)
+    np.testing.assert_allclose(again.body_inertials.com_mm, m.body_inertials.com_mm, rtol=0, atol=1e-12)
+    q = m.sample_q(5, rng)
+    frames = [m.body_frame(b) for b in m.sensor_bodies]
+    R0, _ = m.body_rotations(q, theta, frames)
+    R1, _ = again.body_rotations(q, None, [again.body_frame(b) for b in again.sensor_bodies])
+    np.testing.assert_allclose(R1, R0, atol=1e-12)
+    np.testing.assert_allclose(again.forward(q).position, m.forward(q, theta).position, atol=1e-9)
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda t: t.replace("[tool]", "[[body]]\nname = \"cam\"\njoint = 7\n\n[tool]"), r"body\[1\]\.joint.*1 to 4"),
+    (lambda t: t.replace("[tool]", "[[body]]\nname = \"joint2\"\njoint = 1\n\n[tool]"), r"body\[1\]\.name.*taken"),
+    (lambda t: t.replace("mass = 1.0", "mass = -1.0", 1), r"joint\[1\]\.mass.*>= 0"),
+    (lambda t: t.replace("mass = 1.0\n", "", 1), r"joint\[1\]\.mass'?: missing"),
+])
+def test_bad_body_and_mass_keys_are_named(edit, match):
+    from bayescal.errors import MachineFileError
+
+    text = ('kind = "serial"\n' + "".join(
+        f'[[joint]]\ntype = "revolute"\norigin = [0.0, 0.0, {100.0 * k}]\naxis = [0.0, 0.0, 1.0]\nmass = 1.0\n'
+        f"com = [0.0, 0.0, 10.0]\n\n" for k in range(1, 5)) + "[tool]\npoint = [0.0, 0.0, 50.0]\n")
+    assert machine_from_text(text, "ok.toml").body_inertials.mass_kg.tolist() == [1.0] * 4
+    with pytest.raises(MachineFileError, match=match):
+        machine_from_text(edit(text), "bad.toml")
