@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import BayescalError
 
-__all__ = ["Model", "check_model", "ModelCheckError", "JACOBIAN_RTOL"]
+__all__ = ["Model", "check_model", "ModelCheckError", "JACOBIAN_RTOL", "whiten", "scale_noise"]
 
 #: Largest relative difference between the analytic Jacobian and central differences.
 JACOBIAN_RTOL = 2e-4
@@ -128,6 +128,43 @@ class Model(Protocol):
     @property
     def calibrated_machine(self) -> Any:
         """The machine a calibration of this model reports and writes (its frame; not the model's pivots)."""
+
+
+def whiten(model, values: ArrayLike) -> NDArray:
+    """``values`` in units of each row's one-sigma noise: the one place rows are whitened.
+
+    Parameters
+    ----------
+    model : Model
+    values : array_like, shape (n_poses, dof) or (n_poses, dof, P)
+        Residuals (mm, rad) or Jacobian rows (per parameter unit) of the model's rows.
+
+    Returns
+    -------
+    ndarray
+        ``values / row_sigma`` (dimensionless; per parameter unit for a Jacobian).
+    """
+    v = np.asarray(values, dtype=float)
+    sigma = np.asarray(model.row_sigma, dtype=float)
+    return v / (sigma[:, :, None] if v.ndim == 3 else sigma)
+
+
+def scale_noise(model, factor):
+    """``model`` with every row's one-sigma noise multiplied by ``factor`` (``model`` itself for 1).
+
+    Parameters
+    ----------
+    model : Model
+    factor : float or array_like, shape (n_poses,)
+        One factor for every row (a noise scale), or one per measurement
+        (``1 / sqrt(weight)`` of a robust fit's weights).
+    """
+    f = np.asarray(factor, dtype=float)
+    if f.ndim == 0:
+        if float(f) == 1.0:
+            return model
+        return model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * float(f))
+    return model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * f.reshape(-1, 1))
 
 
 class ModelCheckError(BayescalError):

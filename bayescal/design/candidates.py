@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ..contract import whiten
 from ..errors import InputError
 from ..identifiability import analyse_identifiability
 from ..machines.base import Machine
@@ -245,7 +246,7 @@ def draw_candidates(
     model = MeasurementModel(machine=machine, q=q[ok], dof=dof)
     pred = model.predict(theta)
     good = np.asarray(pred.success, dtype=bool)
-    J = model.jacobian(theta, pred) / model.row_sigma[:, :, None]
+    J = whiten(model, model.jacobian(theta, pred))
     J[~good] = np.nan
     uniform = np.flatnonzero(ok) < n_uniform  # criterion I averages over the workspace: uniform draws only
     usable = np.flatnonzero(good & uniform & np.all(np.isfinite(J), axis=(1, 2)))[: max(1, int(n_output))]

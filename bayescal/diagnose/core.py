@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2 as chi2_dist
 
+from ..contract import scale_noise, whiten
 from ..effects import EFFECTS, get_effect
 from ..effects.base import Effect, Features
 from ..effects.model import EffectFit, actuator_residual, effect_residual, fit_map, linear_fold_residuals
@@ -116,7 +117,7 @@ def _sensor_noise(machine: Machine, recording: Recording, model: MeasurementMode
         fit = fit_map(model)
     except KinematicsError:
         return machine, model
-    r = fit.residual[:, tool:] / model.row_sigma[:, tool:]
+    r = whiten(model, fit.residual)[:, tool:]
     own = sum(1 for n in model.machine.layout.names if n.startswith("sensor.") or n.startswith("gravity.tilt."))
     check = check_noise(float(np.sum(r**2)), r.size - own)
     if not check.contradicted:
@@ -363,7 +364,7 @@ def _geometric_stage(s: _Setup, seed: int) -> _Geometric:
         # reach the actuator-space tests (periodogram, pitch search); zero is "no actuator error"
         dq_res[s.screen.excluded] = 0.0
     direction = approach_direction(model.pose_q, model.pose_order)[: model.n_poses]
-    location = locate(model.q, fit0.residual / model.row_sigma, dq_res, s.aux, model.region(pred0), seed=seed,
+    location = locate(model.q, whiten(model, fit0.residual), dq_res, s.aux, model.region(pred0), seed=seed,
                       direction=direction, units=s.machine.actuator_units)
     return _Geometric(fit0, dq_res, location, model.effect_inputs(fit0.theta, pred0))
 
@@ -592,7 +593,7 @@ def _record(machine, final_model, fit: EffectFit, disc_trial):
         scale, extra, cov, disc = float(np.sqrt(scale2)), (), fit.covariance[:P, :P] * scale2, None
     kappa = 1.0
     if final_model is not None:
-        scaled = final_model.with_pose_sigma(np.asarray(final_model.row_sigma, dtype=float) * scale)
+        scaled = scale_noise(final_model, scale)
         theta = disc_trial.theta[:P] if disc is not None else fit.theta[:P]
         try:
             kappa, _ = loo_variance_factor(scaled, theta, cov, machine_index=np.arange(P), discrepancy=disc)

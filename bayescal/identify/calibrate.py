@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..contract import scale_noise, whiten
 from ..errors import InputError
 from ..limits import finite_real
 from ..measurement import MeasurementModel
@@ -226,8 +227,7 @@ class Calibration:
         res = self.result
         if not res.success or res.covariance is None:
             return self
-        scaled = model if self.noise_scale == 1.0 else model.with_pose_sigma(
-            np.asarray(model.row_sigma, dtype=float) * self.noise_scale)
+        scaled = scale_noise(model, self.noise_scale)
         # every pose at full weight (bayescal/prediction/loo.py says why)
         disc = self.discrepancy.discrepancy if self.discrepancy is not None else None
         try:
@@ -255,7 +255,7 @@ def tilt_noise_check(model, res) -> NoiseCheck | None:
     tool = model.tool_dof
     if tool >= model.dof or not res.success or res.residuals_after is None:
         return None
-    r = np.asarray(res.residuals_after, dtype=float)[:, tool:] / np.asarray(model.row_sigma, dtype=float)[:, tool:]
+    r = whiten(model, res.residuals_after)[:, tool:]
     names = model.machine.layout.names
     own = sum(1 for n, f in zip(names, res.free) if f and (n.startswith("sensor.") or n.startswith("gravity.tilt.")))
     return check_noise(float(np.sum(r**2)), r.size - own, stated=True)
@@ -416,7 +416,7 @@ def calibrate(
         # support, the geometry's prior is a prior (its std the tolerances times that scale over sqrt(lam)) before
         # it decides with the discrepancy's what each may take
         base = first.scale if first.verdict == "not_stated" and noise == "auto" else 1.0
-        model_d = model if base == 1.0 else model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * base)
+        model_d = scale_noise(model, base)
         got = _with_discrepancy(model_d, method, kw, (res, handling, choice), discrepancy, discrepancy_inputs, noise,
                                 lam_scale=base**2)
         if got is not None:
@@ -480,7 +480,7 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise, lam_sca
     check = check_noise(df.chi2, n_distinct - df.effective_params, stated=noise_stated(model))
     scale = check.scale if (noise == "auto" and (check.contradicted or check.verdict == "not_stated")) else 1.0
     scale = max(scale, MIN_UNSTATED_SCALE if check.verdict == "not_stated" else MIN_NOISE_SCALE)
-    scaled = model if scale == 1.0 else model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
+    scaled = scale_noise(model, scale)
     # the joint posterior at the noise used, on the poses weighted as the robust geometry fit weighted them (a
     # reference one gross pose cannot drag), relinearised at its own geometry; then every pose is judged against
     # it at full weight, and the joint fit is redone with only the poses that test names left out
@@ -544,7 +544,7 @@ def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outli
             action = f"kept ({why}), {judged}"
         return OutlierHandling(test=test, mode=robust, action=action), df, theta
     weights = np.where(flagged, 1e-12, 1.0)
-    excluded = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) / np.sqrt(weights)[:, None])
+    excluded = scale_noise(model, 1.0 / np.sqrt(weights))
     # the hyperparameters again, without the poses no model explains
     searched = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, inputs=df.discrepancy.inputs)
     theta, df = _relinearised(excluded, theta, res.free, prior_sd, prior_mean, searched.discrepancy)
@@ -563,7 +563,7 @@ def _joint_result(model, res, theta, df):
         after = after - df.discrepancy.rows(model, theta, pred)[0]
     return replace(
         res, theta=theta, covariance=df.covariance[:p, :p], residuals_after=after, rms_after=model.rms(after),
-        chi2=float(np.sum((after / model.row_sigma) ** 2)),
+        chi2=float(np.sum(whiten(model, after) ** 2)),
         covariance_kind=res.covariance_kind + "; joint with the model discrepancy (its weights marginalised)",
     )
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..contract import scale_noise
 from ..errors import InputError
 from ..limits import finite_real
 from ..outliers import ALPHA, DEFAULT_NU
@@ -206,7 +207,7 @@ def calibrate_bayes(model, *, method: str, free="auto", max_iter: int = 50, nois
     if not fit_effects:
         noise_cal = calibrate(model, method="map", max_iter=max_iter, noise=noise, free=free, **okw)
         if noise_cal.noise_scale != 1.0:
-            model = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * noise_cal.noise_scale)
+            model = scale_noise(model, noise_cal.noise_scale)
     handling = robust_map_weights(model, free, max_iter=max_iter, **okw)
     res = _run(handling.weighted_model(model), method, free, o)  # the robust MAP pass's weights (docs/outliers.md)
     handling = handling.retested(model, res, map_system(res))

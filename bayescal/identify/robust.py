@@ -32,6 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from ..contract import scale_noise
 from ..errors import InputError
 from ..measurement import MeasurementModel
 from ..outliers import ALPHA, DEFAULT_NU, LOSSES, MAX_FRACTION, PoseTest, describe_loss, irls_weights, pose_test
@@ -104,7 +105,7 @@ class OutlierHandling:
         """``model`` with the robust weights (each pose's sigma divided by ``sqrt(w)``), or itself."""
         if self.weights is None:
             return model
-        return model.with_pose_sigma(np.asarray(model.row_sigma) / np.sqrt(self.weights)[:, None])
+        return scale_noise(model, 1.0 / np.sqrt(self.weights))
 
     def retested(self, model: MeasurementModel, res, system: dict) -> "OutlierHandling":
         """The same handling, with the test redone at the answer ``res`` of the weighted recording."""

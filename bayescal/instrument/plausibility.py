@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ..contract import whiten
 from ..geometry import left_jacobian, left_jacobian_inverse
 from ..machines.base import Machine
 from ..machines.framed import InstrumentFrame, is_frame_parameter
@@ -204,7 +205,7 @@ def _recording_causes(check: FrameCheck | None) -> list[str]:
 def _near_null(model, theta, free, pred, flagged) -> list[str]:
     idx = np.flatnonzero(free)
     S = np.asarray(model.machine.tolerance, dtype=float)[idx]
-    J = model.jacobian(theta, pred)[:, :, idx] / model.row_sigma[:, :, None]
+    J = whiten(model, model.jacobian(theta, pred)[:, :, idx])
     A = J.reshape(-1, idx.size) * S
     _, s, Vt = np.linalg.svd(A, full_matrices=False)
     V = Vt.T
@@ -225,7 +226,7 @@ def _near_null(model, theta, free, pred, flagged) -> list[str]:
 
 
 def _outlier_cause(model, residuals, line_offset, dof_left) -> str | None:
-    z2 = np.sum((residuals / model.row_sigma) ** 2, axis=1)
+    z2 = np.sum(whiten(model, residuals) ** 2, axis=1)
     total = float(z2.sum())
     n = z2.size
     if total <= 0 or dof_left <= 0 or total / dof_left <= 2.0:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..contract import scale_noise
 from ..errors import InputError
 from ..geometry import so3_log
 from ..io.recording import Recording
@@ -313,7 +314,7 @@ def score_held_out(cal, session, *, effects=None, noise_scale: float | None = No
     model = model.without_sensors()
     scale = float(getattr(cal, "noise_scale", 1.0) if noise_scale is None else noise_scale)
     if scale != 1.0:
-        model = model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * scale)
+        model = scale_noise(model, scale)
     sub_rec = rec.subset(idx)
     P = model.n_params
     theta, free = np.asarray(res.theta, dtype=float), np.asarray(res.free, dtype=bool)
