@@ -270,6 +270,35 @@ def pose_test_linear(
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=float).reshape(n)
     if np.any(w < 0) or not np.all(np.isfinite(w)):
         raise InputError("weights: expected finite values >= 0")
+    d = _deletion(A, r, dof, w, lam, k, rcond)
+    leverage = np.sum(d.wg, axis=1)
+    trH = float(np.sum(leverage))
+    # Cook: (x - x_(i))^T C^-1 (x - x_(i)) = w^2 sum_j a_j^2 g_j / (1 - w g_j)^2
+    cook_num = np.sum(d.a2 * w[:, None] ** 2 * d.g / (1.0 - d.wg) ** 2, axis=1)
+    s2, stat, pval, dist, df = _scaled_test(d, w, dof, trH, scale, noise_known)
+    padj = _sidak(pval, n)
+    cooks = cook_num / (max(trH, 1e-12) * s2)
+    return PoseTest(
+        statistic=stat, p_value=pval, p_adjusted=padj, cooks_distance=cooks, leverage=leverage, weight=w,
+        flagged=padj < alpha, lines=np.arange(n) + 2 if lines is None else np.asarray(lines, dtype=int),
+        distribution=dist, dof=df, alpha=float(alpha), scale=float(s2),
+    )
+
+
+@dataclass(frozen=True)
+class _Deletion:
+    """Each pose's deleted-residual statistic and what the leverage, Cook and scale terms need of it."""
+
+    t: NDArray  # (n,) deleted residual's squared norm in its covariance (unscaled)
+    a2: NDArray  # (n, dof) squared residual in the eigenbasis of G_i
+    g: NDArray  # (n, dof) eigenvalues of G_i
+    wg: NDArray  # (n, dof) w_i g, clipped below 1
+    rp: NDArray  # (n, dof) residual per pose
+
+
+def _deletion(A: NDArray, r: NDArray, dof: int, w: NDArray, lam: float, k: int | None, rcond: float) -> _Deletion:
+    """Leave-one-pose-out terms of the (regularised, weighted) linear fit (see :func:`pose_test_linear`)."""
+    n = w.size
     sw = np.repeat(np.sqrt(w), dof)
     _, s, Vt = np.linalg.svd(A * sw[:, None], full_matrices=False)
     if k is not None:
@@ -296,10 +325,12 @@ def pose_test_linear(
         e = np.einsum("nij,nj->ni", inv, rp)
         cov = np.eye(dof) + np.einsum("nij,nj,nkj->nik", Q, g / (1.0 - wg), Q) + Dp @ np.swapaxes(Dp, 1, 2)
         t = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[:, :, None])[:, :, 0])
-    leverage = np.sum(wg, axis=1)
-    trH = float(np.sum(leverage))
-    # Cook: (x - x_(i))^T C^-1 (x - x_(i)) = w^2 sum_j a_j^2 g_j / (1 - w g_j)^2
-    cook_num = np.sum(a2 * w[:, None] ** 2 * g / (1.0 - wg) ** 2, axis=1)
+    return _Deletion(t=t, a2=a2, g=g, wg=wg, rp=rp)
+
+
+def _scaled_test(d: _Deletion, w: NDArray, dof: int, trH: float, scale: str, noise_known: bool):
+    """The noise scale, the statistics, their p-values, the distribution's name and its degrees of freedom."""
+    t = d.t
     if scale == "robust":
         s2 = max(1.0, float(np.median(t)) / float(chi2_median(dof)))
         stat = t / s2
@@ -314,21 +345,16 @@ def pose_test_linear(
         dist, df = "chi2", (float(dof),)
     else:
         # leave-one-out noise: weighted RSS of the other poses over its degrees of freedom
-        rss = float(np.sum(w * np.sum(rp**2, axis=1)))
-        drop = w * np.sum(a2 / (1.0 - wg), axis=1)  # RSS_w - RSS_w(i) = w r^T (I - w G)^-1 r
+        N = d.rp.size
+        rss = float(np.sum(w * np.sum(d.rp**2, axis=1)))
+        drop = w * np.sum(d.a2 / (1.0 - d.wg), axis=1)  # RSS_w - RSS_w(i) = w r^T (I - w G)^-1 r
         dfd = max(N - trH - dof, 1.0)
         s2_i = np.clip(rss - drop, 1e-300, None) / dfd
         stat = (t / dof) / s2_i
         pval = f_sf(stat, dof, dfd)
         s2 = rss / max(N - trH, 1.0)
         dist, df = "F", (float(dof), float(dfd))
-    padj = _sidak(pval, n)
-    cooks = cook_num / (max(trH, 1e-12) * s2)
-    return PoseTest(
-        statistic=stat, p_value=pval, p_adjusted=padj, cooks_distance=cooks, leverage=leverage, weight=w,
-        flagged=padj < alpha, lines=np.arange(n) + 2 if lines is None else np.asarray(lines, dtype=int),
-        distribution=dist, dof=df, alpha=float(alpha), scale=float(s2),
-    )
+    return s2, stat, pval, dist, df
 
 
 def pose_test(

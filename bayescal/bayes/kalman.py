@@ -235,72 +235,12 @@ def kalman_filter(
     machine = model.machine
     prior = prior_from_machine(machine) if prior is None else prior
     idx, ida = resolve_free(model, free, prior.mean, prior=True)  # the filter starts from the prior
-    n, dof = idx.size, model.dof
-    qn = np.broadcast_to(np.asarray(process_noise, dtype=float), (n,)) * prior.std[idx]
+    qn = np.broadcast_to(np.asarray(process_noise, dtype=float), (idx.size,)) * prior.std[idx]
     if np.any(qn < 0) or not np.all(np.isfinite(qn)):
         raise InputError("process_noise: expected finite values >= 0")
-    Q = np.diag(qn**2)
-    row_sigma = model.row_sigma
-    R = np.diag(row_sigma[0] ** 2)
-    base = prior.mean.copy()
-
-    def full(x: NDArray) -> NDArray:
-        th = base.copy()
-        th[idx] = np.ravel(x)
-        return th
-
-    means = [prior.mean[idx].copy()]
-    covs = [np.diag(prior.std[idx] ** 2)]
-    nis = np.empty(model.n_poses)
-    message, success = "", True
-    if variant == "ekf":
-        f = ExtendedKalmanFilter(dim_x=n, dim_z=dof)
-        f.x = means[0].reshape(n, 1).copy()
-    else:
-        points = MerweScaledSigmaPoints(n, alpha=alpha, beta=2.0, kappa=0.0)
-        f = UnscentedKalmanFilter(dim_x=n, dim_z=dof, dt=1.0, hx=None, fx=lambda x, dt: x, points=points)
-        f.x = means[0].copy()
-    f.P, f.R, f.Q = covs[0].copy(), R, Q
-    for i in range(model.n_poses):
-        sub = model.subset([i])
-        z = sub.y_measured[0]
-        f.R = np.diag(row_sigma[i] ** 2)  # per-pose noise (recording columns or robust weights)
-        try:
-            if variant == "ekf":
-                if i > 0:
-                    f.predict()
-                cache = {}
-
-                def jac(x, sub=sub, cache=cache):
-                    th = full(x)
-                    pred = sub.predict(th)
-                    if not pred.success.all():
-                        raise InputError(f"pose {i + 1}: {pred.poses.message[0]} at the current estimate")
-                    cache["h"] = pred.y[0].reshape(dof, 1)
-                    return sub.jacobian(th, pred)[0][:, idx]
-
-                # HJacobian runs first in filterpy's update, at the same x as Hx
-                f.update(z.reshape(dof, 1), HJacobian=jac, Hx=lambda x, cache=cache: cache["h"])
-            else:
-                f.predict()
-                thetas = np.tile(base, (f.sigmas_f.shape[0], 1))
-                thetas[:, idx] = f.sigmas_f
-                pred = sub.predict(thetas)  # one vectorised call for all sigma points
-                if not pred.success.all():
-                    raise InputError(f"pose {i + 1}: a sigma point cannot be solved (try a smaller alpha)")
-                it = iter(pred.y)
-                f.update(z, hx=lambda x, it=it: next(it))
-        except (InputError, np.linalg.LinAlgError) as exc:
-            success, message = False, f"stopped at pose {i + 1}: {exc}"
-            nis = nis[:i]
-            break
-        innov = np.ravel(f.y)
-        nis[i] = float(innov @ np.linalg.solve(f.S, innov))
-        means.append(np.ravel(f.x).copy())
-        P = np.asarray(f.P)
-        covs.append(0.5 * (P + P.T))
-    theta = full(means[-1])
-    means, covs = np.array(means), np.array(covs)
+    run = _run_filter(model, variant, prior, idx, qn, alpha)
+    theta = _full_theta(prior.mean.copy(), idx, run.means[-1])
+    means, covs = np.array(run.means), np.array(run.covariances)
     free_mask = np.zeros(machine.n_params, dtype=bool)
     free_mask[idx] = True
     q_eval = evaluation_poses(machine, n_eval, seed=seed, fallback=model.q) if eval_q is None else np.asarray(eval_q)
@@ -319,16 +259,109 @@ def kalman_filter(
         means=means,
         covariances=covs,
         workspace_accuracy=workspace_accuracy(G, covs),
-        nis=nis,
+        nis=run.nis,
         process_noise=qn,
         rms_before=model.rms(before),
         rms_after=model.rms(after),
-        dof=dof,
+        dof=model.dof,
         tool_dof=model.tool_dof,
-        success=success,
-        message=message,
+        success=run.success,
+        message=run.message,
         fixed=tuple(nm for nm, fr in zip(machine.layout.names, free_mask) if not fr),
         unidentifiable=() if ida is None else ida.combinations,
         decided_by_prior=() if ida is None else ida.decided_by_prior,
         determined=determined_at(model, theta, free_mask, pred),
     )
+
+
+def _full_theta(base: NDArray, idx: NDArray, x: ArrayLike) -> NDArray:
+    """All parameters: ``base`` with the state ``x`` at ``idx`` (a copy)."""
+    th = base.copy()
+    th[idx] = np.ravel(x)
+    return th
+
+
+@dataclass(frozen=True)
+class _FilterRun:
+    """The filter's pass over the poses: the state after 0, 1, ... poses and the innovations' consistency."""
+
+    means: list  # n_done + 1 arrays (n_free,): the prior mean, then after each pose
+    covariances: list  # n_done + 1 arrays (n_free, n_free)
+    nis: NDArray  # (n_done,) normalised innovation squared per pose
+    success: bool
+    message: str
+
+
+def _new_filter(variant: str, x0: NDArray, P0: NDArray, R: NDArray, Q: NDArray, dof: int, alpha: float):
+    """A filterpy EKF or UKF (Merwe sigma points) at the prior ``N(x0, P0)``, static or random-walk state."""
+    n = x0.size
+    if variant == "ekf":
+        f = ExtendedKalmanFilter(dim_x=n, dim_z=dof)
+        f.x = x0.reshape(n, 1).copy()
+    else:
+        points = MerweScaledSigmaPoints(n, alpha=alpha, beta=2.0, kappa=0.0)
+        f = UnscentedKalmanFilter(dim_x=n, dim_z=dof, dt=1.0, hx=None, fx=lambda x, dt: x, points=points)
+        f.x = x0.copy()
+    f.P, f.R, f.Q = P0.copy(), R, Q
+    return f
+
+
+def _run_filter(model, variant: str, prior: GaussianPrior, idx: NDArray, qn: NDArray, alpha: float) -> _FilterRun:
+    """One predict and update per pose in stored order; stops (``success`` False) at a pose it cannot update with."""
+    row_sigma = model.row_sigma
+    base = prior.mean.copy()
+    means = [prior.mean[idx].copy()]
+    covs = [np.diag(prior.std[idx] ** 2)]
+    nis = np.empty(model.n_poses)
+    message, success = "", True
+    f = _new_filter(variant, means[0], covs[0], np.diag(row_sigma[0] ** 2), np.diag(qn**2), model.dof, alpha)
+    for i in range(model.n_poses):
+        sub = model.subset([i])
+        f.R = np.diag(row_sigma[i] ** 2)  # per-pose noise (recording columns or robust weights)
+        try:
+            if variant == "ekf":
+                _ekf_update(f, sub, i, base, idx, model.dof)
+            else:
+                _ukf_update(f, sub, i, base, idx)
+        except (InputError, np.linalg.LinAlgError) as exc:
+            success, message = False, f"stopped at pose {i + 1}: {exc}"
+            nis = nis[:i]
+            break
+        innov = np.ravel(f.y)
+        nis[i] = float(innov @ np.linalg.solve(f.S, innov))
+        means.append(np.ravel(f.x).copy())
+        P = np.asarray(f.P)
+        covs.append(0.5 * (P + P.T))
+    return _FilterRun(means, covs, nis, success, message)
+
+
+def _ekf_update(f, sub, i: int, base: NDArray, idx: NDArray, dof: int) -> None:
+    """The EKF's step to pose ``i`` (one-pose model ``sub``, ``dof`` rows): predict (after the first), update."""
+    z = sub.y_measured[0]
+    if i > 0:
+        f.predict()
+    cache = {}
+
+    def jac(x):
+        th = _full_theta(base, idx, x)
+        pred = sub.predict(th)
+        if not pred.success.all():
+            raise InputError(f"pose {i + 1}: {pred.poses.message[0]} at the current estimate")
+        cache["h"] = pred.y[0].reshape(dof, 1)
+        return sub.jacobian(th, pred)[0][:, idx]
+
+    # HJacobian runs first in filterpy's update, at the same x as Hx
+    f.update(z.reshape(dof, 1), HJacobian=jac, Hx=lambda x: cache["h"])
+
+
+def _ukf_update(f, sub, i: int, base: NDArray, idx: NDArray) -> None:
+    """The UKF's step to pose ``i`` (the one-pose model ``sub``): predict, then update."""
+    z = sub.y_measured[0]
+    f.predict()
+    thetas = np.tile(base, (f.sigmas_f.shape[0], 1))
+    thetas[:, idx] = f.sigmas_f
+    pred = sub.predict(thetas)  # one vectorised call for all sigma points
+    if not pred.success.all():
+        raise InputError(f"pose {i + 1}: a sigma point cannot be solved (try a smaller alpha)")
+    it = iter(pred.y)
+    f.update(z, hx=lambda x: next(it))

@@ -387,13 +387,7 @@ def sample_posterior(
     PosteriorResult
         ``success`` False (and no posterior std) unless every check passes.
     """
-    if model.y_measured is None:
-        raise InputError("sample_posterior: the measurement model has no measured values")
-    machine = model.machine
-    prior = prior_from_machine(machine) if prior is None else prior
-    start = map_estimate(model, prior=prior, free=free, theta0=theta0)
-    if start.covariance is None:
-        raise InputError(f"sample_posterior: the MAP start failed ({start.message})")
+    prior, start = _map_start(model, prior, free, theta0)
     idx = np.flatnonzero(start.free)
     n = idx.size
     if surrogate not in ("none", "linear"):
@@ -401,6 +395,38 @@ def sample_posterior(
     exact = model
     if surrogate == "linear":
         model = linearise(model, start.theta)
+    n_walkers, burn_default, burn = _chain_size(n, n_walkers, n_steps, burn)
+    rng = np.random.default_rng(seed)
+    map_pred = model.predict(start.theta)
+    # the parameters not sampled stay where the MAP held them (its start: the model's theta_start, e.g. a
+    # machine file's effect values, else the prior mean), the same values the answer reports
+    log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses, base=start.theta)
+    moves, bend, proposal_check = _proposal(model, prior, idx, start, map_pred, log_prob, moves, n_walkers, seed)
+    p0 = _starting_points(model.machine, prior, idx, start, bend, log_prob, n_walkers, rng)
+    sampler, seconds = _run_chain(model, idx, start, log_prob, moves, p0, n_steps=n_steps, seed=seed,
+                                  progress=progress, surrogate=surrogate, checkpoint=checkpoint,
+                                  checkpoint_every=checkpoint_every, resume=resume)
+    res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor,
+                     burn_grows=burn_default)
+    res = dataclasses.replace(res, bend=bend, proposal_check=proposal_check)
+    if surrogate == "linear":
+        res = _surrogate_checked(res, exact, prior, idx, start, rng)
+    return res
+
+
+def _map_start(model, prior: GaussianPrior | None, free, theta0):
+    """The prior (the machine's tolerance prior by default) and the MAP the chain starts from, or a clear refusal."""
+    if model.y_measured is None:
+        raise InputError("sample_posterior: the measurement model has no measured values")
+    prior = prior_from_machine(model.machine) if prior is None else prior
+    start = map_estimate(model, prior=prior, free=free, theta0=theta0)
+    if start.covariance is None:
+        raise InputError(f"sample_posterior: the MAP start failed ({start.message})")
+    return prior, start
+
+
+def _chain_size(n: int, n_walkers: int | None, n_steps: int, burn: int | None) -> tuple[int, bool, int]:
+    """The walkers, whether the burn-in is the default, and the burn-in, checked (memory included)."""
     n_walkers = 2 * n + 2 if n_walkers is None else int(n_walkers)
     if n_walkers < max(2 * n, n + 2) or n_walkers % 2:
         # emcee's red-blue moves refuse fewer walkers than twice the dimensions (a RuntimeError otherwise)
@@ -415,11 +441,11 @@ def sample_posterior(
     burn = n_steps // 5 if burn is None else int(burn)
     if not 0 <= burn < n_steps:
         raise InputError(f"burn: expected 0 <= burn < n_steps = {n_steps}, got {burn}")
-    rng = np.random.default_rng(seed)
-    map_pred = model.predict(start.theta)
-    # the parameters not sampled stay where the MAP held them (its start: the model's theta_start, e.g. a
-    # machine file's effect values, else the prior mean), the same values the answer reports
-    log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses, base=start.theta)
+    return n_walkers, burn_default, burn
+
+
+def _proposal(model, prior, idx, start, map_pred, log_prob, moves, n_walkers: int, seed: int):
+    """The moves, the Laplace approximation the walkers start on, and the check that kept or dropped its bend."""
     if moves is None:
         # the Laplace approximation bent along what the prior decides (bent_laplace.py): the walkers start on
         # it and the independence move proposes from it, if it matches the posterior better than the straight
@@ -436,6 +462,12 @@ def sample_posterior(
     else:  # the caller's moves: the walkers start on the plain Laplace approximation
         bend = BentLaplace.linear(start.theta[idx], np.linalg.cholesky(start.covariance))
         proposal_check = None
+    return moves, bend, proposal_check
+
+
+def _starting_points(machine, prior, idx, start, bend, log_prob, n_walkers: int, rng) -> NDArray:
+    """The walkers' starting points drawn from ``bend``, each with a positive posterior density."""
+    n = idx.size
     p0 = bend.to_x(rng.standard_normal((n_walkers, n)))
     # a start outside the support (below a physical bound of the prior, a pose that does not assemble) would
     # stay stuck there: draw it again
@@ -454,6 +486,13 @@ def sample_posterior(
                "the MAP's Laplace approximation puts them where poses do not assemble or the prior is zero")
         raise InputError(f"sample_posterior: {int(bad.sum())} of {n_walkers} starting points keep a zero posterior density "
                          f"after 20 redraws; {why}" + ("" if start.success else f" (the MAP did not converge: {start.message})"))
+    return p0
+
+
+def _run_chain(model, idx, start, log_prob, moves, p0, *, n_steps, seed, progress, surrogate, checkpoint,
+               checkpoint_every, resume):
+    """The emcee sampler run (or resumed from ``checkpoint``) up to ``n_steps``, and its wall time in s."""
+    n_walkers, n = p0.shape
     if resume and checkpoint is None:
         raise InputError("resume: give the checkpoint to resume from")
     fingerprint = None
@@ -462,7 +501,7 @@ def sample_posterior(
 
         if checkpoint_every < 1:
             raise InputError(f"checkpoint_every: expected a positive number of steps, got {checkpoint_every}")
-        names = tuple(machine.layout.names[i] for i in idx)
+        names = tuple(model.machine.layout.names[i] for i in idx)
         fingerprint = run_fingerprint(model, names, seed=seed, n_walkers=n_walkers, surrogate=surrogate,
                                       held=start.theta[~start.free])
     backend = load_checkpoint(checkpoint, fingerprint) if resume else None
@@ -481,27 +520,26 @@ def sample_posterior(
                 save_checkpoint(checkpoint, sampler.backend, fingerprint)
     if checkpoint is not None:
         save_checkpoint(checkpoint, sampler.backend, fingerprint)
-    seconds = time.perf_counter() - t0
-    res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor,
-                     burn_grows=burn_default)
-    res = dataclasses.replace(res, bend=bend, proposal_check=proposal_check)
-    if surrogate == "linear":
-        draws = res.samples[rng.choice(res.samples.shape[0], size=min(200, res.samples.shape[0]), replace=False)]
-        full = np.tile(start.theta, (draws.shape[0], 1))
-        full[:, idx] = draws
-        err = linearisation_error(exact, start.theta, full)
-        note = f"linear surrogate at the MAP: largest linearisation error {err:.3g} sigma over 200 draws"
-        ok = err < 0.1
-        if not ok:
-            note += " (>= 0.1: sample the full model instead)"
-        msg = "; ".join(m for m in (res.message, note) if m)
-        before = exact.residual(exact.predict(_reference(exact, prior)))
-        after = exact.residual(exact.predict(res.theta))
-        res = dataclasses.replace(
-            res, success=res.success and ok, message=msg, rms_before=exact.rms(before), rms_after=exact.rms(after),
-            theta=res.theta if ok else start.theta,
-        )
-    return res
+    return sampler, time.perf_counter() - t0
+
+
+def _surrogate_checked(res: PosteriorResult, exact, prior, idx, start, rng) -> PosteriorResult:
+    """The linear surrogate's posterior checked against the exact model on 200 draws; RMS from the exact model."""
+    draws = res.samples[rng.choice(res.samples.shape[0], size=min(200, res.samples.shape[0]), replace=False)]
+    full = np.tile(start.theta, (draws.shape[0], 1))
+    full[:, idx] = draws
+    err = linearisation_error(exact, start.theta, full)
+    note = f"linear surrogate at the MAP: largest linearisation error {err:.3g} sigma over 200 draws"
+    ok = err < 0.1
+    if not ok:
+        note += " (>= 0.1: sample the full model instead)"
+    msg = "; ".join(m for m in (res.message, note) if m)
+    before = exact.residual(exact.predict(_reference(exact, prior)))
+    after = exact.residual(exact.predict(res.theta))
+    return dataclasses.replace(
+        res, success=res.success and ok, message=msg, rms_before=exact.rms(before), rms_after=exact.rms(after),
+        theta=res.theta if ok else start.theta,
+    )
 
 
 def _reference(model, prior) -> NDArray:
@@ -519,14 +557,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
     ll = sampler.get_blobs(discard=burn)
     n_steps, n_walkers, n = sampler.iteration, chain.shape[1], idx.size
     kept = chain.shape[0]
-    # quiet=True reports a too-short chain through emcee's logger; we report it in the result instead
-    log = logging.getLogger("emcee.autocorr")
-    level = log.level
-    log.setLevel(logging.ERROR)
-    try:
-        tau = np.asarray(sampler.get_autocorr_time(discard=burn, quiet=True), dtype=float)
-    finally:
-        log.setLevel(level)
+    tau = _autocorr_time(sampler, burn)
     tree = _tree(model, prior, idx, names, chain, lp, ll)
     rhat = az.rhat(tree)["theta"].values
     ess_b = az.ess(tree, method="bulk")["theta"].values
@@ -535,26 +566,8 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
     mean = flat.mean(axis=0)
     cov = np.atleast_2d(np.cov(flat, rowvar=False))
     quant = np.quantile(flat, [0.05, 0.5, 0.95], axis=0)
-    problems, more = [], 0
-    if not np.all(np.isfinite(tau)) or kept < tau_factor * np.max(tau):
-        need = tau_factor * np.nanmax(tau) if np.all(np.isfinite(tau)) else 2 * kept
-        more = max(more, int(np.ceil(need - kept)))
-        problems.append(f"chain {kept} steps < {tau_factor:g} x autocorrelation time {np.nanmax(tau):.0f}")
-    if np.min(ess_b) < min_ess or np.min(ess_t) < min_ess:
-        e = min(np.min(ess_b), np.min(ess_t))
-        more = max(more, int(np.ceil(kept * (min_ess / max(e, 1.0) - 1))))
-        problems.append(f"ESS {e:.0f} < {min_ess:g}")
-    if np.max(rhat) > max_rhat:
-        more = max(more, kept)  # R-hat falls roughly with 1/sqrt(length): try twice as long
-        problems.append(f"R-hat {np.max(rhat):.3f} > {max_rhat}")
-    success = not problems
-    if more and burn_grows:
-        # ``more`` is for the kept chain; with the default burn-in (a fifth of n_steps) a longer run also
-        # discards more, so the advice is the n_steps whose kept part is ``kept + more``
-        more = int(np.ceil((kept + more) / 0.8)) + 1 - n_steps
-    message = "" if success else (
-        f"not converged ({'; '.join(problems)}): run about {more} more steps (n_steps >= {n_steps + more})"
-    )
+    success, message, more = _convergence(tau, ess_b, ess_t, rhat, kept, n_steps, max_rhat, min_ess, tau_factor,
+                                          burn_grows)
     theta = start.theta.copy()
     if success:
         theta[idx] = mean
@@ -594,6 +607,44 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         unidentifiable=start.unidentifiable,
         decided_by_prior=start.decided_by_prior,
     )
+
+
+def _autocorr_time(sampler, burn: int) -> NDArray:
+    """emcee's integrated autocorrelation time per parameter in steps (a too-short chain: not logged, reported)."""
+    # quiet=True reports a too-short chain through emcee's logger; we report it in the result instead
+    log = logging.getLogger("emcee.autocorr")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        return np.asarray(sampler.get_autocorr_time(discard=burn, quiet=True), dtype=float)
+    finally:
+        log.setLevel(level)
+
+
+def _convergence(tau, ess_b, ess_t, rhat, kept: int, n_steps: int, max_rhat: float, min_ess: float,
+                 tau_factor: float, burn_grows: bool) -> tuple[bool, str, int]:
+    """Whether every convergence check passed, the message saying which did not, and about how many more steps."""
+    problems, more = [], 0
+    if not np.all(np.isfinite(tau)) or kept < tau_factor * np.max(tau):
+        need = tau_factor * np.nanmax(tau) if np.all(np.isfinite(tau)) else 2 * kept
+        more = max(more, int(np.ceil(need - kept)))
+        problems.append(f"chain {kept} steps < {tau_factor:g} x autocorrelation time {np.nanmax(tau):.0f}")
+    if np.min(ess_b) < min_ess or np.min(ess_t) < min_ess:
+        e = min(np.min(ess_b), np.min(ess_t))
+        more = max(more, int(np.ceil(kept * (min_ess / max(e, 1.0) - 1))))
+        problems.append(f"ESS {e:.0f} < {min_ess:g}")
+    if np.max(rhat) > max_rhat:
+        more = max(more, kept)  # R-hat falls roughly with 1/sqrt(length): try twice as long
+        problems.append(f"R-hat {np.max(rhat):.3f} > {max_rhat}")
+    success = not problems
+    if more and burn_grows:
+        # ``more`` is for the kept chain; with the default burn-in (a fifth of n_steps) a longer run also
+        # discards more, so the advice is the n_steps whose kept part is ``kept + more``
+        more = int(np.ceil((kept + more) / 0.8)) + 1 - n_steps
+    message = "" if success else (
+        f"not converged ({'; '.join(problems)}): run about {more} more steps (n_steps >= {n_steps + more})"
+    )
+    return success, message, more
 
 
 def write_posterior(result: PosteriorResult, path: str | os.PathLike, *, thin: int | None = None) -> Path:

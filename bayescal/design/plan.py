@@ -373,57 +373,15 @@ def plan_poses(
     PosePlan
     """
     t0 = time.perf_counter()
-    criterion = check_criterion(criterion)
-    rows_per_pose(dof)
-    if int(n_poses) != n_poses or n_poses < 1:
-        raise InputError(f"n_poses: expected a positive integer, got {n_poses!r}")
-    method = default_method(criterion) if method is None else method
-    repeats = (method == "relaxed") if repeats is None else bool(repeats)
-    if exact_bound and machine.n_actuators > EXACT_BOUND_MAX_ACTUATORS:
-        # refused before drawing candidates: 2^m orthant cells; on the 6R arm (relaxed optimum on about 200
-        # candidates) even the orthants of three of its joints (8 cells) had not reached one complete count
-        # vector after 4 minutes (stopped there)
-        raise InputError(f"exact_bound: the search over the 2^m orthants of the actuator box is practical up to "
-                         f"{EXACT_BOUND_MAX_ACTUATORS} actuators; this machine has {machine.n_actuators}")
+    criterion, method, repeats = _checked_options(machine, n_poses, criterion, dof, method, repeats, exact_bound)
     rng = np.random.default_rng(seed)
     cands = candidates if candidates is not None else draw_candidates(machine, n_candidates, dof=dof, rng=rng, scaling=scaling,
                                                                        box=box)
-    if n_poses > cands.n and not repeats:
-        raise InputError(f"n_poses: {n_poses} asked for, but only {cands.n} usable candidates; draw more candidates")
-    L = cands.blocks.shape[2]
-    if n_poses * dof < L and criterion not in PRIOR_BASED:
-        raise InputError(
-            f"n_poses: {n_poses} poses x {dof} components < {L} identifiable parameters; criterion {criterion} "
-            f"needs at least {-(-L // dof)} poses (or use EIG or I, which include the tolerance prior)"
-        )
-    bound = exact = None
-    if exact_bound and not (method == "relaxed" and criterion == "I" and cands.output_weight is not None):
-        raise InputError("exact_bound: only for criterion I with the relaxed selection (the bound is on E[MSE]), "
-                         f"got criterion {criterion}, method {method}")
-    if certify is not None and not (method == "relaxed" and criterion == "I" and cands.output_weight is not None):
-        raise InputError("certify: only for criterion I with the relaxed selection (it compares E[MSE]), "
-                         f"got criterion {criterion}, method {method}")
-    if certify is not None and not (0 < certify < 1):
-        raise InputError(f"certify: expected a fraction in (0, 1) (0.01 for 1 %), got {certify}")
-    if certify is not None and not repeats:
-        raise InputError("certify: the search covers designs with repeated poses; plan with repeats allowed")
-    certificate = None
-    if method == "relaxed" and criterion == "I":
-        sel, bound = relaxed_select(cands, int(n_poses), repeats=repeats)
-        if certify is not None:
-            sel, certificate = certify_selection(cands, machine.q_limits, sel, certify, certify_nodes)
-        if exact_bound:
-            from .exact_bound import exact_design_bound, orthant_cells
-
-            exact = exact_design_bound(cands.prior_blocks_kept, cands.output_weight, int(n_poses),
-                                       orthant_cells(cands.q, machine.q_limits))
-    else:
-        sel = select_from_candidates(cands, int(n_poses), criterion, exchange=exchange, repeats=repeats, method=method)
+    _check_candidates(cands, n_poses, dof, criterion, method, repeats, exact_bound, certify)
+    sel, bound, exact, certificate = _select(machine, cands, int(n_poses), criterion, method, repeats, exchange,
+                                             exact_bound, certify, certify_nodes)
     values = evaluate_selection(cands, sel.index)
-    rand = np.array([list(evaluate_selection(cands, rng.choice(cands.n, int(n_poses), replace=False)).values())
-                     for _ in range(int(n_random))]) if n_random > 0 else np.full((1, len(CRITERIA)), np.nan)
-    med = {c: float(np.median(rand[:, i])) for i, c in enumerate(CRITERIA)}
-    beaten = {c: float(np.mean(values[c] > rand[:, i])) for i, c in enumerate(CRITERIA)}
+    med, beaten = _against_random(cands, values, int(n_poses), n_random, rng)
     return PosePlan(
         machine_name=machine.name,
         kind=machine.kind,
@@ -445,14 +403,88 @@ def plan_poses(
         swaps=sel.swaps,
         n_random=int(n_random),
         seconds=time.perf_counter() - t0,
-        extras={"utility_kind": utility_kind(criterion), "method": method, "repeats": repeats,
-                **({"root_expected_mse_mm": root_expected_mse(cands, sel.index)}
-                   if cands.output_blocks is not None else {}),
-                **({"bound_root_mse_mm": bound.lower_root_mse} if bound is not None else {}),
-                **({"exact_bound_root_mse_mm": exact.lower_root_mse, "exact_bound_nodes": exact.nodes,
-                    "exact_bound_cells": exact.cells} if exact is not None else {}),
-                **(certificate or {})},
+        extras=_plan_extras(cands, sel, criterion, method, repeats, bound, exact, certificate),
     )
+
+
+def _checked_options(machine: Machine, n_poses, criterion: str, dof: int, method: str | None, repeats: bool | None,
+                     exact_bound: bool) -> tuple[str, str, bool]:
+    """The criterion, the method and whether poses may repeat, checked before any candidate is drawn."""
+    criterion = check_criterion(criterion)
+    rows_per_pose(dof)
+    if int(n_poses) != n_poses or n_poses < 1:
+        raise InputError(f"n_poses: expected a positive integer, got {n_poses!r}")
+    method = default_method(criterion) if method is None else method
+    repeats = (method == "relaxed") if repeats is None else bool(repeats)
+    if exact_bound and machine.n_actuators > EXACT_BOUND_MAX_ACTUATORS:
+        # refused before drawing candidates: 2^m orthant cells; on the 6R arm (relaxed optimum on about 200
+        # candidates) even the orthants of three of its joints (8 cells) had not reached one complete count
+        # vector after 4 minutes (stopped there)
+        raise InputError(f"exact_bound: the search over the 2^m orthants of the actuator box is practical up to "
+                         f"{EXACT_BOUND_MAX_ACTUATORS} actuators; this machine has {machine.n_actuators}")
+    return criterion, method, repeats
+
+
+def _check_candidates(cands: CandidateSet, n_poses, dof: int, criterion: str, method: str, repeats: bool,
+                      exact_bound: bool, certify: float | None) -> None:
+    """Refuse a plan the candidates cannot give, or a bound or certificate the criterion and method do not allow."""
+    if n_poses > cands.n and not repeats:
+        raise InputError(f"n_poses: {n_poses} asked for, but only {cands.n} usable candidates; draw more candidates")
+    L = cands.blocks.shape[2]
+    if n_poses * dof < L and criterion not in PRIOR_BASED:
+        raise InputError(
+            f"n_poses: {n_poses} poses x {dof} components < {L} identifiable parameters; criterion {criterion} "
+            f"needs at least {-(-L // dof)} poses (or use EIG or I, which include the tolerance prior)"
+        )
+    if exact_bound and not (method == "relaxed" and criterion == "I" and cands.output_weight is not None):
+        raise InputError("exact_bound: only for criterion I with the relaxed selection (the bound is on E[MSE]), "
+                         f"got criterion {criterion}, method {method}")
+    if certify is not None and not (method == "relaxed" and criterion == "I" and cands.output_weight is not None):
+        raise InputError("certify: only for criterion I with the relaxed selection (it compares E[MSE]), "
+                         f"got criterion {criterion}, method {method}")
+    if certify is not None and not (0 < certify < 1):
+        raise InputError(f"certify: expected a fraction in (0, 1) (0.01 for 1 %), got {certify}")
+    if certify is not None and not repeats:
+        raise InputError("certify: the search covers designs with repeated poses; plan with repeats allowed")
+
+
+def _select(machine: Machine, cands: CandidateSet, n: int, criterion: str, method: str, repeats: bool, exchange: bool,
+            exact_bound: bool, certify: float | None, certify_nodes: int):
+    """The selection, the relaxed bound, the exact bound and the certificate (None where not asked or not relaxed I)."""
+    bound = exact = certificate = None
+    if method == "relaxed" and criterion == "I":
+        sel, bound = relaxed_select(cands, n, repeats=repeats)
+        if certify is not None:
+            sel, certificate = certify_selection(cands, machine.q_limits, sel, certify, certify_nodes)
+        if exact_bound:
+            from .exact_bound import exact_design_bound, orthant_cells
+
+            exact = exact_design_bound(cands.prior_blocks_kept, cands.output_weight, n,
+                                       orthant_cells(cands.q, machine.q_limits))
+    else:
+        sel = select_from_candidates(cands, n, criterion, exchange=exchange, repeats=repeats, method=method)
+    return sel, bound, exact, certificate
+
+
+def _against_random(cands: CandidateSet, values: dict, n: int, n_random, rng) -> tuple[dict, dict]:
+    """Per criterion: the median over ``n_random`` random selections of ``n`` poses, and the fraction the plan beats."""
+    rand = np.array([list(evaluate_selection(cands, rng.choice(cands.n, n, replace=False)).values())
+                     for _ in range(int(n_random))]) if n_random > 0 else np.full((1, len(CRITERIA)), np.nan)
+    med = {c: float(np.median(rand[:, i])) for i, c in enumerate(CRITERIA)}
+    beaten = {c: float(np.mean(values[c] > rand[:, i])) for i, c in enumerate(CRITERIA)}
+    return med, beaten
+
+
+def _plan_extras(cands: CandidateSet, sel: Selection, criterion: str, method: str, repeats: bool, bound, exact,
+                 certificate: dict | None) -> dict:
+    """The plan's ``extras``: how it was chosen and the expected MSE, bounds and certificate where there are."""
+    return {"utility_kind": utility_kind(criterion), "method": method, "repeats": repeats,
+            **({"root_expected_mse_mm": root_expected_mse(cands, sel.index)}
+               if cands.output_blocks is not None else {}),
+            **({"bound_root_mse_mm": bound.lower_root_mse} if bound is not None else {}),
+            **({"exact_bound_root_mse_mm": exact.lower_root_mse, "exact_bound_nodes": exact.nodes,
+                "exact_bound_cells": exact.cells} if exact is not None else {}),
+            **(certificate or {})}
 
 
 #: Searches ``certify`` runs at most: each design it finds replaces the plan and is questioned again.

@@ -246,24 +246,47 @@ def diagnose(
         final = retest_with_discrepancy(plain, cur_fit.theta, disc_trial.fit, s.screen) if plain is not None else None
         if final is not None:
             return diagnose(s.machine, recording, **again, _screen=final, _disc_retested=True)
+    found = _Found(cands, tuple(skipped), single, selected, cur_fit, cv0, cur_cv, disc_trial, final_model)
+    return _diagnosis(s, g, v, found, recording, seed)
+
+
+@dataclass(frozen=True)
+class _Found:
+    """What the stages of a diagnosis found: the effects tried and kept, the final fit, the discrepancy trial."""
+
+    cands: list  # of _Candidate
+    skipped: tuple
+    single: dict
+    selected: list  # of _Candidate
+    fit: EffectFit
+    cv0: float  # cross-validated RMS of the geometry alone
+    cv: float  # ... with the selected effects
+    disc_trial: object  # DiscrepancyTrial or None
+    final_model: object  # the model with the selected effects, or None
+
+
+def _diagnosis(s: _Setup, g: _Geometric, v: _Verdict, f: _Found, recording: Recording, seed: int) -> Diagnosis:
+    """The answer: the verdict (the discrepancy's where it is kept and no effect explained the mismatch)."""
+    disc_trial, cur_fit, cur_cv = f.disc_trial, f.fit, f.cv
+    kept_disc = disc_trial is not None and disc_trial.kept
     verdict, message = v.verdict, v.message
     if kept_disc:
         cur_cv = disc_trial.rms_cv_after
         if verdict == "unexplained":
-            verdict, message = _with_discrepancy(selected, disc_trial)
+            verdict, message = _with_discrepancy(f.selected, disc_trial)
     return Diagnosis(
         verdict=verdict,
-        effects=_trials(cands, single, selected, cur_fit, cv0),
-        selected=tuple(c.effect.name for c in selected),
+        effects=_trials(f.cands, f.single, f.selected, cur_fit, f.cv0),
+        selected=tuple(c.effect.name for c in f.selected),
         location=g.location,
-        skipped=tuple(skipped),
+        skipped=f.skipped,
         chi2_geometric=g.fit0.chi2,
         chi2_final=cur_fit.chi2,
         dof_geometric=v.dof_geometric,
         dof_final=v.dof_final,
         p_geometric=v.p_geometric,
         p_final=v.p_final,
-        rms_cv_geometric=cv0,
+        rms_cv_geometric=f.cv0,
         rms_cv_final=cur_cv,
         # expected per-pose position RMS of pure noise: the position rows' sigmas (3 for a pose, 1 for a
         # distance), per row as the recording states them (not the exclusion weights of outliers)
@@ -280,9 +303,9 @@ def diagnose(
         theta_geometric=g.fit0.theta[: s.machine.n_params],
         effect_settings={k: dict(val) for k, val in s.settings.items()},
         outliers=s.screen,
-        confound=_confound(s, selected, cur_fit, g.fit0),
+        confound=_confound(s, f.selected, cur_fit, g.fit0),
         discrepancy=disc_trial,
-        record=_record(s.machine, final_model, cur_fit, disc_trial),
+        record=_record(s.machine, f.final_model, cur_fit, disc_trial),
         frame=_frame(s.machine, g.fit0),
     )
 

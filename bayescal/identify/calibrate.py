@@ -369,33 +369,7 @@ def calibrate(
     -------
     Calibration
     """
-    if method not in DETERMINISTIC_METHODS:
-        raise InputError(f"method: expected one of {', '.join(DETERMINISTIC_METHODS)}, got {method!r}")
-    bad = sorted(set(outlier_kw) - set(OUTLIER_OPTIONS))
-    if bad:
-        raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, rule, "
-                         f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
-                         f"{', '.join(OUTLIER_OPTIONS)}")
-    if lam is not None and lam != "auto" and not finite_real(lam):
-        raise InputError(f"lam: expected a number >= 0 or 'auto', got {lam!r}")
-    if k is not None and k != "auto" and not (finite_real(k) and float(k) == int(k)):
-        raise InputError(f"k: expected a whole number or 'auto', got {k!r}")
-    if method == "ridge" and lam is None:
-        raise InputError("lam: required with method ridge (1: MAP under the tolerance prior, or 'auto')")
-    if method == "tsvd" and k is None:
-        raise InputError("k: required with method tsvd (a number, or 'auto')")
-    if method != "ridge" and lam is not None and not (method == "map" and lam == 1):
-        raise InputError(f"lam: goes with method ridge, got lam={lam!r} with method {method!r}")
-    if method != "tsvd" and k is not None:
-        raise InputError(f"k: goes with method tsvd, got k={k!r} with method {method!r}")
-    if prior_scale is not None and method != "map":
-        raise InputError("prior_scale: goes with method map")
-    if rule is not None and not ((method == "ridge" and lam == "auto") or (method == "tsvd" and k == "auto")):
-        raise InputError("rule: goes with method ridge, lam='auto' or method tsvd, k='auto'")
-    if noise not in ("auto", "stated"):
-        raise InputError(f"noise: expected 'auto' or 'stated', got {noise!r}")
-    if discrepancy not in ("off", "auto", "on"):
-        raise InputError(f"discrepancy: expected 'off', 'auto' or 'on', got {discrepancy!r}")
+    _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlier_kw)
     kw = dict(lam=lam, k=k, free=free, rule=rule, prior_scale=prior_scale, max_iter=max_iter,
               outlier_kw={"robust": robust, **outlier_kw}, fit_effects=fit_effects)
     res, handling, choice = _fit_once(model, method, **kw)
@@ -440,6 +414,37 @@ def calibrate(
     cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}),
                   model=model)
     return cal.with_variance_factor(model)
+
+
+def _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlier_kw) -> None:
+    """Refuse an unknown method or option, or an option that does not go with the method (:func:`calibrate`)."""
+    if method not in DETERMINISTIC_METHODS:
+        raise InputError(f"method: expected one of {', '.join(DETERMINISTIC_METHODS)}, got {method!r}")
+    bad = sorted(set(outlier_kw) - set(OUTLIER_OPTIONS))
+    if bad:
+        raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, rule, "
+                         f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
+                         f"{', '.join(OUTLIER_OPTIONS)}")
+    if lam is not None and lam != "auto" and not finite_real(lam):
+        raise InputError(f"lam: expected a number >= 0 or 'auto', got {lam!r}")
+    if k is not None and k != "auto" and not (finite_real(k) and float(k) == int(k)):
+        raise InputError(f"k: expected a whole number or 'auto', got {k!r}")
+    if method == "ridge" and lam is None:
+        raise InputError("lam: required with method ridge (1: MAP under the tolerance prior, or 'auto')")
+    if method == "tsvd" and k is None:
+        raise InputError("k: required with method tsvd (a number, or 'auto')")
+    if method != "ridge" and lam is not None and not (method == "map" and lam == 1):
+        raise InputError(f"lam: goes with method ridge, got lam={lam!r} with method {method!r}")
+    if method != "tsvd" and k is not None:
+        raise InputError(f"k: goes with method tsvd, got k={k!r} with method {method!r}")
+    if prior_scale is not None and method != "map":
+        raise InputError("prior_scale: goes with method map")
+    if rule is not None and not ((method == "ridge" and lam == "auto") or (method == "tsvd" and k == "auto")):
+        raise InputError("rule: goes with method ridge, lam='auto' or method tsvd, k='auto'")
+    if noise not in ("auto", "stated"):
+        raise InputError(f"noise: expected 'auto' or 'stated', got {noise!r}")
+    if discrepancy not in ("off", "auto", "on"):
+        raise InputError(f"discrepancy: expected 'off', 'auto' or 'on', got {discrepancy!r}")
 
 
 def canonical_order(model):

@@ -576,59 +576,18 @@ def choose_linear(
         holds the rule's Lagrangian per candidate and ``target_rule`` its
         calibration (weights, relaxations, what it achieved on its sample).
     """
-    if method not in ("ridge", "tsvd"):
-        raise InputError(f"method: automatic choice is for 'ridge' or 'tsvd', got {method!r}")
-    rule = DEFAULT_RULE[method] if rule is None else rule
-    if rule not in RULE_NAMES:
-        raise InputError(f"rule: expected one of {', '.join(RULE_NAMES)}, got {rule!r}")
-    A = np.asarray(A, dtype=float)
-    z = np.asarray(z, dtype=float).reshape(-1)
-    if A.ndim != 2 or A.shape[0] != z.size:
-        raise InputError(f"A, z: expected shapes (N, p) and (N,), got {A.shape} and {z.shape}")
+    A, z, rule = _checked_problem(A, z, method, rule)
     N, p = A.shape
     groups = np.arange(N) if groups is None else np.asarray(groups).reshape(-1)
     d = _svd(A, z)
-    if method == "ridge":
-        grid = lambda_grid(d.s) if grid is None else np.sort(np.asarray(grid, dtype=float))
-        if np.any(grid <= 0):
-            raise InputError("grid: ridge parameters must be positive")
-    else:
-        grid = np.arange(1, d.s.size + 1) if grid is None else np.asarray(grid, dtype=int)
-        if np.any(grid < 1) or np.any(grid > d.s.size):
-            raise InputError(f"grid: k must be from 1 to {d.s.size}")
+    grid = _candidate_grid(method, d, grid)
     F = _filters(method, d.s, grid)
-    b2 = d.beta[None, :] ** 2
-    res2 = np.sum((1 - F) ** 2 * b2, axis=1) + d.c_perp
-    xnorm2 = np.sum(F**2 * b2 * _safe_inv(d.s)[None, :] ** 2, axis=1)
-    peff = F.sum(axis=1)
-    with np.errstate(divide="ignore"):
-        gcv = res2 / np.maximum(N - peff, 1e-12) ** 2
-    disc = res2 - (N - peff)
+    res2, xnorm2, peff, gcv, disc = _fit_curves(d, F, N)
     cv, K = _cv_curve(A, z, groups, method, grid, folds, seed)
-    rho, eta = 0.5 * np.log(np.maximum(res2, 1e-300)), 0.5 * np.log(np.maximum(xnorm2, 1e-300))
-    extras: dict = {}
-    if method == "ridge":
-        curvature = _ridge_curvature(d, grid)
-        log_ev = _log_evidence_ridge(d, grid, noise_known)
-        # the discrepancy principle: most regularised lam with |r|^2 <= N - sum f
-        ok = np.flatnonzero(disc <= 0)
-        i_disc = int(ok[-1]) if ok.size else int(np.argmin(disc))
-    else:
-        # order by increasing regularisation (decreasing k) so the corner turns the same way as ridge's
-        curvature = _menger_curvature(rho[::-1], eta[::-1])[::-1]
-        log_ev, lam_k = _log_evidence_tsvd(d, lambda_grid(d.s, 121), noise_known)
-        log_ev = log_ev[grid - 1]
-        extras["evidence_prior_ratio"] = lam_k[grid - 1]
-        ok = np.flatnonzero(disc <= 0)
-        i_disc = int(ok[0]) if ok.size else int(np.argmin(disc))
+    curvature, log_ev, i_disc, extras = _corner_and_evidence(method, d, grid, res2, xnorm2, disc, noise_known)
     lam_ev, risk = _posterior_risk(d, F, noise_known)
     extras["risk_prior_ratio"] = lam_ev
-    if output_map is not None:
-        output_map = np.asarray(output_map, dtype=float)
-        if output_map.ndim != 2 or output_map.shape[1] != p:
-            raise InputError(f"output_map: expected shape (M, {p}), got {output_map.shape}")
-    if not ratio >= 1.0:
-        raise InputError(f"ratio: expected >= 1, got {ratio}")
+    output_map = _checked_success_options(output_map, ratio, p)
     hyperprior = DEFAULT_HYPERPRIOR if hyperprior is None else hyperprior
     _, succ, exp_ratio = _success_curve(A, d, F, noise_known, output_map, ratio, n_posterior, seed, integrate_scale,
                                         hyperprior)
@@ -644,12 +603,10 @@ def choose_linear(
         # largest probability; ties (common for neighbouring lambdas) to the smaller expected ratio
         "success": int(np.lexsort((exp_ratio, -succ))[0]),
     }
+    calibration = None
     if rule == "targets" or target_rule is not None:
-        picks["targets"], extras["targets_score"], extras["target_rule"] = _targets_pick(
+        picks["targets"], extras["targets_score"], calibration = _targets_pick(
             A, z, d, method, grid, output_map, noise_known, target_rule, seed, target_calibration or {})
-        calibration = extras.pop("target_rule")
-    else:
-        calibration = None
     cast = float if method == "ridge" else int
     choices = {r: cast(grid[i]) for r, i in picks.items() if i is not None}
     if rule not in choices:
@@ -672,6 +629,78 @@ def choose_linear(
         singular_values=d.s, n_rows=N, n_params=p, noise_known=noise_known, linearisation=linearisation, folds=K,
         target_rule=calibration,
     )
+
+
+def _checked_problem(A: ArrayLike, z: ArrayLike, method: str, rule: str | None) -> tuple[NDArray, NDArray, str]:
+    """``A`` and ``z`` as float arrays and the rule (the method's default if None), or a clear refusal."""
+    if method not in ("ridge", "tsvd"):
+        raise InputError(f"method: automatic choice is for 'ridge' or 'tsvd', got {method!r}")
+    rule = DEFAULT_RULE[method] if rule is None else rule
+    if rule not in RULE_NAMES:
+        raise InputError(f"rule: expected one of {', '.join(RULE_NAMES)}, got {rule!r}")
+    A = np.asarray(A, dtype=float)
+    z = np.asarray(z, dtype=float).reshape(-1)
+    if A.ndim != 2 or A.shape[0] != z.size:
+        raise InputError(f"A, z: expected shapes (N, p) and (N,), got {A.shape} and {z.shape}")
+    return A, z, rule
+
+
+def _candidate_grid(method: str, d: _Svd, grid: ArrayLike | None) -> NDArray:
+    """The candidates: ``lam`` (ridge, sorted; default :func:`lambda_grid`) or ranks ``k`` (TSVD; default ``1..p``)."""
+    if method == "ridge":
+        grid = lambda_grid(d.s) if grid is None else np.sort(np.asarray(grid, dtype=float))
+        if np.any(grid <= 0):
+            raise InputError("grid: ridge parameters must be positive")
+    else:
+        grid = np.arange(1, d.s.size + 1) if grid is None else np.asarray(grid, dtype=int)
+        if np.any(grid < 1) or np.any(grid > d.s.size):
+            raise InputError(f"grid: k must be from 1 to {d.s.size}")
+    return grid
+
+
+def _fit_curves(d: _Svd, F: NDArray, N: int) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """Per candidate: squared residual and solution norms, effective parameters, GCV and the discrepancy."""
+    b2 = d.beta[None, :] ** 2
+    res2 = np.sum((1 - F) ** 2 * b2, axis=1) + d.c_perp
+    xnorm2 = np.sum(F**2 * b2 * _safe_inv(d.s)[None, :] ** 2, axis=1)
+    peff = F.sum(axis=1)
+    with np.errstate(divide="ignore"):
+        gcv = res2 / np.maximum(N - peff, 1e-12) ** 2
+    disc = res2 - (N - peff)
+    return res2, xnorm2, peff, gcv, disc
+
+
+def _corner_and_evidence(method: str, d: _Svd, grid: NDArray, res2: NDArray, xnorm2: NDArray, disc: NDArray,
+                         noise_known: bool) -> tuple[NDArray, NDArray, int, dict]:
+    """The L-curve's curvature, the log evidence, the discrepancy principle's pick and the extra curves (TSVD)."""
+    rho, eta = 0.5 * np.log(np.maximum(res2, 1e-300)), 0.5 * np.log(np.maximum(xnorm2, 1e-300))
+    extras: dict = {}
+    if method == "ridge":
+        curvature = _ridge_curvature(d, grid)
+        log_ev = _log_evidence_ridge(d, grid, noise_known)
+        # the discrepancy principle: most regularised lam with |r|^2 <= N - sum f
+        ok = np.flatnonzero(disc <= 0)
+        i_disc = int(ok[-1]) if ok.size else int(np.argmin(disc))
+    else:
+        # order by increasing regularisation (decreasing k) so the corner turns the same way as ridge's
+        curvature = _menger_curvature(rho[::-1], eta[::-1])[::-1]
+        log_ev, lam_k = _log_evidence_tsvd(d, lambda_grid(d.s, 121), noise_known)
+        log_ev = log_ev[grid - 1]
+        extras["evidence_prior_ratio"] = lam_k[grid - 1]
+        ok = np.flatnonzero(disc <= 0)
+        i_disc = int(ok[0]) if ok.size else int(np.argmin(disc))
+    return curvature, log_ev, i_disc, extras
+
+
+def _checked_success_options(output_map: ArrayLike | None, ratio: float, p: int) -> NDArray | None:
+    """The ``success`` rule's output map (as floats) and ratio, checked."""
+    if output_map is not None:
+        output_map = np.asarray(output_map, dtype=float)
+        if output_map.ndim != 2 or output_map.shape[1] != p:
+            raise InputError(f"output_map: expected shape (M, {p}), got {output_map.shape}")
+    if not ratio >= 1.0:
+        raise InputError(f"ratio: expected >= 1, got {ratio}")
+    return output_map
 
 
 # the calibration of ``targets`` depends only on the design (and the calibration options): keep the last few.
