@@ -90,7 +90,8 @@ def fitted_frame_answer(machine, model) -> dict:
     starting point), with its Laplace std.
     """
     from ..bayes.priors import map_estimate
-    if not machine.framed or not machine.fit:
+    frame = machine.instrument_frame
+    if frame is None or not frame.fit:
         return {}
     res = map_estimate(model, free="auto")
     return frame_answer(machine, res.theta, res.free, res.covariance)

@@ -160,7 +160,7 @@ class ConstraintModel:
         if dof not in (None, 1):
             raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
         if machine.framed:
-            if machine.fit:
+            if machine.instrument_frame.fit:
                 raise InputError("a constraint recording does not see an instrument frame (heights are along the base z "
                                  "axis, docs/formats.md section 6): there is no frame to fit")
             machine = machine.inside
