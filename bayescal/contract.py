@@ -217,7 +217,8 @@ def check_model(model, theta: ArrayLike | None = None, *, strict: bool = False, 
         start = np.zeros(P) if model.theta_start is None else np.asarray(model.theta_start, dtype=float)
         theta = start + 0.25 * tol * np.where(np.arange(P) % 2, -1.0, 1.0)
         # a parameter with a physical bound (a dead band, a mass: prior_lower) is checked inside it
-        low = np.asarray(getattr(model.machine, "prior_lower", np.full(P, -np.inf)), dtype=float)
+        low = model.machine.prior_lower
+        low = np.full(P, -np.inf) if low is None else np.asarray(low, dtype=float)
         theta = np.where(np.isfinite(low), np.maximum(theta, low + 0.25 * tol), theta)
     theta = np.asarray(theta, dtype=float)
     pred = model.predict(theta)

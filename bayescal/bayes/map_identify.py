@@ -82,7 +82,7 @@ def identify_map(model: MeasurementModel, free, *, prior_scale: str | None = Non
     # without weights the pass's fit is the first MAP below to the last bit (same model, tolerance prior,
     # start and free set): reused, not redone.  A view with a prior mean of its own (effects) starts
     # the MAP there instead of at the pass's start, so it is fitted anew
-    same = handling.weights is None and getattr(model.machine, "prior_mean", None) is None
+    same = handling.weights is None and model.machine.prior_mean is None
     res = map_estimate(handling.weighted_model(model), free=free, max_iter=max_iter, prior_scale=scale,
                        first=pass_fit if same else None)
     if prior_scale is None and note is not None:

@@ -112,22 +112,23 @@ def prior_from_machine(machine: Machine, *, mean: ArrayLike | None = None, scale
         Its ``tolerance`` (from ``[tolerance]`` or the kind's defaults) are the prior std.
     mean : array_like, shape (P,), optional
         Prior mean of the errors (e.g. a previous calibration); by default
-        the machine's ``prior_mean`` where a view states one (effect
-        parameters centred on their prior, :mod:`bayescal.effects.joint_model`),
-        else zeros.  Likewise the lower bounds are the view's ``prior_lower``
-        (the effects' physical bounds), else none.
+        the machine's :attr:`~bayescal.machines.base.Machine.prior_mean`
+        where a view states one (effect parameters centred on their prior,
+        :mod:`bayescal.effects.joint_model`), else zeros.  Likewise the lower
+        bounds are the machine's ``prior_lower`` (the effects' physical
+        bounds), else none.
     scale : float
         Multiplies every std (e.g. to test prior sensitivity).
     """
     P = machine.n_params
     if mean is None:
-        mean = getattr(machine, "prior_mean", None)
+        mean = machine.prior_mean
     mu = np.zeros(P) if mean is None else np.asarray(mean, dtype=float)
     if mu.shape != (P,):
         raise InputError(f"mean: expected shape ({P},), got {mu.shape}")
     if not scale > 0:
         raise InputError(f"scale: expected a positive number, got {scale!r}")
-    lower = getattr(machine, "prior_lower", None)
+    lower = machine.prior_lower
     return GaussianPrior(machine.layout.names, mu, np.asarray(machine.tolerance, dtype=float) * scale,
                          None if lower is None else np.asarray(lower, dtype=float))
 

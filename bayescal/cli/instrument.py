@@ -80,5 +80,3 @@ def instrument_frame_line(extra: dict) -> str:
             std = lambda v: "[" + ", ".join("-" if x is None else f"{x:.2g}" for x in v) + "]"  # noqa: E731
             lines.append(f"                  std origin {std(f['std']['origin'])} mm, rotation vector {std(f['std']['rotation_vector'])} rad")
     return "\n".join(lines)
-
-

@@ -166,7 +166,7 @@ class ConstraintModel:
             raise InputError(f"--dof {dof}: a constraint recording has one scalar per measurement; leave --dof out")
         given = None
         if machine.framed:
-            if machine.fit:
+            if machine.instrument_frame.fit:
                 raise InputError("a constraint recording does not see an instrument frame (heights are along the base z "
                                  "axis, docs/formats.md section 6): there is no frame to fit")
             given, machine = machine, machine.inside

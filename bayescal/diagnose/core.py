@@ -312,7 +312,8 @@ def _diagnosis(s: _Setup, g: _Geometric, v: _Verdict, f: _Found, recording: Reco
 
 def _frame(machine: Machine, fit0: EffectFit) -> dict:
     """The answer's frame keys of a fitted instrument frame: the geometric fit's (the diagnosis' start)."""
-    if not (machine.framed and machine.fit):
+    frame = machine.instrument_frame
+    if frame is None or not frame.fit:
         return {}
     from ..instrument.plausibility import frame_answer
 

@@ -49,9 +49,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
+from ..machines.appended import AppendedParameters
 from ..machines.base import Machine, ToolPoses
+from ..machines.view import Forwarded
 from ..measurement import MeasurementModel, Prediction
-from ..params import ParamLayout, ParamSpec
+from ..params import ParamSpec
 from .base import Effect, EffectParam, Features
 from .model import _at, _bend, _dq, _dx, _effect_theta, _slices, effect_columns
 from .stored import StoredEffect
@@ -67,13 +69,19 @@ EFFECT_GROUP = "effect"
 
 
 @dataclass(frozen=True, eq=False)
-class EffectAugmented:
+class EffectAugmented(AppendedParameters):
     """A machine's parameter layout extended by effect parameters.
 
     ``base`` is the geometric model's machine (possibly a view with nuisance
     parameters); ``params`` the effect parameters in layout order and
-    ``effect_names`` the effect each belongs to.  Everything but the layout,
-    tolerances, prior means and the geometry's place is the base machine's.
+    ``effect_names`` the effect each belongs to.  As every view of appended
+    parameters (:class:`~bayescal.machines.appended.AppendedParameters`), the
+    kinematics are the base machine's and the members no view changes its
+    machine's (:data:`~bayescal.machines.view.FORWARDED`); the effects'
+    priors give the tolerances, prior means and lower bounds.  Unlike
+    nuisance parameters, the view is around the geometric model's machine,
+    instrument frame included: the frame's layer (``framed``, ``n_frame``,
+    ``instrument_frame``, ``inside``, ``base_machine``) is the base machine's.
     """
 
     base: Machine
@@ -82,58 +90,46 @@ class EffectAugmented:
     #: The machine file's tables the effects came from (settings, units and source kept in :meth:`tables`).
     stored: tuple[StoredEffect, ...] = ()
 
+    def appended(self):
+        specs = tuple(ParamSpec(f"effect.{e}.{p.name}", p.unit, EFFECT_GROUP) for e, p in zip(self.effect_names, self.params))
+        return specs, np.array([p.prior_sd for p in self.params], dtype=float)
+
     def __post_init__(self) -> None:
-        specs = [ParamSpec(f"effect.{e}.{p.name}", p.unit, EFFECT_GROUP) for e, p in zip(self.effect_names, self.params)]
-        object.__setattr__(self, "layout", self.base.layout + ParamLayout(tuple(specs)))
-        object.__setattr__(self, "tolerance", np.concatenate([self.base.tolerance, [p.prior_sd for p in self.params]]))
-        base_mean = getattr(self.base, "prior_mean", None)
+        super().__post_init__()
+        base_mean = self.base.prior_mean
         base_mean = np.zeros(self.base.n_params) if base_mean is None else np.asarray(base_mean, float)
-        object.__setattr__(self, "prior_mean", np.concatenate([base_mean, [p.prior_mean for p in self.params]]))
+        object.__setattr__(self, "_prior_mean", np.concatenate([base_mean, [p.prior_mean for p in self.params]]))
         # the effects' physical bounds (a compliance, a mass): the sampled prior is truncated there
         low = [-np.inf if p.lower is None else p.lower for p in self.params]
-        object.__setattr__(self, "prior_lower", np.concatenate([np.full(self.base.n_params, -np.inf), low]))
-
-    def __getattr__(self, name):
-        # everything else (name, kind, noise, q_limits, source, effects, ...) is the base machine's
-        if name == "base" or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.base, name)
+        object.__setattr__(self, "_prior_lower", np.concatenate([np.full(self.base.n_params, -np.inf), low]))
 
     @property
-    def n_params(self) -> int:
-        return len(self.layout)
-
-    def for_poses(self, idx) -> "EffectAugmented":
-        """This view over the base machine bound to the poses ``idx`` (stations: :meth:`Machine.for_poses`)."""
-        inner = self.base.for_poses(idx)
-        return self if inner is self.base else dataclasses.replace(self, base=inner)
-
-    def measurement_rotation(self, q, theta):
-        return self.base.measurement_rotation(q, None if theta is None else np.asarray(theta, dtype=float)[..., : self.base.n_params])
+    def prior_mean(self) -> NDArray:
+        """The base machine's prior mean (zero unless it states one), then the effect parameters' prior means."""
+        return self._prior_mean
 
     @property
-    def n_base(self) -> int:
-        """Number of geometric (and nuisance) parameters before the effects'."""
-        return self.base.n_params
+    def prior_lower(self) -> NDArray:
+        """No bound on the base machine's parameters, then the effect parameters' physical lower bounds."""
+        return self._prior_lower
+
+    # the frame's layer is the base machine's: the effect parameters follow whatever frame it has
+    framed = Forwarded()
+    n_frame = Forwarded()
+    instrument_frame = Forwarded()
+    inside = Forwarded()
+
+    def rewrapped(self, inner: Machine) -> "EffectAugmented":
+        """This view over the base machine's frame around ``inner``."""
+        return dataclasses.replace(self, base=self.base.rewrapped(inner))
+
+    def base_machine(self) -> Machine:
+        """The base machine's machine in its base frame (without the effect parameters and nuisance views)."""
+        return self.base.base_machine()
 
     def check_theta(self, theta, n_poses=None) -> NDArray:
         # the machines' own check, against this view's parameter count
         return Machine.check_theta(self, theta, n_poses)
-
-    def _base_theta(self, theta):
-        return None if theta is None else np.asarray(theta, dtype=float)[..., : self.n_base]
-
-    def forward(self, q, theta=None, *, guess=None) -> ToolPoses:
-        """The base machine's poses at ``q`` as given (the effects act through the model's features, not here)."""
-        return self.base.forward(q, self._base_theta(theta), guess=guess)
-
-    def tool_jacobian(self, q, theta, poses) -> NDArray:
-        """The base machine's tool Jacobian with zero columns for the effect parameters."""
-        J = self.base.tool_jacobian(q, self._base_theta(theta), poses)
-        return np.concatenate([J, np.zeros(J.shape[:2] + (len(self.params),))], axis=2)
-
-    def actuator_jacobian(self, q, theta, poses) -> NDArray:
-        return self.base.actuator_jacobian(q, self._base_theta(theta), poses)
 
     @property
     def geometry_part(self) -> tuple[Machine, NDArray]:
@@ -187,7 +183,7 @@ class EffectAugmented:
 
     def to_toml(self, theta: ArrayLike | None = None) -> str:
         """The geometry's machine file (the effect tables: :meth:`EffectModel.stored_effects`)."""
-        return self.base.to_toml(self._base_theta(self.check_theta(theta)))
+        return self.base.to_toml(self.machine_theta(self.check_theta(theta)))
 
 
 def _sub_model(model: MeasurementModel, q: NDArray, guess: ToolPoses | None, bend: NDArray | None = None) -> MeasurementModel:

@@ -29,12 +29,8 @@ def offset_prior(unit) -> float:
 
 
 def machine_dof(machine: Machine) -> int:
-    """Degrees of freedom of the platform: the machine's ``n_dof`` (or ``dof``) if it declares one, else its actuator count."""
-    for attr in ("n_dof", "dof"):
-        value = getattr(machine, attr, None)
-        if isinstance(value, (int, np.integer)) and value > 0:
-            return int(value)
-    return machine.n_actuators
+    """Degrees of freedom of the platform (:attr:`Machine.n_dof`: the actuator count unless actuation is redundant)."""
+    return int(machine.n_dof)
 
 
 def orient_directions(nu: NDArray) -> NDArray:
@@ -61,7 +57,7 @@ def _inner(machine: Machine) -> tuple[Machine, int]:
 
 def _probe_planar(inner) -> NDArray:
     """A fixed set of planar poses (centre and corners of ``pose_range``) to find a parameter's reach structurally."""
-    if getattr(inner, "pose_range", None) is None:
+    if inner.pose_range is None:
         return np.zeros((1, 3))
     lo, hi = inner.pose_range[:, 0], inner.pose_range[:, 1]
     grid = np.array(np.meshgrid(*[[0.1, 0.5, 0.9]] * 3, indexing="ij")).reshape(3, -1).T
@@ -190,7 +186,7 @@ class RedundancyPreload(Effect):
         inner, _ = _inner(machine)
         s, r = features.const["nonredundant"], features.const["redundant"]
         out = [EffectParam(f"compliance_ratio.q{i + 1}", "1", RATIO_PRIOR, RATIO_PRIOR_MEAN, lower=0.0) for i in s]
-        offset = int(inner.offset_index()[r]) if hasattr(inner, "offset_index") else -1
+        offset = int(inner.offset_index()[r])
         unit = machine.actuator_unit_info[r]
         for j in features.const["columns"]:
             spec = inner.layout.specs[j]

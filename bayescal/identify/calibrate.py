@@ -472,7 +472,7 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise, lam_sca
     machine = model.machine
     # lam relative to the model's sigma (lam_scale: the factor by which that sigma's variance was raised since)
     prior_sd = np.asarray(machine.tolerance, dtype=float)[idx] / math.sqrt(res.lam / lam_scale)
-    mean = getattr(machine, "prior_mean", None)
+    mean = machine.prior_mean
     prior_mean = None if mean is None else np.asarray(mean, dtype=float)[idx]
     # the hyperparameters and the noise are estimated with the poses weighted as the geometry's robust fit weighted
     # them: one gross pose must not shorten the length scales and raise the noise (seen: 0.0088 -> 0.0138 mm)

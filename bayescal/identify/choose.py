@@ -760,7 +760,7 @@ def _tool_output_map(machine, q: ArrayLike, idx: NDArray, scale: NDArray) -> NDA
     None (the ``success`` rule then judges the scaled parameter error) when a
     pose cannot be solved at nominal.
     """
-    if q is None or not hasattr(machine, "tool_jacobian"):
+    if q is None:
         return None
     q = np.atleast_2d(np.asarray(q, dtype=float))
     poses = machine.forward(q)

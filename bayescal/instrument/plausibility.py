@@ -247,23 +247,24 @@ def frame_answer(machine: Machine, theta: NDArray, free: NDArray, covariance: ND
     frame: the origin's is the correction's, the rotation vector's
     ``r = log(exp(d_phi) R0)`` is propagated through ``dr/de = J_l^-1(r) J_l(d_phi)``.
     """
-    if not machine.framed:
+    frame = machine.instrument_frame  # the frame, or the one under a view around it (fitted effects)
+    if frame is None:
         return {}
     theta = np.asarray(theta, dtype=float)
     C = None
-    if machine.fit and covariance is not None:
+    if frame.fit and covariance is not None:
         P = np.asarray(free).size  # the model's parameters: the machine's, then its own (pivots, effects)
         C = np.full((P, P), np.nan)
         idx = np.flatnonzero(free)
         C[np.ix_(idx, idx)] = covariance
-    blocks = [_one_frame(machine, theta, C, k) for k in range(machine.n_stations)]
-    if machine.n_stations == 1:
+    blocks = [_one_frame(frame, theta, C, k) for k in range(frame.n_stations)]
+    if frame.n_stations == 1:
         return {"frame": blocks[0]}
-    return {"frames": dict(zip(machine.stations, blocks))}
+    return {"frames": dict(zip(frame.stations, blocks))}
 
 
 def _one_frame(machine: InstrumentFrame, theta: NDArray, C: NDArray | None, k: int) -> dict:
-    # a model's own nuisance parameters (ballbar pivots) follow the machine's: the frame is the machine's
+    # a model's own parameters (ballbar pivots, effects) follow the machine's: the frame's lead them
     f = machine.frame_at(theta[: machine.n_params], k)
     rv = f.rotation_vector
     out = {"origin": f.origin.tolist(), "rotation_vector": rv.tolist(), "fitted": bool(machine.fit), "std": None}

@@ -126,9 +126,10 @@ def klipper_keys(machine: LinearDelta, theta: ArrayLike | None = None, *, fixed_
     Parameters
     ----------
     machine : LinearDelta
-        Three towers: stepper a, b, c in order.
+        Three towers: stepper a, b, c in order; possibly in an instrument
+        frame (the keys are the geometry's: :attr:`Machine.geometry_part`).
     theta : array_like, optional
-        Error parameters (default zero).
+        Error parameters of ``machine`` (default zero).
     fixed_angle_deg : float, optional
         Stepper c's angle, degrees (default: the machine's nominal tower-3
         angle, i.e. the config's ``[stepper_c] angle``).
@@ -142,6 +143,8 @@ def klipper_keys(machine: LinearDelta, theta: ArrayLike | None = None, *, fixed_
     if machine.kind != "linear-delta" or machine.n_actuators != 3:
         raise InputError(f"Klipper's delta keys describe a three-tower linear delta; got a {machine.kind} with "
                          f"{machine.n_actuators} actuators")
+    inner, idx = machine.geometry_part  # the delta under a view (an instrument frame), and its parameters
+    machine, theta = inner, machine.check_theta(theta)[idx]
     g = machine.geometry_arrays(theta)
     t = g["tool_point"]
     feet = _tower_points(machine, theta, g) + t[:2]

@@ -6,13 +6,15 @@ the kinematics are the machine's, which the appended parameters do not move
 (their columns of the tool Jacobian are zero; the rows that see them are
 the view's own, e.g. a ballbar's radius or a sensor's tilt).
 :attr:`geometry_part` leaves them out and the calibrated machine file does
-not hold them.  Everything else is forwarded to the machine.
+not hold them.  The members no view changes are the machine's
+(:data:`bayescal.machines.view.FORWARDED`); every other member of the
+:class:`~bayescal.machines.base.Machine` interface is defined here.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,12 +23,13 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, ToolPoses
+from .view import Forwarded, MachineView
 
 __all__ = ["AppendedParameters"]
 
 
 @dataclass(frozen=True, eq=False)
-class AppendedParameters(ABC):
+class AppendedParameters(MachineView):
     """``base`` with the parameters :meth:`appended` gives after its own (subclasses say which)."""
 
     base: Machine
@@ -40,19 +43,44 @@ class AppendedParameters(ABC):
         object.__setattr__(self, "layout", self.base.layout + ParamLayout(tuple(specs)))
         object.__setattr__(self, "tolerance", np.concatenate([self.base.tolerance, np.asarray(tol, dtype=float)]))
 
-    def __getattr__(self, name):
-        # everything else (name, kind, noise, q_limits, source, effects, ...) is the machine's
-        if name == "base" or name.startswith("__"):
-            raise AttributeError(name)  # not set yet (copy, pickle): no recursion
-        return getattr(self.base, name)
+    @property
+    def wrapped(self) -> Machine:
+        return self.base
+
+    #: the machine's start from a measurement: the appended parameters do not move the tool
+    guess_from_measurement = Forwarded()
 
     @property
-    def n_params(self) -> int:
-        return len(self.layout)
+    def prior_mean(self):
+        """The machine's prior mean, zero for the appended parameters (None when the machine's is zero)."""
+        mean = self.base.prior_mean
+        return None if mean is None else np.concatenate([mean, np.zeros(self.n_params - self.n_base)])
+
+    @property
+    def prior_lower(self):
+        """The machine's lower bounds, none for the appended parameters (None when it has none)."""
+        low = self.base.prior_lower
+        return None if low is None else np.concatenate([low, np.full(self.n_params - self.n_base, -np.inf)])
+
+    # A view is the measurement's: the machine given other effects, noise or a calibration record is the
+    # machine's own copy, without the view (the next model built from a recording makes its view anew;
+    # a calibrated machine file does not hold the appended parameters).
+    def with_effects(self, effects) -> Machine:
+        """The machine (without this view) carrying ``effects``."""
+        return self.base.with_effects(effects)
+
+    def with_noise(self, noise) -> Machine:
+        """The machine (without this view) with the instrument noise ``noise``."""
+        return self.base.with_noise(noise)
+
+    def with_calibration(self, calibration=None, discrepancy=None) -> Machine:
+        """The machine (without this view) carrying a calibration record and a model discrepancy."""
+        return self.base.with_calibration(calibration, discrepancy)
 
     # the instrument frame's layer (Machine.framed ...): a view is inside any frame, never around one
     framed = False
     n_frame = 0
+    instrument_frame = None
 
     @property
     def inside(self):
@@ -105,6 +133,21 @@ class AppendedParameters(ABC):
 
     def weight_bodies(self, q, theta, poses):
         return self.base.weight_bodies(q, self.machine_theta(theta), poses)
+
+    def compatible_q(self, q, theta=None) -> NDArray:
+        """The machine's :meth:`Machine.compatible_q` at its part of ``theta``."""
+        return self.base.compatible_q(q, self.machine_theta(theta))
+
+    def node_actuators(self, q, theta=None, aux=None):
+        """The machine's :meth:`Machine.node_actuators`, zero columns for the appended parameters."""
+        q_act, J = self.base.node_actuators(q, self.machine_theta(theta), aux)
+        if J is None:
+            return q_act, None
+        return q_act, np.concatenate([J, np.zeros(J.shape[:2] + (self.n_params - self.n_base,))], axis=2)
+
+    def node_tool_offset(self, q, theta=None, aux=None):
+        """The machine's :meth:`Machine.node_tool_offset` (the appended parameters do not move the tool)."""
+        return self.base.node_tool_offset(q, self.machine_theta(theta), aux)
 
     @property
     def geometry_part(self) -> tuple[Machine, NDArray]:

@@ -255,7 +255,7 @@ class Machine(ABC):
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
         kind = cls.__dict__.get("kind")
-        if isinstance(kind, str) and kind:  # a wrapper's kind is its machine's (a property): not a kind
+        if isinstance(kind, str) and kind:  # a view's kind is its machine's (forwarded): not a kind
             if kind in KINDS and KINDS[kind].__qualname__ != cls.__qualname__:
                 raise TypeError(f"machine kind {kind!r} is already {KINDS[kind].__qualname__}")
             KINDS[kind] = cls
@@ -270,6 +270,13 @@ class Machine(ABC):
     #: the file has none.  Attached by :meth:`with_calibration`, like the effects.
     calibration = None
     discrepancy = None
+    #: Prior mean of ``theta``, shape (P,), or None: zero (the nominal geometry).  A view whose parameters
+    #: are centred elsewhere states it (effect parameters at their priors' means,
+    #: :class:`bayescal.effects.joint_model.EffectAugmented`).
+    prior_mean = None
+    #: Lower bounds of ``theta``'s prior, shape (P,) (``-inf``: none), or None: no parameter is bounded.
+    #: A view with physical bounds states them (an effect's compliance or mass), and samplers truncate there.
+    prior_lower = None
 
     name: str
     layout: ParamLayout
@@ -282,6 +289,16 @@ class Machine(ABC):
     @abstractmethod
     def n_actuators(self) -> int:
         """Number of actuated joints (columns q1..qN of a recording)."""
+
+    @property
+    def n_dof(self) -> int:
+        """Degrees of freedom of the platform: the actuator count, unless actuation is redundant (more drives).
+
+        A kind with redundant actuators overrides it, so that effects of
+        position-controlled drives fighting through the closed loops
+        (:mod:`bayescal.effects.redundancy_preload`) know how many there are.
+        """
+        return self.n_actuators
 
     @property
     def actuator_units(self) -> tuple[str, ...]:
@@ -325,6 +342,17 @@ class Machine(ABC):
     def n_frame(self) -> int:
         """Number of instrument-frame parameters before the machine's own: 0 without a fitted frame."""
         return 0
+
+    @property
+    def instrument_frame(self):
+        """The :class:`~bayescal.machines.framed.InstrumentFrame` the machine is measured in, or None without one.
+
+        The frame itself, or the one under a view around it (effect
+        parameters fitted with a framed geometry): its stations, whether it
+        is fitted and its frame at ``theta`` are asked of it, its parameters
+        leading ``theta``.
+        """
+        return None
 
     @property
     def inside(self) -> "Machine":

@@ -98,14 +98,14 @@ def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | No
     if not written_as_modules(machine):
         return [write_text_atomic(path, header + machine_file_text(machine, theta))]
     th = machine.check_theta(theta)
-    framed = machine.framed
+    frame = machine.instrument_frame
     files = machine_files_text(path, machine.inside, th[machine.n_frame:])
     # the main file carries what belongs to the whole machine: its [effect.*] tables and its [instrument] frame
     extra = []
     if machine.effects:
         extra.append(effect_tables_toml(tuple(machine.effects)))
-    if framed and machine.n_stations == 1:
-        extra.append(instrument_toml(machine.frame_at(th)))
+    if frame is not None and frame.n_stations == 1:
+        extra.append(instrument_toml(frame.frame_at(th[: frame.n_params])))
     if tables := calibration_tables_toml(machine).strip("\n"):
         extra.append(tables)
     if extra or header:

@@ -59,6 +59,7 @@ from ..geometry import left_jacobian, skew, so3_exp, so3_log
 from ..io.machine_file import format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, ToolPoses
+from .view import MachineView
 
 __all__ = ["Frame", "InstrumentFrame", "FRAME_NAMES", "FRAME_TOLERANCE", "instrument_toml",
            "frame_names", "is_frame_parameter"]
@@ -137,8 +138,8 @@ def _frame_layout(stations: tuple[str, ...] = ("",)) -> ParamLayout:
 
 
 @dataclass(frozen=True, eq=False)
-class InstrumentFrame(Machine):
-    """``machine`` measured in an instrument frame (fitted or known).
+class InstrumentFrame(MachineView):
+    """``machine`` measured in an instrument frame (fitted or known): a :class:`~bayescal.machines.view.MachineView`.
 
     Parameters
     ----------
@@ -229,43 +230,10 @@ class InstrumentFrame(Machine):
         raise InputError(f"InstrumentFrame: {n} poses, but stations are bound to {ps.size}; evaluate the machine's "
                          "geometry (Machine.geometry_part) at poses the recording did not measure")
 
-    # ----------------------------------------------------------- delegation
+    # ------------------------------------------ the interface (the rest is the machine's: MachineView)
     @property
-    def kind(self) -> str:  # type: ignore[override]
-        return self.machine.kind
-
-    @property
-    def name(self) -> str:  # type: ignore[override]
-        return self.machine.name
-
-    @property
-    def source(self) -> str:  # type: ignore[override]
-        return self.machine.source
-
-    @property
-    def noise(self):  # type: ignore[override]
-        return self.machine.noise
-
-    @property
-    def q_limits(self):  # type: ignore[override]
-        return self.machine.q_limits
-
-    @property
-    def n_actuators(self) -> int:
-        return self.machine.n_actuators
-
-    @property
-    def actuator_units(self) -> tuple[str, ...]:
-        return self.machine.actuator_units
-
-    @property
-    def actuator_box_reachable(self) -> bool:
-        return self.machine.actuator_box_reachable
-
-    @property
-    def effects(self) -> tuple:  # type: ignore[override]
-        """The inner machine's stored effects: they act on the actuators, whatever frame measures the tool."""
-        return self.machine.effects
+    def wrapped(self) -> Machine:
+        return self.machine
 
     def with_effects(self, effects) -> "InstrumentFrame":
         from dataclasses import replace
@@ -276,15 +244,6 @@ class InstrumentFrame(Machine):
         from dataclasses import replace
 
         return replace(self, machine=self.machine.with_noise(noise))
-
-    @property
-    def calibration(self):  # type: ignore[override]
-        """The inner machine's calibration record: it describes the machine, whatever frame measures it."""
-        return self.machine.calibration
-
-    @property
-    def discrepancy(self):  # type: ignore[override]
-        return self.machine.discrepancy
 
     def with_calibration(self, calibration=None, discrepancy=None) -> "InstrumentFrame":
         from dataclasses import replace
@@ -299,6 +258,10 @@ class InstrumentFrame(Machine):
     @property
     def framed(self) -> bool:
         return True
+
+    @property
+    def instrument_frame(self) -> "InstrumentFrame":
+        return self
 
     @property
     def inside(self) -> Machine:
@@ -333,16 +296,32 @@ class InstrumentFrame(Machine):
         one = [t["frame_origin"]] * 3 + [t["frame_rotation"]] * 3
         return np.concatenate([one * self.n_stations, self.machine.tolerance])
 
-    def __getattr__(self, name):
-        # kind-specific attributes (tolerance_groups, pose_range, ...) are the inner machine's
-        if name.startswith("__") or name.startswith("_") or name in (
-                "machine", "frame0", "fit", "frame_tolerance", "stations", "frames0", "pose_station"):
-            raise AttributeError(name)
-        return getattr(self.machine, name)
+    @property
+    def prior_mean(self):
+        """The inner machine's prior mean after zeros for the frame (None when the inner machine's is zero)."""
+        inner = self.machine.prior_mean
+        return None if inner is None else np.concatenate([np.zeros(self.n_frame), inner])
+
+    @property
+    def prior_lower(self):
+        """The inner machine's lower bounds after none for the frame (None when it has none)."""
+        inner = self.machine.prior_lower
+        return None if inner is None else np.concatenate([np.full(self.n_frame, -np.inf), inner])
 
     def compatible_q(self, q: ArrayLike, theta: ArrayLike | None = None) -> NDArray:
         """The inner machine's :meth:`Machine.compatible_q` (the frame does not couple actuators)."""
         return self.machine.compatible_q(q, None if theta is None else self.split(theta)[1])
+
+    def node_actuators(self, q: NDArray, theta: NDArray | None = None, aux: dict | None = None):
+        """The inner machine's :meth:`Machine.node_actuators` (the drives do not see the frame): zero frame columns."""
+        q_act, J = self.machine.node_actuators(q, None if theta is None else self.split(theta)[1], aux)
+        if J is None:
+            return q_act, None
+        return q_act, np.concatenate([np.zeros(J.shape[:2] + (self.n_frame,)), J], axis=2)
+
+    def node_tool_offset(self, q: NDArray, theta: NDArray | None = None, aux: dict | None = None):
+        """The inner machine's :meth:`Machine.node_tool_offset`: base frame, as every grid's."""
+        return self.machine.node_tool_offset(q, None if theta is None else self.split(theta)[1], aux)
 
     # --------------------------------------------------------------- frame
     def split(self, theta: ArrayLike | None, n_poses: int | None = None) -> tuple[NDArray, NDArray]:
@@ -454,14 +433,6 @@ class InstrumentFrame(Machine):
         Ja = self.machine.actuator_jacobian(q, tm, self.to_base_poses(poses, theta))
         Rt = np.swapaxes(R, -1, -2)
         return np.concatenate([Rt @ Ja[:, :3], Rt @ Ja[:, 3:]], axis=1)
-
-    @property
-    def weight_body_names(self) -> tuple[str, ...]:
-        return self.machine.weight_body_names
-
-    @property
-    def body_inertials(self):
-        return self.machine.body_inertials
 
     def weight_bodies(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses):
         """The inner machine's weight bodies, in the base frame (gravity is stated in the base frame, not the instrument's)."""

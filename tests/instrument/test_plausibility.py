@@ -118,6 +118,24 @@ def test_frame_answer_std_matches_the_covariance(prs3):
     assert frame_answer(prs3, res.theta[6:], res.free[6:], None) == {}
 
 
+def test_frame_answer_reaches_the_frame_under_a_view_of_fitted_effects(prs3):
+    """Effect parameters fitted with a framed geometry follow its parameters: the frame block is the frame's."""
+    from bayescal.effects.base import EffectParam
+    from bayescal.effects.joint_model import EffectAugmented
+
+    sim = simulate_recording(prs3, 24, seed=7, dof=6)
+    o, R = random_frame(np.random.default_rng(7))
+    m, model, _ = prepare_model(prs3, to_instrument(sim.recording, o, R), frame="fit")
+    res = _quiet(map_estimate, model, free="auto")
+    view = EffectAugmented(m, (EffectParam("dead_band.q1", "um", 30.0),), ("backlash",))
+    assert view.framed and view.instrument_frame is m
+    k = int(res.free.sum())
+    cov = np.zeros((k + 1, k + 1))
+    cov[:k, :k], cov[k, k] = res.covariance, 4.0
+    ans = frame_answer(view, np.r_[res.theta, 12.0], np.r_[res.free, True], cov)
+    assert ans == frame_answer(m, res.theta, res.free, res.covariance) and "std" in ans["frame"]
+
+
 @pytest.mark.parametrize("dof", [6, 3])
 def test_base_frame_recordings_do_not_trigger_the_check(prs3, dof):
     for seed in range(5):

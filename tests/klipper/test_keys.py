@@ -124,3 +124,16 @@ def test_what_klipper_cannot_hold_is_noted_and_an_impossible_printer_refused(pri
         klipper_text(m, theta)
     with pytest.raises(InputError, match="three-tower linear delta"):
         klipper_text(load_machine(ROOT / "examples" / "prs3" / "machine.toml"))
+
+
+def test_keys_of_a_printer_in_an_instrument_frame_are_its_geometrys(printer):
+    """A calibration measured in an instrument frame (fitted or known) writes the delta's keys, not the frame's."""
+    from bayescal.machines.framed import Frame, InstrumentFrame
+
+    _, m, _ = printer
+    theta = np.zeros(m.n_params)
+    theta[m.layout.names.index("tower1.arm_length")] = 0.3
+    frame = Frame.from_rotation_vector([10.0, -5.0, 2.0], [0.0, 0.0, 0.4])
+    fitted = InstrumentFrame(m, frame, fit=True)
+    assert klipper_text(fitted, np.r_[[1.0, 2.0, 3.0, 0.01, 0.02, 0.03], theta]) == klipper_text(m, theta)
+    assert klipper_text(InstrumentFrame(m, frame, fit=False), theta) == klipper_text(m, theta)
