@@ -26,9 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import ConvergenceWarning, InputError
+from ..errors import ConvergenceWarning, InputError, KinematicsError
 from ..limits import check_memory
 from ..identifiability import STRUCTURAL_RTOL, analyse_identifiability, priority_order
+from ..iteration import Proposal, Refused, StepControl, gauss_newton
 from ..measurement import MeasurementModel
 from .result import IdentificationResult
 from .solvers import LS_RCOND, filtered_solve
@@ -430,13 +431,28 @@ class _Iterated:
 
 
 def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol) -> _Iterated:
-    """Gauss-Newton steps of ``method`` in the scaled coordinates ``phi = theta[idx] / S`` until convergence."""
+    """Gauss-Newton steps of ``method`` in the scaled coordinates ``phi = theta[idx] / S`` until convergence.
+
+    Every step that can be solved is taken in full, so that the iteration and
+    its fixed point are the filtered solve's; a full step of an
+    ill-conditioned problem can leave the assembly (a pose with no solution),
+    and only then is it halved (:func:`bayescal.iteration.gauss_newton`).
+    """
     machine = model.machine
-    history, costs = [theta.copy()], [float(r @ r)]
-    success, message, ill_posed = False, "", False
     phi0 = theta[idx] / S
-    step = np.zeros(idx.size)
-    for _ in range(1, max_iter + 1):
+    last = {}  # the last solve, for the divergence message's condition number
+
+    def evaluate(theta_new, state):
+        pred_new = model.predict(theta_new, guess=state[0].poses)
+        if not pred_new.success.all():
+            i = int(np.flatnonzero(~pred_new.success)[0])
+            why = pred_new.poses.message[i]
+            raise KinematicsError(f"pose {i + 1} cannot be solved at the updated geometry ({why})")
+        r_new, J_new = whitened_system(model, theta_new, pred_new)
+        return float(r_new @ r_new), (pred_new, r_new, J_new)
+
+    def propose(theta, state):
+        r, J = state[1], state[2]
         A = J[:, idx] * S
         phi = theta[idx] / S
         if basis is None:
@@ -446,50 +462,29 @@ def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis,
             # least squares for the coordinates c of phi = phi0 + V_k c
             sub = filtered_solve(A @ basis, r + A @ (phi - phi0), "ls")
             sol = type(sub)(x=phi0 + basis @ sub.x, s=sub.s, f=sub.f, V=basis @ sub.V, Utz=sub.Utz)
+        last["s"] = sol.s
         if method == "ls" and sol.s[-1] <= LS_RCOND * sol.s[0]:
             worst = np.argsort(-np.abs(sol.V[:, -1]))[:4]
             names = ", ".join(machine.layout.names[idx[j]] for j in worst)
-            message = (
+            raise Refused(
                 f"least squares is ill-posed: the identification matrix is rank deficient "
                 f"(smallest/largest singular value {sol.s[-1] / sol.s[0]:.1e}); the measurement does not "
                 f"separate {names}. Use ridge or tsvd, or let bayescal reduce the parameter set (free='auto')"
             )
-            ill_posed = True
-            break
-        step = sol.x - phi
-        if not np.all(np.isfinite(step)) or np.max(np.abs(sol.x)) > 1e6:
-            message = (
-                "diverged: the estimate grew beyond a million tolerances; the problem is too ill-conditioned "
-                f"for {method} (condition number {sol.s[0] / max(sol.s[-1], 1e-300):.1e}). Use ridge or tsvd"
-            )
-            break
-        theta_new = theta.copy()
-        theta_new[idx] = S * sol.x
-        pred_new = model.predict(theta_new, guess=pred.poses)
-        # A full Gauss-Newton step of an ill-conditioned problem can leave the assembly
-        # (a pose with no solution).  Only then is the step halved: steps that can be
-        # solved are taken in full, so the iteration and its fixed point are unchanged.
-        halvings = 0
-        while not pred_new.success.all() and halvings < 12:
-            halvings += 1
-            theta_new[idx] = theta[idx] + 0.5**halvings * S * (sol.x - phi)
-            pred_new = model.predict(theta_new, guess=pred.poses)
-        if not pred_new.success.all():
-            i = int(np.flatnonzero(~pred_new.success)[0])
-            message = f"diverged: pose {i + 1} cannot be solved at the updated geometry ({pred_new.poses.message[i]})"
-            break
-        if halvings:
-            step = step * 0.5**halvings
-        theta, pred = theta_new, pred_new
-        r, J = whitened_system(model, theta, pred)
-        history.append(theta.copy())
-        costs.append(float(r @ r))
-        # converged: a negligible step, or a small step that no longer lowers the cost
-        # (round-off floor of an ill-conditioned problem, about eps * condition number)
-        small = np.max(np.abs(step))
-        if small < xtol or (small < 1e3 * xtol and abs(costs[-2] - costs[-1]) <= 1e-12 * max(costs[-1], 1.0)):
-            success = True
-            break
-    else:
-        message = f"did not converge in {max_iter} iterations (last step {np.max(np.abs(step)):.2e} tolerances)"
-    return _Iterated(theta, pred, r, J, history, costs, success, message, ill_posed)
+        # the full step lands on the solve's point itself; a halving moves S (x - phi) of the way (no round-off
+        # of theta + (target - theta) in either)
+        target, step = theta.copy(), np.zeros(theta.size)
+        target[idx], step[idx] = S * sol.x, S * (sol.x - phi)
+        return Proposal(step=step, target=target)
+
+    scale = np.full(theta.size, np.inf)  # fixed parameters never move
+    scale[idx] = S
+    out = gauss_newton(theta, (float(r @ r), (pred, r, J)), evaluate, propose, control=StepControl(bound=1e6),
+                       scale=scale, max_iter=max_iter, xtol=xtol, unit="tolerances", failures=(KinematicsError,))
+    message = out.message
+    if out.reason == "diverged":
+        s = last["s"]
+        message += (f"; the problem is too ill-conditioned for {method} (condition number "
+                    f"{s[0] / max(s[-1], 1e-300):.1e}). Use ridge or tsvd")
+    pred, r, J = out.state
+    return _Iterated(out.x, pred, r, J, out.history, out.costs, out.success, message, out.reason == "refused")

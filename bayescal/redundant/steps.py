@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import IdentificationError, InputError
+from ..iteration import Proposal, StepControl, gauss_newton
 from .models import PoseModel
 from .physics import TrueModule
 from .relative_io import RelativeRecording
@@ -271,6 +272,33 @@ def _relative_jacobian(model: PoseModel, rec: RelativeRecording, theta: NDArray,
     return (J[n:] - J[:n])[:, cols]
 
 
+def _iterate(model: PoseModel, system, theta: NDArray, r: NDArray, J: NDArray, cand: NDArray, basis: NDArray,
+             max_iter: int, xtol: float):
+    """Gauss-Newton in the coordinates ``u`` of the kept directions: ``theta[cand] += tol (basis u)``.
+
+    Each step is halved until the cost does not rise (far from the solution a
+    full step may overshoot; :func:`bayescal.iteration.gauss_newton`).  The
+    state is ``(theta, r, J)``: the completed parameters, whitened residuals
+    and Jacobian.
+    """
+    tol = model.machine.tolerance
+
+    def evaluate(u, state):
+        trial = theta.copy()
+        trial[cand] += tol[cand] * (basis @ u)
+        trial = model.complete(trial)
+        r_t, J_t = system(trial)
+        return float(r_t @ r_t), (trial, r_t, J_t)
+
+    def propose(u, state):
+        A = (state[2][:, cand] * tol[cand]) @ basis
+        return Proposal(step=np.linalg.lstsq(A, state[1], rcond=None)[0])
+
+    return gauss_newton(np.zeros(basis.shape[1]), (float(r @ r), (theta, r, J)), evaluate, propose,
+                        control=StepControl(descent=True, halvings=7), max_iter=max_iter, xtol=xtol,
+                        failures=(InputError,))
+
+
 def identify_step(
     model: PoseModel,
     recs,
@@ -347,32 +375,9 @@ def identify_step(
         )
     basis = Vt[:k].T
     rms0 = float(np.sqrt(np.mean(r**2)))
-    success, message, it = False, "", 0
-    for it in range(1, max_iter + 1):
-        A = (J[:, cand] * tol[cand]) @ basis
-        c, *_ = np.linalg.lstsq(A, r, rcond=None)
-        cost = float(r @ r)
-        for _ in range(8):  # backtrack: far from the solution a full Gauss-Newton step may overshoot
-            trial = theta.copy()
-            trial[cand] += tol[cand] * (basis @ c)
-            try:
-                trial = model.complete(trial)
-                r_t, J_t = system(trial)
-            except InputError:
-                c = c / 2
-                continue
-            if float(r_t @ r_t) <= cost * (1 + 1e-9) or np.max(np.abs(c)) < xtol:
-                break
-            c = c / 2
-        else:
-            message = "no step lowered the residual"
-            break
-        theta, r, J = trial, r_t, J_t
-        if np.max(np.abs(c)) < xtol:
-            success = True
-            break
-    else:
-        message = f"did not converge in {max_iter} iterations"
+    out = _iterate(model, system, theta, r, J, cand, basis, max_iter, xtol)
+    theta, r, J = out.state
+    success, message, it = out.success, out.message, out.iterations
     _, sv, _ = np.linalg.svd(((J[:, cand] * tol[cand]) @ basis), full_matrices=False)
     loading = (basis**2).sum(axis=1)
     sel = loading > 0.5
