@@ -28,6 +28,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from ..contract import whiten
 from ..errors import KinematicsError
 from ..iteration import Proposal, StepControl, gauss_newton
 from ..machines.base import ToolPoses, map_state
@@ -233,8 +234,8 @@ def actuator_residual(model: MeasurementModel, theta: NDArray, residual: NDArray
     held, so that the answer is one actuator vector per row.
     """
     Jq = actuator_rows_jacobian(model, theta, prediction, own_pose_only=True)
-    Jw = Jq / model.row_sigma[:, :, None]
-    rw = residual / model.row_sigma
+    Jw = whiten(model, Jq)
+    rw = whiten(model, residual)
     return np.stack([np.linalg.lstsq(Jw[i], rw[i], rcond=None)[0] for i in range(model.n_poses)])
 
 
@@ -369,7 +370,7 @@ class _Joint:
         sub, pred = _predict(model, q_eff, theta, guess, " (with the effect applied)" if self.K else "",
                              dx=_dx(effects, slices, eta, model.pose_q.shape[0]), bend=_bend(effects, slices, eta, model))
         r = model.residual(pred)
-        rw = (r / model.row_sigma).reshape(-1)
+        rw = whiten(model, r).reshape(-1)
         phi = np.concatenate([theta, eta]) / self.scale
         return sub, pred, r, rw, float(rw @ rw), float(np.sum((phi - self.mu) ** 2))
 
@@ -380,7 +381,7 @@ class _Joint:
         if self.K:
             Je, Jt = effect_columns(sub, theta, pred, self.effects, self.slices, eta)
             cols = [Jg if Jt is None else Jg + Jt] + Je
-        J = np.concatenate(cols, axis=2) / self.model.row_sigma[:, :, None]
+        J = whiten(self.model, np.concatenate(cols, axis=2))
         return J.reshape(-1, self.P + self.K) * self.scale
 
     def state(self, theta, eta, guess) -> tuple[float, "_State"]:

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..contract import whiten
 from ..errors import ConvergenceWarning, InputError, KinematicsError
 from ..limits import check_memory
 from ..identifiability import STRUCTURAL_RTOL, analyse_identifiability, priority_order
@@ -39,9 +40,8 @@ __all__ = ["identify", "resolve_free", "whitened_system", "posterior_covariance"
 
 def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tuple[NDArray, NDArray]:
     """Whitened residual ``W (y - h)`` (N,) and Jacobian ``W J`` (N, P) at ``theta``."""
-    sig = model.row_sigma
-    r = (model.residual(prediction) / sig).reshape(-1)
-    J = (model.jacobian(theta, prediction) / sig[:, :, None]).reshape(-1, model.n_params)
+    r = whiten(model, model.residual(prediction)).reshape(-1)
+    J = whiten(model, model.jacobian(theta, prediction)).reshape(-1, model.n_params)
     return r, J
 
 
@@ -80,7 +80,7 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool 
             pred = model.predict(theta0)
             _, J = whitened_system(model, theta0, pred) if model.y_measured is not None else (None, None)
         if J is None:
-            J = (model.jacobian(theta0, pred) / model.row_sigma[:, :, None]).reshape(-1, model.n_params)
+            J = whiten(model, model.jacobian(theta0, pred)).reshape(-1, model.n_params)
         geometry = model.machine.geometry_part[1]
         nuisance = np.setdiff1d(np.arange(len(layout)), geometry)
         order = priority_order(model.machine.tolerance, layout.units, nuisance=nuisance)
@@ -172,8 +172,7 @@ def determined_at(model, theta: NDArray, free: NDArray, prediction=None) -> NDAr
     if not np.all(pred.success):
         return None
     free = np.asarray(free, dtype=bool)
-    sig = model.row_sigma
-    J = (model.jacobian(theta, pred) / sig[:, :, None]).reshape(-1, model.n_params)[:, free]
+    J = whiten(model, model.jacobian(theta, pred)).reshape(-1, model.n_params)[:, free]
     out = np.zeros(free.size, dtype=bool)
     out[free] = data_determined(J)[0]
     return out
@@ -279,7 +278,7 @@ def identify(
         # a model may say where its search must start (effect parameters that enter as products: off zero)
         theta0 = model.theta_start
     if prior_mean is None:
-        prior_mean = getattr(machine, "prior_mean", None)  # a view's parameters centred elsewhere (effects)
+        prior_mean = machine.prior_mean  # a view's parameters centred elsewhere (effects); None: zero
     theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float)
     if theta.shape != (P,):
         raise InputError(f"theta0: expected shape ({P},), got {theta.shape}")
