@@ -209,7 +209,9 @@ class MeasurementModel:
             guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
         from .sensors import attach_sensors
 
-        machine, sensor_set = attach_sensors(machine, rec, q) if sensors else (machine, None)
+        # the mountings start from the commanded poses, as the joint fit of geometry and effects starts them (its
+        # dq changes with the effects' values): one parametrisation whatever the tables hold
+        machine, sensor_set = attach_sensors(machine, rec, rec.q) if sensors else (machine, None)
         if sensor_set is not None and (turns := sensor_set.per_sensor(bend)) is not None:
             sensor_set = sensor_set.with_bend(turns)
         tool_dof = dof

@@ -26,7 +26,13 @@ def play_operator(x: NDArray, half_band: NDArray) -> tuple[NDArray, NDArray]:
     x : ndarray, shape (n_poses, n_actuators)
         Driver positions in time order (mm).
     half_band : ndarray, shape (n_actuators,)
-        Half the dead band ``h = b / 2`` (mm), ``h >= 0``.
+        Half the dead band ``h = b / 2`` (mm), ``h >= 0`` physically.  A
+        negative ``h`` (a fit's iterate, or a fit that reveals a reversed
+        hysteresis, :meth:`Effect.nonphysical`) gives the odd extension
+        ``-(y - x)(|h|)``: linear through zero in ``h`` after full moves, so
+        that value and derivative agree on both sides (clamped at zero, the
+        value stopped moving while the derivative did not, and a fit that
+        went below zero could not find its way back).
 
     Returns
     -------
@@ -39,7 +45,9 @@ def play_operator(x: NDArray, half_band: NDArray) -> tuple[NDArray, NDArray]:
     # A move of at least the whole band (2 h) ends in flank contact whatever the nut's position before
     # it, so those rows are -h sign(move), vectorised; only rows after shorter moves (and the first) need
     # the recursion, and the Python loop visits just those (rare with poses spread over the workspace).
-    h = np.maximum(np.asarray(half_band, float), 0.0)
+    signed = np.asarray(half_band, float)
+    flip = np.where(signed < 0, -1.0, 1.0)
+    h = np.abs(signed)
     n, m = x.shape
     out = np.zeros((n, m))
     der = np.zeros((n, m))
@@ -59,7 +67,8 @@ def play_operator(x: NDArray, half_band: NDArray) -> tuple[NDArray, NDArray]:
         below, above = y_prev < lo, y_prev > hi
         out[t, k] = np.where(below, lo, np.where(above, hi, y_prev)) - x[t, k]
         der[t, k] = np.where(below, -1.0, np.where(above, 1.0, der[t - 1, k]))
-    return out, der
+    # the odd extension: y - x at -h is minus that at h, its derivative by h the same
+    return out * flip[None, :], der
 
 
 class Backlash(Effect):

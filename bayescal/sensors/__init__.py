@@ -32,7 +32,8 @@ def attach_sensors(machine, rec, q: NDArray):
     rec : Recording
         Its ``accel.<body>.x/y/z`` columns are read (:func:`sensor_readings`).
     q : ndarray, shape (n, N)
-        The actuator positions the model solves (effects applied).
+        The actuator positions the mountings' start values are computed at
+        (the commanded ones: the same start whatever effects are applied).
 
     Returns
     -------

@@ -85,3 +85,18 @@ def test_unidirectional_approach_is_a_constant_offset_not_backlash():
     d = diagnose(m, rec, seed=1, n_perm=19)
     assert "backlash" not in d.selected
     assert d.verdict == "none"
+
+
+def test_a_negative_band_is_the_odd_extension_with_a_consistent_derivative(rng):
+    # a fit's iterate can go below zero (the bound is not enforced, docs/diagnose.md "Physical signs"): clamped at
+    # zero, the value stopped moving while the derivative said -1/+1 (finite differences about 0 against -4.68 in
+    # a stalled backlash fit), so Gauss-Newton's step was no descent direction there
+    x = 500.0 + np.cumsum(rng.uniform(-0.05, 0.05, (80, 3)), axis=0)  # short moves: reversals inside the band too
+    h_pos = np.array([0.02, 0.01, 0.005])
+    for half in (-h_pos, np.array([-0.02, 0.01, -1e-9])):
+        dq, der = play_operator(x, half)
+        np.testing.assert_allclose(dq, -play_operator(x, np.abs(half))[0] * (half < 0) + dq * (half >= 0), atol=1e-15)
+        step = 1e-7
+        fd = (play_operator(x, half + step)[0] - play_operator(x, half - step)[0]) / (2 * step)
+        away = np.abs(half) > 10 * step  # not across zero, where the odd extension has a kink after short moves
+        np.testing.assert_allclose(der[:, away], fd[:, away], atol=1e-6)
