@@ -33,13 +33,17 @@ def gravity_play(x: NDArray, side: NDArray, half_band: NDArray) -> tuple[NDArray
     side : ndarray, shape (n, m)
         -1, 0 or +1 per pose and drive.
     half_band : ndarray, shape (m,)
-        ``h >= 0``.
+        ``h >= 0`` physically; a negative ``h`` gives the odd extension
+        (as :func:`bayescal.effects.backlash.play_operator`: value and
+        derivative agree on both sides of zero).
 
     Returns
     -------
     y_minus_x, d_dh : ndarray, shape (n, m)
     """
-    h = np.maximum(np.asarray(half_band, float), 0.0)
+    signed = np.asarray(half_band, float)
+    flip = np.where(signed < 0, -1.0, 1.0)
+    h = np.abs(signed)
     n, m = x.shape
     out = np.zeros((n, m))
     der = np.zeros((n, m))
@@ -55,7 +59,7 @@ def gravity_play(x: NDArray, side: NDArray, half_band: NDArray) -> tuple[NDArray
         o = np.where(s != 0, s * h, o)
         d = np.where(s != 0, s, d)
         out[t], der[t] = o, d
-    return out, der
+    return out * flip[None, :], der
 
 
 class GravityBacklash(Effect):

@@ -157,3 +157,17 @@ def test_operator_pieces():
 def test_interface(path):
     m = load_machine(ROOT / "examples" / path / "machine.toml")
     check_effect(get_effect("gravity_backlash"), m)
+
+
+def test_a_negative_band_is_the_odd_extension_with_a_consistent_derivative():
+    # as the approach-direction play operator (tests/physics/test_backlash_nut_screw.py): a fit's iterate below
+    # zero must see a derivative that is the value's
+    rng = np.random.default_rng(4)
+    x = 100.0 + np.cumsum(rng.uniform(-0.05, 0.05, (60, 2)), axis=0)
+    side = rng.choice([-1.0, 0.0, 1.0], size=(60, 2))
+    half = np.array([-0.02, 0.01])
+    out, der = gravity_play(x, side, half)
+    np.testing.assert_allclose(out[:, 0], -gravity_play(x, side, np.abs(half))[0][:, 0], atol=1e-15)
+    step = 1e-7
+    fd = (gravity_play(x, side, half + step)[0] - gravity_play(x, side, half - step)[0]) / (2 * step)
+    np.testing.assert_allclose(der, fd, atol=1e-6)
