@@ -186,10 +186,12 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
             ok = (lambda x: math.isfinite(x) or math.isnan(x)) if k == "link_mass_kg" else math.isfinite
             if not flat or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not ok(x) for x in flat):
                 raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number, a vector of numbers or a list of vectors (an input of {name}), got {v!r}")
+            _bounded(path, f'{key}."{k}"', [x for x in flat if not math.isnan(x)])
             settings.append((k, _floats(v)))
             continue
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number (the parameter's value in its unit), got {v!r}")
+        _bounded(path, f'{key}."{k}"', [v])
         values.append((k, float(v)))
     try:
         eff = get_effect(name, **{k: (np.asarray(v, float) if isinstance(v, list) else v) for k, v in settings})
@@ -227,6 +229,15 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
                     "{" + ", ".join(p.name for p in s) + "}" for s in sets),
             )
     return StoredEffect(name, tuple(values), tuple(units.get(k, "") for k, _ in values), path, tuple(settings))
+
+
+def _bounded(path: str, key: str, values) -> None:
+    """Refuse a value beyond :data:`~bayescal.limits.MAX_FILE_NUMBER` in its unit (a typo such as 1e300 um)."""
+    from ..limits import file_number_problem
+
+    for x in values:
+        if (problem := file_number_problem(float(x))) is not None:
+            raise MachineFileError(path, key, problem)
 
 
 def _floats(v):

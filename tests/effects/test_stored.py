@@ -235,3 +235,11 @@ def test_stated_inputs_sit_beside_the_parameters(tmp_path, prs3):
     with pytest.raises(MachineFileError, match="an input of joint_compliance") as err:
         _machine(tmp_path, side.replace("[1.0, 0.0, 0.0]", '"sideways"'))
     assert err.value.key == 'effect.joint_compliance."gravity"'
+
+
+def test_effect_values_beyond_the_file_limit_are_refused(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_text(GOOD + "\n" + COMPLIANCE.replace("0.6", "1e300"))
+    with pytest.raises(MachineFileError, match=r"magnitude at most 1e\+09") as err:
+        load_machine(p)
+    assert err.value.key == 'effect.joint_compliance."compliance.q2"'
