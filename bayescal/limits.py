@@ -29,7 +29,7 @@ from .errors import InputError
 
 __all__ = [
     "SEED_MAX", "check_seed", "SIGMA_POSITION_RANGE", "SIGMA_ANGLE_RANGE", "sigma_problem", "memory_budget",
-    "check_memory", "check_count", "finite_real", "MAX_FILE_NUMBER", "file_number_problem",
+    "check_memory", "check_count", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "lam_problem",
 ]
 
 #: Largest random seed (numpy's legacy RandomState, which emcee draws from, takes 32 bits).
@@ -50,6 +50,19 @@ def file_number_problem(value: float) -> str | None:
     if abs(value) > MAX_FILE_NUMBER:
         return (f"expected a number of magnitude at most {MAX_FILE_NUMBER:g} (mm, rad or the key's unit; a larger "
                 f"value is a typo), got {value!r}")
+    return None
+
+
+#: Largest ridge parameter: the prior's std is the tolerances over sqrt(lam), so 1e12 already holds every
+#: parameter within a millionth of its tolerance of nominal; 1e308 reported stds of 5e-156 mm.
+MAX_LAM = 1e12
+
+
+def lam_problem(lam) -> str | None:
+    """What is wrong with a ridge parameter ``lam`` (dimensionless, 1 = MAP under the tolerance prior), or None."""
+    if not (finite_real(lam) and 0 <= float(lam) <= MAX_LAM):
+        return (f"expected a number from 0 to {MAX_LAM:g} (1: MAP under the tolerance prior; larger holds every "
+                f"parameter at nominal with a std of its tolerance over sqrt(lam)), got {lam!r}")
     return None
 
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import InputError
-from ..limits import finite_real
+from ..limits import finite_real, lam_problem
 from ..measurement import MeasurementModel
 from .group_noise import group_report, group_scales, tool_group_checks, with_group_scales
 from .noise import NoiseCheck, check_noise, distinct_rows
@@ -382,8 +382,8 @@ def calibrate(
         raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, rule, "
                          f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
                          f"{', '.join(OUTLIER_OPTIONS)}")
-    if lam is not None and lam != "auto" and not finite_real(lam):
-        raise InputError(f"lam: expected a number >= 0 or 'auto', got {lam!r}")
+    if lam is not None and lam != "auto" and (problem := lam_problem(lam)) is not None:
+        raise InputError(f"lam: {problem} (or 'auto')")
     if k is not None and k != "auto" and not (finite_real(k) and float(k) == int(k)):
         raise InputError(f"k: expected a whole number or 'auto', got {k!r}")
     if method == "ridge" and lam is None:

@@ -143,7 +143,8 @@ def test_requests_that_cannot_fit_in_memory_are_refused_naming_the_option(d, cap
 
 # ------------------------------------------------------------------ option values
 @pytest.mark.parametrize("methods, match", [
-    ("ridge:foo=1", "unknown option 'foo' of ridge"), ("ridge:lam=abc", "lam=abc: expected a finite number >= 0"),
+    ("ridge:foo=1", "unknown option 'foo' of ridge"), ("ridge:lam=abc", "lam=abc: expected a number from 0 to 1e+12"),
+    ("ridge:lam=1e308", "lam=1e+308: expected a number from 0 to 1e+12"),
     ("tsvd:k=-2", "k=-2: expected a positive integer"), ("mcmc:seed=-1", "seed=-1"), ("ls:k=3", "ls takes no options"),
 ])
 def test_compare_method_options_are_refused_up_front(d, capsys, methods, match):
@@ -204,3 +205,9 @@ def test_sigma_columns_outside_the_range_name_line_and_column(d, capsys):
     with open(d / "rs.csv", "w", newline="") as fh:
         csv.writer(fh).writerows(rows)
     refused(capsys, "identify", d / "rs.csv", "--machine", d / "m.toml", match=("line 6", "sigma_position", "from 1e-06"))
+
+
+def test_a_ridge_parameter_beyond_the_limit_is_refused(d, capsys):
+    # --lam 1e308 was fitted: every std 5e-156 mm, exit 0, "plausible"
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--method", "ridge", "--lam", "1e308",
+            match=("lam", "from 0 to 1e+12"))
