@@ -73,3 +73,7 @@ def test_the_rule_rescales_groups_apart_only_where_they_disagree():
     assert group_scales({"position": low, "angle": lower}) == {}  # both 0.1 and 0.07: one scale serves
     assert group_scales({"position": low, "angle": high}) == {"position": low.scale, "angle": high.scale}
     assert group_scales(None) == {}
+    # the bundled positioner: 0.22 ("overstated") against 0.35 ("consistent") is one noise, not two
+    pos, ang = check_noise(0.222 * 608, 608), check_noise(0.355 * 608, 608)
+    assert pos.verdict == "overstated" and ang.verdict == "consistent"
+    assert group_scales({"position": pos, "angle": ang}) == {}
