@@ -389,6 +389,10 @@ def sample_posterior(
     """
     if model.y_measured is None:
         raise InputError("sample_posterior: the measurement model has no measured values")
+    if checkpoint is not None and not resume and os.path.lexists(checkpoint):
+        # a fresh chain saved over it would lose the chain it holds (hours of sampling, --resume forgotten)
+        raise InputError(f"--checkpoint {checkpoint}: a file is there already; a fresh run would replace it. Expected "
+                         "--resume to continue its chain, or another path (remove the file to start afresh)")
     machine = model.machine
     prior = prior_from_machine(machine) if prior is None else prior
     start = map_estimate(model, prior=prior, free=free, theta0=theta0)

@@ -620,7 +620,12 @@ class StoredEffectsTransform:
 
 
 def parse_aux_values(items: list[str] | None) -> dict[str, float]:
-    """``["payload_kg=5", "temp_C=25"]`` -> ``{"payload_kg": 5.0, "temp_C": 25.0}`` (the ``--aux NAME=VALUE`` options)."""
+    """``["payload_kg=5", "temp_C=25"]`` -> ``{"payload_kg": 5.0, "temp_C": 25.0}`` (the ``--aux NAME=VALUE`` options).
+
+    Values are bounded (:data:`AUX_LOWER_BOUNDS` from below, :data:`~bayescal.limits.MAX_FILE_NUMBER` in magnitude).
+    """
+    from ..limits import MAX_FILE_NUMBER
+
     out: dict[str, float] = {}
     for item in items or []:
         name, sep, value = item.partition("=")
@@ -633,5 +638,14 @@ def parse_aux_values(items: list[str] | None) -> dict[str, float]:
             raise InputError(f"--aux {item}: expected NAME=VALUE with a finite number, e.g. payload_kg=5 or temp_C=25")
         if name in out:
             raise InputError(f"--aux: channel {name} given twice")
+        low = AUX_LOWER_BOUNDS.get(name, -MAX_FILE_NUMBER)
+        if not low <= v <= MAX_FILE_NUMBER:
+            # payload_kg=-1e6 or 1e300 moved the drives off the machine, and the error blamed the grid's --range
+            raise InputError(f"--aux {item}: expected {name} from {low:g} to {MAX_FILE_NUMBER:g}")
         out[name] = v
     return out
+
+
+#: The smallest value of a channel that is physics: no negative payload, nothing below absolute zero, no negative
+#: elapsed time.
+AUX_LOWER_BOUNDS = {"payload_kg": 0.0, "temp_C": -273.15, "time_s": 0.0}
