@@ -270,3 +270,34 @@ def test_pose_options_on_a_plan_of_relations_are_refused(d, capsys):
     delta = ROOT / "examples" / "delta" / "machine.toml"
     refused(capsys, "plan", "--machine", delta, "--measure", "height", "--n", "3", "--no-box", "--out", d / "p.csv",
             match=("--no-box", "only for poses"))
+
+
+@pytest.mark.parametrize("methods, match", [("tsvd:k=999", "k=999: expected at most 36"), ("ridge:", "nothing after ':'"),
+                                            ("ridge:;", "nothing after ':'"), ("ls,,map", "an empty method")])
+def test_compare_methods_that_could_only_fail_or_say_nothing_are_refused(d, capsys, methods, match):
+    # tsvd:k=999 failed in every trial and compare exited 0; 'ridge:' and 'ls,,map' were taken silently
+    refused(capsys, "compare", "--machine", d / "m.toml", "--methods", methods, "--trials", "1", "--no-progress",
+            match=("--methods", match))
+
+
+def test_compare_refuses_negative_retries(d, capsys):
+    refused(capsys, "compare", "--machine", d / "m.toml", "--trials", "1", "--retries", "-1", "--no-progress",
+            match="--retries")
+
+
+def test_compare_exits_1_when_a_method_fails_in_every_trial(d, capsys):
+    from bayescal.compare import register_method
+    from bayescal.compare.methods import METHODS
+
+    from bayescal.errors import IdentificationError
+
+    def broken(model, *, free):
+        raise IdentificationError("always")
+
+    register_method("broken_probe", broken, help="fails")
+    try:
+        code, err = run(capsys, "compare", "--machine", d / "m.toml", "--methods", "ls,broken_probe", "--trials", "2",
+                        "--no-progress", "--quiet")
+    finally:
+        METHODS.pop("broken_probe", None)
+    assert code == 1 and "broken_probe failed in every trial" in err[-1], err
