@@ -200,7 +200,15 @@ def table_interpolator(path: str, table: NDArray):
     from scipy.spatial import QhullError
 
     pts = np.asarray(table[:, :2], float)
-    uniq = np.unique(pts, axis=0)
+    uniq, first, inverse = np.unique(pts, axis=0, return_index=True, return_inverse=True)
+    inverse = np.asarray(inverse).reshape(-1)
+    differs = np.flatnonzero(np.any(np.asarray(table[:, 2:4], float) != np.asarray(table, float)[first[inverse], 2:4], axis=1))
+    if differs.size:
+        # one point with two errors: the triangulation kept one of them, silently
+        i = int(differs[0])
+        j = int(first[inverse[i]])
+        raise RecordingError(path, i + 2, None, f"the point ({pts[i, 0]:g}, {pts[i, 1]:g}) mm is measured again with "
+                             f"another error (line {j + 2}); expected one error per point (average repeated measurements)")
     with np.errstate(over="ignore", invalid="ignore"):  # coordinates near the float range: judged as not finite
         centred = (uniq - uniq.mean(axis=0)) if len(uniq) else uniq
     if not np.isfinite(centred).all():
@@ -289,6 +297,8 @@ def read_grid(path: str | os.PathLike, *, text: str | None = None) -> Compensati
                 raise RecordingError(path, line, c, f"expected a number, got {s!r}") from None
             if not math.isfinite(v) or (c in ("i", "j") and (v != int(v) or v < 0)):
                 raise RecordingError(path, line, c, f"expected a {'non-negative integer' if c in ('i', 'j') else 'finite number'}, got {s!r}")
+            if c.startswith("std") and v < 0:  # a one-sigma of -1 mm was read and carried into the evaluation
+                raise RecordingError(path, line, c, f"expected a one-sigma >= 0 (mm) or an empty cell, got {s!r}")
             vals.append(v)
         recs.append(vals)
     if not recs:

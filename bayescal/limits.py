@@ -9,6 +9,10 @@ message that states the limit (docs/cli.md, "Limits"):
 * a stated noise is within :data:`SIGMA_POSITION_RANGE` mm or
   :data:`SIGMA_ANGLE_RANGE` rad (:func:`sigma_problem`): a sigma of 1e-200
   divides every residual into overflow, one of a metre is no instrument;
+* a number in a machine file (a length, an angle, a tolerance, an effect's
+  value) is at most :data:`MAX_FILE_NUMBER` in magnitude
+  (:func:`file_number_problem`): 1e300 is a typo that overflows the
+  kinematics, or passes them and writes a recording of 1e300 mm;
 * a request whose arrays would not fit in the memory this machine has
   available is refused before it is allocated (:func:`check_memory`),
   naming the size and the option that sets it.
@@ -25,7 +29,7 @@ from .errors import InputError
 
 __all__ = [
     "SEED_MAX", "check_seed", "SIGMA_POSITION_RANGE", "SIGMA_ANGLE_RANGE", "sigma_problem", "memory_budget",
-    "check_memory", "check_count", "finite_real",
+    "check_memory", "check_count", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "lam_problem",
 ]
 
 #: Largest random seed (numpy's legacy RandomState, which emcee draws from, takes 32 bits).
@@ -34,6 +38,32 @@ SEED_MAX = 2**32 - 1
 SIGMA_POSITION_RANGE = (1e-6, 1e3)
 #: A stated angle noise (one sigma), rad: 1 nrad to 1 rad.
 SIGMA_ANGLE_RANGE = (1e-9, 1.0)
+
+
+#: Largest magnitude of a number in a machine file, in its unit (mm, rad, um, kg, ...): 1000 km, as for a
+#: measured coordinate (bayescal.instrument.units.MAX_COORDINATE).
+MAX_FILE_NUMBER = 1e9
+
+
+def file_number_problem(value: float) -> str | None:
+    """What is wrong with a machine file's finite number ``value`` (its magnitude beyond :data:`MAX_FILE_NUMBER`), or None."""
+    if abs(value) > MAX_FILE_NUMBER:
+        return (f"expected a number of magnitude at most {MAX_FILE_NUMBER:g} (mm, rad or the key's unit; a larger "
+                f"value is a typo), got {value!r}")
+    return None
+
+
+#: Largest ridge parameter: the prior's std is the tolerances over sqrt(lam), so 1e12 already holds every
+#: parameter within a millionth of its tolerance of nominal; 1e308 reported stds of 5e-156 mm.
+MAX_LAM = 1e12
+
+
+def lam_problem(lam) -> str | None:
+    """What is wrong with a ridge parameter ``lam`` (dimensionless, 1 = MAP under the tolerance prior), or None."""
+    if not (finite_real(lam) and 0 <= float(lam) <= MAX_LAM):
+        return (f"expected a number from 0 to {MAX_LAM:g} (1: MAP under the tolerance prior; larger holds every "
+                f"parameter at nominal with a std of its tolerance over sqrt(lam)), got {lam!r}")
+    return None
 
 
 def finite_real(x) -> bool:

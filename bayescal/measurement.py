@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import InputError, KinematicsError
+from .errors import BayescalError, InputError, KinematicsError
 from .geometry import left_jacobian_inverse, skew, so3_exp, so3_log, tangent_basis
 from .io.recording import Recording
 from .machines.base import Machine, ToolPoses, map_state, offset_poses
@@ -544,11 +544,44 @@ def check_recording_solves(model: "MeasurementModel", rec: Recording) -> None:
     pred = model.predict(None)
     if not pred.success.all():
         i = int(np.flatnonzero(~pred.success)[0])
+        typo = _measured_far_off(model, rec, i)
+        if typo is not None:
+            raise typo
         raise RecordingError(
             rec.path, int(rec.lines[i]), None,
             f"the machine {model.machine.source} cannot assemble this pose (q = {model.q[i].tolist()}): "
             f"{pred.poses.message[i]}; expected a pose of this machine, in its units",
         )
+
+
+def _measured_far_off(model: "MeasurementModel", rec: Recording, i: int):
+    """A RecordingError naming the column, when pose ``i`` fails only because its measurement is far off, else None.
+
+    The kinematics start each pose from its measurement: 12345.6 in one cell of x sent them nowhere, and the
+    message blamed the machine ("cannot assemble this pose") for a pose it assembles from its own start.
+    """
+    from .errors import RecordingError
+
+    if model.y_measured is None or model.pose_offset is not None:
+        return None
+    try:
+        alone = model.machine.forward(np.asarray(model.q)[i: i + 1])
+    except (BayescalError, ValueError, ArithmeticError):
+        return None
+    if not alone.success.all():
+        return None
+    d = np.asarray(model.y_measured, dtype=float)[i, :3] - alone.position[0]
+    if not np.all(np.isfinite(d)):
+        return None
+    k = int(np.argmax(np.abs(d)))
+    units = getattr(rec, "declared_units", None) or {}
+    names = tuple(f"{c}_{units[c]}" if c in units else c for c in ("x", "y", "z"))  # as the file names them
+    return RecordingError(
+        rec.path, int(rec.lines[i]), names[k],
+        f"the measured tool point is {float(np.linalg.norm(d)):.4g} mm from where the machine {model.machine.source} "
+        f"puts it at q = {model.q[i].tolist()} ({names[k]} off by {float(d[k]):.4g} mm), too far for its kinematics "
+        "to start from; expected the measurement of this pose (a typo in the cell?)",
+    )
 
 
 def _recording_pose_sigma(machine: Machine, rec: Recording, dof: int, width: int | None = None,

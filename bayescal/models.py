@@ -50,8 +50,9 @@ def model_from_recording(machine: Machine, rec: Recording | ConstraintRecording,
     measured poses only with ``check``; a constraint recording is always checked).
     """
     if isinstance(rec, ConstraintRecording):
-        from .constraints.model import ConstraintModel
+        from .constraints.model import ConstraintModel, check_pivot_readings
 
+        check_pivot_readings(rec)  # a pivot per reading leaves nothing to identify the geometry from
         return ConstraintModel.from_recording(machine, rec, dof=dof)
     from .measurement import MeasurementModel, check_recording_solves
 

@@ -70,7 +70,13 @@ class SimulatedRecording:
 
 def draw_errors(machine: Machine, rng: np.random.Generator, *, tolerance: NDArray | None = None) -> NDArray:
     """Geometric errors ``N(0, tolerance^2)`` per parameter (mm or rad)."""
+    from .limits import MAX_FILE_NUMBER
+
     tol = machine.tolerance if tolerance is None else np.asarray(tolerance, dtype=float)
+    if not (np.all(np.isfinite(tol)) and np.all(tol >= 0) and np.all(tol <= MAX_FILE_NUMBER)):
+        # --tolerance-scale 1e300 drew errors of 1e298 mm: the kinematics' SVD failed (a traceback)
+        raise InputError(f"tolerance: expected one-sigma errors from 0 to {MAX_FILE_NUMBER:g} (mm or rad), got up to "
+                         f"{float(np.nanmax(np.abs(tol))):g} (the machine file's [tolerance] times --tolerance-scale)")
     return rng.normal(size=machine.n_params) * tol
 
 
@@ -92,7 +98,11 @@ def draw_poses(machine: Machine, n: int, rng: np.random.Generator, theta: NDArra
         out.extend(q[ok])
         if len(out) >= n:
             return np.array(out[:n])
-    raise InputError(f"{machine.source}: could not find {n} solvable poses within q_limits")
+    why = ""
+    if theta is not None and np.any(theta) and machine.forward(machine.sample_q(16, rng)).success.any():
+        why = ("; the nominal machine solves there, the true one drawn from the tolerances does not (tolerances, or "
+               "--tolerance-scale, too large?)")
+    raise InputError(f"{machine.source}: could not find {n} solvable poses within q_limits{why}")
 
 
 def measure(

@@ -83,3 +83,23 @@ def test_evaluation_refuses_points_outside_the_grid_naming_the_line():
 def test_a_grid_too_large_for_memory_is_refused_before_it_is_built():
     with pytest.raises(InputError, match=r"a grid of 100000000 x 100000000 nodes needs about .* lower the nodes per axis \(--n\)"):
         build_grid((0, 1), (0, 1), lambda x, z: np.zeros((len(x), 2)), n=10**8)
+
+
+def test_a_point_measured_again_with_another_error_is_refused_and_exact_repeats_are_read():
+    # the triangulation kept one of the two errors, silently
+    square = [[0, 0, 0.01, 0.0], [10, 0, 0.02, 0.0], [0, 10, 0.0, 0.01], [10, 10, 0.01, 0.01]]
+    t = np.array(square + [[10, 0, 0.05, 0.0]], float)
+    with pytest.raises(RecordingError, match=r"line 6: the point \(10, 0\) mm is measured again with another error "
+                       r"\(line 3\)") as err:
+        table_interpolator("e.csv", t)
+    assert err.value.row == 6
+    at = table_interpolator("e.csv", np.array(square + [square[1]], float))
+    np.testing.assert_allclose(at(np.array([5.0]), np.array([5.0])), [[0.01, 0.005]])
+
+
+def test_a_negative_node_std_in_a_grid_file_is_refused():
+    good = build_grid((0, 1), (0, 1), lambda x, z: np.zeros((len(x), 2)), n=2).to_csv().splitlines()
+    cells = good[2].split(",")
+    cells[6] = "-1"
+    with pytest.raises(RecordingError, match=r"line 3, column 'std_ex': expected a one-sigma >= 0 \(mm\)"):
+        read_grid("g.csv", text="\n".join(good[:2] + [",".join(cells)] + good[3:]))

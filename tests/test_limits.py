@@ -54,3 +54,11 @@ def test_finite_real_takes_numbers_and_numpy_scalars_only():
 
     assert all(finite_real(x) for x in (1, -2.5, np.int64(3), np.float32(0.5)))
     assert not any(finite_real(x) for x in (True, np.bool_(True), "1", None, float("nan"), np.inf, [1.0]))
+
+
+@pytest.mark.parametrize("lam, ok", [(0, True), (1.0, True), (1e12, True), (1.0000001e12, False), (1e308, False),
+                                     (-1e-9, False), (float("nan"), False), (True, False), ("1", False)])
+def test_ridge_parameter_range(lam, ok):
+    from bayescal.limits import lam_problem
+
+    assert (lam_problem(lam) is None) == ok

@@ -48,3 +48,23 @@ def test_dof_beyond_recording_is_an_error(prs3):
     sim = simulate_recording(prs3, 5, seed=1, dof=3)
     with pytest.raises(InputError, match="3-DOF"):
         MeasurementModel.from_recording(prs3, sim.recording, dof=6)
+
+
+def test_a_measured_cell_far_off_is_named_not_blamed_on_the_machine(prs3):
+    # 12345.6 in one x cell: the kinematics, started from the measurement, failed and the message said the
+    # machine "cannot assemble this pose" at a q it assembles from its own start
+    from dataclasses import replace
+
+    from bayescal.errors import RecordingError
+    from bayescal.measurement import check_recording_solves
+
+    rec = simulate_recording(prs3, 8, seed=4, dof=6).recording
+    pos = rec.position.copy()
+    pos[5, 0] = 12345.6
+    bad = replace(rec, position=pos, path="r.csv")
+    model = MeasurementModel.from_recording(prs3, bad)
+    with pytest.raises(RecordingError, match=r"the measured tool point is 1\.2\d+e\+04 mm from where the machine .* "
+                       r"puts it .*\(x off by 1\.2\d+e\+04 mm\).*a typo in the cell") as err:
+        check_recording_solves(model, bad)
+    assert (err.value.row, err.value.column) == (7, "x")
+    check_recording_solves(MeasurementModel.from_recording(prs3, rec), rec)  # the clean recording solves

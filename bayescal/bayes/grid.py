@@ -201,7 +201,8 @@ def compensation_grid(
     theta = machine.check_theta(theta)
     if axes is None:
         if machine.q_limits is None:
-            raise InputError(f"{machine.source}: no [workspace] q_limits to span a grid; give axes")
+            raise InputError(f"{machine.source}: no [workspace] q_limits to span a grid; add them to the machine file "
+                             "(or, in the library, pass axes)")
         check_grid_size(machine, n, "actuator", n_samples=0 if samples is None else len(samples))
         axes = tuple(np.linspace(lo, hi, n) for lo, hi in machine.q_limits)
     axes = tuple(np.asarray(a, dtype=float) for a in axes)

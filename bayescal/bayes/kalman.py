@@ -39,7 +39,11 @@ from .priors import GaussianPrior, prior_from_machine
 from ..identify.result import covariance_dict, decided_by_prior_lines
 from .summary import parameter_list, parameter_table, strong_correlations
 
-__all__ = ["FilterResult", "kalman_filter"]
+__all__ = ["FilterResult", "kalman_filter", "MAX_PROCESS_NOISE"]
+
+#: Largest process noise, as a fraction of the prior std per pose step: at 100 the filter forgets every pose
+#: at the next, so more is no filter; 1e300 overflowed the state covariance.
+MAX_PROCESS_NOISE = 100.0
 
 
 @dataclass(frozen=True)
@@ -235,9 +239,12 @@ def kalman_filter(
     machine = model.machine
     prior = prior_from_machine(machine) if prior is None else prior
     idx, ida = resolve_free(model, free, prior.mean, prior=True)  # the filter starts from the prior
-    qn = np.broadcast_to(np.asarray(process_noise, dtype=float), (idx.size,)) * prior.std[idx]
-    if np.any(qn < 0) or not np.all(np.isfinite(qn)):
-        raise InputError("process_noise: expected finite values >= 0")
+    frac = np.broadcast_to(np.asarray(process_noise, dtype=float), (idx.size,))
+    if np.any(frac < 0) or not np.all(np.isfinite(frac)) or np.any(frac > MAX_PROCESS_NOISE):
+        # 1e300 overflowed the state covariance (a ValueError from inside the update, not a refusal)
+        raise InputError(f"process_noise: expected finite values from 0 to {MAX_PROCESS_NOISE:g} (the random-walk std "
+                         f"per pose step as a fraction of the prior std), got {process_noise!r}")
+    qn = frac * prior.std[idx]
     run = _run_filter(model, variant, prior, idx, qn, alpha)
     theta = _full_theta(prior.mean.copy(), idx, run.means[-1])
     means, covs = np.array(run.means), np.array(run.covariances)

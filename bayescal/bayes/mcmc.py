@@ -387,6 +387,10 @@ def sample_posterior(
     PosteriorResult
         ``success`` False (and no posterior std) unless every check passes.
     """
+    if checkpoint is not None and not resume and os.path.lexists(checkpoint):
+        # a fresh chain saved over it would lose the chain it holds (hours of sampling, --resume forgotten)
+        raise InputError(f"--checkpoint {checkpoint}: a file is there already; a fresh run would replace it. "
+                         "Expected --resume to continue its chain, or another path (remove the file to start afresh)")
     prior, start = _map_start(model, prior, free, theta0)
     idx = np.flatnonzero(start.free)
     n = idx.size

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 import warnings
 
@@ -48,7 +49,16 @@ Run 'bayescal COMMAND --help' for each command.
 
 
 class _Parser(argparse.ArgumentParser):
-    """An argument parser whose usage errors are the error and one hint, not the whole usage."""
+    """An argument parser whose usage errors are the error and one hint, not the whole usage.
+
+    A value that starts with a minus sign and a number is a value, not an option: argparse (3.12) took
+    ``--pivot -10,0,80``, ``--centre -5,0,0`` and ``--x-range -3e2 3e2`` for options and refused them
+    ("expected one argument"); no option of bayescal starts with a digit.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?([,:;].*)?$")
 
     def error(self, message: str):  # argparse's hook for every usage error
         self.exit(EXIT_INPUT, f"{self.prog}: error: {message}\nRun '{self.prog} --help' for the options and examples.\n")

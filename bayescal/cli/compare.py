@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from ..compare import METHODS, METRICS, compare_methods
@@ -88,7 +89,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from . import EXIT_OK
+    from . import EXIT_FAILED, EXIT_OK
 
     if args.frame == "fit":
         raise InputError(
@@ -124,4 +125,9 @@ def run(args) -> int:
     write_report(args, "compare", cmp, machine=machine)
     if not args.quiet:
         print(text)
+    if cmp.failed_everywhere:
+        # the computation ran, but says nothing about these methods (docs/cli.md: exit 1)
+        print(f"bayescal compare: {', '.join(cmp.failed_everywhere)} failed in every trial (the failures above say "
+              "why)", file=sys.stderr)
+        return EXIT_FAILED
     return EXIT_OK

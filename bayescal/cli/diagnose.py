@@ -96,6 +96,8 @@ def run(args) -> int:
         unknown = [e for e in effects if e not in EFFECTS]
         if unknown:
             raise InputError(f"--effects: unknown effect(s) {', '.join(unknown)}; expected some of {', '.join(EFFECTS)}")
+        if len(set(effects)) != len(effects):
+            raise InputError(f"--effects {args.effects}: an effect named twice; expected each effect once")
     if machine.effects and not args.quiet:
         print(f"note: the [effect.*] tables of {args.machine} are not applied: the diagnosis fits every effect afresh")
     result = diagnose(machine, rec, effects=effects, seed=args.seed, effect_settings=effect_inputs(machine, args.effect_input))

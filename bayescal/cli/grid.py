@@ -151,7 +151,11 @@ def _ranges(items: list[str]) -> dict:
         try:
             if not eq or not colon or not name.strip():
                 raise ValueError
-            out[name.strip()] = (float(lo), float(hi))
+            value = (float(lo), float(hi))
         except ValueError:
             raise InputError(f"--range {item!r}: expected NAME=LO:HI, e.g. x=-100:100 or q1=450:550") from None
+        if name.strip() in out:
+            # the last one won, silently
+            raise InputError(f"--range {name.strip()}: given twice; expected one LO:HI per axis")
+        out[name.strip()] = value
     return out

@@ -30,7 +30,8 @@ __all__ = [
 ]
 
 #: Options naming one output file, by ``dest`` (``--out`` is a folder for the commands in OUT_FOLDERS).
-FILE_OUTPUTS = ("json", "report", "write_machine", "write_klipper", "truth", "nc", "out", "posterior", "checkpoint", "figure")
+FILE_OUTPUTS = ("json", "report", "write_machine", "write_klipper", "write_urdf", "truth", "nc", "out", "posterior",
+                "checkpoint", "figure")
 #: Options naming a folder the command writes figures into (created when missing).
 FOLDER_OUTPUTS = ("figures",)
 #: Options naming a figure file (its suffix must be a format matplotlib writes).
@@ -91,6 +92,11 @@ def check_run_paths(args: argparse.Namespace) -> None:
     from ..io.safe_paths import check_figure_path, check_inputs, check_outputs
 
     inputs, outputs, folders = run_paths(args)
+    for label, value in {**outputs, **folders}.items():
+        if value == "-":
+            # no output goes to standard output (it carries the report): '-' would be written as a file named '-'
+            raise InputError(f"{label} -: expected a file name; '-' is not standard output here (stdout carries "
+                             "the report: give a file, e.g. answer.json)")
     check_inputs(inputs)  # a named pipe or a device named as an input: refused before it could block or flood
     check_outputs(outputs, inputs, folders=folders, mkdir=bool(getattr(args, "mkdir", False)))
     for key in FIGURE_OUTPUTS:
@@ -99,9 +105,10 @@ def check_run_paths(args: argparse.Namespace) -> None:
 
 
 def check_option_values(args: argparse.Namespace) -> None:
-    """Values every command refuses alike: a seed outside 0..2**32-1, a number that is NaN or infinite."""
+    """Values every command refuses alike: an empty value, a seed outside 0..2**32-1, a number that is NaN or infinite."""
     from ..limits import check_seed
 
+    _check_no_empty_value(getattr(args, "argv", None) or [])
     if getattr(args, "seed", None) is not None:
         check_seed(args.seed, "--seed")
     for key, value in vars(args).items():
@@ -109,6 +116,19 @@ def check_option_values(args: argparse.Namespace) -> None:
         for v in values:
             if isinstance(v, float) and not math.isfinite(v):
                 raise InputError(f"{_label(key)}: expected a finite number, got {v}")
+
+
+def _check_no_empty_value(words: list) -> None:
+    """Refuse a value typed empty (``--json ''``, ``--discrepancy-inputs ''``): it was taken as not given, silently."""
+    for i, word in enumerate(words):
+        if not isinstance(word, str):
+            continue
+        if word.startswith("--") and word.endswith("=") and len(word) > 3:
+            raise InputError(f"{word[:-1]}: empty value; expected a value (leave the option out for its default)")
+        if not word.strip():
+            prev = words[i - 1] if i and isinstance(words[i - 1], str) and words[i - 1].startswith("-") else None
+            raise InputError(f"{prev}: empty value; expected a value (leave the option out for its default)" if prev
+                             else "an empty argument; expected a file name or a value")
 
 
 def say(args: argparse.Namespace, message: str) -> None:

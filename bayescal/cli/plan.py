@@ -104,10 +104,10 @@ def register(sub) -> None:
                    help="what to plan: poses (default), probe heights or distances between points")
     p.add_argument("--given", metavar="RECORDING", help="constraint recording already measured (--measure height/distance)")
     p.add_argument("--centre", type=_vector, help="grid centre X,Y,Z in mm (tool point; default: middle of q_limits)")
-    p.add_argument("--radius", type=float, default=50.0, help="grid radius in mm (default 50)")
+    p.add_argument("--radius", type=float, default=None, help="grid radius in mm (default 50)")
     p.add_argument("--spacing", type=float, help="grid spacing in mm (default radius/4)")
     p.add_argument("--sigma", type=float, help="noise of a planned measurement in mm (default [measurement] sigma_position)")
-    p.add_argument("--min-distance", type=float, default=0.0, help="shortest distance to plan, mm (default 0)")
+    p.add_argument("--min-distance", type=float, default=None, help="shortest distance to plan, mm (default 0)")
     p.add_argument("--out", required=True, help="CSV to write (poses: q1..qN, pose_id, docs/formats.md section E7; relations: a constraint recording)")
     p.add_argument("--json", metavar="PATH", help="write the plan and its criterion values as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
@@ -142,18 +142,20 @@ def run_relations(args) -> int:
 
     if args.n < 1:
         raise InputError(f"--n: expected a positive number of measurements, got {args.n}")
-    for flag, value in (("--certify", args.certify), ("--exact-bound", args.exact_bound or None)):
+    for flag, value in (("--certify", args.certify), ("--exact-bound", args.exact_bound or None),
+                        ("--no-exchange", args.no_exchange or None), ("--no-box", args.no_box or None)):
         if value is not None:
-            raise InputError(f"{flag}: only for poses (criterion I); not with --measure {args.measure}")
+            raise InputError(f"{flag}: only for poses; not with --measure {args.measure}")
     machine = load_machine(args.machine)
     given = read_constraints(args.given) if args.given else None
     if given is not None:
         given.check_machine(machine.n_actuators, None, args.machine)
     criterion = args.criterion or "EIG"
     plan = plan_relations(
-        machine, args.n, measure=args.measure, given=given, centre=args.centre, radius=args.radius,
-        spacing=args.spacing, sigma=args.sigma, criterion=criterion, repeats=_repeats(args),
-        min_distance=args.min_distance, method=None if args.method == "auto" else args.method, seed=args.seed,
+        machine, args.n, measure=args.measure, given=given, centre=args.centre,
+        radius=50.0 if args.radius is None else args.radius, spacing=args.spacing, sigma=args.sigma,
+        criterion=criterion, repeats=_repeats(args), min_distance=0.0 if args.min_distance is None else args.min_distance,
+        method=None if args.method == "auto" else args.method, seed=args.seed,
     )
     write_text_atomic(args.out, relation_plan_csv(plan))
     write_json(args, plan.to_dict())
@@ -168,6 +170,13 @@ def run(args) -> int:
 
     if args.measure != "pose":
         return run_relations(args)
+    relation_only = {"--given": args.given, "--centre": args.centre, "--radius": args.radius, "--spacing": args.spacing,
+                     "--sigma": args.sigma, "--min-distance": args.min_distance}
+    given = [flag for flag, value in relation_only.items() if value is not None]
+    if given:
+        # a plan of poses ignored them, silently
+        raise InputError(f"{given[0]} goes with --measure height or distance (a grid of relations); it does nothing "
+                         "for a plan of poses")
 
     if args.n < 1:
         raise InputError(f"--n: expected a positive number of poses, got {args.n}")

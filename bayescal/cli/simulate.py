@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 import numpy as np
@@ -92,7 +93,7 @@ def register(sub) -> None:
         "about --pivot, one circle per plane of --planes, written as ballbar rows",
     )
     p.add_argument("--pivot", metavar="X,Y,Z", help="ballbar pivot, base frame, mm (default: the tool point at the middle of q_limits)")
-    p.add_argument("--planes", default="xy", help="ballbar circle planes, comma-separated from xy, xz, yz (default xy)")
+    p.add_argument("--planes", default=None, help="ballbar circle planes, comma-separated from xy, xz, yz (default xy)")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_output_options(p, report=False)
     p.set_defaults(func=run)
@@ -108,6 +109,11 @@ def read_poses_file(path: str, n_actuators: int) -> np.ndarray:
     missing = [c for c in want if c not in col]
     if missing:
         raise RecordingError(path, 1, None, f"columns {', '.join(missing)} missing; expected {','.join(want)} (and e.g. pose_id)")
+    extra = [c for c in header if re.fullmatch(r"q\d+", c) and c not in want]
+    if extra:
+        # a plan of a machine with more actuators: its q4 was ignored, silently
+        raise RecordingError(path, 1, extra[0], f"an actuator column beyond the machine's {n_actuators} actuators; "
+                             f"expected {','.join(want)} (a pose file of another machine?)")
     if not rows:
         raise RecordingError(path, 2, None, "no data rows")
     for i, r in enumerate(rows):
@@ -119,6 +125,10 @@ def read_poses_file(path: str, n_actuators: int) -> np.ndarray:
 def run(args) -> int:
     from . import EXIT_OK
 
+    if args.ballbar is None and (args.pivot is not None or args.planes is not None):
+        # options of a ballbar session, ignored without one
+        raise InputError(f"{'--pivot' if args.pivot is not None else '--planes'} goes with --ballbar RADIUS; it does "
+                         "nothing for a recording of poses")
     machine = load_machine(args.machine)
     q = None
     if args.poses_file:
@@ -206,7 +216,7 @@ def _run_ballbar(args, machine) -> int:
         if len(pivot) != 3:
             raise InputError(f"--pivot: expected X,Y,Z in mm, got {args.pivot!r}")
     sim = simulate_ballbar(
-        machine, args.ballbar, n_points=args.poses, pivot=pivot, planes=tuple(name_list(args.planes)), seed=args.seed,
+        machine, args.ballbar, n_points=args.poses, pivot=pivot, planes=tuple(name_list(args.planes or "xy")), seed=args.seed,
         tolerance=machine.tolerance * args.tolerance_scale,
     )
     out = Path(args.out)

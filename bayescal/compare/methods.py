@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..identify import identify, resolve_free, whitened_system
+from ..limits import MAX_LAM, lam_problem
 from ..measurement import MeasurementModel
 
 __all__ = ["Method", "METHODS", "MethodSpec", "register_method", "parse_methods", "tsvd_snr_rank"]
@@ -91,8 +92,8 @@ def _check_rule(o: dict, label: str, auto: bool, what: str) -> None:
 
 def _check_ridge(o: dict, label: str) -> None:
     lam = o.get("lam")
-    if lam != "auto" and not _is_number(lam):
-        raise _bad(label, "lam", lam, "a finite number >= 0 or 'auto'")
+    if lam != "auto" and not (_is_number(lam) and lam_problem(float(lam)) is None):
+        raise _bad(label, "lam", lam, f"a number from 0 to {MAX_LAM:g} or 'auto'")
     _check_rule(o, label, lam == "auto", "lam")
 
 
@@ -221,9 +222,16 @@ def _check_options(method: Method, label: str, options: dict) -> None:
 def parse_methods(text: str) -> tuple[MethodSpec, ...]:
     """``"ls,ridge:lam=0.1,tsvd:k=20"`` -> method specs; unknown names are an InputError listing the known ones."""
     specs = []
-    for item in [s.strip() for s in str(text).split(",") if s.strip()]:
-        name, _, opts = item.partition(":")
+    items = [s.strip() for s in str(text).split(",")]
+    if any(not s for s in items) and any(items):
+        raise InputError(f"--methods {text!r}: an empty method between commas; expected names such as ls,ridge,tsvd")
+    for item in [s for s in items if s]:
+        name, colon, opts = item.partition(":")
         name = name.strip()
+        if colon and not opts.replace(";", "").strip():
+            # 'ridge:' ran ridge's defaults, silently
+            raise InputError(f"--methods: {item}: nothing after ':'; expected key=value options (e.g. ridge:lam=0.1) "
+                             "or the name alone")
         if name not in METHODS:
             raise InputError(
                 f"--methods: unknown method {name!r}; known methods: "

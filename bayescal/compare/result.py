@@ -61,6 +61,11 @@ class Comparison:
     def n_trials(self) -> int:
         return int(self.nominal.size)
 
+    @property
+    def failed_everywhere(self) -> tuple[str, ...]:
+        """The methods that failed in every trial: the comparison says nothing about them (the command exits 1)."""
+        return tuple(k for k in self.labels if np.all(np.isnan(np.asarray(self.errors[k], dtype=float))))
+
     def table(self) -> dict:
         """The statistics only (what must not depend on backend, workers or resumption)."""
         return {
@@ -214,7 +219,15 @@ def compare_methods(
     from ..limits import check_seed
     from .methods import parse_methods
 
-    parse_methods(methods)  # unknown methods, options and values refused before anything runs
+    specs = parse_methods(methods)  # unknown methods, options and values refused before anything runs
+    for spec in specs:
+        k = dict(spec.options).get("k")
+        if spec.name == "tsvd" and not isinstance(k, str) and k is not None and k > machine.n_params:
+            # every trial failed on it ("k: tsvd needs an integer from 1 to 36") and the command exited 0
+            raise InputError(f"--methods: {spec.label}: k={k}: expected at most {machine.n_params}, the machine's "
+                             "parameters (or k=snr, k=auto)")
+    if isinstance(retries, bool) or int(retries) != retries or retries < 0:
+        raise InputError(f"retries (--retries): expected a whole number >= 0, got {retries!r}")
     check_seed(seed, "seed")
     if not (np.isfinite(tolerance_scale) and tolerance_scale > 0):
         raise InputError(f"tolerance_scale (--tolerance-scale): expected a positive number, got {tolerance_scale!r}")

@@ -38,7 +38,8 @@ from ..machines.appended import AppendedParameters
 from ..machines.base import Machine, ToolPoses
 from ..params import ParamSpec
 
-__all__ = ["ConstraintModel", "ConstraintPrediction", "PivotAugmented", "PIVOT_TOLERANCE", "load_constraint_model"]
+__all__ = ["ConstraintModel", "ConstraintPrediction", "PivotAugmented", "PIVOT_TOLERANCE", "load_constraint_model",
+           "check_pivot_readings", "MIN_PIVOT_READINGS"]
 
 #: One-sigma scale (mm) of a pivot's correction to its start estimate: column scaling and ridge prior.
 PIVOT_TOLERANCE = 1.0
@@ -528,6 +529,27 @@ class ConstraintModel:
         return {p: (self.pivot_start[k] + theta[P + 3 * k : P + 3 * k + 3]).tolist() for k, p in enumerate(self.pivot_ids)}
 
 
+#: Readings a ballbar pivot needs: its three coordinates are fitted, so three readings carry nothing else.
+MIN_PIVOT_READINGS = 4
+
+
+def check_pivot_readings(rec: ConstraintRecording) -> None:
+    """RecordingError naming a pivot with fewer than :data:`MIN_PIVOT_READINGS` readings (a recording to identify from).
+
+    A pivot per reading left no row for the geometry: Gauss-Newton's reduced system had no column and
+    numpy raised on an empty array (a traceback).  Every command that identifies checks it
+    (:func:`load_constraint_model`, :func:`bayescal.models.model_from_recording`); a planner's ``--given``
+    rows need not (their pivots are marginalised).
+    """
+    pivots = [p for p, m in zip(rec.pivot, rec.measure) if m == "ballbar"]
+    for pid in dict.fromkeys(pivots):
+        n = pivots.count(pid)
+        if n < MIN_PIVOT_READINGS:
+            line = 2 + next(i for i, (p, m) in enumerate(zip(rec.pivot, rec.measure)) if m == "ballbar" and p == pid)
+            raise RecordingError(rec.path, line, "pivot", f"pivot {pid!r} has {n} reading(s); its position is fitted "
+                                 f"(3 coordinates), so a pivot needs at least {MIN_PIVOT_READINGS} readings")
+
+
 def load_constraint_model(machine, path, *, frame: str = "base", dof: int | None = None):
     """The model of a constraint recording (docs/formats.md section 6) as every command makes it.
 
@@ -554,4 +576,5 @@ def load_constraint_model(machine, path, *, frame: str = "base", dof: int | None
             "use the base frame"
         )
     rec = read_constraints(path)
+    check_pivot_readings(rec)
     return rec, ConstraintModel.from_recording(machine, rec, dof=dof)

@@ -152,6 +152,9 @@ def simulate_ballbar(
     """
     if not radius > 0:
         raise InputError(f"ballbar radius: expected a positive length in mm, got {radius!r}")
+    if not planes or len(set(planes)) != len(planes):
+        # xy,xy ran the same circle twice, silently
+        raise InputError(f"planes: expected distinct planes from {', '.join(_PLANES)}, got {','.join(planes)!r}")
     theta, rng = _theta_and_rng(machine, seed, theta, tolerance)
     if pivot is None:
         pivot = machine.forward(machine.home_q()[None]).position[0]

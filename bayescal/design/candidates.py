@@ -136,6 +136,11 @@ def candidate_set_from_jacobian(
     sub = J_white[: min(J_white.shape[0], 4000)].reshape(-1, P) * tol
     ida = analyse_identifiability(sub, layout)
     kept = np.asarray(ida.kept_index, dtype=int)
+    if kept.size == 0:
+        # every criterion but EIG works on the identifiable set: an empty one has no information to maximise
+        raise InputError(f"candidates: none of the {P} parameters is identifiable from the {q.shape[0]} candidate "
+                         "poses (the tolerance-scaled Jacobian has no usable column); expected a machine whose "
+                         "[tolerance] values are comparable and whose q_limits move the tool")
     G = None if output_jacobian is None else np.asarray(output_jacobian, dtype=float)
     if G is not None and (G.ndim != 3 or G.shape[1:] != (3, P) or not np.all(np.isfinite(G))):
         raise InputError(f"output_jacobian: expected finite (n_poses, 3, {P}), got shape {G.shape}")

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from ..constraints.model import ConstraintModel
 from ..errors import InputError
 from ..identifiability import analyse_identifiability
+from ..limits import sigma_problem
 from ..io.constraints import ConstraintRecording
 from ..machines.base import Machine
 from ..constraints.simulate import solve_q_for_points
@@ -268,6 +269,11 @@ def plan_relations(
     repeats = (method == "relaxed") if repeats is None else bool(repeats)
     if n < 1:
         raise InputError(f"n: expected a positive number of measurements, got {n}")
+    # a noise of 0 or -1 mm, a negative shortest distance: planned without a word
+    if sigma is not None and (problem := sigma_problem(sigma, "position")) is not None:
+        raise InputError(f"sigma (--sigma): {problem}")
+    if not (math.isfinite(min_distance) and min_distance >= 0):
+        raise InputError(f"min_distance (--min-distance): expected a length >= 0 in mm, got {min_distance!r}")
     check_relations_size(machine, measure, radius, radius / 4 if spacing is None else spacing)
     if centre is None:
         centre = machine.forward(machine.home_q()[None, :]).position[0]

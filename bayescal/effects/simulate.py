@@ -35,16 +35,20 @@ def simulate_aux(n_poses: int, rng: np.random.Generator) -> dict[str, NDArray]:
 
 def parse_effect_spec(spec: str) -> tuple[str, float]:
     """``NAME[:magnitude]`` -> (name, magnitude); the effect's default magnitude if omitted."""
-    name, _, mag = spec.partition(":")
+    from ..limits import MAX_FILE_NUMBER
+
+    name, colon, mag = spec.partition(":")
     eff = get_effect(name.strip())
-    if not mag:
+    if not colon:
         return eff.name, eff.default_magnitude
     try:
         value = float(mag)
     except ValueError:
+        # 'backlash:' (nothing after the colon) took the default silently
         raise InputError(f"--effect {spec}: expected NAME[:magnitude] with a number in {eff.magnitude_unit}") from None
-    if not np.isfinite(value) or value < 0:
-        raise InputError(f"--effect {spec}: expected a magnitude >= 0 ({eff.magnitude_unit})")
+    if not np.isfinite(value) or not 0 <= value <= MAX_FILE_NUMBER:
+        # 1e300 um of backlash was simulated and written into the truth
+        raise InputError(f"--effect {spec}: expected a magnitude from 0 to {MAX_FILE_NUMBER:g} ({eff.magnitude_unit})")
     return eff.name, value
 
 
@@ -87,8 +91,15 @@ def simulate_with_effects(
     bad = [c for c in record if c not in AUX_CHANNELS]
     if bad:
         raise InputError(f"--aux: unknown channel(s) {', '.join(bad)}; expected some of {', '.join(AUX_CHANNELS)}")
+    if len(set(record)) != len(record):
+        raise InputError(f"--aux: a channel given more than once ({','.join(record)}); expected each channel once")
     if n_poses < 2:
         raise InputError(f"n_poses: expected at least 2, got {n_poses}")
+    names = [name for name, _ in effects]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        # 'backlash --effect backlash:2' simulated one of them, silently
+        raise InputError(f"--effect {twice[0]}: given more than once; expected each effect once, with one magnitude")
     rng = np.random.default_rng(seed)
     theta = draw_errors(machine, rng, tolerance=tolerance)
     q = draw_poses(machine, n_poses, rng, theta)

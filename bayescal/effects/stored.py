@@ -186,10 +186,12 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
             ok = (lambda x: math.isfinite(x) or math.isnan(x)) if k == "link_mass_kg" else math.isfinite
             if not flat or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not ok(x) for x in flat):
                 raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number, a vector of numbers or a list of vectors (an input of {name}), got {v!r}")
+            _bounded(path, f'{key}."{k}"', [x for x in flat if not math.isnan(x)])
             settings.append((k, _floats(v)))
             continue
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise MachineFileError(path, f'{key}."{k}"', f"expected a finite number (the parameter's value in its unit), got {v!r}")
+        _bounded(path, f'{key}."{k}"', [v])
         values.append((k, float(v)))
     try:
         eff = get_effect(name, **{k: (np.asarray(v, float) if isinstance(v, list) else v) for k, v in settings})
@@ -227,6 +229,15 @@ def _read_one(t: TomlTable, name: str, machine: Machine, path: str) -> StoredEff
                     "{" + ", ".join(p.name for p in s) + "}" for s in sets),
             )
     return StoredEffect(name, tuple(values), tuple(units.get(k, "") for k, _ in values), path, tuple(settings))
+
+
+def _bounded(path: str, key: str, values) -> None:
+    """Refuse a value beyond :data:`~bayescal.limits.MAX_FILE_NUMBER` in its unit (a typo such as 1e300 um)."""
+    from ..limits import file_number_problem
+
+    for x in values:
+        if (problem := file_number_problem(float(x))) is not None:
+            raise MachineFileError(path, key, problem)
 
 
 def _floats(v):
@@ -609,7 +620,12 @@ class StoredEffectsTransform:
 
 
 def parse_aux_values(items: list[str] | None) -> dict[str, float]:
-    """``["payload_kg=5", "temp_C=25"]`` -> ``{"payload_kg": 5.0, "temp_C": 25.0}`` (the ``--aux NAME=VALUE`` options)."""
+    """``["payload_kg=5", "temp_C=25"]`` -> ``{"payload_kg": 5.0, "temp_C": 25.0}`` (the ``--aux NAME=VALUE`` options).
+
+    Values are bounded (:data:`AUX_LOWER_BOUNDS` from below, :data:`~bayescal.limits.MAX_FILE_NUMBER` in magnitude).
+    """
+    from ..limits import MAX_FILE_NUMBER
+
     out: dict[str, float] = {}
     for item in items or []:
         name, sep, value = item.partition("=")
@@ -622,5 +638,14 @@ def parse_aux_values(items: list[str] | None) -> dict[str, float]:
             raise InputError(f"--aux {item}: expected NAME=VALUE with a finite number, e.g. payload_kg=5 or temp_C=25")
         if name in out:
             raise InputError(f"--aux: channel {name} given twice")
+        low = AUX_LOWER_BOUNDS.get(name, -MAX_FILE_NUMBER)
+        if not low <= v <= MAX_FILE_NUMBER:
+            # payload_kg=-1e6 or 1e300 moved the drives off the machine, and the error blamed the grid's --range
+            raise InputError(f"--aux {item}: expected {name} from {low:g} to {MAX_FILE_NUMBER:g}")
         out[name] = v
     return out
+
+
+#: The smallest value of a channel that is physics: no negative payload, nothing below absolute zero, no negative
+#: elapsed time.
+AUX_LOWER_BOUNDS = {"payload_kg": 0.0, "temp_C": -273.15, "time_s": 0.0}

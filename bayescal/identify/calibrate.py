@@ -15,7 +15,9 @@ command line get the same answer:
    where the data contradict it, the noise scale is estimated and the
    whole fit redone with it, until the scale settles, so that intervals are
    never narrower than the residuals justify and an overstated noise does
-   not leave the calibration to the prior;
+   not leave the calibration to the prior; before it, the position and the
+   orientation rows are tested apart and, where they disagree, each
+   contradicted sigma is rescaled on its own (:mod:`bayescal.identify.group_noise`);
 4. with ``discrepancy="auto"`` or ``"on"``, a model discrepancy
    (:mod:`bayescal.discrepancy`) fitted to what the geometry leaves, off
    the span of the identification Jacobian; ``auto`` keeps it only where the
@@ -33,8 +35,9 @@ import numpy as np
 
 from ..contract import scale_noise, whiten
 from ..errors import InputError
-from ..limits import finite_real
+from ..limits import finite_real, lam_problem
 from ..measurement import MeasurementModel
+from .group_noise import group_report, group_scales, tool_group_checks, with_group_scales
 from .noise import NoiseCheck, check_noise, distinct_rows
 from .result import IdentificationResult
 
@@ -211,6 +214,9 @@ class Calibration:
             used = f"; sigma_tilt used: {tilt['scale_used']:.3g} x the stated one" if tilt["scale_used"] != 1.0 else ""
             line += (f"\n  sensor noise    tilt rows alone: reduced chi-square {tilt['reduced_chi2']:.3g} at the stated "
                      f"sigma_tilt ({tilt['verdict']}){used}")
+        groups = group_report(self.result.extras.get("tool_noise"))
+        if groups:
+            line += "\n" + groups
         if self.variance_factor > 1.0:
             line += (f"\n  predictive      left-out poses predicted {self.loo_ratio:.3g} times worse (in variance) than "
                      f"the model's own intervals: predictions widen by {self.variance_factor:.3g} in variance")
@@ -380,11 +386,22 @@ def calibrate(
         # position sigmas tenfold and spoil the geometry: held-out 0.044 against 0.0069 mm without the sensors)
         model = with_tilt_scale(model, tilt.scale)
         res, handling, choice = _fit_once(model, method, **kw)
+    groups = tool_group_checks(model, res, stated=noise_stated(model))
+    rescaled = {}
+    if noise == "auto" and res.success and group_scales(groups):
+        # sigma_position and sigma_angle contradicted apart (group_noise.py): one scale for every row would leave
+        # the positions 10^4 times underweighted when only sigma_position is stated 100 times too large
+        model, (res, handling, choice), rescaled = _with_group_scales(model, method, kw, group_scales(groups),
+                                                                      (res, handling, choice))
     first = noise_check_of(model, res)
+    # the row groups' own tests, kept in the answer through every refit below
+    blocks = {}
     if tilt is not None:
-        extras = {"tilt_noise": {**tilt.to_dict(), "scale_used": tilt.scale if tilt.contradicted and noise == "auto"
-                                 else 1.0}}
-        res = replace(res, extras={**res.extras, **extras})
+        blocks["tilt_noise"] = {**tilt.to_dict(), "scale_used": tilt.scale if tilt.contradicted and noise == "auto"
+                                else 1.0}
+    if groups is not None:
+        blocks["tool_noise"] = {**{name: c.to_dict() for name, c in groups.items()}, "scale_used": dict(rescaled)}
+    res = replace(res, extras={**res.extras, **blocks})
     if discrepancy != "off" and res.success:
         # a noise not stated: the sigmas are weights and lam the noise-to-prior ratio; on the sigma the residuals
         # support, the geometry's prior is a prior (its std the tolerances times that scale over sqrt(lam)) before
@@ -411,7 +428,7 @@ def calibrate(
         res, handling, choice, scale = _with_noise_scale(model, method, kw, max(first.scale, MIN_NOISE_SCALE),
                                                          (res, handling, choice))
     cal = Calibration(result=res, handling=handling, choice=choice, noise=first, noise_scale=scale, discrepancy_note=note)
-    cal = replace(cal, result=replace(res, extras={**res.extras, **cal.noise_dict(), **cal.discrepancy_dict()}),
+    cal = replace(cal, result=replace(res, extras={**res.extras, **blocks, **cal.noise_dict(), **cal.discrepancy_dict()}),
                   model=model)
     return cal.with_variance_factor(model)
 
@@ -425,8 +442,8 @@ def _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlie
         raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, rule, "
                          f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
                          f"{', '.join(OUTLIER_OPTIONS)}")
-    if lam is not None and lam != "auto" and not finite_real(lam):
-        raise InputError(f"lam: expected a number >= 0 or 'auto', got {lam!r}")
+    if lam is not None and lam != "auto" and (problem := lam_problem(lam)) is not None:
+        raise InputError(f"lam: {problem} (or 'auto')")
     if k is not None and k != "auto" and not (finite_real(k) and float(k) == int(k)):
         raise InputError(f"k: expected a whole number or 'auto', got {k!r}")
     if method == "ridge" and lam is None:
@@ -571,6 +588,34 @@ def _joint_result(model, res, theta, df):
         chi2=float(np.sum(whiten(model, after) ** 2)),
         covariance_kind=res.covariance_kind + "; joint with the model discrepancy (its weights marginalised)",
     )
+
+
+def _with_group_scales(model, method, kw, scales, fallback):
+    """Refit with the position and orientation sigmas rescaled apart until each rescaled group's reduced chi-square is 1.
+
+    Iterated as :func:`_with_noise_scale` iterates the one scale (fits without an outlier decision, within
+    2 %): the first estimate comes from a fit the wrong sigma spoiled (0.13 where 0.015 is right).  Returns the
+    model with the scales, the final fit and the scales (empty, the model and ``fallback`` when a fit fails).
+    """
+    plain = {**kw, "outlier_kw": {**kw["outlier_kw"], "robust": "off"}}
+    auto = (method == "ridge" and kw["lam"] == "auto") or (method == "tsvd" and kw["k"] == "auto")
+    for _ in range(0 if auto else MAX_NOISE_ROUNDS):
+        trial = with_group_scales(model, scales, MIN_NOISE_SCALE)
+        res_s = _fit_once(trial, method, **plain)[0]
+        checks = tool_group_checks(trial, res_s, stated=True) if res_s.success else None
+        if checks is None:
+            break
+        new = {name: max(s * math.sqrt(checks[name].reduced), MIN_NOISE_SCALE)
+               if math.isfinite(checks[name].reduced) and checks[name].reduced > 0 else s for name, s in scales.items()}
+        done = all(abs(math.log(new[n] / scales[n])) < math.log(1.02) for n in scales)
+        scales = new
+        if done:
+            break
+    scaled = with_group_scales(model, scales, MIN_NOISE_SCALE)
+    got = _fit_once(scaled, method, **kw)
+    if not got[0].success:
+        return model, fallback, {}
+    return scaled, got, scales
 
 
 def _with_noise_scale(model, method, kw, scale, fallback):

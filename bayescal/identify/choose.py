@@ -243,6 +243,23 @@ def _svd(A: NDArray, z: NDArray) -> _Svd:
     return _Svd(s=s, V=Vt.T, beta=beta, c_perp=max(float(z @ z - beta @ beta), 0.0), n_rows=A.shape[0])
 
 
+def _check_noise_estimable(A: NDArray, z: NDArray, d: _Svd, noise_known: bool, method: str) -> None:
+    """InputError when no noise is stated and the rows leave nothing to estimate it from.
+
+    One height of a printer (no ``[measurement]``), or 19 copies of it: the rules' evidence divided by a
+    residual of zero and ``numpy`` raised "Probabilities contain NaN" (a traceback).  Copied rows add none.
+    """
+    if noise_known:
+        return
+    rank = int(np.sum(d.s > 1e-12 * d.s.max())) if d.s.size and d.s.max() > 0 else 0
+    distinct = int(np.unique(np.column_stack([A, z]), axis=0).shape[0])
+    if distinct <= rank:
+        what = "lam" if method == "ridge" else "k"
+        raise InputError(f"{what}='auto': no noise stated and no residual degrees of freedom to estimate it from "
+                         f"({distinct} distinct measured component(s) for the {rank} the data determine); give a "
+                         f"number (--{what}), more measurements, or the noise ([measurement] in the machine file)")
+
+
 def _safe_inv(s: NDArray) -> NDArray:
     return np.where(s > 0, 1.0 / np.where(s > 0, s, 1.0), 0.0)
 
@@ -580,6 +597,7 @@ def choose_linear(
     N, p = A.shape
     groups = np.arange(N) if groups is None else np.asarray(groups).reshape(-1)
     d = _svd(A, z)
+    _check_noise_estimable(A, z, d, noise_known, method)
     grid = _candidate_grid(method, d, grid)
     F = _filters(method, d.s, grid)
     res2, xnorm2, peff, gcv, disc = _fit_curves(d, F, N)

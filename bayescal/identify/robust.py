@@ -112,7 +112,13 @@ class OutlierHandling:
         if not res.success or self.test is None:
             return replace(self, test=None, action=_NOT_ASSESSED)
         t = pose_test(model, res.theta, weights=self.weights, alpha=self.test.alpha, lines=self.test.lines, **system)
-        return replace(self, test=_unflag(t) if self.structural else t)
+        if self.structural:
+            return replace(self, test=_unflag(t))
+        if t.flagged.any() and self.weights is None and not self.test.flagged.any():
+            # the pass that decided the weights flagged none; this answer's test does: say so, not "none flagged"
+            return replace(self, test=t, action="kept: flagged by the test at this answer, not by the robust MAP pass "
+                                                "that decides the weights; every pose kept at full weight")
+        return replace(self, test=t)
 
     def to_dict(self) -> dict:
         """JSON keys: ``outliers`` (docs/formats.md section 4), ``outlier_handling``, ``outlier_test`` (every pose)."""

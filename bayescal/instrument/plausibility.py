@@ -7,11 +7,13 @@ The rule (docs/real-instruments.md): a calibration is **not plausible** when
    nominal, ``|value| > 10 tolerance``; or
 2. the fit has no residual degrees of freedom: distinct measured
    components (rows that exactly repeat another row's ``q`` and measured
-   values add none) ``n_distinct * dof <= `` identified parameters (for a regularised fit,
-   ridge, TSVD or MAP, the *effective* number of parameters, the sum of
-   its filter factors: a prior keeps what the data cannot determine near
-   nominal, so 19 probe rows can carry 21 parameters under a prior but not
-   by least squares).
+   values add none) ``n_distinct * dof <= `` identified parameters (for a fit
+   under a prior, ridge, TSVD, MAP, Kalman or MCMC, the *effective* number of
+   parameters, the trace of its hat matrix: the filter factors summed, or
+   ``n - tr(P_prior^-1 P_post)`` from the filter's or the sampler's
+   covariance; a prior keeps what the data cannot determine near nominal,
+   so 19 probe rows can carry 21 parameters under a prior but not by least
+   squares).
 
 Likely causes are named for each flagged case:
 
@@ -153,7 +155,7 @@ def assess_plausibility(
         ]
     if n_rows - n_eff < 1.0:  # less than one residual degree of freedom (a prior fits ~n_rows effective parameters)
         what = (f"{n_free} identified parameters" if effective_params is None
-                else f"{n_eff:.1f} effective parameters (filter factors summed, {n_free} estimated)")
+                else f"{n_eff:.1f} effective parameters (the hat matrix's trace under the prior, {n_free} estimated)")
         repeats = (f" ({model.n_poses - n_distinct} of {model.n_poses} rows repeat another row exactly)"
                    if n_distinct < model.n_poses else "")
         reasons.append(
@@ -310,12 +312,44 @@ def judge_fit(machine, model, res, check=None) -> tuple[dict, "Plausibility"]:
 
 
 def _effective_params(res) -> float | None:
-    """A regularised fit's effective number of parameters (its filter factors summed), else None."""
-    f = getattr(res, "filter_factors", None)
-    if getattr(res, "method", "ls") not in ("ridge", "tsvd", "map") or f is None:
+    """A fit's effective number of parameters under its prior, else None (least squares: every free parameter).
+
+    Ridge, TSVD and MAP: the filter factors summed.  Kalman and MCMC sample or filter under the same tolerance
+    prior: ``n - tr(P_prior^-1 P_post)``, the trace of the hat matrix of the linear-Gaussian model (the same
+    number MAP's filter factors sum to), so two poses under a prior are judged alike by every method.
+    """
+    method = getattr(res, "method", "ls")
+    if method in ("ridge", "tsvd", "map"):
+        f = getattr(res, "filter_factors", None)
+        if f is None:
+            return None
+        f = np.asarray(f, dtype=float)
+        return float(f.sum()) if f.size and np.all(np.isfinite(f)) else None
+    try:
+        if method == "kalman":
+            prior, post = np.asarray(res.covariances[0], dtype=float), np.asarray(res.covariances[-1], dtype=float)
+        elif method == "mcmc" and res.success:
+            sd = np.asarray(res.tree["constant_data"]["prior_std"].values, dtype=float)
+            prior, post = np.diag(sd**2), np.asarray(res.covariance, dtype=float)
+        else:
+            return None
+        return posterior_effective_params(prior, post)
+    except (AttributeError, KeyError, IndexError, TypeError, ValueError, np.linalg.LinAlgError):
         return None
-    f = np.asarray(f, dtype=float)
-    return float(f.sum()) if f.size and np.all(np.isfinite(f)) else None
+
+
+def posterior_effective_params(prior_cov: NDArray, post_cov: NDArray) -> float | None:
+    """``n - tr(P_prior^-1 P_post)``, clipped to ``[0, n]``: how many parameters the data determine (None if not finite).
+
+    For a linear-Gaussian model with whitened Jacobian ``J`` the posterior is ``(J^T J + P^-1)^-1`` and the
+    trace of the hat matrix ``J P_post J^T`` is exactly this.
+    """
+    prior_cov, post_cov = np.atleast_2d(prior_cov), np.atleast_2d(post_cov)
+    n = prior_cov.shape[0]
+    if n == 0 or post_cov.shape != prior_cov.shape:
+        return None
+    t = float(np.trace(np.linalg.solve(prior_cov, post_cov)))
+    return float(np.clip(n - t, 0.0, n)) if math.isfinite(t) else None
 
 
 def refuse_implausible(plaus: Plausibility | None, force: bool = False) -> None:

@@ -243,11 +243,20 @@ def station_frames(machine: Machine, rec: Recording, *, dof: int | None = None,
             frames.append(Frame.identity())
             continue
         if rows.size < need:
-            raise RecordingError(rec.path, int(rec.lines[rows[0]]), "station",
-                                 f"station {label!r} has {rows.size} fit pose(s); at least {need} are needed to fit "
-                                 "its frame")
+            raise _too_few_fit_poses(rec, label, rows, need)
         frames.append(frame_start(machine, rec.subset(rows), dof=dof))
     if len(stations) == 1:
         return InstrumentFrame(base, frames[0], fit=True), tuple(unfitted)
     framed = InstrumentFrame(base, frames[0], fit=True, stations=stations, frames0=tuple(frames), pose_station=idx)
     return framed, tuple(unfitted)
+
+
+def _too_few_fit_poses(rec: Recording, label: str, rows, need: int) -> RecordingError:
+    """The error for a station (or a recording without a ``station`` column) too small to align a frame."""
+    line = int(rec.lines[rows[0]]) if rows.size else None
+    what = "orientations" if need == 2 else "positions only"
+    if rec.station is None:
+        return RecordingError(rec.path, line, None, f"{rows.size} fit pose(s); at least {need} ({what}) are needed to "
+                              "fit the instrument frame (--frame fit)")
+    return RecordingError(rec.path, line, "station", f"station {label!r} has {rows.size} fit pose(s); at least {need} "
+                          f"({what}) are needed to fit its frame")

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import RecordingError
-from ..limits import sigma_problem
+from ..limits import MAX_FILE_NUMBER, sigma_problem
 from .answers import write_text_atomic
 from .recording import check_q_limits, parse_number, read_csv_rows
 
@@ -236,6 +236,11 @@ def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> Con
     n = len(rows)
     known = {"measure", "value", "pivot", "sigma_position"} | {f"a_q{k}" for k in a_nums} | {f"b_q{k}" for k in b_nums}
     aux_cols = [h for h in header if h not in known]
+    for label in ("station", "role"):
+        if label in aux_cols:
+            # read as a numeric channel, the first label was "expected a number, got 'check'"
+            raise RecordingError(path, 1, label, f"a {label} column is read in pose recordings only (docs/formats.md "
+                                 "section 8); a constraint recording's other columns are numeric auxiliary channels")
     measure: list[str] = []
     qa = np.empty((n, N))
     qb = np.full((n, N), np.nan)
@@ -267,6 +272,13 @@ def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> Con
         if m != "height" and v <= 0:
             raise RecordingError(path, line, file_col["value"], f"a {m} must be positive, got {v!r}")
         value[i] = v * unit_scale["value"]
+        if abs(value[i]) > MAX_FILE_NUMBER:  # 1e300 ran into a noise estimate of inf
+            raise RecordingError(path, line, file_col["value"], f"{value[i]:g} mm; expected a length within "
+                                 f"+-{MAX_FILE_NUMBER:g} mm")
+        if m == "distance" and np.array_equal(qa[i], qb[i]):
+            # a pose's distance to itself is 0 whatever the geometry: the row carries no information, only an outlier
+            raise RecordingError(path, line, "b_q1", f"a distance between pose a and the same pose b (q = {qa[i].tolist()}); "
+                                 "expected two different poses")
         pid = cell("pivot") if "pivot" in seen else (DEFAULT_PIVOT if m == "ballbar" else "")
         if m == "ballbar":
             if not _PIVOT_ID.match(pid):

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import MachineFileError
+from ..limits import file_number_problem
 
 __all__ = ["read_toml", "parse_toml_text", "TomlTable", "format_toml_value", "UNIT_NORM_TOL"]
 
@@ -108,7 +109,14 @@ class TomlTable:
             raise self.error(key, f"expected a finite number, got {v!r}")
         if positive and v <= 0:
             raise self.error(key, f"expected a positive number, got {v!r}")
+        self._bounded(key, [v])
         return float(v)
+
+    def _bounded(self, key: str, values) -> None:
+        """Refuse a number beyond :data:`~bayescal.limits.MAX_FILE_NUMBER` (a typo such as 1e300)."""
+        for x in values:
+            if (problem := file_number_problem(float(x))) is not None:
+                raise self.error(key, problem)
 
     def vector(self, key: str, n: int = 3, *, unit: bool = False, default=None) -> np.ndarray:
         if key not in self.data:
@@ -122,6 +130,7 @@ class TomlTable:
             or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in v)
         ):
             raise self.error(key, f"expected a list of {n} finite numbers, got {v!r}")
+        self._bounded(key, v)
         arr = np.asarray(v, dtype=float)
         if unit:
             norm = float(np.linalg.norm(arr))
@@ -144,6 +153,7 @@ class TomlTable:
         )
         if not ok:
             raise self.error(key, f"expected {rows} lists of {cols} finite numbers, got {v!r}")
+        self._bounded(key, [x for r in v for x in r])
         return np.asarray(v, dtype=float)
 
     def table(self, key: str, *, required: bool = True) -> "TomlTable | None":

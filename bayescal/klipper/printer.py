@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..errors import InputError
 from ..io.constraints import ConstraintRecording
 from .cfg import KlipperConfig
 from ..machines.base import MeasurementNoise
@@ -241,6 +242,12 @@ def klipper_recording(
         ``position_endstop`` (+- :data:`SAVED_MARGIN`), distances up to the
         print diameter (+ the margin), stable positions within the travel.
     """
+    from ..limits import sigma_problem
+
+    for flag, v in (("sigma_height (--sigma-height)", sigma_height), ("sigma_distance (--sigma-distance)", sigma_distance)):
+        # 1e300 was written into the recording, which every consumer then refused
+        if (problem := sigma_problem(v, "position")) is not None:
+            raise InputError(f"{flag}: {problem}")
     if not cfg.has(_SAVED):
         raise cfg.error(_SAVED, "", "missing section; expected the [delta_calibrate] block SAVE_CONFIG writes after "
                                     f"DELTA_CALIBRATE ({cfg.sources_note()})")

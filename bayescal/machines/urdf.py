@@ -31,6 +31,7 @@ gives no inertials (unknown).
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -119,6 +120,7 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
     links = [(base_link, -1, np.eye(3))]
     for j in chain:
         T = _transform_mm(j.origin)
+        _check_origin(j, T, urdf_path, path)
         if j.type == "fixed":
             pending = pending @ T
             # a link after fixed joints only: fixed to the last moving joint's frame (the base before any)
@@ -129,7 +131,7 @@ def chain_from_urdf(urdf_path: str | Path, base_link: str, tip_link: str, *, pat
         T = pending @ T
         pending = np.eye(4)
         a = np.array(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=float)  # URDF default axis is x
-        if not np.linalg.norm(a) > 0:
+        if not (np.all(np.isfinite(a)) and np.linalg.norm(a) > 0):
             raise MachineFileError(path, "urdf", f"joint {j.name!r} has a zero axis")
         types.append("revolute" if j.type in _REVOLUTE else "prismatic")
         origin.append(T[:3, 3])
@@ -159,22 +161,44 @@ def _load(urdf_path: Path, path: str):
     """The parsed URDF (yourdfpy), after a strict XML parse; MachineFileError (key ``urdf``) otherwise."""
     import yourdfpy
 
+    from ..io.safe_paths import MAX_TOML_BYTES, read_input_bytes
+
     if not urdf_path.exists():
         raise MachineFileError(path, "urdf", f"file not found: {urdf_path}")
     if not urdf_path.is_file():  # a folder, a FIFO or a device (/dev/zero) would block or never end
         raise MachineFileError(path, "urdf", f"{urdf_path} is not a regular file; expected a URDF file")
+    # read once, as an input of the run: no output of the run (--write-urdf) may replace it
+    data = read_input_bytes(urdf_path, "a URDF file", limit=MAX_TOML_BYTES,
+                            error=lambda message: MachineFileError(path, "urdf", f"{urdf_path}: {message}"))
     try:
         # yourdfpy recovers from malformed XML (and only logs it); a machine description must be
         # well-formed, so the file is first parsed strictly by lxml (which yourdfpy builds on)
         from lxml import etree
 
-        etree.parse(str(urdf_path), etree.XMLParser(recover=False))
-        return yourdfpy.URDF.load(
-            str(urdf_path), build_scene_graph=False, load_meshes=False,
-            build_collision_scene_graph=False, load_collision_meshes=False,
-        )
+        root = etree.fromstring(data, etree.XMLParser(recover=False))
+        duplicate = _duplicate_name(root)
+        if duplicate is None:
+            return yourdfpy.URDF.load(
+                io.BytesIO(data), build_scene_graph=False, load_meshes=False,
+                build_collision_scene_graph=False, load_collision_meshes=False,
+            )
     except Exception as exc:  # yourdfpy raises lxml, ValueError, KeyError... for malformed files
         raise MachineFileError(path, "urdf", f"{urdf_path} is not a readable URDF file ({type(exc).__name__}: {exc})") from exc
+    # yourdfpy keeps one element per name: a second joint 'j1' silently replaced the first (and broke the chain)
+    tag, name = duplicate
+    raise MachineFileError(path, "urdf", f"{urdf_path.name} has two <{tag}> elements named {name!r}; expected unique names")
+
+
+def _duplicate_name(root) -> tuple[str, str] | None:
+    """The first ``(tag, name)`` that two ``<joint>`` or two ``<link>`` elements of the robot share, else None."""
+    for tag in ("joint", "link"):
+        seen: set = set()
+        for element in root.findall(tag):
+            name = element.get("name")
+            if name in seen:
+                return tag, name
+            seen.add(name)
+    return None
 
 
 def _joints_between(robot, base_link: str, tip_link: str, urdf_path: Path, path: str) -> list:
@@ -194,22 +218,50 @@ def _joints_between(robot, base_link: str, tip_link: str, urdf_path: Path, path:
             raise MachineFileError(path, "urdf", f"link {j.child!r} of {urdf_path.name} is the child of two joints "
                                                  f"({by_child[j.child].name!r}, {j.name!r}); a URDF is a tree")
         by_child[j.child] = j
-    chain, seen, link = [], [tip_link], tip_link
+    _check_no_cycle(by_child, tip_link, urdf_path, path)
+    chain, link = [], tip_link
     while link != base_link:
         if link not in by_child:
             raise MachineFileError(path, "base_link", f"{base_link!r} is not an ancestor of tip_link {tip_link!r} in {urdf_path.name}")
         j = by_child[link]
         chain.append(j)
         link = j.parent
-        if link in seen:
-            loop = seen[seen.index(link):]
-            names = [by_child[x].name for x in loop]
-            raise MachineFileError(
-                path, "urdf", f"the joints {', '.join(repr(n) for n in names)} of {urdf_path.name} form a cycle "
-                f"(links {' <- '.join(loop + [link])}) with tip_link {tip_link!r} on it or below it; a URDF is a tree")
-        seen.append(link)
     chain.reverse()
     return chain
+
+
+def _check_no_cycle(by_child: dict, tip_link: str, urdf_path: Path, path: str) -> None:
+    """Refuse joints that form a cycle anywhere in the file (a walk up from a link on it would never end).
+
+    A cycle through the base link (its tip joined back to it) left the chain's walk from the tip finite, and
+    was read.  Every link is walked up by its parent joints once (links already walked end a walk), so the
+    check is linear in the number of links; the tip's walk comes first, so a cycle above it is named from it.
+    """
+    done: set = set()
+    for start in [tip_link, *by_child]:
+        walk, on_walk, link = [], set(), start
+        while link in by_child and link not in done:
+            if link in on_walk:
+                loop = walk[walk.index(link):]
+                names = [by_child[x].name for x in loop]
+                raise MachineFileError(
+                    path, "urdf", f"the joints {', '.join(repr(n) for n in names)} of {urdf_path.name} form a cycle "
+                    f"(links {' <- '.join(loop + [link])}); a URDF is a tree")
+            walk.append(link)
+            on_walk.add(link)
+            link = by_child[link].parent
+        done.update(walk)
+
+
+def _check_origin(joint, T: NDArray, urdf_path: Path, path: str) -> None:
+    """Refuse a joint origin that is not finite or lies beyond :data:`~bayescal.limits.MAX_FILE_NUMBER` mm."""
+    from ..limits import MAX_FILE_NUMBER
+
+    if not np.all(np.isfinite(T)) or np.any(np.abs(T[:3, 3]) > MAX_FILE_NUMBER):
+        raise MachineFileError(path, "urdf", f"joint {joint.name!r} of {urdf_path.name} has the origin "
+                               f"xyz [{', '.join(f'{v / _M_TO_MM:.6g}' for v in T[:3, 3])}] m (rpy giving "
+                               f"{'a finite' if np.all(np.isfinite(T[:3, :3])) else 'a non-finite'} rotation); expected "
+                               f"finite numbers, a translation of at most {MAX_FILE_NUMBER / _M_TO_MM:g} m")
 
 
 def _mimic_entries(moving: list, path: str) -> tuple:
@@ -246,7 +298,8 @@ def _mimic_entries(moving: list, path: str) -> tuple:
 def _transform_mm(origin) -> NDArray:
     """A URDF ``<origin>`` (4x4, metres) in mm; the identity when absent."""
     T = np.array(origin if origin is not None else np.eye(4), dtype=float)
-    T[:3, 3] *= _M_TO_MM
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge origin overflows to inf: refused by _check_origin
+        T[:3, 3] *= _M_TO_MM
     return T
 
 

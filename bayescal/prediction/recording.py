@@ -130,6 +130,8 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     if n_session:
         fitted = [k for k, label in enumerate(fm.stations) if label not in session.unfitted_stations]
         frame_free = [6 * k + c for k in fitted for c in range(6)]
+        if not frame_free:
+            raise _no_frame_to_fit(rec)
         theta, fit_ok = _fit_frames(model, theta, frame_free, fit_rows, disc, identify)
         if not fit_ok:
             raise InputError(f"{rec.path}: the instrument frame(s) could not be fitted on the fit rows")
@@ -359,3 +361,19 @@ def held_out_report(answer: dict) -> str:
     return (f"  held out        {s['n']} check rows: position error mean {s['mean_error_position_mm']:.4g} mm, median "
             f"{s['median_error_position_mm']:.4g}, p95 {s['p95_error_position_mm']:.4g}; inside their 90 % region "
             f"{100 * s['coverage_90']:.1f} %")
+
+
+def _no_frame_to_fit(rec: Recording) -> InputError:
+    """The error of ``--frame fit`` when no station has the fit poses to align its frame (each needs 3, 2 with orientations)."""
+    from ..errors import RecordingError
+
+    need = 3 if rec.dof == 3 else 2
+    fit = ~rec.is_check
+    counts = np.bincount(rec.station_index[fit], minlength=len(rec.stations))
+    if rec.station is None:
+        return RecordingError(rec.path, None, None, f"--frame fit: {int(counts[0])} fit row(s); at least {need} are "
+                              "needed to fit the instrument frame")
+    shown = ", ".join(f"{s!r} {int(c)}" for s, c in list(zip(rec.stations, counts))[:6])
+    more = f" and {len(rec.stations) - 6} more" if len(rec.stations) > 6 else ""
+    return RecordingError(rec.path, None, "station", f"--frame fit: no station has the {need} fit rows needed to fit "
+                          f"its instrument frame (fit rows per station: {shown}{more})")

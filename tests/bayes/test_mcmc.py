@@ -130,3 +130,13 @@ def test_linear_surrogate_on_the_machine(prs3, sim6):
     res = sample_posterior(model, free=FREE, n_walkers=10, n_steps=500, seed=2, surrogate="linear")
     assert "linearisation error" in res.message
     assert res.success, res.message
+
+
+def test_an_existing_checkpoint_is_not_replaced_by_a_fresh_run(prs3, sim6, tmp_path):
+    # --checkpoint c.npz without --resume started afresh and saved over the chain the file held
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    ck = tmp_path / "c.npz"
+    ck.write_bytes(b"a chain of many hours")
+    with pytest.raises(InputError, match=r"--checkpoint .*c.npz: a file is there already; .* Expected --resume"):
+        sample_posterior(model, n_steps=40, checkpoint=ck, surrogate="linear")
+    assert ck.read_bytes() == b"a chain of many hours"

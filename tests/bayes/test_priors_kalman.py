@@ -12,6 +12,7 @@ from bayescal.bayes.priors import GaussianPrior
 from bayescal.errors import InputError
 from bayescal.identify import identify
 from bayescal.measurement import MeasurementModel
+from bayescal.simulate import simulate_recording
 
 
 @pytest.fixture(scope="module")
@@ -150,3 +151,11 @@ def test_prior_lower_bounds_truncate_the_density_and_the_draws(prs3):
     # a normal truncated at mean - sd/2: mean mu + sd phi(-1/2) / (1 - Phi(-1/2))
     expect = 1.0 + 2.0 * stats.norm.pdf(-0.5) / stats.norm.sf(-0.5)
     assert abs(draws[:, 1].mean() - expect) < 4 * draws[:, 1].std() / np.sqrt(draws.shape[0])
+
+
+@pytest.mark.parametrize("noise", [-0.1, float("nan"), 1e300, 101.0])
+def test_process_noise_outside_its_range_is_refused(prs3, noise):
+    # 1e300 overflowed the state covariance: a ValueError from scipy inside the update, a traceback
+    model = MeasurementModel.from_recording(prs3, simulate_recording(prs3, 4, seed=1).recording)
+    with pytest.raises(InputError, match=r"process_noise: expected finite values from 0 to 100"):
+        kalman_filter(model, process_noise=noise)

@@ -166,3 +166,19 @@ def test_top_level_help_imports_no_command_and_no_numpy():
         assert f"{name}" in out and SUMMARIES[name] in " ".join(out.split())
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     assert {c.dest: c.help for c in sub._choices_actions} == SUMMARIES
+
+
+def test_values_that_start_with_a_minus_sign_are_values():
+    # argparse took --pivot -10,0,80 and --x-range -3e2 3e2 for options: "expected one argument" (exit 2)
+    from bayescal.cli import build_parser
+
+    a = build_parser(("simulate",)).parse_args(["simulate", "--machine", "m.toml", "--seed", "1", "--out", "o.csv",
+                                                "--ballbar", "10", "--pivot", "-10,0,80"])
+    assert a.pivot == "-10,0,80"
+    c = build_parser(("compensate",)).parse_args(["compensate", "--x-range", "-3e2", "3e2", "--z-range", "-.5", "1e-3"])
+    assert c.x_range == [-300.0, 300.0] and c.z_range == [-0.5, 0.001]
+    p = build_parser(("plan",)).parse_args(["plan", "--machine", "m.toml", "--n", "3", "--out", "p.csv",
+                                            "--measure", "height", "--centre", "-5,0,0.2"])
+    assert list(p.centre) == [-5.0, 0.0, 0.2]
+    with pytest.raises(SystemExit):  # an unknown option is still one
+        build_parser(("plan",)).parse_args(["plan", "--machine", "m.toml", "--n", "3", "--out", "p.csv", "-x"])

@@ -143,7 +143,8 @@ def test_requests_that_cannot_fit_in_memory_are_refused_naming_the_option(d, cap
 
 # ------------------------------------------------------------------ option values
 @pytest.mark.parametrize("methods, match", [
-    ("ridge:foo=1", "unknown option 'foo' of ridge"), ("ridge:lam=abc", "lam=abc: expected a finite number >= 0"),
+    ("ridge:foo=1", "unknown option 'foo' of ridge"), ("ridge:lam=abc", "lam=abc: expected a number from 0 to 1e+12"),
+    ("ridge:lam=1e308", "lam=1e+308: expected a number from 0 to 1e+12"),
     ("tsvd:k=-2", "k=-2: expected a positive integer"), ("mcmc:seed=-1", "seed=-1"), ("ls:k=3", "ls takes no options"),
 ])
 def test_compare_method_options_are_refused_up_front(d, capsys, methods, match):
@@ -204,3 +205,99 @@ def test_sigma_columns_outside_the_range_name_line_and_column(d, capsys):
     with open(d / "rs.csv", "w", newline="") as fh:
         csv.writer(fh).writerows(rows)
     refused(capsys, "identify", d / "rs.csv", "--machine", d / "m.toml", match=("line 6", "sigma_position", "from 1e-06"))
+
+
+def test_a_ridge_parameter_beyond_the_limit_is_refused(d, capsys):
+    # --lam 1e308 was fitted: every std 5e-156 mm, exit 0, "plausible"
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--method", "ridge", "--lam", "1e308",
+            match=("lam", "from 0 to 1e+12"))
+
+
+@pytest.mark.parametrize("option", ["--json", "--discrepancy-inputs", "--report"])
+def test_an_empty_value_is_refused_not_taken_as_absent(d, capsys, option):
+    # --json '' ran and wrote nothing; --discrepancy-inputs '' took the default
+    extra = ["--method", "map", "--discrepancy", "on"] if option == "--discrepancy-inputs" else []
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", *extra, option, "", match=(option, "empty value"))
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", *extra, f"{option}=", match=(option, "empty value"))
+
+
+def test_dash_is_no_output_file(d, capsys):
+    # --json - wrote a file named '-'
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--json", "-", match=("--json -", "not standard output"))
+    assert not (d / "-").exists() and not __import__("pathlib").Path("-").exists()
+
+
+def test_write_urdf_is_checked_against_the_inputs_before_fitting(d, capsys):
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--write-urdf", d / "r.csv",
+            match=("--write-urdf", "is the same file as recording"))
+
+
+@pytest.mark.parametrize("option", [["--pivot", "1,2,3"], ["--planes", "xz"]])
+def test_ballbar_options_without_a_ballbar_are_refused(d, capsys, option):
+    # --pivot without --ballbar simulated poses and ignored it
+    refused(capsys, "simulate", "--machine", d / "m.toml", "--poses", "3", "--seed", "1", "--out", d / "s.csv", *option,
+            match=(option[0], "goes with --ballbar"))
+    assert not (d / "s.csv").exists()
+
+
+def test_a_pose_file_with_more_actuators_is_refused(d, capsys):
+    # a q4 column (another machine's plan) was ignored
+    (d / "p.csv").write_text("q1,q2,q3,q4\n500,500,500,1\n")
+    refused(capsys, "simulate", "--machine", d / "m.toml", "--poses-file", d / "p.csv", "--seed", "1", "--out", d / "s.csv",
+            match=("p.csv: line 1, column 'q4'", "beyond the machine's 3 actuators"))
+
+
+def test_a_grid_range_given_twice_is_refused(d, capsys):
+    # --range q1=460:540 --range q1=470:530: the last one won, silently
+    refused(capsys, "grid", d / "r.csv", "--machine", d / "m.toml", "--nodes", "3", "--range", "q1=460:540",
+            "--range", "q1=470:530", match=("--range q1", "given twice"))
+
+
+def test_an_effect_to_diagnose_named_twice_is_refused(d, capsys):
+    refused(capsys, "diagnose", d / "r.csv", "--machine", d / "m.toml", "--effects", "backlash,backlash",
+            match=("--effects", "named twice"))
+
+
+@pytest.mark.parametrize("option", [["--given", "{d}/r.csv"], ["--centre", "1,2,3"], ["--radius", "5"], ["--spacing", "2"],
+                                    ["--sigma", "0.1"], ["--min-distance", "3"]])
+def test_relation_options_on_a_plan_of_poses_are_refused(d, capsys, option):
+    # a plan of poses ignored them, silently (exit 0)
+    refused(capsys, "plan", "--machine", d / "m.toml", "--n", "8", "--candidates", "300", "--out", d / "p.csv",
+            *[o.format(d=d) for o in option], match=(option[0], "goes with --measure height or distance"))
+
+
+def test_pose_options_on_a_plan_of_relations_are_refused(d, capsys):
+    delta = ROOT / "examples" / "delta" / "machine.toml"
+    refused(capsys, "plan", "--machine", delta, "--measure", "height", "--n", "3", "--no-box", "--out", d / "p.csv",
+            match=("--no-box", "only for poses"))
+
+
+@pytest.mark.parametrize("methods, match", [("tsvd:k=999", "k=999: expected at most 36"), ("ridge:", "nothing after ':'"),
+                                            ("ridge:;", "nothing after ':'"), ("ls,,map", "an empty method")])
+def test_compare_methods_that_could_only_fail_or_say_nothing_are_refused(d, capsys, methods, match):
+    # tsvd:k=999 failed in every trial and compare exited 0; 'ridge:' and 'ls,,map' were taken silently
+    refused(capsys, "compare", "--machine", d / "m.toml", "--methods", methods, "--trials", "1", "--no-progress",
+            match=("--methods", match))
+
+
+def test_compare_refuses_negative_retries(d, capsys):
+    refused(capsys, "compare", "--machine", d / "m.toml", "--trials", "1", "--retries", "-1", "--no-progress",
+            match="--retries")
+
+
+def test_compare_exits_1_when_a_method_fails_in_every_trial(d, capsys):
+    from bayescal.compare import register_method
+    from bayescal.compare.methods import METHODS
+
+    from bayescal.errors import IdentificationError
+
+    def broken(model, *, free):
+        raise IdentificationError("always")
+
+    register_method("broken_probe", broken, help="fails")
+    try:
+        code, err = run(capsys, "compare", "--machine", d / "m.toml", "--methods", "ls,broken_probe", "--trials", "2",
+                        "--no-progress", "--quiet")
+    finally:
+        METHODS.pop("broken_probe", None)
+    assert code == 1 and "broken_probe failed in every trial" in err[-1], err

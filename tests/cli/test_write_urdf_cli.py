@@ -40,3 +40,20 @@ def test_write_urdf_is_refused_for_other_kinds_before_fitting(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--write-urdf: a URDF describes a serial chain" in err[0] and "hybrid" in err[0]
     assert not out.exists()
+
+
+def test_write_urdf_never_replaces_the_urdf_the_machine_file_reads(tmp_path, capsys):
+    # the machine file's urdf = "arm.urdf" was read outside the run's inputs: --write-urdf arm.urdf replaced it
+    from tests.machines.test_urdf import FROM_URDF, URDF
+
+    (tmp_path / "arm.urdf").write_text(URDF)
+    machine, rec = tmp_path / "m.toml", tmp_path / "rec.csv"
+    machine.write_text(FROM_URDF)
+    assert main(["simulate", "--machine", str(machine), "--poses", "30", "--seed", "2", "--out", str(rec), "--quiet"]) == 0
+    capsys.readouterr()
+    code = main(["identify", str(rec), "--machine", str(machine), "--method", "map", "--force",
+                 "--write-urdf", str(tmp_path / "arm.urdf")])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "arm.urdf" in err[0], err
+    assert (tmp_path / "arm.urdf").read_text() == URDF

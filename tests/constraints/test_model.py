@@ -180,3 +180,22 @@ def test_a_machine_files_instrument_frame_does_not_move_heights():
     assert model.n_params == m.n_params
     with pytest.raises(InputError, match="instrument frame"):
         ConstraintModel.from_recording(InstrumentFrame(m, Frame.identity(), fit=True), rec)
+
+
+def test_a_pivot_with_fewer_than_four_readings_is_refused_for_identification(tmp_path, capsys):
+    # one pivot per reading: Gauss-Newton's reduced system had no column ("zero-size array ..."), a traceback
+    from bayescal.cli import main
+    from bayescal.constraints.model import check_pivot_readings
+    from bayescal.errors import RecordingError
+    from bayescal.io.constraints import read_constraints
+
+    text = "measure,a_q1,a_q2,a_q3,value,pivot\n" + "".join(
+        f"ballbar,{-150 - i},{-140 + i},{-145 - 2 * i},40.{i},{p}\n" for i, p in enumerate(["a"] * 4 + ["b"] * 3))
+    (tmp_path / "bb.csv").write_text(text)
+    with pytest.raises(RecordingError, match=r"line 6, column 'pivot': pivot 'b' has 3 reading\(s\); .* at least 4"):
+        check_pivot_readings(read_constraints(tmp_path / "bb.csv"))
+    check_pivot_readings(read_constraints("ok.csv", text=text.replace(",b\n", ",a\n")))
+    delta = Path(__file__).resolve().parents[2] / "examples" / "delta" / "machine.toml"
+    assert main(["identify", str(tmp_path / "bb.csv"), "--machine", str(delta), "--method", "map"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pivot 'b' has 3 reading(s)" in err[0]

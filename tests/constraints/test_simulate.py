@@ -43,3 +43,11 @@ def test_an_unreachable_circle_counts_its_points():
     m = load_machine(ROOT / "examples" / "raspm" / "machine.toml")
     with pytest.raises(InputError, match=r"plane xy: .*cannot be reached.*plane it moves in"):
         simulate_ballbar(m, 3.0, n_points=4, planes=("xy",), sigma=0.0)
+
+
+@pytest.mark.parametrize("planes", [("xy", "xy"), ()])
+def test_planes_must_be_distinct_and_given(planes):
+    # --planes xy,xy ran the same circle twice, silently
+    m = load_machine(ROOT / "examples" / "delta" / "machine.toml")
+    with pytest.raises(InputError, match="planes: expected distinct planes from xy, xz, yz"):
+        simulate_ballbar(m, 20.0, n_points=8, planes=planes, sigma=0.0)

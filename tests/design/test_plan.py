@@ -207,3 +207,11 @@ def test_cli_plan_certify(tmp_path, capsys):
     rc = main(["plan", "--machine", "examples/prs3/machine.toml", "--n", "8", "--measure", "height", "--certify", "1",
                "--out", str(out)])
     assert rc == 2 and "--certify: only for poses" in capsys.readouterr().err
+
+
+def test_a_candidate_set_with_nothing_identifiable_is_refused(prs3):
+    # a tolerance of 1e300 left no usable column: plan divided by zero (ZeroDivisionError) instead of saying so
+    q = prs3.sample_q(20, np.random.default_rng(1))
+    J = np.zeros((20, 6, prs3.n_params))
+    with pytest.raises(InputError, match="none of the 36 parameters is identifiable from the 20 candidate poses"):
+        candidate_set_from_jacobian(q, J, prs3.tolerance, prs3.layout)

@@ -128,3 +128,14 @@ def test_criterion_i_folds_the_given_information_into_the_bound(delta):
             assert np.trace(np.linalg.inv(M0 + A[alt].T @ A[alt]) @ Q) >= direct * (1 - 1e-9)
     plan = plan_relations(delta, 4, measure="height", criterion="I", radius=40.0)
     assert plan.recording.n_rows == 4 and plan.criterion == "I"
+
+
+@pytest.mark.parametrize("kw, match", [({"sigma": 0.0}, r"sigma \(--sigma\): expected a one-sigma position noise"),
+                                       ({"sigma": -1.0}, r"sigma \(--sigma\)"),
+                                       ({"min_distance": -1.0}, r"min_distance \(--min-distance\): expected a length >= 0")])
+def test_a_planned_noise_or_distance_that_is_no_length_is_refused(delta, kw, match):
+    # --sigma 0, --sigma -1 and --min-distance -1 were planned without a word
+    from bayescal.errors import InputError
+
+    with pytest.raises(InputError, match=match):
+        plan_relations(delta, 3, measure="distance", radius=40.0, **kw)

@@ -110,6 +110,17 @@ def test_parse_effect_spec():
         parse_effect_spec("wobble:3")
     with pytest.raises(InputError, match="magnitude"):
         parse_effect_spec("backlash:lots")
+    # issue 30 probe: an empty magnitude took the default, 1e300 um was simulated
+    with pytest.raises(InputError, match=r"backlash:: expected NAME\[:magnitude\] with a number"):
+        parse_effect_spec("backlash:")
+    with pytest.raises(InputError, match=r"expected a magnitude from 0 to 1e\+09 \(um\)"):
+        parse_effect_spec("backlash:1e300")
+
+
+def test_an_effect_given_twice_is_refused(prs3):
+    # --effect backlash --effect backlash:2 simulated one of them, silently
+    with pytest.raises(InputError, match="--effect backlash: given more than once"):
+        simulate_with_effects(prs3, 5, seed=1, effects=[("backlash", 1.0), ("backlash", 2.0)])
 
 
 @pytest.mark.parametrize("name", ["joint_compliance", "screw_periodic_error", "thermal_expansion"])
@@ -270,3 +281,8 @@ def test_linearised_fold_fits_match_refits(prs3, effects):
         moved = np.abs(exact - full.residual[test]).max()
         assert moved > 1e-5  # leaving a fold out changes its residuals: the comparison has teeth
         np.testing.assert_allclose(lin, exact, rtol=0, atol=2e-3 * moved)  # 0.8-2e-4 of it measured
+
+
+def test_an_aux_channel_given_twice_is_refused(prs3):
+    with pytest.raises(InputError, match=r"--aux: a channel given more than once \(time_s,time_s\)"):
+        simulate_with_effects(prs3, 5, seed=1, record=["time_s", "time_s"])

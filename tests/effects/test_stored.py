@@ -235,3 +235,20 @@ def test_stated_inputs_sit_beside_the_parameters(tmp_path, prs3):
     with pytest.raises(MachineFileError, match="an input of joint_compliance") as err:
         _machine(tmp_path, side.replace("[1.0, 0.0, 0.0]", '"sideways"'))
     assert err.value.key == 'effect.joint_compliance."gravity"'
+
+
+def test_effect_values_beyond_the_file_limit_are_refused(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_text(GOOD + "\n" + COMPLIANCE.replace("0.6", "1e300"))
+    with pytest.raises(MachineFileError, match=r"magnitude at most 1e\+09") as err:
+        load_machine(p)
+    assert err.value.key == 'effect.joint_compliance."compliance.q2"'
+
+
+@pytest.mark.parametrize("item, match", [("payload_kg=-1e6", "payload_kg from 0 to"), ("payload_kg=1e300", "payload_kg from 0 to 1e\\+09"),
+                                         ("temp_C=-300", "temp_C from -273.15"), ("time_s=-1", "time_s from 0")])
+def test_aux_values_outside_physics_are_refused(item, match):
+    # grid --aux payload_kg=-1e6 moved the drives off the machine and the error blamed the grid's --range
+    with pytest.raises(InputError, match=f"--aux {item}: expected {match}"):
+        parse_aux_values([item])
+    assert parse_aux_values(["payload_kg=0", "temp_C=-273.15"]) == {"payload_kg": 0.0, "temp_C": -273.15}

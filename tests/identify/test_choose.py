@@ -242,3 +242,18 @@ def test_tsvd_choice_uses_start_geometry(prs3, sim6):
     assert d["target_rule"]["method"] == "tsvd" and set(d["target_rule"]["relaxed"]) == {"0.5", "1", "2", "4"}
     assert choice.grid[int(np.argmin(d["curves"]["targets_score"]))] == choice.value
     assert "targets" in choice.report() and "<- used" in choice.report()
+
+
+@pytest.mark.parametrize("method", ["ridge", "tsvd"])
+def test_no_stated_noise_and_nothing_to_estimate_it_from_is_refused(method):
+    # one printer height (no [measurement]), or 19 copies of it: "Probabilities contain NaN", a traceback
+    from bayescal.errors import InputError
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(1, 5))
+    for A in (a, np.repeat(a, 19, axis=0)):
+        z = np.full(A.shape[0], 0.7)
+        with pytest.raises(InputError, match=r"'auto': no noise stated and no residual degrees of freedom .*\(1 distinct"):
+            choose_linear(A, z, method, noise_known=False)
+    A = rng.normal(size=(12, 5))
+    assert choose_linear(A, A @ rng.normal(size=5) + 0.1 * rng.normal(size=12), method, noise_known=False) is not None

@@ -98,3 +98,24 @@ def test_unknown_noise_uses_the_leave_one_out_f_test(prs3):
     res, h = identify_with_outliers(replace(model, y_measured=y), method="map")
     assert [o["line"] for o in res.extras["outliers"]] == [22]
     assert h.test.distribution == "F"
+
+
+def test_a_pose_flagged_only_at_the_answer_is_not_reported_as_none_flagged(prs3):
+    # tsvd --k auto on one pose: the robust MAP pass flagged none, the test at the TSVD answer flagged the pose,
+    # and the report read "1 pose(s) no model of the machine explains: none flagged; every pose kept"
+    from bayescal.identify.robust import OutlierHandling, fit_system
+    from bayescal.outliers import pose_test
+
+    model = MeasurementModel.from_recording(prs3, simulate_recording(prs3, 40, seed=5).recording)
+    clean = identify(model, method="map")
+    first = pose_test(model, clean.theta, **fit_system(clean))
+    assert not first.flagged.any()
+    y = model.y_measured.copy()
+    y[3, 2] += 0.4
+    bad = replace(model, y_measured=y)
+    res = identify(bad, method="map")
+    h = OutlierHandling(test=first, mode="auto", action="none flagged; every pose kept at full weight")
+    again = h.retested(bad, res, fit_system(res))
+    assert again.test.flagged.any() and again.action.startswith("kept: flagged by the test at this answer")
+    assert "none flagged" not in again.report()
+    assert h.retested(model, clean, fit_system(clean)).action == h.action  # nothing flagged: as it was

@@ -9,9 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bayescal.bayes.kalman import kalman_filter
 from bayescal.bayes.priors import map_estimate
 from bayescal.identify import identify
 from bayescal.instrument import assess_plausibility, check_frame, frame_answer, prepare_model
+from bayescal.instrument.plausibility import _effective_params, judge_fit, posterior_effective_params
 from bayescal.io import read_recording
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import simulate_recording
@@ -172,3 +174,23 @@ def test_an_exchange_a_rotation_undoes_is_a_frame():
     p[:, [0, 1]] = p[:, [1, 0]]
     chk = check_frame(m, replace(rec, position=p))
     assert chk.explanation == "frame" and chk.fires and chk.rms_swapped >= chk.rms_rigid / chk.DROP
+
+
+def test_a_posteriors_effective_parameters_are_its_hat_matrix_trace():
+    # linear-Gaussian closed form: P_post = (J^T J + P^-1)^-1 and the hat matrix J P_post J^T
+    rng = np.random.default_rng(5)
+    J = rng.normal(size=(12, 8))
+    prior = np.diag(rng.uniform(0.5, 2.0, 8) ** 2)
+    post = np.linalg.inv(J.T @ J + np.linalg.inv(prior))
+    assert posterior_effective_params(prior, post) == pytest.approx(np.trace(J @ post @ J.T), rel=1e-10)
+    assert posterior_effective_params(prior, prior) == 0.0  # the data determined nothing
+
+
+def test_kalman_on_two_poses_is_judged_like_map(prs3):
+    # both fit under the tolerance prior: MAP was plausible, the filter "had no residual degrees of freedom"
+    model = MeasurementModel.from_recording(prs3, read_recording(EXAMPLE).subset(np.arange(2)))
+    kal = _quiet(kalman_filter, model, free="all")
+    _, p = judge_fit(prs3, model, kal)
+    assert p.plausible, p.reasons
+    n_eff = _effective_params(kal)
+    assert 0 < n_eff < model.n_poses * model.dof < int(kal.free.sum())

@@ -125,3 +125,12 @@ def test_station_with_too_few_poses_is_named(setup):
     bad = replace(stationed, station=tuple(labels))
     with pytest.raises(RecordingError, match="station .lonely. has 1 fit pose"):
         prepare_model(machine, bad, frame="fit")
+
+
+def test_too_few_fit_poses_without_a_station_column_names_no_station(setup):
+    machine, rec, _, _ = setup
+    one = rec.subset(np.arange(1))
+    with pytest.raises(RecordingError, match=r"1 fit pose\(s\); at least 2 \(orientations\) are needed to fit the "
+                       r"instrument frame") as err:
+        prepare_model(machine, one, frame="fit")
+    assert err.value.column is None and "station ''" not in str(err.value)

@@ -86,6 +86,11 @@ def test_round_trip(tmp_path):
         ("measure,a_q1,a_q2,b_q1,value\nheight,1,2,,3\n", 1, None, "as many b as a"),
         ("measure,a_q1,value\n", 2, None, "no data rows"),
         ("measure,a_q1,value\nheight,1\n", 2, None, "cells"),
+        # issue 30 probe: 1e300 ran into an infinite noise estimate; a distance of a pose to itself; labels read as numbers
+        ("measure,a_q1,value\nheight,1,1e300\n", 2, "value", "expected a length within +-1e+09 mm"),
+        ("measure,a_q1,b_q1,value\ndistance,1,1,64.9\n", 2, "b_q1", "pose a and the same pose b"),
+        ("measure,a_q1,value,role\nheight,1,3,check\n", 1, "role", "read in pose recordings only"),
+        ("measure,a_q1,value,station\nheight,1,3,north\n", 1, "station", "read in pose recordings only"),
     ],
 )
 def test_errors_name_line_and_column(text, line, column, words):

@@ -90,3 +90,27 @@ def test_top_level_key_written_after_a_table_gets_a_hint():
     with pytest.raises(MachineFileError, match="top-level key: write it before the first") as err:
         machine_from_text(GOOD.replace('name = "spindle head A"\n', "") + '\nname = "head A"\n')
     assert err.value.key.endswith(".name")
+
+
+@pytest.mark.parametrize(
+    "edit,key",
+    [
+        (lambda s: s.replace("point = [0.0, 0.0, -100.0]", "point = [0.0, 0.0, -1e300]"), "tool.point"),
+        (lambda s: s.replace("link_length    = 400.0", "link_length    = 1e300", 1), "chain[1].link_length"),
+        (lambda s: s.replace("[[450.0, 550.0], [450.0", "[[-1e300, 1e300], [450.0"), "workspace.q_limits"),
+        (lambda s: s + "\n[tolerance]\nlink_length = 1e300\n", "tolerance.link_length"),
+        (lambda s: s + "\n[instrument]\norigin = [1e300, 0.0, 0.0]\n", "instrument.origin"),
+    ],
+)
+def test_numbers_beyond_the_file_limit_are_refused(tmp_path, edit, key):
+    # 1e300 passed the finite-number check: simulate wrote a recording of x = -1e300 mm, plan divided by zero
+    p = tmp_path / "m.toml"
+    p.write_text(edit(GOOD))
+    with pytest.raises(MachineFileError, match=r"magnitude at most 1e\+09 .*got -?1e\+300") as err:
+        load_machine(p)
+    assert err.value.key == key and str(p) in str(err.value)
+
+
+def test_numbers_at_the_file_limit_are_read():
+    m = machine_from_text(GOOD + "\n[tolerance]\ntool_point = 1e9\n")
+    assert m.tolerance[m.layout.names.index("tool.point.x")] == 1e9

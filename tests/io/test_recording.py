@@ -119,6 +119,8 @@ def test_spellings_formats_md_allows_read_the_same(text):
         ('q1,q2,q3,x,y,z\n1,2,"3\n",0,0,0\n1,2,3,0,0,x\n', 2, None, "spans more than one line"),
         ("q1;q2;q3;x;y;z\n1;2;3;0;0;0\n", 1, None, "comma-separated"),
         ("q1,q2,q3,x,y,z\n1,2,3,0,0," + "0" * 200_000 + "\n", 2, None, "not readable as CSV"),  # csv.Error
+        ("q1,q2,q3,x,y,z\x00\n1,2,3,0,0,0\n", 1, None, "a NUL byte"),  # the column was named 'z' in the message
+        ("q1,q2,q3,x,y,z\r\n1,2,3,0,0,0\r\n1,2,\x003,0,0,0\r\n", 3, None, "a NUL byte"),
     ],
 )
 def test_what_formats_md_does_not_allow_is_named(text, line, column, match):

@@ -245,3 +245,14 @@ def test_cli_refuses_a_block_with_a_gap_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "[delta_calibrate] height3: missing, but height6 is present" in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("kw", [{"sigma_height": 1e300}, {"sigma_distance": 1e-300}])
+def test_row_sigmas_outside_the_noise_range_are_refused(tmp_path, kw):
+    # --sigma-distance 1e300 was written into the recording, which identify then refused
+    from bayescal.errors import InputError
+
+    cfg = read_klipper_config(synth.write_config(tmp_path))
+    with pytest.raises(InputError, match=r"sigma_(height|distance) \(--sigma-(height|distance)\): expected a one-sigma "
+                       r"position noise from 1e-06 to 1000 mm"):
+        klipper_recording(cfg, read_klipper_delta(cfg), **kw)

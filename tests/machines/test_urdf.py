@@ -190,3 +190,35 @@ def test_a_urdf_that_is_no_regular_file_is_refused_unread(tmp_path):
     with pytest.raises(MachineFileError, match="arm.urdf is not a regular file") as err:
         load_machine(tmp_path / "m.toml")
     assert err.value.key == "urdf"
+
+
+def test_a_cycle_through_the_base_is_refused(tmp_path):
+    # the tip joined back to the base: the walk up from the tip reached the base and the file was read as a tree
+    closed = URDF.replace("</robot>", '  <joint name="back" type="fixed"><parent link="tool_link"/><child link="world"/></joint>\n</robot>')
+    (tmp_path / "arm.urdf").write_text(closed)
+    (tmp_path / "m.toml").write_text(FROM_URDF)
+    with pytest.raises(MachineFileError, match=r"of arm.urdf form a cycle \(links tool_link <- l4 <- .* <- world <- tool_link\)") as err:
+        load_machine(tmp_path / "m.toml")
+    assert err.value.key == "urdf"
+
+
+@pytest.mark.parametrize("xyz", ["nan 0 0", "1e300 0 0"])
+def test_a_joint_origin_that_is_not_finite_or_beyond_the_limit_is_refused(tmp_path, xyz):
+    # a nan origin was read and every pose then failed ("cannot assemble this pose ... non-finite")
+    (tmp_path / "arm.urdf").write_text(URDF.replace('<origin xyz="0.15 0 0"', f'<origin xyz="{xyz}"'))
+    (tmp_path / "m.toml").write_text(FROM_URDF)
+    with pytest.raises(MachineFileError, match=r"joint 'j2' of arm.urdf has the origin xyz .* expected finite numbers, "
+                       r"a translation of at most 1e\+06 m") as err:
+        load_machine(tmp_path / "m.toml")
+    assert err.value.key == "urdf"
+
+
+@pytest.mark.parametrize("tag,old,new", [("joint", 'name="j2"', 'name="j1"'),
+                                         ("link", '<link name="l4"/>', '<link name="l4"/><link name="l4"/>')])
+def test_two_elements_of_one_name_are_refused(tmp_path, tag, old, new):
+    # yourdfpy kept the last joint 'j1': the chain lost a joint and the error blamed base_link
+    (tmp_path / "arm.urdf").write_text(URDF.replace(old, new, 1))
+    (tmp_path / "m.toml").write_text(FROM_URDF)
+    with pytest.raises(MachineFileError, match=f"arm.urdf has two <{tag}> elements named") as err:
+        load_machine(tmp_path / "m.toml")
+    assert err.value.key == "urdf"
