@@ -362,7 +362,7 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
 
         tail = ct.folded_chain()[1]
         R_tail, p_tail = tail[:3, :3], tail[:3, 3] * ct.M_TO_MM
-        tool_arm7 = fm.tool_point + reg.theta[[names.index(n) for n in TOOL3]]
+        tool_arm7 = fm.inside.tool_point + reg.theta[[names.index(n) for n in TOOL3]]
         result["registration_frame"] = {"origin_mm": frame.origin.tolist(), "rotation_vector": frame.rotation_vector.tolist(),
                                         "tool_mm": (R_tail.T @ (tool_arm7 - p_tail)).tolist()}
 

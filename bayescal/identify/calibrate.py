@@ -386,7 +386,7 @@ def calibrate(
         # position sigmas tenfold and spoil the geometry: held-out 0.044 against 0.0069 mm without the sensors)
         model = with_tilt_scale(model, tilt.scale)
         res, handling, choice = _fit_once(model, method, **kw)
-    groups = tool_group_checks(model, res, stated=noise_stated(model))
+    groups = tool_group_checks(model, res, stated=noise_stated(model), weights=None if handling is None else handling.weights)
     rescaled = {}
     if noise == "auto" and res.success and group_scales(groups):
         # sigma_position and sigma_angle contradicted apart (group_noise.py): one scale for every row would leave

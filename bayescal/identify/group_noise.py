@@ -26,6 +26,7 @@ import math
 
 import numpy as np
 
+from ..contract import whiten
 from .noise import NoiseCheck, check_noise, distinct_rows
 
 __all__ = ["tool_group_checks", "group_scales", "with_group_scales", "group_report", "DISAGREE"]
@@ -36,7 +37,7 @@ DISAGREE = 3.0
 GROUPS = (("position", "sigma_position", slice(0, 3)), ("angle", "sigma_angle", slice(3, None)))
 
 
-def tool_group_checks(model, res, *, stated: bool) -> dict[str, NoiseCheck] | None:
+def tool_group_checks(model, res, *, stated: bool, weights=None) -> dict[str, NoiseCheck] | None:
     """The chi-square test of the position rows and of the orientation rows alone (None: one group, no fit).
 
     Parameters
@@ -47,11 +48,18 @@ def tool_group_checks(model, res, *, stated: bool) -> dict[str, NoiseCheck] | No
         A fit with ``residuals_after`` (n_poses, dof) and ``filter_factors`` or ``free``.
     stated : bool
         Whether the noise is stated; without it the sigmas are weights and nothing is tested.
+    weights : ndarray, shape (n_poses,), optional
+        The robust pass's weights (:class:`bayescal.identify.robust.OutlierHandling`): a gross pose
+        down-weighted in the fit is down-weighted here too, or its residual alone would read as a
+        contradicted sigma of its group (one gross pose of the 3-PRS: position rows "10 times too
+        noisy", its outlier statistic then divided by 100).
     """
-    tool = int(getattr(model, "tool_dof", 0))
+    tool = int(model.tool_dof)
     if not stated or tool <= 3 or not res.success or getattr(res, "residuals_after", None) is None:
         return None
-    r = np.asarray(res.residuals_after, dtype=float)[:, :tool] / np.asarray(model.row_sigma, dtype=float)[:, :tool]
+    r = whiten(model, res.residuals_after)[:, :tool]
+    if weights is not None:
+        r = r * np.sqrt(np.asarray(weights, dtype=float))[:, None]
     if not np.all(np.isfinite(r)):
         return None
     ff = getattr(res, "filter_factors", None)
