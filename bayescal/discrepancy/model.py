@@ -150,8 +150,12 @@ class Discrepancy:
                 cols.append(q[:, int(name[1:]) - 1])
             elif aux is not None and name in aux:
                 cols.append(np.broadcast_to(np.asarray(aux[name], dtype=float), (n,)))
+            elif name.startswith("q") and name[1:].isdigit():
+                raise InputError(f"discrepancy input {name!r}: the machine has actuators q1..q{q.shape[1]}")
             else:
-                raise InputError(f"discrepancy input {name!r}: no such actuator or channel (give the channel)")
+                # "(give the channel)" did not say how: a grid takes a channel's value with --aux
+                raise InputError(f"discrepancy input {name!r}: the machine file's [discrepancy] depends on this channel; "
+                                 f"expected its value (for a grid: --aux {name}=VALUE)")
         phi = self.features(np.column_stack(cols))
         m = self.n_inducing
         out = np.zeros((n, 6))

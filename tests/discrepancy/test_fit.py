@@ -204,3 +204,20 @@ def test_marginal_likelihood_gradient_matches_central_differences(bumped, prs3, 
     fd = np.array([(f(x + h * e) - f(x - h * e)) / (2 * h) for e in np.eye(x.size)])
     assert np.all(np.abs(fd) > 1e-3)  # every hyperparameter moves the likelihood here: the check has teeth
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
+def test_a_missing_discrepancy_channel_says_how_to_give_it(bumped):
+    # "(give the channel)" did not say how; a grid from a written machine failed with it
+    from dataclasses import replace as dc_replace
+
+    from bayescal.errors import InputError
+
+    model, _ = bumped
+    disc = calibrate(model, method="map", prior_scale="tolerance", robust="off", discrepancy="on").discrepancy.discrepancy
+    inputs = list(disc.inputs)
+    with_temp = dc_replace(disc, inputs=tuple(["temp_C"] + inputs[1:]))
+    with pytest.raises(InputError, match=r"discrepancy input 'temp_C': .*expected its value \(for a grid: --aux temp_C=VALUE\)"):
+        with_temp.tool_offset(model.q, {})
+    assert np.all(np.isfinite(with_temp.tool_offset(model.q, {"temp_C": 21.0})))
+    with pytest.raises(InputError, match=r"discrepancy input 'q9': the machine has actuators q1..q3"):
+        dc_replace(disc, inputs=tuple(["q9"] + inputs[1:])).tool_offset(model.q, {})
