@@ -9,9 +9,7 @@ from scipy.optimize import least_squares
 from bayescal.effects import fit_map, get_effect
 from bayescal.effects.model import effect_residual
 from bayescal.measurement import MeasurementModel
-from bayescal.simulate import draw_errors, draw_poses, measure
-from tests.effects.test_revolute_loads import _JointTorqueSag
-from tests.effects.test_revolute_units import _positioner
+from tests.effects.test_revolute_loads import sagging_positioner
 
 
 def test_fit_map_does_not_stop_early_where_rows_it_cannot_fit_dominate_the_cost():
@@ -19,13 +17,7 @@ def test_fit_map_does_not_stop_early_where_rows_it_cannot_fit_dominate_the_cost(
     # the residuals (chi-square about 14,000 times the rows), so that 1e-7 of the cost is more than one
     # unit of chi-square.  fit_map stopped when a step lowered the cost by less than that, 0.24 above the
     # optimum here; its stop tests now do not see the cost no parameter can reduce.
-    pos = _positioner()
-    rng = np.random.default_rng(4)
-    theta = draw_errors(pos, rng)
-    q = draw_poses(pos, 160, rng, theta)
-    aux = {"payload_kg": rng.uniform(0.0, 25.0, 160)}
-    sag = _JointTorqueSag(pos, np.array([30.0, 18.0]), 30.0, [0.0] * 3)
-    rec = measure(pos, q, theta, 6, rng, aux=aux, effects=[sag])
+    pos, rec = sagging_positioner()
     model = MeasurementModel.from_recording(pos, rec)
     fit0 = fit_map(model)
     eff = get_effect("screw_periodic_error")

@@ -162,9 +162,9 @@ class _JointTorqueSag:
         return q + 1e-9 * self.c[None, :] * tau, theta
 
 
-def test_diagnose_names_a_joint_torque_sag_in_urad_per_newton_metre():
-    # the positioner of test_revolute_units (better instrument), payloads of 0-25 kg recorded
-    from bayescal.diagnose import diagnose
+def sagging_positioner(c=(30.0, 18.0)):
+    """The positioner of test_revolute_units (better instrument) sagging by ``c`` urad/(N m) at its joints under
+    payloads of 0-25 kg (recorded), 160 poses: ``(machine, recording)``."""
     from bayescal.simulate import draw_errors, measure
     from tests.effects.test_revolute_units import _positioner
 
@@ -173,8 +173,14 @@ def test_diagnose_names_a_joint_torque_sag_in_urad_per_newton_metre():
     theta = draw_errors(pos, rng)
     q = draw_poses(pos, 160, rng, theta)
     aux = {"payload_kg": rng.uniform(0.0, 25.0, 160)}
+    return pos, measure(pos, q, theta, 6, rng, aux=aux, effects=[_JointTorqueSag(pos, np.asarray(c), 30.0, [0.0] * 3)])
+
+
+def test_diagnose_names_a_joint_torque_sag_in_urad_per_newton_metre():
+    from bayescal.diagnose import diagnose
+
     c = np.array([30.0, 18.0])  # urad/(N m)
-    rec = measure(pos, q, theta, 6, rng, aux=aux, effects=[_JointTorqueSag(pos, c, 30.0, [0.0, 0.0, 0.0])])
+    pos, rec = sagging_positioner(c)
     d = diagnose(pos, rec, seed=1)
     assert d.verdict == "joint_compliance"
     got = {p.name: p for p in next(e for e in d.effects if e.name == "joint_compliance").parameters}
