@@ -35,13 +35,14 @@ __all__ = [
     "predict",
     "grid",
     "diagnose",
+    "plan_next_session",
 ]
 
 _lazy_getattr, __dir__ = lazy_attributes(__name__, {
     "Recording": ".io", "read_recording": ".io", "write_recording": ".io",
     "KINDS": ".machines", "Machine": ".machines", "Prs3": ".machines", "Raspm": ".machines",
     "load_machine": ".machines.files", "MeasurementModel": ".measurement",
-    "load": ".api", "calibrate": ".api", "predict": ".api", "grid": ".api",
+    "load": ".api", "calibrate": ".api", "predict": ".api", "grid": ".api", "plan_next_session": ".api",
 })
 
 

@@ -24,7 +24,7 @@ import os
 from .io.recording import Recording
 from .machines.base import Machine
 
-__all__ = ["load", "calibrate", "predict", "grid", "diagnose"]
+__all__ = ["load", "calibrate", "predict", "grid", "diagnose", "plan_next_session"]
 
 
 def _machine(machine) -> Machine:
@@ -204,3 +204,59 @@ def diagnose(machine: str | os.PathLike | Machine, recording, **options):
     from .diagnose.verb import diagnose_files
 
     return diagnose_files(machine, recording, **options)
+
+
+def plan_next_session(machine: str | os.PathLike | Machine, recording, n: int, *, condition: str | None = None,
+                      **options):
+    """Plan the second session that separates a diagnosis' effects from the geometry, as ``bayescal plan --separate``.
+
+    The recording is diagnosed (:func:`diagnose`, same options); where the
+    written geometry is confounded with the selected effects, the second
+    sessions under changed conditions are weighed
+    (:mod:`bayescal.diagnose.separate`) and ``n`` of the recording's poses
+    are chosen, one at a time, for the best one (or ``condition``).
+
+    Parameters
+    ----------
+    machine : path or Machine
+    recording : path or Recording
+        A pose recording (docs/formats.md sections 2, 4, 8).
+    n : int
+        Poses of the second session.
+    condition : str, optional
+        ``payload``, ``temperature``, ``tilt_1`` or ``tilt_2`` (default: the one forecast to help most).
+    **options
+        As :func:`diagnose` (``effects``, ``seed``, ``frame``, ...).
+
+    Returns
+    -------
+    bayescal.diagnose.separate.SessionPlan
+        ``q``, ``channels``, ``to_csv()`` (a pose file, docs/formats.md E7), ``report()``, ``to_dict()``.
+
+    Raises
+    ------
+    InputError
+        Nothing to separate (no effect selected, the written geometry not
+        confounded, no condition helps), or ``condition`` not among those
+        forecast to help.
+    """
+    from .errors import InputError
+
+    d = diagnose(machine, recording, **options)
+    where = d.recording or "the recording"
+    if d.confound is None:
+        raise InputError(f"{where}: the diagnosis selected no effect (verdict {d.verdict}); there is nothing to "
+                         "separate from the geometry, plan poses with 'bayescal plan' alone")
+    if not d.confound.confounded:
+        raise InputError(f"{where}: the written geometry is not confounded with {', '.join(d.selected)} "
+                         f"({d.confound.tool_std_um:.1f} um against {d.confound.geometric_tool_std_um:.1f} um of a "
+                         "geometry-only calibration); no second session is needed")
+    sessions = {x.key: x for x in d.confound.next_sessions}
+    if not sessions:
+        raise InputError(f"{where}: no second session under a changed payload, mounting tilt or temperature is "
+                         f"forecast to cut the written geometry's uncertainty ({d.confound.tool_std_um:.1f} um) by "
+                         "a fifth; state the effects' inputs instead (diagnose --effect-input)")
+    if condition is not None and condition not in sessions:
+        raise InputError(f"--condition {condition}: expected one of {', '.join(sessions)} (the conditions forecast "
+                         f"to help on {where})")
+    return sessions[condition or next(iter(sessions))].plan(n)

@@ -46,6 +46,7 @@ examples:
   bayescal plan --machine m.toml --n 18 --criterion I --out poses.csv
   bayescal plan --machine m.toml --n 10 --criterion I --certify 1 --out poses.csv
   bayescal plan --machine m.toml --n 40 --criterion O4 --candidates 5000 --scaling candidates --out p.csv
+  bayescal plan --machine m.toml --separate recording.csv --n 30 --out next.csv
   bayescal plan --machine calib/machine.toml --measure height --given calib/recording.csv --n 6 \
       --centre 0,0,0 --radius 80 --sigma 0.02 --out heights.csv
   bayescal plan --machine calib/machine.toml --measure distance --given calib/recording.csv --n 6 \
@@ -102,6 +103,15 @@ def register(sub) -> None:
                         "of the q_limits box (and points 1 %% and 5 %% inside them) are candidates too")
     p.add_argument("--measure", choices=("pose", "height", "distance"), default="pose",
                    help="what to plan: poses (default), probe heights or distances between points")
+    p.add_argument("--separate", metavar="RECORDING",
+                   help="plan a second session that separates the physical effects a diagnosis of RECORDING selects "
+                        "from the geometry: --n of its poses under the condition forecast to help most (a heavier "
+                        "payload, a tilted mounting, a temperature step; docs/diagnose.md). The pose file carries the "
+                        "condition's channels")
+    p.add_argument("--condition", choices=("payload", "temperature", "tilt_1", "tilt_2"),
+                   help="with --separate: this condition instead of the one forecast to help most")
+    p.add_argument("--effects", help="with --separate: comma-separated effects the diagnosis tries (default: every "
+                                     "applicable one)")
     p.add_argument("--given", metavar="RECORDING", help="constraint recording already measured (--measure height/distance)")
     p.add_argument("--centre", type=_vector, help="grid centre X,Y,Z in mm (tool point; default: middle of q_limits)")
     p.add_argument("--radius", type=float, default=None, help="grid radius in mm (default 50)")
@@ -165,9 +175,34 @@ def run_relations(args) -> int:
     return EXIT_OK
 
 
+def run_separate(args) -> int:
+    """``--separate``: the library's :func:`bayescal.api.plan_next_session`, written and printed."""
+    from ..api import plan_next_session
+    from ..io.answers import write_text_atomic
+    from . import EXIT_OK
+
+    if args.measure != "pose":
+        raise InputError(f"--separate plans poses; it does not go with --measure {args.measure}")
+    effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
+    plan = plan_next_session(args.machine, args.separate, args.n, condition=args.condition, effects=effects,
+                             seed=args.seed, frame=args.frame)
+    write_text_atomic(args.out, plan.to_csv())
+    write_json(args, plan.to_dict())
+    if not args.quiet:
+        print(plan.report())
+        print(f"\nwrote {args.out} ({plan.order.size} poses: q1..q{plan.q.shape[1]}, pose_id, "
+              f"{', '.join(plan.channels)})")
+    return EXIT_OK
+
+
 def run(args) -> int:
     from . import EXIT_OK
 
+    if args.separate is not None:
+        return run_separate(args)
+    for flag, value in (("--condition", args.condition), ("--effects", args.effects)):
+        if value is not None:
+            raise InputError(f"{flag} goes with --separate RECORDING; it does nothing for a plan of new poses")
     if args.measure != "pose":
         return run_relations(args)
     relation_only = {"--given": args.given, "--centre": args.centre, "--radius": args.radius, "--spacing": args.spacing,

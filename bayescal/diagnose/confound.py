@@ -33,7 +33,7 @@ from ..effects.model import EffectFit
 from ..errors import KinematicsError
 from ..machines.base import Machine
 
-__all__ = ["GeometryConfound", "geometry_confound", "CONFOUND_RATIO"]
+__all__ = ["GeometryConfound", "geometry_confound", "written_tool_jacobian", "CONFOUND_RATIO"]
 
 #: Written-geometry uncertainty above this many times the geometry-only one is reported as a confound.
 CONFOUND_RATIO = 2.0
@@ -59,6 +59,10 @@ class GeometryConfound:
         Largest effect components of the trade-off: name, shift, unit.
     note : str
         The effects' own explanation of the confound (:meth:`Effect.confound_note`).
+    next_sessions : tuple of SeparatingSession
+        Where confounded: second sessions under changed conditions that
+        would separate the effects from the geometry, best first
+        (:mod:`bayescal.diagnose.separate`).
     """
 
     tool_std_um: float
@@ -67,6 +71,7 @@ class GeometryConfound:
     geometry: tuple[tuple[str, float, str], ...]
     effect: tuple[tuple[str, float, str], ...]
     note: str = ""
+    next_sessions: tuple = ()
 
     @property
     def confounded(self) -> bool:
@@ -83,6 +88,7 @@ class GeometryConfound:
                 "effect": [{"name": n, "shift": v, "unit": u} for n, v, u in self.effect],
             },
             "note": self.note,
+            "next_measurement": [x.to_dict() for x in self.next_sessions],
         }
 
     def report(self) -> str:
@@ -97,6 +103,7 @@ class GeometryConfound:
                  f"  leading trade-off, {self.trade_tool_um:.1f} um at the tool per sigma: {geo} against {eff}"]
         if self.note:
             lines.append(f"  {self.note}")
+        lines += [x.report() for x in self.next_sessions[:2]]
         return "\n".join(lines)
 
 
@@ -108,6 +115,56 @@ def _fmt_geometry(v: float, unit: str) -> str:
 
 def _tool_rms_um(G: np.ndarray, cov: np.ndarray, n: int, s2: float) -> float:
     return 1e3 * float(np.sqrt(max(np.einsum("ij,jk,ik->", G, cov, G), 0.0) * s2 / n))
+
+
+def written_tool_jacobian(machine: Machine, q: np.ndarray, theta: np.ndarray, keep: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, int]:
+    """The written geometry's tool-point Jacobian over the poses its uncertainty is averaged over.
+
+    Parameters
+    ----------
+    machine : Machine
+        The nominal machine (no effects), bound to the recording's poses.
+    q : ndarray, shape (n_poses, n_actuators)
+        The recording's commanded positions.
+    theta : ndarray, shape (P,)
+        The written geometry (mm, rad).
+    keep : ndarray of int, optional
+        Poses to average over (outliers left out); at most :data:`MAX_POSES`, evenly spread.
+
+    Returns
+    -------
+    G : ndarray, shape (3 n, P)
+        mm per parameter unit.
+    n : int
+        Poses averaged over (those that assemble without the effects).
+
+    Raises
+    ------
+    KinematicsError
+        No pose assembles at the written geometry without the effects.
+    """
+    P = machine.n_params
+    # the machine stays bound to the poses it evaluates (an instrument with several stations: Machine.for_poses)
+    q = np.asarray(q, float)
+    if keep is not None:
+        q, machine = q[keep], machine.for_poses(keep)
+    if q.shape[0] > MAX_POSES:
+        # an RMS over the workspace: evenly spread poses of a tracker-size recording give it to a percent,
+        # without a (n, 6, P) Jacobian of 50,000 poses
+        sel = np.linspace(0, q.shape[0] - 1, MAX_POSES).astype(int)
+        q, machine = q[sel], machine.for_poses(sel)
+    poses = machine.forward(q, theta)
+    if not poses.success.all():
+        # the fits solved the poses with the effects applied; without them a pose near the workspace's edge may
+        # not assemble: average over those that do
+        ok = np.flatnonzero(poses.success)
+        q, machine = q[ok], machine.for_poses(ok)
+        poses = machine.forward(q, theta)
+    n = q.shape[0]
+    if n == 0:
+        raise KinematicsError("no pose of the recording assembles at the written geometry without the effects")
+    return machine.tool_jacobian(q, theta, poses)[:, :3, :].reshape(-1, P), n
 
 
 def geometry_confound(machine: Machine, q: np.ndarray, final: EffectFit, geometric: EffectFit, effects: list[Effect],
@@ -144,27 +201,7 @@ def geometry_confound(machine: Machine, q: np.ndarray, final: EffectFit, geometr
     P = machine.n_params
     # the fits' parameters: the machine's, then a model's own nuisance parameters (ballbar pivots), then the effects'
     Pm = final.theta.size
-    theta = final.theta[:P]
-    # the machine stays bound to the poses it evaluates (an instrument with several stations: Machine.for_poses)
-    q = np.asarray(q, float)
-    if keep is not None:
-        q, machine = q[keep], machine.for_poses(keep)
-    if q.shape[0] > MAX_POSES:
-        # an RMS over the workspace: evenly spread poses of a tracker-size recording give it to a percent,
-        # without a (n, 6, P) Jacobian of 50,000 poses
-        sel = np.linspace(0, q.shape[0] - 1, MAX_POSES).astype(int)
-        q, machine = q[sel], machine.for_poses(sel)
-    poses = machine.forward(q, theta)
-    if not poses.success.all():
-        # the fits solved the poses with the effects applied; without them a pose near the workspace's edge may
-        # not assemble: average over those that do
-        ok = np.flatnonzero(poses.success)
-        q, machine = q[ok], machine.for_poses(ok)
-        poses = machine.forward(q, theta)
-    n = q.shape[0]
-    if n == 0:
-        raise KinematicsError("no pose of the recording assembles at the written geometry without the effects")
-    G = machine.tool_jacobian(q, theta, poses)[:, :3, :].reshape(-1, P)
+    G, n = written_tool_jacobian(machine, q, final.theta[:P], keep)
     cov = final.covariance
     std = _tool_rms_um(G, cov[:P, :P], n, noise_scale2)
     std0 = _tool_rms_um(G, geometric.covariance[:P, :P], n, noise_scale2)

@@ -27,7 +27,7 @@ Decision rule (docs/diagnose.md):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,7 +44,8 @@ from ..effects.base import approach_direction
 from ..measurement import MeasurementModel
 from ..models import model_from_recording
 from ..outliers import recording_lines
-from .confound import geometry_confound
+from .confound import geometry_confound, written_tool_jacobian
+from .separate import separating_sessions
 from .discrepancy import try_discrepancy
 from .locate import locate
 from .outliers import retest_with_discrepancy, retest_with_effects, screen_outliers
@@ -200,8 +201,9 @@ def diagnose(
         written for the sampled permutation test keep working unchanged.
     effect_settings : dict of str to dict, optional
         Inputs of effects by name (e.g. ``{"joint_compliance": {"gravity":
-        [1, 0, 0]}}`` for a machine mounted on its side); documented
-        defaults otherwise.
+        [1, 0, 0]}}`` for a machine mounted on its side), over those the
+        machine file states in its ``[effect.<name>]`` tables, key by key;
+        documented defaults otherwise.
 
     Returns
     -------
@@ -303,7 +305,7 @@ def _diagnosis(s: _Setup, g: _Geometric, v: _Verdict, f: _Found, recording: Reco
         theta_geometric=g.fit0.theta[: s.machine.n_params],
         effect_settings={k: dict(val) for k, val in s.settings.items()},
         outliers=s.screen,
-        confound=_confound(s, f.selected, cur_fit, g.fit0),
+        confound=_confound(s, g, f.selected, cur_fit, g.fit0),
         discrepancy=disc_trial,
         record=_record(s.machine, f.final_model, cur_fit, disc_trial),
         frame=_frame(s.machine, g.fit0),
@@ -338,10 +340,14 @@ class _Setup:
 
 def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_folds: int, screen) -> _Setup:
     """The geometry-only model of ``recording`` with its sensors' noise tested and gross errors screened."""
+    # the inputs the machine file states in its [effect.<name>] tables, overridden key by key by those given: the
+    # command line and a notebook's bayescal.diagnose(...) on the same file use the same inputs
+    settings = {e.name: dict(e.settings) for e in machine.effects if e.settings}
     # the diagnosis starts from the geometry: effects a machine file carries ([effect.*]) are fitted afresh
     machine = machine.with_effects(())
     names = list(EFFECTS) if effects is None else list(dict.fromkeys(effects))
-    settings = dict(effect_settings or {})
+    for name, given in (effect_settings or {}).items():
+        settings[name] = {**settings.get(name, {}), **given}
     lib = [get_effect(n, **settings.get(n, {})) for n in names]  # raises on unknown names and settings
     model = model_from_recording(machine, recording, check=False)
     machine, model = _sensor_noise(machine, recording, model)
@@ -396,20 +402,14 @@ def _geometric_stage(s: _Setup, seed: int) -> _Geometric:
 def _candidates(s: _Setup, g: _Geometric) -> tuple[list[_Candidate], list[tuple[str, str]]]:
     """The effects that can be modelled on this recording, and why each of the others cannot."""
     model, machine, n = s.model, s.machine, s.model.n_poses
-    eff_machine, eff_theta, eff_poses = g.inputs
     # effects act on every solved pose (a distance row has two), in time order, with its row's channels
-    pose_aux = {k: np.asarray(v)[model.pose_row] for k, v in s.aux.items()}
+    pose_aux = _pose_aux(s)
     cands: list[_Candidate] = []
     skipped: list[tuple[str, str]] = []
     for eff in s.lib:
         why = eff.not_applicable(machine, s.aux)
         if why is None:
-            if eff.features_at_nominal:
-                f = eff.features(eff_machine, model.pose_q, np.zeros_like(np.asarray(eff_theta, float)), pose_aux,
-                                 model.pose_order, None if eff.needs_poses else eff_poses)
-            else:
-                f = eff.features(eff_machine, model.pose_q, eff_theta, pose_aux, model.pose_order, eff_poses)
-            f = eff.refine(f, model.q, g.dq_res)
+            f = _features(s, g, eff, pose_aux)
             why = eff.inadmissible(f)
         if why is None:
             k = len(eff.params(machine, f))
@@ -422,6 +422,23 @@ def _candidates(s: _Setup, g: _Geometric) -> tuple[list[_Candidate], list[tuple[
             continue
         cands.append(_Candidate(eff, f, eff.occam_penalty(f, model.q)))
     return cands, skipped
+
+
+def _pose_aux(s: _Setup) -> dict:
+    """The recording's channels per solved pose of the model (a distance row has two poses)."""
+    return {k: np.asarray(v)[s.model.pose_row] for k, v in s.aux.items()}
+
+
+def _features(s: _Setup, g: _Geometric, eff: Effect, pose_aux: dict) -> Features:
+    """The effect's features for the model's poses under the channels ``pose_aux``, refined by the geometric fit."""
+    model = s.model
+    eff_machine, eff_theta, eff_poses = g.inputs
+    if eff.features_at_nominal:
+        f = eff.features(eff_machine, model.pose_q, np.zeros_like(np.asarray(eff_theta, float)), pose_aux,
+                         model.pose_order, None if eff.needs_poses else eff_poses)
+    else:
+        f = eff.features(eff_machine, model.pose_q, eff_theta, pose_aux, model.pose_order, eff_poses)
+    return eff.refine(f, model.q, g.dq_res)
 
 
 def _single_trials(model, cands: list[_Candidate], skipped: list, folds, fit0: EffectFit) -> dict:
@@ -539,15 +556,23 @@ def _with_discrepancy(selected: list[_Candidate], disc_trial) -> tuple[str, str]
                                      "explain the mismatch out of sample")
 
 
-def _confound(s: _Setup, selected: list[_Candidate], cur_fit: EffectFit, fit0: EffectFit):
-    """How the selected effects and the geometry are confounded (None without effects or poses to average over)."""
+def _confound(s: _Setup, g: _Geometric, selected: list[_Candidate], cur_fit: EffectFit, fit0: EffectFit):
+    """How the selected effects and the geometry are confounded (None without effects or poses to average over),
+    and, where they are, the second sessions that would separate them."""
     if not selected:
         return None
+    effects = [c.effect for c in selected]
     try:
-        return geometry_confound(s.machine, s.model.q, cur_fit, fit0, [c.effect for c in selected],
-                                 noise_scale2=_scale2(cur_fit), keep=s.kept)
+        conf = geometry_confound(s.machine, s.model.q, cur_fit, fit0, effects, noise_scale2=_scale2(cur_fit),
+                                 keep=s.kept)
+        if not conf.confounded:
+            return conf
+        G, n = written_tool_jacobian(s.machine, s.model.q, cur_fit.theta[: s.machine.n_params], s.kept)
     except KinematicsError:
         return None  # nothing to average over; the answer's written_geometry is then null
+    nxt = separating_sessions(s.model, effects, cur_fit, lambda e, aux: _features(s, g, e, aux), _pose_aux(s), G, n,
+                              noise_scale2=_scale2(cur_fit))
+    return replace(conf, next_sessions=nxt)
 
 
 def _trials(cands: list[_Candidate], single: dict, selected: list[_Candidate], cur_fit: EffectFit, cv0: float) -> tuple:

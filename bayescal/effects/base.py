@@ -172,6 +172,20 @@ class Effect(ABC):
         """
         return ""
 
+    def separating_conditions(self, aux: dict) -> tuple:
+        """Second sessions under changed conditions that drive the effect, or ``()``.
+
+        Each is a :class:`bayescal.effects.conditions.Condition`; the
+        diagnosis weighs them by how much they would shrink the written
+        geometry's uncertainty (:mod:`bayescal.diagnose.separate`).
+
+        Parameters
+        ----------
+        aux : dict of str to ndarray
+            The recording's channels.
+        """
+        return ()
+
     def model_note(self, features: Features) -> str:
         """What the model took as known or left out for these features, for the diagnosis' trial note, or ``""``."""
         return ""

@@ -9,6 +9,7 @@ from ..errors import InputError
 from ..geometry import skew
 from ..machines.base import Machine, ToolPoses
 from .base import Effect, EffectParam, Features
+from .conditions import second_payload, tilted_mounting
 from .gravity_field import chain_masses, gravity_per_pose, sensor_bodies, serial_part, tilt_basis, tilted_gravity
 from .joint_compliance import DEFAULT_GRAVITY_DIRECTION, GRAVITY, _unit
 
@@ -362,6 +363,10 @@ class GravityDeflection(Effect):
         if features.const["sensor"]:
             parts.append("gravity per pose from the base sensor (accel.base.*)")
         return "; ".join(parts)
+
+    def separating_conditions(self, aux: dict) -> tuple:
+        """A heavier payload (a known load), and the mounting tilted either way (gravity turned against the machine)."""
+        return (second_payload(aux), tilted_mounting(self.down, 0), tilted_mounting(self.down, 1))
 
     def confound_note(self) -> str:
         return ("gravity_deflection: the part of the bending that is constant or linear over the workspace is a change of "

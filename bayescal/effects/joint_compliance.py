@@ -8,6 +8,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from ..machines.base import ActuatorUnit, Machine, ToolPoses
 from .base import Effect, EffectParam, Features
+from .conditions import second_payload, tilted_mounting
 from .gravity_field import gravity_per_pose, link_middles, serial_part, tilt_basis, tilted_gravity
 
 __all__ = ["JointCompliance", "actuator_loads", "gravity_direction", "compliance_prior_scale", "GRAVITY", "DEFAULT_GRAVITY_DIRECTION"]
@@ -385,6 +386,10 @@ class JointCompliance(Effect):
             return ("link weights left out (only the last body's weight and the payload load the drives): state "
                     "link_mass_kg and link_com_mm, or give a URDF with <inertial> elements")
         return ""
+
+    def separating_conditions(self, aux: dict) -> tuple:
+        """A heavier payload (a known load), and the mounting tilted either way (gravity turned against the machine)."""
+        return (second_payload(aux), tilted_mounting(self.down, 0), tilted_mounting(self.down, 1))
 
     def confound_note(self) -> str:
         """The constant sag is a zero offset; which inputs, stated, would pin it."""

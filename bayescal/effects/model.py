@@ -35,7 +35,7 @@ from ..machines.base import ToolPoses, map_state
 from ..measurement import MeasurementModel, Prediction, pose_offset_rows
 from .base import Effect, EffectParam, Features
 
-__all__ = ["EffectFit", "fit_map", "linear_fold_residuals", "effect_residual", "actuator_residual", "effect_jacobian", "actuator_rows_jacobian"]
+__all__ = ["EffectFit", "fit_map", "joint_information", "linear_fold_residuals", "effect_residual", "actuator_residual", "effect_jacobian", "actuator_rows_jacobian"]
 
 
 @dataclass(frozen=True)
@@ -428,6 +428,35 @@ class _State:
         if self._A is None:
             self._A = self.joint.system(self.sub, self.pred, self.theta, self.eta)
         return self._A
+
+
+def joint_information(model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray,
+                      eta: NDArray) -> tuple[NDArray, NDArray]:
+    """The joint fit's whitened Jacobian at ``(theta, eta)`` and the prior scales of its columns.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+    effects : sequence of (Effect, Features)
+    theta, eta : ndarray
+        Geometric errors (mm, rad) and effect parameters (their units).
+
+    Returns
+    -------
+    A : ndarray, shape (rows, P + K)
+        ``d (W r) / d phi`` in the prior-scaled coordinates ``phi = (theta, eta) / scale``:
+        the posterior precision of ``phi`` is ``A^T A + I`` (:func:`fit_map`).
+    scale : ndarray, shape (P + K,)
+        The prior standard deviations (tolerances, then the effect parameters' ``prior_sd``).
+
+    Raises
+    ------
+    KinematicsError
+        A pose does not assemble at ``(theta, eta)``.
+    """
+    joint = _Joint.of(model, effects)
+    _, state = joint.state(np.asarray(theta, float), np.asarray(eta, float), None)
+    return state.system(), joint.scale
 
 
 #: The joint fit's step control: a step must not raise the cost, halved up to 7 times (8 trials), each

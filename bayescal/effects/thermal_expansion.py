@@ -8,6 +8,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from ..machines.base import Machine, ToolPoses
 from .base import Effect, EffectParam, Features, measurement_sequence
+from .conditions import temperature_step
 
 __all__ = ["ThermalExpansion", "REFERENCE_TEMPERATURE_C", "warmup_temperature", "link_factors"]
 
@@ -129,6 +130,10 @@ class ThermalExpansion(Effect):
 
     def __init__(self, *, reference_C: float = REFERENCE_TEMPERATURE_C):
         self.reference_C = float(reference_C)
+
+    def separating_conditions(self, aux: dict) -> tuple:
+        """A temperature step, where the recording has a temperature channel (a warm-up curve in time alone has none)."""
+        return (temperature_step(),) if "temp_C" in aux else ()
 
     def not_applicable(self, machine: Machine, aux: dict) -> str | None:
         if "temp_C" not in aux and "time_s" not in aux:

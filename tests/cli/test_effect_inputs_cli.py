@@ -55,5 +55,10 @@ def test_stated_inputs_pin_the_written_geometry_and_the_answer_says_how_well(tmp
                  "--json", str(tmp_path / "again.json")]) == 0
     again = json.loads((tmp_path / "again.json").read_text())["written_geometry"]
     assert again["tool_std_um"] == pytest.approx(stated["tool_std_um"], rel=0.05)
+    # ... and so does the library's door on the same files (it used the documented defaults before)
+    import bayescal
+
+    lib = bayescal.diagnose(tmp_path / "s.toml", rec, effects=["joint_compliance"]).to_dict()["written_geometry"]
+    assert json.loads(json.dumps(lib)) == again
     assert main(base + ["--effect-input", "joint_compliance.mass=3"]) == 2
     assert "has no input 'mass'" in capsys.readouterr().err
