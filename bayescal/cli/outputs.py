@@ -42,7 +42,8 @@ OUT_FOLDERS = {
     "klipper": ("machine.toml", "recording.csv"),
 }
 #: Options naming input files, hashed into the report (and never to be overwritten).
-INPUT_FILES = ("recording", "machine", "errors", "grid", "evaluate", "poses_file", "given", "config", "resume_from")
+INPUT_FILES = ("recording", "machine", "errors", "grid", "evaluate", "poses_file", "given", "separate", "config",
+               "resume_from")
 
 
 def add_output_options(p: argparse.ArgumentParser, *, report: bool = True) -> None:

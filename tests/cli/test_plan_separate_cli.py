@@ -42,3 +42,11 @@ def test_plan_separate_refuses_what_it_cannot_plan(tmp_path, capsys):
     assert main(["plan", "--machine", str(PRS3_FILE), "--separate", str(clean), "--measure", "height", "--n", "5",
                  "--out", str(out)]) == 2
     assert "does not go with --measure height" in capsys.readouterr().err
+
+
+def test_plan_separate_never_writes_over_its_recording(tmp_path, capsys):
+    rec = tmp_path / "rec.csv"
+    rec.write_bytes((ROOT / "examples" / "prs3" / "recording.csv").read_bytes())
+    before = rec.read_bytes()
+    assert main(["plan", "--machine", str(PRS3_FILE), "--separate", str(rec), "--n", "5", "--out", str(rec)]) == 2
+    assert "--out" in capsys.readouterr().err and rec.read_bytes() == before
