@@ -127,10 +127,6 @@ class EffectAugmented(AppendedParameters):
         """The base machine's machine in its base frame (without the effect parameters and nuisance views)."""
         return self.base.base_machine()
 
-    def check_theta(self, theta, n_poses=None) -> NDArray:
-        # the machines' own check, against this view's parameter count
-        return Machine.check_theta(self, theta, n_poses)
-
     @property
     def geometry_part(self) -> tuple[Machine, NDArray]:
         """The base machine's geometry part with the effect parameters kept after it.
