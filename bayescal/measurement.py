@@ -564,23 +564,48 @@ def _measured_far_off(model: "MeasurementModel", rec: Recording, i: int):
 
     if model.y_measured is None or model.pose_offset is not None:
         return None
+    q_i = np.asarray(model.q)[i: i + 1]
     try:
-        alone = model.machine.forward(np.asarray(model.q)[i: i + 1])
+        alone = model.machine.forward(q_i)
+        if not alone.success.all():
+            return None
+        if rec.rotvec is not None or rec.axis is not None:
+            # the start is the measured position and orientation: from the position alone the pose solves when
+            # the orientation is what sent the kinematics off (the position's cells are then not to blame)
+            start = model.machine.guess_from_measurement(q_i, np.asarray(rec.position, dtype=float)[i: i + 1])
+            if start is not None and model.machine.forward(q_i, guess=start).success.all():
+                return _orientation_far_off(model, rec, i)
     except (BayescalError, ValueError, ArithmeticError):
-        return None
-    if not alone.success.all():
         return None
     d = np.asarray(model.y_measured, dtype=float)[i, :3] - alone.position[0]
     if not np.all(np.isfinite(d)):
         return None
     k = int(np.argmax(np.abs(d)))
-    units = getattr(rec, "declared_units", None) or {}
-    names = tuple(f"{c}_{units[c]}" if c in units else c for c in ("x", "y", "z"))  # as the file names them
+    names = _file_names(rec, ("x", "y", "z"))
     return RecordingError(
         rec.path, int(rec.lines[i]), names[k],
         f"the measured tool point is {float(np.linalg.norm(d)):.4g} mm from where the machine {model.machine.source} "
         f"puts it at q = {model.q[i].tolist()} ({names[k]} off by {float(d[k]):.4g} mm), too far for its kinematics "
         "to start from; expected the measurement of this pose (a typo in the cell?)",
+    )
+
+
+def _file_names(rec: Recording, columns: tuple[str, ...]) -> tuple[str, ...]:
+    """The columns as the recording's header names them (with a declared unit suffix, ``x_um``)."""
+    units = getattr(rec, "declared_units", None) or {}
+    return tuple(f"{c}_{units[c]}" if c in units else c for c in columns)
+
+
+def _orientation_far_off(model: "MeasurementModel", rec: Recording, i: int):
+    """The RecordingError for pose ``i`` when its measured orientation, not its position, keeps it from solving."""
+    from .errors import RecordingError
+
+    names = _file_names(rec, ("rx", "ry", "rz") if rec.rotvec is not None else ("nx", "ny", "nz"))
+    return RecordingError(
+        rec.path, int(rec.lines[i]), names[0],
+        f"the measured orientation ({', '.join(names)}) keeps the kinematics of {model.machine.source} from solving "
+        f"q = {model.q[i].tolist()}, which they solve from the measured position alone; expected the measurement of "
+        "this pose (a typo in one of these cells?)",
     )
 
 

@@ -68,3 +68,24 @@ def test_a_measured_cell_far_off_is_named_not_blamed_on_the_machine(prs3):
         check_recording_solves(model, bad)
     assert (err.value.row, err.value.column) == (7, "x")
     check_recording_solves(MeasurementModel.from_recording(prs3, rec), rec)  # the clean recording solves
+
+
+def test_a_measured_orientation_far_off_is_named_not_the_position(prs3):
+    # review: a typo in rx, ry, rz (2, 2, 0.5 rad, under pi so not read as degrees) kept pose 6 of the bundled
+    # 3-PRS recording from solving, and the message blamed column 'z' "0.1459 mm from where the machine puts it
+    # ... too far for its kinematics to start from": the position was fine (the pose solves from it alone)
+    from dataclasses import replace
+
+    from bayescal.errors import RecordingError
+    from bayescal.measurement import check_recording_solves
+
+    rec = simulate_recording(prs3, 8, seed=4, dof=6).recording
+    rv = rec.rotvec.copy()
+    rv[5] = [2.0, 2.0, 0.5]
+    bad = replace(rec, rotvec=rv, path="r.csv")
+    model = MeasurementModel.from_recording(prs3, bad)
+    assert not model.predict(None).success[5]  # the case: the orientation sends the kinematics off
+    with pytest.raises(RecordingError, match=r"the measured orientation \(rx, ry, rz\) keeps the kinematics .* from "
+                       r"solving .* from the measured position alone") as err:
+        check_recording_solves(model, bad)
+    assert (err.value.row, err.value.column) == (7, "rx")

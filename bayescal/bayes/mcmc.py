@@ -387,15 +387,10 @@ def sample_posterior(
     PosteriorResult
         ``success`` False (and no posterior std) unless every check passes.
     """
-    if checkpoint is not None and not resume and os.path.lexists(checkpoint):
-        # a fresh chain saved over it would lose the chain it holds (hours of sampling, --resume forgotten)
-        raise InputError(f"--checkpoint {checkpoint}: a file is there already; a fresh run would replace it. "
-                         "Expected --resume to continue its chain, or another path (remove the file to start afresh)")
+    _check_run_options(surrogate, checkpoint, checkpoint_every, resume)  # before the MAP: nothing computed in vain
     prior, start = _map_start(model, prior, free, theta0)
     idx = np.flatnonzero(start.free)
     n = idx.size
-    if surrogate not in ("none", "linear"):
-        raise InputError(f"surrogate: expected 'none' or 'linear', got {surrogate!r}")
     exact = model
     if surrogate == "linear":
         model = linearise(model, start.theta)
@@ -416,6 +411,29 @@ def sample_posterior(
     if surrogate == "linear":
         res = _surrogate_checked(res, exact, prior, idx, start, rng)
     return res
+
+
+def _check_run_options(surrogate: str, checkpoint, checkpoint_every: int, resume: bool) -> None:
+    """Refuse the surrogate and checkpoint options that cannot work, before anything is computed.
+
+    A fresh run over an existing checkpoint, ``resume`` without a checkpoint
+    or with none there, or ``checkpoint_every`` below 1 step.
+    """
+    if surrogate not in ("none", "linear"):
+        raise InputError(f"surrogate: expected 'none' or 'linear', got {surrogate!r}")
+    if resume and checkpoint is None:
+        raise InputError("resume: give the checkpoint to resume from")
+    if checkpoint is None:
+        return
+    if checkpoint_every < 1:
+        raise InputError(f"checkpoint_every: expected a positive number of steps, got {checkpoint_every}")
+    if not resume and os.path.lexists(checkpoint):
+        # a fresh chain saved over it would lose the chain it holds (hours of sampling, --resume forgotten)
+        raise InputError(f"--checkpoint {checkpoint}: a file is there already; a fresh run would replace it. "
+                         "Expected --resume to continue its chain, or another path (remove the file to start afresh)")
+    if resume and not os.path.exists(checkpoint):
+        # as load_checkpoint says it, but before the MAP and the proposal check rather than after them
+        raise InputError(f"--resume: {checkpoint}: no checkpoint there (run once with --checkpoint {checkpoint})")
 
 
 def _map_start(model, prior: GaussianPrior | None, free, theta0):
@@ -497,14 +515,10 @@ def _run_chain(model, idx, start, log_prob, moves, p0, *, n_steps, seed, progres
                checkpoint_every, resume):
     """The emcee sampler run (or resumed from ``checkpoint``) up to ``n_steps``, and its wall time in s."""
     n_walkers, n = p0.shape
-    if resume and checkpoint is None:
-        raise InputError("resume: give the checkpoint to resume from")
-    fingerprint = None
+    fingerprint = None  # the options were checked up front (_check_run_options)
     if checkpoint is not None:
         from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
 
-        if checkpoint_every < 1:
-            raise InputError(f"checkpoint_every: expected a positive number of steps, got {checkpoint_every}")
         names = tuple(model.machine.layout.names[i] for i in idx)
         fingerprint = run_fingerprint(model, names, seed=seed, n_walkers=n_walkers, surrogate=surrogate,
                                       held=start.theta[~start.free])

@@ -467,8 +467,11 @@ def _select(machine: Machine, cands: CandidateSet, n: int, criterion: str, metho
 
 
 def _against_random(cands: CandidateSet, values: dict, n: int, n_random, rng) -> tuple[dict, dict]:
-    """Per criterion: the median over ``n_random`` random selections of ``n`` poses, and the fraction the plan beats."""
-    rand = np.array([list(evaluate_selection(cands, rng.choice(cands.n, n, replace=False)).values())
+    """Per criterion: the median over ``n_random`` random selections of ``n`` poses, and the fraction the plan beats.
+
+    The random selections repeat poses only when they must: a plan with repeats of more poses than candidates.
+    """
+    rand = np.array([list(evaluate_selection(cands, rng.choice(cands.n, n, replace=n > cands.n)).values())
                      for _ in range(int(n_random))]) if n_random > 0 else np.full((1, len(CRITERIA)), np.nan)
     med = {c: float(np.median(rand[:, i])) for i, c in enumerate(CRITERIA)}
     beaten = {c: float(np.mean(values[c] > rand[:, i])) for i, c in enumerate(CRITERIA)}

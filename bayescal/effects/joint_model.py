@@ -101,7 +101,9 @@ class EffectAugmented(AppendedParameters):
         object.__setattr__(self, "_prior_mean", np.concatenate([base_mean, [p.prior_mean for p in self.params]]))
         # the effects' physical bounds (a compliance, a mass): the sampled prior is truncated there
         low = [-np.inf if p.lower is None else p.lower for p in self.params]
-        object.__setattr__(self, "_prior_lower", np.concatenate([np.full(self.base.n_params, -np.inf), low]))
+        base_low = self.base.prior_lower  # a view's own bounds (effects fitted under it) kept, as its prior mean is
+        base_low = np.full(self.base.n_params, -np.inf) if base_low is None else np.asarray(base_low, float)
+        object.__setattr__(self, "_prior_lower", np.concatenate([base_low, low]))
 
     @property
     def prior_mean(self) -> NDArray:
@@ -110,7 +112,7 @@ class EffectAugmented(AppendedParameters):
 
     @property
     def prior_lower(self) -> NDArray:
-        """No bound on the base machine's parameters, then the effect parameters' physical lower bounds."""
+        """The base machine's lower bounds (none unless a view states them), then the effect parameters' physical ones."""
         return self._prior_lower
 
     # the frame's layer is the base machine's: the effect parameters follow whatever frame it has
@@ -126,10 +128,6 @@ class EffectAugmented(AppendedParameters):
     def base_machine(self) -> Machine:
         """The base machine's machine in its base frame (without the effect parameters and nuisance views)."""
         return self.base.base_machine()
-
-    def check_theta(self, theta, n_poses=None) -> NDArray:
-        # the machines' own check, against this view's parameter count
-        return Machine.check_theta(self, theta, n_poses)
 
     @property
     def geometry_part(self) -> tuple[Machine, NDArray]:

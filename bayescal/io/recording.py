@@ -268,7 +268,9 @@ def read_csv_rows(path: str, text: str | None, what: str) -> tuple[list[str], di
         text = text[1:]
     if (nul := text.find("\x00")) >= 0:
         # invisible in a message (a header cell 'rz\0' would be named 'rz'): a binary or UTF-16 file, or a damaged one
-        line = len(text[:nul].splitlines()) + (1 if text[:nul].endswith(("\n", "\r")) or nul == 0 else 0)
+        # the line ends csv reads (\n, \r\n, a lone \r) before it: str.splitlines also splits at \f, \v, \x1c ...
+        before = text[:nul]
+        line = before.count("\n") + before.count("\r") - before.count("\r\n") + 1
         raise RecordingError(path, max(line, 1), None, f"a NUL byte (character {nul + 1}); expected {what} as text")
     # newline="": line ends \n, \r\n and a lone \r all end a row
     reader = csv.reader(io.StringIO(text, newline=""))

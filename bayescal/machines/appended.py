@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import InputError
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, ToolPoses
 from .view import Forwarded, MachineView
@@ -109,14 +108,6 @@ class AppendedParameters(MachineView):
 
     def measurement_rotation(self, q, theta):
         return self.base.measurement_rotation(q, self.machine_theta(theta))
-
-    def check_theta(self, theta, n_poses=None) -> NDArray:
-        if theta is None:
-            return np.zeros(self.n_params)
-        theta = np.asarray(theta, dtype=float)
-        if theta.ndim not in (1, 2) or theta.shape[-1] != self.n_params:
-            raise InputError(f"theta: expected shape ({self.n_params},) or (n, {self.n_params}), got {theta.shape}")
-        return theta
 
     def forward(self, q, theta=None, *, guess=None) -> ToolPoses:
         """The machine's tool poses (the appended parameters do not move the tool)."""

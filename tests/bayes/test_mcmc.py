@@ -140,3 +140,23 @@ def test_an_existing_checkpoint_is_not_replaced_by_a_fresh_run(prs3, sim6, tmp_p
     with pytest.raises(InputError, match=r"--checkpoint .*c.npz: a file is there already; .* Expected --resume"):
         sample_posterior(model, n_steps=40, checkpoint=ck, surrogate="linear")
     assert ck.read_bytes() == b"a chain of many hours"
+
+
+@pytest.mark.parametrize("options, match", [
+    ({"surrogate": "quadratic"}, "surrogate: expected 'none' or 'linear'"),
+    ({"resume": True}, "resume: give the checkpoint"),
+    ({"checkpoint": "c.npz", "checkpoint_every": 0}, "checkpoint_every: expected a positive number"),
+    ({"checkpoint": "missing.npz", "resume": True}, r"--resume: .*missing.npz: no checkpoint there"),
+])
+def test_bad_run_options_are_refused_before_the_map(prs3, sim6, tmp_path, monkeypatch, options, match):
+    # review: these were refused only after the MAP and the proposal check (seconds to minutes of work)
+    import bayescal.bayes.mcmc as mcmc
+
+    def no_map(*args, **kwargs):
+        raise AssertionError("the MAP ran before the options were checked")
+
+    monkeypatch.setattr(mcmc, "_map_start", no_map)
+    monkeypatch.chdir(tmp_path)
+    model = MeasurementModel.from_recording(prs3, sim6.recording)
+    with pytest.raises(InputError, match=match):
+        sample_posterior(model, n_steps=40, **options)

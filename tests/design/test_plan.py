@@ -215,3 +215,12 @@ def test_a_candidate_set_with_nothing_identifiable_is_refused(prs3):
     J = np.zeros((20, 6, prs3.n_params))
     with pytest.raises(InputError, match="none of the 36 parameters is identifiable from the 20 candidate poses"):
         candidate_set_from_jacobian(q, J, prs3.tolerance, prs3.layout)
+
+
+def test_a_plan_with_repeats_of_more_poses_than_candidates_is_compared_with_random_designs(prs3):
+    # review: the random designs were drawn without replacement, so this plan (which plan_poses allows) ended in
+    # numpy's "Cannot take a larger sample than population" after the whole selection
+    c = draw_candidates(prs3, 40, dof=3, rng=np.random.default_rng(1))
+    plan = plan_poses(prs3, c.n + 5, criterion="D", dof=3, candidates=c, repeats=True, n_random=4, seed=3)
+    assert plan.q.shape == (c.n + 5, 3)
+    assert np.isfinite(plan.random_median["D"]) and 0.0 <= plan.random_beaten["D"] <= 1.0

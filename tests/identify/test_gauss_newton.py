@@ -136,3 +136,11 @@ def test_per_pose_sigma_weights_each_pose(prs3, sim6):
     assert np.allclose(weighted.theta, dropped.theta, atol=1e-6 * prs3.tolerance.max())
     with pytest.raises(InputError, match="pose_sigma"):
         model.with_pose_sigma(np.zeros((model.n_poses, model.dof)))
+
+
+@pytest.mark.parametrize("lam", ["1", True, None, float("nan"), -1.0])
+def test_a_ridge_lam_that_is_not_a_number_is_refused_naming_it(prs3, lam):
+    # review: np.isfinite('1') raised TypeError (a traceback from the library's front door), and True ran as lam = 1
+    model, _ = _noise_free_model(prs3, 6, n=12)
+    with pytest.raises(InputError, match=r"lam: ridge needs a number >= 0, got"):
+        identify(model, method="ridge", lam=lam)

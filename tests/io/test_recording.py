@@ -121,6 +121,9 @@ def test_spellings_formats_md_allows_read_the_same(text):
         ("q1,q2,q3,x,y,z\n1,2,3,0,0," + "0" * 200_000 + "\n", 2, None, "not readable as CSV"),  # csv.Error
         ("q1,q2,q3,x,y,z\x00\n1,2,3,0,0,0\n", 1, None, "a NUL byte"),  # the column was named 'z' in the message
         ("q1,q2,q3,x,y,z\r\n1,2,3,0,0,0\r\n1,2,\x003,0,0,0\r\n", 3, None, "a NUL byte"),
+        # review: a form feed in a cell counted as a line end (str.splitlines), so the NUL was put on line 4
+        ("q1,q2,q3,x,y,z\n1,2,3,0,0,\x0c0\n1,2,\x003,0,0,0\n", 3, None, "a NUL byte"),
+        ("q1,q2,q3,x,y,z\r1,2,3,0,0,0\r\x00", 3, None, "a NUL byte"),  # lone \r line ends
     ],
 )
 def test_what_formats_md_does_not_allow_is_named(text, line, column, match):

@@ -8,6 +8,8 @@ import pytest
 from bayescal.constraints.model import PIVOT_TOLERANCE, PivotAugmented
 from bayescal.machines.files import load_machine
 from bayescal.machines.appended import AppendedParameters
+from bayescal.errors import InputError
+from bayescal.sensors.mounts import SensorMounts
 
 from ..conftest import PRS3_FILE
 
@@ -31,3 +33,15 @@ def test_appended_parameters_do_not_move_the_tool_and_leave_the_machine_file():
     assert v.to_toml(theta) == m.to_toml(theta[: m.n_params])
     with pytest.raises(Exception, match="theta: expected shape"):
         v.check_theta(np.zeros(m.n_params))
+
+
+def test_every_appended_view_checks_theta_rows_against_the_poses_as_the_machine_does():
+    # review: AppendedParameters had its own copy of Machine.check_theta without the row count, so a pivot or
+    # sensor-mounting view took 3 rows of theta for 5 poses where the machine (and every other view) refuses
+    m = load_machine(PRS3_FILE)
+    for v in (PivotAugmented(m, ("1",)), SensorMounts(m, ("sensor.link.tilt.x",), (1e-3,))):
+        assert v.check_theta(np.zeros((5, v.n_params)), 5).shape == (5, v.n_params)
+        with pytest.raises(InputError, match="theta: 3 rows for 5 poses"):
+            v.check_theta(np.zeros((3, v.n_params)), 5)
+        with pytest.raises(InputError, match=rf"theta: expected shape \({v.n_params},\)"):
+            v.check_theta(np.zeros(m.n_params))

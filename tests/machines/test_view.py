@@ -171,3 +171,15 @@ def test_a_view_is_not_read_from_a_machine_file():
 
     with pytest.raises(MachineFileError, match="view"):
         PivotAugmented.from_toml(None, "m.toml")
+
+
+def test_an_effect_view_around_views_that_state_bounds_keeps_them():
+    # review: EffectAugmented kept its base's prior mean but replaced the base's lower bounds by -inf, so effects
+    # fitted under another effect view (directly, or under pivots) lost their physical bounds (a compliance >= 0)
+    m = load_machine(FILES[0])
+    inner = EffectAugmented(m, (EffectParam("compliance.q1", "um/N", 2.0, 0.5, lower=0.0),), ("joint_compliance",))
+    for base in (inner, PivotAugmented(inner, ("1",))):
+        outer = EffectAugmented(base, (EffectParam("half_band", "um", 10.0, 5.0, lower=1.0),), ("backlash",))
+        np.testing.assert_array_equal(outer.prior_lower, np.r_[base.prior_lower, 1.0])
+        np.testing.assert_array_equal(outer.prior_mean, np.r_[base.prior_mean, 5.0])
+        assert outer.prior_lower[m.n_params] == 0.0  # the inner effect's bound, at its place in theta
