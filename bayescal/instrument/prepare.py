@@ -230,7 +230,7 @@ def station_frames(machine: Machine, rec: Recording, *, dof: int | None = None,
     stations = rec.stations
     idx = rec.station_index
     fit = ~rec.is_check
-    need = 3 if rec.dof == 3 else 2
+    need = rec.frame_fit_poses
     frames, unfitted = [], []
     for k, label in enumerate(stations):
         rows = np.flatnonzero((idx == k) & fit)

@@ -161,6 +161,11 @@ class Recording:
         pos = {s: i for i, s in enumerate(self.stations)}
         return np.array([pos[s] for s in self.station], dtype=int)
 
+    @property
+    def frame_fit_poses(self) -> int:
+        """Fewest ``fit`` rows that align an instrument frame: 3 points, or 2 poses with orientations."""
+        return 3 if self.dof == 3 else 2
+
     def check_machine(
         self,
         n_actuators: int,

@@ -367,7 +367,7 @@ def _no_frame_to_fit(rec: Recording) -> InputError:
     """The error of ``--frame fit`` when no station has the fit poses to align its frame (each needs 3, 2 with orientations)."""
     from ..errors import RecordingError
 
-    need = 3 if rec.dof == 3 else 2
+    need = rec.frame_fit_poses
     fit = ~rec.is_check
     counts = np.bincount(rec.station_index[fit], minlength=len(rec.stations))
     if rec.station is None:
