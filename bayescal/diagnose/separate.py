@@ -234,6 +234,16 @@ def _conditions(effects: Sequence[Effect], aux: dict) -> list[Condition]:
     return list(out.values())
 
 
+#: Channels a user sets for a session (a load to mount, not a reading): the plan names them at every pose.
+SET_CHANNELS = ("payload_kg",)
+
+
+def _set_channels(aux: dict, session: dict) -> dict:
+    """The channels of the second session its pose file names: what the condition changes, and the loads to mount."""
+    return {k: v for k, v in session.items()
+            if k in SET_CHANNELS or k not in aux or not np.array_equal(np.asarray(v), np.asarray(aux[k]))}
+
+
 def _eta_for(pairs, fit: EffectFit, machine) -> NDArray:
     """The fit's effect parameters by effect and name; a parameter the fit lacks at its start value."""
     fitted = {name: sl for name, sl in fit.effect_slices}
@@ -306,7 +316,7 @@ def separating_sessions(model: MeasurementModel, effects: Sequence[Effect], fit:
         GS[:, :P] = G * scale[:P]
         session = cond.session(aux, n)
         design = SessionDesign(H0, A1.reshape(rows.size, -1, scale.size), GS.T @ GS, n_tool, noise_scale2, rows,
-                               model.q[rows], {k: np.asarray(v, float)[on] for k, v in session.items()})
+                               model.q[rows], {k: np.asarray(v, float)[on] for k, v in _set_channels(aux, session).items()})
         before_um = design.std_um(np.linalg.inv(H0))
         after_um = design.std_um(np.linalg.inv(H0 + weight * (A1.T @ A1)))
         s = SeparatingSession(cond.key, cond.advice, model.n_poses, before_um, after_um,

@@ -117,8 +117,12 @@ def tilted_mounting(down: NDArray, axis: int, deg: float = TILT_DEG) -> Conditio
         ep = e - np.einsum("ij,j->i", d, e)[:, None] * d
         ep /= np.linalg.norm(ep, axis=1, keepdims=True)
         t = np.cos(a) * d + np.sin(a) * ep
+        if all(c in aux for c in BASE_SENSOR):
+            # as the recording's sensor reads: its magnitude (m/s^2, g, ...) and its sign (gravity or the specific force)
+            v = np.column_stack([np.asarray(aux[c], float) for c in BASE_SENSOR])
+            t = t * (np.linalg.norm(v, axis=1) * np.sign(np.einsum("ij,ij->i", v, d)))[:, None]
         out = {k: v for k, v in aux.items() if k not in BASE_SENSOR}
-        # the sensor's columns hold the direction of gravity; gravity_per_pose accepts either sign
+        # without a recorded sensor: the unit direction of gravity (gravity_per_pose takes either sign and any scale)
         return {**out, **{c: t[:, i] for i, c in enumerate(BASE_SENSOR)}}
 
     return Condition(

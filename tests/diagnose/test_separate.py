@@ -115,11 +115,12 @@ def test_conditions_are_the_stated_changes():
         v = np.column_stack([s[k] for k in BASE_SENSOR])
         np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-12)
         np.testing.assert_allclose(np.degrees(np.arccos(v @ down)), 10.0, atol=1e-9)
-    # a recorded base sensor is turned pose by pose
-    tilt = {k: np.full(2, down[i]) for i, k in enumerate(BASE_SENSOR)}
+    # a recorded base sensor is turned pose by pose, read in its own units and sign (specific force, m/s^2)
+    tilt = {k: np.full(2, -9.81 * down[i]) for i, k in enumerate(BASE_SENSOR)}
     s = tilted_mounting(np.array([0.0, 0.0, -1.0]), 0, 5.0).session(tilt, 2)
     v = np.column_stack([s[k] for k in BASE_SENSOR])
-    np.testing.assert_allclose(np.degrees(np.arccos(v @ down)), 5.0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 9.81, rtol=1e-12)
+    np.testing.assert_allclose(np.degrees(np.arccos(-v @ down / 9.81)), 5.0, atol=1e-9)
 
 
 def test_greedy_steps_are_the_best_single_additions_and_all_poses_give_the_whole_session():
