@@ -9,6 +9,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -236,15 +237,23 @@ def parse_number(text: str, path: str, line: int, col: str) -> float:
     return v
 
 
+#: Rows between two progress lines while a large CSV is parsed (bayescal.progress).
+PROGRESS_ROWS = 100_000
+
+
 def parse_table(path: str, header: list[str], rows: list[list[str]]) -> np.ndarray:
     """The data rows (file lines 2, 3, ...) as floats, shape (len(rows), len(header)).
 
     Every row must have one cell per header column and every cell must be a
     number (:func:`parse_number`); RecordingError naming line and column otherwise.
     """
+    from ..progress import report
+
     data = np.empty((len(rows), len(header)))
     for i, row in enumerate(rows):
         line = i + 2
+        if i and i % PROGRESS_ROWS == 0:  # about 2 s per 100,000 rows of a recording
+            report(lambda: f"reading {path}: row {i:,} of {len(rows):,}")
         if len(row) != len(header):
             raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
         for j, cell in enumerate(row):
@@ -309,7 +318,8 @@ def read_csv_rows(path: str, text: str | None, what: str) -> tuple[list[str], di
     return header, seen, rows[1:]
 
 
-def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recording:
+def read_recording(path: str | os.PathLike, *, text: str | None = None,
+                   check_size: Callable[[int, int], None] | None = None) -> Recording:
     """Read a recording CSV strictly.
 
     Parameters
@@ -318,6 +328,12 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         The CSV file (used for messages only if ``text`` is given).
     text : str, optional
         The file's content, to parse from memory.
+    check_size : callable, optional
+        Called with the number of data rows and the measured components per
+        row (6, 5 or 3) once the header is checked, before any cell is
+        parsed: a caller's size limit (the memory a fit of that many rows
+        takes, :func:`bayescal.instrument.prepare.fit_size_check`) ends a
+        large file at once instead of after parsing it.
 
     Returns
     -------
@@ -330,6 +346,13 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         incomplete columns, and ragged rows, naming line and column.
     """
     path = str(path)
+    if check_size is not None:
+        if text is None:
+            from .safe_paths import MAX_CSV_BYTES, read_input_text
+
+            text = read_input_text(path, "a recording (CSV)", limit=MAX_CSV_BYTES,
+                                   error=lambda msg: RecordingError(path, None, None, msg))
+        _early_size_check(text, check_size)
     header, seen, data_rows = read_csv_rows(path, text, "a recording (CSV)")
     header, seen, data_rows, labels = split_label_columns(path, header, seen, data_rows)
     seen, scale, q_unit = _unit_columns(path, header, seen)
@@ -355,6 +378,8 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         )
     if not data_rows:
         raise RecordingError(path, 2, None, "no data rows; expected one row per measured pose")
+    if check_size is not None:
+        check_size(len(data_rows), 6 if _ROT[0] in seen else 5 if _AXIS[0] in seen else 3)
     data = parse_table(path, header, data_rows)
     data *= scale[None, :]
     col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
@@ -381,6 +406,25 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         sigma_position=sig["sigma_position"], sigma_angle=sig["sigma_angle"], declared_units=declared,
         station=labels.get("station"), role=labels.get("role"),
     )
+
+
+def _early_size_check(text: str, check_size: Callable[[int, int], None]) -> None:
+    """``check_size`` from the line count and the header line, before the text is split into cells.
+
+    Splitting a million rows into cells takes seconds and about ten times the
+    file's size in memory; the count of lines (trailing blank lines left out)
+    and the measured components the header names are known at once.  The
+    reader checks again with the exact count once the header is checked.
+    """
+    end = len(text)
+    while end and text[end - 1].isspace():
+        end -= 1
+    n_rows = text.count("\n", 0, end) + text.count("\r", 0, end) - text.count("\r\n", 0, end)
+    first = text[: min(i for i in (text.find("\n"), text.find("\r"), len(text)) if i >= 0)]
+    names = {(m.group(1) if (m := _UNIT_COLUMN.match(c.strip())) else c.strip()) for c in first.split(",")}
+    dof = 6 if set(_ROT) <= names else 5 if set(_AXIS) <= names else 3
+    if n_rows > 0:
+        check_size(n_rows, dof)
 
 
 #: Columns of labels, not numbers (docs/formats.md section 8): which instrument set-up took a row, and its role.
