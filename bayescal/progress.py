@@ -4,7 +4,8 @@ The library is silent: its long loops (the Gauss-Newton iterations of
 :mod:`bayescal.iteration`, the robust pass, the automatic lambda and k rules,
 the diagnosis) call :func:`report`, which does nothing unless a sink has been
 installed with :func:`reporting`.  The command line installs a
-:class:`StderrProgress` (unless ``--quiet`` or ``--no-progress``), so that a
+:class:`StderrProgress` (unless ``--quiet``, ``--no-progress`` or
+:data:`PROGRESS_ENV` ``=off``), so that a
 run on a large recording says what it is doing instead of looking hung
 (docs/cli.md, "Limits").
 
@@ -15,6 +16,7 @@ work.
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -22,12 +24,22 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from typing import Callable, Iterator, TextIO
 
-__all__ = ["report", "reporting", "StderrProgress", "PROGRESS_DELAY"]
+__all__ = ["report", "reporting", "StderrProgress", "PROGRESS_DELAY", "PROGRESS_ENV", "progress_wanted"]
 
 _SINK: ContextVar[Callable[[str], None] | None] = ContextVar("bayescal_progress_sink", default=None)
 
 #: Seconds a command runs before its first progress line: a run shorter than this prints none.
 PROGRESS_DELAY = 5.0
+
+
+#: Environment variable that turns the command line's progress lines off (``off``, ``0``, ``no`` or ``false``):
+#: for scripts that compare what a command writes on stderr from run to run.
+PROGRESS_ENV = "BAYESCAL_PROGRESS"
+
+
+def progress_wanted() -> bool:
+    """Whether :data:`PROGRESS_ENV` leaves the progress lines on (it does unless it says off)."""
+    return os.environ.get(PROGRESS_ENV, "").strip().lower() not in ("off", "0", "no", "false")
 
 
 def report(message: str | Callable[[], str]) -> None:

@@ -64,6 +64,7 @@ def test_the_command_line_writes_lines_unless_quiet(monkeypatch, capsys):
     from bayescal.cli import main
     from bayescal import progress
 
+    monkeypatch.delenv(progress.PROGRESS_ENV, raising=False)  # tests/conftest.py turns the lines off
     # no delay, no throttle: every line the run reports (a real run waits PROGRESS_DELAY seconds)
     monkeypatch.setattr(progress.StderrProgress.__init__, "__kwdefaults__", {"delay": 0.0, "interval": 0.0, "stream": None})
     args = ["identify", str(REC), "--machine", str(PRS3_FILE), "--method", "map"]
@@ -73,4 +74,7 @@ def test_the_command_line_writes_lines_unless_quiet(monkeypatch, capsys):
     assert main(args + ["--quiet"]) == 0
     assert capsys.readouterr().err == ""
     assert main(args + ["--no-progress"]) == 0
+    assert "Gauss-Newton" not in capsys.readouterr().err
+    monkeypatch.setenv(progress.PROGRESS_ENV, "off")
+    assert main(args) == 0
     assert "Gauss-Newton" not in capsys.readouterr().err

@@ -134,12 +134,15 @@ def _check_no_empty_value(words: list) -> None:
 def progress_sink(args: argparse.Namespace):
     """Where the library's progress lines go (:mod:`bayescal.progress`): stderr, unless asked for silence.
 
-    ``--quiet`` or ``--no-progress`` give None (no lines).  The lines start
+    ``--quiet``, ``--no-progress`` or ``BAYESCAL_PROGRESS=off`` give None (no lines).  The lines start
     after a few seconds, so a quick run prints none (docs/cli.md, "Limits").
     """
+    from ..progress import StderrProgress, progress_wanted
+
     if getattr(args, "quiet", False) or getattr(args, "progress", None) is False or getattr(args, "no_progress", False):
         return None
-    from ..progress import StderrProgress
+    if not progress_wanted():  # BAYESCAL_PROGRESS=off
+        return None
 
     return StderrProgress(getattr(args, "command", "") or "")
 
