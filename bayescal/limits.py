@@ -9,6 +9,8 @@ message that states the limit (docs/cli.md, "Limits"):
 * a stated noise is within :data:`SIGMA_POSITION_RANGE` mm or
   :data:`SIGMA_ANGLE_RANGE` rad (:func:`sigma_problem`): a sigma of 1e-200
   divides every residual into overflow, one of a metre is no instrument;
+* an auxiliary channel of known meaning is at least its
+  :data:`AUX_LOWER_BOUNDS` (no negative payload or elapsed time);
 * a number in a machine file (a length, an angle, a tolerance, an effect's
   value) is at most :data:`MAX_FILE_NUMBER` in magnitude
   (:func:`file_number_problem`): 1e300 is a typo that overflows the
@@ -33,7 +35,7 @@ from .errors import InputError
 
 __all__ = [
     "SEED_MAX", "check_seed", "SIGMA_POSITION_RANGE", "SIGMA_ANGLE_RANGE", "sigma_problem", "memory_budget",
-    "check_memory", "check_count", "BUDGET_ENV", "FIT_COPIES", "fit_memory", "check_fit_memory", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "lam_problem",
+    "check_memory", "check_count", "AUX_LOWER_BOUNDS", "BUDGET_ENV", "FIT_COPIES", "fit_memory", "check_fit_memory", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "lam_problem",
 ]
 
 #: Largest random seed (numpy's legacy RandomState, which emcee draws from, takes 32 bits).
@@ -55,6 +57,11 @@ def file_number_problem(value: float) -> str | None:
         return (f"expected a number of magnitude at most {MAX_FILE_NUMBER:g} (mm, rad or the key's unit; a larger "
                 f"value is a typo), got {value!r}")
     return None
+
+
+#: The smallest value of an auxiliary channel that is physics: no negative payload, nothing below absolute zero,
+#: no negative elapsed time (``grid --aux`` values and the recording's channels, docs/formats.md section E5).
+AUX_LOWER_BOUNDS = {"payload_kg": 0.0, "temp_C": -273.15, "time_s": 0.0}
 
 
 #: Largest ridge parameter: the prior's std is the tolerances over sqrt(lam), so 1e12 already holds every

@@ -398,6 +398,7 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None,
         axis = axis / norms[:, None]
     known = set(_POS + _ROT + _AXIS + _SIGMA) | {f"q{k}" for k in qnums}
     aux = {h: data[:, seen[h]].copy() for h in seen if h not in known}
+    check_channels(path, aux, labels.get("station"))
     sig = {name: _sigma_column(path, header, seen, data, name) for name in _SIGMA}
     declared = {m.group(1): m.group(2) for h in header if (m := _UNIT_COLUMN.match(h))}
     return Recording(
@@ -406,6 +407,52 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None,
         sigma_position=sig["sigma_position"], sigma_angle=sig["sigma_angle"], declared_units=declared,
         station=labels.get("station"), role=labels.get("role"),
     )
+
+
+#: What the channels with a lower bound hold, for messages.
+_MEANING = {"payload_kg": "a payload mass in kg", "temp_C": "a temperature in degC", "time_s": "an elapsed time in s"}
+
+
+def check_channels(path: str, aux: dict, station=None, lines=None) -> None:
+    """Refuse auxiliary channels of known meaning whose values cannot be (docs/formats.md sections 2 and E5).
+
+    A channel of :data:`bayescal.limits.AUX_LOWER_BOUNDS` below its bound
+    (a negative ``payload_kg`` or ``time_s``, a ``temp_C`` below absolute
+    zero), and a ``time_s`` that goes backwards down the rows of a station:
+    rows are in the order they were measured (section 2), so the elapsed
+    time cannot fall.  RecordingError naming the line and column.
+
+    Parameters
+    ----------
+    path : str
+    aux : dict of str to ndarray, shape (n,)
+    station : sequence of str, optional
+        Each row's station: time is checked within each (another session may start its own clock).
+    lines : array_like of int, optional
+        The CSV line of each row (default: 2, 3, ...).
+    """
+    from ..limits import AUX_LOWER_BOUNDS
+
+    n = len(next(iter(aux.values()))) if aux else 0
+    lines = np.arange(2, n + 2) if lines is None else np.asarray(lines, dtype=int)
+    for name, low in AUX_LOWER_BOUNDS.items():
+        v = aux.get(name)
+        if v is not None and (bad := np.flatnonzero(np.asarray(v) < low)).size:
+            i = int(bad[0])
+            raise RecordingError(path, int(lines[i]), name, f"{v[i]:g} is below {low:g}; expected {_MEANING[name]} "
+                                 f">= {low:g}")
+    t = aux.get("time_s")
+    if t is None:
+        return
+    groups = [np.arange(n)] if station is None else [np.flatnonzero(np.asarray(station) == s) for s in dict.fromkeys(station)]
+    for idx in groups:
+        drop = np.flatnonzero(np.diff(np.asarray(t)[idx]) < 0)
+        if drop.size:
+            i, prev = int(idx[drop[0] + 1]), int(idx[drop[0]])
+            where = "" if station is None else f" of station {station[i]!r}"
+            raise RecordingError(path, int(lines[i]), "time_s", f"time goes backwards: {t[i]:g} s after {t[prev]:g} s "
+                                 f"on line {int(lines[prev])}; expected the rows{where} in the order they were measured "
+                                 "(docs/formats.md section 2), time_s never decreasing")
 
 
 def _early_size_check(text: str, check_size: Callable[[int, int], None]) -> None:
