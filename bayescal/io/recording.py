@@ -347,35 +347,11 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None,
     """
     path = str(path)
     if check_size is not None:
-        if text is None:
-            from .safe_paths import MAX_CSV_BYTES, read_input_text
-
-            text = read_input_text(path, "a recording (CSV)", limit=MAX_CSV_BYTES,
-                                   error=lambda msg: RecordingError(path, None, None, msg))
-        _early_size_check(text, check_size)
+        text = _early_size_check(path, text, check_size)
     header, seen, data_rows = read_csv_rows(path, text, "a recording (CSV)")
     header, seen, data_rows, labels = split_label_columns(path, header, seen, data_rows)
     seen, scale, q_unit = _unit_columns(path, header, seen)
-    qnums = sorted(int(m.group(1)) for h in seen if (m := _Q.match(h)))
-    if not qnums:
-        raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ..." + _case_hint(seen, "q1"))
-    if qnums != list(range(1, len(qnums) + 1)):
-        missing = sorted(set(range(1, max(qnums) + 1)) - set(qnums))
-        raise RecordingError(path, 1, None, f"actuator columns must be q1..qN without gaps; missing q{missing[0]}")
-    for group, label in ((_POS, "position"), (_ROT, "rotation vector"), (_AXIS, "tool axis")):
-        present = [c for c in group if c in seen]
-        if group is _POS and len(present) != 3:
-            missing = [c for c in group if c not in seen]
-            raise RecordingError(
-                path, 1, missing[0], "missing measured position column; expected x, y, z" + _case_hint(seen, missing[0])
-            )
-        if 0 < len(present) < 3:
-            missing = [c for c in group if c not in seen]
-            raise RecordingError(path, 1, missing[0], f"incomplete {label}: expected all of {', '.join(group)}")
-    if _ROT[0] in seen and _AXIS[0] in seen:
-        raise RecordingError(
-            path, 1, "nx", "both a rotation vector (rx, ry, rz) and a tool axis (nx, ny, nz); expected one of them"
-        )
+    qnums = _pose_columns(path, seen)
     if not data_rows:
         raise RecordingError(path, 2, None, "no data rows; expected one row per measured pose")
     if check_size is not None:
@@ -455,14 +431,44 @@ def check_channels(path: str, aux: dict, station=None, lines=None) -> None:
                                  "(docs/formats.md section 2), time_s never decreasing")
 
 
-def _early_size_check(text: str, check_size: Callable[[int, int], None]) -> None:
-    """``check_size`` from the line count and the header line, before the text is split into cells.
+def _pose_columns(path: str, seen: dict[str, int]) -> list[int]:
+    """The actuator numbers ``1..N`` of the header; RecordingError for gaps and missing or incomplete pose columns."""
+    qnums = sorted(int(m.group(1)) for h in seen if (m := _Q.match(h)))
+    if not qnums:
+        raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ..." + _case_hint(seen, "q1"))
+    if qnums != list(range(1, len(qnums) + 1)):
+        missing = sorted(set(range(1, max(qnums) + 1)) - set(qnums))
+        raise RecordingError(path, 1, None, f"actuator columns must be q1..qN without gaps; missing q{missing[0]}")
+    for group, label in ((_POS, "position"), (_ROT, "rotation vector"), (_AXIS, "tool axis")):
+        present = [c for c in group if c in seen]
+        if group is _POS and len(present) != 3:
+            missing = [c for c in group if c not in seen]
+            raise RecordingError(
+                path, 1, missing[0], "missing measured position column; expected x, y, z" + _case_hint(seen, missing[0])
+            )
+        if 0 < len(present) < 3:
+            missing = [c for c in group if c not in seen]
+            raise RecordingError(path, 1, missing[0], f"incomplete {label}: expected all of {', '.join(group)}")
+    if _ROT[0] in seen and _AXIS[0] in seen:
+        raise RecordingError(
+            path, 1, "nx", "both a rotation vector (rx, ry, rz) and a tool axis (nx, ny, nz); expected one of them"
+        )
+    return qnums
+
+
+def _early_size_check(path: str, text: str | None, check_size: Callable[[int, int], None]) -> str:
+    """``check_size`` from the line count and the header line, before the text is split into cells; the text.
 
     Splitting a million rows into cells takes seconds and about ten times the
     file's size in memory; the count of lines (trailing blank lines left out)
     and the measured components the header names are known at once.  The
     reader checks again with the exact count once the header is checked.
     """
+    if text is None:
+        from .safe_paths import MAX_CSV_BYTES, read_input_text
+
+        text = read_input_text(path, "a recording (CSV)", limit=MAX_CSV_BYTES,
+                               error=lambda msg: RecordingError(path, None, None, msg))
     end = len(text)
     while end and text[end - 1].isspace():
         end -= 1
@@ -472,6 +478,7 @@ def _early_size_check(text: str, check_size: Callable[[int, int], None]) -> None
     dof = 6 if set(_ROT) <= names else 5 if set(_AXIS) <= names else 3
     if n_rows > 0:
         check_size(n_rows, dof)
+    return text
 
 
 #: Columns of labels, not numbers (docs/formats.md section 8): which instrument set-up took a row, and its role.
