@@ -61,17 +61,21 @@ def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Re
         (the rigid-transform check: ``check.fires`` suggests ``frame="fit"``); a constraint recording
         (section 6: heights, distances, ballbar radii) gives its model, which :func:`calibrate` takes as well.
     """
-    from .instrument.prepare import prepare_session
+    from .instrument.prepare import fit_size_check, prepare_session
 
+    machine = _machine(machine)
     if isinstance(recording, (str, os.PathLike)):
+        from .io import read_recording
         from .io.constraints import is_constraint_recording
 
         if is_constraint_recording(recording):
             from .constraints.model import load_constraint_model
 
-            return load_constraint_model(_machine(machine), recording, frame=frame, dof=dof)[1]
-
-    return prepare_session(_machine(machine), _recording(recording), dof=dof, frame=frame).with_fitted_stations()
+            return load_constraint_model(machine, recording, frame=frame, dof=dof)[1]
+        # a recording too large to fit is refused once its header is read, before its cells are parsed
+        recording = read_recording(recording, check_size=fit_size_check(machine, dof=dof, frame=frame,
+                                                                         path=str(recording)))
+    return prepare_session(machine, _recording(recording), dof=dof, frame=frame).with_fitted_stations()
 
 
 def calibrate(data, *, method: str = "map", **options):

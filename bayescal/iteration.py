@@ -53,6 +53,8 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .progress import report
+
 __all__ = ["Refused", "Proposal", "StepControl", "Iterated", "gauss_newton", "ROUNDOFF", "FLOOR"]
 
 #: Relative change of a cost (a sum of many squares) that is round-off: a rise this small does not
@@ -289,6 +291,8 @@ def gauss_newton(
         x, cost, state = new_x, new_cost, new_state
         history.append(x)
         costs.append(cost)
+        # a large recording takes seconds per iteration: say so when a caller listens (bayescal.progress)
+        report(lambda: f"Gauss-Newton iteration {it} of at most {max_iter}: cost {cost:.6g}, step {size:.2e}{unit}")
         floor = size < FLOOR * xtol and abs(previous - cost) <= ROUNDOFF * max(cost, 1.0)
         if _converged(prop, size, xtol, dtol) or floor:
             return end(it, True, "", "converged")

@@ -9,13 +9,19 @@ message that states the limit (docs/cli.md, "Limits"):
 * a stated noise is within :data:`SIGMA_POSITION_RANGE` mm or
   :data:`SIGMA_ANGLE_RANGE` rad (:func:`sigma_problem`): a sigma of 1e-200
   divides every residual into overflow, one of a metre is no instrument;
+* an auxiliary channel of known meaning is at least its
+  :data:`AUX_LOWER_BOUNDS` (no negative payload or elapsed time);
 * a number in a machine file (a length, an angle, a tolerance, an effect's
   value) is at most :data:`MAX_FILE_NUMBER` in magnitude
   (:func:`file_number_problem`): 1e300 is a typo that overflows the
   kinematics, or passes them and writes a recording of 1e300 mm;
 * a request whose arrays would not fit in the memory this machine has
   available is refused before it is allocated (:func:`check_memory`),
-  naming the size and the option that sets it.
+  naming the size and the option that sets it; a fit's peak is estimated by
+  :func:`fit_memory` and checked by :func:`check_fit_memory` as soon as the
+  recording is read, before its poses are solved.  The environment variable
+  :data:`BUDGET_ENV` (bytes; suffixes K, M, G) sets the budget instead of the
+  memory available.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from .errors import InputError
 
 __all__ = [
     "SEED_MAX", "check_seed", "SIGMA_POSITION_RANGE", "SIGMA_ANGLE_RANGE", "sigma_problem", "memory_budget",
-    "check_memory", "check_count", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "lam_problem",
+    "check_memory", "check_count", "AUX_LOWER_BOUNDS", "BUDGET_ENV", "FIT_COPIES", "fit_memory", "check_fit_memory", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "lam_problem",
 ]
 
 #: Largest random seed (numpy's legacy RandomState, which emcee draws from, takes 32 bits).
@@ -51,6 +57,11 @@ def file_number_problem(value: float) -> str | None:
         return (f"expected a number of magnitude at most {MAX_FILE_NUMBER:g} (mm, rad or the key's unit; a larger "
                 f"value is a typo), got {value!r}")
     return None
+
+
+#: The smallest value of an auxiliary channel that is physics: no negative payload, nothing below absolute zero,
+#: no negative elapsed time (``grid --aux`` values and the recording's channels, docs/formats.md section E5).
+AUX_LOWER_BOUNDS = {"payload_kg": 0.0, "temp_C": -273.15, "time_s": 0.0}
 
 
 #: Largest ridge parameter: the prior's std is the tolerances over sqrt(lam), so 1e12 already holds every
@@ -103,11 +114,38 @@ def _cgroup_room() -> float:
         return math.inf
 
 
+#: Environment variable that sets the memory budget, in bytes (``2G``, ``500M``, ``1e9``), instead of the
+#: memory available now: to keep a run within a share of a shared machine, or to test the refusals.
+BUDGET_ENV = "BAYESCAL_MEMORY_BUDGET"
+
+_SUFFIX = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def _budget_from_env() -> float | None:
+    """The budget :data:`BUDGET_ENV` states, bytes, or None when it is not set; InputError when it is not a size."""
+    text = os.environ.get(BUDGET_ENV, "").strip()
+    if not text:
+        return None
+    unit = text[-1].upper() if text[-1].upper() in "KMGT" else ""
+    try:
+        value = float(text[: len(text) - len(unit)]) * _SUFFIX[unit]
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(f"environment variable {BUDGET_ENV}: expected a positive number of bytes (suffix K, M or "
+                         f"G allowed, e.g. 2G), got {text!r}")
+    return value
+
+
 def memory_budget() -> float:
-    """Bytes a request may take: the memory available now (Linux ``MemAvailable``, within a cgroup's limit).
+    """Bytes a request may take: :data:`BUDGET_ENV` if set, else the memory available now (Linux ``MemAvailable``,
+    within a cgroup's limit).
 
     Where neither can be read: the physical memory, else 8 GiB.
     """
+    stated = _budget_from_env()
+    if stated is not None:
+        return stated
     avail = math.inf
     try:
         for line in Path("/proc/meminfo").read_text().splitlines():
@@ -141,8 +179,42 @@ def check_memory(n_bytes: float, what: str, change: str) -> None:
 
     budget = memory_budget()
     if not n_bytes <= budget:
+        source = f"set by {BUDGET_ENV}" if _budget_from_env() is not None else "available"
         raise InputError(f"{what} needs about {format_bytes(n_bytes)} of memory, more than the "
-                         f"{format_bytes(budget)} available; {change}")
+                         f"{format_bytes(budget)} {source}; {change}")
+
+
+#: Arrays of the Jacobian's size (measured components x parameters, float64) a fit holds at its peak.  Measured
+#: (peak resident memory less that of a 36-row run): a 3-PRS with 36 parameters, 6-DOF, ``identify --method map``
+#: and ``--method ridge --lam auto``, 5,000 and 20,000 poses: 8.0 and 8.7 such arrays (202 MB and 411 MB at peak);
+#: 100,000 poses peaked at 1.45 GB (7.6).  Ten keeps a margin for the robust pass and the fits with effects.
+FIT_COPIES = 10
+
+
+def fit_memory(n_rows: int, n_params: int) -> float:
+    """Estimated peak memory of identifying ``n_params`` parameters from ``n_rows`` measured components, bytes.
+
+    :data:`FIT_COPIES` float64 arrays of ``n_rows x n_params`` (the Jacobian,
+    its whitened and scaled copies, the SVD's factors).
+    """
+    return float(FIT_COPIES) * 8.0 * float(n_rows) * float(n_params)
+
+
+def check_fit_memory(n_rows: int, n_params: int, what: str = "identifying") -> None:
+    """Refuse a fit whose arrays (:func:`fit_memory`) would not fit in :func:`memory_budget`.
+
+    Parameters
+    ----------
+    n_rows : int
+        Measured components (poses x components per pose).
+    n_params : int
+        Parameters of the fit.
+    what : str
+        What is done, for the message (``"rec.csv: identifying"``).
+    """
+    check_memory(fit_memory(n_rows, n_params), f"{what} from {n_rows:,} measured components x {n_params} parameters",
+                 "identify from a subset of the poses (every k-th row of the recording), or set "
+                 f"{BUDGET_ENV} (bytes) if more memory can be taken")
 
 
 def check_count(value, option: str, *, minimum: int = 1) -> int:

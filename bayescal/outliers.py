@@ -76,6 +76,7 @@ from numpy.typing import NDArray
 from .distributions import chi2_median, chi2_ppf, chi2_sf, f_sf
 from .errors import InputError
 from .measurement import MeasurementModel
+from .progress import report
 
 __all__ = [
     "ALPHA",
@@ -478,6 +479,7 @@ def irls_weights(
     res = start if start is not None else fit(model)
     s2, converged, rounds = 1.0, False, 0
     for rounds in range(1, max_rounds + 1):
+        report(lambda: f"robust weights: round {rounds} of at most {max_rounds}")
         pred = model.predict(res.theta)
         if not pred.success.all():
             break  # a failed fit: keep the last weights

@@ -8,6 +8,9 @@ import zlib
 # Small dense problems: BLAS threads only add contention on a 2-core machine (set before numpy loads).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MPLBACKEND", "Agg")
+# No progress lines (bayescal.progress): on a loaded machine a command may run past their delay, and tests
+# compare what the commands write on stderr (tests/test_progress.py turns them back on)
+os.environ.setdefault("BAYESCAL_PROGRESS", "off")
 
 from pathlib import Path  # noqa: E402
 

@@ -106,13 +106,14 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = words  # for the report's inputs
     try:
         from ..io.safe_paths import run_scope
-        from .outputs import check_option_values, check_run_paths
+        from ..progress import reporting
+        from .outputs import check_option_values, check_run_paths, progress_sink
 
         # option values, output paths and formats before any computation; within the run no
         # output may replace a file it read (bayescal.io.safe_paths)
         check_option_values(args)
         check_run_paths(args)
-        with warnings.catch_warnings(), run_scope():
+        with warnings.catch_warnings(), run_scope(), reporting(progress_sink(args)):
             # numerical trouble is reported in the result and the exit code, not as a warning dump
             warnings.simplefilter("ignore")
             return int(args.func(args))

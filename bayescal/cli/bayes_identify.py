@@ -37,7 +37,8 @@ def add_arguments(p) -> None:
                    "run with the same --seed)")
     g.add_argument(
         "--progress", action=argparse.BooleanOptionalAction, default=None,
-        help="mcmc: show a progress bar (default: when stderr is a terminal)",
+        help="mcmc: show a progress bar (default: when stderr is a terminal); --no-progress also silences the "
+             "progress lines a long fit writes on stderr (docs/cli.md, Limits)",
     )
 
 

@@ -37,7 +37,10 @@ def recording_model(args: argparse.Namespace, *, constraints: bool = False) -> t
     constrained = _constraint_inputs(args, machine, constraints)
     if constrained is not None:
         return constrained
-    rec = read_recording(args.recording)
+    from ..instrument.prepare import fit_size_check
+
+    rec = read_recording(args.recording, check_size=fit_size_check(machine, dof=getattr(args, "dof", None),
+                                                                   path=args.recording))
     if rec.is_check.any():  # docs/formats.md section 8: check rows are never identified from
         import numpy as np
 
@@ -114,10 +117,11 @@ def instrument_session(args: argparse.Namespace, machine=None):
     """The :class:`~bayescal.instrument.prepare.Session` of ``args.recording`` (every row, with its role)."""
     import sys
 
-    from ..instrument.prepare import prepare_session
+    from ..instrument.prepare import fit_size_check, prepare_session
 
     machine = load_machine(args.machine) if machine is None else machine
-    rec = read_recording(args.recording)
+    rec = read_recording(args.recording, check_size=fit_size_check(
+        machine, dof=getattr(args, "dof", None), frame=getattr(args, "frame", "base"), path=args.recording))
     session = prepare_session(machine, rec, dof=getattr(args, "dof", None), frame=getattr(args, "frame", "base"))
     warning = None if session.check is None else session.check.warning()
     if warning and not getattr(args, "quiet", False):

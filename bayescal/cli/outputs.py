@@ -26,7 +26,7 @@ from ..io import write_json_atomic, write_text_atomic
 
 __all__ = [
     "add_output_options", "check_run_paths", "check_option_values", "run_paths", "say", "write_json",
-    "write_calibrated_machine", "write_report", "run_inputs",
+    "write_calibrated_machine", "write_report", "run_inputs", "progress_sink",
 ]
 
 #: Options naming one output file, by ``dest`` (``--out`` is a folder for the commands in OUT_FOLDERS).
@@ -130,6 +130,22 @@ def _check_no_empty_value(words: list) -> None:
             prev = words[i - 1] if i and isinstance(words[i - 1], str) and words[i - 1].startswith("-") else None
             raise InputError(f"{prev}: empty value; expected a value (leave the option out for its default)" if prev
                              else "an empty argument; expected a file name or a value")
+
+
+def progress_sink(args: argparse.Namespace):
+    """Where the library's progress lines go (:mod:`bayescal.progress`): stderr, unless asked for silence.
+
+    ``--quiet``, ``--no-progress`` or ``BAYESCAL_PROGRESS=off`` give None (no lines).  The lines start
+    after a few seconds, so a quick run prints none (docs/cli.md, "Limits").
+    """
+    from ..progress import StderrProgress, progress_wanted
+
+    if getattr(args, "quiet", False) or getattr(args, "progress", None) is False or getattr(args, "no_progress", False):
+        return None
+    if not progress_wanted():  # BAYESCAL_PROGRESS=off
+        return None
+
+    return StderrProgress(getattr(args, "command", "") or "")
 
 
 def say(args: argparse.Namespace, message: str) -> None:

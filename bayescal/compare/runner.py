@@ -26,6 +26,7 @@ killed mid-write) is discarded.  A different configuration in the same
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -36,6 +37,7 @@ from typing import Iterator
 
 from ..errors import InputError
 from ..io import write_json_atomic
+from ..progress import report, reporting
 from ..io.answers import to_jsonable
 from .trial import METRICS, CompareConfig, run_trial
 
@@ -198,6 +200,21 @@ def _dask(cfg: dict, todo: list[int], *, dask_workers: int, scheduler: str | Non
             cluster.close()
 
 
+def _collect(it, done: dict, path: Path | None, bar, trials: int) -> None:
+    """Each finished trial into ``done`` (and appended to ``path``), the bar or a progress line moved on."""
+    drawn = bar is not None and not bar.disable
+    # a bar drawn on the terminal says how far the trials are: the fits' own progress lines would break it
+    with reporting(None) if drawn else contextlib.nullcontext():
+        for rec in it:
+            rec = _normalise(rec)
+            done[int(rec["trial"])] = rec
+            if path is not None:
+                _append(path, rec)
+            if bar is not None:
+                bar.update(1)
+            report(lambda: f"{len(done)} of {trials} trials done")
+
+
 def run_trials(
     config: CompareConfig,
     *,
@@ -266,13 +283,7 @@ def run_trials(
         # disable=None: no bar when stderr is not a terminal (a log file gets no carriage-return lines)
         bar = tqdm(total=config.trials, initial=len(done), desc="trials", unit="trial", file=sys.stderr, disable=None)
     try:
-        for rec in it if todo else ():
-            rec = _normalise(rec)
-            done[int(rec["trial"])] = rec
-            if path is not None:
-                _append(path, rec)
-            if bar is not None:
-                bar.update(1)
+        _collect(it if todo else (), done, path, bar, config.trials)
     finally:
         if bar is not None:
             bar.close()

@@ -44,6 +44,7 @@ from ..effects.base import approach_direction
 from ..measurement import MeasurementModel
 from ..models import model_from_recording
 from ..outliers import recording_lines
+from ..progress import report
 from .confound import geometry_confound, written_tool_jacobian
 from .separate import separating_sessions
 from .discrepancy import try_discrepancy
@@ -447,7 +448,9 @@ def _single_trials(model, cands: list[_Candidate], skipped: list, folds, fit0: E
     A candidate whose fit fails or needs non-physical values leaves ``cands`` for ``skipped``.
     """
     single: dict[str, tuple[EffectFit, float, float]] = {}
-    for c in list(cands):
+    total = len(cands)
+    for i, c in enumerate(list(cands), 1):
+        report(lambda: f"fitting candidate effect {i} of {total} ({c.effect.name})")
         try:
             fit = fit_map(model, [(c.effect, c.features)], theta0=fit0.theta)
             why = c.effect.inadmissible(c.features, fit.eta) or _nonphysical(fit, [c])
@@ -487,6 +490,7 @@ def _forward_selection(s: _Setup, cands, single, folds, fit0: EffectFit, cv0: fl
     while remaining:
         best = None
         for c in remaining:
+            report(lambda: f"forward selection: {len(selected)} selected, trying {c.effect.name}")
             if not selected:
                 fit, ev, cv = single[c.effect.name]
             elif single[c.effect.name][1] < DECISIVE:

@@ -50,6 +50,7 @@ from numpy.typing import NDArray
 
 from ..errors import BayescalError, InputError, MachineFileError
 from ..io.machine_file import TomlTable, format_toml_value
+from ..limits import AUX_LOWER_BOUNDS
 from ..machines.base import Machine, ToolPoses, offset_poses
 from .base import Effect, EffectParam
 from .registry import EFFECTS, get_effect
@@ -645,7 +646,3 @@ def parse_aux_values(items: list[str] | None) -> dict[str, float]:
         out[name] = v
     return out
 
-
-#: The smallest value of a channel that is physics: no negative payload, nothing below absolute zero, no negative
-#: elapsed time.
-AUX_LOWER_BOUNDS = {"payload_kg": 0.0, "temp_C": -273.15, "time_s": 0.0}

@@ -86,6 +86,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from ..measurement import MeasurementModel
 from .ceiling import success_probabilities
+from ..progress import report
 from .gauss_newton import identify, resolve_free, whitened_system
 from .result import IdentificationResult
 from .scale_prior import DEFAULT_HYPERPRIOR, ScaleHyperprior
@@ -846,6 +847,7 @@ def choose_regularisation(
         first = res
         choice, rounds, lam_prev = None, 0, 1.0
         for rounds in range(1, max_rounds + 1):
+            report(lambda: f"automatic lambda: round {rounds} of at most {max_rounds} (lambda {lam_prev:.3g})")
             # a failed fit is no place to linearise: fall back to the start
             A, z, groups = linearised_problem(model, res.theta if res.success else theta, idx, S_all)
             choice = choose_linear(

@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..contract import whiten
 from ..errors import ConvergenceWarning, InputError, KinematicsError
-from ..limits import check_memory, finite_real
+from ..limits import check_fit_memory, finite_real
 from ..identifiability import STRUCTURAL_RTOL, analyse_identifiability, priority_order
 from ..iteration import Proposal, Refused, StepControl, gauss_newton
 from ..measurement import MeasurementModel
@@ -282,11 +282,8 @@ def identify(
     theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float)
     if theta.shape != (P,):
         raise InputError(f"theta0: expected shape ({P},), got {theta.shape}")
-    # the Jacobian, its whitened and scaled copies and the SVD's factors: about ten (rows x P) arrays at the peak
-    # (measured: 100,000 6-DOF poses of a 36-parameter machine peaked at 1.45 GB)
-    check_memory(10.0 * 8 * model.n_poses * model.dof * P,
-                 f"identifying from {model.n_poses * model.dof:,} measured components x {P} parameters",
-                 "identify from a subset of the poses (every k-th row of the recording)")
+    # the Jacobian, its whitened and scaled copies and the SVD's factors (bayescal.limits.FIT_COPIES)
+    check_fit_memory(model.n_poses * model.dof, P)
     S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
     if np.any(S_all <= 0):
         raise InputError("scale: expected positive values")

@@ -212,6 +212,15 @@ class FrameCheck:
     rms_tolerance_machine : float
         :attr:`rms_tolerance` without the tool's parameters: what the machine's own tolerances
         explain when the file declares the tool point unknown (a tolerance of a metre).
+    scale_one_out : float
+        :attr:`scale` with the pose farthest from the nominal machine (after the rigid transform) left
+        out; NaN when not computed.  Wrong units scale every pose alike; one mistyped cell (163 for
+        16.3 mm) moves the spread too, but leaving its pose out brings the scale back to 1.
+    odd_line : int
+        The CSV line of that pose (0 when not computed).
+    odd_column : str
+        Its measured column farthest from the nominal machine (``"x"``, ``"y"`` or ``"z"``, in the
+        recording's own axes).
     """
 
     rms_nominal: float
@@ -226,6 +235,9 @@ class FrameCheck:
     rms_swapped: float = float("nan")
     swapped_aligned: bool = False
     rms_tolerance_machine: float = float("nan")
+    scale_one_out: float = float("nan")
+    odd_line: int = 0
+    odd_column: str = ""
 
     #: The nominal RMS must exceed the tolerance RMS by this factor ...
     BEYOND = 5.0
@@ -332,7 +344,8 @@ class FrameCheck:
             "rotation_deg": float(np.degrees(self.angle)), "scale": self.scale, "explanation": self.explanation,
             "rms_tool": self.rms_tool, "tool_offset": None if self.tool_offset is None else self.tool_offset.tolist(),
             "swapped": self.swapped or None, "rms_swapped": self.rms_swapped,
-            "rms_tolerance_machine": self.rms_tolerance_machine,
+            "rms_tolerance_machine": self.rms_tolerance_machine, "scale_one_out": self.scale_one_out,
+            "odd_line": self.odd_line or None, "odd_column": self.odd_column or None,
         }
 
 
@@ -365,7 +378,26 @@ def check_frame(machine: Machine, rec: Recording) -> FrameCheck | None:
     tool = _tool_offset_fit(machine, J, pm - pn)
     swap = _best_swap(pm, pn, rms1)
     return FrameCheck(rms0, rms1, rms_tol, f, float(s_n / s_m) if s_m > 0 else float("nan"), *tool, *swap,
-                      rms_tol_machine)
+                      rms_tol_machine, *_one_pose_out(pm, pn, f, rec.lines[ok]))
+
+
+def _spread(p: NDArray) -> float:
+    """RMS distance of points from their mean, mm."""
+    return float(np.sqrt(np.mean(np.sum((p - p.mean(0)) ** 2, axis=1))))
+
+
+def _one_pose_out(pm: NDArray, pn: NDArray, f: Frame, lines: NDArray) -> tuple[float, int, str]:
+    """The scale without the pose farthest from the nominal machine after ``f``, its line and its worst column."""
+    if len(pm) < 4:
+        return float("nan"), 0, ""
+    d = f.to_base(pm) - pn
+    w = int(np.argmax(np.sum(d**2, axis=1)))
+    keep = np.arange(len(pm)) != w
+    s_m = _spread(pm[keep])
+    scale = _spread(pn[keep]) / s_m if s_m > 0 else float("nan")
+    # the column in the recording's own axes: the residual turned back into the instrument frame
+    column = "xyz"[int(np.argmax(np.abs(f.rotation.T @ d[w])))]
+    return float(scale), int(lines[w]), column
 
 
 def _rms(d: NDArray) -> float:

@@ -32,6 +32,10 @@ Likely causes are named for each flagged case:
   far better than any rigid transform;
 * *wrong units*: none of these explains it, and the measured points spread
   more than 5 % more or less than the nominal machine's at the same poses;
+  *one pose makes the spread* instead when leaving out the pose farthest
+  from the nominal machine brings the spreads within 5 % (a mistyped cell,
+  163 for 16.3 mm: wrong units scale every pose alike), naming its line and
+  column;
 * *outliers*: the worst 3 % of poses (at least one) carry more than half
   of the chi-square, with a reduced chi-square above 2.
 """
@@ -56,6 +60,9 @@ __all__ = ["Plausibility", "assess_plausibility", "frame_answer", "judge_fit", "
 
 #: |value| above this many tolerances (prior sigmas) makes a calibration implausible.
 PLAUSIBLE_SIGMAS = 10.0
+#: Spreads of the measured and the nominal tool points that differ by more than this (log of their ratio, about
+#: 5 %) name wrong units as a likely cause, unless leaving one pose out brings them within it.
+UNITS_LOG_TOL = 0.05
 
 
 @dataclass(frozen=True)
@@ -198,7 +205,13 @@ def _recording_causes(check: FrameCheck | None) -> list[str]:
     cause = check.cause()
     if cause is not None:
         return [cause]
-    if math.isfinite(check.scale) and abs(math.log(check.scale)) > 0.05:
+    if math.isfinite(check.scale) and abs(math.log(check.scale)) > UNITS_LOG_TOL:
+        if math.isfinite(check.scale_one_out) and abs(math.log(check.scale_one_out)) <= UNITS_LOG_TOL:
+            # wrong units scale every pose; a spread that one pose makes is a mistyped cell of that pose
+            return [f"one pose makes the spread: the nominal machine's tool points spread {check.scale:.4g} times as "
+                    f"far as the measured ones, {check.scale_one_out:.3f} times without CSV line {check.odd_line}; check "
+                    f"that line's cells (column {check.odd_column} lies farthest from the nominal machine): a typo, "
+                    "not the units"]
         return [f"wrong units: the nominal machine's tool points spread {check.scale:.4g} times as far as the measured "
                 "ones at the same poses; check the units of x, y, z (suffixes _mm, _um, _m)"]
     return []

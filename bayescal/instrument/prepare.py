@@ -10,18 +10,21 @@ gives the ``fit`` and ``check`` parts; :func:`prepare_model` gives the
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from ..errors import InputError, RecordingError
 from ..io.recording import Recording
+from ..limits import check_fit_memory
 from ..machines.base import Machine
 from ..machines.framed import Frame, InstrumentFrame
 from ..measurement import MeasurementModel, check_recording_solves
 from .alignment import FrameCheck, check_frame, frame_start
+from ..progress import report
 from .units import check_recording_units
 
-__all__ = ["FRAMES", "Session", "prepare_model", "prepare_session", "station_frames"]
+__all__ = ["fit_size_check", "FRAMES", "Session", "prepare_model", "prepare_session", "station_frames"]
 
 #: ``--frame`` choices: the recording is in the base frame (or the machine file's known
 #: ``[instrument]`` frame), or in an unknown instrument frame fitted with the geometry.
@@ -94,6 +97,26 @@ class Session:
         return [f"station {s!r} has too few fit rows to fit its frame" if s in bad else None for s in self.recording.station]
 
 
+def fit_size_check(machine: Machine, *, dof: int | None = None, frame: str = "base", stations: int = 1,
+                   path: str = "") -> Callable[[int, int], None]:
+    """The memory check of a fit of a recording, for :func:`bayescal.io.read_recording`'s ``check_size``.
+
+    The returned function takes the recording's poses and measured
+    components per pose and refuses (InputError, through
+    :func:`bayescal.limits.check_fit_memory`) a fit whose arrays would not fit
+    in the memory budget: ``dof`` (when given) components per pose, the
+    machine's parameters and, for ``frame="fit"``, six per station.
+    :func:`prepare_session` checks the same once more with the stations the
+    recording has.
+    """
+    n_params = machine.n_params + (6 * stations if frame == "fit" else 0)
+
+    def check(n_poses: int, row_dof: int) -> None:
+        check_fit_memory(n_poses * (dof or row_dof), n_params, f"{path}: identifying" if path else "identifying")
+
+    return check
+
+
 def prepare_session(
     machine: Machine, rec: Recording, *, dof: int | None = None, frame: str = "base", strict: bool = True,
     sensors: bool = True,
@@ -121,6 +144,9 @@ def prepare_session(
 
     Raises
     ------
+    InputError
+        (``strict``) A recording whose fit would not fit in the memory budget
+        (:func:`bayescal.limits.check_fit_memory`), before anything is solved.
     RecordingError
         Units that look wrong (:func:`check_recording_units`), a pose the
         nominal machine cannot assemble (``strict``), or (``"base"``) a
@@ -130,6 +156,9 @@ def prepare_session(
     if frame not in FRAMES:
         raise InputError(f"frame: expected one of {', '.join(FRAMES)}, got {frame!r}")
     rec.check_machine(machine.n_actuators, machine.q_limits, machine.source, machine.actuator_units)
+    if strict:
+        # before any pose is solved: a recording whose fit cannot fit in memory ends now, not minutes later
+        fit_size_check(machine, dof=dof, frame=frame, stations=len(rec.stations), path=rec.path)(rec.n_poses, rec.dof)
     check_recording_units(machine, rec)
     fit_rec = rec.subset(np.flatnonzero(~rec.is_check)) if rec.is_check.any() else rec
     check, unfitted = None, ()
@@ -139,6 +168,7 @@ def prepare_session(
         check = _base_frame_check(machine, fit_rec)
     model = MeasurementModel.from_recording(machine, rec, dof=dof, sensors=sensors)
     if strict:
+        report(lambda: f"solving the nominal kinematics at {rec.n_poses:,} poses")
         usable = np.ones(rec.n_poses, dtype=bool)
         if unfitted and rec.station is not None:
             usable = np.array([st not in unfitted for st in rec.station])

@@ -9,6 +9,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -241,15 +242,23 @@ def parse_number(text: str, path: str, line: int, col: str) -> float:
     return v
 
 
+#: Rows between two progress lines while a large CSV is parsed (bayescal.progress).
+PROGRESS_ROWS = 100_000
+
+
 def parse_table(path: str, header: list[str], rows: list[list[str]]) -> np.ndarray:
     """The data rows (file lines 2, 3, ...) as floats, shape (len(rows), len(header)).
 
     Every row must have one cell per header column and every cell must be a
     number (:func:`parse_number`); RecordingError naming line and column otherwise.
     """
+    from ..progress import report
+
     data = np.empty((len(rows), len(header)))
     for i, row in enumerate(rows):
         line = i + 2
+        if i and i % PROGRESS_ROWS == 0:  # about 2 s per 100,000 rows of a recording
+            report(lambda: f"reading {path}: row {i:,} of {len(rows):,}")
         if len(row) != len(header):
             raise RecordingError(path, line, None, f"{len(row)} cells, expected {len(header)} (one per header column)")
         for j, cell in enumerate(row):
@@ -316,7 +325,8 @@ def read_csv_rows(path: str, text: str | None, what: str) -> tuple[list[str], di
     return header, seen, rows[1:]
 
 
-def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recording:
+def read_recording(path: str | os.PathLike, *, text: str | None = None,
+                   check_size: Callable[[int, int], None] | None = None) -> Recording:
     """Read a recording CSV strictly.
 
     Parameters
@@ -325,6 +335,12 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         The CSV file (used for messages only if ``text`` is given).
     text : str, optional
         The file's content, to parse from memory.
+    check_size : callable, optional
+        Called with the number of data rows and the measured components per
+        row (6, 5 or 3) once the header is checked, before any cell is
+        parsed: a caller's size limit (the memory a fit of that many rows
+        takes, :func:`bayescal.instrument.prepare.fit_size_check`) ends a
+        large file at once instead of after parsing it.
 
     Returns
     -------
@@ -337,9 +353,93 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         incomplete columns, and ragged rows, naming line and column.
     """
     path = str(path)
+    if check_size is not None:
+        text = _early_size_check(path, text, check_size)
     header, seen, data_rows = read_csv_rows(path, text, "a recording (CSV)")
     header, seen, data_rows, labels = split_label_columns(path, header, seen, data_rows)
     seen, scale, q_unit = _unit_columns(path, header, seen)
+    qnums = _pose_columns(path, seen)
+    if not data_rows:
+        raise RecordingError(path, 2, None, "no data rows; expected one row per measured pose")
+    if check_size is not None:
+        check_size(len(data_rows), 6 if _ROT[0] in seen else 5 if _AXIS[0] in seen else 3)
+    data = parse_table(path, header, data_rows)
+    data *= scale[None, :]
+    col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
+    q = col([f"q{k}" for k in qnums])
+    rotvec = col(_ROT) if _ROT[0] in seen else None
+    axis = None
+    if _AXIS[0] in seen:
+        axis = col(_AXIS)
+        norms = np.linalg.norm(axis, axis=1)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > AXIS_NORM_TOL)
+        if bad.size:
+            raise RecordingError(
+                path, int(bad[0]) + 2, "nx",
+                f"tool axis (nx, ny, nz) has norm {norms[bad[0]]:.6g}; expected a unit vector (within {AXIS_NORM_TOL})",
+            )
+        axis = axis / norms[:, None]
+    known = set(_POS + _ROT + _AXIS + _SIGMA) | {f"q{k}" for k in qnums}
+    aux = {h: data[:, seen[h]].copy() for h in seen if h not in known}
+    check_channels(path, aux, labels.get("station"))
+    sig = {name: _sigma_column(path, header, seen, data, name) for name in _SIGMA}
+    declared = {m.group(1): m.group(2) for h in header if (m := _UNIT_COLUMN.match(h))}
+    return Recording(
+        q=q, position=col(_POS), rotvec=rotvec, axis=axis, aux=aux, path=path,
+        q_columns=tuple(header[seen[f"q{k}"]] for k in qnums), q_units=tuple(q_unit.get(f"q{k}", "") for k in qnums),
+        sigma_position=sig["sigma_position"], sigma_angle=sig["sigma_angle"], declared_units=declared,
+        station=labels.get("station"), role=labels.get("role"),
+    )
+
+
+#: What the channels with a lower bound hold, for messages.
+_MEANING = {"payload_kg": "a payload mass in kg", "temp_C": "a temperature in degC", "time_s": "an elapsed time in s"}
+
+
+def check_channels(path: str, aux: dict, station=None, lines=None) -> None:
+    """Refuse auxiliary channels of known meaning whose values cannot be (docs/formats.md sections 2 and E5).
+
+    A channel of :data:`bayescal.limits.AUX_LOWER_BOUNDS` below its bound
+    (a negative ``payload_kg`` or ``time_s``, a ``temp_C`` below absolute
+    zero), and a ``time_s`` that goes backwards down the rows of a station:
+    rows are in the order they were measured (section 2), so the elapsed
+    time cannot fall.  RecordingError naming the line and column.
+
+    Parameters
+    ----------
+    path : str
+    aux : dict of str to ndarray, shape (n,)
+    station : sequence of str, optional
+        Each row's station: time is checked within each (another session may start its own clock).
+    lines : array_like of int, optional
+        The CSV line of each row (default: 2, 3, ...).
+    """
+    from ..limits import AUX_LOWER_BOUNDS
+
+    n = len(next(iter(aux.values()))) if aux else 0
+    lines = np.arange(2, n + 2) if lines is None else np.asarray(lines, dtype=int)
+    for name, low in AUX_LOWER_BOUNDS.items():
+        v = aux.get(name)
+        if v is not None and (bad := np.flatnonzero(np.asarray(v) < low)).size:
+            i = int(bad[0])
+            raise RecordingError(path, int(lines[i]), name, f"{v[i]:g} is below {low:g}; expected {_MEANING[name]} "
+                                 f">= {low:g}")
+    t = aux.get("time_s")
+    if t is None:
+        return
+    groups = [np.arange(n)] if station is None else [np.flatnonzero(np.asarray(station) == s) for s in dict.fromkeys(station)]
+    for idx in groups:
+        drop = np.flatnonzero(np.diff(np.asarray(t)[idx]) < 0)
+        if drop.size:
+            i, prev = int(idx[drop[0] + 1]), int(idx[drop[0]])
+            where = "" if station is None else f" of station {station[i]!r}"
+            raise RecordingError(path, int(lines[i]), "time_s", f"time goes backwards: {t[i]:g} s after {t[prev]:g} s "
+                                 f"on line {int(lines[prev])}; expected the rows{where} in the order they were measured "
+                                 "(docs/formats.md section 2), time_s never decreasing")
+
+
+def _pose_columns(path: str, seen: dict[str, int]) -> list[int]:
+    """The actuator numbers ``1..N`` of the header; RecordingError for gaps and missing or incomplete pose columns."""
     qnums = sorted(int(m.group(1)) for h in seen if (m := _Q.match(h)))
     if not qnums:
         raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ..." + _case_hint(seen, "q1"))
@@ -360,34 +460,32 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None) -> Recor
         raise RecordingError(
             path, 1, "nx", "both a rotation vector (rx, ry, rz) and a tool axis (nx, ny, nz); expected one of them"
         )
-    if not data_rows:
-        raise RecordingError(path, 2, None, "no data rows; expected one row per measured pose")
-    data = parse_table(path, header, data_rows)
-    data *= scale[None, :]
-    col = lambda names: data[:, [seen[c] for c in names]]  # noqa: E731
-    q = col([f"q{k}" for k in qnums])
-    rotvec = col(_ROT) if _ROT[0] in seen else None
-    axis = None
-    if _AXIS[0] in seen:
-        axis = col(_AXIS)
-        norms = np.linalg.norm(axis, axis=1)
-        bad = np.flatnonzero(np.abs(norms - 1.0) > AXIS_NORM_TOL)
-        if bad.size:
-            raise RecordingError(
-                path, int(bad[0]) + 2, "nx",
-                f"tool axis (nx, ny, nz) has norm {norms[bad[0]]:.6g}; expected a unit vector (within {AXIS_NORM_TOL})",
-            )
-        axis = axis / norms[:, None]
-    known = set(_POS + _ROT + _AXIS + _SIGMA) | {f"q{k}" for k in qnums}
-    aux = {h: data[:, seen[h]].copy() for h in seen if h not in known}
-    sig = {name: _sigma_column(path, header, seen, data, name) for name in _SIGMA}
-    declared = {m.group(1): m.group(2) for h in header if (m := _UNIT_COLUMN.match(h))}
-    return Recording(
-        q=q, position=col(_POS), rotvec=rotvec, axis=axis, aux=aux, path=path,
-        q_columns=tuple(header[seen[f"q{k}"]] for k in qnums), q_units=tuple(q_unit.get(f"q{k}", "") for k in qnums),
-        sigma_position=sig["sigma_position"], sigma_angle=sig["sigma_angle"], declared_units=declared,
-        station=labels.get("station"), role=labels.get("role"),
-    )
+    return qnums
+
+
+def _early_size_check(path: str, text: str | None, check_size: Callable[[int, int], None]) -> str:
+    """``check_size`` from the line count and the header line, before the text is split into cells; the text.
+
+    Splitting a million rows into cells takes seconds and about ten times the
+    file's size in memory; the count of lines (trailing blank lines left out)
+    and the measured components the header names are known at once.  The
+    reader checks again with the exact count once the header is checked.
+    """
+    if text is None:
+        from .safe_paths import MAX_CSV_BYTES, read_input_text
+
+        text = read_input_text(path, "a recording (CSV)", limit=MAX_CSV_BYTES,
+                               error=lambda msg: RecordingError(path, None, None, msg))
+    end = len(text)
+    while end and text[end - 1].isspace():
+        end -= 1
+    n_rows = text.count("\n", 0, end) + text.count("\r", 0, end) - text.count("\r\n", 0, end)
+    first = text[: min(i for i in (text.find("\n"), text.find("\r"), len(text)) if i >= 0)]
+    names = {(m.group(1) if (m := _UNIT_COLUMN.match(c.strip())) else c.strip()) for c in first.split(",")}
+    dof = 6 if set(_ROT) <= names else 5 if set(_AXIS) <= names else 3
+    if n_rows > 0:
+        check_size(n_rows, dof)
+    return text
 
 
 #: Columns of labels, not numbers (docs/formats.md section 8): which instrument set-up took a row, and its role.

@@ -18,6 +18,23 @@ __all__ = ["SENSOR_COLUMN", "sensor_readings"]
 
 #: ``accel.<body>.<axis>``: a body name may itself contain dots (a URDF link name)
 SENSOR_COLUMN = re.compile(r"accel\.(?P<body>.+)\.(?P<axis>[xyz])")
+#: The same in any case (``Accel.base.X``): a sensor spelled otherwise, refused rather than read as a channel.
+_ANY_CASE = re.compile(SENSOR_COLUMN.pattern, re.IGNORECASE)
+
+
+def _near_miss(col: str, bodies: tuple[str, ...]) -> str | None:
+    """The spelling a column that is a sensor's in another case should have (None: not such a column).
+
+    ``accel`` and the axis are lower case; the body keeps its case when the
+    machine has it, else takes the machine's body of that name in any case.
+    """
+    m = _ANY_CASE.fullmatch(col)
+    if m is None or SENSOR_COLUMN.fullmatch(col):
+        return None
+    body = m["body"]
+    if body not in bodies:
+        body = next((b for b in bodies if b.lower() == body.lower()), body)
+    return f"accel.{body}.{m['axis'].lower()}"
 
 
 def sensor_readings(aux: dict, path: str, lines, bodies: tuple[str, ...]) -> dict[str, NDArray]:
@@ -42,8 +59,9 @@ def sensor_readings(aux: dict, path: str, lines, bodies: tuple[str, ...]) -> dic
     Raises
     ------
     RecordingError
-        A body the machine does not have (naming the column and the bodies
-        it has), a body without all three of ``x``, ``y``, ``z``, or a
+        A column spelled like a sensor's in another case (``accel.base.X``:
+        naming it and the spelling expected), a body the machine does not
+        have (naming the column and the bodies it has), a body without all three of ``x``, ``y``, ``z``, or a
         reading of zero length (naming the line).
     """
     found: dict[str, dict[str, str]] = {}
@@ -51,6 +69,11 @@ def sensor_readings(aux: dict, path: str, lines, bodies: tuple[str, ...]) -> dic
         m = SENSOR_COLUMN.fullmatch(col)
         if m:
             found.setdefault(m["body"], {})[m["axis"]] = col
+        elif (spelled := _near_miss(col, bodies)) is not None:
+            # read as a channel, a sensor typed 'accel.base.X' would silently be no sensor at all
+            raise RecordingError(path, 1, col, f"a body sensor's column in the wrong case; expected {spelled!r} "
+                                 "(lower-case 'accel' and axis x, y, z; docs/formats.md section 8), or another name "
+                                 "for an auxiliary channel")
     out = {}
     for body, axes in found.items():
         first = next(iter(axes.values()))

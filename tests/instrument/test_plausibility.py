@@ -194,3 +194,25 @@ def test_kalman_on_two_poses_is_judged_like_map(prs3):
     assert p.plausible, p.reasons
     n_eff = _effective_params(kal)
     assert 0 < n_eff < model.n_poses * model.dof < int(kal.free.sum())
+
+
+@pytest.mark.parametrize("column", [0, 2])
+def test_one_mistyped_cell_is_not_blamed_on_the_units(prs3, column):
+    """A decimal shift in one cell (163 for 16.3 mm) moves the spread; wrong units move every pose (issue 30)."""
+    rec = simulate_recording(prs3, 36, seed=5, dof=6).recording
+    p = rec.position.copy()
+    p[7, column] = 10 * p[7, column] + (150.0 if abs(p[7, column]) < 15 else 0.0)  # a gross shift whatever the value
+    typo = replace(rec, position=p)
+    chk = check_frame(prs3, typo)
+    assert abs(np.log(chk.scale)) > 0.05  # the whole recording's spread disagrees ...
+    assert abs(np.log(chk.scale_one_out)) < 0.01 and chk.odd_line == 9 and chk.odd_column == "xyz"[column]
+    theta = np.zeros(prs3.n_params)
+    theta[0] = 20 * prs3.tolerance[0]
+    causes = assess_plausibility(MeasurementModel.from_recording(prs3, typo), theta, np.ones(prs3.n_params, bool),
+                                 check=chk).causes
+    assert not any(c.startswith("wrong units") for c in causes)
+    assert any(c.startswith("one pose makes the spread") and "CSV line 9" in c and f"column {'xyz'[column]}" in c
+               for c in causes)
+    # ... while a recording in inches scales every pose: leaving one out does not help
+    inch = check_frame(prs3, replace(rec, position=rec.position / 25.4))
+    assert abs(np.log(inch.scale_one_out) - np.log(25.4)) < 0.05

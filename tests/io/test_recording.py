@@ -190,3 +190,33 @@ def test_upper_case_names_get_a_hint(text, column, found):
     with pytest.raises(RecordingError, match="case-sensitive: found " + found) as err:
         read_recording("bad.csv", text=text)
     assert err.value.column == column
+
+
+H = "q1,q2,q3,x,y,z"
+
+
+@pytest.mark.parametrize("extra, cells, line, column, match", [
+    ("payload_kg", ["5", "0", "-2", "4"], 4, "payload_kg", r"-2 is below 0; expected a payload mass in kg >= 0"),
+    ("time_s", ["-1", "30", "60", "90"], 2, "time_s", r"-1 is below 0; expected an elapsed time in s >= 0"),
+    ("temp_C", ["20", "-300", "21", "22"], 3, "temp_C", r"below -273.15"),
+    ("time_s", ["0", "30", "60", "45"], 5, "time_s", r"time goes backwards: 45 s after 60 s on line 4; expected the rows "
+                                                      r"in the order they were measured"),
+])
+def test_channels_the_contract_gives_a_meaning_refuse_what_they_cannot_hold(extra, cells, line, column, match):
+    """A negative payload or elapsed time, and time that falls down the rows (rows are in measured order, section 2)."""
+    text = f"{H},{extra}\n" + "".join(f"1,2,3,4,5,6,{c}\n" for c in cells)
+    with pytest.raises(RecordingError, match=match) as err:
+        read_recording("r.csv", text=text)
+    assert (err.value.row, err.value.column) == (line, column)
+
+
+def test_time_runs_per_station_and_may_stand_still():
+    text = (f"{H},time_s,station\n1,2,3,4,5,6,0,a\n1,2,3,4,5,6,100,a\n1,2,3,4,5,6,0,b\n1,2,3,4,5,6,100,a\n"
+            "1,2,3,4,5,6,50,b\n")
+    rec = read_recording("r.csv", text=text)  # each station its own clock (another day's session)
+    assert rec.aux["time_s"].tolist() == [0, 100, 0, 100, 50]
+    with pytest.raises(RecordingError, match="50 s after 100 s on line 5; expected the rows of station 'a'") as err:
+        read_recording("r.csv", text=text.replace("1,2,3,4,5,6,50,b", "1,2,3,4,5,6,50,a"))
+    assert (err.value.row, err.value.column) == (6, "time_s")
+    # other channels take any finite value: the contract gives them no meaning
+    assert read_recording("r.csv", text=f"{H},pose_id,strain\n1,2,3,4,5,6,-3,-1e3\n").aux["pose_id"][0] == -3

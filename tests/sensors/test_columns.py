@@ -58,7 +58,17 @@ def _nan(header, rows):
     return header, rows
 
 
+def _upper_axis(header, rows):
+    return [h.replace("accel.joint2.x", "accel.joint2.X") for h in header], rows
+
+
+def _upper_all(header, rows):
+    return [h.replace("accel.joint2.y", "ACCEL.JOINT2.Y") for h in header], rows
+
+
 @pytest.mark.parametrize("fn, expected", [
+    (_upper_axis, "line 1, column 'accel.joint2.X': a body sensor's column in the wrong case; expected 'accel.joint2.x'"),
+    (_upper_all, "line 1, column 'ACCEL.JOINT2.Y': a body sensor's column in the wrong case; expected 'accel.joint2.y'"),
     (_renamed, "column 'accel.column.x': no body 'column' on this machine; expected accel.<body>.x/y/z with <body> one "
                "of base, joint1, joint2, joint3"),
     (_no_z, "column(s) accel.joint2.z missing"),
@@ -134,3 +144,21 @@ def test_fitted_frames_per_station_with_sensors(files, tmp_path, capsys):
     assert names[0].startswith("frame.") and names[-2:] == ["gravity.tilt.rx", "gravity.tilt.ry"]
     assert d["dof"] == 3 and d["tilt_rows_per_pose"] == 2 and d["rms_after"]["tilt"] < 1e-4
     assert d["check"]["summary"]["n"] == 2
+
+
+def test_a_base_sensor_in_upper_case_is_refused_not_read_as_a_channel(tmp_path, capsys):
+    """docs/formats.md section 8 names sensors accel.<body>.x/y/z; 'accel.base.X' was an ordinary channel, silently."""
+    from pathlib import Path
+
+    example = Path(__file__).resolve().parents[2] / "examples" / "prs3"
+    lines = (example / "recording.csv").read_text().splitlines()
+    out = tmp_path / "upper.csv"
+    out.write_text("\n".join([lines[0] + ",accel.base.X,accel.base.y,accel.base.z"]
+                             + [ln + ",0.0,0.0,1.0" for ln in lines[1:]]) + "\n")
+    assert main(["identify", str(out), "--machine", str(example / "machine.toml"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{out}: line 1, column 'accel.base.X'" in err and "expected 'accel.base.x'" in err
+    assert len(err.strip().splitlines()) == 1
+    # a channel that only looks alike (no axis x, y or z) stays a channel
+    out.write_text("\n".join([lines[0] + ",Accel.base.w"] + [ln + ",1.0" for ln in lines[1:]]) + "\n")
+    assert main(["identify", str(out), "--machine", str(example / "machine.toml"), "--quiet"]) == 0
