@@ -44,10 +44,10 @@ from ..effects.base import approach_direction
 from ..measurement import MeasurementModel
 from ..models import model_from_recording
 from ..outliers import recording_lines
+from ..outliers.screen import retest_with_discrepancy, retest_with_effects, screen_outliers
 from .confound import geometry_confound
 from .discrepancy import try_discrepancy
 from .locate import locate
-from .outliers import retest_with_discrepancy, retest_with_effects, screen_outliers
 from .result import Diagnosis, EffectTrial, ParameterValue
 
 __all__ = ["diagnose", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION"]

@@ -34,9 +34,9 @@ from numpy.typing import NDArray
 
 from ..contract import scale_noise
 from ..errors import InputError
+from ..identify.gauss_newton import identify
 from ..measurement import MeasurementModel
-from ..outliers import ALPHA, DEFAULT_NU, LOSSES, MAX_FRACTION, PoseTest, describe_loss, irls_weights, pose_test
-from .gauss_newton import identify
+from .stats import ALPHA, DEFAULT_NU, LOSSES, MAX_FRACTION, PoseTest, describe_loss, irls_weights, pose_test
 
 __all__ = [
     "ROBUST_MODES", "OutlierHandling", "handle_outliers", "identify_with_outliers", "robust_map_weights",

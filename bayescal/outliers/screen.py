@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from ..effects.model import fit_map
 from ..measurement import MeasurementModel
-from ..outliers import ALPHA, MAX_FRACTION, PoseTest, pose_test, pose_test_linear
+from .stats import ALPHA, MAX_FRACTION, PoseTest, pose_test, pose_test_linear
 
 __all__ = ["OutlierScreen", "screen_outliers", "retest_with_effects", "retest_with_discrepancy", "EXCLUDE_FACTOR",
            "MAX_FRACTION"]

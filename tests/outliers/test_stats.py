@@ -1,4 +1,4 @@
-"""The per-pose outlier test and the IRLS weights (bayescal/outliers.py)."""
+"""The per-pose outlier test and the IRLS weights (bayescal/outliers/stats.py)."""
 
 import numpy as np
 import pytest

@@ -73,9 +73,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .distributions import chi2_median, chi2_ppf, chi2_sf, f_sf
-from .errors import InputError
-from .measurement import MeasurementModel
+from ..distributions import chi2_median, chi2_ppf, chi2_sf, f_sf
+from ..errors import InputError
+from ..measurement import MeasurementModel
 
 __all__ = [
     "ALPHA",
@@ -388,7 +388,7 @@ def pose_test(
     noise_known : bool, optional
         Default: whether the machine file gives the instrument sigma.
     """
-    from .identify.gauss_newton import whitened_system
+    from ..identify.gauss_newton import whitened_system
 
     theta = np.asarray(theta, dtype=float)
     free = np.asarray(free)
