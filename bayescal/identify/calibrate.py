@@ -541,7 +541,7 @@ def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outli
     """
     from ..discrepancy import fit_discrepancy
     from ..discrepancy.fit import joint_design
-    from ..outliers import ALPHA, MAX_FRACTION, pose_test_linear
+    from ..outliers import ALPHA, exclusion_weights, pose_test_linear, weighted_model
     from ..outliers.handling import OutlierHandling
 
     robust = outlier_kw.get("robust", "auto")
@@ -553,8 +553,7 @@ def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outli
     test = pose_test_linear(A, r, model.dof, lam=1.0, alpha=alpha, lines=lines)
     flagged = test.flagged
     judged = "judged against the model with its discrepancy"
-    structure = flagged.sum() > MAX_FRACTION * model.n_poses
-    if not flagged.any() or robust == "off" or structure:
+    if not flagged.any() or robust == "off" or test.too_many:
         # every pose at full weight: the joint fit again from the robust reference
         theta, df = _relinearised(model, theta, res.free, prior_sd, prior_mean, df.discrepancy)
         A, r = joint_design(model, theta, df, prior_sd)
@@ -565,8 +564,8 @@ def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outli
             why = "--robust off" if robust == "off" else f"{int(test.flagged.sum())} of {model.n_poses} stand out: structure"
             action = f"kept ({why}), {judged}"
         return OutlierHandling(test=test, mode=robust, action=action), df, theta
-    weights = np.where(flagged, 1e-12, 1.0)
-    excluded = scale_noise(model, 1.0 / np.sqrt(weights))
+    weights = exclusion_weights(flagged)
+    excluded = weighted_model(model, weights)
     # the hyperparameters again, without the poses no model explains
     searched = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, inputs=df.discrepancy.inputs)
     theta, df = _relinearised(excluded, theta, res.free, prior_sd, prior_mean, searched.discrepancy)

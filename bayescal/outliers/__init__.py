@@ -16,19 +16,23 @@ See docs/outliers.md.
 from .stats import (
     ALPHA,
     DEFAULT_NU,
+    EXCLUDE_FACTOR,
     LOSSES,
     MAX_FRACTION,
     Irls,
     PoseTest,
     describe_loss,
+    exclusion_weights,
     irls_weights,
     loss_weights,
     pose_test,
     pose_test_linear,
     recording_lines,
+    weighted_model,
 )
 
 __all__ = [
-    "ALPHA", "DEFAULT_NU", "LOSSES", "MAX_FRACTION", "Irls", "PoseTest", "describe_loss", "irls_weights", "loss_weights",
-    "pose_test", "pose_test_linear", "recording_lines",
+    "ALPHA", "DEFAULT_NU", "EXCLUDE_FACTOR", "LOSSES", "MAX_FRACTION", "Irls", "PoseTest", "describe_loss",
+    "exclusion_weights", "irls_weights", "loss_weights", "pose_test", "pose_test_linear", "recording_lines",
+    "weighted_model",
 ]
