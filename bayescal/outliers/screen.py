@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ..effects.model import fit_map
+from ..effects.model import fit_map, joint_system
 from ..measurement import MeasurementModel
 from .stats import (
     ALPHA,
@@ -198,23 +198,10 @@ def retest_with_effects(
     screen : OutlierScreen
         The screen the diagnosis used.
     """
-    from ..effects.model import _dq, _dx, _effect_theta, _predict, _slices, effect_columns
-
     if not effects:
         return None
-    machine = model.machine
-    P = machine.n_params
-    slices = _slices(effects, model)
-    q_eff = model.pose_q + _dq(effects, slices, fit.eta, model.pose_q.shape, _effect_theta(model, fit.theta))
-    sub, pred = _predict(model, q_eff, fit.theta, None, dx=_dx(effects, slices, fit.eta, model.pose_q.shape[0]))
-    sig = np.asarray(model.row_sigma)
-    # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq and dx
-    Jg = sub.jacobian(fit.theta, pred)
-    Je, Jt = effect_columns(sub, fit.theta, pred, effects, slices, fit.eta)
-    cols = [Jg if Jt is None else Jg + Jt] + Je
-    scale = np.concatenate([machine.tolerance, [p.prior_sd for p in fit.params]])
-    A = (np.concatenate(cols, axis=2) / sig[:, :, None]).reshape(-1, P + len(fit.params)) * scale
-    r = (model.residual(pred) / sig).reshape(-1)
+    # the joint fit's own system (geometry, then each effect through dq, dx and the bending of sensor bodies)
+    A, r = joint_system(model, effects, fit.theta, fit.eta)
     return _retest(model, A, r, screen, alpha=alpha,
                    judged="judged against the geometry with " + ", ".join(e.name for e, _ in effects),
                    released="the geometric model's misfit alone had flagged some")
