@@ -373,6 +373,26 @@ class Machine(ABC):
         """
         return None
 
+    @property
+    def serial_chain(self) -> "Machine | None":
+        """The serial chain (``kind = "serial"``, a URDF's) this machine is, or None for every other kind.
+
+        Effects of a chain's links under gravity and the URDF writer need its
+        bodies and joints.  A view has none of its own (its parameters are
+        not the chain's): ask the machine under it (:attr:`geometry_part`).
+        """
+        return None
+
+    @property
+    def written_modules(self) -> tuple["Machine", ...]:
+        """The machines written to files of their own beside this machine's (docs/formats.md section 5).
+
+        A hybrid's modules; () for every other kind and for a view (written
+        whole by its :meth:`to_toml`; a framed hybrid's modules are asked of
+        :attr:`inside`).
+        """
+        return ()
+
     def rewrapped(self, inner: "Machine") -> "Machine":
         """``inner`` in this machine's instrument frame (``inner`` itself without one)."""
         return inner

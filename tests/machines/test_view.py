@@ -180,6 +180,25 @@ def test_redundancy_is_the_raspms_own_kinematics_through_a_frame_and_none_throug
             assert view.redundancy is None, label
 
 
+def test_serial_chain_and_written_modules_are_the_kinds_own_and_no_views(kind_machine):
+    """Machine.serial_chain: a serial chain gives itself, every other kind None; Machine.written_modules: a hybrid's
+    modules, () for a one-file kind; a view has neither (its parameters are not the chain's, its file is its own)."""
+    from bayescal.machines.hybrid import Hybrid
+    from bayescal.machines.serial import Serial
+
+    assert (kind_machine.serial_chain is kind_machine) == isinstance(kind_machine, Serial)
+    assert kind_machine.serial_chain in (None, kind_machine)
+    if isinstance(kind_machine, Hybrid):
+        assert kind_machine.written_modules == tuple(kind_machine.modules) and len(kind_machine.written_modules) >= 2
+    else:
+        assert kind_machine.written_modules == ()
+    for label, (view, _) in _views(kind_machine).items():
+        assert view.serial_chain is None and view.written_modules == (), label
+        inner, _ = view.geometry_part
+        if not isinstance(view, EffectAugmented):  # its geometry part keeps the effects: a view again
+            assert inner.serial_chain is kind_machine.serial_chain, label
+
+
 def test_a_forwarded_member_is_read_only():
     view = PivotAugmented(load_machine(FILES[0]), ("1",))
     with pytest.raises(AttributeError, match="wrapped machine's"):
