@@ -44,7 +44,7 @@ from studies.targets import exit_code, verdict  # noqa: E402
 from bayescal.bayes.kalman import kalman_filter  # noqa: E402
 from bayescal.bayes.map_identify import identify_map  # noqa: E402
 from bayescal.identify.choose import choose_regularisation  # noqa: E402
-from bayescal.identify.robust import identify_with_outliers, robust_map_weights  # noqa: E402
+from bayescal.outliers.handling import identify_with_outliers, robust_map_weights  # noqa: E402
 from bayescal.machines.files import load_machine  # noqa: E402
 from bayescal.measurement import MeasurementModel  # noqa: E402
 from bayescal.simulate import draw_poses, simulate_recording  # noqa: E402

@@ -418,7 +418,7 @@ def tiago(out: Path, *, quick: bool, seed: int, t0: float) -> dict | None:
 
 def _outlier_screen(registered_toml: str, rec, tmp: Path, reg_free: list[str]) -> dict:
     """The per-pose outlier test of bayescal's robust identification, for registration and MAP."""
-    from bayescal.identify.robust import identify_with_outliers
+    from bayescal.outliers.handling import identify_with_outliers
     from bayescal.outliers import recording_lines
 
     path = tmp / "registered_lib.toml"

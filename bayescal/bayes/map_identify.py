@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..identify.robust import map_system, robust_map_pass
+from ..outliers.handling import map_system, robust_map_pass
 from ..measurement import MeasurementModel
 from .priors import map_estimate
 

@@ -25,7 +25,7 @@ def add_outlier_arguments(p) -> None:
 
 
 def outlier_kwargs(args, rec, n_poses: int) -> dict:
-    """Keyword arguments of :mod:`bayescal.identify.robust` from the parsed options."""
+    """Keyword arguments of :mod:`bayescal.outliers.handling` from the parsed options."""
     from ..errors import InputError
 
     if not 0 < args.outlier_alpha < 1:

@@ -44,12 +44,12 @@ from ..effects.base import approach_direction
 from ..measurement import MeasurementModel
 from ..models import model_from_recording
 from ..outliers import recording_lines
+from ..outliers.screen import retest_with_discrepancy, retest_with_effects, screen_outliers
 from ..progress import report
 from .confound import geometry_confound, written_tool_jacobian
 from .separate import separating_sessions
 from .discrepancy import try_discrepancy
 from .locate import locate
-from .outliers import retest_with_discrepancy, retest_with_effects, screen_outliers
 from .result import Diagnosis, EffectTrial, ParameterValue
 
 __all__ = ["diagnose", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION"]

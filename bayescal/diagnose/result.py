@@ -119,7 +119,7 @@ class Diagnosis:
     #: The stated inputs of effects the diagnosis used (``effect_settings``), by effect name: written
     #: beside the fitted parameters in the calibrated machine's ``[effect.*]`` tables.
     effect_settings: dict = field(default_factory=dict)
-    outliers: object = None  # OutlierScreen (bayescal.diagnose.outliers), None if not screened
+    outliers: object = None  # OutlierScreen (bayescal.outliers.screen), None if not screened
     #: How well the written geometry (without the effects) is known and what it trades off against
     #: (bayescal.diagnose.confound.GeometryConfound); None when no effect was selected.
     confound: object = None

@@ -104,10 +104,8 @@ def tilted_gravity(down: NDArray, basis: NDArray, tilt: NDArray) -> tuple[NDArra
 
 def serial_part(machine: Machine, theta) -> tuple[object, NDArray | None]:
     """The serial chain whose geometry ``machine`` describes (unwrapping a fitted frame) and its part of ``theta``; (None, None) otherwise."""
-    from ..machines.serial import Serial
-
     inner, idx = machine.geometry_part
-    if not isinstance(inner, Serial):
+    if inner.serial_chain is None:
         return None, None
     if theta is None:
         return inner, None

@@ -35,7 +35,8 @@ from ..machines.base import ToolPoses, map_state
 from ..measurement import MeasurementModel, Prediction, pose_offset_rows
 from .base import Effect, EffectParam, Features
 
-__all__ = ["EffectFit", "fit_map", "joint_information", "linear_fold_residuals", "effect_residual", "actuator_residual", "effect_jacobian", "actuator_rows_jacobian"]
+__all__ = ["EffectFit", "fit_map", "joint_system", "joint_information", "linear_fold_residuals", "effect_residual",
+           "actuator_residual", "effect_jacobian", "actuator_rows_jacobian"]
 
 
 @dataclass(frozen=True)
@@ -454,9 +455,7 @@ def joint_information(model: MeasurementModel, effects: Sequence[tuple[Effect, F
     KinematicsError
         A pose does not assemble at ``(theta, eta)``.
     """
-    joint = _Joint.of(model, effects)
-    _, state = joint.state(np.asarray(theta, float), np.asarray(eta, float), None)
-    return state.system(), joint.scale
+    return joint_system(model, effects, theta, eta)[0], _Joint.of(model, effects).scale
 
 
 #: The joint fit's step control: a step must not raise the cost, halved up to 7 times (8 trials), each
@@ -539,6 +538,33 @@ def fit_map(
         chi2=state.chi2, prior_term=state.prior, singular_values=s, n_rows=state.rw.size, success=out.success,
         message=out.message, iterations=out.iterations, covariance=full,
     )
+
+
+def joint_system(model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray,
+                 eta: NDArray) -> tuple[NDArray, NDArray]:
+    """The linear system of :func:`fit_map` at ``(theta, eta)``: what a test of the joint fit's poses needs.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The recording with the noise the system is whitened by.
+    effects : sequence of (Effect, Features)
+    theta : ndarray, shape (P,)
+        Geometric errors (mm, rad).
+    eta : ndarray, shape (K,)
+        The effects' parameters (their units).
+
+    Returns
+    -------
+    A : ndarray, shape (n_poses * dof, P + K)
+        The whitened Jacobian in the prior-scaled coordinates (per prior std).
+    r : ndarray, shape (n_poses * dof,)
+        The whitened residual (dimensionless).
+    """
+    joint = _Joint.of(model, effects)
+    theta, eta = np.asarray(theta, dtype=float), np.asarray(eta, dtype=float)
+    sub, pred, _, rw, _, _ = joint.evaluate(theta, eta, None)
+    return joint.system(sub, pred, theta, eta), rw
 
 
 def linear_fold_residuals(model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray,

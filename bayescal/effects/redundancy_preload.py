@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from ..machines.base import Machine, ToolPoses
+from ..machines.base import Machine, RedundantKinematics, ToolPoses
 from .base import Effect, EffectParam, Features
 
 __all__ = ["RedundancyPreload", "machine_dof", "orient_directions", "RATIO_PRIOR", "RATIO_PRIOR_MEAN", "OFFSET_PRIOR_MM", "offset_prior",
@@ -50,9 +50,9 @@ def orient_directions(nu: NDArray) -> NDArray:
     return np.where((nu @ r)[:, None] >= 0, nu, -nu)
 
 
-def _inner(machine: Machine) -> tuple[Machine, int]:
-    """The kinematic machine (inside an instrument frame) and the number of frame parameters before its own."""
-    return machine.inside, machine.n_frame
+def _inner(machine: Machine) -> tuple[RedundantKinematics | None, int]:
+    """The redundant kinematics (inside an instrument frame) and the number of frame parameters before its own."""
+    return machine.redundancy, machine.n_frame
 
 
 def _probe_planar(inner) -> NDArray:
@@ -118,8 +118,7 @@ class RedundancyPreload(Effect):
     leave incompatibilities of 0.1-0.5 mm, which drives of 150-500 N/um turn
     into internal forces of tens of kN and deflections of tens to hundreds
     of um.  Needs one redundant drive and the closed-form inverse
-    kinematics of every drive (``ik_jacobian``, ``ik_parameter_jacobian``:
-    the RASPM); not applicable to machines with as many actuators as
+    kinematics of every drive (:attr:`Machine.redundancy`: the RASPM); not applicable to machines with as many actuators as
     degrees of freedom (the 3-PRS, serial arms and positioners).  Units follow
     the drives (:attr:`Machine.actuator_unit_info`): the formula holds in
     each drive's own ``q`` unit (``nu`` and ``c_k`` scale together), and on a
@@ -137,14 +136,13 @@ class RedundancyPreload(Effect):
     geometry_dependent = True
 
     def not_applicable(self, machine: Machine, aux: dict) -> str | None:
-        inner, _ = _inner(machine)
-        m, n = machine.n_actuators, machine_dof(inner)
+        m, n = machine.n_actuators, machine_dof(machine.inside)
         if m <= n:
             return (
                 f"not applicable: the {machine.kind} has {m} actuators for "
                 f"{n} degrees of freedom (no redundant actuation, no internal preload)"
             )
-        if m - n != 1 or not all(hasattr(inner, a) for a in ("ik_jacobian", "ik_parameter_jacobian", "inverse_planar", "redundant")):
+        if m - n != 1 or machine.redundancy is None:
             return (
                 f"not applicable: the restrained-preload model needs exactly one redundant drive and the closed-form inverse "
                 f"kinematics of every drive (the {machine.kind} has {m} actuators for {n} degrees of freedom)"

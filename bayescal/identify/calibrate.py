@@ -10,7 +10,7 @@ command line get the same answer:
    as a robust MAP pass weights it; fixed ``lam`` / ``k`` and ``ls`` fit
    directly;
 2. the outlier test of every pose, and a Student-t refit where it flags
-   poses (:mod:`bayescal.identify.robust`);
+   poses (:mod:`bayescal.outliers.handling`);
 3. the chi-square test of the stated noise (:mod:`bayescal.identify.noise`):
    where the data contradict it, the noise scale is estimated and the
    whole fit redone with it, until the scale settles, so that intervals are
@@ -286,7 +286,7 @@ def noise_stated(model) -> bool:
 def _fit_once(model, method, *, lam, k, free, rule, prior_scale, max_iter, outlier_kw, fit_effects):
     from ..bayes.map_identify import identify_map
     from .choose import choose_regularisation
-    from .robust import fit_system, identify_with_outliers, robust_map_weights
+    from ..outliers.handling import fit_system, identify_with_outliers, robust_map_weights
 
     choice = None
     auto = (method == "ridge" and lam == "auto") or (method == "tsvd" and k == "auto")
@@ -321,7 +321,7 @@ def _fit_once(model, method, *, lam, k, free, rule, prior_scale, max_iter, outli
     return res, handling, choice
 
 
-#: Options of :func:`calibrate` passed on to the outlier handling (:mod:`bayescal.identify.robust`).
+#: Options of :func:`calibrate` passed on to the outlier handling (:mod:`bayescal.outliers.handling`).
 OUTLIER_OPTIONS = ("nu", "alpha", "lines")
 
 
@@ -541,8 +541,8 @@ def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outli
     """
     from ..discrepancy import fit_discrepancy
     from ..discrepancy.fit import joint_design
-    from ..outliers import ALPHA, MAX_FRACTION, pose_test_linear
-    from .robust import OutlierHandling
+    from ..outliers import ALPHA, exclusion_weights, pose_test_linear, weighted_model
+    from ..outliers.handling import OutlierHandling
 
     robust = outlier_kw.get("robust", "auto")
     alpha, lines = outlier_kw.get("alpha", ALPHA), outlier_kw.get("lines")
@@ -553,8 +553,7 @@ def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outli
     test = pose_test_linear(A, r, model.dof, lam=1.0, alpha=alpha, lines=lines)
     flagged = test.flagged
     judged = "judged against the model with its discrepancy"
-    structure = flagged.sum() > MAX_FRACTION * model.n_poses
-    if not flagged.any() or robust == "off" or structure:
+    if not flagged.any() or robust == "off" or test.too_many:
         # every pose at full weight: the joint fit again from the robust reference
         theta, df = _relinearised(model, theta, res.free, prior_sd, prior_mean, df.discrepancy)
         A, r = joint_design(model, theta, df, prior_sd)
@@ -565,8 +564,8 @@ def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outli
             why = "--robust off" if robust == "off" else f"{int(test.flagged.sum())} of {model.n_poses} stand out: structure"
             action = f"kept ({why}), {judged}"
         return OutlierHandling(test=test, mode=robust, action=action), df, theta
-    weights = np.where(flagged, 1e-12, 1.0)
-    excluded = scale_noise(model, 1.0 / np.sqrt(weights))
+    weights = exclusion_weights(flagged)
+    excluded = weighted_model(model, weights)
     # the hyperparameters again, without the poses no model explains
     searched = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, inputs=df.discrepancy.inputs)
     theta, df = _relinearised(excluded, theta, res.free, prior_sd, prior_mean, searched.discrepancy)

@@ -271,22 +271,11 @@ def identify(
         ``success`` is False (with a warning and a message) when LS meets an
         ill-posed matrix, the iteration diverges, or a pose cannot be solved.
     """
-    machine = model.machine
-    P = machine.n_params
+    P = model.machine.n_params
     solver, lam = _check_options(model, method, lam, max_iter)
-    if theta0 is None:
-        # a model may say where its search must start (effect parameters that enter as products: off zero)
-        theta0 = model.theta_start
     if prior_mean is None:
-        prior_mean = machine.prior_mean  # a view's parameters centred elsewhere (effects); None: zero
-    theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float)
-    if theta.shape != (P,):
-        raise InputError(f"theta0: expected shape ({P},), got {theta.shape}")
-    # the Jacobian, its whitened and scaled copies and the SVD's factors (bayescal.limits.FIT_COPIES)
-    check_fit_memory(model.n_poses * model.dof, P)
-    S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
-    if np.any(S_all <= 0):
-        raise InputError("scale: expected positive values")
+        prior_mean = model.machine.prior_mean  # a view's parameters centred elsewhere (effects); None: zero
+    theta, S_all = _start(model, theta0, scale)
     # the start's prediction and linearisation serve the automatic free set and the first step
     pred = model.predict(theta)
     if not pred.success.all():
@@ -307,6 +296,24 @@ def identify(
     res_before = model.residual(pred)
     it = _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol)
     return _result(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before)
+
+
+def _start(model, theta0, scale) -> tuple[NDArray, NDArray]:
+    """The start ``theta`` (P,) and the column scaling (P,) of :func:`identify`, checked; refused when too large."""
+    machine = model.machine
+    P = machine.n_params
+    if theta0 is None:
+        # a model may say where its search must start (effect parameters that enter as products: off zero)
+        theta0 = model.theta_start
+    theta = np.zeros(P) if theta0 is None else np.array(theta0, dtype=float)
+    if theta.shape != (P,):
+        raise InputError(f"theta0: expected shape ({P},), got {theta.shape}")
+    # the Jacobian, its whitened and scaled copies and the SVD's factors (bayescal.limits.FIT_COPIES)
+    check_fit_memory(model.n_poses * model.dof, P)
+    S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
+    if np.any(S_all <= 0):
+        raise InputError("scale: expected positive values")
+    return theta, S_all
 
 
 def _check_options(model, method: str, lam, max_iter) -> tuple[str, float | None]:

@@ -49,7 +49,7 @@ def tool_group_checks(model, res, *, stated: bool, weights=None) -> dict[str, No
     stated : bool
         Whether the noise is stated; without it the sigmas are weights and nothing is tested.
     weights : ndarray, shape (n_poses,), optional
-        The robust pass's weights (:class:`bayescal.identify.robust.OutlierHandling`): a gross pose
+        The robust pass's weights (:class:`bayescal.outliers.handling.OutlierHandling`): a gross pose
         down-weighted in the fit is down-weighted here too, or its residual alone would read as a
         contradicted sigma of its group (one gross pose of the 3-PRS: position rows "10 times too
         noisy", its outlier statistic then divided by 100).

@@ -169,7 +169,7 @@ def calibrate_bayes(model, *, method: str, free="auto", max_iter: int = 50, nois
     noise : {"auto", "stated"}
         ``auto``: a stated noise the data contradict is replaced by the estimated one (module docstring).
     robust, nu, alpha, lines
-        The outlier handling (:mod:`bayescal.identify.robust`): mode, Student-t degrees of freedom,
+        The outlier handling (:mod:`bayescal.outliers.handling`): mode, Student-t degrees of freedom,
         family-wise level, the poses' lines in the recording file.
     fit_effects : bool
         ``model`` identifies the machine file's effects with the geometry (mcmc).
@@ -192,7 +192,7 @@ def calibrate_bayes(model, *, method: str, free="auto", max_iter: int = 50, nois
     from ..instrument.plausibility import judge_fit
     from ..prediction.recording import score_held_out
     from .calibrate import calibrate
-    from .robust import map_system, robust_map_weights
+    from ..outliers.handling import map_system, robust_map_weights
 
     o = _method_options(method, options)
     if noise not in ("auto", "stated"):

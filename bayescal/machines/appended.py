@@ -80,6 +80,8 @@ class AppendedParameters(MachineView):
     framed = False
     n_frame = 0
     instrument_frame = None
+    #: the machine's redundant kinematics know its parameters, not the appended ones: none for the view
+    redundancy = None
 
     @property
     def inside(self):

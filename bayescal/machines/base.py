@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -22,7 +22,7 @@ from ..errors import InputError, MachineFileError
 from ..geometry import so3_exp, so3_log
 from ..params import ParamLayout
 
-__all__ = ["Machine", "ToolPoses", "MeasurementNoise", "map_state", "ActuatorUnit", "ACTUATOR_UNITS", "WeightBodies", "BodyInertials", "offset_poses", "KINDS", "machine_from_table"]
+__all__ = ["Machine", "RedundantKinematics", "ToolPoses", "MeasurementNoise", "map_state", "ActuatorUnit", "ACTUATOR_UNITS", "WeightBodies", "BodyInertials", "offset_poses", "KINDS", "machine_from_table"]
 
 
 @dataclass(frozen=True)
@@ -359,6 +359,40 @@ class Machine(ABC):
         """The machine under an instrument frame; a machine without one is its own inside."""
         return self
 
+    @property
+    def redundancy(self) -> "RedundantKinematics | None":
+        """The redundantly actuated kinematics of :attr:`inside`, or None: a machine with no redundant drive.
+
+        A kind with more drives than degrees of freedom and every drive's
+        inverse kinematics in closed form (the RASPM) gives itself; an
+        instrument frame gives its machine's (the parameters after the
+        frame's :attr:`n_frame` are the machine's); a view with parameters
+        of its own appended gives None.  Effects of drives preloaded against
+        each other (:mod:`bayescal.effects.redundancy_preload`) ask it
+        instead of the machine's type.
+        """
+        return None
+
+    @property
+    def serial_chain(self) -> "Machine | None":
+        """The serial chain (``kind = "serial"``, a URDF's) this machine is, or None for every other kind.
+
+        Effects of a chain's links under gravity and the URDF writer need its
+        bodies and joints.  A view has none of its own (its parameters are
+        not the chain's): ask the machine under it (:attr:`geometry_part`).
+        """
+        return None
+
+    @property
+    def written_modules(self) -> tuple["Machine", ...]:
+        """The machines written to files of their own beside this machine's (docs/formats.md section 5).
+
+        A hybrid's modules; () for every other kind and for a view (written
+        whole by its :meth:`to_toml`; a framed hybrid's modules are asked of
+        :attr:`inside`).
+        """
+        return ()
+
     def rewrapped(self, inner: "Machine") -> "Machine":
         """``inner`` in this machine's instrument frame (``inner`` itself without one)."""
         return inner
@@ -644,6 +678,38 @@ class Machine(ABC):
             raise InputError(f"{self.source}: the machine file has no [workspace] q_limits; they are needed to draw poses")
         lo, hi = self.q_limits[:, 0], self.q_limits[:, 1]
         return lo + (hi - lo) * rng.random((n, self.n_actuators))
+
+
+class RedundantKinematics(Protocol):
+    """What :attr:`Machine.redundancy` offers: a planar machine's drives, some redundant, in closed form.
+
+    Poses ``x`` are planar, shape (n, 3): ``(p_x mm, p_z mm, phi rad)``;
+    ``theta`` the machine's parameters (:attr:`layout`), one vector or one per pose.
+    """
+
+    layout: ParamLayout
+    tolerance: NDArray
+    pose_range: NDArray | None
+
+    @property
+    def nonredundant(self) -> tuple[int, ...]:
+        """0-based drives that fix the pose."""
+
+    @property
+    def redundant(self) -> tuple[int, ...]:
+        """0-based drives the others' pose fixes (the preloaded ones)."""
+
+    def offset_index(self) -> NDArray:
+        """Per drive, the parameter that moves its zero along its rail, shape (m,)."""
+
+    def inverse_planar(self, x: ArrayLike, theta: ArrayLike | None = None) -> NDArray:
+        """Drive positions ``q`` (n, m) for the poses ``x``."""
+
+    def ik_jacobian(self, x: ArrayLike, theta: ArrayLike | None = None) -> tuple[NDArray, NDArray]:
+        """``q = IK(x)`` (n, m) and ``dq/dx`` (n, m, 3)."""
+
+    def ik_parameter_jacobian(self, x: ArrayLike, theta: ArrayLike | None = None) -> NDArray:
+        """``dq/dtheta`` (n, m, P) at fixed poses."""
 
 
 def offset_poses(machine: Machine, q: NDArray, theta, poses: ToolPoses, offset: NDArray) -> ToolPoses:

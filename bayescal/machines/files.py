@@ -29,7 +29,7 @@ from ..io.machine_file import TomlTable, parse_toml_text, read_toml
 from ..prediction.record import check_record, read_calibration
 from .base import Machine, machine_from_table
 from .framed import InstrumentFrame, instrument_toml, read_instrument
-from .hybrid import Hybrid, machine_files_text
+from .hybrid import machine_files_text
 
 __all__ = ["load_machine", "machine_from_text", "write_calibrated_machine_files", "written_as_modules"]
 
@@ -72,7 +72,7 @@ def machine_from_text(text: str, path: str = "<memory>") -> Machine:
 
 def written_as_modules(machine: Machine) -> bool:
     """Whether ``machine`` (possibly in an instrument frame) is written as a main file plus module files."""
-    return isinstance(machine.inside, Hybrid)
+    return bool(machine.inside.written_modules)
 
 
 def write_calibrated_machine_files(path, machine: Machine, theta: ArrayLike | None = None, *,

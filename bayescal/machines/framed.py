@@ -59,7 +59,7 @@ from ..geometry import left_jacobian, skew, so3_exp, so3_log
 from ..io.machine_file import format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, ToolPoses
-from .view import MachineView
+from .view import Forwarded, MachineView
 
 __all__ = ["Frame", "InstrumentFrame", "FRAME_NAMES", "FRAME_TOLERANCE", "instrument_toml",
            "frame_names", "is_frame_parameter"]
@@ -266,6 +266,9 @@ class InstrumentFrame(MachineView):
     @property
     def inside(self) -> Machine:
         return self.machine
+
+    #: the machine's: its parameters are the machine's own, after the frame's (:attr:`n_frame`)
+    redundancy = Forwarded()
 
     def rewrapped(self, inner: Machine) -> "InstrumentFrame":
         from dataclasses import replace

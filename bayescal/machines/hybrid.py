@@ -192,6 +192,11 @@ class Hybrid(Machine):
         return sum(m.n_actuators for m in self.modules)
 
     @property
+    def written_modules(self) -> tuple[Machine, ...]:
+        """The modules: each written to a file of its own (docs/formats.md section 5)."""
+        return tuple(self.modules)
+
+    @property
     def actuator_units(self) -> tuple[str, ...]:
         return tuple(u for m in self.modules for u in m.actuator_units)
 
@@ -384,7 +389,7 @@ class Hybrid(Machine):
 def machine_files_text(path, machine: Machine, theta: ArrayLike | None = None) -> list[tuple[Path, str]]:
     """The files of :func:`write_machine_files` as ``(path, text)``, the main file first, without writing them."""
     path = Path(path)
-    if not isinstance(machine, Hybrid):
+    if not machine.written_modules:
         return [(path, machine.to_toml(theta))]
     f = format_toml_value
     out = ['kind = "hybrid"', f"name = {f(machine.name)}", ""]

@@ -179,6 +179,11 @@ class Raspm(Machine):
         return tuple(k for k in range(self.n_actuators) if k not in self.nonredundant)
 
     @property
+    def redundancy(self) -> "Raspm":
+        """The RASPM itself: one redundant drive and every drive's inverse kinematics in closed form."""
+        return self
+
+    @property
     def actuator_box_reachable(self) -> bool:
         """False: the redundant actuators are fixed by the others, not free within ``q_limits``."""
         return False

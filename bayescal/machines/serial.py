@@ -390,6 +390,11 @@ class Serial(Machine):
         return len(self.joint_type)
 
     @property
+    def serial_chain(self) -> "Serial":
+        """The chain itself."""
+        return self
+
+    @property
     def n_actuators(self) -> int:
         """Non-mimic joints: one actuator (one ``q`` column) each."""
         return len(self._actuated)

@@ -66,7 +66,7 @@ def serial_part(machine: Machine, theta: ArrayLike | None = None, *, what: str =
         if inner is m:
             break
         m, th = inner, th[idx]
-    if not isinstance(m, Serial):
+    if m.serial_chain is None:
         raise InputError(f"{what} describes a serial chain; {m.source} is a {m.kind} machine (kind = \"serial\" only)")
     return m, th
 

@@ -91,6 +91,10 @@ class MachineView(Machine):
 
     #: the machines' own check, against the view's parameter count
     check_theta = Machine.check_theta
+    #: a view's parameters are not a serial chain's (ask the machine under it, :attr:`geometry_part`), and a
+    #: view is written whole by its ``to_toml`` (a framed hybrid's modules are asked of :attr:`inside`)
+    serial_chain = None
+    written_modules = ()
 
     @classmethod
     def from_toml(cls, table, path: str) -> Machine:

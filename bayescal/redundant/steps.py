@@ -338,6 +338,18 @@ def identify_step(
         reported as identified, with their anti-disturbance index.
     """
     machine = model.machine
+    system = _step_system(model, _blocks(machine, recs, sigma))
+    theta = model.complete(np.array(theta0, dtype=float))
+    cand = model.free_index if free is None else np.intersect1d(np.asarray(free, dtype=int), model.free_index)
+    r, J = system(theta)
+    cand, basis = _kept_directions(J, cand, machine.tolerance, step, eta_min)
+    rms0 = float(np.sqrt(np.mean(r**2)))
+    out = _iterate(model, system, theta, r, J, cand, basis, max_iter, xtol)
+    return _step_result(model, step, theta0, out, cand, basis, rms0)
+
+
+def _blocks(machine, recs, sigma) -> list[tuple]:
+    """``(recording, component columns, sigma per component)`` of each relative recording, checked against ``machine``."""
     if isinstance(recs, RelativeRecording):
         if sigma is None:
             raise InputError("sigma: required with a single relative recording")
@@ -347,18 +359,25 @@ def identify_step(
         rec.check_machine(machine.n_actuators, machine.q_limits)
         cols = component_columns(rec.components)
         blocks.append((rec, cols, np.asarray(sg, dtype=float).reshape(len(cols))))
+    return blocks
+
+
+def _step_system(model: PoseModel, blocks):
+    """``system(theta) -> (r, J)``: the whitened residuals and Jacobian of every block, stacked."""
+    n_params = model.machine.n_params
 
     def system(th):
         rs, Js = [], []
         for rec, cols, sg in blocks:
             rs.append(((rec.values - _relative_prediction(model, rec, th, cols)) / sg).ravel())
-            Js.append((_relative_jacobian(model, rec, th, cols) / sg[None, :, None]).reshape(-1, machine.n_params))
+            Js.append((_relative_jacobian(model, rec, th, cols) / sg[None, :, None]).reshape(-1, n_params))
         return np.concatenate(rs), np.vstack(Js)
 
-    theta = model.complete(np.array(theta0, dtype=float))
-    tol = machine.tolerance
-    cand = model.free_index if free is None else np.intersect1d(np.asarray(free, dtype=int), model.free_index)
-    r, J = system(theta)
+    return system
+
+
+def _kept_directions(J: NDArray, cand: NDArray, tol: NDArray, step: str, eta_min: float) -> tuple[NDArray, NDArray]:
+    """The candidate parameters the step's Jacobian reaches, and the directions it keeps (tolerance-scaled basis)."""
     norms = np.linalg.norm(J * tol, axis=0)
     cand = np.array([j for j in cand if norms[j] > 1e-6 * norms.max()], dtype=int)  # columns of round-off only
     if cand.size == 0:
@@ -373,9 +392,14 @@ def identify_step(
         raise IdentificationError(
             f"{step}: no direction is determined better than {eta_min} times its tolerance (largest singular value {sv[0]:.3g})"
         )
-    basis = Vt[:k].T
-    rms0 = float(np.sqrt(np.mean(r**2)))
-    out = _iterate(model, system, theta, r, J, cand, basis, max_iter, xtol)
+    return cand, Vt[:k].T
+
+
+def _step_result(model: PoseModel, step: str, theta0, out, cand: NDArray, basis: NDArray, rms0: float) -> StepResult:
+    """The step's answer at the end of the iteration: identified parameters, their indices, the covariance."""
+    machine = model.machine
+    tol = machine.tolerance
+    k = basis.shape[1]
     theta, r, J = out.state
     success, message, it = out.success, out.message, out.iterations
     _, sv, _ = np.linalg.svd(((J[:, cand] * tol[cand]) @ basis), full_matrices=False)

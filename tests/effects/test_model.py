@@ -42,3 +42,31 @@ def test_fit_map_does_not_stop_early_where_rows_it_cannot_fit_dominate_the_cost(
     assert float(rows(phi) @ rows(phi)) == pytest.approx(fit.chi2 + fit.prior_term, rel=1e-12)  # the same cost
     cost_best = float(best.fun @ best.fun)
     assert fit.chi2 + fit.prior_term - cost_best < 1e-3  # chi-square units (it was 0.24)
+
+
+def test_joint_system_is_the_whitened_residual_and_its_jacobian_in_prior_units(prs3):
+    """joint_system (the outlier retest's design): r is effect_residual whitened, and A its derivative with
+    respect to (theta, eta) / prior std, by central finite differences."""
+    from bayescal.effects.model import joint_system
+    from bayescal.effects.simulate import simulate_with_effects
+
+    sim = simulate_with_effects(prs3, 12, seed=4, dof=6, effects=[("thermal_expansion", 25.0)], record=("temp_C",))
+    model = MeasurementModel.from_recording(prs3, sim.recording)
+    eff = get_effect("thermal_expansion")
+    zero = np.zeros(prs3.n_params)
+    f = eff.features(prs3, model.q, zero, dict(sim.recording.aux), None, model.predict(zero).poses)
+    params = eff.params(prs3, f)
+    P = prs3.n_params
+    scale = np.concatenate([prs3.tolerance, [p.prior_sd for p in params]])
+    rng = np.random.default_rng(1)
+    x = 0.3 * rng.normal(size=scale.size) * scale
+    A, r = joint_system(model, [(eff, f)], x[:P], x[P:])
+
+    def rows(phi):
+        y = phi * scale
+        return (effect_residual(model, [(eff, f)], y[:P], y[P:]) / model.row_sigma).ravel()
+
+    np.testing.assert_allclose(r, rows(x / scale), rtol=1e-12, atol=1e-12)
+    h = 1e-6
+    fd = np.column_stack([(rows(x / scale + h * e) - rows(x / scale - h * e)) / (2 * h) for e in np.eye(scale.size)])
+    np.testing.assert_allclose(A, -fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())

@@ -21,6 +21,7 @@ from bayescal.effects.stored import StoredEffect
 from bayescal.machines.base import Machine
 from bayescal.machines.files import load_machine
 from bayescal.machines.framed import Frame, InstrumentFrame
+from bayescal.machines.raspm import Raspm
 from bayescal.machines.view import FORWARDED, Forwarded, MachineView
 from bayescal.sensors.mounts import SensorMounts
 from tests.conftest import ROOT
@@ -158,6 +159,44 @@ def test_an_attribute_outside_the_interface_is_not_forwarded(kind_machine):
                 getattr(view, name)
         with pytest.raises(AttributeError):
             view.no_such_member  # noqa: B018
+
+
+def test_redundancy_is_the_raspms_own_kinematics_through_a_frame_and_none_through_appended_parameters(kind_machine):
+    """Machine.redundancy: the RASPM (one redundant drive, closed-form inverse kinematics) gives itself, every other
+    kind None; an instrument frame forwards it (the machine's parameters follow the frame's), a view that appends
+    parameters of its own has none (the kinematics do not know them)."""
+    raspm = kind_machine.kind == Raspm.kind
+    assert (kind_machine.redundancy is kind_machine) if raspm else kind_machine.redundancy is None
+    if raspm:
+        x = np.array([[0.0, 0.0, 0.0]])
+        q, Ja = kind_machine.redundancy.ik_jacobian(x)
+        assert q.shape == (1, kind_machine.n_actuators) and Ja.shape == (1, kind_machine.n_actuators, 3)
+        assert len(kind_machine.redundancy.redundant) == kind_machine.n_actuators - kind_machine.n_dof
+    for label, (view, wrapped) in _views(kind_machine).items():
+        if isinstance(view, InstrumentFrame):
+            assert view.redundancy is wrapped.redundancy, label  # the frame around body sensors' mountings: None
+            assert view.inside.n_params == view.n_params - view.n_frame, label
+        else:
+            assert view.redundancy is None, label
+
+
+def test_serial_chain_and_written_modules_are_the_kinds_own_and_no_views(kind_machine):
+    """Machine.serial_chain: a serial chain gives itself, every other kind None; Machine.written_modules: a hybrid's
+    modules, () for a one-file kind; a view has neither (its parameters are not the chain's, its file is its own)."""
+    from bayescal.machines.hybrid import Hybrid
+    from bayescal.machines.serial import Serial
+
+    assert (kind_machine.serial_chain is kind_machine) == isinstance(kind_machine, Serial)
+    assert kind_machine.serial_chain in (None, kind_machine)
+    if isinstance(kind_machine, Hybrid):
+        assert kind_machine.written_modules == tuple(kind_machine.modules) and len(kind_machine.written_modules) >= 2
+    else:
+        assert kind_machine.written_modules == ()
+    for label, (view, _) in _views(kind_machine).items():
+        assert view.serial_chain is None and view.written_modules == (), label
+        inner, _ = view.geometry_part
+        if not isinstance(view, EffectAugmented):  # its geometry part keeps the effects: a view again
+            assert inner.serial_chain is kind_machine.serial_chain, label
 
 
 def test_a_forwarded_member_is_read_only():

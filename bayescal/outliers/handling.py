@@ -32,11 +32,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from ..contract import scale_noise
 from ..errors import InputError
+from ..identify.gauss_newton import identify
 from ..measurement import MeasurementModel
-from ..outliers import ALPHA, DEFAULT_NU, LOSSES, MAX_FRACTION, PoseTest, describe_loss, irls_weights, pose_test
-from .gauss_newton import identify
+from .stats import ALPHA, DEFAULT_NU, LOSSES, MAX_FRACTION, PoseTest, describe_loss, irls_weights, pose_test, weighted_model
 
 __all__ = [
     "ROBUST_MODES", "OutlierHandling", "handle_outliers", "identify_with_outliers", "robust_map_weights",
@@ -103,9 +102,7 @@ class OutlierHandling:
 
     def weighted_model(self, model: MeasurementModel) -> MeasurementModel:
         """``model`` with the robust weights (each pose's sigma divided by ``sqrt(w)``), or itself."""
-        if self.weights is None:
-            return model
-        return scale_noise(model, 1.0 / np.sqrt(self.weights))
+        return weighted_model(model, self.weights)
 
     def retested(self, model: MeasurementModel, res, system: dict) -> "OutlierHandling":
         """The same handling, with the test redone at the answer ``res`` of the weighted recording."""
@@ -248,8 +245,8 @@ def handle_outliers(
         action = f"kept: the robust refit ({describe_loss(loss, nu)}) did not succeed ({ir.result.message})"
         return res0, OutlierHandling(test=test0, mode=robust, action=action)
     test1 = pose_test(model, ir.result.theta, weights=ir.weights, alpha=alpha, lines=lines, **system(ir.result))
-    k = int(test1.flagged.sum())
-    if k > MAX_FRACTION * model.n_poses:
+    if test1.too_many:
+        k = int(test1.flagged.sum())
         action = (
             f"none taken as outliers: {k} of {model.n_poses} poses stand out even in the robust fit, more than "
             f"{MAX_FRACTION:.0%}; that is a model mismatch (instrument frame: --frame fit; units; unmodelled physics: "

@@ -73,17 +73,21 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .distributions import chi2_median, chi2_ppf, chi2_sf, f_sf
-from .errors import InputError
-from .measurement import MeasurementModel
-from .progress import report
+from ..contract import scale_noise
+from ..distributions import chi2_median, chi2_ppf, chi2_sf, f_sf
+from ..errors import InputError
+from ..measurement import MeasurementModel
+from ..progress import report
 
 __all__ = [
     "ALPHA",
     "LOSSES",
     "DEFAULT_NU",
     "MAX_FRACTION",
+    "EXCLUDE_FACTOR",
     "PoseTest",
+    "exclusion_weights",
+    "weighted_model",
     "pose_test_linear",
     "pose_test",
     "irls_weights",
@@ -100,6 +104,29 @@ DEFAULT_NU = 4.0
 MAX_FRACTION = 0.1
 #: Huber threshold on the whitened pose norm, as a chi quantile of the pose's rows.
 HUBER_QUANTILE = 0.95
+#: An excluded pose's sigma is multiplied by this (weight ``EXCLUDE_FACTOR**-2`` = 1e-12): out of every fit,
+#: but in its place in the measurement order (the order carries the approach direction and the time).
+EXCLUDE_FACTOR = 1e6
+
+
+def exclusion_weights(excluded: NDArray) -> NDArray:
+    """Per-pose weights that take the ``excluded`` poses out of a fit: ``EXCLUDE_FACTOR**-2`` there, else 1."""
+    return np.where(excluded, EXCLUDE_FACTOR**-2, 1.0)
+
+
+def weighted_model(model: MeasurementModel, weights: NDArray | None) -> MeasurementModel:
+    """``model`` with each pose's sigma divided by ``sqrt(w)`` (the model itself when ``weights`` is None).
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        With the instrument's noise.
+    weights : ndarray, shape (n_poses,), optional
+        Robust or exclusion weights (dimensionless, > 0).
+    """
+    if weights is None:
+        return model
+    return scale_noise(model, 1.0 / np.sqrt(weights))
 
 
 def recording_lines(n_poses: int, rec=None) -> NDArray:
@@ -163,6 +190,11 @@ class PoseTest:
     @property
     def n_poses(self) -> int:
         return self.statistic.shape[0]
+
+    @property
+    def too_many(self) -> bool:
+        """More poses flagged than :data:`MAX_FRACTION` of the recording: a model mismatch, not a few outliers."""
+        return bool(np.sum(self.flagged) > MAX_FRACTION * self.n_poses)
 
     @property
     def flagged_index(self) -> NDArray:
@@ -389,7 +421,7 @@ def pose_test(
     noise_known : bool, optional
         Default: whether the machine file gives the instrument sigma.
     """
-    from .identify.gauss_newton import whitened_system
+    from ..identify.gauss_newton import whitened_system
 
     theta = np.asarray(theta, dtype=float)
     free = np.asarray(free)

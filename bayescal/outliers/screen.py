@@ -39,18 +39,26 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ..effects.model import fit_map
+from ..effects.model import fit_map, joint_system
 from ..measurement import MeasurementModel
-from ..outliers import ALPHA, MAX_FRACTION, PoseTest, pose_test, pose_test_linear
+from .stats import (
+    ALPHA,
+    EXCLUDE_FACTOR,
+    MAX_FRACTION,
+    PoseTest,
+    exclusion_weights,
+    pose_test,
+    pose_test_linear,
+    weighted_model,
+)
 
 __all__ = ["OutlierScreen", "screen_outliers", "retest_with_effects", "retest_with_discrepancy", "EXCLUDE_FACTOR",
            "MAX_FRACTION"]
 
-#: A flagged pose's sigma is multiplied by this (weight 1e-12): out of every fit.
-EXCLUDE_FACTOR = 1e6
 MAX_ROUNDS = 3
 #: Poses taken out one at a time when too many stand out at once (a gross pose swamping the fit).
 MAX_STEPS = 3
+_EXCLUDED = "excluded from every fit, the location tests and the cross-validation (kept in the measurement order)"
 
 
 @dataclass(frozen=True)
@@ -75,13 +83,14 @@ class OutlierScreen:
     action: str
     fit: object = None
 
+    @property
+    def weights(self) -> NDArray:
+        """Per-pose weights of the fits: ``EXCLUDE_FACTOR**-2`` for an excluded pose, else 1."""
+        return exclusion_weights(self.excluded)
+
     def weighted_model(self, model: MeasurementModel) -> MeasurementModel:
         """``model`` with the excluded poses' sigma multiplied by :data:`EXCLUDE_FACTOR`."""
-        if not self.excluded.any():
-            return model
-        sig = np.array(model.row_sigma, dtype=float)
-        sig[self.excluded] *= EXCLUDE_FACTOR
-        return model.with_pose_sigma(sig)
+        return weighted_model(model, self.weights if self.excluded.any() else None)
 
     def outliers(self) -> list[dict]:
         """docs/formats.md section 4 entries of the excluded poses (line order)."""
@@ -126,16 +135,15 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
     test = fit = None
     stepped = 0
     for _ in range(MAX_ROUNDS + MAX_STEPS):
-        weights = np.where(excluded, EXCLUDE_FACTOR**-2, 1.0)
-        m = OutlierScreen(test=None, excluded=excluded, action="").weighted_model(model)
-        fit = fit_map(m)
+        weights = exclusion_weights(excluded)
+        fit = fit_map(weighted_model(model, weights if excluded.any() else None))
         test = pose_test(model, fit.theta, free, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=lines)
         # an excluded pose is tested by its residual against the fit of the others, so it stays out only
         # while that still flags it: a gross reading that dragged the first fit makes innocent poses
         # stand out there (swamping; a few parameters seen by few rows, as distances on a delta), and
         # they are released once it is out
         new = test.flagged.copy()
-        if new.sum() > MAX_FRACTION * n:
+        if test.too_many:
             # Too many to be a few bad poses, or one gross pose (0.5 mm among 5 um readings) that
             # dragged the fit so far that a tenth of the others stand out with it. Take out the
             # most outlying flagged pose alone and look again (sequential deletion); if the many
@@ -156,7 +164,7 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
             break
         excluded, fit = new, None
     if excluded.any():
-        action = "excluded from every fit, the location tests and the cross-validation (kept in the measurement order)"
+        action = _EXCLUDED
     else:
         action = "no pose flagged; every pose used"
     return OutlierScreen(test=test, excluded=excluded, action=action, fit=fit)
@@ -190,34 +198,13 @@ def retest_with_effects(
     screen : OutlierScreen
         The screen the diagnosis used.
     """
-    from ..effects.model import _dq, _dx, _effect_theta, _predict, _slices, effect_columns
-
     if not effects:
         return None
-    machine = model.machine
-    P = machine.n_params
-    slices = _slices(effects, model)
-    q_eff = model.pose_q + _dq(effects, slices, fit.eta, model.pose_q.shape, _effect_theta(model, fit.theta))
-    sub, pred = _predict(model, q_eff, fit.theta, None, dx=_dx(effects, slices, fit.eta, model.pose_q.shape[0]))
-    sig = np.asarray(model.row_sigma)
-    # the joint Jacobian of bayescal.effects.model.fit_map: geometry, then each effect through dq and dx
-    Jg = sub.jacobian(fit.theta, pred)
-    Je, Jt = effect_columns(sub, fit.theta, pred, effects, slices, fit.eta)
-    cols = [Jg if Jt is None else Jg + Jt] + Je
-    scale = np.concatenate([machine.tolerance, [p.prior_sd for p in fit.params]])
-    A = (np.concatenate(cols, axis=2) / sig[:, :, None]).reshape(-1, P + len(fit.params)) * scale
-    r = (model.residual(pred) / sig).reshape(-1)
-    weights = np.where(screen.excluded, EXCLUDE_FACTOR**-2, 1.0)
-    test = pose_test_linear(A, r, model.dof, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=screen.test.lines)
-    flagged = test.flagged
-    if np.array_equal(flagged, screen.excluded) or flagged.sum() > MAX_FRACTION * model.n_poses:
-        return None
-    judged = "judged against the geometry with " + ", ".join(e.name for e, _ in effects)
-    if flagged.any():
-        action = f"excluded from every fit, the location tests and the cross-validation (kept in the measurement order); {judged}"
-    else:
-        action = f"no pose flagged, {judged} (the geometric model's misfit alone had flagged some); every pose used"
-    return OutlierScreen(test=test, excluded=flagged.copy(), action=action)
+    # the joint fit's own system (geometry, then each effect through dq, dx and the bending of sensor bodies)
+    A, r = joint_system(model, effects, fit.theta, fit.eta)
+    return _retest(model, A, r, screen, alpha=alpha,
+                   judged="judged against the geometry with " + ", ".join(e.name for e, _ in effects),
+                   released="the geometric model's misfit alone had flagged some")
 
 
 def retest_with_discrepancy(model: MeasurementModel, theta, fitted, screen: OutlierScreen, *,
@@ -247,15 +234,25 @@ def retest_with_discrepancy(model: MeasurementModel, theta, fitted, screen: Outl
         A, r = joint_design(model, theta, fitted, np.asarray(model.machine.tolerance)[fitted.free])
     except InputError:
         return None
-    weights = np.where(screen.excluded, EXCLUDE_FACTOR**-2, 1.0)
-    test = pose_test_linear(A, r, model.dof, lam=1.0, weights=weights, scale="robust", alpha=alpha,
+    return _retest(model, A, r, screen, alpha=alpha, judged="judged against the final model with its discrepancy",
+                   released="the model without it had flagged some: physics, not gross errors")
+
+
+def _retest(model: MeasurementModel, A: NDArray, r: NDArray, screen: OutlierScreen, *, alpha: float, judged: str,
+            released: str) -> OutlierScreen | None:
+    """The screen's test redone on a final model's linear system ``A x ~ r``; the new screen, or None if unchanged.
+
+    ``A`` (rows, parameters) is whitened and scaled by the prior std, ``r`` the whitened residual; ridge
+    ``lam = 1`` (the prior), the screen's exclusion weights, the robust scale.  More flagged poses than
+    :data:`MAX_FRACTION` is structure the final model misses, not outliers: the screen stands.
+    """
+    test = pose_test_linear(A, r, model.dof, lam=1.0, weights=screen.weights, scale="robust", alpha=alpha,
                             lines=screen.test.lines)
     flagged = test.flagged
-    if np.array_equal(flagged, screen.excluded) or flagged.sum() > MAX_FRACTION * model.n_poses:
+    if np.array_equal(flagged, screen.excluded) or test.too_many:
         return None
-    judged = "judged against the final model with its discrepancy"
     if flagged.any():
-        action = f"excluded from every fit, the location tests and the cross-validation (kept in the measurement order); {judged}"
+        action = f"{_EXCLUDED}; {judged}"
     else:
-        action = f"no pose flagged, {judged} (the model without it had flagged some: physics, not gross errors); every pose used"
+        action = f"no pose flagged, {judged} ({released}); every pose used"
     return OutlierScreen(test=test, excluded=flagged.copy(), action=action)

@@ -1,4 +1,6 @@
-"""The per-pose outlier test and the IRLS weights (bayescal/outliers.py)."""
+"""The per-pose outlier test and the IRLS weights (bayescal/outliers/stats.py)."""
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -6,7 +8,17 @@ from scipy import stats
 
 from bayescal.identify import identify, whitened_system
 from bayescal.measurement import MeasurementModel
-from bayescal.outliers import irls_weights, loss_weights, pose_test, pose_test_linear, recording_lines
+from bayescal.outliers import (
+    EXCLUDE_FACTOR,
+    MAX_FRACTION,
+    exclusion_weights,
+    irls_weights,
+    loss_weights,
+    pose_test,
+    pose_test_linear,
+    recording_lines,
+    weighted_model,
+)
 from bayescal.simulate import simulate_recording
 
 
@@ -118,6 +130,32 @@ def test_clean_recordings_give_fewer_than_one_false_outlier_per_thousand_poses(p
     assert stats.kstest(np.ravel(pvals), "uniform").pvalue > 1e-3
     assert 7 <= any_half <= 23  # binomial(30, 0.5)
     assert flagged <= 3
+
+
+def test_weights_scale_each_pose_sigma_by_one_over_root_w(prs3):
+    """The one rule every outlier step weights poses by: sigma / sqrt(w); an excluded pose's sigma x 1e6."""
+    model = MeasurementModel.from_recording(prs3, simulate_recording(prs3, 10, seed=0).recording)
+    assert weighted_model(model, None) is model
+    w = np.linspace(0.1, 1.0, 10)
+    np.testing.assert_allclose(weighted_model(model, w).row_sigma, np.asarray(model.row_sigma) / np.sqrt(w)[:, None])
+    excluded = np.zeros(10, dtype=bool)
+    excluded[[2, 7]] = True
+    np.testing.assert_array_equal(exclusion_weights(excluded), np.where(excluded, 1e-12, 1.0))
+    sig = np.asarray(weighted_model(model, exclusion_weights(excluded)).row_sigma)
+    np.testing.assert_allclose(sig[excluded], np.asarray(model.row_sigma)[excluded] * EXCLUDE_FACTOR)
+    np.testing.assert_array_equal(sig[~excluded], np.asarray(model.row_sigma)[~excluded])
+
+
+def test_too_many_is_more_than_the_share_of_a_model_mismatch():
+    """40 poses: 4 flagged (10 %) are outliers, 5 are a model mismatch."""
+    rng = np.random.default_rng(3)
+    A, d = rng.normal(size=(120, 4)), 3
+    z = rng.normal(size=120)
+    base = pose_test_linear(A, z - A @ np.linalg.lstsq(A, z, rcond=None)[0], d)
+    assert MAX_FRACTION == 0.1 and base.n_poses == 40
+    for k, many in [(0, False), (4, False), (5, True)]:
+        flagged = np.arange(40) < k
+        assert replace(base, flagged=flagged).too_many is many
 
 
 def test_loss_weights_by_hand():

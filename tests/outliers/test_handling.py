@@ -1,4 +1,4 @@
-"""Robust identification: gross poses named and down-weighted (bayescal/identify/robust.py)."""
+"""Robust identification: gross poses named and down-weighted (bayescal/outliers/handling.py)."""
 
 from dataclasses import replace
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayescal.identify import identify
-from bayescal.identify.robust import identify_with_outliers
+from bayescal.outliers.handling import identify_with_outliers
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import draw_poses, simulate_recording
 
@@ -103,7 +103,7 @@ def test_unknown_noise_uses_the_leave_one_out_f_test(prs3):
 def test_a_pose_flagged_only_at_the_answer_is_not_reported_as_none_flagged(prs3):
     # tsvd --k auto on one pose: the robust MAP pass flagged none, the test at the TSVD answer flagged the pose,
     # and the report read "1 pose(s) no model of the machine explains: none flagged; every pose kept"
-    from bayescal.identify.robust import OutlierHandling, fit_system
+    from bayescal.outliers.handling import OutlierHandling, fit_system
     from bayescal.outliers import pose_test
 
     model = MeasurementModel.from_recording(prs3, simulate_recording(prs3, 40, seed=5).recording)

@@ -1,4 +1,4 @@
-"""A bad pose is not physics: gross errors named as outliers and left out of the diagnosis."""
+"""A bad pose is not physics: gross errors named as outliers and left out of the diagnosis (bayescal/outliers/screen.py)."""
 
 import json
 from dataclasses import replace
@@ -8,7 +8,7 @@ import pytest
 
 from bayescal.cli import main
 from bayescal.diagnose import diagnose
-from bayescal.diagnose.outliers import MAX_FRACTION, screen_outliers
+from bayescal.outliers.screen import MAX_FRACTION, screen_outliers
 from bayescal.effects.simulate import simulate_with_effects
 from bayescal.io import write_recording
 from bayescal.measurement import MeasurementModel
