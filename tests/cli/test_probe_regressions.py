@@ -301,3 +301,12 @@ def test_compare_exits_1_when_a_method_fails_in_every_trial(d, capsys):
     finally:
         METHODS.pop("broken_probe", None)
     assert code == 1 and "broken_probe failed in every trial" in err[-1], err
+
+
+# ------------------------------------------------------------------ copied rows (probe 2)
+def test_diagnose_refuses_a_recording_of_copied_rows(d, capsys):
+    """36 copies of one pose fit exactly (chi-square 0): 'noise explains it' would be a wrong verdict."""
+    lines = (d / "r.csv").read_text().splitlines()
+    (d / "c.csv").write_text("\n".join([lines[0]] + [lines[1]] * 36) + "\n")
+    refused(capsys, "diagnose", d / "c.csv", "--machine", d / "m.toml",
+            match=(str(d / "c.csv"), "only 1 distinct", "35 repeat an earlier row", "at least 10 distinct"))
