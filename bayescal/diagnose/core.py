@@ -38,7 +38,7 @@ from ..effects import EFFECTS, get_effect
 from ..effects.base import Effect, Features
 from ..effects.model import EffectFit, actuator_residual, effect_residual, fit_map, linear_fold_residuals
 from ..errors import InputError, KinematicsError
-from ..identify.noise import distinct_rows
+from ..identify.noise import distinct_measurements
 from ..io.recording import Recording
 from ..machines.base import Machine
 from ..effects.base import approach_direction
@@ -356,8 +356,7 @@ def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_f
     if n < 2 * n_folds:
         raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
     # copied rows add rows but no information: they would leave a chi-square of 0 called "noise explains it"
-    rows = model.q if hasattr(model, "q") else np.hstack([model.qa, model.qb])
-    n_distinct = distinct_rows(rows, model.y_measured)
+    n_distinct = distinct_measurements(model)
     if n_distinct < 2 * n_folds:
         raise InputError(
             f"{recording.path}: {n} rows but only {n_distinct} distinct ({n - n_distinct} repeat an earlier row exactly, "

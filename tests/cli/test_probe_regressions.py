@@ -310,3 +310,18 @@ def test_diagnose_refuses_a_recording_of_copied_rows(d, capsys):
     (d / "c.csv").write_text("\n".join([lines[0]] + [lines[1]] * 36) + "\n")
     refused(capsys, "diagnose", d / "c.csv", "--machine", d / "m.toml",
             match=(str(d / "c.csv"), "only 1 distinct", "35 repeat an earlier row", "at least 10 distinct"))
+
+
+def test_copied_rows_do_not_set_the_map_prior_scale(d):
+    """36 copies of one pose are 6 distinct components for 36 parameters: the tolerances, not an 'empirical' scale."""
+    from bayescal.bayes.map_identify import default_prior_scale
+    from bayescal.io.recording import read_recording
+    from bayescal.machines.files import load_machine
+    from bayescal.models import model_from_recording
+
+    lines = (d / "r.csv").read_text().splitlines()
+    (d / "c.csv").write_text("\n".join([lines[0]] + [lines[1]] * 36) + "\n")
+    machine = load_machine(d / "m.toml")
+    assert default_prior_scale(model_from_recording(machine, read_recording(d / "r.csv"), check=False))[0] == "empirical"
+    scale, note = default_prior_scale(model_from_recording(machine, read_recording(d / "c.csv"), check=False))
+    assert scale == "tolerance" and "6 distinct measured components, 35 copied rows not counted" in note
