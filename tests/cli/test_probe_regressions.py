@@ -325,3 +325,15 @@ def test_copied_rows_do_not_set_the_map_prior_scale(d):
     assert default_prior_scale(model_from_recording(machine, read_recording(d / "r.csv"), check=False))[0] == "empirical"
     scale, note = default_prior_scale(model_from_recording(machine, read_recording(d / "c.csv"), check=False))
     assert scale == "tolerance" and "6 distinct measured components, 35 copied rows not counted" in note
+
+
+def test_compensate_names_both_lines_of_an_irregular_grid(tmp_path, capsys):
+    """Was 'node coordinate np.float64(0.0) differs from np.float64(150.0)', naming only one of the two lines."""
+    rows = ["i,j,x,z,ex,ez,std_ex,std_ez"]
+    for j, z in enumerate((-200.0, 200.0)):
+        for i, x in enumerate((-300.0, 0.0, 300.0)):
+            rows.append(f"{i},{j},{150.0 if (i, j) == (1, 0) else x},{z},0.0,0.0,,")
+    (tmp_path / "g.csv").write_text("\n".join(rows) + "\n")
+    (tmp_path / "e.csv").write_text("x,z,ex,ez\n0,0,0,0\n")
+    refused(capsys, "compensate", "--grid", tmp_path / "g.csv", "--evaluate", tmp_path / "e.csv",
+            match=("g.csv: line 6, column 'x'", "0 mm differs from 150 mm at line 3", "(i = 1)"))
