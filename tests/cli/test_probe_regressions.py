@@ -337,3 +337,9 @@ def test_compensate_names_both_lines_of_an_irregular_grid(tmp_path, capsys):
     (tmp_path / "e.csv").write_text("x,z,ex,ez\n0,0,0,0\n")
     refused(capsys, "compensate", "--grid", tmp_path / "g.csv", "--evaluate", tmp_path / "e.csv",
             match=("g.csv: line 6, column 'x'", "0 mm differs from 150 mm at line 3", "(i = 1)"))
+
+
+@pytest.mark.parametrize("flag", ["--poses", "--eval-poses"])
+def test_compare_names_the_pose_count_option(d, capsys, flag):
+    """Was 'n_poses and n_eval: expected positive integers' for either option."""
+    refused(capsys, "compare", "--machine", d / "m.toml", "--trials", "2", flag, "0", match=(f"({flag})", "got 0"))
