@@ -343,3 +343,11 @@ def test_compensate_names_both_lines_of_an_irregular_grid(tmp_path, capsys):
 def test_compare_names_the_pose_count_option(d, capsys, flag):
     """Was 'n_poses and n_eval: expected positive integers' for either option."""
     refused(capsys, "compare", "--machine", d / "m.toml", "--trials", "2", flag, "0", match=(f"({flag})", "got 0"))
+
+
+@pytest.mark.parametrize("pivot", ["nan,0,0", "0,inf,0"])
+def test_simulate_ballbar_refuses_a_non_finite_pivot(d, capsys, pivot):
+    """A NaN pivot was reported as 'the circle does not fit the workspace'."""
+    refused(capsys, "simulate", "--machine", d / "m.toml", "--poses", "5", "--seed", "1", "--ballbar", "20",
+            "--pivot", pivot, "--out", d / "b.csv", match=("--pivot", "expected three finite numbers"))
+    assert not (d / "b.csv").exists()
