@@ -351,3 +351,14 @@ def test_simulate_ballbar_refuses_a_non_finite_pivot(d, capsys, pivot):
     refused(capsys, "simulate", "--machine", d / "m.toml", "--poses", "5", "--seed", "1", "--ballbar", "20",
             "--pivot", pivot, "--out", d / "b.csv", match=("--pivot", "expected three finite numbers"))
     assert not (d / "b.csv").exists()
+
+
+@pytest.mark.parametrize("extra, flag", [
+    (["--max-iter", "0"], "(--max-iter)"),
+    (["--method", "mcmc", "--walkers", "2", "--steps", "40", "--surrogate", "linear"], "(--walkers)"),
+    (["--method", "mcmc", "--checkpoint", "c.npz", "--checkpoint-every", "0"], "(--checkpoint-every)"),
+])
+def test_identify_option_errors_name_the_option(d, capsys, monkeypatch, extra, flag):
+    """They named only the library's parameter (max_iter, n_walkers, checkpoint_every)."""
+    monkeypatch.chdir(d)
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", *extra, match=flag)
