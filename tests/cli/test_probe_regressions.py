@@ -362,3 +362,12 @@ def test_identify_option_errors_name_the_option(d, capsys, monkeypatch, extra, f
     """They named only the library's parameter (max_iter, n_walkers, checkpoint_every)."""
     monkeypatch.chdir(d)
     refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", *extra, match=flag)
+
+
+@pytest.mark.parametrize("command, extra", [
+    ("identify", ["--steps", "10"]), ("identify", ["--checkpoint-every", "5"]),
+    ("grid", ["--steps", "10"]), ("grid", ["--surrogate", "linear"]), ("grid", ["--method", "kalman", "--steps", "50"]),
+])
+def test_mcmc_options_with_another_method_are_refused(d, capsys, command, extra):
+    """They were accepted and ignored: the run was not what the command line asked for."""
+    refused(capsys, command, d / "r.csv", "--machine", d / "m.toml", *extra, match=(f"{extra[-2]} goes with --method mcmc",))
