@@ -133,6 +133,12 @@ def _read_modules(doc: TomlTable, path: str) -> tuple[list, list]:
             f = Path(mt.string("file"))
             f = f if f.is_absolute() else Path(path).parent / f
             _refuse_cycle(mt, f)
+            # named from the key that points there: "nope.toml: file not found" did not say which file asked for it
+            if not f.exists():
+                raise mt.error("file", f"{f}: file not found; expected a module's machine file (TOML)")
+            if not f.is_file():
+                raise mt.error("file", f"{f}: not a regular file (a folder, device or pipe); expected a module's machine "
+                               "file (TOML)")
             sub, sub_path = read_toml(f), str(f)
         else:
             sub, sub_path = mt.table("machine"), path
