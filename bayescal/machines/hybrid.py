@@ -137,8 +137,10 @@ def _read_modules(doc: TomlTable, path: str) -> tuple[list, list]:
             if not f.exists():
                 raise mt.error("file", f"{f}: file not found; expected a module's machine file (TOML)")
             if not f.is_file():
-                raise mt.error("file", f"{f}: not a regular file (a folder, device or pipe); expected a module's machine "
-                               "file (TOML)")
+                from ..io.safe_paths import file_kind
+
+                raise mt.error("file", f"{f}: is {file_kind(f.stat().st_mode)}, not a regular file; expected a module's "
+                               "machine file (TOML)")
             sub, sub_path = read_toml(f), str(f)
         else:
             sub, sub_path = mt.table("machine"), path
