@@ -371,3 +371,10 @@ def test_identify_option_errors_name_the_option(d, capsys, monkeypatch, extra, f
 def test_mcmc_options_with_another_method_are_refused(d, capsys, command, extra):
     """They were accepted and ignored: the run was not what the command line asked for."""
     refused(capsys, command, d / "r.csv", "--machine", d / "m.toml", *extra, match=(f"{extra[-2]} goes with --method mcmc",))
+
+
+def test_report_must_be_named_html(d, capsys):
+    """An HTML page was written under rep.pdf."""
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--report", d / "rep.pdf",
+            match=("--report", "rep.pdf", "ending in .html"))
+    assert not (d / "rep.pdf").exists()
