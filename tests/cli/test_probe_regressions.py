@@ -378,3 +378,10 @@ def test_report_must_be_named_html(d, capsys):
     refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--report", d / "rep.pdf",
             match=("--report", "rep.pdf", "ending in .html"))
     assert not (d / "rep.pdf").exists()
+
+
+def test_predict_names_a_constraint_recording_as_such(d, capsys):
+    """Was 'line 1: no actuator columns; expected q1, q2, ...' for a Klipper recording of heights."""
+    (d / "c.csv").write_text("measure,a_q1,a_q2,a_q3,b_q1,b_q2,b_q3,value\nheight,500,500,500,,,,0.5\n")
+    refused(capsys, "predict", d / "c.csv", "--machine", d / "m.toml",
+            match=("c.csv: line 1: a constraint recording", "section 6", "recording of measured poses"))
