@@ -310,15 +310,19 @@ def read_grid(path: str | os.PathLike, *, text: str | None = None) -> Compensati
     err = np.full((nz, nx, 2), np.nan)
     std = np.full((nz, nx, 2), np.nan)
     xs, zs = np.full(nx, np.nan), np.full(nz, np.nan)
+    first: dict[tuple[str, int], int] = {}  # the line that set each grid line's coordinate
     for line, r in enumerate(a, start=2):
         i, j = int(r[0]), int(r[1])
         if np.isfinite(err[j, i, 0]):
             raise RecordingError(path, line, "i", f"node ({i}, {j}) given twice")
         err[j, i], std[j, i] = r[4:6], r[6:8]
-        for arr, idx, v, c in ((xs, i, r[2], "x"), (zs, j, r[3], "z")):
+        for arr, idx, v, c, k in ((xs, i, r[2], "x", "i"), (zs, j, r[3], "z", "j")):
             if np.isfinite(arr[idx]) and arr[idx] != v:
-                raise RecordingError(path, line, c, f"node coordinate {v!r} differs from {arr[idx]!r} on the same grid line")
+                raise RecordingError(path, line, c, f"node coordinate {float(v):g} mm differs from {float(arr[idx]):g} mm "
+                                     f"at line {first[c, idx]} on the same grid line ({k} = {idx}); expected one {c} "
+                                     f"per {k}")
             arr[idx] = v
+            first.setdefault((c, idx), line)
     try:
         grid = CompensationGrid(xs=xs, zs=zs, error=err, std=std)
         grid.check_plausible("the grid")

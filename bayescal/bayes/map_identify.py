@@ -44,12 +44,17 @@ def default_prior_scale(model: MeasurementModel) -> tuple[str, str | None]:
     note : str or None
         For the report when the tolerances are used as they are.
     """
-    n_rows = model.n_poses * model.dof
+    from ..identify.noise import distinct_measurements
+
+    # copied rows add components but no information: 36 copies of one pose must not set the scale
+    n_distinct = distinct_measurements(model)
+    n_rows = n_distinct * model.dof
     if n_rows >= MIN_ROWS_PER_PARAM * model.n_params or not model.machine.noise.given:
         return "empirical", None
+    copies = f", {model.n_poses - n_distinct} copied rows not counted" if n_distinct < model.n_poses else ""
     return "tolerance", (
-        f"prior scale: the machine file's tolerances ({n_rows} measured components for {model.n_params} parameters "
-        "with the noise stated: too few to estimate a scale; --prior-scale empirical to try)"
+        f"prior scale: the machine file's tolerances ({n_rows} distinct measured components{copies} for "
+        f"{model.n_params} parameters with the noise stated: too few to estimate a scale; --prior-scale empirical to try)"
     )
 
 

@@ -426,7 +426,7 @@ def _check_run_options(surrogate: str, checkpoint, checkpoint_every: int, resume
     if checkpoint is None:
         return
     if checkpoint_every < 1:
-        raise InputError(f"checkpoint_every: expected a positive number of steps, got {checkpoint_every}")
+        raise InputError(f"checkpoint_every (--checkpoint-every): expected a positive number of steps, got {checkpoint_every}")
     if not resume and os.path.lexists(checkpoint):
         # a fresh chain saved over it would lose the chain it holds (hours of sampling, --resume forgotten)
         raise InputError(f"--checkpoint {checkpoint}: a file is there already; a fresh run would replace it. "
@@ -452,7 +452,7 @@ def _chain_size(n: int, n_walkers: int | None, n_steps: int, burn: int | None) -
     n_walkers = 2 * n + 2 if n_walkers is None else int(n_walkers)
     if n_walkers < max(2 * n, n + 2) or n_walkers % 2:
         # emcee's red-blue moves refuse fewer walkers than twice the dimensions (a RuntimeError otherwise)
-        raise InputError(f"n_walkers: expected an even number >= {max(2 * n, n + 2)} (twice the {n} sampled "
+        raise InputError(f"n_walkers (--walkers): expected an even number >= {max(2 * n, n + 2)} (twice the {n} sampled "
                          f"parameters), got {n_walkers}")
     from ..limits import check_memory
 

@@ -46,6 +46,8 @@ def add_arguments(p) -> None:
 _METHOD_OPTIONS = (
     ("posterior", "--posterior", "mcmc", lambda v: v is not None),
     ("walkers", "--walkers", "mcmc", lambda v: v is not None),
+    ("steps", "--steps", "mcmc", lambda v: v != 1000),  # given with map it was ignored, silently (a probe found it)
+    ("checkpoint_every", "--checkpoint-every", "mcmc", lambda v: v != 100),
     ("surrogate", "--surrogate", "mcmc", lambda v: v != "none"),
     ("checkpoint", "--checkpoint", "mcmc", lambda v: v is not None),
     ("resume", "--resume", "mcmc", bool),

@@ -109,6 +109,9 @@ def run(args) -> int:
     from ..effects.stored import parse_aux_values
 
     aux = parse_aux_values(args.aux)  # bad --aux is bad input before any work
+    for flag, given in (("--steps", args.steps != 1000), ("--surrogate", args.surrogate != "none")):
+        if given and args.method != "mcmc":  # they were ignored, silently
+            raise InputError(f"{flag} goes with --method mcmc; it does nothing with --method {args.method}")
     ranges = _ranges(args.ranges)
     machine, _, model, _, session = inputs_with_session(args, constraints=True)
     if args.nc and grid_space(model.machine, args.space) != "tool":

@@ -103,6 +103,10 @@ def check_run_paths(args: argparse.Namespace) -> None:
     for key in FIGURE_OUTPUTS:
         if isinstance(value := getattr(args, key, None), str) and value:
             check_figure_path(value, _label(key))
+    report = getattr(args, "report", None)
+    if isinstance(report, str) and report and Path(report).suffix.lower() not in (".html", ".htm"):
+        # an HTML page was written under rep.pdf, which no PDF viewer opens
+        raise InputError(f"--report {report}: the report is an HTML page; expected a file name ending in .html")
 
 
 def check_option_values(args: argparse.Namespace) -> None:

@@ -127,7 +127,12 @@ def register(sub) -> None:
         "(identify --frame fit): the six frame parameters take part in the criterion (default base)",
     )
     add_output_options(p)
-    p.set_defaults(func=run)
+    # the options a plan of new poses or relations uses and --separate does not (its candidates are the recording's
+    # poses, its criterion the confound's variance): given with --separate they are refused, not ignored
+    unused = ("criterion", "candidates", "dof", "scaling", "random_sets", "no_exchange", "repeats", "method",
+              "exact_bound", "certify", "certify_nodes", "no_box", "given", "centre", "radius", "spacing", "sigma",
+              "min_distance")
+    p.set_defaults(func=run, separate_unused=tuple((d, p.get_default(d)) for d in unused))
 
 
 def _vector(text: str) -> list[float]:
@@ -183,6 +188,10 @@ def run_separate(args) -> int:
 
     if args.measure != "pose":
         raise InputError(f"--separate plans poses; it does not go with --measure {args.measure}")
+    for dest, default in args.separate_unused:
+        if getattr(args, dest) != default:
+            raise InputError(f"--{dest.replace('_', '-')} does nothing with --separate (the recording's poses are the "
+                             "candidates, chosen for the confound between effects and geometry); leave it out")
     effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
     plan = plan_next_session(args.machine, args.separate, args.n, condition=args.condition, effects=effects,
                              seed=args.seed, frame=args.frame)

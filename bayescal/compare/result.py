@@ -239,8 +239,9 @@ def compare_methods(
     check_memory(float(trials) * 1024 * (2 + len(parse_methods(methods))), f"{int(trials):,} trials", "lower --trials")
     if free not in ("auto", "all"):
         raise InputError(f"free: expected 'auto' or 'all', got {free!r}")
-    if n_poses < 1 or n_eval < 1:
-        raise InputError("n_poses and n_eval: expected positive integers")
+    for value, name in ((n_poses, "n_poses (--poses)"), (n_eval, "n_eval (--eval-poses)")):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise InputError(f"{name}: expected a positive whole number of poses, got {value!r}")
     if machine.q_limits is None:
         raise InputError(f"{machine.source}: the machine file has no [workspace] q_limits; a comparison draws poses there")
     rec_text = rec_name = ""

@@ -159,6 +159,9 @@ def simulate_ballbar(
     if pivot is None:
         pivot = machine.forward(machine.home_q()[None]).position[0]
     pivot = np.asarray(pivot, dtype=float)
+    if pivot.shape != (3,) or not np.isfinite(pivot).all():
+        # a NaN pivot was blamed on the workspace ("the circle does not fit")
+        raise InputError(f"pivot (--pivot): expected three finite numbers X,Y,Z in mm, got {pivot.tolist()}")
     pts = np.vstack([circle_points(pivot, radius, pl, n_points) for pl in planes])
     _check_circles_fit(machine, pivot, radius, planes, n_points)
     q = solve_q_for_points(machine, pts)

@@ -38,6 +38,7 @@ from ..effects import EFFECTS, get_effect
 from ..effects.base import Effect, Features
 from ..effects.model import EffectFit, actuator_residual, effect_residual, fit_map, linear_fold_residuals
 from ..errors import InputError, KinematicsError
+from ..identify.noise import distinct_measurements
 from ..io.recording import Recording
 from ..machines.base import Machine
 from ..effects.base import approach_direction
@@ -355,6 +356,14 @@ def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_f
     n = model.n_poses
     if n < 2 * n_folds:
         raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
+    # copied rows add rows but no information: they would leave a chi-square of 0 called "noise explains it"
+    n_distinct = distinct_measurements(model)
+    if n_distinct < 2 * n_folds:
+        raise InputError(
+            f"{recording.path}: {n} rows but only {n_distinct} distinct ({n - n_distinct} repeat an earlier row exactly, "
+            f"commanded and measured values alike); the diagnosis needs at least {2 * n_folds} distinct measurements "
+            f"(cross-validation in {n_folds} folds)"
+        )
     # gross errors are not physics (docs/outliers.md): flagged poses leave every fit and test
     base_model = model
     if screen is None:

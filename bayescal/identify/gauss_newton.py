@@ -331,7 +331,7 @@ def _check_options(model, method: str, lam, max_iter) -> tuple[str, float | None
     if method == "ridge" and not (finite_real(lam) and lam >= 0):
         raise InputError(f"lam: ridge needs a number >= 0, got {lam!r}")
     if int(max_iter) != max_iter or max_iter < 1:
-        raise InputError(f"max_iter: expected a whole number >= 1, got {max_iter!r}")
+        raise InputError(f"max_iter (--max-iter): expected a whole number >= 1, got {max_iter!r}")
     return ("ridge" if method == "map" else method), lam
 
 

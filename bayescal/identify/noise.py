@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from ..distributions import chi2_cdf, chi2_sf
 
-__all__ = ["NoiseCheck", "check_noise", "distinct_rows", "ALPHA", "OVERSTATED_BELOW"]
+__all__ = ["NoiseCheck", "check_noise", "distinct_rows", "distinct_measurements", "ALPHA", "OVERSTATED_BELOW"]
 
 #: Level of the two-sided chi-square test of the stated noise.
 ALPHA = 1e-3
@@ -147,3 +147,15 @@ def distinct_rows(q: NDArray, y: NDArray | None) -> int:
     if rows.shape[0] == 0:
         return 0
     return int(np.unique(rows, axis=0).shape[0])
+
+
+def distinct_measurements(model) -> int:
+    """:func:`distinct_rows` of a model's rows: a pose model's ``q``, a constraint model's ``qa`` and ``qb``.
+
+    A constraint row without a pose b (a height) has NaN in ``qb``; NaN is
+    compared as a value here, so two copied heights are one measurement.
+    """
+    q = model.q if hasattr(model, "q") else np.hstack([model.qa, model.qb])
+    q = np.nan_to_num(np.asarray(q, dtype=float), nan=np.inf)
+    y = None if model.y_measured is None else np.nan_to_num(np.asarray(model.y_measured, dtype=float), nan=np.inf)
+    return distinct_rows(q, y)

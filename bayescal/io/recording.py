@@ -442,6 +442,11 @@ def _pose_columns(path: str, seen: dict[str, int]) -> list[int]:
     """The actuator numbers ``1..N`` of the header; RecordingError for gaps and missing or incomplete pose columns."""
     qnums = sorted(int(m.group(1)) for h in seen if (m := _Q.match(h)))
     if not qnums:
+        if "measure" in seen and "a_q1" in seen:
+            # predict (and anything else that reads poses only) was told "no actuator columns" about a Klipper recording
+            raise RecordingError(path, 1, None, "a constraint recording (measure, a_q1, ...: distances, heights, "
+                                 "ballbar readings; docs/formats.md section 6); expected a recording of measured poses "
+                                 "(q1, q2, ..., x, y, z), the only kind this command reads")
         raise RecordingError(path, 1, None, "no actuator columns; expected q1, q2, ..." + _case_hint(seen, "q1"))
     if qnums != list(range(1, len(qnums) + 1)):
         missing = sorted(set(range(1, max(qnums) + 1)) - set(qnums))

@@ -133,6 +133,14 @@ def _read_modules(doc: TomlTable, path: str) -> tuple[list, list]:
             f = Path(mt.string("file"))
             f = f if f.is_absolute() else Path(path).parent / f
             _refuse_cycle(mt, f)
+            # named from the key that points there: "nope.toml: file not found" did not say which file asked for it
+            if not f.exists():
+                raise mt.error("file", f"{f}: file not found; expected a module's machine file (TOML)")
+            if not f.is_file():
+                from ..io.safe_paths import file_kind
+
+                raise mt.error("file", f"{f}: is {file_kind(f.stat().st_mode)}, not a regular file; expected a module's "
+                               "machine file (TOML)")
             sub, sub_path = read_toml(f), str(f)
         else:
             sub, sub_path = mt.table("machine"), path

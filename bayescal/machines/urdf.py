@@ -177,16 +177,48 @@ def _load(urdf_path: Path, path: str):
 
         root = etree.fromstring(data, etree.XMLParser(recover=False))
         duplicate = _duplicate_name(root)
+        bad = _bad_number(root)
+        if bad is not None:
+            raise MachineFileError(path, "urdf", f"{urdf_path.name} line {bad}")
         if duplicate is None:
             return yourdfpy.URDF.load(
                 io.BytesIO(data), build_scene_graph=False, load_meshes=False,
                 build_collision_scene_graph=False, load_collision_meshes=False,
             )
+    except MachineFileError:
+        raise
     except Exception as exc:  # yourdfpy raises lxml, ValueError, KeyError... for malformed files
         raise MachineFileError(path, "urdf", f"{urdf_path} is not a readable URDF file ({type(exc).__name__}: {exc})") from exc
     # yourdfpy keeps one element per name: a second joint 'j1' silently replaced the first (and broke the chain)
     tag, name = duplicate
     raise MachineFileError(path, "urdf", f"{urdf_path.name} has two <{tag}> elements named {name!r}; expected unique names")
+
+
+#: The numeric attributes of a joint the chain is read from, with how many numbers each holds.
+_JOINT_NUMBERS = (("origin", "xyz", 3), ("origin", "rpy", 3), ("axis", "xyz", 3), ("limit", "lower", 1),
+                  ("limit", "upper", 1), ("mimic", "multiplier", 1), ("mimic", "offset", 1))
+
+
+def _bad_number(root) -> str | None:
+    """``"N: <joint 'j2'> <origin rpy>: ..."`` for the first joint attribute that is not its count of numbers, else None.
+
+    yourdfpy's own failure for ``rpy="0 0"`` was an IndexError naming neither the joint nor the line.
+    """
+    for joint in root.findall("joint"):
+        for tag, attr, count in _JOINT_NUMBERS:
+            for element in joint.findall(tag):
+                text = element.get(attr)
+                if text is None:
+                    continue
+                try:
+                    values = [float(v) for v in text.split()]
+                except ValueError:
+                    values = None
+                if values is None or len(values) != count:
+                    what = "a number" if count == 1 else f"{count} numbers separated by spaces"
+                    return (f"{element.sourceline}: joint {joint.get('name')!r}, <{tag} {attr}=...>: expected {what}, "
+                            f"got {text!r}")
+    return None
 
 
 def _duplicate_name(root) -> tuple[str, str] | None:

@@ -130,6 +130,7 @@ def read_calibration(doc: TomlTable, path: str) -> CalibrationRecord | None:
     big = float(np.max(np.abs(C))) if C.size else 0.0
     if not np.all(np.isfinite(C)) or np.max(np.abs(C - C.T), initial=0.0) > 1e-9 * big or np.any(np.diag(C) < 0):
         raise t.error("covariance_f64le_b64", "expected a finite, symmetric covariance with non-negative variances")
+    _check_covariance(t, names, C)
     scale = t.number("noise_scale", default=1.0, positive=True)
     if not math.isfinite(scale) or not 1e-6 <= scale <= 1e6:
         raise t.error("noise_scale", f"expected a factor between 1e-6 and 1e6, got {scale!r}")
@@ -138,6 +139,40 @@ def read_calibration(doc: TomlTable, path: str) -> CalibrationRecord | None:
     if not 1.0 <= kappa <= 1e4:
         raise t.error("variance_factor", f"expected a factor from 1 to 1e4, got {kappa!r}")
     return CalibrationRecord(tuple(names), C, float(scale), method, float(kappa))
+
+
+#: Largest one-sigma a record may state for a parameter (mm, rad or a weight's unit): 1 km is no calibration.
+MAX_RECORD_STD = 1e6
+
+
+def _check_covariance(t: TomlTable, names: list, C: NDArray) -> None:
+    """Refuse a covariance no calibration writes: a variance beyond :data:`MAX_RECORD_STD`, not positive
+    semi-definite, or a ``std`` list that is not the square root of its diagonal (an edited file).
+
+    A variance of 1e300 passed the finite-and-symmetric check and ended in a singular-matrix traceback.
+    """
+    d = np.diag(C)
+    worst = int(np.argmax(d)) if d.size else 0
+    if d.size and not np.sqrt(d[worst]) <= MAX_RECORD_STD:
+        raise t.error("covariance_f64le_b64", f"parameter {names[worst]!r} has a std of {np.sqrt(d[worst]):.3g}; expected at "
+                      f"most {MAX_RECORD_STD:g} (mm, rad or the parameter's unit)")
+    lo = float(np.linalg.eigvalsh(C)[0]) if d.size else 0.0
+    if lo < -1e-9 * max(float(d.max(initial=0.0)), 1e-300):
+        raise t.error("covariance_f64le_b64", f"not positive semi-definite (smallest eigenvalue {lo:.3g}); expected a "
+                      "covariance as identify, diagnose or grid write it")
+    std = t.data.get("std")
+    if std is None:
+        return
+    ok = isinstance(std, list) and len(std) == len(names) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0 for v in std)
+    if not ok:
+        raise t.error("std", f"expected {len(names)} finite non-negative numbers, one per parameter")
+    off = np.abs(np.asarray(std, dtype=float) - np.sqrt(d))
+    bad = np.flatnonzero(off > 1e-6 * np.sqrt(d) + 1e-300)
+    if bad.size:
+        i = int(bad[0])
+        raise t.error("std", f"{names[i]!r}: {std[i]!r} is not the square root of its variance in the covariance "
+                      f"({np.sqrt(d[i]):.6g}); the table was edited: write it again with identify --write-machine")
 
 
 def record_from_result(machine, names_all, free, covariance, *, noise_scale: float = 1.0, method: str = "",

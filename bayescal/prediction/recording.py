@@ -107,7 +107,14 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     from ..instrument.plausibility import frame_answer
     from ..instrument.prepare import prepare_session
 
-    # body sensors are read as auxiliary channels: the calibrated machine has no mountings to predict them with
+    from ..sensors import sensor_readings
+    from ..sensors.mounts import sensor_base
+
+    # body sensors are read as auxiliary channels: the calibrated machine has no mountings to predict them with.
+    # Their columns are checked all the same (a body the machine lacks, an incomplete x/y/z set, a zero or NaN
+    # reading): a base sensor gives the gravity-driven effects their per-pose gravity, and one mistyped column
+    # would leave them without it, silently
+    sensor_readings(dict(rec.aux), rec.path, rec.lines, tuple(sensor_base(machine.inside).sensor_bodies))
     session = prepare_session(machine, rec, dof=dof, frame=frame, strict=False, sensors=False)
     fm, model = session.machine, session.model
     errors = session.row_errors()

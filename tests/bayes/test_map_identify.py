@@ -29,13 +29,19 @@ def test_rule_tolerance_only_with_stated_noise_and_few_rows():
     model = ConstraintModel.from_recording(m, rec)
     assert model.n_poses * model.dof < MIN_ROWS_PER_PARAM * model.n_params
     scale, note = default_prior_scale(model)
-    assert scale == "tolerance" and "19 measured components for 21 parameters" in note
+    assert scale == "tolerance" and "19 distinct measured components for 21 parameters" in note
     # the noise not stated: the sigmas are weights, the evidence sets the prior against the noise
     m2, _ = _printer(noise_given=False)
     assert default_prior_scale(ConstraintModel.from_recording(m2, rec)) == ("empirical", None)
-    # stated noise with rows to spare: empirical
+    # stated noise with rows to spare: empirical (repeated measurements, each with its own noise)
     big = rec.subset(np.tile(np.arange(rec.n_rows), 4))
+    big = replace(big, value=big.value + big.sigma * np.random.default_rng(5).normal(size=big.n_rows))
     assert default_prior_scale(ConstraintModel.from_recording(m, big)) == ("empirical", None)
+    # copies of the same rows add no information: they do not count towards the scale (a probe found 36 copies of
+    # one pose setting it)
+    copies = rec.subset(np.tile(np.arange(rec.n_rows), 4))
+    scale, note = default_prior_scale(ConstraintModel.from_recording(m, copies))
+    assert scale == "tolerance" and "19 distinct measured components, 57 copied rows not counted" in note
 
 
 def test_identify_map_is_map_estimate_with_the_rule_and_the_command_agrees(tmp_path):

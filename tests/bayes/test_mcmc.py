@@ -145,7 +145,7 @@ def test_an_existing_checkpoint_is_not_replaced_by_a_fresh_run(prs3, sim6, tmp_p
 @pytest.mark.parametrize("options, match", [
     ({"surrogate": "quadratic"}, "surrogate: expected 'none' or 'linear'"),
     ({"resume": True}, "resume: give the checkpoint"),
-    ({"checkpoint": "c.npz", "checkpoint_every": 0}, "checkpoint_every: expected a positive number"),
+    ({"checkpoint": "c.npz", "checkpoint_every": 0}, r"checkpoint_every \(--checkpoint-every\): expected a positive number"),
     ({"checkpoint": "missing.npz", "resume": True}, r"--resume: .*missing.npz: no checkpoint there"),
 ])
 def test_bad_run_options_are_refused_before_the_map(prs3, sim6, tmp_path, monkeypatch, options, match):

@@ -50,3 +50,15 @@ def test_plan_separate_never_writes_over_its_recording(tmp_path, capsys):
     before = rec.read_bytes()
     assert main(["plan", "--machine", str(PRS3_FILE), "--separate", str(rec), "--n", "5", "--out", str(rec)]) == 2
     assert "--out" in capsys.readouterr().err and rec.read_bytes() == before
+
+
+@pytest.mark.parametrize("extra", [["--criterion", "E"], ["--candidates", "0"], ["--dof", "3"], ["--given", "x.csv"],
+                                   ["--radius", "5"], ["--no-box"], ["--certify", "5"]])
+def test_plan_separate_refuses_the_options_it_does_not_use(tmp_path, capsys, extra):
+    """A probe found them accepted and ignored: the plan was not what the command line asked for."""
+    rec = ROOT / "examples" / "prs3" / "recording.csv"
+    out = tmp_path / "next.csv"
+    assert main(["plan", "--machine", str(PRS3_FILE), "--separate", str(rec), "--n", "5", *extra, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{extra[0]} does nothing with --separate" in err[0], err
+    assert not out.exists()

@@ -130,3 +130,29 @@ def test_noise_free_recording_identifies_and_predicts(tmp_path, capsys):
     assert main(["predict", str(rec), "--machine", str(cal), "--json", str(pout), "--quiet"]) == 0, capsys.readouterr().err
     fit = json.loads(pout.read_text())["summary"]["fit"]
     assert fit["n"] == 40 and fit["mean_error_position_mm"] < 1e-3
+
+
+@pytest.mark.parametrize("edit, match", [
+    (("accel.base.y,", ""), "column(s) accel.base.y missing"),
+    (("accel.base.", "accel.nobody."), "no body 'nobody' on this machine"),
+    (("accel.base.z", "accel.base.w"), "column(s) accel.base.z missing"),
+])
+def test_predict_checks_body_sensor_columns_as_identify_does(tmp_path, capsys, edit, match):
+    """A probe found predict accepting a sensor without its y column, on a body the machine lacks, or mistyped."""
+    from ..conftest import ROOT
+
+    tele = ROOT / "examples" / "telescope"
+    lines = (tele / "session_b.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    if edit[0] == "accel.base.y,":  # drop the column with its cells
+        k = header.index("accel.base.y")
+        lines = [",".join(c for i, c in enumerate(line.split(",")) if i != k) for line in lines]
+    else:
+        lines[0] = lines[0].replace(*edit)
+    rec = tmp_path / "b.csv"
+    rec.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "p.json"
+    assert main(["predict", str(rec), "--machine", str(tele / "machine.toml"), "--frame", "fit", "--json", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(rec) in err[0] and match in err[0], err
+    assert not out.exists()

@@ -301,3 +301,87 @@ def test_compare_exits_1_when_a_method_fails_in_every_trial(d, capsys):
     finally:
         METHODS.pop("broken_probe", None)
     assert code == 1 and "broken_probe failed in every trial" in err[-1], err
+
+
+# ------------------------------------------------------------------ copied rows (probe 2)
+def test_diagnose_refuses_a_recording_of_copied_rows(d, capsys):
+    """36 copies of one pose fit exactly (chi-square 0): 'noise explains it' would be a wrong verdict."""
+    lines = (d / "r.csv").read_text().splitlines()
+    (d / "c.csv").write_text("\n".join([lines[0]] + [lines[1]] * 36) + "\n")
+    refused(capsys, "diagnose", d / "c.csv", "--machine", d / "m.toml",
+            match=(str(d / "c.csv"), "only 1 distinct", "35 repeat an earlier row", "at least 10 distinct"))
+
+
+def test_copied_rows_do_not_set_the_map_prior_scale(d):
+    """36 copies of one pose are 6 distinct components for 36 parameters: the tolerances, not an 'empirical' scale."""
+    from bayescal.bayes.map_identify import default_prior_scale
+    from bayescal.io.recording import read_recording
+    from bayescal.machines.files import load_machine
+    from bayescal.models import model_from_recording
+
+    lines = (d / "r.csv").read_text().splitlines()
+    (d / "c.csv").write_text("\n".join([lines[0]] + [lines[1]] * 36) + "\n")
+    machine = load_machine(d / "m.toml")
+    assert default_prior_scale(model_from_recording(machine, read_recording(d / "r.csv"), check=False))[0] == "empirical"
+    scale, note = default_prior_scale(model_from_recording(machine, read_recording(d / "c.csv"), check=False))
+    assert scale == "tolerance" and "6 distinct measured components, 35 copied rows not counted" in note
+
+
+def test_compensate_names_both_lines_of_an_irregular_grid(tmp_path, capsys):
+    """Was 'node coordinate np.float64(0.0) differs from np.float64(150.0)', naming only one of the two lines."""
+    rows = ["i,j,x,z,ex,ez,std_ex,std_ez"]
+    for j, z in enumerate((-200.0, 200.0)):
+        for i, x in enumerate((-300.0, 0.0, 300.0)):
+            rows.append(f"{i},{j},{150.0 if (i, j) == (1, 0) else x},{z},0.0,0.0,,")
+    (tmp_path / "g.csv").write_text("\n".join(rows) + "\n")
+    (tmp_path / "e.csv").write_text("x,z,ex,ez\n0,0,0,0\n")
+    refused(capsys, "compensate", "--grid", tmp_path / "g.csv", "--evaluate", tmp_path / "e.csv",
+            match=("g.csv: line 6, column 'x'", "0 mm differs from 150 mm at line 3", "(i = 1)"))
+
+
+@pytest.mark.parametrize("flag", ["--poses", "--eval-poses"])
+def test_compare_names_the_pose_count_option(d, capsys, flag):
+    """Was 'n_poses and n_eval: expected positive integers' for either option."""
+    refused(capsys, "compare", "--machine", d / "m.toml", "--trials", "2", flag, "0", match=(f"({flag})", "got 0"))
+
+
+@pytest.mark.parametrize("pivot", ["nan,0,0", "0,inf,0"])
+def test_simulate_ballbar_refuses_a_non_finite_pivot(d, capsys, pivot):
+    """A NaN pivot was reported as 'the circle does not fit the workspace'."""
+    refused(capsys, "simulate", "--machine", d / "m.toml", "--poses", "5", "--seed", "1", "--ballbar", "20",
+            "--pivot", pivot, "--out", d / "b.csv", match=("--pivot", "expected three finite numbers"))
+    assert not (d / "b.csv").exists()
+
+
+@pytest.mark.parametrize("extra, flag", [
+    (["--max-iter", "0"], "(--max-iter)"),
+    (["--method", "mcmc", "--walkers", "2", "--steps", "40", "--surrogate", "linear"], "(--walkers)"),
+    (["--method", "mcmc", "--checkpoint", "c.npz", "--checkpoint-every", "0"], "(--checkpoint-every)"),
+])
+def test_identify_option_errors_name_the_option(d, capsys, monkeypatch, extra, flag):
+    """They named only the library's parameter (max_iter, n_walkers, checkpoint_every)."""
+    monkeypatch.chdir(d)
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", *extra, match=flag)
+
+
+@pytest.mark.parametrize("command, extra", [
+    ("identify", ["--steps", "10"]), ("identify", ["--checkpoint-every", "5"]),
+    ("grid", ["--steps", "10"]), ("grid", ["--surrogate", "linear"]), ("grid", ["--method", "kalman", "--steps", "50"]),
+])
+def test_mcmc_options_with_another_method_are_refused(d, capsys, command, extra):
+    """They were accepted and ignored: the run was not what the command line asked for."""
+    refused(capsys, command, d / "r.csv", "--machine", d / "m.toml", *extra, match=(f"{extra[-2]} goes with --method mcmc",))
+
+
+def test_report_must_be_named_html(d, capsys):
+    """An HTML page was written under rep.pdf."""
+    refused(capsys, "identify", d / "r.csv", "--machine", d / "m.toml", "--report", d / "rep.pdf",
+            match=("--report", "rep.pdf", "ending in .html"))
+    assert not (d / "rep.pdf").exists()
+
+
+def test_predict_names_a_constraint_recording_as_such(d, capsys):
+    """Was 'line 1: no actuator columns; expected q1, q2, ...' for a Klipper recording of heights."""
+    (d / "c.csv").write_text("measure,a_q1,a_q2,a_q3,b_q1,b_q2,b_q3,value\nheight,500,500,500,,,,0.5\n")
+    refused(capsys, "predict", d / "c.csv", "--machine", d / "m.toml",
+            match=("c.csv: line 1: a constraint recording", "section 6", "recording of measured poses"))

@@ -162,7 +162,7 @@ def test_identifiability_across_modules(wrist, table, dof, head_rank):
     [
         (('role = "table"', 'role = "workpiece"'), "module[2].role"),
         (('role = "table"', 'role = "table"\nmachine = 1'), "module[2].file"),
-        (('file = "table.toml"', 'file = "none.toml"'), ""),
+        (('file = "table.toml"', 'file = "none.toml"'), "module[2].file"),  # named from the key that points there
         (('role = "tool"', 'role = "table"'), "module"),
     ],
 )
@@ -287,7 +287,8 @@ def test_a_fifo_or_device_module_file_is_refused_unread(tmp_path):
     _unblock_fifo_later(fifo)
     with pytest.raises(MachineFileError, match="not a regular file") as err:
         load_machine(_hybrid_of(tmp_path / "h.toml", "fifo.toml"))
-    assert err.value.path == str(fifo)
+    # named from the key that points there, with the module's path
+    assert err.value.path == str(tmp_path / "h.toml") and err.value.key.endswith(".file") and str(fifo) in str(err.value)
     with pytest.raises(MachineFileError, match="not a regular file"):
         load_machine(fifo)
     if os.path.exists("/dev/null"):  # a character device (reading /dev/zero instead never ended)
@@ -308,3 +309,10 @@ def test_a_module_file_with_a_whole_machine_table_is_refused_by_name(tmp_path):
     head.write_text(head.read_text() + "\n[instrument]\norigin = [0.0, 0.0, 0.0]\n")
     with pytest.raises(MachineFileError, match=r"a module has a \[instrument\] table; expected it in the hybrid"):
         load_machine(tmp_path / "machine.toml")
+
+
+def test_a_missing_module_file_is_named_from_its_key(tmp_path):
+    """A probe found 'nope.toml: file not found' without the hybrid file and key that named it."""
+    with pytest.raises(MachineFileError, match="nope.toml: file not found") as err:
+        load_machine(_hybrid_of(tmp_path / "h.toml", "nope.toml"))
+    assert err.value.path == str(tmp_path / "h.toml") and err.value.key.endswith(".file")

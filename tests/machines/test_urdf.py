@@ -147,6 +147,11 @@ def test_q_limits_from_urdf_limits(tmp_path):
          "'j3' mimics 'camera_mount', which is not a moving joint between base_link and tip_link"),
         (('<child link="camera"/>', '<child link="l2"/>'), None, "urdf", "link 'l2' of arm.urdf is the child of two joints"),
         (("<robot", "<robt"), None, "urdf", "not a readable URDF"),
+        # yourdfpy's IndexError / ValueError named neither the joint nor the line (a probe found them)
+        (('rpy="0 0 0.2"', 'rpy="0 0"'), None, "urdf",
+         "arm.urdf line 10: joint 'j1', <origin rpy=...>: expected 3 numbers separated by spaces, got '0 0'"),
+        (('<axis xyz="0 1 0"/>', '<axis xyz="0 one 0"/>'), None, "urdf", "joint 'j3', <axis xyz=...>: expected 3 numbers"),
+        (('lower="0" upper="0.2"', 'lower="zero" upper="0.2"'), None, "urdf", "joint 'j4', <limit lower=...>: expected a number"),
     ],
 )
 def test_bad_urdf_input_is_named(tmp_path, urdf_edit, toml_edit, key, match):

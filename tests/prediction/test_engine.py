@@ -105,3 +105,36 @@ def test_broken_calibration_table_is_named(prs3, bad, what):
     with pytest.raises(MachineFileError, match=what) as exc:
         machine_from_text(prs3.to_toml(None) + "\n" + text)
     assert "calibration." in str(exc.value)
+
+
+def _record_text(C, names, std=None):
+    text = calibration_toml(CalibrationRecord(tuple(names), np.asarray(C, dtype=float), 1.0, "map"))
+    if std is not None:
+        text = "\n".join(f"std = {std}" if line.startswith("std ") else line for line in text.splitlines())
+    return text
+
+
+@pytest.mark.parametrize("C, std, key, what", [
+    # a std of 1e150 mm passed the finite-and-symmetric check and ended in a singular-matrix traceback (a probe)
+    ([[1e300, 0.0], [0.0, 1.0]], None, "covariance_f64le_b64", "'tool.point.x' has a std of 1e+150"),
+    # variances 1 and 1 with covariance 2: correlation 2, an eigenvalue of -1
+    ([[1.0, 2.0], [2.0, 1.0]], None, "covariance_f64le_b64", "not positive semi-definite (smallest eigenvalue -1"),
+    (np.eye(2), "[-1.0, 1.0]", "std", "expected 2 finite non-negative numbers"),
+    (np.eye(2), "[nan, 1.0]", "std", "expected 2 finite non-negative numbers"),
+    (np.eye(2), "[1.0, 3.0]", "std", "'tool.point.y': 3.0 is not the square root of its variance"),
+])
+def test_calibration_covariance_no_calibration_writes_is_refused(prs3, C, std, key, what):
+    from bayescal.errors import MachineFileError
+
+    import re
+
+    text = _record_text(C, ["tool.point.x", "tool.point.y"], std)
+    with pytest.raises(MachineFileError, match=re.escape(what)) as exc:
+        machine_from_text(prs3.to_toml(None) + "\n" + text)
+    assert f"calibration.{key}" in str(exc.value)
+
+
+def test_calibration_std_written_is_read_back(prs3):
+    C = np.array([[4.0, 1.0], [1.0, 9.0]]) * 1e-6
+    back = machine_from_text(prs3.to_toml(None) + "\n" + _record_text(C, ["tool.point.x", "tool.point.y"])).calibration
+    np.testing.assert_allclose(back.std, [2e-3, 3e-3])
