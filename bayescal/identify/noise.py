@@ -150,12 +150,13 @@ def distinct_rows(q: NDArray, y: NDArray | None) -> int:
 
 
 def distinct_measurements(model) -> int:
-    """:func:`distinct_rows` of a model's rows: a pose model's ``q``, a constraint model's ``qa`` and ``qb``.
+    """:func:`distinct_rows` of a model's rows: each row's (first) pose ``q`` and its measured values.
 
-    A constraint row without a pose b (a height) has NaN in ``qb``; NaN is
-    compared as a value here, so two copied heights are one measurement.
+    A constraint model's ``q`` is each row's pose a: two distances from one
+    pose a count once only if their readings agree to the last bit too.  NaN
+    is compared as a value here.
     """
-    q = model.q if hasattr(model, "q") else np.hstack([model.qa, model.qb])
+    q = model.q
     q = np.nan_to_num(np.asarray(q, dtype=float), nan=np.inf)
     y = None if model.y_measured is None else np.nan_to_num(np.asarray(model.y_measured, dtype=float), nan=np.inf)
     return distinct_rows(q, y)
