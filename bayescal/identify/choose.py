@@ -584,7 +584,7 @@ def choose_linear(
         cached), which it is only when ``rule`` is ``"targets"``.
     target_calibration : dict, optional
         Keyword arguments of the calibration done here
-        (:func:`~bayescal.identify.target_rule.calibrate_target_rule`: ``n_data``,
+        (:func:`~bayescal.identify.target_rule.calibrate_target_rule`: ``n_data``, ``calibration_draws``,
         ``n_draws``, ``margin``, ``scales``, ``targets``, ``seed``); default its defaults.
 
     Returns

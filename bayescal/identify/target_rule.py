@@ -229,8 +229,10 @@ def candidate_values(design: RuleDesign, beta: NDArray, scales, targets: RuleTar
     """
     s, p = design.s, design.p
     r = s.size
-    est = design.estimates(beta)
     z0 = np.random.default_rng(seed).standard_normal((n_draws, p))
+    if design.method == "tsvd":
+        return _tsvd_values(design, beta, scales, z0, targets)
+    est = design.estimates(beta)
     # every scale's posterior draws in one array: one pass of the output errors for all of them
     truths = np.empty((len(scales), n_draws, p))
     for j, c in enumerate(scales):
@@ -245,6 +247,70 @@ def candidate_values(design: RuleDesign, beta: NDArray, scales, targets: RuleTar
     out[:, :, 1] = rel.mean(axis=1)
     out[:, :, 2] = np.count_nonzero(rel > targets.tail_ratio, axis=1) / n_draws
     return out
+
+
+def _tsvd_values(design: RuleDesign, beta: NDArray, scales, z0: NDArray, targets: RuleTargets) -> NDArray:
+    """:func:`candidate_values` for TSVD candidates: one product per draw, and no cancellation.
+
+    The estimate of ``k`` is ``b = beta / s`` cut after ``k`` coordinates.
+    Measured from the full estimate ``b`` (``k >= r``), a posterior draw is
+    ``y = t - b`` and candidate ``k`` is off by ``f_k`` (``b``'s coordinates
+    ``k..r-1``), so with ``H = RV^T RV`` its squared output error is
+    ``y^T H y + 2 sum_{k<=i<r} (H y)_i b_i + f_k^T H f_k``: one product ``H y``
+    per draw serves every ``k`` (cumulative sums from the end).  The general
+    path forms ``|RV t|^2 - 2 (RV t).(RV e_k) + |RV e_k|^2``, which loses digits
+    where ``s`` is large (``t`` is then ``b`` to within ``1/s``: on a 7-R arm
+    with ``s`` up to 4e4, expected ratios off by up to 0.01); here ``y`` is
+    formed directly (its seen part ``-b / (c^2 s^2 + 1) + z / sqrt(s^2 + 1/c^2)``)
+    and every term is of the size of the error itself.  Candidates ``k >= r``
+    are one estimate, valued once.  ``beta`` may be a stack of data sets
+    (shape (B, r), ``z0`` (B, D, p)): the calibration values several per call.
+    """
+    s, p, r = design.s, design.p, design.s.size
+    single = np.ndim(beta) == 1
+    beta, z0 = np.atleast_2d(beta), z0[None] if single else z0
+    B, D, S = beta.shape[0], z0.shape[1], len(scales)
+    b = beta / s
+    y = np.empty((B, S, D, p))
+    for j, c in enumerate(scales):
+        prec = s**2 + 1.0 / c**2
+        sd = np.concatenate([1.0 / np.sqrt(prec), np.full(p - r, float(c))])
+        np.multiply(sd, z0, out=y[:, j])
+        y[:, j, :, :r] -= (b / (c**2 * prec))[:, None, :]
+    H = design.RV.T @ design.RV
+    Hy = y.reshape(-1, p) @ H
+    q = np.einsum("ij,ij->i", y.reshape(-1, p), Hy).reshape(B, S * D, 1)
+    # the distinct candidates (k = 0: the zero estimate; k >= r: b itself), and per draw the cross terms
+    # sum_{k<=i<r} (H y)_i b_i for k = 0..r (the last one empty), cumulated from the end
+    ks, inverse = np.unique(np.clip(np.asarray(design.grid).astype(int), 0, r), return_inverse=True)
+    w = Hy[:, r - 1::-1].reshape(B, S * D, r)
+    w *= b[:, None, ::-1]
+    cross = np.zeros((B, S * D, r + 1))
+    np.cumsum(w, axis=2, out=cross[:, :, 1:])  # cross[..., m]: the last m coordinates
+    fHf = np.zeros((B, r + 1))
+    bHb = b[:, ::-1, None] * H[r - 1::-1, r - 1::-1][None] * b[:, None, ::-1]
+    fHf[:, 1:] = np.diagonal(np.cumsum(np.cumsum(bHb, axis=1), axis=2), axis1=1, axis2=2)
+    err = cross[:, :, r - ks]
+    err *= 2.0
+    err += q
+    err += fHf[:, None, r - ks]
+    np.maximum(err, 0.0, out=err)
+    best = err.min(axis=2, keepdims=True)
+    # squared ratios, compared with the squared thresholds; where the best is 0, every ratio is 1 (as in
+    # :func:`.ceiling.ratios_to_best`)
+    if np.all(best > 0):
+        err /= best
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.where(best > 0, err / np.where(best > 0, best, 1.0), 1.0)
+    rel2 = err.reshape(B, S, D, -1)
+    vals = np.empty((B, S, ks.size, 3))
+    vals[..., 0] = np.count_nonzero(rel2 <= targets.ratio**2, axis=2) / D
+    vals[..., 2] = np.count_nonzero(rel2 > targets.tail_ratio**2, axis=2) / D
+    np.sqrt(rel2, out=rel2)
+    vals[..., 1] = rel2.mean(axis=2)
+    vals = vals[:, :, inverse]
+    return vals[0] if single else vals
 
 
 def scale_log_densities(s: NDArray, beta: NDArray, scales) -> NDArray:
@@ -346,13 +412,20 @@ def minimax_weights(a: NDArray, soft: NDArray | None = None, *, prune: bool = Tr
 
 
 def _undominated(a: NDArray) -> NDArray:
-    """``keep[z, v]``: no candidate ``u`` of data set ``z`` has ``a[z, u] <= a[z, v]`` everywhere and ``<`` somewhere."""
-    keep = np.ones(a.shape[:2], dtype=bool)
-    for z in range(a.shape[0]):
-        az = a[z]
-        # [v, u]: candidate u at most candidate v in every constraint, and below it in one
-        beaten = np.all(az[None, :, :] <= az[:, None, :], axis=2) & np.any(az[None, :, :] < az[:, None, :], axis=2)
-        keep[z] = ~beaten.any(axis=1)
+    """``keep[z, v]``: no candidate ``u`` of data set ``z`` has ``a[z, u] <= a[z, v]`` everywhere and ``<`` somewhere,
+    and none before ``v`` has ``a[z, u] == a[z, v]`` (a repeated row is implied by its first copy: TSVD's ``k``
+    beyond the rank are one estimate)."""
+    n, V, _ = a.shape
+    keep = np.ones((n, V), dtype=bool)
+    earlier = np.tril(np.ones((V, V), dtype=bool), -1)  # [v, u]: u before v
+    step = max(1, 2_000_000 // max(V * V * a.shape[2], 1))  # data sets per block: a few MB of temporaries
+    for z0 in range(0, n, step):
+        az = a[z0:z0 + step]
+        # [z, v, u]: candidate u at most candidate v in every constraint; and equal to it in every one
+        le = np.all(az[:, None, :, :] <= az[:, :, None, :], axis=3)
+        eq = np.all(az[:, None, :, :] == az[:, :, None, :], axis=3)
+        beaten = (le & ~eq) | (eq & earlier)
+        keep[z0:z0 + step] = ~beaten.any(axis=2)
     return keep
 
 
@@ -381,7 +454,7 @@ class TargetRule:
     calibration : dict
         Per scale, the argmin rule's ``gap``, ``regret`` and ``tail`` on its
         own calibration sample; which ``programme`` gave the weights; and
-        ``n_data`` (per scale), ``n_draws``, ``margin``, ``seed``.
+        ``n_data`` (per scale), ``n_draws``, ``calibration_draws``, ``margin``, ``seed``.
     n_draws : int
         Posterior draws per scale (the rule uses as many as it was calibrated with).
     seed : int
@@ -487,6 +560,7 @@ def calibrate_target_rule(
     targets: RuleTargets | None = None,
     n_data: int = 200,
     n_draws: int = 600,
+    calibration_draws: int = 200,
     margin: float = 0.004,
     seed: int = 0,
 ) -> TargetRule:
@@ -519,7 +593,18 @@ def calibrate_target_rule(
     n_data : int
         Simulated data sets per scale.
     n_draws : int
-        Posterior draws per scale and data set.
+        Posterior draws per scale when the rule is applied to a recording's data.
+    calibration_draws : int
+        Posterior draws per scale for each simulated data set (the first
+        ``calibration_draws`` of the ``n_draws`` the rule would take).  Fewer
+        than ``n_draws``: the calibration averages its data sets' values, so
+        their Monte Carlo error shrinks with the number of data sets, while
+        the sample of data sets sets its accuracy.  At 200 draws the weights
+        move far less than between calibration seeds at 600, and the chosen
+        ``k`` of the bundled 3-PRS and of the 444-pose 7-R arm of
+        ``benchmarks/identify_scale.py`` is the same for seeds 0-2
+        (``benchmarks/README.md``); the rule applied to the recording keeps
+        ``n_draws``, where the Monte Carlo error of one data set decides.
     margin : float
         Every target tightened by this on the calibration sample (0.004: 0.4
         point of gap or tail share, 0.004 of regret, about one or two
@@ -539,8 +624,9 @@ def calibrate_target_rule(
         raise InputError(f"scales: expected positive tolerance multiples, got {scales}")
     if not 0 <= margin < 0.1:
         raise InputError(f"margin: expected from 0 to 0.1, got {margin}")
-    if int(n_data) < 10 or int(n_draws) < 50:
-        raise InputError(f"n_data, n_draws: expected at least 10 and 50, got {n_data}, {n_draws}")
+    if int(n_data) < 10 or int(n_draws) < 50 or int(calibration_draws) < 50:
+        raise InputError(f"n_data, n_draws, calibration_draws: expected at least 10, 50 and 50, got {n_data}, "
+                         f"{n_draws}, {calibration_draws}")
     targets = default_targets(method) if targets is None else targets
     design = rule_design(A, method, grid, output_map)
     s, p, S = design.s, design.p, len(scales)
@@ -549,13 +635,22 @@ def calibrate_target_rule(
     phi = np.empty((n, S, design.F.shape[0], 3))
     logd = np.empty((n, S))
     drawn_at = np.repeat(np.arange(S), int(n_data))
+    betas = np.empty((n, s.size))
     for i in range(n):
         c = scales[drawn_at[i]]
         # the prior is isotropic, so the truth's right singular coordinates V^T x ~ N(0, c^2 I) too, and
         # beta = U^T z = s (V^T x)[:r] + U^T e with U^T e ~ N(0, I_r)
-        beta = s * (c * rng.standard_normal(p))[: s.size] + rng.standard_normal(s.size)
-        phi[i] = candidate_values(design, beta, scales, targets, n_draws, [seed, 3, i])
-        logd[i] = scale_log_densities(s, beta, scales)
+        betas[i] = s * (c * rng.standard_normal(p))[: s.size] + rng.standard_normal(s.size)
+        logd[i] = scale_log_densities(s, betas[i], scales)
+    if method == "tsvd":  # several data sets per call: the same numbers as one by one, less overhead
+        block = 16
+        for i0 in range(0, n, block):
+            z0 = np.stack([np.random.default_rng([seed, 3, i]).standard_normal((int(calibration_draws), p))
+                           for i in range(i0, min(i0 + block, n))])
+            phi[i0:i0 + block] = _tsvd_values(design, betas[i0:i0 + block], scales, z0, targets)
+    else:
+        for i in range(n):
+            phi[i] = candidate_values(design, betas[i], scales, targets, int(calibration_draws), [seed, 3, i])
     w = _density_weights(logd)
     # the least tail any rule can have at each scale, knowing it (E_c[min_v t_cv], estimated like the
     # constraint rows: the pooled data sets reweighted to scale c): where it is above the target, that
@@ -587,6 +682,7 @@ def calibrate_target_rule(
     choice = np.argmin(_lagrangian(rule.weights, w, phi), axis=1)
     per_scale = {f"{c:g}": _achieved(phi[:, j], choice, w[:, j]) for j, c in enumerate(scales)}
     calibration = {"per_scale": per_scale, "programme": programme, "n_data": int(n_data), "n_draws": int(n_draws),
+                   "calibration_draws": int(calibration_draws),
                    "margin": float(margin), "seed": int(seed)}
     return TargetRule(**{**rule.__dict__, "calibration": calibration})
 
