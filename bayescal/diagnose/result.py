@@ -136,6 +136,26 @@ class Diagnosis:
     def located(self) -> ChannelDependence | None:
         return self.location.strongest
 
+    @property
+    def noise_overstated(self) -> dict | None:
+        """Where the geometric fit's residuals are far smaller than the stated noise allows, the test, else None.
+
+        ``{"p_value": P(X <= chi2), "scale": sqrt(chi2 / expected)}`` with
+        ``X`` chi-square with the geometric fit's expected degrees of freedom,
+        when that lower tail is below :data:`bayescal.identify.noise.ALPHA`.
+        A verdict reached against a noise stated too large cannot see effects
+        smaller than that noise: the report says so.
+        """
+        from ..distributions import chi2_cdf
+        from ..identify.noise import ALPHA
+
+        if not (self.dof_geometric > 0.5 and self.chi2_geometric >= 0):
+            return None
+        p = float(chi2_cdf(self.chi2_geometric, self.dof_geometric))
+        if p >= ALPHA:
+            return None
+        return {"p_value": p, "scale": float((self.chi2_geometric / self.dof_geometric) ** 0.5)}
+
     def to_dict(self) -> dict:
         """The JSON answer of docs/formats.md section 3 (plus documented extra keys), in JSON's own types.
 
@@ -172,6 +192,7 @@ class Diagnosis:
             "seed": self.seed,
             "evidence_kind": "log Bayes factor, Laplace approximation (nats)",
             "message": self.message,
+            "noise_overstated": self.noise_overstated,
             "written_geometry": None if self.confound is None else self.confound.to_dict(),
             "discrepancy": None if self.discrepancy is None else self.discrepancy.to_dict(),
             **self._outlier_keys(),
@@ -201,8 +222,15 @@ class Diagnosis:
                 f"located: the residuals depend most on {loc.channel} (strength {loc.strength:.2f}, "
                 f"Holm p = {loc.p_adjusted:.2g}, {sig}){' ' + loc.detail if loc.detail else ''}"
             )
+        over = self.noise_overstated
         if self.verdict == "none":
             L.append("VERDICT none: the geometric model explains the recording to within the instrument noise.")
+        if over is not None:
+            L.append(f"NOTE the stated noise is too large for these residuals: chi2 {self.chi2_geometric:.3g} for "
+                     f"{self.dof_geometric:.1f} expected (P(X <= chi2) = {over['p_value']:.2g}; the residuals' own "
+                     f"scale {over['scale']:.2g} of it). Every test here is judged against the stated noise, so effects "
+                     "smaller than it go unseen and the fit leans on the prior: state the instrument's noise "
+                     "([measurement] sigma_position, sigma_angle) as it is")
         elif self.verdict == "discrepancy":
             d = self.discrepancy
             L.append(
