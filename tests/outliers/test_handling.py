@@ -9,18 +9,7 @@ from bayescal.identify import identify
 from bayescal.outliers.handling import identify_with_outliers
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import draw_poses, simulate_recording
-
-
-def _corrupt(model, rng, fraction=0.03, low=10.0, high=100.0):
-    """Replace ``fraction`` of the poses' measured tool points by gross errors of 10 to 100 sigma."""
-    n = model.n_poses
-    bad = np.sort(rng.choice(n, max(1, int(fraction * n)), replace=False))
-    y = model.y_measured.copy()
-    sp = model.machine.noise.sigma_position
-    for b in bad:
-        d = rng.normal(size=3)
-        y[b, :3] += 10 ** rng.uniform(np.log10(low), np.log10(high)) * sp * d / np.linalg.norm(d)
-    return replace(model, y_measured=y), bad
+from studies.outliers_target import corrupt  # the study's gross errors: 10 to 100 sigma, 3 % of the poses
 
 
 def _prediction_rms(machine, theta, theta_true, q):
@@ -43,7 +32,7 @@ def test_three_percent_gross_poses_named_and_calibration_within_1_2_of_clean(prs
         rng = np.random.default_rng(1000 + seed)
         q_eval = draw_poses(prs3, 200, rng, sim.theta_true)
         model = MeasurementModel.from_recording(prs3, sim.recording)
-        bad_model, bad = _corrupt(model, rng)
+        bad_model, bad = corrupt(model, rng)
         res_clean = identify(model, method="map")
         res_plain = identify(bad_model, method="map")
         res, h = identify_with_outliers(bad_model, method="map")
