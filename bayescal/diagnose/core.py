@@ -51,6 +51,7 @@ from .confound import geometry_confound, written_tool_jacobian
 from .separate import separating_sessions
 from .discrepancy import try_discrepancy
 from .locate import locate
+from .noise import NoiseSettling, noise_test, settle_overstated_noise, with_tool_noise_scale
 from .result import Diagnosis, EffectTrial, ParameterValue
 
 __all__ = ["diagnose", "DECISIVE", "P_MISMATCH", "EXPLAINED_FRACTION"]
@@ -177,6 +178,7 @@ def diagnose(
     effect_settings: dict[str, dict] | None = None,
     _screen=None,
     _disc_retested: bool = False,
+    _noise: NoiseSettling | None = None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -220,8 +222,15 @@ def diagnose(
     if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
         raise InputError(f"n_folds: expected a whole number >= 2 (folds of the cross-validation), got {n_folds!r}")
     again = dict(effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm, effect_settings=effect_settings)
-    s = _setup(machine, recording, effects, effect_settings, n_folds, _screen)
+    s = _setup(machine, recording, effects, effect_settings, n_folds, _screen, _noise)
     g = _geometric_stage(s, seed)
+    if s.noise is None:
+        n_out = 0 if s.screen is None else int(s.screen.excluded.sum()) * s.model.dof
+        settled = settle_overstated_noise(s.base_model, noise_test(s.model, g.fit0, n_out))
+        if settled.rescaled:
+            return diagnose(machine, recording, **again, _noise=settled)
+        s = replace(s, noise=settled)
+    again["_noise"] = s.noise  # a rerun (outliers retested) keeps the noise tested once
     cands, skipped = _candidates(s, g)
     # excluded poses are never held out: their residual would be the gross error, not the model's
     perm = s.kept[np.random.default_rng(seed).permutation(s.kept.size)]
@@ -235,7 +244,7 @@ def diagnose(
         # outliers are judged against the final model; if that names other poses, diagnose once more
         final = retest_with_effects(s.base_model, [(c.effect, c.features) for c in selected], cur_fit, s.screen)
         if final is not None:
-            return diagnose(s.machine, recording, **again, _screen=final, _disc_retested=_disc_retested)
+            return diagnose(machine, recording, **again, _screen=final, _disc_retested=_disc_retested)
 
     # the last step (bayescal/diagnose/discrepancy.py): a mismatch no effect explains is modelled all the same
     located_sig = g.location.strongest is not None and g.location.strongest.significant
@@ -249,7 +258,7 @@ def diagnose(
         plain = _final_model(s.machine, recording, s.base_model, selected, cur_fit, s.settings, None)
         final = retest_with_discrepancy(plain, cur_fit.theta, disc_trial.fit, s.screen) if plain is not None else None
         if final is not None:
-            return diagnose(s.machine, recording, **again, _screen=final, _disc_retested=True)
+            return diagnose(machine, recording, **again, _screen=final, _disc_retested=True)
     found = _Found(cands, tuple(skipped), single, selected, cur_fit, cv0, cur_cv, disc_trial, final_model)
     return _diagnosis(s, g, v, found, recording, seed)
 
@@ -311,6 +320,7 @@ def _diagnosis(s: _Setup, g: _Geometric, v: _Verdict, f: _Found, recording: Reco
         discrepancy=disc_trial,
         record=_record(s.machine, f.final_model, cur_fit, disc_trial),
         frame=_frame(s.machine, g.fit0),
+        noise=s.noise,
     )
 
 
@@ -338,9 +348,11 @@ class _Setup:
     forced: bool
     settings: dict
     path: str
+    noise: NoiseSettling | None  # the stated noise's test and the factor on the tool rows' sigma (None: not yet tested)
 
 
-def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_folds: int, screen) -> _Setup:
+def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_folds: int, screen,
+           noise: NoiseSettling | None = None) -> _Setup:
     """The geometry-only model of ``recording`` with its sensors' noise tested and gross errors screened."""
     # the inputs the machine file states in its [effect.<name>] tables, overridden key by key by those given: the
     # command line and a notebook's bayescal.diagnose(...) on the same file use the same inputs
@@ -364,6 +376,9 @@ def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_f
             f"commanded and measured values alike); the diagnosis needs at least {2 * n_folds} distinct measurements "
             f"(cross-validation in {n_folds} folds)"
         )
+    # a noise stated far too large hides every effect below it: the diagnosis reruns at the scale the residuals
+    # support (bayescal.diagnose.noise; tested on the first run's geometric fit, in diagnose)
+    model = with_tool_noise_scale(model, 1.0 if noise is None else noise.scale)
     # gross errors are not physics (docs/outliers.md): flagged poses leave every fit and test
     base_model = model
     if screen is None:
@@ -375,7 +390,7 @@ def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_f
         model = screen.weighted_model(model)
     kept = np.arange(n) if screen is None else np.flatnonzero(~screen.excluded)
     return _Setup(machine, model, base_model, screen, kept, dict(recording.aux), lib, effects is not None, settings,
-                  recording.path)
+                  recording.path, noise)
 
 
 @dataclass(frozen=True)

@@ -131,6 +131,9 @@ class Diagnosis:
     #: The answer's ``frame`` (or ``frames``) keys of a fitted instrument frame (docs/formats.md sections 4, 8):
     #: the geometric fit's, with its Laplace std; ``{}`` in the base frame.
     frame: dict = field(default_factory=dict)
+    #: The stated noise's test on the geometric fit and the factor on the tool rows' sigma the diagnosis used
+    #: (bayescal.diagnose.noise.NoiseSettling); None for a diagnosis built by hand.
+    noise: object = None
 
     @property
     def located(self) -> ChannelDependence | None:
@@ -138,23 +141,21 @@ class Diagnosis:
 
     @property
     def noise_overstated(self) -> dict | None:
-        """Where the geometric fit's residuals are far smaller than the stated noise allows, the test, else None.
+        """Where the geometric fit's residuals were far smaller than the stated noise allows, the test, else None.
 
-        ``{"p_value": P(X <= chi2), "scale": sqrt(chi2 / expected)}`` with
-        ``X`` chi-square with the geometric fit's expected degrees of freedom,
-        when that lower tail is below :data:`bayescal.identify.noise.ALPHA`.
-        A verdict reached against a noise stated too large cannot see effects
-        smaller than that noise: the report says so.
+        ``{"p_value": P(X <= chi2), "scale": s, "reduced_chi2_stated": r}`` at
+        the stated noise, ``X`` chi-square with the geometric fit's expected
+        degrees of freedom, when that lower tail is below
+        :data:`bayescal.identify.noise.ALPHA` and the reduced chi-square ``r``
+        below :data:`bayescal.identify.noise.OVERSTATED_BELOW`; ``s`` is the
+        factor on the tool rows' stated sigma that the diagnosis then ran at
+        (:mod:`bayescal.diagnose.noise`: refitted until it settles).
         """
-        from ..distributions import chi2_cdf
-        from ..identify.noise import ALPHA
-
-        if not (self.dof_geometric > 0.5 and self.chi2_geometric >= 0):
+        n = self.noise
+        if n is None or n.check.verdict != "overstated":
             return None
-        p = float(chi2_cdf(self.chi2_geometric, self.dof_geometric))
-        if p >= ALPHA:
-            return None
-        return {"p_value": p, "scale": float((self.chi2_geometric / self.dof_geometric) ** 0.5)}
+        return {"p_value": float(n.check.p_value), "scale": float(n.scale),
+                "reduced_chi2_stated": float(n.check.reduced)}
 
     def to_dict(self) -> dict:
         """The JSON answer of docs/formats.md section 3 (plus documented extra keys), in JSON's own types.
@@ -223,14 +224,14 @@ class Diagnosis:
                 f"Holm p = {loc.p_adjusted:.2g}, {sig}){' ' + loc.detail if loc.detail else ''}"
             )
         over = self.noise_overstated
+        if over is not None:
+            L.append(f"NOTE the stated noise is too large for these residuals: reduced chi-square "
+                     f"{over['reduced_chi2_stated']:.3g} at the stated sigma (P(X <= chi2) = {over['p_value']:.2g}). "
+                     f"The diagnosis ran at {over['scale']:.3g} x the stated tool sigma, the noise the geometric fit's "
+                     "residuals show (an upper bound: they carry any mismatch too); state the instrument's noise "
+                     "([measurement] sigma_position, sigma_angle) as it is")
         if self.verdict == "none":
             L.append("VERDICT none: the geometric model explains the recording to within the instrument noise.")
-        if over is not None:
-            L.append(f"NOTE the stated noise is too large for these residuals: chi2 {self.chi2_geometric:.3g} for "
-                     f"{self.dof_geometric:.1f} expected (P(X <= chi2) = {over['p_value']:.2g}; the residuals' own "
-                     f"scale {over['scale']:.2g} of it). Every test here is judged against the stated noise, so effects "
-                     "smaller than it go unseen and the fit leans on the prior: state the instrument's noise "
-                     "([measurement] sigma_position, sigma_angle) as it is")
         elif self.verdict == "discrepancy":
             d = self.discrepancy
             L.append(
