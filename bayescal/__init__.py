@@ -1,7 +1,7 @@
 """bayescal: kinematic calibration of parallel manipulators, with geometric errors as random variables.
 
 The front door (:mod:`bayescal.api`): ``load``, ``calibrate``, ``predict``,
-``grid``, ``diagnose``, the command line's own policy as functions.  The central object
+``grid``, ``diagnose``, ``plan``, ``compare``, the command line's own policy as functions.  The central object
 is a :class:`MeasurementModel` ``y = h(q, theta)`` with its analytic
 Jacobian; every solver, filter, sampler and study consumes it.
 
@@ -35,6 +35,8 @@ __all__ = [
     "predict",
     "grid",
     "diagnose",
+    "plan",
+    "compare",
     "plan_next_session",
 ]
 
@@ -42,14 +44,16 @@ _lazy_getattr, __dir__ = lazy_attributes(__name__, {
     "Recording": ".io", "read_recording": ".io", "write_recording": ".io",
     "KINDS": ".machines", "Machine": ".machines", "Prs3": ".machines", "Raspm": ".machines",
     "load_machine": ".machines.files", "MeasurementModel": ".measurement",
-    "load": ".api", "calibrate": ".api", "predict": ".api", "grid": ".api", "plan_next_session": ".api",
+    "load": ".api", "calibrate": ".api", "predict": ".api", "grid": ".api", "plan": ".api",
+    "plan_next_session": ".api",
 })
 
 
 def __getattr__(name):
-    if name == "diagnose":
-        # the package, callable as the verb (bayescal/diagnose/__init__.py): bayescal.diagnose(machine, recording)
+    if name in ("diagnose", "compare"):
+        # the package, callable as the verb (bayescal/diagnose/__init__.py, bayescal/compare/__init__.py):
+        # bayescal.diagnose(machine, recording), bayescal.compare(machine, methods=...)
         import importlib
 
-        return importlib.import_module(".diagnose", __name__)
+        return importlib.import_module("." + name, __name__)
     return _lazy_getattr(name)

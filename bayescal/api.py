@@ -13,8 +13,11 @@
     g = bayescal.grid(s, nodes=9)                                      # what `bayescal grid` runs
     g.write_csv("grid.csv"); g.grid.std
 
-``bayescal identify``, ``predict``, ``grid`` and ``diagnose`` call the same functions,
-so a study gets the number a user gets.
+    plan = bayescal.plan("machine.toml", 24, criterion="I")             # what `bayescal plan` runs
+    cmp = bayescal.compare("machine.toml", methods="ls,map", trials=200)  # what `bayescal compare` runs
+
+``bayescal identify``, ``predict``, ``grid``, ``diagnose``, ``plan`` and ``compare`` call the
+same functions, so a study gets the number a user gets.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import os
 from .io.recording import Recording
 from .machines.base import Machine
 
-__all__ = ["load", "calibrate", "predict", "grid", "diagnose", "plan_next_session"]
+__all__ = ["load", "calibrate", "predict", "grid", "diagnose", "plan", "compare", "plan_next_session"]
 
 
 def _machine(machine) -> Machine:
@@ -208,6 +211,51 @@ def diagnose(machine: str | os.PathLike | Machine, recording, **options):
     from .diagnose.verb import diagnose_files
 
     return diagnose_files(machine, recording, **options)
+
+
+def plan(machine: str | os.PathLike | Machine, n: int, **options):
+    """Choose ``n`` measurement poses (or probe heights, distances) by information, as ``bayescal plan`` does.
+
+    Parameters
+    ----------
+    machine : path or Machine
+        Machine file with ``[workspace] q_limits`` (docs/formats.md section 1) or a machine.
+    n : int
+        Poses or relations to plan.
+    **options
+        Of :func:`bayescal.design.verb.plan_files`: ``measure`` ("pose", "height", "distance"),
+        ``criterion``, ``frame``, ``seed``, ``repeats``, ``method``, and the pose options (``dof``,
+        ``n_candidates``, ``certify``, ...) or the relation options (``given``, ``centre``, ``radius``, ...).
+
+    Returns
+    -------
+    PosePlan or RelationPlan
+        ``q`` (poses), ``report()``, ``to_dict()`` (what ``bayescal plan --json`` writes).
+    """
+    from .design.verb import plan_files
+
+    return plan_files(machine, n, **options)
+
+
+def compare(machine: str | os.PathLike | Machine, **options):
+    """Compare identification methods by Monte Carlo on machines drawn from the tolerances, as ``bayescal compare``.
+
+    Parameters
+    ----------
+    machine : path or Machine
+        Nominal machine file with ``[workspace] q_limits`` or a machine.
+    **options
+        Of :func:`bayescal.compare.verb.compare_files`: ``methods`` (``"ls,ridge:lam=auto,map"``),
+        ``trials``, ``recording``, ``dof``, ``poses``, ``alpha``, ``out``, ``seed``, ``workers``, ...
+
+    Returns
+    -------
+    bayescal.compare.result.Comparison
+        ``report()``, ``to_dict()`` (what ``bayescal compare --json`` writes), per-method errors.
+    """
+    from .compare.verb import compare_files
+
+    return compare_files(machine, **options)
 
 
 def plan_next_session(machine: str | os.PathLike | Machine, recording, n: int, *, condition: str | None = None,

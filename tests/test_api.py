@@ -392,3 +392,85 @@ def test_calibrate_fits_effect_tables_as_identify_fit_effects_does(tmp_path):
 def test_calibrate_kalman_and_mcmc_refuse_bad_arguments_by_name(options, match):
     with pytest.raises(bayescal.InputError, match=match):
         bayescal.calibrate(bayescal.load(PRS3_FILE, REC), **options)
+
+
+PLAN_CASES = {
+    "poses, criterion D": ({"n_candidates": 300, "n_random": 2, "seed": 3},
+                           ["--candidates", "300", "--random-sets", "2", "--seed", "3"]),
+    "poses, criterion I, fitted frame": ({"criterion": "I", "n_candidates": 300, "n_random": 0, "frame": "fit"},
+                                         ["--criterion", "I", "--candidates", "300", "--random-sets", "0",
+                                          "--frame", "fit"]),
+}
+
+
+@pytest.mark.parametrize("case", list(PLAN_CASES))
+def test_plan_gives_the_json_plan_writes_byte_for_byte(tmp_path, case):
+    from bayescal.design import write_plan
+    from bayescal.io.answers import json_text
+
+    options, flags = PLAN_CASES[case]
+    p = bayescal.plan(PRS3_FILE, 8, **options)
+    out, csv, mine = tmp_path / "p.json", tmp_path / "p.csv", tmp_path / "mine.csv"
+    assert main(["plan", "--machine", str(PRS3_FILE), "--n", "8", "--out", str(csv), "--json", str(out), "--quiet",
+                 *flags]) == 0
+    # byte for byte but the time taken
+    assert json_text({**p.to_dict(), "seconds": 0}) == json_text({**json.loads(out.read_text()), "seconds": 0})
+    write_plan(mine, p)
+    assert mine.read_text() == csv.read_text()
+
+
+def test_plan_of_heights_gives_the_json_plan_writes(tmp_path):
+    from bayescal.design.relations import relation_plan_csv
+    from bayescal.io.answers import json_text
+
+    delta = ROOT / "examples" / "delta" / "machine.toml"
+    p = bayescal.plan(delta, 4, measure="height", radius=60.0)
+    out, csv = tmp_path / "h.json", tmp_path / "h.csv"
+    assert main(["plan", "--machine", str(delta), "--measure", "height", "--n", "4", "--radius", "60",
+                 "--out", str(csv), "--json", str(out), "--quiet"]) == 0
+    assert json_text(p.to_dict()) == out.read_text()
+    assert relation_plan_csv(p) == csv.read_text()
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: bayescal.plan(PRS3_FILE, 0), r"n \(--n\): expected a whole number >= 1, got 0"),
+    (lambda: bayescal.plan(PRS3_FILE, 8, n_candidates=5), r"n_candidates \(--candidates\): expected a whole number >= 8"),
+    (lambda: bayescal.plan(PRS3_FILE, 8, radius=5.0), r"--radius \(keyword radius\) goes with --measure height"),
+    (lambda: bayescal.plan(PRS3_FILE, 8, certify=2.0), r"certify \(--certify\): expected a fraction in \(0, 1\)"),
+    (lambda: bayescal.plan(PRS3_FILE, 8, colour="red"), r"plan: unknown option 'colour'"),
+    (lambda: bayescal.plan(ROOT / "examples" / "delta" / "machine.toml", 3, measure="height", box=False),
+     r"--no-box: only for poses; not with --measure height"),
+    (lambda: bayescal.compare(PRS3_FILE, trials=0), r"trials \(--trials\): expected a positive whole number"),
+    (lambda: bayescal.compare(PRS3_FILE, frame="fit"), r"frame \(--frame\) fit: compare draws"),
+    (lambda: bayescal.compare(PRS3_FILE, alpha=1.5), r"alpha \(--alpha\): expected a number between 0 and 1"),
+    (lambda: bayescal.compare(PRS3_FILE, recording=REC, poses=10), r"poses \(--poses\): every trial re-measures"),
+])
+def test_plan_and_compare_refuse_bad_arguments_by_name(call, match):
+    with pytest.raises(bayescal.InputError, match=match):
+        call()
+
+
+def _timeless(obj):
+    """``obj`` without its wall times (keys named seconds): all else byte for byte."""
+    if isinstance(obj, dict):
+        return {k: _timeless(v) for k, v in obj.items() if k != "seconds"}
+    if isinstance(obj, list):
+        return [_timeless(v) for v in obj]
+    return obj
+
+
+def test_compare_gives_the_json_compare_writes_byte_for_byte(tmp_path):
+    from bayescal.io.answers import json_text
+
+    cmp = bayescal.compare(PRS3_FILE, methods="ls,map", trials=3, poses=24, n_eval=20, seed=4, progress=False,
+                           out=tmp_path / "lib")
+    out = tmp_path / "c.json"
+    assert main(["compare", "--machine", str(PRS3_FILE), "--methods", "ls,map", "--trials", "3", "--poses", "24",
+                 "--eval-poses", "20", "--seed", "4", "--json", str(out), "--quiet", "--out", str(tmp_path / "cli")]) == 0
+    assert json_text(_timeless(cmp.to_dict())) == json_text(_timeless(json.loads(out.read_text())))
+    paths = bayescal.compare.write_comparison_folder(cmp, tmp_path / "lib")
+    assert [p.name for p in paths[:2]] == ["table.txt", "comparison.json"] and all(p.exists() for p in paths)
+    lib_table, cli_table = ((tmp_path / d / "table.txt").read_text().splitlines() for d in ("lib", "cli"))
+    assert lib_table[:-1] == cli_table[:-1] and lib_table[-1].split(" in ")[0] == cli_table[-1].split(" in ")[0]
+    lib, cli = (json.loads((tmp_path / d / "comparison.json").read_text()) for d in ("lib", "cli"))
+    assert _timeless(lib) == _timeless(cli)

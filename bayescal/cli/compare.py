@@ -4,11 +4,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from ..compare import METHODS, METRICS, compare_methods
-from ..errors import InputError
-from ..io import write_json_atomic
+from ..compare import METHODS, METRICS
 from ..machines.files import load_machine
 from . import SUMMARIES
 from .outputs import add_output_options, say, write_json, write_report
@@ -89,38 +86,22 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    """The library's :func:`bayescal.compare.verb.compare_files`, written and printed."""
+    from ..compare.verb import compare_files, write_comparison_folder
     from . import EXIT_FAILED, EXIT_OK
 
-    if args.frame == "fit":
-        raise InputError(
-            "--frame fit: compare draws each trial's true machine from the tolerance prior, and an instrument frame "
-            "has none to draw from; the fitted frame changes the calibrated geometry only by the gauge "
-            "(docs/real-instruments.md), so compare methods in the base frame"
-        )
-    if args.trials < 1:
-        raise InputError(f"--trials: expected a positive number, got {args.trials}")
-    if not 0 < args.alpha < 1:
-        raise InputError(f"--alpha: expected a number between 0 and 1, got {args.alpha}")
-    if args.recording and args.poses is not None:
-        raise InputError(f"--poses: every trial re-measures {args.recording}'s measurements; drop --poses or --recording")
     machine = load_machine(args.machine)
-    cmp = compare_methods(
-        machine, methods=args.methods, trials=args.trials, dof=args.dof if args.recording else (args.dof or 6),
-        n_poses=36 if args.poses is None else args.poses, n_eval=args.eval_poses, recording=args.recording,
-        seed=args.seed, free=args.free, tolerance_scale=args.tolerance_scale, metric=args.metric, alpha=args.alpha,
-        out=args.out, workers=args.workers, dask_workers=args.dask_workers, scheduler=args.scheduler,
-        retries=args.retries, progress=not (args.no_progress or args.quiet),
+    cmp = compare_files(
+        machine, methods=args.methods, trials=args.trials, recording=args.recording, dof=args.dof, poses=args.poses,
+        frame=args.frame, alpha=args.alpha, out=args.out, n_eval=args.eval_poses, seed=args.seed, free=args.free,
+        tolerance_scale=args.tolerance_scale, metric=args.metric, workers=args.workers,
+        dask_workers=args.dask_workers, scheduler=args.scheduler, retries=args.retries,
+        progress=not (args.no_progress or args.quiet),
     )
     text = cmp.report()
     if args.out:
-        from ..io import write_text_atomic
-        from ..plots.compare import plot_comparison
-
-        out = Path(args.out)
-        write_text_atomic(out / "table.txt", text + "\n")
-        write_json_atomic(out / "comparison.json", cmp.to_dict())
-        figs = plot_comparison(cmp, out)
-        say(args, f"wrote {out / 'table.txt'}, {out / 'comparison.json'} and {len(figs)} figures in {out}")
+        paths = write_comparison_folder(cmp, args.out)
+        say(args, f"wrote {paths[0]}, {paths[1]} and {len(paths) - 2} figures in {args.out}")
     write_json(args, cmp.to_dict())
     write_report(args, "compare", cmp, machine=machine)
     if not args.quiet:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..design import CRITERIA, SCALINGS, plan_poses, write_plan
+from ..design import CRITERIA, SCALINGS, write_plan
 from ..errors import InputError
 from ..machines.files import load_machine
 from . import SUMMARIES
@@ -149,29 +149,23 @@ def _repeats(args) -> bool | None:
     return {"auto": None, "yes": True, "no": False}[args.repeats]
 
 
-def run_relations(args) -> int:
-    from ..design.relations import plan_relations, relation_plan_csv
+def _options(args) -> dict:
+    """The library's keywords from the options given (None: not given, the library's default)."""
+    given = {
+        "dof": args.dof, "n_candidates": args.candidates, "scaling": args.scaling, "n_random": args.random_sets,
+        "exchange": not args.no_exchange, "box": not args.no_box, "exact_bound": args.exact_bound,
+        "certify": None if args.certify is None else args.certify / 100, "certify_nodes": args.certify_nodes,
+        "given": args.given, "centre": args.centre, "radius": args.radius, "spacing": args.spacing,
+        "sigma": args.sigma, "min_distance": args.min_distance,
+    }
+    return {k: v for k, v in given.items() if v is not None}
+
+
+def run_relations(args, plan) -> int:
+    from ..design.relations import relation_plan_csv
     from ..io import write_text_atomic
-    from ..io.constraints import read_constraints
     from . import EXIT_OK
 
-    if args.n < 1:
-        raise InputError(f"--n: expected a positive number of measurements, got {args.n}")
-    for flag, value in (("--certify", args.certify), ("--exact-bound", args.exact_bound or None),
-                        ("--no-exchange", args.no_exchange or None), ("--no-box", args.no_box or None)):
-        if value is not None:
-            raise InputError(f"{flag}: only for poses; not with --measure {args.measure}")
-    machine = load_machine(args.machine)
-    given = read_constraints(args.given) if args.given else None
-    if given is not None:
-        given.check_machine(machine.n_actuators, None, args.machine)
-    criterion = args.criterion or "EIG"
-    plan = plan_relations(
-        machine, args.n, measure=args.measure, given=given, centre=args.centre,
-        radius=50.0 if args.radius is None else args.radius, spacing=args.spacing, sigma=args.sigma,
-        criterion=criterion, repeats=_repeats(args), min_distance=0.0 if args.min_distance is None else args.min_distance,
-        method=None if args.method == "auto" else args.method, seed=args.seed,
-    )
     write_text_atomic(args.out, relation_plan_csv(plan))
     write_json(args, plan.to_dict())
     if not args.quiet:
@@ -205,6 +199,8 @@ def run_separate(args) -> int:
 
 
 def run(args) -> int:
+    """The library's :func:`bayescal.design.verb.plan_files` (or ``plan_next_session``), written and printed."""
+    from ..design.verb import plan_files
     from . import EXIT_OK
 
     if args.separate is not None:
@@ -212,39 +208,14 @@ def run(args) -> int:
     for flag, value in (("--condition", args.condition), ("--effects", args.effects)):
         if value is not None:
             raise InputError(f"{flag} goes with --separate RECORDING; it does nothing for a plan of new poses")
-    if args.measure != "pose":
-        return run_relations(args)
-    relation_only = {"--given": args.given, "--centre": args.centre, "--radius": args.radius, "--spacing": args.spacing,
-                     "--sigma": args.sigma, "--min-distance": args.min_distance}
-    given = [flag for flag, value in relation_only.items() if value is not None]
-    if given:
-        # a plan of poses ignored them, silently
-        raise InputError(f"{given[0]} goes with --measure height or distance (a grid of relations); it does nothing "
-                         "for a plan of poses")
-
-    if args.n < 1:
-        raise InputError(f"--n: expected a positive number of poses, got {args.n}")
-    if args.candidates < args.n:
-        raise InputError(f"--candidates: expected at least --n = {args.n}, got {args.candidates}")
     if args.certify is not None and not 0 < args.certify < 100:
         raise InputError(f"--certify: expected a percentage in (0, 100), got {args.certify}")
-    if args.certify_nodes < 1:
-        raise InputError(f"--certify-nodes: expected >= 1, got {args.certify_nodes}")
-    if args.random_sets < 0:
-        raise InputError(f"--random-sets: expected >= 0, got {args.random_sets}")
     machine = load_machine(args.machine)
-    if args.frame == "fit":
-        from ..machines.framed import Frame, InstrumentFrame
-
-        # where the instrument stands does not change the information; identity is as good as any frame
-        machine = InstrumentFrame(machine.base_machine(), Frame.identity(), fit=True)
-    plan = plan_poses(
-        machine, args.n, criterion=args.criterion or "D", dof=args.dof, n_candidates=args.candidates, seed=args.seed,
-        scaling=args.scaling, n_random=args.random_sets, exchange=not args.no_exchange,
-        repeats=_repeats(args), box=not args.no_box, method=None if args.method == "auto" else args.method,
-        exact_bound=args.exact_bound, certify=None if args.certify is None else args.certify / 100,
-        certify_nodes=args.certify_nodes,
-    )
+    plan = plan_files(machine, args.n, measure=args.measure, criterion=args.criterion, frame=args.frame,
+                      seed=args.seed, repeats=_repeats(args), method=None if args.method == "auto" else args.method,
+                      **_options(args))
+    if args.measure != "pose":
+        return run_relations(args, plan)
     write_plan(args.out, plan)
     write_json(args, plan.to_dict())
     write_report(args, "plan", plan, machine=machine)

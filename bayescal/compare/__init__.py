@@ -4,6 +4,7 @@ from .methods import METHODS, Method, MethodSpec, parse_methods, register_method
 from .result import Comparison, compare_methods, comparison_from_records
 from .runner import load_trials, run_trials
 from .trial import METRICS, CompareConfig, run_trial, trial_rng
+from .verb import compare_files, write_comparison_folder
 
 __all__ = [
     "METHODS",
@@ -13,6 +14,8 @@ __all__ = [
     "CompareConfig",
     "Comparison",
     "compare_methods",
+    "compare_files",
+    "write_comparison_folder",
     "comparison_from_records",
     "load_trials",
     "parse_methods",
@@ -22,3 +25,18 @@ __all__ = [
     "trial_rng",
     "tsvd_snr_rank",
 ]
+
+
+class _CallablePackage(type(__import__("sys"))):
+    """``bayescal.compare`` is this package and, called, the front door's verb (:func:`bayescal.api.compare`).
+
+    Importing a submodule sets the package as the parent's attribute, so a
+    function ``bayescal.compare`` could not live beside the package; calling
+    the package instead does what the verb does (a path or a machine in).
+    """
+
+    def __call__(self, machine, **options):
+        return compare_files(machine, **options)
+
+
+__import__("sys").modules[__name__].__class__ = _CallablePackage
