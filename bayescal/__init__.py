@@ -1,7 +1,7 @@
 """bayescal: kinematic calibration of parallel manipulators, with geometric errors as random variables.
 
 The front door (:mod:`bayescal.api`): ``load``, ``calibrate``, ``predict``,
-``grid``, ``diagnose``, ``plan``, ``compare``, the command line's own policy as functions.  The central object
+``grid``, ``diagnose``, ``plan``, ``compare``, ``load_klipper``, the command line's own policy as functions.  The central object
 is a :class:`MeasurementModel` ``y = h(q, theta)`` with its analytic
 Jacobian; every solver, filter, sampler and study consumes it.
 
@@ -31,6 +31,7 @@ __all__ = [
     "load_machine",
     "MeasurementModel",
     "load",
+    "load_klipper",
     "calibrate",
     "predict",
     "grid",
@@ -44,7 +45,7 @@ _lazy_getattr, __dir__ = lazy_attributes(__name__, {
     "Recording": ".io", "read_recording": ".io", "write_recording": ".io",
     "KINDS": ".machines", "Machine": ".machines", "Prs3": ".machines", "Raspm": ".machines",
     "load_machine": ".machines.files", "MeasurementModel": ".measurement",
-    "load": ".api", "calibrate": ".api", "predict": ".api", "grid": ".api", "plan": ".api",
+    "load": ".api", "load_klipper": ".api", "calibrate": ".api", "predict": ".api", "grid": ".api", "plan": ".api",
     "plan_next_session": ".api",
 })
 

@@ -27,7 +27,7 @@ import os
 from .io.recording import Recording
 from .machines.base import Machine
 
-__all__ = ["load", "calibrate", "predict", "grid", "diagnose", "plan", "compare", "plan_next_session"]
+__all__ = ["load", "load_klipper", "calibrate", "predict", "grid", "diagnose", "plan", "compare", "plan_next_session"]
 
 
 def _machine(machine) -> Machine:
@@ -50,8 +50,9 @@ def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Re
     ----------
     machine : path or Machine
         Machine file (docs/formats.md sections 1, 5, 7).
-    recording : path or Recording
-        Recording CSV (sections 2, 4, 8: per-pose sigma, unit suffixes, ``station`` and ``role`` columns).
+    recording : path or Recording or ConstraintRecording
+        Recording CSV (sections 2, 4, 8: per-pose sigma, unit suffixes, ``station`` and ``role`` columns), or a
+        constraint recording (section 6), read or not.
     frame : {"base", "fit"}
         ``fit``: an instrument frame per station, fitted with the geometry.
     dof : int, optional
@@ -67,6 +68,12 @@ def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Re
     from .instrument.prepare import fit_size_check, prepare_session
 
     machine = _machine(machine)
+    from .io.constraints import ConstraintRecording
+
+    if isinstance(recording, ConstraintRecording):
+        from .constraints.model import load_constraint_model
+
+        return load_constraint_model(machine, recording, frame=frame, dof=dof)[1]
     if isinstance(recording, (str, os.PathLike)):
         from .io import read_recording
         from .io.constraints import is_constraint_recording
@@ -79,6 +86,32 @@ def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Re
         recording = read_recording(recording, check_size=fit_size_check(machine, dof=dof, frame=frame,
                                                                          path=str(recording)))
     return prepare_session(machine, _recording(recording), dof=dof, frame=frame).with_fitted_stations()
+
+
+def load_klipper(config: str | os.PathLike, **options):
+    """A Klipper delta printer's config and saved DELTA_CALIBRATE as machine and recording, as ``bayescal klipper``.
+
+    .. code-block:: python
+
+        k = bayescal.load_klipper("printer.cfg")
+        cal = bayescal.calibrate(bayescal.load(k.machine, k.recording), method="map", free="all")
+        k.write("calib/")                       # the two files `bayescal klipper --out calib/` writes
+
+    Parameters
+    ----------
+    config : path
+        ``printer.cfg`` with its SAVE_CONFIG block.
+    **options
+        ``sigma_height``, ``sigma_distance`` (mm) of :func:`bayescal.klipper.setup.load_klipper`.
+
+    Returns
+    -------
+    bayescal.klipper.setup.KlipperSetup
+        ``machine``, ``recording``, ``write(out)``, ``to_dict()``, ``report(out)``.
+    """
+    from .klipper.setup import load_klipper as _load_klipper
+
+    return _load_klipper(config, **options)
 
 
 def calibrate(data, *, method: str = "map", **options):

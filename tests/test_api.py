@@ -474,3 +474,22 @@ def test_compare_gives_the_json_compare_writes_byte_for_byte(tmp_path):
     assert lib_table[:-1] == cli_table[:-1] and lib_table[-1].split(" in ")[0] == cli_table[-1].split(" in ")[0]
     lib, cli = (json.loads((tmp_path / d / "comparison.json").read_text()) for d in ("lib", "cli"))
     assert _timeless(lib) == _timeless(cli)
+
+
+def test_load_klipper_writes_the_files_bayescal_klipper_writes(tmp_path):
+    from bayescal.io.answers import json_text
+    from tests import klipper_configs as synth
+
+    cfg = synth.write_config(tmp_path / "printer")
+    k = bayescal.load_klipper(cfg)
+    assert main(["klipper", str(cfg), "--out", str(tmp_path / "cli"), "--json", str(tmp_path / "k.json"),
+                 "--quiet"]) == 0
+    written = k.write(tmp_path / "lib")
+    for path in written:
+        assert path.read_text() == (tmp_path / "cli" / path.name).read_text()
+    assert json_text(k.to_dict(tmp_path / "cli")) == (tmp_path / "k.json").read_text()
+    # ready for the front door: the same session bayescal.load gives from the written files
+    s = bayescal.load(k.machine, k.recording)
+    assert s.n_poses == k.recording.n_rows == 14 and k.n_heights == 8
+    with pytest.raises(bayescal.InputError, match=r"sigma_height \(--sigma-height\): expected a positive number"):
+        bayescal.load_klipper(cfg, sigma_height=float("nan"))

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from ..io import write_json_atomic
-from ..io.answers import write_files_atomic
-from ..io.constraints import constraints_to_csv
 from . import SUMMARIES
 
 HELP = """\
@@ -65,58 +62,15 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-#: Why the written [tolerance] (the MAP prior) is a printer's, at the top of the machine file.
-_TOLERANCE_NOTE = """\
-# Written by 'bayescal klipper' from a Klipper config (docs/delta-printers.md).
-# [tolerance] below is the prior of 'identify --method map': one sigma of how far the true
-# printer may be from the config's values. Printer values, not a machine tool's: frames of
-# extrusions and moulded brackets, rods cut to about a millimetre, and a delta_radius that folds
-# in the joint offsets make radii, endstops and arms good to ~1 mm, tower angles to ~0.5 deg and
-# tower tilts to ~0.1 deg. Tighten them if an earlier calibration you trust set the values.
-# No [measurement] table: the recording's sigmas weight heights against distances; identify
-# --method map estimates one factor on these tolerances against the noise from the data.
-
-"""
-
-
 def run(args) -> int:
-    from ..errors import InputError
-    from ..klipper.cfg import read_klipper_config
-    from ..klipper.printer import SIGMA_DISTANCE, SIGMA_HEIGHT, klipper_machine, klipper_recording, read_klipper_delta
+    """The library's :func:`bayescal.klipper.setup.load_klipper`, written and printed."""
+    from ..klipper.setup import load_klipper
     from . import EXIT_OK
 
-    sh = SIGMA_HEIGHT if args.sigma_height is None else args.sigma_height
-    sd = SIGMA_DISTANCE if args.sigma_distance is None else args.sigma_distance
-    for flag, v in (("--sigma-height", sh), ("--sigma-distance", sd)):
-        if not v > 0:
-            raise InputError(f"{flag}: expected a positive number of mm, got {v!r}")
-    cfg = read_klipper_config(args.config)
-    kd = read_klipper_delta(cfg)
-    rec = klipper_recording(cfg, kd, sigma_height=sh, sigma_distance=sd)
-    import numpy as np
-
-    span = np.vstack([rec.qa, rec.qb[np.isfinite(rec.qb).all(axis=1)]])
-    machine = klipper_machine(kd, name=f"Klipper delta {Path(args.config).name}", q_span=span)
-    out = Path(args.out)
-    # one unit: a machine file never stands beside the recording of another config
-    write_files_atomic([(out / "machine.toml", _TOLERANCE_NOTE + machine.to_toml()),
-                        (out / "recording.csv", constraints_to_csv(rec))])
-    n_h = sum(m == "height" for m in rec.measure)
-    notes = cfg.notes()
+    setup = load_klipper(args.config, sigma_height=args.sigma_height, sigma_distance=args.sigma_distance)
+    setup.write(args.out)
     if args.json:
-        write_json_atomic(args.json, {
-            "machine": machine.name, "config": str(args.config), "delta_radius": kd.delta_radius,
-            "angle_deg": kd.angle_deg, "arm_length": kd.arm_length, "position_endstop": kd.position_endstop,
-            "step_dist": kd.step_dist, "n_heights": n_h, "n_distances": rec.n_rows - n_h,
-            "files_read": list(cfg.files), "notes": notes,
-            "files": {"machine": str(out / "machine.toml"), "recording": str(out / "recording.csv")},
-        })
+        write_json_atomic(args.json, setup.to_dict(args.out))
     if not args.quiet:
-        print(
-            f"wrote {out / 'machine.toml'} (linear-delta, delta_radius {kd.delta_radius:g} mm, step_dist "
-            f"{', '.join(f'{s:g}' for s in kd.step_dist)} mm) and {out / 'recording.csv'} "
-            f"({n_h} heights, {rec.n_rows - n_h} distances)"
-        )
-        for note in notes:
-            print(f"note: {note}")
+        print(setup.report(args.out))
     return EXIT_OK

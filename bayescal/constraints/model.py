@@ -556,8 +556,8 @@ def load_constraint_model(machine, path, *, frame: str = "base", dof: int | None
     Parameters
     ----------
     machine : Machine
-    path : path
-        A recording with a ``measure`` column (distances, heights, ballbar radii).
+    path : path or ConstraintRecording
+        A recording with a ``measure`` column (distances, heights, ballbar radii), or one read.
     frame : {"base", "fit"}
         ``fit`` is refused: distances and radii see no instrument frame, heights are along the base z axis.
     dof : int, optional
@@ -571,10 +571,10 @@ def load_constraint_model(machine, path, *, frame: str = "base", dof: int | None
 
     if frame == "fit":
         raise InputError(
-            f"frame fit: {path} is a constraint recording; distances and ballbar radii do not see an "
+            f"frame fit: {getattr(path, 'path', path)} is a constraint recording; distances and ballbar radii do not see an "
             "instrument frame, and heights are measured along the base z axis (docs/formats.md section 6): "
             "use the base frame"
         )
-    rec = read_constraints(path)
+    rec = path if isinstance(path, ConstraintRecording) else read_constraints(path)
     check_pivot_readings(rec)
     return rec, ConstraintModel.from_recording(machine, rec, dof=dof)
