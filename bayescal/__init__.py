@@ -1,7 +1,8 @@
 """bayescal: kinematic calibration of parallel manipulators, with geometric errors as random variables.
 
 The front door (:mod:`bayescal.api`): ``load``, ``calibrate``, ``predict``,
-``grid``, ``diagnose``, ``plan``, ``compare``, ``load_klipper``, the command line's own policy as functions.  The central object
+``grid``, ``diagnose``, ``plan``, ``compare``, ``simulate_session``,
+``load_klipper``: the command line's own policy as functions.  The central object
 is a :class:`MeasurementModel` ``y = h(q, theta)`` with its analytic
 Jacobian; every solver, filter, sampler and study consumes it.
 
@@ -38,6 +39,7 @@ __all__ = [
     "diagnose",
     "plan",
     "compare",
+    "simulate_session",
     "plan_next_session",
 ]
 
@@ -46,6 +48,7 @@ _lazy_getattr, __dir__ = lazy_attributes(__name__, {
     "KINDS": ".machines", "Machine": ".machines", "Prs3": ".machines", "Raspm": ".machines",
     "load_machine": ".machines.files", "MeasurementModel": ".measurement",
     "load": ".api", "load_klipper": ".api", "calibrate": ".api", "predict": ".api", "grid": ".api", "plan": ".api",
+    "simulate_session": ".api",
     "plan_next_session": ".api",
 })
 

@@ -27,7 +27,8 @@ import os
 from .io.recording import Recording
 from .machines.base import Machine
 
-__all__ = ["load", "load_klipper", "calibrate", "predict", "grid", "diagnose", "plan", "compare", "plan_next_session"]
+__all__ = ["load", "load_klipper", "calibrate", "predict", "grid", "diagnose", "plan", "compare", "simulate_session",
+           "plan_next_session"]
 
 
 def _machine(machine) -> Machine:
@@ -289,6 +290,33 @@ def compare(machine: str | os.PathLike | Machine, **options):
     from .compare.verb import compare_files
 
     return compare_files(machine, **options)
+
+
+def simulate_session(machine: str | os.PathLike | Machine, n: int | None = None, **options):
+    """A simulated recording with its truth, as ``bayescal simulate`` writes it.
+
+    (Not ``bayescal.simulate``: that name is the module of the simulation's pieces,
+    :mod:`bayescal.simulate`.)
+
+    Parameters
+    ----------
+    machine : path or Machine
+        Nominal machine file or machine; its ``[effect.*]`` tables and ``[discrepancy]`` act on the
+        simulated machine.
+    n : int, optional
+        Poses drawn within ``q_limits`` (readings per circle with ``ballbar``).
+    **options
+        Of :func:`bayescal.simulated.simulate_files`: ``seed`` (required), ``dof``, ``poses_file``,
+        ``tolerance_scale``, ``effects``, ``aux``, ``ballbar``, ``pivot``, ``planes``.
+
+    Returns
+    -------
+    bayescal.simulated.SimulatedSession
+        ``recording``, ``truth``, ``write(out, truth=None)`` (the three files of the command), ``report(out)``.
+    """
+    from .simulated import simulate_files
+
+    return simulate_files(machine, n, **options)
 
 
 def plan_next_session(machine: str | os.PathLike | Machine, recording, n: int, *, condition: str | None = None,

@@ -493,3 +493,43 @@ def test_load_klipper_writes_the_files_bayescal_klipper_writes(tmp_path):
     assert s.n_poses == k.recording.n_rows == 14 and k.n_heights == 8
     with pytest.raises(bayescal.InputError, match=r"sigma_height \(--sigma-height\): expected a positive number"):
         bayescal.load_klipper(cfg, sigma_height=float("nan"))
+
+
+SIMULATE_CASES = {
+    "poses": ({"seed": 1}, 12, ["--poses", "12", "--seed", "1"]),
+    "effects and channels, 5-DOF": ({"seed": 3, "dof": 5, "effects": ["backlash:30"], "aux": ["time_s"]}, 20,
+                                    ["--poses", "20", "--seed", "3", "--dof", "5", "--effect", "backlash:30",
+                                     "--aux", "time_s"]),
+    "ballbar": ({"seed": 2, "ballbar": 40.0, "planes": ["xy", "xz"]}, 8,
+                ["--poses", "8", "--seed", "2", "--ballbar", "40", "--planes", "xy,xz"]),
+}
+
+
+@pytest.mark.parametrize("case", list(SIMULATE_CASES))
+def test_simulate_writes_the_files_bayescal_simulate_writes(tmp_path, case, capsys):
+    options, n, flags = SIMULATE_CASES[case]
+    machine = ROOT / "examples" / "delta" / "machine.toml" if case == "ballbar" else PRS3_FILE
+    sim = bayescal.simulate_session(machine, n, **options)
+    assert main(["simulate", "--machine", str(machine), "--out", str(tmp_path / "cli.csv"), *flags]) == 0
+    said = capsys.readouterr().out
+    paths = sim.write(tmp_path / "lib.csv")
+    for mine, theirs in zip(paths, ("cli.csv", "cli.truth.json", "cli.truth.toml")):
+        assert mine.read_text() == (tmp_path / theirs).read_text()
+    assert sim.report(tmp_path / "cli.csv") == said.strip()
+
+
+def test_simulate_at_a_plan_and_its_refusals(tmp_path):
+    p = bayescal.plan(PRS3_FILE, 6, n_candidates=200, n_random=0)
+    from bayescal.design import write_plan
+
+    write_plan(tmp_path / "poses.csv", p)
+    sim = bayescal.simulate_session(PRS3_FILE, seed=0, poses_file=tmp_path / "poses.csv")
+    np.testing.assert_allclose(sim.recording.q, p.q, atol=1e-12)
+    for options, match in [({"seed": 0}, r"give n \(--poses N"),
+                           ({"seed": 0, "n": 0}, r"n \(--poses\): expected a positive whole number"),
+                           ({"seed": 0, "n": 4, "pivot": "0,0,0"}, r"--pivot \(keyword pivot\) goes with --ballbar"),
+                           ({"seed": 0, "n": 4, "tolerance_scale": -1.0}, r"tolerance_scale \(--tolerance-scale\)"),
+                           ({"seed": 0, "n": 5, "poses_file": tmp_path / "poses.csv"}, r"n \(--poses\) 5 but")]:
+        n = options.pop("n", None)
+        with pytest.raises(bayescal.InputError, match=match):
+            bayescal.simulate_session(PRS3_FILE, n, **options)

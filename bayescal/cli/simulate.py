@@ -3,17 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import re
-from pathlib import Path
 
-import numpy as np
-
-from ..effects.stored import machine_file_text
-from ..errors import InputError
-from ..io.answers import json_text, write_files_atomic
-from ..io.recording import recording_to_csv
-from ..machines.files import load_machine
-from ..simulate import simulate_recording
 from . import SUMMARIES
 from .inputs import name_list
 from .outputs import add_output_options
@@ -99,133 +89,16 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def read_poses_file(path: str, n_actuators: int) -> np.ndarray:
-    """The commanded poses of a plan CSV: columns ``q1..qN`` (any order, other columns ignored), rows in order."""
-    from ..errors import RecordingError
-    from ..io.recording import parse_table, read_csv_rows
-
-    want = [f"q{i + 1}" for i in range(n_actuators)]
-    header, col, rows = read_csv_rows(path, None, f"a pose file with columns {','.join(want)}")
-    missing = [c for c in want if c not in col]
-    if missing:
-        raise RecordingError(path, 1, None, f"columns {', '.join(missing)} missing; expected {','.join(want)} (and e.g. pose_id)")
-    extra = [c for c in header if re.fullmatch(r"q\d+", c) and c not in want]
-    if extra:
-        # a plan of a machine with more actuators: its q4 was ignored, silently
-        raise RecordingError(path, 1, extra[0], f"an actuator column beyond the machine's {n_actuators} actuators; "
-                             f"expected {','.join(want)} (a pose file of another machine?)")
-    if not rows:
-        raise RecordingError(path, 2, None, "no data rows")
-    for i, r in enumerate(rows):
-        if len(r) != len(header):
-            raise RecordingError(path, i + 2, None, f"{len(r)} cells, expected {len(header)} (one per header column)")
-    return parse_table(path, want, [[r[col[c]] for c in want] for r in rows])
-
-
 def run(args) -> int:
+    """The library's :func:`bayescal.simulated.simulate_files`, written and printed."""
+    from ..simulated import simulate_files
     from . import EXIT_OK
 
-    if args.ballbar is None and (args.pivot is not None or args.planes is not None):
-        # options of a ballbar session, ignored without one
-        raise InputError(f"{'--pivot' if args.pivot is not None else '--planes'} goes with --ballbar RADIUS; it does "
-                         "nothing for a recording of poses")
-    machine = load_machine(args.machine)
-    q = None
-    if args.poses_file:
-        if args.ballbar is not None:
-            raise InputError("--ballbar drives circles about its pivot; it does not take --poses-file (give --poses N, "
-                             "the readings per circle)")
-        q = read_poses_file(args.poses_file, machine.n_actuators)
-        if machine.q_limits is not None:
-            # a recording outside q_limits is refused by every consumer: refuse it here, naming the line
-            from ..io.recording import check_q_limits
-
-            check_q_limits(args.poses_file, q, machine.q_limits, machine_path=args.machine)
-        if args.poses is not None and args.poses != q.shape[0]:
-            raise InputError(f"--poses {args.poses} but {args.poses_file} holds {q.shape[0]} poses; give one of them")
-        if args.effect or args.aux:
-            raise InputError("--poses-file cannot be combined with --effect or --aux yet; simulate them with --poses N")
-        args.poses = q.shape[0]
-    if args.poses is None:
-        raise InputError("give --poses N (poses drawn within q_limits) or --poses-file CSV (planned poses)")
-    if args.poses < 1:
-        raise InputError(f"--poses: expected a positive number, got {args.poses}")
-    if not args.tolerance_scale > 0:
-        raise InputError(f"--tolerance-scale: expected a positive number, got {args.tolerance_scale}")
-    aux = name_list(args.aux)
-    if args.ballbar is not None:
-        return _run_ballbar(args, machine)
-    # a machine file's [effect.*] tables act on the simulated machine, driven by the recorded channels
-    stored = []
-    if machine.effects:
-        from ..effects.stored import StoredEffectsTransform
-
-        stored = [StoredEffectsTransform(machine, machine.effects)]
-    if machine.discrepancy is not None:
-        # a calibrated machine's model discrepancy moves its simulated tool as it moves the real one
-        from ..discrepancy.model import DiscrepancyTransform
-
-        stored.append(DiscrepancyTransform(machine.discrepancy))
-    if args.effect or aux:
-        from ..effects.simulate import parse_effect_spec, simulate_with_effects
-
-        specs = [parse_effect_spec(s) for s in args.effect]
-        sim = simulate_with_effects(
-            machine, args.poses, seed=args.seed, dof=args.dof, effects=specs, record=aux,
-            tolerance=machine.tolerance * args.tolerance_scale, extra=stored,
-        )
-    else:
-        sim = simulate_recording(
-            machine, args.poses, seed=args.seed, dof=args.dof, tolerance=machine.tolerance * args.tolerance_scale, q=q,
-            effects=stored,
-        )
-    out = Path(args.out)
-    truth = Path(args.truth) if args.truth else out.with_suffix(".truth.json")
-    # one unit: the recording never stands beside the truth of another run (bayescal.io.answers)
-    write_files_atomic([
-        (out, recording_to_csv(sim.recording)),
-        (truth, json_text({"machine": machine.name, "dof": args.dof, **sim.truth_dict()})),
-        # with its [effect.*] and [discrepancy], not the calibration's uncertainty (this is the truth, not an estimate)
-        (truth.with_suffix(".toml"), machine_file_text(machine.with_calibration(None, machine.discrepancy),
-                                                       sim.theta_true)),
-    ])
+    sim = simulate_files(args.machine, args.poses, seed=args.seed, dof=args.dof, poses_file=args.poses_file,
+                         tolerance_scale=args.tolerance_scale, effects=args.effect, aux=name_list(args.aux),
+                         ballbar=args.ballbar, pivot=args.pivot,
+                         planes=None if args.planes is None else name_list(args.planes))
+    sim.write(args.out, args.truth)
     if not args.quiet:
-        err = np.linalg.norm(sim.recording.position - machine.forward(sim.recording.q).position, axis=1)
-        print(
-            f"wrote {out} ({args.poses} poses, {args.dof}-DOF), truth {truth} and {truth.with_suffix('.toml')}\n"
-            f"position error of the nominal model on these poses: RMS {np.sqrt(np.mean(err**2)):.4f} mm, "
-            f"max {err.max():.4f} mm"
-        )
-    return EXIT_OK
-
-
-def _run_ballbar(args, machine) -> int:
-    """``simulate --ballbar``: circles about a pivot, read as distances (a constraint recording)."""
-    from . import EXIT_OK
-    from ..io.constraints import constraints_to_csv
-    from ..constraints.simulate import simulate_ballbar
-
-    if args.effect or args.aux or args.dof != 6:
-        raise InputError("--ballbar records distances to a pivot; it does not take --effect, --aux or --dof")
-    pivot = None
-    if args.pivot:
-        try:
-            pivot = [float(v) for v in args.pivot.split(",")]
-        except ValueError:
-            pivot = []
-        if len(pivot) != 3:
-            raise InputError(f"--pivot: expected X,Y,Z in mm, got {args.pivot!r}")
-    sim = simulate_ballbar(
-        machine, args.ballbar, n_points=args.poses, pivot=pivot, planes=tuple(name_list(args.planes or "xy")), seed=args.seed,
-        tolerance=machine.tolerance * args.tolerance_scale,
-    )
-    out = Path(args.out)
-    truth = Path(args.truth) if args.truth else out.with_suffix(".truth.json")
-    write_files_atomic([
-        (out, constraints_to_csv(sim.recording)),
-        (truth, json_text({"machine": machine.name, "measure": "ballbar", **sim.truth_dict(machine)})),
-        (truth.with_suffix(".toml"), machine.to_toml(sim.theta_true)),
-    ])
-    if not args.quiet:
-        print(f"wrote {out} ({sim.recording.n_rows} ballbar readings of {args.ballbar:g} mm), truth {truth}")
+        print(sim.report(args.out, args.truth))
     return EXIT_OK

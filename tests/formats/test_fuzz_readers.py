@@ -161,7 +161,7 @@ def test_machine_file_bytes_are_read_or_refused(data):
 @FUZZ
 @given(recording_text())
 def test_pose_files_are_read_or_refused(text):
-    from bayescal.cli.simulate import read_poses_file
+    from bayescal.simulated import read_poses_file
 
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "poses.csv"
