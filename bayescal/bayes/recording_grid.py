@@ -16,6 +16,11 @@ command's grid and JSON:
    the prior; the chain thinned to about :data:`GRID_DRAWS` draws); with
    ``fit_effects`` the effect tables' parameters are identified with the
    geometry (:func:`bayescal.effects.joint_model.joint_effects_model`);
+   the fit judged by identify's plausibility rule
+   (:func:`bayescal.instrument.plausibility.judge_fit`): an implausible
+   calibration's grid (one pose, copied rows, errors beyond 10 tolerances)
+   is refused by the writers unless ``force=True``, as identify refuses
+   its machine file;
 3. the nuisance parameters (a fitted instrument frame, ballbar pivots) left
    out: the grid is over the machine in its base frame (:func:`base_frame_parts`);
 4. the grid over the actuators (:func:`bayescal.bayes.grid.compensation_grid`)
@@ -60,6 +65,10 @@ class GridAnswer:
         The auxiliary channels they are applied at.
     effects_fitted : bool
         Their parameters were identified with the geometry.
+    plausibility : Plausibility or None
+        identify's verdict on the calibration the grid comes from
+        (:func:`bayescal.instrument.plausibility.judge_fit`); the writers refuse an implausible one
+        unless ``force=True``.
     """
 
     grid: object | None
@@ -70,10 +79,16 @@ class GridAnswer:
     effects: tuple[str, ...] = ()
     aux: dict = field(default_factory=dict)
     effects_fitted: bool = False
+    plausibility: object | None = None
 
     @property
     def success(self) -> bool:
         return self.grid is not None
+
+    @property
+    def plausible(self) -> bool:
+        """identify's verdict: False for a calibration the grid's writers refuse (unless ``force``)."""
+        return self.plausibility is None or bool(self.plausibility.plausible)
 
     def to_dict(self) -> dict:
         """The JSON ``bayescal grid --json`` writes, in JSON's own types (``json_text`` of it is that file)."""
@@ -83,7 +98,8 @@ class GridAnswer:
             raise InputError(f"grid: the identification did not succeed ({self.identification.message}); no grid")
         extra = ({"effects": list(self.effects), "aux": dict(self.aux), "effects_fitted": bool(self.effects_fitted)}
                  if self.effects else {})
-        return to_jsonable({**self.grid.to_dict(), "method": self.method, **extra})
+        plaus = self.plausibility.to_dict() if self.plausibility is not None else {}
+        return to_jsonable({**self.grid.to_dict(), "method": self.method, **extra, **plaus})
 
     def report(self) -> str:
         """The text ``bayescal grid`` prints."""
@@ -95,21 +111,26 @@ class GridAnswer:
             at = ", ".join(f"{k} = {v:g}" for k, v in self.aux.items()) or "no auxiliary channel"
             how = "fitted with the geometry, " if self.effects_fitted else ""
             lines.append(f"  effects         {', '.join(self.effects)} {how}applied at {at}")
+        if self.plausibility is not None:
+            lines.append(self.plausibility.report())
         return "\n".join(lines)
 
-    def write_csv(self, path):
-        """The grid as CSV (docs/formats.md): one row per node."""
-        return self._grid("write_csv").write_csv(path)
+    def write_csv(self, path, *, force: bool = False):
+        """The grid as CSV (docs/formats.md): one row per node; an implausible calibration's only with ``force``."""
+        return self._grid("write_csv", force).write_csv(path)
 
-    def write_nc_csv(self, path):
-        """Tool space only: the NC-loadable grid CSV (docs/formats.md section E8)."""
+    def write_nc_csv(self, path, *, force: bool = False):
+        """Tool space only: the NC-loadable grid CSV (docs/formats.md section E8); implausible: only with ``force``."""
         if self.space != "tool":
             raise InputError("nc (--nc): goes with space 'tool' (an NC system compensates tool points)")
-        return self._grid("write_nc_csv").write_nc_csv(path)
+        return self._grid("write_nc_csv", force).write_nc_csv(path)
 
-    def _grid(self, what: str):
+    def _grid(self, what: str, force: bool = False):
+        from ..instrument.plausibility import refuse_implausible
+
         if self.grid is None:
             raise InputError(f"{what}: the identification did not succeed ({self.identification.message}); no grid")
+        refuse_implausible(self.plausibility, force, what)
         return self.grid
 
 
@@ -181,15 +202,16 @@ def _parts(data):
                      f"{type(data).__name__} {data!r:.80}; for files: bayescal.grid(bayescal.load(machine, recording))")
 
 
-def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str, fit_effects: bool):
-    """The fit the grid is computed from and the grid's keyword for its std (a covariance or thinned draws)."""
+def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str, fit_effects: bool, check=None):
+    """The fit, the grid's keyword for its std (a covariance or thinned draws) and identify's verdict on the fit."""
     if method == "map":
         # identify --method map's own answer (its noise test, outliers and prior scale), so that the grid's
         # correction and std are those of the calibration a user writes with the same command
         from ..identify.calibrate import calibrate
+        from ..instrument.plausibility import judge_fit
 
         res = calibrate(model, method="map", free=free, fit_effects=fit_effects).result
-        return res, {"covariance": res.covariance}
+        return res, {"covariance": res.covariance}, judge_fit(model.machine, model, res, check)[1]
     # kalman, mcmc: identify --method kalman | mcmc's own answer (the noise-testing MAP, the robust pass's
     # weights, then the filter or the sampler)
     from ..identify.probabilistic import calibrate_bayes
@@ -199,12 +221,13 @@ def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str
         opts = {"steps": steps, "seed": seed, "surrogate": surrogate}
         if free == "all":
             free = "auto"  # sampling parameters the measurement does not see only explores the prior
-    res = calibrate_bayes(model, method=method, free=free, fit_effects=fit_effects, **opts).result
+    cal = calibrate_bayes(model, method=method, free=free, fit_effects=fit_effects, check=check, **opts)
+    res, plaus = cal.result, cal.plausibility
     if method == "kalman":
-        return res, {"covariance": res.covariance}
+        return res, {"covariance": res.covariance}, plaus
     if not res.success:
-        return res, {}
-    return res, {"samples": res.samples[:: max(1, res.samples.shape[0] // GRID_DRAWS)]}
+        return res, {}, plaus
+    return res, {"samples": res.samples[:: max(1, res.samples.shape[0] // GRID_DRAWS)]}, plaus
 
 
 def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, space: str = "auto",
@@ -238,9 +261,11 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
     -------
     GridAnswer
         ``grid.correction`` and ``grid.std`` (mm), ``to_dict()`` (the ``--json`` answer), ``report()``,
-        ``write_csv(path)``, ``write_nc_csv(path)``.
+        ``write_csv(path)``, ``write_nc_csv(path)``; ``plausibility``, identify's verdict: the writers
+        refuse an implausible calibration's grid unless ``force=True``.
     """
     model, rec = _parts(data)
+    check = getattr(data, "check", None)  # a session's rigid-transform check: the causes of an implausible fit
     if method not in GRID_METHODS:
         raise InputError(f"method (--method): expected one of {', '.join(GRID_METHODS)}, got {method!r}")
     if surrogate not in ("none", "linear"):
@@ -257,8 +282,10 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
         from ..effects.joint_model import joint_effects_model
 
         model = joint_effects_model(model, rec, method=method)
-    res, kw = _identify(model, method, free, steps=steps, seed=seed, surrogate=surrogate, fit_effects=fit_effects)
-    effects = {"effects": tuple(e.name for e in machine.effects), "aux": aux, "effects_fitted": bool(fit_effects)}
+    res, kw, plaus = _identify(model, method, free, steps=steps, seed=seed, surrogate=surrogate,
+                               fit_effects=fit_effects, check=check)
+    effects = {"effects": tuple(e.name for e in machine.effects), "aux": aux, "effects_fitted": bool(fit_effects),
+               "plausibility": plaus}
     if not res.success:
         return GridAnswer(None, res, method, space, machine.geometry_part[0], **effects)
     # the grid is over the machine in its base frame: an instrument frame (fitted or known) is left out

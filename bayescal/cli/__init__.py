@@ -49,7 +49,7 @@ Run 'bayescal COMMAND --help' for each command.
 
 
 class _Parser(argparse.ArgumentParser):
-    """An argument parser whose usage errors are the error and one hint, not the whole usage.
+    """An argument parser whose usage errors are one line: the error and a hint, not the whole usage.
 
     A value that starts with a minus sign and a number is a value, not an option: argparse (3.12) took
     ``--pivot -10,0,80``, ``--centre -5,0,0`` and ``--x-range -3e2 3e2`` for options and refused them
@@ -61,7 +61,8 @@ class _Parser(argparse.ArgumentParser):
         self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?([,:;].*)?$")
 
     def error(self, message: str):  # argparse's hook for every usage error
-        self.exit(EXIT_INPUT, f"{self.prog}: error: {message}\nRun '{self.prog} --help' for the options and examples.\n")
+        # one line, like every other exit-2 error: the hint folded into it
+        self.exit(EXIT_INPUT, f"{self.prog}: error: {_one_line_text(message)}; run '{self.prog} --help' for the options\n")
 
 
 def build_parser(commands=COMMANDS) -> argparse.ArgumentParser:
@@ -151,7 +152,12 @@ def main(argv: list[str] | None = None) -> int:
 
 def _one_line(exc: BaseException) -> str:
     """The message on one line (a value quoted from a file may hold line breaks)."""
-    return " ".join(str(exc).split("\n"))
+    return _one_line_text(str(exc))
+
+
+def _one_line_text(text: str) -> str:
+    """``text`` on one line: its line breaks (a quoted value may hold them) become spaces."""
+    return " ".join(text.splitlines()) if text else text
 
 
 def _memory_detail(exc: MemoryError) -> str:

@@ -90,8 +90,9 @@ def run_bayes(args, machine, answer) -> int:
     if args.figures:
         from ..plots.bayes import plot_filter_history, plot_pair, plot_trace, plot_trace_pages
 
-        out = Path(args.figures)
-        out.mkdir(parents=True, exist_ok=True)
+        from ..io.safe_paths import output_folder
+
+        out = output_folder(args.figures, "--figures")
         if args.method == "kalman":
             made = [plot_filter_history(res, out / "kalman_history.png")]
         elif res.success:

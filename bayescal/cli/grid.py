@@ -50,6 +50,11 @@ assembles, and 'tool' for a machine that declares otherwise (a linear delta,
 whose q_limits box holds carriage positions the arms cannot join; a
 redundantly actuated machine, whose actuators are not independent).  --range NAME=LO:HI narrows
 an axis (q1..qN in actuator space, x, y, z in tool space; repeatable).
+
+The calibration is judged by identify's plausibility rule (docs/real-instruments.md):
+one that is not plausible (one pose, copied rows, errors beyond 10 tolerances)
+is reported, nothing is written and the command exits 1, as identify does;
+--force writes the grid anyway (still exit 1).
 """
 
 EXAMPLES = """\
@@ -95,6 +100,9 @@ def register(sub) -> None:
     p.add_argument("--figure", metavar="PNG", help="draw correction and std heat maps")
     p.add_argument("--json", metavar="PATH", help="write a summary as JSON")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    p.add_argument("--force", action="store_true",
+                   help="write the grid even when the calibration is not plausible (identify's rule: errors beyond "
+                   "10 tolerances, or no residual degrees of freedom, e.g. one pose or copied rows)")
     p.add_argument("--fit-effects", action="store_true",
                    help="map, mcmc: identify the machine file's [effect.*] parameters with the geometry; the grid's "
                    "std then carries their uncertainty")
@@ -126,12 +134,18 @@ def run(args) -> int:
             print(res.report())
         print(f"bayescal grid: the identification did not succeed ({res.message}); no grid written")
         return EXIT_FAILED
+    if not answer.plausible and not args.force:
+        # identify's rule and refusal (bayescal.instrument.plausibility): reported, nothing written, exit 1
+        if not args.quiet:
+            print(answer.report())
+        print("bayescal grid: the calibration is not plausible; no grid written (--force writes it anyway)")
+        return EXIT_FAILED
     # outputs first: a closed stdout (`| head`) must not cost them
     if args.out:
-        answer.write_csv(args.out)
+        answer.write_csv(args.out, force=args.force)
         say(args, f"wrote {args.out} (grid CSV, {answer.space} space)")
     if args.nc:
-        answer.write_nc_csv(args.nc)
+        answer.write_nc_csv(args.nc, force=args.force)
         say(args, f"wrote {args.nc} (NC-loadable grid CSV, docs/formats.md section E8)")
     if args.figure:
         from ..plots.bayes import plot_grid
@@ -142,7 +156,7 @@ def run(args) -> int:
     write_report(args, "grid", grid, identification=res, machine=machine)
     if not args.quiet:
         print(answer.report())
-    return EXIT_OK
+    return EXIT_OK if answer.plausible else EXIT_FAILED  # forced: written, but not a success (as identify)
 
 
 def _ranges(items: list[str]) -> dict:

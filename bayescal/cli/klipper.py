@@ -22,7 +22,9 @@ the end of the file) and write
 The config is read as Klipper reads it: [include ...] files and globs
 relative to the including file, '#' and ';' comments, values continued on
 indented lines, the SAVE_CONFIG block (a key set above it wins). An include
-that names no file is skipped with a note. Errors name the file, line,
+without wildcards that names no file is an error, as in Klipper (a glob may
+match nothing); --skip-missing-includes reads the config without it, with a
+note (a published config's fluidd.cfg). Errors name the file, line,
 section and key: include cycles, include trees beyond 200 files or 12
 levels, text that is not UTF-8, files that are not regular, saved entries
 with gaps, values that are not finite or plausible.
@@ -59,6 +61,9 @@ def register(sub) -> None:
                    help="one-sigma noise of a caliper distance, mm (default 0.05); a weight against the heights")
     p.add_argument("--json", metavar="PATH", help="write a summary (geometry read, step distances, counts, files read, notes) as JSON")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--skip-missing-includes", action="store_true",
+                   help="read the config without an [include FILE] that names no file (a published config's "
+                   "fluidd.cfg), with a note; default: an error, as Klipper refuses to start without it")
     p.set_defaults(func=run)
 
 
@@ -67,7 +72,8 @@ def run(args) -> int:
     from ..klipper.setup import load_klipper
     from . import EXIT_OK
 
-    setup = load_klipper(args.config, sigma_height=args.sigma_height, sigma_distance=args.sigma_distance)
+    setup = load_klipper(args.config, sigma_height=args.sigma_height, sigma_distance=args.sigma_distance,
+                         missing_includes="skip" if args.skip_missing_includes else "error")
     setup.write(args.out)
     if args.json:
         write_json_atomic(args.json, setup.to_dict(args.out))

@@ -262,7 +262,9 @@ def run_trials(
     if out is not None:
         out = Path(out)
         done = load_trials(out, config)
-        out.mkdir(parents=True, exist_ok=True)
+        from ..io.safe_paths import output_folder
+
+        output_folder(out)  # not through a link (bayescal.io.safe_paths)
         write_json_atomic(out / CONFIG_FILE, cfg)
         path = out / TRIALS_FILE
     todo = [t for t in range(config.trials) if t not in done]

@@ -365,10 +365,13 @@ def posterior_effective_params(prior_cov: NDArray, post_cov: NDArray) -> float |
     return float(np.clip(n - t, 0.0, n)) if math.isfinite(t) else None
 
 
-def refuse_implausible(plaus: Plausibility | None, force: bool = False) -> None:
-    """InputError when a calibration judged implausible would be written (``force`` writes it anyway)."""
+def refuse_implausible(plaus: Plausibility | None, force: bool = False, what: str = "write_machine") -> None:
+    """InputError when a calibration judged implausible would be written (``force`` writes it anyway).
+
+    ``what`` names the writer in the message (``write_machine``, a grid's ``write_csv``, ...).
+    """
     from ..errors import InputError
 
     if plaus is not None and not plaus.plausible and not force:
-        raise InputError("write_machine: the calibration is not plausible (" + "; ".join(plaus.reasons)
+        raise InputError(f"{what}: the calibration is not plausible (" + "; ".join(plaus.reasons)
                          + "); pass force=True to write it anyway")

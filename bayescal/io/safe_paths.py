@@ -18,7 +18,11 @@ The policy every command and every reader of bayescal follows
   file; a target that exists must be a regular file: a symbolic link is
   refused (bayescal neither writes through a link nor replaces it), and so
   are a folder, a device (``/dev/null`` too) and a named pipe; the folder of
-  each output must exist (or, asked for, be creatable) and be writable.
+  each output must exist (or, asked for, be creatable) and be writable; a
+  folder the run writes into (``--figures DIR``, compare's and klipper's
+  ``--out DIR``) must not be a symbolic link either
+  (:func:`check_output_folder`), checked up front and again when it is made
+  (:func:`output_folder`).
   At write time :func:`check_replaceable` applies the same rules again
   (the file system may have changed meanwhile), and inside a run
   (:func:`run_scope`, which the command line enters) every regular file read
@@ -42,7 +46,7 @@ from ..errors import InputError
 __all__ = [
     "MAX_CSV_BYTES", "MAX_TOML_BYTES", "MAX_JSON_STATE_BYTES", "MAX_CHECKPOINT_BYTES", "STDIN_NAMES",
     "read_input_bytes", "read_input_text", "check_inputs", "check_outputs", "check_replaceable", "check_figure_path",
-    "figure_format", "run_scope", "format_bytes", "file_kind",
+    "figure_format", "run_scope", "format_bytes", "file_kind", "check_output_folder", "output_folder",
 ]
 
 MiB = 1 << 20
@@ -266,6 +270,42 @@ def check_replaceable(path: str | os.PathLike, label: str = "") -> None:
                          "(choose another path)")
 
 
+def check_output_folder(path: str | os.PathLike, label: str = "") -> None:
+    """Raise InputError when the output folder ``path`` is a symbolic link or exists and is not a folder.
+
+    Files are written into an output folder by name: through a link they would land wherever it
+    points (a planted link), so a link is refused as it is for a single output file
+    (:func:`check_replaceable`). A folder that does not exist is fine (it is created).
+    """
+    where = f"{label} {path}" if label else str(path)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    except NotADirectoryError:
+        raise InputError(f"{where}: a part of the path before the folder name is not a folder") from None
+    except OSError as exc:
+        raise InputError(f"{where}: cannot be checked ({exc.strerror or exc})") from None
+    if stat.S_ISLNK(st.st_mode):
+        raise InputError(f"{where}: is a symbolic link; output files are written only into real folders, never "
+                         "through a link (remove the link, or give the folder it points to)")
+    if not stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{where}: exists and is not a folder; expected a folder for the output files")
+
+
+def output_folder(path: str | os.PathLike, label: str = "") -> Path:
+    """The output folder ``path``, checked (:func:`check_output_folder`) and created with its parents if missing."""
+    check_output_folder(path, label)
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{(label + ' ') if label else ''}{path}: cannot create the folder ({exc.strerror or exc})") \
+            from None
+    check_output_folder(out, label)  # not swapped for a link while it was made
+    return out
+
+
 #: Figure formats matplotlib's Agg-based canvas writes, by file suffix.
 FIGURE_FORMATS = ("png", "pdf", "svg", "svgz", "eps", "ps", "jpg", "jpeg", "tif", "tiff", "webp", "pgf")
 
@@ -339,7 +379,7 @@ def check_outputs(
         through a link or a hard link) or two outputs are the same file;
         naming the option when a target is a link, a folder, a device or a
         named pipe (:func:`check_replaceable`), or its folder is missing or
-        not writable.
+        not writable; when one of ``folders`` is a link or not a folder.
     """
     inputs = {k: str(v) for k, v in (inputs or {}).items() if v is not None and str(v)}
     folders = {k: str(v) for k, v in (folders or {}).items() if v is not None and str(v)}
@@ -365,7 +405,5 @@ def check_outputs(
         parent = Path(path).parent if str(Path(path).parent) else Path(".")
         _check_folder(label, path, parent, mkdir or os.path.realpath(parent) in created)
     for label, path in folders.items():
-        p = Path(path)
-        if p.exists() and not p.is_dir():
-            raise InputError(f"{label} {path}: exists and is not a folder; expected a folder for the output files")
-        _check_folder(label, path, p, True)
+        check_output_folder(path, label)  # a link, or a file in the way
+        _check_folder(label, path, Path(path), True)

@@ -242,9 +242,9 @@ def _sections(parser: configparser.RawConfigParser) -> dict:
     return {sec: dict(parser.items(sec)) for sec in parser.sections()}
 
 
-def _config(text: str, path: str, folder) -> KlipperConfig:
+def _config(text: str, path: str, folder, missing_includes: str = "error") -> KlipperConfig:
     split = split_autosave(text, path)
-    source = config_source(split.regular, path, folder)
+    source = config_source(split.regular, path, folder, missing_includes=missing_includes)
     parser, origin = _parser(), {}
     for chunk in source.chunks:
         _read_chunk(parser, chunk, False)
@@ -261,27 +261,40 @@ def _config(text: str, path: str, folder) -> KlipperConfig:
                          missing_includes=source.missing, autosave_note=split.ignored)
 
 
-def parse_klipper_text(text: str, path: str = "<memory>", *, base_dir: str | os.PathLike | None = None) -> KlipperConfig:
+def parse_klipper_text(text: str, path: str = "<memory>", *, base_dir: str | os.PathLike | None = None,
+                       missing_includes: str = "error") -> KlipperConfig:
     """Parse Klipper config text; ``base_dir`` resolves ``[include ...]`` (None: includes not followed).
+
+    ``missing_includes`` as for :func:`read_klipper_config` (with ``base_dir`` None every include is
+    left unread and listed in ``missing_includes``).
 
     Raises
     ------
     KlipperConfigError
         For text ``configparser`` rejects, or an include that cannot be read, naming file and line.
     """
-    return _config(normalize_text(text, path), path, base_dir)
+    return _config(normalize_text(text, path), path, base_dir, missing_includes)
 
 
-def read_klipper_config(path: str | os.PathLike) -> KlipperConfig:
+def read_klipper_config(path: str | os.PathLike, *, missing_includes: str = "error") -> KlipperConfig:
     """Read a Klipper ``printer.cfg`` with its includes and SAVE_CONFIG block, as Klipper does.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    missing_includes : {"error", "skip"}
+        An ``[include FILE]`` without wildcards that names no file: ``"error"`` (Klipper's rule, the
+        default) refuses it naming the including file, its line and the path; ``"skip"`` reads the config
+        without it and lists it in ``missing_includes`` (a published config's ``fluidd.cfg``). A glob that
+        matches nothing is accepted either way, as by Klipper.
 
     Raises
     ------
     KlipperConfigError
         For a file that is missing, not a regular file, not UTF-8 text, or
-        not a config ``configparser`` accepts; for an include cycle, or an
-        include tree beyond bayescal's limits (:mod:`bayescal.klipper.source`);
-        naming the file and line.
+        not a config ``configparser`` accepts; for a missing include (above),
+        an include cycle, or an include tree beyond bayescal's limits
+        (:mod:`bayescal.klipper.source`); naming the file and line.
     """
     path = os.fspath(path)
-    return _config(read_main_text(path), path, os.path.dirname(path))
+    return _config(read_main_text(path), path, os.path.dirname(path), missing_includes)

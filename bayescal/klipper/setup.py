@@ -108,7 +108,7 @@ class KlipperSetup:
 
 
 def load_klipper(config: str | os.PathLike, *, sigma_height: float | None = None,
-                 sigma_distance: float | None = None) -> KlipperSetup:
+                 sigma_distance: float | None = None, missing_includes: str = "error") -> KlipperSetup:
     """Read a Klipper delta printer's config and saved DELTA_CALIBRATE, as ``bayescal klipper`` does.
 
     Parameters
@@ -119,6 +119,9 @@ def load_klipper(config: str | os.PathLike, *, sigma_height: float | None = None
         One-sigma noise of a probe height and of a caliper distance, mm (defaults
         :data:`bayescal.klipper.printer.SIGMA_HEIGHT`, :data:`~bayescal.klipper.printer.SIGMA_DISTANCE`):
         weights of heights against distances.
+    missing_includes : {"error", "skip"}
+        An ``[include FILE]`` without wildcards that names no file: an error, as Klipper refuses to start
+        without it, or skipped with a note (a published config whose included file did not travel).
 
     Returns
     -------
@@ -138,7 +141,7 @@ def load_klipper(config: str | os.PathLike, *, sigma_height: float | None = None
     for name, v in (("sigma_height (--sigma-height)", sh), ("sigma_distance (--sigma-distance)", sd)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 or not np.isfinite(v):
             raise InputError(f"{name}: expected a positive number of mm, got {v!r}")
-    cfg = read_klipper_config(config)
+    cfg = read_klipper_config(config, missing_includes=missing_includes)
     kd = read_klipper_delta(cfg)
     rec = klipper_recording(cfg, kd, sigma_height=sh, sigma_distance=sd)
     # the workspace the recording's positions span (a distance's second position where it has one)

@@ -16,13 +16,16 @@ Klipper's rules (``klippy/configfile.py``, in our own words):
 * the text between two includes is parsed as one piece, into the same parser,
   in order: a value set later overrides one set earlier.
 
+An include without wildcards that names no file is an error, as in Klipper
+(``Include file ... does not exist``), naming the including file, its line
+and the missing path.  A published ``printer.cfg`` often names a UI include
+(``fluidd.cfg``, ``mainsail.cfg``) that does not travel with it; asked to
+(``missing_includes="skip"``, ``bayescal klipper --skip-missing-includes``),
+bayescal skips such an include and remembers it, and a key that is then
+missing is reported with the include it may have come from.
+
 What bayescal does differently, and why:
 
-* an include without wildcards that names no file is skipped and remembered
-  (Klipper refuses to start): a published ``printer.cfg`` often names a UI
-  include (``fluidd.cfg``, ``mainsail.cfg``) that does not travel with it, and
-  only the printer's geometry is needed; a key that is then missing is
-  reported with the include it may have come from;
 * limits no real config reaches, so that a hostile or broken include tree
   fails at once: at most :data:`MAX_INCLUDED_FILES` included files in all,
   nested at most :data:`MAX_INCLUDE_DEPTH` deep, :data:`MAX_FILE_BYTES` per
@@ -122,6 +125,7 @@ class _Walk:
     chunks: list = field(default_factory=list)
     files: list = field(default_factory=list)
     missing: list = field(default_factory=list)
+    skip_missing: bool = False  # a missing plain include is remembered instead of refused
 
 
 def _file_kind(mode: int) -> str:
@@ -209,7 +213,12 @@ def _matches(spec: str, path: str, line: int, folder: str, walk: _Walk) -> list[
             raise _error(path, line, f"[include {spec}]: more than {MAX_INCLUDED_FILES} included files in all "
                                      f"(bayescal's limit; no printer config needs more)")
     if not names and not glob.has_magic(spec):
-        walk.missing.append(MissingInclude(path, line, os.path.join(folder, spec)))
+        target = os.path.join(folder, spec)
+        if not walk.skip_missing:  # Klipper: "Include file '...' does not exist"; a glob may match nothing
+            raise _error(path, line, f"[include {spec}]: {target} does not exist (Klipper refuses to start without "
+                                     "it); expected an existing file or a glob pattern (--skip-missing-includes, "
+                                     "missing_includes='skip', reads the config without it)")
+        walk.missing.append(MissingInclude(path, line, target))
     return sorted(names)
 
 
@@ -253,19 +262,27 @@ def normalize_text(text: str, path: str = "<memory>") -> str:
     return text.removeprefix("\ufeff").replace("\r\n", "\n").replace("\r", "\n")
 
 
-def config_source(text: str, path: str, folder: str | os.PathLike | None) -> ConfigSource:
+def config_source(text: str, path: str, folder: str | os.PathLike | None, *,
+                  missing_includes: str = "error") -> ConfigSource:
     """The regular part ``text`` of the config ``path`` with its includes, as chunks in parse order.
 
     ``folder`` resolves relative includes (Klipper: the config file's folder);
     None leaves every include unread (listed in ``missing``).
+    ``missing_includes``: ``"error"`` (Klipper's rule: an include without
+    wildcards that names no file is refused) or ``"skip"`` (it is listed in
+    ``missing``).
 
     Raises
     ------
     KlipperConfigError
-        An include that cannot be read, is not UTF-8 text, is not a regular
-        file, forms a cycle, or exceeds a limit; naming the file and line.
+        An include that names no file (``missing_includes="error"``), cannot
+        be read, is not UTF-8 text, is not a regular file, forms a cycle, or
+        exceeds a limit; naming the file and line.
     """
+    if missing_includes not in ("error", "skip"):
+        raise InputError(f"missing_includes: expected 'error' or 'skip', got {missing_includes!r}")
     folder = None if folder is None else os.fspath(folder)
-    walk = _Walk(chain=[[os.path.realpath(path) if folder is not None else path, path, 0]])
+    walk = _Walk(chain=[[os.path.realpath(path) if folder is not None else path, path, 0]],
+                 skip_missing=missing_includes == "skip")
     _expand(text, path, folder, walk)
     return ConfigSource(chunks=tuple(walk.chunks), files=tuple(walk.files), missing=tuple(walk.missing))

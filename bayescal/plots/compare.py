@@ -81,8 +81,9 @@ def plot_win_rates(cmp, ax=None):
 
 def plot_comparison(cmp, out_dir: str | os.PathLike) -> list[Path]:
     """Write the three figures as PNG into ``out_dir``; returns their paths."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    from ..io.safe_paths import output_folder
+
+    out = output_folder(out_dir)  # not through a link (bayescal.io.safe_paths)
     paths = []
     for name, fn in (("errors", plot_error_distributions), ("differences", plot_paired_differences),
                      ("win_rates", plot_win_rates)):

@@ -35,8 +35,9 @@ def plot_diagnosis(diagnosis, out_dir: str | os.PathLike, *, top: int = 6) -> li
     list of Path
     """
     plt = _pyplot()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    from ..io.safe_paths import output_folder
+
+    out = output_folder(out_dir)  # not through a link (bayescal.io.safe_paths)
     chans = diagnosis.location.channels[:top]
     res = diagnosis.location.residual[:, :3]
     ncol = 3

@@ -20,6 +20,10 @@ the covariance of the errors about the nominal is that of the calibrated
 geometry's perturbations.  A model-discrepancy term (``[discrepancy]``,
 :mod:`bayescal.discrepancy`) appends its weights ``discrepancy.w<k>`` to
 ``parameters``, so that the covariance is the joint one.
+
+A machine parameter the record does not hold (one the calibration did not
+estimate) keeps its prior: its tolerance is its one-sigma uncertainty,
+independent of the others (:func:`covariance_with_prior`).
 """
 
 from __future__ import annotations
@@ -34,7 +38,8 @@ from numpy.typing import NDArray
 from ..errors import MachineFileError
 from ..io.machine_file import TomlTable, format_toml_value
 
-__all__ = ["CalibrationRecord", "calibration_toml", "read_calibration"]
+__all__ = ["CalibrationRecord", "calibration_toml", "read_calibration", "covariance_with_prior",
+           "unknown_parameters_message"]
 
 #: Largest covariance a machine file may carry (parameters): 4,000 gives 128 MB of float64.
 MAX_PARAMETERS = 4000
@@ -206,9 +211,61 @@ def record_from_result(machine, names_all, free, covariance, *, noise_scale: flo
 
 
 def unknown_parameters_message(path: str, missing) -> str:
-    """Why a calibration record that lacks some parameters is read anyway (those are taken as exact)."""
+    """The note when a record lacks some parameters: their tolerances (prior std) are taken as their uncertainty."""
     shown = ", ".join(list(missing)[:5]) + (" ..." if len(missing) > 5 else "")
-    return f"{path}: [calibration] holds no uncertainty for {len(missing)} parameter(s) ({shown}); taken as exact"
+    return (f"{path}: [calibration] holds no uncertainty for {len(missing)} parameter(s) ({shown}); their "
+            "tolerances (the prior, not calibrated) are taken as their one-sigma uncertainty")
+
+
+def covariance_with_prior(record: CalibrationRecord, names, prior_std, path: str = "") -> tuple[NDArray, tuple]:
+    """The covariance over ``names``: the record's, and the prior variance for parameters it does not hold.
+
+    A record lacks a parameter the calibration did not estimate (``--free auto`` leaves out what the
+    measurement does not see; a list of ``--free`` names leaves out the rest): that parameter stayed at
+    the file's value, known no better than its tolerance, so its honest uncertainty is the prior
+    ``N(0, tolerance^2)``, independent of the estimated ones (the data did not see it). Taking it as
+    exact made every prediction that depends on it far too confident.
+
+    Parameters
+    ----------
+    record : CalibrationRecord
+    names : sequence of str
+        The machine's parameters wanted (frame parameters of a session excluded by the caller).
+    prior_std : array_like, shape (len(names),)
+        Their one-sigma tolerances (the machine file's ``[tolerance]`` or the documented defaults), unit
+        of each parameter.
+    path : str
+        The machine file, for the error.
+
+    Returns
+    -------
+    (ndarray, tuple of str)
+        The covariance, shape (len(names), len(names)), and the names the record lacked.
+
+    Raises
+    ------
+    MachineFileError
+        When a parameter the record lacks has no finite positive tolerance: its uncertainty is unknown
+        (one line naming the parameters).
+    """
+    names = list(names)
+    prior_std = np.asarray(prior_std, dtype=float)
+    if prior_std.shape != (len(names),):
+        raise ValueError(f"covariance_with_prior: {prior_std.size} tolerances for {len(names)} parameters")
+    C = record.covariance_for(names)
+    missing = record.missing(names)
+    held = set(missing)
+    unknown = [n for n, s in zip(names, prior_std) if n in held and not (math.isfinite(s) and s > 0)]
+    if unknown:
+        shown = ", ".join(unknown[:5]) + (" ..." if len(unknown) > 5 else "")
+        raise MachineFileError(path, "calibration.parameters",
+                               f"holds no uncertainty for {len(unknown)} parameter(s) ({shown}) and the machine states "
+                               "no positive tolerance for them; expected them in [calibration] (write the machine "
+                               "again with identify --write-machine)")
+    for i, n in enumerate(names):
+        if n in held:
+            C[i, i] = prior_std[i] ** 2
+    return C, missing
 
 
 def check_record(record: CalibrationRecord, path: str) -> None:

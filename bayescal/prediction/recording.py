@@ -210,17 +210,24 @@ def _machine_covariance(machine, fm, names, disc):
         note = ("no [calibration] in the machine file: its parameters are taken as exact; the intervals carry the "
                 "instrument noise" + (" and the discrepancy's prior" if disc is not None else ""))
         return np.eye(k) if k else np.zeros((0, 0)), np.zeros(0, dtype=int), 1.0, 1.0, note
-    geo = [n for n in record.names if n in pos]
-    C = record.covariance_for(geo + list(wnames))
-    if disc is not None:
-        # weights the record does not hold keep their prior, N(0, I)
-        missing = [i for i, n in enumerate(wnames) if n not in set(record.names)]
-        for i in missing:
-            C[len(geo) + i, len(geo) + i] = 1.0
-    note = ""
+    from ..machines.framed import is_frame_parameter
+    from .record import covariance_with_prior, unknown_parameters_message
+
+    # the machine's own parameters (a session's instrument frame is fitted, not calibrated): those the record
+    # lacks keep their prior, the tolerance (bayescal.prediction.record.covariance_with_prior)
+    own = [n for n in machine.layout.names if n in pos and not is_frame_parameter(n)]
+    geo = [n for n in record.names if n in pos] + [n for n in own if n not in set(record.names)]
+    tol = np.asarray(fm.tolerance, dtype=float)
+    prior = [tol[pos[n]] for n in geo] + [1.0] * len(wnames)  # weights the record lacks: N(0, I)
+    C, missing = covariance_with_prior(record, geo + list(wnames), prior, machine.source)
+    notes = []
     lost = [n for n in record.names if n not in pos and not n.startswith("discrepancy.")]
     if lost:
-        note = f"{len(lost)} parameter(s) of [calibration] are not this machine's and were left out: {', '.join(lost[:4])}"
+        notes.append(f"{len(lost)} parameter(s) of [calibration] are not this machine's and were left out: "
+                     f"{', '.join(lost[:4])}")
+    if unheld := [n for n in missing if n in set(geo)]:
+        notes.append(unknown_parameters_message(machine.source, unheld))
+    note = "; ".join(notes)
     return (C, np.array([pos[n] for n in geo], dtype=int), float(record.noise_scale) ** 2,
             float(record.variance_factor), note)
 

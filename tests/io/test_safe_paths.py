@@ -156,3 +156,48 @@ def test_named_inputs_that_are_not_regular_files_are_refused_up_front(tmp_path):
         check_inputs({"config": tmp_path / "fifo"})
     with pytest.raises(InputError, match="--machine .*: is a folder"):
         check_inputs({"--machine": tmp_path})
+
+
+# ------------------------------------------------------------------ output folders through links (issue 30)
+def test_an_output_folder_that_is_a_link_is_refused(tmp_path):
+    from bayescal.errors import InputError
+    from bayescal.io.safe_paths import check_outputs, output_folder
+
+    victim = tmp_path / "elsewhere"
+    victim.mkdir()
+    (tmp_path / "figs").symlink_to(victim, target_is_directory=True)
+    with pytest.raises(InputError, match=r"--figures .*figs: is a symbolic link"):
+        check_outputs({}, folders={"--figures": tmp_path / "figs"})
+    with pytest.raises(InputError, match="is a symbolic link"):
+        output_folder(tmp_path / "figs")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="not a folder"):
+        output_folder(tmp_path / "file")
+    assert output_folder(tmp_path / "new" / "sub").is_dir()  # a missing folder is made
+    assert list(victim.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [
+    ["diagnose", "{rec}", "--machine", "{m}", "--figures", "{link}"],
+    ["identify", "{rec}", "--machine", "{m}", "--method", "ridge", "--lam", "auto", "--figures", "{link}"],
+    ["compare", "--machine", "{m}", "--methods", "ls", "--trials", "1", "--out", "{link}", "--no-progress"],
+    ["klipper", "{cfg}", "--out", "{link}"],
+])
+def test_commands_refuse_a_linked_output_folder_before_computing(tmp_path, capsys, argv):
+    import shutil
+
+    from bayescal.cli import main
+    from tests.conftest import PRS3_FILE, ROOT
+
+    victim = tmp_path / "elsewhere"
+    victim.mkdir()
+    (tmp_path / "link").symlink_to(victim, target_is_directory=True)
+    shutil.copy(ROOT / "examples" / "prs3" / "recording.csv", tmp_path / "r.csv")
+    shutil.copy(PRS3_FILE, tmp_path / "m.toml")
+    (tmp_path / "p.cfg").write_text("[printer]\nkinematics: delta\n")
+    words = [a.format(rec=tmp_path / "r.csv", m=tmp_path / "m.toml", link=tmp_path / "link", cfg=tmp_path / "p.cfg")
+             for a in argv]
+    assert main(words) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is a symbolic link" in err and str(tmp_path / "link") in err
+    assert list(victim.iterdir()) == []

@@ -105,11 +105,26 @@ def test_files_that_are_not_regular_are_refused_without_reading(tmp_path, capsys
     assert "file not found" in _refused(tmp_path / "nothing.cfg", capsys)
 
 
-def test_a_wildcard_may_match_nothing_a_plain_name_is_remembered(tmp_path):
+def test_a_wildcard_may_match_nothing_a_plain_name_must_exist(tmp_path, capsys):
+    # Klipper (klippy/configfile.py _resolve_include): "Include file '...' does not exist" unless glob.has_magic
+    (tmp_path / "printer.cfg").write_text("[include none/*.cfg]\n[printer]\nkinematics: delta\n")
+    assert read_klipper_config(tmp_path / "printer.cfg").sections == {"printer": {"kinematics": "delta"}}
     (tmp_path / "printer.cfg").write_text("[include none/*.cfg]\n[include fluidd.cfg]\n[printer]\nkinematics: delta\n")
-    cfg = read_klipper_config(tmp_path / "printer.cfg")
+    with pytest.raises(KlipperConfigError, match="line 2: .include fluidd.cfg.: .*fluidd.cfg does not exist"):
+        read_klipper_config(tmp_path / "printer.cfg")
+    err = _refused(tmp_path / "printer.cfg", capsys)
+    assert f"{tmp_path / 'printer.cfg'} line 2" in err and str(tmp_path / "fluidd.cfg") in err
+    cfg = read_klipper_config(tmp_path / "printer.cfg", missing_includes="skip")
     assert [(m.line, Path(m.target).name) for m in cfg.missing_includes] == [(2, "fluidd.cfg")]
     assert cfg.sections == {"printer": {"kinematics": "delta"}}
+
+
+def test_a_missing_include_further_down_names_the_including_file(tmp_path, capsys):
+    (tmp_path / "printer.cfg").write_text("[printer]\nkinematics: delta\n[include sub/a.cfg]\n")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "a.cfg").write_text("# steppers\n\n[include b.cfg]\n")
+    err = _refused(tmp_path / "printer.cfg", capsys)
+    assert f"{tmp_path / 'sub' / 'a.cfg'} line 3: [include b.cfg]: {tmp_path / 'sub' / 'b.cfg'} does not exist" in err
 
 
 def test_a_folder_with_wildcard_characters_keeps_its_includes(tmp_path):
