@@ -441,7 +441,7 @@ def test_plan_of_heights_gives_the_json_plan_writes(tmp_path):
     (lambda: bayescal.plan(ROOT / "examples" / "delta" / "machine.toml", 3, measure="height", box=False),
      r"--no-box: only for poses; not with --measure height"),
     (lambda: bayescal.compare(PRS3_FILE, trials=0), r"trials \(--trials\): expected a positive whole number"),
-    (lambda: bayescal.compare(PRS3_FILE, frame="fit"), r"frame \(--frame\) fit: compare draws"),
+    (lambda: bayescal.compare(PRS3_FILE, frame="fit"), r"--frame fit \(keyword frame='fit'\): compare draws"),
     (lambda: bayescal.compare(PRS3_FILE, alpha=1.5), r"alpha \(--alpha\): expected a number between 0 and 1"),
     (lambda: bayescal.compare(PRS3_FILE, recording=REC, poses=10), r"poses \(--poses\): every trial re-measures"),
 ])

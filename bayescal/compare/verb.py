@@ -58,7 +58,7 @@ def compare_files(machine: str | os.PathLike | Machine, *, methods: str = "ls,ri
     """
     if frame == "fit":
         raise InputError(
-            "frame (--frame) fit: compare draws each trial's true machine from the tolerance prior, and an instrument "
+            "--frame fit (keyword frame='fit'): compare draws each trial's true machine from the tolerance prior, and an instrument "
             "frame has none to draw from; the fitted frame changes the calibrated geometry only by the gauge "
             "(docs/real-instruments.md), so compare methods in the base frame")
     if frame != "base":
