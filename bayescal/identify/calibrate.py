@@ -35,7 +35,7 @@ import numpy as np
 
 from ..contract import scale_noise, whiten
 from ..errors import InputError
-from ..limits import finite_real, lam_problem
+from ..limits import check_lam, finite_real
 from ..measurement import MeasurementModel
 from .group_noise import group_report, group_scales, tool_group_checks, with_group_scales
 from .noise import NoiseCheck, check_noise, distinct_rows
@@ -441,8 +441,8 @@ def _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlie
         raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, rule, "
                          f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
                          f"{', '.join(OUTLIER_OPTIONS)}")
-    if lam is not None and lam != "auto" and (problem := lam_problem(lam)) is not None:
-        raise InputError(f"lam: {problem} (or 'auto')")
+    if lam is not None:
+        check_lam(lam, auto=True)
     if k is not None and k != "auto" and not (finite_real(k) and float(k) == int(k)):
         raise InputError(f"k: expected a whole number or 'auto', got {k!r}")
     if method == "ridge" and lam is None:
