@@ -11,6 +11,14 @@ against itself (a subset predicts its rows of the whole, a noise scale
 scales the row sigma), as :func:`bayescal.machines.check.check_machine`
 checks a machine kind.  A new model kind passes ``check_model(model) == []``
 and every consumer takes it.
+
+An *identification result* is what a method returns for a model:
+:class:`Result` names the members every one provides (least squares, ridge,
+TSVD and MAP's :class:`bayescal.identify.result.IdentificationResult`, the
+Kalman filter's :class:`bayescal.bayes.kalman.FilterResult`, the sampler's
+:class:`bayescal.bayes.mcmc.PosteriorResult`), so the plausibility judge, the
+noise tests, the held-out scoring and the reports read them by name and never
+probe; :func:`check_result` checks one against its model.
 """
 
 from __future__ import annotations
@@ -22,7 +30,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import BayescalError
 
-__all__ = ["Model", "check_model", "ModelCheckError", "JACOBIAN_RTOL", "whiten", "scale_noise"]
+__all__ = ["Model", "check_model", "ModelCheckError", "JACOBIAN_RTOL", "whiten", "scale_noise", "Result",
+           "check_result"]
 
 #: Largest relative difference between the analytic Jacobian and central differences.
 JACOBIAN_RTOL = 2e-4
@@ -165,6 +174,155 @@ def scale_noise(model, factor):
             return model
         return model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * float(f))
     return model.with_pose_sigma(np.asarray(model.row_sigma, dtype=float) * f.reshape(-1, 1))
+
+
+@runtime_checkable
+class Result(Protocol):
+    """What every identification method answers for a model of ``P`` parameters.
+
+    Attributes
+    ----------
+    method : str
+        ``ls``, ``ridge``, ``tsvd``, ``map``, ``kalman`` or ``mcmc`` (or a method added later).
+    names, units : tuple of str
+        All ``P`` parameters of the model's machine.
+    theta : ndarray, shape (P,)
+        The estimate (mm, rad); parameters not estimated stay where the method held them.
+    free : ndarray of bool, shape (P,)
+        Which parameters the method estimated.
+    covariance : ndarray, shape (n_free, n_free) or None
+        Of the estimated parameters (None: the method gives none).
+    success : bool
+    message : str
+    rms_before, rms_after : dict
+        ``{"position": mm, "angle": rad or None}`` against the start and the estimate.
+    dof, n_poses : int
+        Rows per measurement and measurements.
+    fixed, unidentifiable, decided_by_prior : tuple of str
+        Parameters held at nominal, why, and the combinations the prior decided.
+    determined : ndarray of bool, shape (P,), or None
+        Which estimated parameters the data determine alone (None: all of them).
+    tool_dof : int or None
+        The tool's rows per measurement (None: ``dof``, no body sensors).
+    residuals_before, residuals_after : ndarray, shape (n_poses, dof), or None
+        ``y - h`` (mm, rad) at the start and at the estimate; None when the method keeps none
+        (a consumer then predicts them from the model).
+    filter_factors : ndarray or None
+        Of a regularised linear solve (None: not one).
+    tolerance : ndarray, shape (P,), or None
+        The tolerances the answer was judged against (None: the model's machine's).
+    extras : dict
+        Further JSON keys of the answer (``prior_scale`` of an empirical-Bayes MAP, the outlier handling's).
+    effective_params : float
+        Effective number of fitted parameters: the filter factors summed, else the free ones counted.
+    prior_effective_params : float or None
+        The trace of the hat matrix under the method's tolerance prior (ridge, TSVD, MAP: the filter
+        factors summed; Kalman and MCMC: ``n - tr(P_prior^-1 P_post)``); None without a prior (least squares)
+        or when it is not finite.
+    """
+
+    method: str
+    names: tuple
+    units: tuple
+    theta: NDArray
+    free: NDArray
+    success: bool
+    message: str
+    rms_before: dict
+    rms_after: dict
+    dof: int
+    fixed: tuple
+    unidentifiable: tuple
+    decided_by_prior: tuple
+    determined: NDArray | None
+    tool_dof: int | None
+
+    @property
+    def covariance(self) -> NDArray | None: ...
+    @property
+    def n_poses(self) -> int: ...
+    @property
+    def residuals_before(self) -> NDArray | None: ...
+    @property
+    def residuals_after(self) -> NDArray | None: ...
+    @property
+    def filter_factors(self) -> NDArray | None: ...
+    @property
+    def tolerance(self) -> NDArray | None: ...
+    @property
+    def extras(self) -> dict: ...
+    @property
+    def effective_params(self) -> float: ...
+    @property
+    def prior_effective_params(self) -> float | None: ...
+
+    def poorly_determined(self, factor: float = ...) -> tuple[str, ...]:
+        """Estimated parameters whose std exceeds ``factor`` times their tolerance (() without tolerances)."""
+
+    def to_dict(self) -> dict:
+        """The JSON answer (docs/formats.md section 3)."""
+
+    def report(self) -> str:
+        """The text report ``bayescal identify`` prints."""
+
+
+def _result_members() -> list[str]:
+    return sorted(n for n in Result.__protocol_attrs__ if not n.startswith("_"))
+
+
+def check_result(result, model=None) -> list[str]:
+    """What ``result`` does not provide that :class:`Result` asks; an empty list when it conforms.
+
+    Checks every member is there and that the shapes agree with one another
+    and with ``model`` (when given): ``theta``, ``free``, ``names`` and
+    ``units`` of length ``P``; ``covariance`` square over the free
+    parameters; residuals of ``(n_poses, dof)`` rows; the effective numbers
+    of parameters within ``[0, n_free]``; and a ``to_dict()`` and ``report()``
+    that run.
+
+    Parameters
+    ----------
+    result : Result
+    model : Model, optional
+        The model the result was fitted to.
+    """
+    missing = [n for n in _result_members() if not hasattr(result, n)]
+    if missing:
+        return [f"missing member(s) of the result contract: {', '.join(missing)}"]
+    problems: list[str] = []
+    P = np.asarray(result.theta).shape[0]
+    free = np.asarray(result.free)
+    if free.dtype != bool or free.shape != (P,):
+        problems.append(f"free: expected bool of shape ({P},), got {free.dtype} {free.shape}")
+    if len(result.names) != P or len(result.units) != P:
+        problems.append(f"names/units: {len(result.names)}/{len(result.units)} entries for {P} parameters")
+    n_free = int(free.sum())
+    if result.covariance is not None and np.shape(result.covariance) != (n_free, n_free):
+        problems.append(f"covariance: shape {np.shape(result.covariance)}, expected ({n_free}, {n_free})")
+    if model is not None:
+        if P != model.n_params:
+            problems.append(f"theta: {P} parameters, the model has {model.n_params}")
+        if result.n_poses != model.n_poses or result.dof != model.dof:
+            problems.append(f"n_poses, dof: ({result.n_poses}, {result.dof}), the model's ({model.n_poses}, {model.dof})")
+    shape = (result.n_poses, result.dof)
+    for key in ("residuals_before", "residuals_after"):
+        r = result.residuals_before if key == "residuals_before" else result.residuals_after
+        if r is not None and np.shape(r) != shape:
+            problems.append(f"{key}: shape {np.shape(r)}, expected (n_poses, dof) = {shape}")
+    if not 0.0 <= result.effective_params <= n_free + 1e-9:
+        problems.append(f"effective_params {result.effective_params} not in [0, {n_free}]")
+    pe = result.prior_effective_params
+    if pe is not None and not 0.0 <= pe <= n_free + 1e-9:
+        problems.append(f"prior_effective_params {pe} not in [0, {n_free}]")
+    if result.tolerance is not None and np.shape(result.tolerance) != (P,):
+        problems.append(f"tolerance: shape {np.shape(result.tolerance)}, expected ({P},)")
+    if problems:  # the methods below read these shapes
+        return problems
+    if not isinstance(result.poorly_determined(), tuple):
+        problems.append("poorly_determined() does not return a tuple")
+    if not isinstance(result.to_dict(), dict) or not isinstance(result.report(), str):
+        problems.append("to_dict() must return a dict and report() a str")
+    return problems
 
 
 class ModelCheckError(BayescalError):

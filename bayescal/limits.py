@@ -35,7 +35,7 @@ from .errors import InputError
 
 __all__ = [
     "SEED_MAX", "check_seed", "SIGMA_POSITION_RANGE", "SIGMA_ANGLE_RANGE", "sigma_problem", "memory_budget",
-    "check_memory", "check_count", "AUX_LOWER_BOUNDS", "BUDGET_ENV", "FIT_COPIES", "fit_memory", "check_fit_memory", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "lam_problem",
+    "check_memory", "check_count", "AUX_LOWER_BOUNDS", "BUDGET_ENV", "FIT_COPIES", "fit_memory", "check_fit_memory", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "LAM_RANGE", "lam_problem", "check_lam",
 ]
 
 #: Largest random seed (numpy's legacy RandomState, which emcee draws from, takes 32 bits).
@@ -67,14 +67,34 @@ AUX_LOWER_BOUNDS = {"payload_kg": 0.0, "temp_C": -273.15, "time_s": 0.0}
 #: Largest ridge parameter: the prior's std is the tolerances over sqrt(lam), so 1e12 already holds every
 #: parameter within a millionth of its tolerance of nominal; 1e308 reported stds of 5e-156 mm.
 MAX_LAM = 1e12
+#: The ridge parameters accepted, by the library (``identify``, ``calibrate``), the command line and ``compare``
+#: alike; an automatic rule searches no further (:func:`bayescal.identify.choose.lambda_grid`).
+LAM_RANGE = (0.0, MAX_LAM)
 
 
 def lam_problem(lam) -> str | None:
     """What is wrong with a ridge parameter ``lam`` (dimensionless, 1 = MAP under the tolerance prior), or None."""
-    if not (finite_real(lam) and 0 <= float(lam) <= MAX_LAM):
-        return (f"expected a number from 0 to {MAX_LAM:g} (1: MAP under the tolerance prior; larger holds every "
+    lo, hi = LAM_RANGE
+    if not (finite_real(lam) and lo <= float(lam) <= hi):
+        return (f"expected a number from {lo:g} to {hi:g} (1: MAP under the tolerance prior; larger holds every "
                 f"parameter at nominal with a std of its tolerance over sqrt(lam)), got {lam!r}")
     return None
+
+
+def check_lam(lam, *, auto: bool = False) -> None:
+    """InputError naming ``lam`` and :data:`LAM_RANGE` when ``lam`` is outside it (``auto``: 'auto' is accepted too).
+
+    Parameters
+    ----------
+    lam : float or str
+        A ridge parameter (dimensionless, 1 = MAP under the tolerance prior).
+    auto : bool
+        Whether the caller also takes ``"auto"`` (a rule chooses ``lam``); the message then says so.
+    """
+    if auto and isinstance(lam, str) and lam == "auto":
+        return
+    if (problem := lam_problem(lam)) is not None:
+        raise InputError(f"lam: {problem}" + (" (or 'auto')" if auto else ""))
 
 
 def finite_real(x) -> bool:

@@ -11,6 +11,7 @@ Holm's step-down correction over all pairs.
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import asdict, dataclass
 from itertools import combinations
@@ -21,7 +22,8 @@ from numpy.typing import NDArray
 
 from .errors import InputError
 
-__all__ = ["PairedComparison", "paired_comparison", "holm_adjust", "compare_pairs", "summarise"]
+__all__ = ["PairedComparison", "paired_comparison", "holm_adjust", "compare_pairs", "summarise",
+           "posterior_effective_params"]
 
 
 @dataclass(frozen=True)
@@ -156,3 +158,17 @@ def summarise(e: NDArray) -> dict[str, float]:
         "q95": float(np.quantile(ok, 0.95)),
         "max": float(ok.max()),
     }
+
+
+def posterior_effective_params(prior_cov: NDArray, post_cov: NDArray) -> float | None:
+    """``n - tr(P_prior^-1 P_post)``, clipped to ``[0, n]``: how many parameters the data determine (None if not finite).
+
+    For a linear-Gaussian model with whitened Jacobian ``J`` the posterior is ``(J^T J + P^-1)^-1`` and the
+    trace of the hat matrix ``J P_post J^T`` is exactly this.
+    """
+    prior_cov, post_cov = np.atleast_2d(prior_cov), np.atleast_2d(post_cov)
+    n = prior_cov.shape[0]
+    if n == 0 or post_cov.shape != prior_cov.shape:
+        return None
+    t = float(np.trace(np.linalg.solve(prior_cov, post_cov)))
+    return float(np.clip(n - t, 0.0, n)) if math.isfinite(t) else None

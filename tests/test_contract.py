@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bayescal.bayes.linear import linearise
 from bayescal.constraints.model import ConstraintModel
 from bayescal.constraints.simulate import simulate_ballbar, simulate_distances
 from bayescal.contract import Model, ModelCheckError, check_model
@@ -140,6 +141,9 @@ CASES = {
     "effect-compliance": lambda: _effects(COMPLIANCE, "payload_kg"),
     "effect-backlash-body-sensors": lambda: _sensors(SERIAL_BACKLASH),
     "effect-deflection-body-sensors": lambda: _sensors(DEFLECTION),
+    "linearised-prs3": lambda: linearise(_pose_model("prs3")),
+    "linearised-ballbar-pivots": lambda: linearise(_constraints("ballbar")),
+    "linearised-body-sensors": lambda: linearise(_sensors()),
 }
 
 
@@ -212,3 +216,87 @@ def test_the_wrapper_classes_keep_the_contract_by_construction():
     m = _pose_model("prs3")
     for other in (m.with_pose_sigma(2 * m.row_sigma), m.subset([0, 2]), m.without_sensors()):
         assert isinstance(other, Model) and dataclasses.is_dataclass(other)
+
+
+def test_a_linearised_model_without_its_sensors_keeps_the_tool_rows():
+    lin = linearise(_sensors())
+    tool = lin.without_sensors()
+    assert tool.dof == lin.tool_dof and tool.sensors is None
+    assert check_model(tool) == []
+    theta = 0.1 * np.asarray(lin.machine.tolerance)
+    np.testing.assert_array_equal(tool.predict(theta).y, lin.predict(theta).y[:, : lin.tool_dof])
+
+
+def test_a_linearised_model_refuses_to_move_its_poses():
+    from bayescal.errors import InputError
+
+    lin = linearise(_pose_model("prs3"))
+    assert lin.with_pose_offset(None) is lin
+    with pytest.raises(InputError, match="linearise"):
+        lin.with_pose_q(lin.q + 1.0)
+    with pytest.raises(InputError, match="linearise"):
+        lin.with_pose_offset(np.zeros((lin.n_poses, 6)))
+
+
+# ------------------------------------------------------------------ the result contract
+
+
+@pytest.fixture(scope="module")
+def recorded():
+    """The bundled 3-PRS recording as a model (every method answers it)."""
+    from bayescal.io.recording import read_recording
+
+    m = load_machine(EX / "prs3" / "machine.toml")
+    return MeasurementModel.from_recording(m, read_recording(EX / "prs3" / "recording.csv"))
+
+
+def _registry_result(model, name):
+    from bayescal.compare.methods import METHODS, MethodSpec
+
+    options = {"ridge": (("lam", 0.5),), "mcmc": (("steps", 40),)}.get(name, ())
+    assert name in METHODS
+    return MethodSpec(label=name, name=name, options=options).run(model, free="auto")
+
+
+@pytest.mark.parametrize("name", ["ls", "ridge", "tsvd", "map", "kalman", "mcmc"])
+def test_every_methods_result_keeps_the_contract(recorded, name):
+    import warnings
+
+    from bayescal.contract import Result, check_result
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a 40-step chain warns that it is short; its answer must still conform
+        res = _registry_result(recorded, name)
+    assert isinstance(res, Result) and res.method == name
+    assert check_result(res, recorded) == []
+    # the prior's effective parameters: none for least squares, a hat-matrix trace below the free count otherwise
+    pe = res.prior_effective_params
+    assert (pe is None) if name == "ls" else (name == "mcmc" and not res.success) or 0 < pe < res.free.sum()
+
+
+def test_the_front_door_answers_keep_the_result_contract():
+    import bayescal
+    from bayescal.contract import check_result
+
+    session = bayescal.load(EX / "prs3" / "machine.toml", EX / "prs3" / "recording.csv")
+    for method in ("ls", "kalman"):
+        answer = bayescal.calibrate(session, method=method)
+        assert check_result(answer.result, answer.model) == []
+
+
+def test_a_result_with_a_wrong_covariance_or_a_missing_member_is_caught(recorded):
+    from bayescal.contract import check_result
+    from bayescal.identify import identify
+
+    res = identify(recorded, method="ridge", lam=1.0)
+    n = int(res.free.sum())
+    assert check_result(replace(res, covariance=np.eye(n + 1)), recorded) == [
+        f"covariance: shape ({n + 1}, {n + 1}), expected ({n}, {n})"]
+
+    class Partial:
+        def __getattr__(self, name):
+            if name == "prior_effective_params":
+                raise AttributeError(name)
+            return getattr(res, name)
+
+    assert check_result(Partial()) == ["missing member(s) of the result contract: prior_effective_params"]

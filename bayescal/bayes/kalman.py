@@ -37,7 +37,8 @@ from ..identify.gauss_newton import determined_at
 from .accuracy import evaluation_poses, tool_point_jacobian, workspace_accuracy
 from .priors import GaussianPrior, prior_from_machine
 from ..identify.result import covariance_dict, decided_by_prior_lines
-from .summary import parameter_list, parameter_table, strong_correlations
+from ..stats import posterior_effective_params
+from .summary import PosteriorMembers, parameter_list, parameter_table, strong_correlations
 
 __all__ = ["FilterResult", "kalman_filter", "MAX_PROCESS_NOISE"]
 
@@ -47,7 +48,7 @@ MAX_PROCESS_NOISE = 100.0
 
 
 @dataclass(frozen=True)
-class FilterResult:
+class FilterResult(PosteriorMembers):
     """The whole history of a recursive identification.
 
     Attributes
@@ -109,6 +110,15 @@ class FilterResult:
     @property
     def n_poses(self) -> int:
         return self.means.shape[0] - 1
+
+    @property
+    def prior_effective_params(self) -> float | None:
+        """``n - tr(P_prior^-1 P_post)`` of the state before the first pose and after the last (None if singular)."""
+        try:
+            prior, post = np.asarray(self.covariances[0], dtype=float), np.asarray(self.covariances[-1], dtype=float)
+            return posterior_effective_params(prior, post)
+        except (AttributeError, KeyError, IndexError, TypeError, ValueError, np.linalg.LinAlgError):
+            return None
 
     @property
     def covariance(self) -> NDArray:

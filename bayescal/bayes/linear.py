@@ -13,7 +13,7 @@ It has the interface of :class:`bayescal.measurement.MeasurementModel`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -76,10 +76,56 @@ class LinearisedModel:
     def guess(self) -> None:
         return None
 
-    #: The model contract's start (None: the nominal, as for the model linearised) and tool-pose
-    #: perturbation (None: the linearisation holds it in ``y0``).
+    #: The model contract's start (None: the nominal, as for the model linearised), tool-pose
+    #: perturbation (None: the linearisation holds it in ``y0``) and auxiliary channels (none: effects
+    #: are not evaluated on a linearisation).
     theta_start = None
     pose_offset = None
+    aux = None
+
+    # one solved pose per row, as MeasurementModel
+    pose_q = MeasurementModel.pose_q
+    pose_row = MeasurementModel.pose_row
+    pose_order = MeasurementModel.pose_order
+    poses_of = MeasurementModel.poses_of
+    region = MeasurementModel.region
+    effect_inputs = MeasurementModel.effect_inputs
+    answer_extras = MeasurementModel.answer_extras
+
+    @property
+    def calibrated_machine(self) -> Machine:
+        """The machine a calibration of this model reports and writes: :attr:`machine`."""
+        return self.machine
+
+    def with_pose_sigma(self, pose_sigma: NDArray | None) -> "LinearisedModel":
+        """The same model with other per-pose noise (None: the machine's)."""
+        return replace(self, pose_sigma=pose_sigma)
+
+    def with_pose_q(self, pose_q: NDArray, *, keep_guess: bool = True) -> "LinearisedModel":
+        """Refused: the rows are linear in ``theta`` at fixed poses and cannot follow moved actuators."""
+        raise InputError("a linearised model cannot move its poses (an effect's q + dq); linearise the model at "
+                         "the moved poses instead")
+
+    def with_pose_offset(self, pose_offset: NDArray | None) -> "LinearisedModel":
+        """Itself for None; any other perturbation is refused, as :meth:`with_pose_q`."""
+        if pose_offset is None:
+            return self
+        raise InputError("a linearised model cannot perturb its tool poses; linearise the perturbed model instead")
+
+    def rows_jacobian(self, Jt: NDArray, prediction: Prediction) -> NDArray:
+        """:meth:`MeasurementModel.rows_jacobian` for a 3- or 6-DOF tool (a tool axis's tangent is not kept)."""
+        if self.tool_dof == 5:
+            raise InputError("a linearised 5-DOF model keeps no tool axis to differentiate; use the model itself")
+        return MeasurementModel.rows_jacobian(self, Jt, prediction)
+
+    def without_sensors(self) -> "LinearisedModel":
+        """The tool's rows only (the body sensors' tilt rows left out), the parameters unchanged."""
+        if self.sensors is None:
+            return self
+        d = self.tool_dof
+        cut = lambda a: None if a is None else a[..., :d]  # noqa: E731  (rows of (n, dof) and of (dof,))
+        return replace(self, dof=d, y0=self.y0[:, :d], J=self.J[:, :d], y_measured=cut(self.y_measured),
+                       pose_sigma=cut(self.pose_sigma), noise_sigma=cut(self.noise_sigma), sensors=None)
 
     def predict(self, theta: ArrayLike | None = None, *, guess: ToolPoses | None = None) -> Prediction:
         """Rows ``y0 + J (theta - theta_ref)``; theta (P,), (n_poses, P) or stacked (k * n_poses, P)."""

@@ -62,7 +62,8 @@ from .linear import linearisation_error, linearise
 from .moves import choose_proposal, default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
 from ..identify.result import covariance_dict, decided_by_prior_lines
-from .summary import parameter_list, parameter_table, strong_correlations
+from ..stats import posterior_effective_params
+from .summary import PosteriorMembers, parameter_list, parameter_table, strong_correlations
 
 __all__ = ["PosteriorResult", "sample_posterior", "log_posterior_function", "write_posterior"]
 
@@ -77,7 +78,7 @@ TAU_FACTOR = 50.0
 
 
 @dataclass(frozen=True, eq=False)
-class PosteriorResult:
+class PosteriorResult(PosteriorMembers):
     """A sampled posterior and its convergence checks.
 
     Attributes
@@ -152,6 +153,24 @@ class PosteriorResult:
     determined: NDArray | None = field(default=None, repr=False)
 
     method = "mcmc"
+    #: ``dof`` is the tool's already (body sensors' tilt rows apart)
+    tool_dof = None
+
+    @property
+    def extras(self) -> dict:
+        """Further JSON keys of the answer: none (the sampler's prior is the tolerances as they are)."""
+        return {}
+
+    @property
+    def prior_effective_params(self) -> float | None:
+        """``n - tr(P_prior^-1 P_post)`` of the tolerance prior and the sampled covariance (None if refused)."""
+        if not self.success:
+            return None
+        try:
+            sd = np.asarray(self.tree["constant_data"]["prior_std"].values, dtype=float)
+            return posterior_effective_params(np.diag(sd**2), np.asarray(self.covariance, dtype=float))
+        except (AttributeError, KeyError, IndexError, TypeError, ValueError, np.linalg.LinAlgError):
+            return None
 
     @property
     def bent_directions(self) -> int:

@@ -7,7 +7,29 @@ from numpy.typing import NDArray
 
 from ..identify.result import STRONG_CORRELATION
 
-__all__ = ["parameter_list", "strong_correlations", "parameter_table", "STRONG_CORRELATION"]
+__all__ = ["parameter_list", "strong_correlations", "parameter_table", "STRONG_CORRELATION", "PosteriorMembers"]
+
+
+class PosteriorMembers:
+    """The members of the result contract (:class:`bayescal.contract.Result`) a filter or a sampler answers alike.
+
+    Neither keeps residual rows (a consumer predicts them from the model at ``theta``), neither is a
+    regularised linear solve (no filter factors), and their prior's tolerances are the model's machine's.
+    """
+
+    residuals_before = None
+    residuals_after = None
+    filter_factors = None
+    tolerance = None
+
+    @property
+    def effective_params(self) -> float:
+        """The free parameters counted (no filter factors)."""
+        return float(np.sum(self.free))
+
+    def poorly_determined(self, factor: float = 10.0) -> tuple[str, ...]:
+        """None named: the posterior's spread is the prior's where the data are silent, never beyond it."""
+        return ()
 
 
 def parameter_list(names, units, theta: NDArray, std: NDArray, free: NDArray, determined: NDArray | None = None) -> list[dict]:

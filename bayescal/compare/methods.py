@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..identify import identify, resolve_free, whitened_system
-from ..limits import MAX_LAM, lam_problem
+from ..limits import LAM_RANGE, lam_problem
 from ..measurement import MeasurementModel
 
 __all__ = ["Method", "METHODS", "MethodSpec", "register_method", "parse_methods", "tsvd_snr_rank"]
@@ -93,7 +93,7 @@ def _check_rule(o: dict, label: str, auto: bool, what: str) -> None:
 def _check_ridge(o: dict, label: str) -> None:
     lam = o.get("lam")
     if lam != "auto" and not (_is_number(lam) and lam_problem(float(lam)) is None):
-        raise _bad(label, "lam", lam, f"a number from 0 to {MAX_LAM:g} or 'auto'")
+        raise _bad(label, "lam", lam, f"a number from {LAM_RANGE[0]:g} to {LAM_RANGE[1]:g} or 'auto'")
     _check_rule(o, label, lam == "auto", "lam")
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..contract import scale_noise, whiten
 from ..errors import InputError
-from ..limits import finite_real, lam_problem
+from ..limits import check_lam, finite_real
 from ..measurement import MeasurementModel
 from .group_noise import group_report, group_scales, tool_group_checks, with_group_scales
 from .noise import NoiseCheck, check_noise, distinct_rows
@@ -248,8 +248,7 @@ class Calibration:
 def noise_check_of(model: MeasurementModel, res) -> NoiseCheck:
     """The chi-square test of ``res`` (a fit of ``model``), degrees of freedom among the distinct rows."""
     n_distinct = distinct_rows(model.q, model.y_measured) * model.dof
-    p_eff = float(np.sum(res.filter_factors)) if np.size(getattr(res, "filter_factors", [])) else float(np.sum(res.free))
-    return check_noise(res.chi2, n_distinct - p_eff, stated=noise_stated(model))
+    return check_noise(res.chi2, n_distinct - res.effective_params, stated=noise_stated(model))
 
 
 def tilt_noise_check(model, res) -> NoiseCheck | None:
@@ -442,8 +441,8 @@ def _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlie
         raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, rule, "
                          f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
                          f"{', '.join(OUTLIER_OPTIONS)}")
-    if lam is not None and lam != "auto" and (problem := lam_problem(lam)) is not None:
-        raise InputError(f"lam: {problem} (or 'auto')")
+    if lam is not None:
+        check_lam(lam, auto=True)
     if k is not None and k != "auto" and not (finite_real(k) and float(k) == int(k)):
         raise InputError(f"k: expected a whole number or 'auto', got {k!r}")
     if method == "ridge" and lam is None:
@@ -493,7 +492,7 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise, lam_sca
     prior_mean = None if mean is None else np.asarray(mean, dtype=float)[idx]
     # the hyperparameters and the noise are estimated with the poses weighted as the geometry's robust fit weighted
     # them: one gross pose must not shorten the length scales and raise the noise (seen: 0.0088 -> 0.0138 mm)
-    weighted = handling.weighted_model(model) if hasattr(handling, "weighted_model") else model
+    weighted = handling.weighted_model(model)
     df = fit_discrepancy(weighted, res.theta, res.free, prior_sd, prior_mean=prior_mean, inputs=inputs)
     if mode == "auto" and not df.supported:
         return None
@@ -506,7 +505,7 @@ def _with_discrepancy(model, method, kw, first_fit, mode, inputs, noise, lam_sca
     # the joint posterior at the noise used, on the poses weighted as the robust geometry fit weighted them (a
     # reference one gross pose cannot drag), relinearised at its own geometry; then every pose is judged against
     # it at full weight, and the joint fit is redone with only the poses that test names left out
-    ref = handling.weighted_model(scaled) if hasattr(handling, "weighted_model") else scaled
+    ref = handling.weighted_model(scaled)
     theta, df = _relinearised(ref, res.theta.copy(), res.free, prior_sd, prior_mean, df.discrepancy)
     handling, df, theta = _joint_outliers(scaled, res, theta, df, prior_sd, prior_mean, handling, kw["outlier_kw"])
     res = _joint_result(scaled, res, theta, df)
@@ -531,48 +530,22 @@ def _relinearised(model, theta, free, prior_sd, prior_mean, hyper, rounds: int =
 
 
 def _joint_outliers(model, res, theta, df, prior_sd, prior_mean, handling, outlier_kw):
-    """The outlier test against the model with its discrepancy, and the joint fit without the poses it names.
-
-    The geometry-only fit judged the poses by a model without the
-    discrepancy, and a pose the discrepancy explains (the most bent ones)
-    stood out there: that is physics.  Here every pose is judged against
-    the joint fit (ridge ``lam = 1`` on its design); the poses it flags
-    (a gross error no model explains) leave the joint fit, which is redone.
-    """
+    """The outlier test against the model with its discrepancy (:func:`bayescal.outliers.joint.joint_outlier_handling`)."""
     from ..discrepancy import fit_discrepancy
     from ..discrepancy.fit import joint_design
-    from ..outliers import ALPHA, exclusion_weights, pose_test_linear, weighted_model
-    from ..outliers.handling import OutlierHandling
+    from ..outliers import ALPHA
+    from ..outliers.joint import joint_outlier_handling
 
-    robust = outlier_kw.get("robust", "auto")
-    alpha, lines = outlier_kw.get("alpha", ALPHA), outlier_kw.get("lines")
-    try:
-        A, r = joint_design(model, theta, df, prior_sd)
-    except InputError:
-        return handling, df, theta
-    test = pose_test_linear(A, r, model.dof, lam=1.0, alpha=alpha, lines=lines)
-    flagged = test.flagged
-    judged = "judged against the model with its discrepancy"
-    if not flagged.any() or robust == "off" or test.too_many:
-        # every pose at full weight: the joint fit again from the robust reference
-        theta, df = _relinearised(model, theta, res.free, prior_sd, prior_mean, df.discrepancy)
-        A, r = joint_design(model, theta, df, prior_sd)
-        test = pose_test_linear(A, r, model.dof, lam=1.0, alpha=alpha, lines=lines)
-        if not test.flagged.any():
-            action = f"none flagged, {judged}; every pose kept at full weight"
-        else:
-            why = "--robust off" if robust == "off" else f"{int(test.flagged.sum())} of {model.n_poses} stand out: structure"
-            action = f"kept ({why}), {judged}"
-        return OutlierHandling(test=test, mode=robust, action=action), df, theta
-    weights = exclusion_weights(flagged)
-    excluded = weighted_model(model, weights)
-    # the hyperparameters again, without the poses no model explains
-    searched = fit_discrepancy(excluded, theta, res.free, prior_sd, prior_mean=prior_mean, inputs=df.discrepancy.inputs)
-    theta, df = _relinearised(excluded, theta, res.free, prior_sd, prior_mean, searched.discrepancy)
-    A, r = joint_design(model, theta, df, prior_sd)
-    test = pose_test_linear(A, r, model.dof, lam=1.0, weights=weights, alpha=alpha, lines=lines)
-    action = f"excluded from the joint fit ({int(flagged.sum())} pose(s)), {judged}"
-    return OutlierHandling(test=test, mode=robust, action=action, weights=weights), df, theta
+    def refit(m, th, d, search):
+        hyper = d.discrepancy
+        if search:
+            hyper = fit_discrepancy(m, th, res.free, prior_sd, prior_mean=prior_mean, inputs=hyper.inputs).discrepancy
+        return _relinearised(m, th, res.free, prior_sd, prior_mean, hyper)
+
+    got = joint_outlier_handling(model, theta, df, design=lambda m, th, d: joint_design(m, th, d, prior_sd),
+                                 refit=refit, robust=outlier_kw.get("robust", "auto"),
+                                 alpha=outlier_kw.get("alpha", ALPHA), lines=outlier_kw.get("lines"))
+    return (handling, df, theta) if got is None else got
 
 
 def _joint_result(model, res, theta, df):
@@ -627,7 +600,7 @@ def _with_noise_scale(model, method, kw, scale, fallback):
     """
     base_sigma = np.asarray(model.row_sigma, dtype=float)
     res, handling, choice = fallback
-    weights = getattr(handling, "weights", None)
+    weights = handling.weights
     relative = base_sigma if weights is None else base_sigma / np.sqrt(np.asarray(weights, dtype=float))[:, None]
     plain = {**kw, "outlier_kw": {**kw["outlier_kw"], "robust": "off"}}
     auto = (method == "ridge" and kw["lam"] == "auto") or (method == "tsvd" and kw["k"] == "auto")

@@ -84,6 +84,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
+from ..limits import LAM_RANGE
 from ..measurement import MeasurementModel
 from .ceiling import success_probabilities
 from ..progress import report
@@ -266,11 +267,16 @@ def _safe_inv(s: NDArray) -> NDArray:
 
 
 def lambda_grid(s: NDArray, n: int = 241) -> NDArray:
-    """Log-spaced ``lam`` from ``1e-3 s_min^2`` to ``1e2 s_max^2`` (``s_min`` at most 1e-12 ``s_max``)."""
+    """Log-spaced ``lam`` from ``1e-3 s_min^2`` to ``1e2 s_max^2`` (``s_min`` at most 1e-12 ``s_max``).
+
+    Within the accepted range (:data:`bayescal.limits.LAM_RANGE`): a rule cannot choose a ``lam`` that
+    ``identify`` would refuse.
+    """
     s = np.asarray(s, dtype=float)
     smax = float(s[0]) if s.size and s[0] > 0 else 1.0
     smin = max(float(s[s > 0][-1]) if np.any(s > 0) else smax, 1e-6 * smax)
-    return np.logspace(np.log10(1e-3 * smin**2), np.log10(1e2 * smax**2), n)
+    hi = min(1e2 * smax**2, LAM_RANGE[1])
+    return np.logspace(np.log10(min(1e-3 * smin**2, hi)), np.log10(hi), n)
 
 
 def _filters(method: str, s: NDArray, grid: NDArray) -> NDArray:

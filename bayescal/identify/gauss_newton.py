@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..contract import whiten
 from ..errors import ConvergenceWarning, InputError, KinematicsError
-from ..limits import check_fit_memory, finite_real
+from ..limits import check_fit_memory, check_lam
 from ..identifiability import STRUCTURAL_RTOL, analyse_identifiability, priority_order
 from ..iteration import Proposal, Refused, StepControl, gauss_newton
 from ..measurement import MeasurementModel
@@ -326,10 +326,10 @@ def _check_options(model, method: str, lam, max_iter) -> tuple[str, float | None
         if lam is not None and lam != 1:
             raise InputError(f"lam: map is ridge with lam = 1 (the prior fixes the weight), got {lam!r}")
         lam = 1.0
-    # finite_real: a string or a bool is no lam (np.isfinite raised TypeError on '1' and took True for 1); no upper
-    # bound here, unlike the options a user types (limits.lam_problem): a rule may choose a lam beyond it
-    if method == "ridge" and not (finite_real(lam) and lam >= 0):
-        raise InputError(f"lam: ridge needs a number >= 0, got {lam!r}")
+    # a string or a bool is no lam (np.isfinite raised TypeError on '1' and took True for 1); the range is the one
+    # the command line, calibrate and compare accept (limits.LAM_RANGE; an automatic rule searches no further)
+    if method == "ridge":
+        check_lam(lam)
     if int(max_iter) != max_iter or max_iter < 1:
         raise InputError(f"max_iter (--max-iter): expected a whole number >= 1, got {max_iter!r}")
     return ("ridge" if method == "map" else method), lam

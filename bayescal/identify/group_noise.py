@@ -44,8 +44,8 @@ def tool_group_checks(model, res, *, stated: bool, weights=None) -> dict[str, No
     ----------
     model : MeasurementModel
         The model ``res`` was fitted to (its ``row_sigma`` the sigmas tested).
-    res : IdentificationResult
-        A fit with ``residuals_after`` (n_poses, dof) and ``filter_factors`` or ``free``.
+    res : bayescal.contract.Result
+        A fit (nothing is tested without its ``residuals_after``).
     stated : bool
         Whether the noise is stated; without it the sigmas are weights and nothing is tested.
     weights : ndarray, shape (n_poses,), optional
@@ -55,15 +55,14 @@ def tool_group_checks(model, res, *, stated: bool, weights=None) -> dict[str, No
         noisy", its outlier statistic then divided by 100).
     """
     tool = int(model.tool_dof)
-    if not stated or tool <= 3 or not res.success or getattr(res, "residuals_after", None) is None:
+    if not stated or tool <= 3 or not res.success or res.residuals_after is None:
         return None
     r = whiten(model, res.residuals_after)[:, :tool]
     if weights is not None:
         r = r * np.sqrt(np.asarray(weights, dtype=float))[:, None]
     if not np.all(np.isfinite(r)):
         return None
-    ff = getattr(res, "filter_factors", None)
-    p_eff = float(np.sum(ff)) if ff is not None and np.size(ff) else float(np.sum(res.free))
+    p_eff = res.effective_params
     n_distinct = distinct_rows(model.q, model.y_measured)
     out = {}
     for name, _, cols in GROUPS:

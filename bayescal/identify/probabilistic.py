@@ -190,7 +190,7 @@ def calibrate_bayes(model, *, method: str, free="auto", max_iter: int = 50, nois
     """
     from ..effects.joint_model import with_fitted_effects
     from ..instrument.plausibility import judge_fit
-    from ..prediction.recording import score_held_out
+    from ..prediction.recording import score_held_out_result
     from .calibrate import calibrate
     from ..outliers.handling import map_system, robust_map_weights
 
@@ -214,7 +214,7 @@ def calibrate_bayes(model, *, method: str, free="auto", max_iter: int = 50, nois
     frame, plaus = judge_fit(machine, model, res, check)
     # the noise and the leave-one-out factor of the MAP the method started from (the same model and prior)
     scale, kappa = (1.0, 1.0) if noise_cal is None else (noise_cal.noise_scale, noise_cal.variance_factor)
-    held_out = (score_held_out(res, session, noise_scale=scale, variance_factor=kappa)
+    held_out = (score_held_out_result(res, session, noise_scale=scale, variance_factor=kappa)
                 if session is not None and not fit_effects else {})
     return BayesCalibration(res, handling, plaus, frame, held_out, noise_cal, with_fitted_effects(machine, model, res),
                             model)

@@ -199,6 +199,17 @@ class IdentificationResult:
         return float(np.sum(self.filter_factors)) if np.size(self.filter_factors) else float(np.sum(self.free))
 
     @property
+    def prior_effective_params(self) -> float | None:
+        """Ridge, TSVD and MAP: the filter factors summed (the hat matrix's trace under the prior); else None.
+
+        None for least squares (no prior: every free parameter counts) and when the factors are not finite.
+        """
+        if self.method not in ("ridge", "tsvd", "map") or self.filter_factors is None:
+            return None
+        f = np.asarray(self.filter_factors, dtype=float)
+        return float(f.sum()) if f.size and np.all(np.isfinite(f)) else None
+
+    @property
     def dof_fit(self) -> float:
         """Residual degrees of freedom: measured components less :attr:`effective_params` (at least 1)."""
         return max(self.n_poses * self.dof - self.effective_params, 1.0)

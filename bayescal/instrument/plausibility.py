@@ -54,6 +54,7 @@ from ..machines.base import Machine
 from ..machines.framed import InstrumentFrame, is_frame_parameter
 from ..identify.noise import distinct_rows
 from ..measurement import MeasurementModel
+from ..stats import posterior_effective_params  # noqa: F401  (its home was here)
 from .alignment import FrameCheck
 
 __all__ = ["Plausibility", "assess_plausibility", "frame_answer", "judge_fit", "refuse_implausible", "PLAUSIBLE_SIGMAS"]
@@ -302,7 +303,7 @@ def judge_fit(machine, model, res, check=None) -> tuple[dict, "Plausibility"]:
     machine : Machine
         As calibrated (an instrument frame's parameters lead ``res.theta``).
     model : Model
-    res : IdentificationResult, or a Kalman or MCMC result
+    res : bayescal.contract.Result
     check : FrameCheck, optional
         The rigid-transform check of a base-frame recording (``Session.check``).
 
@@ -314,55 +315,14 @@ def judge_fit(machine, model, res, check=None) -> tuple[dict, "Plausibility"]:
     """
     theta = np.asarray(res.theta, dtype=float)
     if np.all(np.isfinite(theta)):
-        plaus = assess_plausibility(model, theta, res.free, getattr(res, "residuals_after", None), check=check,
-                                    effective_params=_effective_params(res))
+        plaus = assess_plausibility(model, theta, res.free, res.residuals_after, check=check,
+                                    effective_params=res.prior_effective_params)
     else:
         plaus = Plausibility(False, ("the identified values are not finite",))
-    extra = {**frame_answer(machine, theta, res.free, getattr(res, "covariance", None)), **plaus.to_dict()}
+    extra = {**frame_answer(machine, theta, res.free, res.covariance), **plaus.to_dict()}
     if check is not None:
         extra["frame_check"] = check.to_dict()
     return extra, plaus
-
-
-def _effective_params(res) -> float | None:
-    """A fit's effective number of parameters under its prior, else None (least squares: every free parameter).
-
-    Ridge, TSVD and MAP: the filter factors summed.  Kalman and MCMC sample or filter under the same tolerance
-    prior: ``n - tr(P_prior^-1 P_post)``, the trace of the hat matrix of the linear-Gaussian model (the same
-    number MAP's filter factors sum to), so two poses under a prior are judged alike by every method.
-    """
-    method = getattr(res, "method", "ls")
-    if method in ("ridge", "tsvd", "map"):
-        f = getattr(res, "filter_factors", None)
-        if f is None:
-            return None
-        f = np.asarray(f, dtype=float)
-        return float(f.sum()) if f.size and np.all(np.isfinite(f)) else None
-    try:
-        if method == "kalman":
-            prior, post = np.asarray(res.covariances[0], dtype=float), np.asarray(res.covariances[-1], dtype=float)
-        elif method == "mcmc" and res.success:
-            sd = np.asarray(res.tree["constant_data"]["prior_std"].values, dtype=float)
-            prior, post = np.diag(sd**2), np.asarray(res.covariance, dtype=float)
-        else:
-            return None
-        return posterior_effective_params(prior, post)
-    except (AttributeError, KeyError, IndexError, TypeError, ValueError, np.linalg.LinAlgError):
-        return None
-
-
-def posterior_effective_params(prior_cov: NDArray, post_cov: NDArray) -> float | None:
-    """``n - tr(P_prior^-1 P_post)``, clipped to ``[0, n]``: how many parameters the data determine (None if not finite).
-
-    For a linear-Gaussian model with whitened Jacobian ``J`` the posterior is ``(J^T J + P^-1)^-1`` and the
-    trace of the hat matrix ``J P_post J^T`` is exactly this.
-    """
-    prior_cov, post_cov = np.atleast_2d(prior_cov), np.atleast_2d(post_cov)
-    n = prior_cov.shape[0]
-    if n == 0 or post_cov.shape != prior_cov.shape:
-        return None
-    t = float(np.trace(np.linalg.solve(prior_cov, post_cov)))
-    return float(np.clip(n - t, 0.0, n)) if math.isfinite(t) else None
 
 
 def refuse_implausible(plaus: Plausibility | None, force: bool = False, what: str = "write_machine") -> None:

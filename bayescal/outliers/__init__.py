@@ -6,6 +6,8 @@
 * :mod:`bayescal.outliers.handling`: what ``identify`` does with the poses
   the test flags (``--robust``: refit by IRLS, or a robust MAP pass whose
   weights the costly methods reuse).
+* :mod:`bayescal.outliers.joint`: the test of a joint geometry-plus-discrepancy
+  fit, and that fit redone without the poses it names (the fit passed in).
 * :mod:`bayescal.outliers.screen`: the diagnosis's screen, which takes gross
   poses out of every fit before looking for physics, and retests them
   against the final model.

@@ -62,7 +62,7 @@ def map_system(res) -> dict:
     ``lam = 1 / c^2``.  The pose test must judge the poses by the fit's own
     hat matrix; with ``lam = 1`` it would use a prior the fit did not.
     """
-    c = (getattr(res, "extras", None) or {}).get("prior_scale")  # a PosteriorResult (mcmc) has no extras
+    c = res.extras.get("prior_scale")
     lam = 1.0 if c is None else 1.0 / float(c) ** 2
     return {"free": np.asarray(res.free), "lam": lam, "k": None}
 

@@ -287,26 +287,19 @@ def so3_exp_z(rotvec) -> np.ndarray:
     return so3_exp(np.asarray(rotvec, dtype=float))[:, :, 2]
 
 
-def score_held_out(cal, session, *, effects=None, noise_scale: float | None = None,
-                   variance_factor: float | None = None) -> dict:
+def score_held_out(cal, session, *, effects=None) -> dict:
     """The ``check`` rows of a calibration's own recording, predicted and scored as ``predict`` scores them.
 
     Parameters
     ----------
-    cal : Calibration, or any result with ``theta``, ``free``, ``covariance`` and ``success``
-        Fitted on the session's ``fit`` rows (its frames are the session's): a
-        :class:`~bayescal.identify.calibrate.Calibration` (its noise scale,
-        discrepancy and variance factor are used), or a Kalman or MCMC result
-        (its covariance as it is).
+    cal : Calibration
+        Fitted on the session's ``fit`` rows (its frames are the session's); its noise scale, discrepancy,
+        joint covariance and variance factor are used.
     session : bayescal.instrument.prepare.Session
     effects : tuple of StoredEffect, optional
         Effects fitted with the geometry (``--fit-effects``): the check rows are
         predicted with them at their fitted values (their parameters' uncertainty
         is not carried).
-    noise_scale : float, optional
-        Factor on the recording's sigma (default: the calibration's, 1 for another result).
-    variance_factor : float, optional
-        The leave-one-out factor on the predictive covariance (default: the calibration's, 1 for another result).
 
     Returns
     -------
@@ -314,12 +307,40 @@ def score_held_out(cal, session, *, effects=None, noise_scale: float | None = No
         ``{"check": {"summary": {...}, "rows": [...]}}``, or ``{}`` when the
         recording has no ``check`` row.
     """
-    from ..measurement import MeasurementModel
+    cov = cal.joint_covariance if cal.joint_covariance is not None else cal.result.covariance
+    return score_held_out_result(cal.result, session, effects=effects, covariance=cov,
+                                 discrepancy=cal.discrepancy_model, noise_scale=cal.noise_scale,
+                                 variance_factor=cal.variance_factor)
 
+
+def score_held_out_result(res, session, *, effects=None, covariance=None, discrepancy=None,
+                          noise_scale: float = 1.0, variance_factor: float = 1.0) -> dict:
+    """:func:`score_held_out` of any identification result (a Kalman or MCMC answer: its covariance as it is).
+
+    Parameters
+    ----------
+    res : bayescal.contract.Result
+        Fitted on the session's ``fit`` rows.
+    session : bayescal.instrument.prepare.Session
+    effects : tuple of StoredEffect, optional
+        As :func:`score_held_out`.
+    covariance : ndarray, optional
+        Of the free parameters (and a discrepancy's weights); default ``res.covariance``.
+    discrepancy : Discrepancy, optional
+        A model discrepancy fitted with the geometry.
+    noise_scale : float
+        Factor on the recording's sigma.
+    variance_factor : float
+        The leave-one-out factor on the predictive covariance.
+
+    Returns
+    -------
+    dict
+        As :func:`score_held_out`.
+    """
     rec = session.recording
     if not rec.is_check.any():
         return {}
-    res = getattr(cal, "result", cal)
     idx = np.flatnonzero(rec.is_check)
     model_all = session.model
     if effects:
@@ -328,18 +349,14 @@ def score_held_out(cal, session, *, effects=None, noise_scale: float | None = No
     # the check rows' tool poses are predicted and scored (a body sensor's tilt rows are not)
     model = model_all.subset(idx)
     model = model.without_sensors()
-    scale = float(getattr(cal, "noise_scale", 1.0) if noise_scale is None else noise_scale)
+    scale = float(noise_scale)
     if scale != 1.0:
         model = scale_noise(model, scale)
     sub_rec = rec.subset(idx)
     P = model.n_params
     theta, free = np.asarray(res.theta, dtype=float), np.asarray(res.free, dtype=bool)
-    cov = getattr(cal, "joint_covariance", None) if cal is not res else None
-    if cov is None:
-        cov = getattr(res, "covariance", None)
-    if cov is None and getattr(res, "covariances", None) is not None:  # a Kalman filter: its state after the last pose
-        cov = np.asarray(res.covariances)[-1]
-    disc = getattr(cal, "discrepancy_model", None)
+    cov = res.covariance if covariance is None else covariance
+    disc = discrepancy
     if theta.size != P:
         # parameters beyond the machine's (fitted effects): their block of the covariance leaves, their values act
         keep = np.flatnonzero(free)
@@ -355,8 +372,7 @@ def score_held_out(cal, session, *, effects=None, noise_scale: float | None = No
                             np.zeros(idx.size, dtype=bool), ("",) * idx.size)
     else:
         pr = predictive_rows(model, theta, cov, machine_index=np.flatnonzero(free), discrepancy=disc,
-                             variance_factor=float(getattr(cal, "variance_factor", 1.0) if variance_factor is None
-                                                   else variance_factor))
+                             variance_factor=float(variance_factor))
         errors = [None if ok else f"cannot be predicted: {m}" for ok, m in zip(pr.success, pr.message)]
     failed = np.array([e is not None for e in errors])
     scores = score_rows(model.y_measured, pr.mean, pr.cov)

@@ -95,26 +95,12 @@ def _unidentifiable_section(d: dict) -> dict:
 
 
 def _outlier_indices(result) -> list[int]:
-    """0-based poses named as outliers: the answer's ``outliers`` (docs/formats.md section 4: CSV ``line``, header = 1)."""
-    out = []
-    found = getattr(result, "outliers", None)
-    if found is None and hasattr(result, "to_dict"):
-        found = result.to_dict().get("outliers")
-    if found is not None and not isinstance(found, (list, tuple)):
-        found = getattr(found, "outliers", None) or []  # a diagnosis's OutlierScreen
-    for o in found or []:
-        if isinstance(o, dict):
-            o = o["line"] - 2 if "line" in o else o.get("pose", o.get("index", o.get("row")))
-        try:
-            out.append(int(o))
-        except (TypeError, ValueError):
-            continue
-    return out
+    """0-based poses the answer names as outliers: its ``outliers`` (docs/formats.md section 4: CSV ``line``, header = 1)."""
+    return [int(o["line"]) - 2 for o in result.to_dict().get("outliers") or []]
 
 
 def _residual_section(result, model, sigma) -> dict | None:
-    after = getattr(result, "residuals_after", None)
-    before = getattr(result, "residuals_before", None)
+    after, before = result.residuals_after, result.residuals_before
     if after is None and model is not None:
         pred = model.predict(result.theta)
         after = model.residual(pred) if pred.success.all() else None
@@ -180,7 +166,7 @@ def _instrument_section(d: dict, answer_extra: dict | None) -> dict | None:
 
 def identify_sections(result, *, machine=None, model=None, choice=None, answer_extra=None, **_) -> tuple[str, list[dict]]:
     d = result.to_dict()
-    method = d.get("method", getattr(result, "method", ""))
+    method = d.get("method", result.method)
     ok = d.get("success", True)
     rb, ra = d.get("rms_before", {}), d.get("rms_after", {})
     stats = [["method", method], ["status", "succeeded" if ok else "FAILED"], ["message", d.get("message") or "-"],
@@ -198,8 +184,7 @@ def identify_sections(result, *, machine=None, model=None, choice=None, answer_e
             stats.append([f"mcmc {k.replace('_', ' ')}", cell(v, ".4g")])
     if "poses_needed" in d:
         stats.append(["poses needed (within 10% of final accuracy)", d["poses_needed"]])
-    poor = result.poorly_determined() if hasattr(result, "poorly_determined") else ()
-    tol = getattr(result, "tolerance", None)
+    poor, tol = result.poorly_determined(), result.tolerance
     if tol is None:
         # the answer's parameters are the model's (a ballbar model adds its pivots, a fitted frame its six):
         # the model's machine has their tolerances, the machine file's only the geometry's
@@ -297,7 +282,7 @@ def compare_sections(result, **_) -> tuple[str, list[dict]]:
 
     # the metric's own display unit, as the text report (rms_angle in urad, not the positions' um)
     unit, f = _UNITS.get(result.metric, ("", 1.0))
-    summ = getattr(result, "summary", {})
+    summ = result.summary
     rows = [[lab, s.get("n"), s.get("failures"), cell(f * s["median"], ".4g") if s.get("median") is not None else "-",
              cell(f * s["mean"], ".4g") if s.get("mean") is not None else "-"] for lab, s in summ.items()]
     return f"Comparison of methods on '{d['config'].get('machine', '')}' ({d['n_trials']} trials)", [
@@ -339,8 +324,7 @@ def grid_sections(result, *, identification=None, machine=None, **_) -> tuple[st
     ]
     if identification is not None:
         idd = identification.to_dict()
-        poor = identification.poorly_determined() if hasattr(identification, "poorly_determined") else ()
-        tol = getattr(identification, "tolerance", None)
+        poor, tol = identification.poorly_determined(), identification.tolerance
         sections.insert(1, section("Identified parameters", id="parameters-section",
                                    tables=[_parameters_table(idd, poor, tol if tol is not None else
                                                              (machine.tolerance if machine is not None else None))]))

@@ -138,9 +138,27 @@ def test_per_pose_sigma_weights_each_pose(prs3, sim6):
         model.with_pose_sigma(np.zeros((model.n_poses, model.dof)))
 
 
-@pytest.mark.parametrize("lam", ["1", True, None, float("nan"), -1.0])
-def test_a_ridge_lam_that_is_not_a_number_is_refused_naming_it(prs3, lam):
-    # review: np.isfinite('1') raised TypeError (a traceback from the library's front door), and True ran as lam = 1
+@pytest.mark.parametrize("lam", ["1", True, None, float("nan"), -1.0, 1e300, 1.000001e12])
+def test_a_ridge_lam_that_is_not_a_number_in_range_is_refused_naming_it(prs3, lam):
+    # review: np.isfinite('1') raised TypeError (a traceback from the library's front door), and True ran as lam = 1;
+    # issue 31: 1e300 was accepted here while calibrate, compare and the command line refused it
     model, _ = _noise_free_model(prs3, 6, n=12)
-    with pytest.raises(InputError, match=r"lam: ridge needs a number >= 0, got"):
+    with pytest.raises(InputError, match=r"^lam: expected a number from 0 to 1e\+12 .*, got"):
         identify(model, method="ridge", lam=lam)
+
+
+def test_every_front_door_accepts_the_same_lam_range(prs3):
+    from bayescal.compare.methods import parse_methods
+    from bayescal.identify.calibrate import calibrate
+    from bayescal.identify.choose import lambda_grid
+    from bayescal.limits import LAM_RANGE
+
+    model, _ = _noise_free_model(prs3, 6, n=12)
+    hi = LAM_RANGE[1]
+    assert identify(model, method="ridge", lam=hi).lam == hi  # the edge itself is accepted
+    for call in (lambda: identify(model, method="ridge", lam=2 * hi), lambda: calibrate(model, method="ridge", lam=2 * hi),
+                 lambda: parse_methods(f"ridge:lam={2 * hi:g}")):
+        with pytest.raises(InputError, match=r"lam.*from 0 to 1e\+12"):
+            call()
+    # an automatic rule searches no further than the range, however precise the instrument
+    assert lambda_grid([1e9, 1e3]).max() == pytest.approx(hi) and lambda_grid([10.0, 1.0]).max() == pytest.approx(1e4)

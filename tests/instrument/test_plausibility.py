@@ -13,7 +13,8 @@ from bayescal.bayes.kalman import kalman_filter
 from bayescal.bayes.priors import map_estimate
 from bayescal.identify import identify
 from bayescal.instrument import assess_plausibility, check_frame, frame_answer, prepare_model
-from bayescal.instrument.plausibility import _effective_params, judge_fit, posterior_effective_params
+from bayescal.instrument.plausibility import judge_fit
+from bayescal.stats import posterior_effective_params
 from bayescal.io import read_recording
 from bayescal.measurement import MeasurementModel
 from bayescal.simulate import simulate_recording
@@ -192,7 +193,7 @@ def test_kalman_on_two_poses_is_judged_like_map(prs3):
     kal = _quiet(kalman_filter, model, free="all")
     _, p = judge_fit(prs3, model, kal)
     assert p.plausible, p.reasons
-    n_eff = _effective_params(kal)
+    n_eff = kal.prior_effective_params
     assert 0 < n_eff < model.n_poses * model.dof < int(kal.free.sum())
 
 

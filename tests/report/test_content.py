@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from importlib import resources
 
 import numpy as np
@@ -63,7 +64,7 @@ def test_diagnose_report_has_verdict_located_channel_and_effects(reports):
 
 
 def test_residual_rows_and_outliers_marked(reports):
-    """A result with an ``outliers`` list (0-based poses) gets those rows marked."""
+    """An answer naming outliers (their CSV lines) gets those rows marked."""
     from bayescal.identify import identify
     from bayescal.io import read_recording
     from bayescal.machines.files import load_machine
@@ -74,14 +75,10 @@ def test_residual_rows_and_outliers_marked(reports):
     model = MeasurementModel.from_recording(machine, read_recording(ROOT / "examples" / "prs3" / "recording.csv"))
     res = identify(model, method="ridge", lam=1.0)
 
-    class WithOutliers:
-        def __init__(self, r):
-            self._r, self.outliers = r, [2, {"pose": 5}]
+    # the answer's outliers as identify writes them (docs/formats.md section 4: CSV line, header = line 1)
+    flagged = replace(res, extras={**res.extras, "outliers": [{"line": 4, "statistic": 30.0}, {"line": 7, "statistic": 40.0}]})
 
-        def __getattr__(self, name):
-            return getattr(self._r, name)
-
-    html = render_report("identify", WithOutliers(res), machine=machine, model=model)
+    html = render_report("identify", flagged, machine=machine, model=model)
     rows = tables(html)["pose-residuals"]
     assert len(rows) == model.n_poses
     marked = [i for i, r in enumerate(rows) if r[-1][0] == "outlier"]
