@@ -176,22 +176,18 @@ def diagnose(
     n_folds: int = 5,
     n_perm: int | None = None,
     effect_settings: dict[str, dict] | None = None,
-    _screen=None,
-    _disc_retested: bool = False,
-    _noise: NoiseSettling | None = None,
+    _screen=None, _disc_retested: bool = False, _noise: NoiseSettling | None = None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
     Parameters
     ----------
     machine : Machine
-        Nominal machine (its ``[measurement]`` noise is the yardstick).
-        Effects it carries (``[effect.*]`` tables) are not applied: every
-        effect is fitted afresh with the geometry.
+        Nominal machine (its ``[measurement]`` noise is the yardstick). Effects it carries
+        (``[effect.*]`` tables) are not applied: every effect is fitted afresh with the geometry.
     recording : Recording or ConstraintRecording
-        Rows in measurement order: measured poses (docs/formats.md section 2) or
-        distances, heights and ballbar readings (section 6), whose poses the
-        effects act on (a distance's pose a, then its pose b).
+        Rows in measurement order: poses (docs/formats.md section 2) or distances, heights and ballbar
+        readings (section 6), on whose poses the effects act (a distance's pose a, then its pose b).
     effects : list of str, optional
         Effects to try (forced: an effect that cannot be modelled is an
         error).  Default: every effect of the library that applies.
@@ -200,9 +196,7 @@ def diagnose(
     n_folds : int
         Folds of the leave-poses-out cross-validation.
     n_perm : int, optional
-        Not used any more (the location tests now use the exact permutation
-        moments, :mod:`bayescal.diagnose.dependence`); accepted so that callers
-        written for the sampled permutation test keep working unchanged.
+        Not used (the location tests use exact permutation moments, :mod:`bayescal.diagnose.dependence`).
     effect_settings : dict of str to dict, optional
         Inputs of effects by name (e.g. ``{"joint_compliance": {"gravity":
         [1, 0, 0]}}`` for a machine mounted on its side), over those the
@@ -225,11 +219,9 @@ def diagnose(
     s = _setup(machine, recording, effects, effect_settings, n_folds, _screen, _noise)
     g = _geometric_stage(s, seed)
     if s.noise is None:
-        n_out = 0 if s.screen is None else int(s.screen.excluded.sum()) * s.model.dof
-        settled = settle_overstated_noise(s.base_model, noise_test(s.model, g.fit0, n_out))
-        if settled.rescaled:
-            return diagnose(machine, recording, **again, _noise=settled)
-        s = replace(s, noise=settled)
+        s = _noise_tested(s, g)
+        if s.noise.rescaled:  # a noise stated too large: the whole diagnosis at the scale the residuals support
+            return diagnose(machine, recording, **again, _noise=s.noise)
     again["_noise"] = s.noise  # a rerun (outliers retested) keeps the noise tested once
     cands, skipped = _candidates(s, g)
     # excluded poses are never held out: their residual would be the gross error, not the model's
@@ -261,6 +253,12 @@ def diagnose(
             return diagnose(machine, recording, **again, _screen=final, _disc_retested=True)
     found = _Found(cands, tuple(skipped), single, selected, cur_fit, cv0, cur_cv, disc_trial, final_model)
     return _diagnosis(s, g, v, found, recording, seed)
+
+
+def _noise_tested(s: "_Setup", g: "_Geometric") -> "_Setup":
+    """``s`` with the stated noise tested on the geometric fit (bayescal.diagnose.noise), rescaled where overstated."""
+    n_out = 0 if s.screen is None else int(s.screen.excluded.sum()) * s.model.dof
+    return replace(s, noise=settle_overstated_noise(s.base_model, noise_test(s.model, g.fit0, n_out)))
 
 
 @dataclass(frozen=True)
