@@ -3,11 +3,14 @@
 The calibrated machine (geometry, effects, model discrepancy, and the
 covariance of its calibration in ``[calibration]``) is held fixed with its
 uncertainty.  Only what belongs to the session is fitted, on the ``fit``
-rows: the instrument frame of each station with ``frame="fit"``.  Every row
+rows: the instrument frame of each station with ``frame="fit"``, and the
+mountings of the body sensors (a calibrated machine holds none).  Every row
 gets its predictive mean and covariance (:mod:`bayescal.prediction.engine`),
 its position error and whether it lies inside its 90 % region
-(:mod:`bayescal.prediction.score`); the summary scores the ``check`` rows (no
-fit has seen them) and the ``fit`` rows apart.
+(:mod:`bayescal.prediction.score`); a body sensor's reading is a measured
+row like the tool's, predicted through the same engine and scored by its
+tilt error (:mod:`bayescal.prediction.sensor_score`).  The summary scores
+the ``check`` rows (no fit has seen them) and the ``fit`` rows apart.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from ..io.recording import Recording
 from ..machines.base import Machine
 from .engine import PredictiveRows, predictive_rows
 from .score import REGION_LEVEL, score_rows, summarise
+from .sensor_score import sensor_report_lines
 
 __all__ = ["PredictionResult", "predict_recording"]
 
@@ -39,10 +43,14 @@ class PredictionResult:
         ``std`` (one sigma per measured component: the position's x, y, z in mm, then the orientation's
         small rotation about x, y, z (6-DOF) or the tool axis's two tangential directions (5-DOF), rad),
         ``error_position_mm``,
-        ``inside_90``; or ``error`` (why it could not be predicted).
+        ``inside_90``; or ``error`` (why it could not be predicted).  With body sensors also
+        ``sensors``: per body, the recorded and predicted reading (the recording's units), the
+        one-sigma ``std`` of its two tilt rows (rad), ``error_tilt_rad`` and ``inside_90``
+        (:mod:`bayescal.prediction.sensor_score`).
     summary : dict
         ``{"check": {...}, "fit": {...}}``: counts, mean / median / p95
-        position error (mm), coverage of the 90 % regions.
+        position error (mm), coverage of the 90 % regions; with body sensors, per role a
+        ``sensors`` block: per body the same of the tilt error (rad) and the sensor's ``sigma_tilt_rad``.
     frames : dict
         The session's fitted frames (``{}`` for ``frame="base"``).
     notes : tuple of str
@@ -78,6 +86,7 @@ class PredictionResult:
                     f"region: {100 * s['coverage_90']:.1f} %")
             if s["n_failed"]:
                 lines.append(f"  {role:<6} {s['n_failed']:>5} rows not predicted (see their 'error' in the JSON)")
+            lines += sensor_report_lines(s.get("sensors", {}), role)
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 
@@ -103,20 +112,10 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     -------
     PredictionResult
     """
-    from ..identify.gauss_newton import identify
     from ..instrument.plausibility import frame_answer
-    from ..instrument.prepare import prepare_session
 
-    from ..sensors import sensor_readings
-    from ..sensors.mounts import sensor_base
-
-    # body sensors are read as auxiliary channels: the calibrated machine has no mountings to predict them with.
-    # Their columns are checked all the same (a body the machine lacks, an incomplete x/y/z set, a zero or NaN
-    # reading): a base sensor gives the gravity-driven effects their per-pose gravity, and one mistyped column
-    # would leave them without it, silently
-    sensor_readings(dict(rec.aux), rec.path, rec.lines, tuple(sensor_base(machine.inside).sensor_bodies))
-    session = prepare_session(machine, rec, dof=dof, frame=frame, strict=False, sensors=False)
-    fm, model = session.machine, session.model
+    session, notes = _session(machine, rec, dof, frame)
+    fm, model = session.model.machine, session.model
     errors = session.row_errors()
     usable = np.array([e is None for e in errors])
     fit_rows = ~rec.is_check & usable
@@ -132,14 +131,13 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     n_session = fm.n_frame if frame == "fit" else 0
     theta = np.zeros(fm.n_params)
     frame_free: list[int] = []
-    notes = []
     frames = {}
     if n_session:
         fitted = [k for k, label in enumerate(fm.stations) if label not in session.unfitted_stations]
         frame_free = [6 * k + c for k in fitted for c in range(6)]
         if not frame_free:
             raise _no_frame_to_fit(rec)
-        theta, fit_ok = _fit_frames(model, theta, frame_free, fit_rows, disc, identify)
+        theta, fit_ok = _fit_frames(model.without_sensors(), theta, frame_free, fit_rows, disc)
         if not fit_ok:
             raise InputError(f"{rec.path}: the instrument frame(s) could not be fitted on the fit rows")
         free = np.zeros(fm.n_params, dtype=bool)
@@ -147,36 +145,124 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
         frames = frame_answer(fm, theta, free, None)
         if session.unfitted_stations and "frames" in frames:
             frames = {"frames": {k: v for k, v in frames["frames"].items() if k not in session.unfitted_stations}}
+    sensor_free = _sensor_index(model)
+    if sensor_free.size:
+        theta = _fit_mountings(model, theta, sensor_free, fit_rows, rec)
     C, machine_index, noise_factor, kappa, note = _machine_covariance(machine, fm, names, disc)
     if note:
         notes.append(note)
-    idx = np.flatnonzero(usable)
-    pr = PredictiveRows(np.full((rec.n_poses, model.dof), np.nan), np.full((rec.n_poses, model.dof, model.dof), np.nan),
-                        np.zeros(rec.n_poses, dtype=bool), ("",) * rec.n_poses)
-    if idx.size:
-        sub = model.subset(idx)
-        got = predictive_rows(sub, theta, C, machine_index=machine_index, noise_factor=noise_factor, discrepancy=disc,
-                              session_index=np.array(frame_free) if n_session else None, fit_rows=fit_rows[idx],
-                              variance_factor=kappa)
-        mean, cov, ok = pr.mean.copy(), pr.cov.copy(), pr.success.copy()
-        mean[idx], cov[idx], ok[idx] = got.mean, got.cov, got.success
-        msgs = list(pr.message)
-        for k, i in enumerate(idx):
-            msgs[i] = got.message[k]
-        pr = PredictiveRows(mean, cov, ok, tuple(msgs))
+    # the calibration's noise scale and leave-one-out factor are the tool rows' (the sensors' sigma is the file's)
+    td = model.tool_dof
+    per_row = lambda v: np.r_[np.full(td, v), np.ones(model.dof - td)]  # noqa: E731
+    session_index = np.array(frame_free + sensor_free.tolist(), dtype=int)
+    pr = _predict_usable(model, theta, C, usable, fit_rows, machine_index=machine_index,
+                         noise_factor=per_row(noise_factor), discrepancy=disc,
+                         session_index=session_index if session_index.size else None, variance_factor=per_row(kappa))
     for i in np.flatnonzero(usable & ~pr.success):
         errors[i] = f"cannot be predicted: {pr.message[i] or 'the pose does not solve'}"
     failed = np.array([e is not None for e in errors])
-    scores = score_rows(model.y_measured, pr.mean, pr.cov)
-    rows = _rows(rec, model, pr, scores, errors)
-    summary = {"check": summarise(scores, rec.is_check, failed), "fit": summarise(scores, ~rec.is_check, failed)}
+    tool = model.without_sensors()
+    tool_pr = PredictiveRows(pr.mean[:, :td], pr.cov[:, :td, :td], pr.success, pr.message)
+    scores = score_rows(tool.y_measured, tool_pr.mean, tool_pr.cov)
+    sensors = _sensor_scores(model, theta, pr, rec, ~failed)
+    rows = _rows(rec, tool, tool_pr, scores, errors, sensors)
+    summary = {role: summarise(scores, mask, failed) for role, mask in (("check", rec.is_check), ("fit", ~rec.is_check))}
+    if sensors is not None:
+        for role, mask in (("check", rec.is_check), ("fit", ~rec.is_check)):
+            summary[role]["sensors"] = sensors.summary(mask, failed)
     if disc is None:
         notes.append("no [discrepancy] in the machine file: the prediction is the kinematic model's")
     return PredictionResult(machine.name, tuple(rows), summary, frames, tuple(notes))
 
 
-def _fit_frames(model, theta, frame_free, fit_rows, disc, identify):
+def _session(machine, rec, dof, frame):
+    """The session of every row, with the recording's body sensors as measurements where they can be predicted.
+
+    A sensor's mounting is the session's, not the machine's (a calibrated file holds none): it is fitted on
+    the fit rows, so without any the sensors are read as channels only, and a note says so.
+    """
+    from ..instrument.prepare import prepare_session
+    from ..sensors import sensor_readings
+    from ..sensors.mounts import sensor_base
+
+    # the columns are checked even where the sensors are not predicted (a body the machine lacks, an incomplete
+    # x/y/z set, a zero or NaN reading): a base sensor gives the gravity-driven effects their per-pose gravity
+    readings = sensor_readings(dict(rec.aux), rec.path, rec.lines, tuple(sensor_base(machine.inside).sensor_bodies))
+    bodies = [b for b in readings if b != "base"]
+    notes = []
+    predicted = bool(bodies) and bool(np.any(~rec.is_check))
+    if bodies and not predicted:
+        notes.append(f"the sensor reading(s) on {', '.join(map(repr, bodies))} are not predicted: their mountings are "
+                     "fitted on the fit rows, and the recording has none")
+    session = prepare_session(machine, rec, dof=dof, frame=frame, strict=False, sensors=predicted)
+    return session, notes
+
+
+def _sensor_index(model) -> np.ndarray:
+    """The model machine's body-sensor parameters (mountings and up's level: appended last), as indices."""
+    k = 0 if model.sensors is None else model.sensors.n_params
+    return np.arange(model.n_params - k, model.n_params)
+
+
+def _fit_mountings(model, theta, sensor_free, fit_rows, rec):
+    """The sensors' mountings (and up's level) fitted on the fit rows' tilt rows, the machine held fixed.
+
+    MAP under the machine file's ``sensor_mount`` / ``base_level`` tolerances: a column's sensor mounting and
+    the level of up are one direction to such a sensor, the prior splits it as identify's fit does.
+    """
+    from ..identify.gauss_newton import identify
+
+    fit_idx = np.flatnonzero(fit_rows)
+    sub = model.subset(fit_idx)
+    ok = np.flatnonzero(sub.predict(theta).success)
+    res = identify(sub.subset(ok), method="map", free=sensor_free.tolist(), theta0=theta)
+    if not res.success:
+        raise InputError(f"{rec.path}: the body sensors' mountings could not be fitted on the fit rows "
+                         f"({res.message or 'the fit did not converge'})")
+    return res.theta
+
+
+def _predict_usable(model, theta, C, usable, fit_rows, **kw) -> PredictiveRows:
+    """:func:`predictive_rows` of the usable rows, NaN (not successful) elsewhere."""
+    n = model.n_poses
+    pr = PredictiveRows(np.full((n, model.dof), np.nan), np.full((n, model.dof, model.dof), np.nan),
+                        np.zeros(n, dtype=bool), ("",) * n)
+    idx = np.flatnonzero(usable)
+    if not idx.size:
+        return pr
+    got = predictive_rows(model.subset(idx), theta, C, fit_rows=fit_rows[idx], **kw)
+    mean, cov, ok = pr.mean.copy(), pr.cov.copy(), pr.success.copy()
+    mean[idx], cov[idx], ok[idx] = got.mean, got.cov, got.success
+    msgs = list(pr.message)
+    for k, i in enumerate(idx):
+        msgs[i] = got.message[k]
+    return PredictiveRows(mean, cov, ok, tuple(msgs))
+
+
+def _sensor_scores(model, theta, pr, rec, predicted):
+    """The body sensors' scores (:mod:`bayescal.prediction.sensor_score`) of the rows ``predicted``; None without sensors."""
+    from ..sensors import predicted_readings
+    from .sensor_score import score_sensor_rows
+
+    S = model.sensors
+    if S is None:
+        return None
+    td = model.tool_dof
+    raw = np.stack([np.column_stack([np.asarray(rec.aux[f"accel.{b}.{a}"], dtype=float) for a in "xyz"])
+                    for b in S.bodies], axis=1)
+    unit = np.full(raw.shape, np.nan)
+    idx = np.flatnonzero(predicted)
+    if idx.size:
+        sub = model.subset(idx)
+        unit[idx] = predicted_readings(sub.machine, sub.sensors, sub.q, theta)
+    return score_sensor_rows(S, raw, unit, pr.mean[:, td:], pr.cov[:, td:, td:],
+                             S.row_sigma(model.machine.noise.sigma_tilt))
+
+
+def _fit_frames(model, theta, frame_free, fit_rows, disc):
     """Least squares of the session's frames on the fit rows, the machine held fixed (the discrepancy's mean removed)."""
+    from ..identify.gauss_newton import identify
+
     fit_idx = np.flatnonzero(fit_rows)
     if fit_idx.size == 0:
         raise InputError("predict --frame fit: no fit rows to fit the instrument frame(s) on")
@@ -225,7 +311,7 @@ def _machine_covariance(machine, fm, names, disc):
             float(record.variance_factor), note)
 
 
-def _rows(rec, model, pr, scores, errors) -> list[dict]:
+def _rows(rec, model, pr, scores, errors, sensors=None) -> list[dict]:
     measured, predicted = _in_recording_terms(rec, model, pr)
     std = pr.std
     out = []
@@ -240,6 +326,8 @@ def _rows(rec, model, pr, scores, errors) -> list[dict]:
         else:
             row.update({"predicted": predicted[i], "std": std[i].tolist(),
                         "error_position_mm": float(scores.error_position[i]), "inside_90": bool(scores.inside[i])})
+            if sensors is not None:
+                row["sensors"] = sensors.row(i)
         out.append(row)
     return out
 
