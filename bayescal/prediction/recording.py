@@ -161,11 +161,7 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     for i in np.flatnonzero(usable & ~pr.success):
         errors[i] = f"cannot be predicted: {pr.message[i] or 'the pose does not solve'}"
     failed = np.array([e is not None for e in errors])
-    tool = model.without_sensors()
-    tool_pr = PredictiveRows(pr.mean[:, :td], pr.cov[:, :td, :td], pr.success, pr.message)
-    scores = score_rows(tool.y_measured, tool_pr.mean, tool_pr.cov)
-    sensors = _sensor_scores(model, theta, pr, rec, ~failed)
-    rows = _rows(rec, tool, tool_pr, scores, errors, sensors)
+    rows, scores, sensors = _scored_rows(model, theta, pr, rec, errors, failed)
     summary = {role: summarise(scores, mask, failed) for role, mask in (("check", rec.is_check), ("fit", ~rec.is_check))}
     if sensors is not None:
         for role, mask in (("check", rec.is_check), ("fit", ~rec.is_check)):
@@ -255,8 +251,10 @@ def _sensor_scores(model, theta, pr, rec, predicted):
     if idx.size:
         sub = model.subset(idx)
         unit[idx] = predicted_readings(sub.machine, sub.sensors, sub.q, theta)
-    return score_sensor_rows(S, raw, unit, pr.mean[:, td:], pr.cov[:, td:, td:],
-                             S.row_sigma(model.machine.noise.sigma_tilt))
+    # the tilt rows' sigma as the prediction weighed them (a rescaled sigma_tilt in a held-out score)
+    sigma = float(np.median(np.asarray(model.row_sigma)[:, td:])) if model.n_poses else S.row_sigma(
+        model.machine.noise.sigma_tilt)
+    return score_sensor_rows(S, raw, unit, pr.mean[:, td:], pr.cov[:, td:, td:], sigma)
 
 
 def _fit_frames(model, theta, frame_free, fit_rows, disc):
@@ -406,9 +404,14 @@ def score_held_out(cal, session, *, effects=None, noise_scale: float | None = No
     if effects:
         model_all = MeasurementModel.from_recording(model_all.machine.with_effects(tuple(effects)), rec,
                                                     dof=model_all.tool_dof)
-    # the check rows' tool poses are predicted and scored (a body sensor's tilt rows are not)
+    # the check rows' tool poses and body-sensor readings are predicted and scored, each row with its noise as
+    # the fit weighed it (a sigma_tilt rescaled on the sensors' own rows, then the calibration's scale)
     model = model_all.subset(idx)
-    model = model.without_sensors()
+    tilt_scale = float(getattr(res, "extras", {}).get("tilt_noise", {}).get("scale_used", 1.0))
+    if model.sensors is not None and tilt_scale != 1.0:
+        from ..identify.calibrate import with_tilt_scale
+
+        model = with_tilt_scale(model, tilt_scale)
     scale = float(getattr(cal, "noise_scale", 1.0) if noise_scale is None else noise_scale)
     if scale != 1.0:
         model = scale_noise(model, scale)
@@ -435,14 +438,28 @@ def score_held_out(cal, session, *, effects=None, noise_scale: float | None = No
         pr = PredictiveRows(np.full((idx.size, model.dof), np.nan), np.full((idx.size, model.dof, model.dof), np.nan),
                             np.zeros(idx.size, dtype=bool), ("",) * idx.size)
     else:
+        kappa = float(getattr(cal, "variance_factor", 1.0) if variance_factor is None else variance_factor)
+        td = model.tool_dof  # the leave-one-out factor is the tool rows' (as predict applies it)
         pr = predictive_rows(model, theta, cov, machine_index=np.flatnonzero(free), discrepancy=disc,
-                             variance_factor=float(getattr(cal, "variance_factor", 1.0) if variance_factor is None
-                                                   else variance_factor))
+                             variance_factor=np.r_[np.full(td, kappa), np.ones(model.dof - td)])
         errors = [None if ok else f"cannot be predicted: {m}" for ok, m in zip(pr.success, pr.message)]
     failed = np.array([e is not None for e in errors])
-    scores = score_rows(model.y_measured, pr.mean, pr.cov)
-    rows = _rows(sub_rec, model, pr, scores, errors)
-    return {"check": {"summary": summarise(scores, np.ones(idx.size, dtype=bool), failed), "rows": rows}}
+    rows, scores, sensors = _scored_rows(model, theta, pr, sub_rec, errors, failed)
+    every = np.ones(idx.size, dtype=bool)
+    summary = summarise(scores, every, failed)
+    if sensors is not None:
+        summary["sensors"] = sensors.summary(every, failed)
+    return {"check": {"summary": summary, "rows": rows}}
+
+
+def _scored_rows(model, theta, pr, rec, errors, failed):
+    """Every row's answer, the tool rows' scores and the body sensors' (None without), of a prediction ``pr``."""
+    td = model.tool_dof
+    tool = model.without_sensors()
+    tool_pr = PredictiveRows(pr.mean[:, :td], pr.cov[:, :td, :td], pr.success, pr.message)
+    scores = score_rows(tool.y_measured, tool_pr.mean, tool_pr.cov)
+    sensors = _sensor_scores(model, theta, pr, rec, ~failed)
+    return _rows(rec, tool, tool_pr, scores, errors, sensors), scores, sensors
 
 
 def held_out_report(answer: dict) -> str:
@@ -453,9 +470,15 @@ def held_out_report(answer: dict) -> str:
     s = c["summary"]
     if not s["n"]:
         return f"  held out        {s['n_failed']} check rows, none predicted"
-    return (f"  held out        {s['n']} check rows: position error mean {s['mean_error_position_mm']:.4g} mm, median "
-            f"{s['median_error_position_mm']:.4g}, p95 {s['p95_error_position_mm']:.4g}; inside their 90 % region "
-            f"{100 * s['coverage_90']:.1f} %")
+    lines = [f"  held out        {s['n']} check rows: position error mean {s['mean_error_position_mm']:.4g} mm, median "
+             f"{s['median_error_position_mm']:.4g}, p95 {s['p95_error_position_mm']:.4g}; inside their 90 % region "
+             f"{100 * s['coverage_90']:.1f} %"]
+    for b, t in s.get("sensors", {}).items():
+        if t["n"]:
+            lines.append(f"  held out        sensor on {b!r}: tilt error mean {1e3 * t['mean_error_tilt_rad']:.4g} mrad, "
+                         f"p95 {1e3 * t['p95_error_tilt_rad']:.4g} (sigma {1e3 * t['sigma_tilt_rad']:.3g}); inside "
+                         f"their 90 % region {100 * t['coverage_90']:.1f} %")
+    return "\n".join(lines)
 
 
 def _no_frame_to_fit(rec: Recording) -> InputError:
