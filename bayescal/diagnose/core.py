@@ -47,6 +47,7 @@ from ..models import model_from_recording
 from ..outliers import recording_lines
 from ..outliers.screen import retest_with_discrepancy, retest_with_effects, screen_outliers
 from ..progress import report
+from ..sensors.columns import is_body_measurement
 from .confound import geometry_confound, written_tool_jacobian
 from .separate import separating_sessions
 from .discrepancy import try_discrepancy
@@ -413,7 +414,9 @@ def _geometric_stage(s: _Setup, seed: int) -> _Geometric:
         # reach the actuator-space tests (periodogram, pitch search); zero is "no actuator error"
         dq_res[s.screen.excluded] = 0.0
     direction = approach_direction(model.pose_q, model.pose_order)[: model.n_poses]
-    location = locate(model.q, whiten(model, fit0.residual), dq_res, s.aux, model.region(pred0), seed=seed,
+    # a body sensor's reading is a measurement of the outcome, not a condition: no channel to locate a mismatch on
+    channels = {k: v for k, v in s.aux.items() if not is_body_measurement(k)}
+    location = locate(model.q, whiten(model, fit0.residual), dq_res, channels, model.region(pred0), seed=seed,
                       direction=direction, units=s.machine.actuator_units)
     return _Geometric(fit0, dq_res, location, model.effect_inputs(fit0.theta, pred0))
 

@@ -407,7 +407,7 @@ def score_held_out(cal, session, *, effects=None, noise_scale: float | None = No
     # the check rows' tool poses and body-sensor readings are predicted and scored, each row with its noise as
     # the fit weighed it (a sigma_tilt rescaled on the sensors' own rows, then the calibration's scale)
     model = model_all.subset(idx)
-    tilt_scale = float(getattr(res, "extras", {}).get("tilt_noise", {}).get("scale_used", 1.0))
+    tilt_scale = float(((getattr(res, "extras", None) or {}).get("tilt_noise") or {}).get("scale_used", 1.0))
     if model.sensors is not None and tilt_scale != 1.0:
         from ..identify.calibrate import with_tilt_scale
 

@@ -101,6 +101,9 @@ def test_the_tip_sensor_names_the_bending_and_pins_the_column_compliance(study):
     assert np.ptp(study["q"][:, 0]) > 300.0 and len(set(study["payload"])) == 3  # extensions and payloads vary
     assert d0.verdict == d1.verdict == "gravity_deflection"
     assert d1.selected == ("gravity_deflection",)
+    # the tip's readings are measurements of the bending, not conditions it depends on: never a located channel
+    assert "payload_kg" in {c.channel for c in d1.location.channels}
+    assert not any(c.channel.startswith("accel.joint2") for c in d1.location.channels)
     b0, b1 = _bending(d0), _bending(d1)
     print(f"bending.joint1 without {b0.value:.3f} +- {b0.std:.3f}, with {b1.value:.3f} +- {b1.std:.4f} um/N (truth 30)")
     # the sensor reads the column's tip slope at 2e-5 rad: the compliance 10 times more precise or better, and
