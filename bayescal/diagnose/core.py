@@ -47,10 +47,12 @@ from ..models import model_from_recording
 from ..outliers import recording_lines
 from ..outliers.screen import retest_with_discrepancy, retest_with_effects, screen_outliers
 from ..progress import report
+from ..sensors.columns import is_body_measurement
 from .confound import geometry_confound, written_tool_jacobian
 from .separate import separating_sessions
 from .discrepancy import try_discrepancy
 from .locate import locate
+from .tilt_noise import sensor_noise, tilt_scale_with_effects
 from .noise import NoiseSettling, noise_test, settle_overstated_noise, with_tool_noise_scale
 from .result import Diagnosis, EffectTrial, ParameterValue
 
@@ -104,30 +106,9 @@ def _cv_rms(model: MeasurementModel, cands: list[_Candidate], folds: list[NDArra
 
 
 def _sensor_noise(machine: Machine, recording: Recording, model: MeasurementModel):
-    """``(machine, model)`` with ``sigma_tilt`` rescaled where the body sensors' own rows contradict it.
-
-    As :func:`bayescal.identify.calibrate.calibrate` does: one stated sigma_tilt twenty times too small made
-    the tilt rows dominate every fit and test, and a bending the tool rows showed plainly was called
-    "unexplained" (held-out 0.0174 against 0.0047 mm with the sigma stated right).
-    """
-    tool = model.tool_dof
-    if tool >= model.dof:
-        return machine, model
-    from dataclasses import replace as _replace
-
-    from ..identify.noise import check_noise
-
-    try:
-        fit = fit_map(model)
-    except KinematicsError:
-        return machine, model
-    r = whiten(model, fit.residual)[:, tool:]
-    own = sum(1 for n in model.machine.layout.names if n.startswith("sensor.") or n.startswith("gravity.tilt."))
-    check = check_noise(float(np.sum(r**2)), r.size - own)
-    if not check.contradicted:
-        return machine, model
-    scaled = machine.with_noise(_replace(machine.noise, sigma_tilt=machine.noise.sigma_tilt * max(check.scale, 1e-3)))
-    return scaled, model_from_recording(scaled, recording, check=False)
+    """``(machine, model)`` with ``sigma_tilt`` rescaled where the geometry-only fit's tilt rows contradict it
+    (:func:`bayescal.diagnose.tilt_noise.sensor_noise`)."""
+    return sensor_noise(machine, recording, model)[:2]
 
 
 def _scale2(fit: EffectFit) -> float:
@@ -176,7 +157,7 @@ def diagnose(
     n_folds: int = 5,
     n_perm: int | None = None,
     effect_settings: dict[str, dict] | None = None,
-    _screen=None, _disc_retested: bool = False, _noise: NoiseSettling | None = None,
+    _screen=None, _disc_retested: bool = False, _noise: NoiseSettling | None = None, _tilt: float | None = None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -215,8 +196,8 @@ def diagnose(
     """
     if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
         raise InputError(f"n_folds: expected a whole number >= 2 (folds of the cross-validation), got {n_folds!r}")
-    again = dict(effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm, effect_settings=effect_settings)
-    s = _setup(machine, recording, effects, effect_settings, n_folds, _screen, _noise)
+    again = dict(effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm, effect_settings=effect_settings, _tilt=_tilt)
+    s = _setup(machine, recording, effects, effect_settings, n_folds, _screen, _noise, tilt=_tilt)
     g = _geometric_stage(s, seed)
     if s.noise is None:
         s = _noise_tested(s, g)
@@ -231,6 +212,17 @@ def diagnose(
     single = _single_trials(s.model, cands, skipped, folds, g.fit0)
     selected, cur_fit, cur_cv = _forward_selection(s, cands, single, folds, g.fit0, cv0)
     v = _verdict(s, g, selected, cur_fit)
+    if s.tilt_scale != 1.0 and selected and _tilt is None:
+        # the geometry-only fit's tilt misfit may be the physics now modelled, not the sensors' noise: diagnose
+        # again at the scale the tilt rows support with the effects (bayescal/diagnose/tilt_noise.py)
+        tilt = tilt_scale_with_effects(s.model, [(c.effect, c.features) for c in selected], cur_fit, s.tilt_scale)
+        if tilt < 0.5 * s.tilt_scale:
+            rerun = diagnose(machine, recording, **{**again, "_tilt": tilt})
+            # kept where the sensors at their own noise still support what was found; an effect that the precise
+            # tilt rows push out of its physical range (unknown link masses fitted at the links' middles) is the
+            # effect's simplification showing, and the diagnosis at the first scale stands
+            if set(rerun.selected) >= {c.effect.name for c in selected}:
+                return rerun
 
     if s.screen is not None and _screen is None and selected:
         # outliers are judged against the final model; if that names other poses, diagnose once more
@@ -347,10 +339,11 @@ class _Setup:
     settings: dict
     path: str
     noise: NoiseSettling | None  # the stated noise's test and the factor on the tool rows' sigma (None: not yet tested)
+    tilt_scale: float = 1.0  # the factor on the stated sigma_tilt the diagnosis runs at
 
 
 def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_folds: int, screen,
-           noise: NoiseSettling | None = None) -> _Setup:
+           noise: NoiseSettling | None = None, tilt: float | None = None) -> _Setup:
     """The geometry-only model of ``recording`` with its sensors' noise tested and gross errors screened."""
     # the inputs the machine file states in its [effect.<name>] tables, overridden key by key by those given: the
     # command line and a notebook's bayescal.diagnose(...) on the same file use the same inputs
@@ -362,7 +355,8 @@ def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_f
         settings[name] = {**settings.get(name, {}), **given}
     lib = [get_effect(n, **settings.get(n, {})) for n in names]  # raises on unknown names and settings
     model = model_from_recording(machine, recording, check=False)
-    machine, model = _sensor_noise(machine, recording, model)
+    # tilt given: the scale the fit with the effects supported (a rerun), else tested on the geometry-only fit
+    machine, model, tilt_scale = sensor_noise(machine, recording, model, tilt)
     n = model.n_poses
     if n < 2 * n_folds:
         raise InputError(f"{recording.path}: {n} poses; the diagnosis needs at least {2 * n_folds} (cross-validation in {n_folds} folds)")
@@ -388,7 +382,7 @@ def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_f
         model = screen.weighted_model(model)
     kept = np.arange(n) if screen is None else np.flatnonzero(~screen.excluded)
     return _Setup(machine, model, base_model, screen, kept, dict(recording.aux), lib, effects is not None, settings,
-                  recording.path, noise)
+                  recording.path, noise, tilt_scale)
 
 
 @dataclass(frozen=True)
@@ -417,7 +411,9 @@ def _geometric_stage(s: _Setup, seed: int) -> _Geometric:
         # reach the actuator-space tests (periodogram, pitch search); zero is "no actuator error"
         dq_res[s.screen.excluded] = 0.0
     direction = approach_direction(model.pose_q, model.pose_order)[: model.n_poses]
-    location = locate(model.q, whiten(model, fit0.residual), dq_res, s.aux, model.region(pred0), seed=seed,
+    # a body sensor's reading is a measurement of the outcome, not a condition: no channel to locate a mismatch on
+    channels = {k: v for k, v in s.aux.items() if not is_body_measurement(k)}
+    location = locate(model.q, whiten(model, fit0.residual), dq_res, channels, model.region(pred0), seed=seed,
                       direction=direction, units=s.machine.actuator_units)
     return _Geometric(fit0, dq_res, location, model.effect_inputs(fit0.theta, pred0))
 

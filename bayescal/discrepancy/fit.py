@@ -112,13 +112,17 @@ class DiscrepancyFit:
 def default_inputs(model) -> tuple[str, ...]:
     """The discrepancy's default inputs: every actuator and every auxiliary channel that varies.
 
-    Channels named like bookkeeping (``pose_id``, ...) are left out.
+    Channels named like bookkeeping (``pose_id``, ...) are left out, and so are the readings of sensors on bodies
+    other than the base (measurements of the outcome, docs/formats.md section 8: predicting a pose must not need them).
     """
+    from ..sensors.columns import is_body_measurement
+
     n_act = np.asarray(model.pose_q).shape[1]
     names = [f"q{i + 1}" for i in range(n_act)]
     for k, v in (model.aux or {}).items():
         v = np.asarray(v, dtype=float)
-        if _NOT_PHYSICS.search(k) or not np.all(np.isfinite(v)) or np.ptp(v) <= 0:
+        if (_NOT_PHYSICS.search(k) or is_body_measurement(k) or not np.all(np.isfinite(v))
+                or np.ptp(v) <= 0):
             continue
         names.append(k)
     return tuple(names)

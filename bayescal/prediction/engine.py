@@ -94,16 +94,19 @@ def predictive_rows(
         weights): mm, rad and their products.
     machine_index : ndarray of int, shape (k_m,)
         Which of ``model.machine``'s parameters ``covariance`` is over.
-    noise_factor : float
-        ``c``: factor on the instrument variance.
+    noise_factor : float or ndarray, shape (dof,)
+        ``c``: factor on the instrument variance, one for every row or one
+        per measured component (a calibration's noise scale on the tool's
+        rows, 1 on a body sensor's tilt rows).
     discrepancy : Discrepancy, optional
         Added to the mean; its weights are the last rows of ``covariance``.
     session_index : ndarray of int, optional
         Parameters fitted to the session (instrument frames) on ``fit_rows``.
     fit_rows : ndarray of bool, shape (n,), optional
         Which rows the session's parameters were fitted on.
-    variance_factor : float
-        ``kappa`` on the whole covariance (:func:`bayescal.prediction.loo.loo_variance_factor`).
+    variance_factor : float or ndarray, shape (dof,)
+        ``kappa`` on the whole covariance (:func:`bayescal.prediction.loo.loo_variance_factor`), or per
+        measured component (entry ``(a, b)`` of a row's covariance scaled by ``sqrt(kappa_a kappa_b)``).
     residual_variance : bool
         Add ``D``, the discrepancy's prior variance its inducing points do not
         carry (False: the parameters' part alone, the hat matrix of a fit).
@@ -138,7 +141,8 @@ def predictive_rows(
     if C.shape != (Jm.shape[2],) * 2:
         raise InputError(f"predictive_rows: covariance of shape {C.shape} for {Jm.shape[2]} parameters and weights")
     sig = np.asarray(sub.row_sigma, dtype=float)
-    noise = noise_factor * np.einsum("ni,ij->nij", sig**2, np.eye(dof))
+    c = np.broadcast_to(np.asarray(noise_factor, dtype=float), (dof,))
+    noise = np.einsum("ni,ij->nij", sig**2 * c, np.eye(dof))
     G = Jm
     extra = np.zeros_like(D)
     if session_index is not None and np.size(session_index):
@@ -151,9 +155,13 @@ def predictive_rows(
         Minv = np.linalg.pinv(As.T @ As)
         K = Minv @ (As.T @ Am)
         G = Jm - Js @ K
-        extra = noise_factor * (Js @ Minv) @ np.swapaxes(Js, 1, 2)
+        # the session's estimate's own noise: Minv A^T diag(c) A Minv (c Minv for one factor on every row)
+        c_rows = np.tile(c, int(fr.sum()))
+        Cs = Minv @ ((As.T * c_rows) @ As) @ Minv
+        extra = (Js @ Cs) @ np.swapaxes(Js, 1, 2)
     # batched products (einsum over two contracted indices would loop in Python-free but unblocked C)
-    cov_ok = variance_factor * ((G @ C) @ np.swapaxes(G, 1, 2) + extra + D + noise)
+    k = np.sqrt(np.broadcast_to(np.asarray(variance_factor, dtype=float), (dof,)))
+    cov_ok = np.outer(k, k) * ((G @ C) @ np.swapaxes(G, 1, 2) + extra + D + noise)
     mean[ok] = mu
     cov[ok] = 0.5 * (cov_ok + np.swapaxes(cov_ok, 1, 2))
     return PredictiveRows(mean, cov, ok, msg)

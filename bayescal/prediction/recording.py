@@ -3,11 +3,14 @@
 The calibrated machine (geometry, effects, model discrepancy, and the
 covariance of its calibration in ``[calibration]``) is held fixed with its
 uncertainty.  Only what belongs to the session is fitted, on the ``fit``
-rows: the instrument frame of each station with ``frame="fit"``.  Every row
+rows: the instrument frame of each station with ``frame="fit"``, and the
+mountings of the body sensors (a calibrated machine holds none).  Every row
 gets its predictive mean and covariance (:mod:`bayescal.prediction.engine`),
 its position error and whether it lies inside its 90 % region
-(:mod:`bayescal.prediction.score`); the summary scores the ``check`` rows (no
-fit has seen them) and the ``fit`` rows apart.
+(:mod:`bayescal.prediction.score`); a body sensor's reading is a measured
+row like the tool's, predicted through the same engine and scored by its
+tilt error (:mod:`bayescal.prediction.sensor_score`).  The summary scores
+the ``check`` rows (no fit has seen them) and the ``fit`` rows apart.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from ..io.recording import Recording
 from ..machines.base import Machine
 from .engine import PredictiveRows, predictive_rows
 from .score import REGION_LEVEL, score_rows, summarise
+from .sensor_score import sensor_report_lines
 
 __all__ = ["PredictionResult", "predict_recording"]
 
@@ -39,10 +43,14 @@ class PredictionResult:
         ``std`` (one sigma per measured component: the position's x, y, z in mm, then the orientation's
         small rotation about x, y, z (6-DOF) or the tool axis's two tangential directions (5-DOF), rad),
         ``error_position_mm``,
-        ``inside_90``; or ``error`` (why it could not be predicted).
+        ``inside_90``; or ``error`` (why it could not be predicted).  With body sensors also
+        ``sensors``: per body, the recorded and predicted reading (the recording's units), the
+        one-sigma ``std`` of its two tilt rows (rad), ``error_tilt_rad`` and ``inside_90``
+        (:mod:`bayescal.prediction.sensor_score`).
     summary : dict
         ``{"check": {...}, "fit": {...}}``: counts, mean / median / p95
-        position error (mm), coverage of the 90 % regions.
+        position error (mm), coverage of the 90 % regions; with body sensors, per role a
+        ``sensors`` block: per body the same of the tilt error (rad) and the sensor's ``sigma_tilt_rad``.
     frames : dict
         The session's fitted frames (``{}`` for ``frame="base"``).
     notes : tuple of str
@@ -78,6 +86,7 @@ class PredictionResult:
                     f"region: {100 * s['coverage_90']:.1f} %")
             if s["n_failed"]:
                 lines.append(f"  {role:<6} {s['n_failed']:>5} rows not predicted (see their 'error' in the JSON)")
+            lines += sensor_report_lines(s.get("sensors", {}), role)
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 
@@ -103,20 +112,10 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     -------
     PredictionResult
     """
-    from ..identify.gauss_newton import identify
     from ..instrument.plausibility import frame_answer
-    from ..instrument.prepare import prepare_session
 
-    from ..sensors import sensor_readings
-    from ..sensors.mounts import sensor_base
-
-    # body sensors are read as auxiliary channels: the calibrated machine has no mountings to predict them with.
-    # Their columns are checked all the same (a body the machine lacks, an incomplete x/y/z set, a zero or NaN
-    # reading): a base sensor gives the gravity-driven effects their per-pose gravity, and one mistyped column
-    # would leave them without it, silently
-    sensor_readings(dict(rec.aux), rec.path, rec.lines, tuple(sensor_base(machine.inside).sensor_bodies))
-    session = prepare_session(machine, rec, dof=dof, frame=frame, strict=False, sensors=False)
-    fm, model = session.machine, session.model
+    session, notes = _session(machine, rec, dof, frame)
+    fm, model = session.model.machine, session.model
     errors = session.row_errors()
     usable = np.array([e is None for e in errors])
     fit_rows = ~rec.is_check & usable
@@ -132,14 +131,13 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     n_session = fm.n_frame if frame == "fit" else 0
     theta = np.zeros(fm.n_params)
     frame_free: list[int] = []
-    notes = []
     frames = {}
     if n_session:
         fitted = [k for k, label in enumerate(fm.stations) if label not in session.unfitted_stations]
         frame_free = [6 * k + c for k in fitted for c in range(6)]
         if not frame_free:
             raise _no_frame_to_fit(rec)
-        theta, fit_ok = _fit_frames(model, theta, frame_free, fit_rows, disc, identify)
+        theta, fit_ok = _fit_frames(model.without_sensors(), theta, frame_free, fit_rows, disc)
         if not fit_ok:
             raise InputError(f"{rec.path}: the instrument frame(s) could not be fitted on the fit rows")
         free = np.zeros(fm.n_params, dtype=bool)
@@ -147,36 +145,122 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
         frames = frame_answer(fm, theta, free, None)
         if session.unfitted_stations and "frames" in frames:
             frames = {"frames": {k: v for k, v in frames["frames"].items() if k not in session.unfitted_stations}}
+    sensor_free = _sensor_index(model)
+    if sensor_free.size:
+        theta = _fit_mountings(model, theta, sensor_free, fit_rows, rec)
     C, machine_index, noise_factor, kappa, note = _machine_covariance(machine, fm, names, disc)
     if note:
         notes.append(note)
-    idx = np.flatnonzero(usable)
-    pr = PredictiveRows(np.full((rec.n_poses, model.dof), np.nan), np.full((rec.n_poses, model.dof, model.dof), np.nan),
-                        np.zeros(rec.n_poses, dtype=bool), ("",) * rec.n_poses)
-    if idx.size:
-        sub = model.subset(idx)
-        got = predictive_rows(sub, theta, C, machine_index=machine_index, noise_factor=noise_factor, discrepancy=disc,
-                              session_index=np.array(frame_free) if n_session else None, fit_rows=fit_rows[idx],
-                              variance_factor=kappa)
-        mean, cov, ok = pr.mean.copy(), pr.cov.copy(), pr.success.copy()
-        mean[idx], cov[idx], ok[idx] = got.mean, got.cov, got.success
-        msgs = list(pr.message)
-        for k, i in enumerate(idx):
-            msgs[i] = got.message[k]
-        pr = PredictiveRows(mean, cov, ok, tuple(msgs))
+    # the calibration's noise scale and leave-one-out factor are the tool rows' (the sensors' sigma is the file's)
+    td = model.tool_dof
+    per_row = lambda v: np.r_[np.full(td, v), np.ones(model.dof - td)]  # noqa: E731
+    session_index = np.array(frame_free + sensor_free.tolist(), dtype=int)
+    pr = _predict_usable(model, theta, C, usable, fit_rows, machine_index=machine_index,
+                         noise_factor=per_row(noise_factor), discrepancy=disc,
+                         session_index=session_index if session_index.size else None, variance_factor=per_row(kappa))
     for i in np.flatnonzero(usable & ~pr.success):
         errors[i] = f"cannot be predicted: {pr.message[i] or 'the pose does not solve'}"
     failed = np.array([e is not None for e in errors])
-    scores = score_rows(model.y_measured, pr.mean, pr.cov)
-    rows = _rows(rec, model, pr, scores, errors)
-    summary = {"check": summarise(scores, rec.is_check, failed), "fit": summarise(scores, ~rec.is_check, failed)}
+    rows, scores, sensors = _scored_rows(model, theta, pr, rec, errors, failed)
+    summary = {role: summarise(scores, mask, failed) for role, mask in (("check", rec.is_check), ("fit", ~rec.is_check))}
+    if sensors is not None:
+        for role, mask in (("check", rec.is_check), ("fit", ~rec.is_check)):
+            summary[role]["sensors"] = sensors.summary(mask, failed)
     if disc is None:
         notes.append("no [discrepancy] in the machine file: the prediction is the kinematic model's")
     return PredictionResult(machine.name, tuple(rows), summary, frames, tuple(notes))
 
 
-def _fit_frames(model, theta, frame_free, fit_rows, disc, identify):
+def _session(machine, rec, dof, frame):
+    """The session of every row, with the recording's body sensors as measurements where they can be predicted.
+
+    A sensor's mounting is the session's, not the machine's (a calibrated file holds none): it is fitted on
+    the fit rows, so without any the sensors are read as channels only, and a note says so.
+    """
+    from ..instrument.prepare import prepare_session
+    from ..sensors import sensor_readings
+    from ..sensors.mounts import sensor_base
+
+    # the columns are checked even where the sensors are not predicted (a body the machine lacks, an incomplete
+    # x/y/z set, a zero or NaN reading): a base sensor gives the gravity-driven effects their per-pose gravity
+    readings = sensor_readings(dict(rec.aux), rec.path, rec.lines, tuple(sensor_base(machine.inside).sensor_bodies))
+    bodies = [b for b in readings if b != "base"]
+    notes = []
+    predicted = bool(bodies) and bool(np.any(~rec.is_check))
+    if bodies and not predicted:
+        notes.append(f"the sensor reading(s) on {', '.join(map(repr, bodies))} are not predicted: their mountings are "
+                     "fitted on the fit rows, and the recording has none")
+    session = prepare_session(machine, rec, dof=dof, frame=frame, strict=False, sensors=predicted)
+    return session, notes
+
+
+def _sensor_index(model) -> np.ndarray:
+    """The model machine's body-sensor parameters (mountings and up's level: appended last), as indices."""
+    k = 0 if model.sensors is None else model.sensors.n_params
+    return np.arange(model.n_params - k, model.n_params)
+
+
+def _fit_mountings(model, theta, sensor_free, fit_rows, rec):
+    """The sensors' mountings (and up's level) fitted on the fit rows' tilt rows, the machine held fixed.
+
+    MAP under the machine file's ``sensor_mount`` / ``base_level`` tolerances: a column's sensor mounting and
+    the level of up are one direction to such a sensor, the prior splits it as identify's fit does.
+    """
+    from ..identify.gauss_newton import identify
+
+    fit_idx = np.flatnonzero(fit_rows)
+    sub = model.subset(fit_idx)
+    ok = np.flatnonzero(sub.predict(theta).success)
+    res = identify(sub.subset(ok), method="map", free=sensor_free.tolist(), theta0=theta)
+    if not res.success:
+        raise InputError(f"{rec.path}: the body sensors' mountings could not be fitted on the fit rows "
+                         f"({res.message or 'the fit did not converge'})")
+    return res.theta
+
+
+def _predict_usable(model, theta, C, usable, fit_rows, **kw) -> PredictiveRows:
+    """:func:`predictive_rows` of the usable rows, NaN (not successful) elsewhere."""
+    n = model.n_poses
+    pr = PredictiveRows(np.full((n, model.dof), np.nan), np.full((n, model.dof, model.dof), np.nan),
+                        np.zeros(n, dtype=bool), ("",) * n)
+    idx = np.flatnonzero(usable)
+    if not idx.size:
+        return pr
+    got = predictive_rows(model.subset(idx), theta, C, fit_rows=fit_rows[idx], **kw)
+    mean, cov, ok = pr.mean.copy(), pr.cov.copy(), pr.success.copy()
+    mean[idx], cov[idx], ok[idx] = got.mean, got.cov, got.success
+    msgs = list(pr.message)
+    for k, i in enumerate(idx):
+        msgs[i] = got.message[k]
+    return PredictiveRows(mean, cov, ok, tuple(msgs))
+
+
+def _sensor_scores(model, theta, pr, rec, predicted):
+    """The body sensors' scores (:mod:`bayescal.prediction.sensor_score`) of the rows ``predicted``; None without sensors."""
+    from ..sensors import predicted_readings
+    from .sensor_score import score_sensor_rows
+
+    S = model.sensors
+    if S is None:
+        return None
+    td = model.tool_dof
+    raw = np.stack([np.column_stack([np.asarray(rec.aux[f"accel.{b}.{a}"], dtype=float) for a in "xyz"])
+                    for b in S.bodies], axis=1)
+    unit = np.full(raw.shape, np.nan)
+    idx = np.flatnonzero(predicted)
+    if idx.size:
+        sub = model.subset(idx)
+        unit[idx] = predicted_readings(sub.machine, sub.sensors, sub.q, theta)
+    # the tilt rows' sigma as the prediction weighed them (a rescaled sigma_tilt in a held-out score)
+    sigma = float(np.median(np.asarray(model.row_sigma)[:, td:])) if model.n_poses else S.row_sigma(
+        model.machine.noise.sigma_tilt)
+    return score_sensor_rows(S, raw, unit, pr.mean[:, td:], pr.cov[:, td:, td:], sigma)
+
+
+def _fit_frames(model, theta, frame_free, fit_rows, disc):
     """Least squares of the session's frames on the fit rows, the machine held fixed (the discrepancy's mean removed)."""
+    from ..identify.gauss_newton import identify
+
     fit_idx = np.flatnonzero(fit_rows)
     if fit_idx.size == 0:
         raise InputError("predict --frame fit: no fit rows to fit the instrument frame(s) on")
@@ -232,7 +316,7 @@ def _machine_covariance(machine, fm, names, disc):
             float(record.variance_factor), note)
 
 
-def _rows(rec, model, pr, scores, errors) -> list[dict]:
+def _rows(rec, model, pr, scores, errors, sensors=None) -> list[dict]:
     measured, predicted = _in_recording_terms(rec, model, pr)
     std = pr.std
     out = []
@@ -247,6 +331,8 @@ def _rows(rec, model, pr, scores, errors) -> list[dict]:
         else:
             row.update({"predicted": predicted[i], "std": std[i].tolist(),
                         "error_position_mm": float(scores.error_position[i]), "inside_90": bool(scores.inside[i])})
+            if sensors is not None:
+                row["sensors"] = sensors.row(i)
         out.append(row)
     return out
 
@@ -338,6 +424,8 @@ def score_held_out_result(res, session, *, effects=None, covariance=None, discre
     dict
         As :func:`score_held_out`.
     """
+    from ..measurement import MeasurementModel
+
     rec = session.recording
     if not rec.is_check.any():
         return {}
@@ -346,9 +434,14 @@ def score_held_out_result(res, session, *, effects=None, covariance=None, discre
     if effects:
         model_all = MeasurementModel.from_recording(model_all.machine.with_effects(tuple(effects)), rec,
                                                     dof=model_all.tool_dof)
-    # the check rows' tool poses are predicted and scored (a body sensor's tilt rows are not)
+    # the check rows' tool poses and body-sensor readings are predicted and scored, each row with its noise as
+    # the fit weighed it (a sigma_tilt rescaled on the sensors' own rows, then the calibration's scale)
     model = model_all.subset(idx)
-    model = model.without_sensors()
+    tilt_scale = float(((res.extras or {}).get("tilt_noise") or {}).get("scale_used", 1.0))
+    if model.sensors is not None and tilt_scale != 1.0:
+        from ..identify.calibrate import with_tilt_scale
+
+        model = with_tilt_scale(model, tilt_scale)
     scale = float(noise_scale)
     if scale != 1.0:
         model = scale_noise(model, scale)
@@ -371,13 +464,27 @@ def score_held_out_result(res, session, *, effects=None, covariance=None, discre
         pr = PredictiveRows(np.full((idx.size, model.dof), np.nan), np.full((idx.size, model.dof, model.dof), np.nan),
                             np.zeros(idx.size, dtype=bool), ("",) * idx.size)
     else:
+        td = model.tool_dof  # the leave-one-out factor is the tool rows' (as predict applies it)
         pr = predictive_rows(model, theta, cov, machine_index=np.flatnonzero(free), discrepancy=disc,
-                             variance_factor=float(variance_factor))
+                             variance_factor=np.r_[np.full(td, float(variance_factor)), np.ones(model.dof - td)])
         errors = [None if ok else f"cannot be predicted: {m}" for ok, m in zip(pr.success, pr.message)]
     failed = np.array([e is not None for e in errors])
-    scores = score_rows(model.y_measured, pr.mean, pr.cov)
-    rows = _rows(sub_rec, model, pr, scores, errors)
-    return {"check": {"summary": summarise(scores, np.ones(idx.size, dtype=bool), failed), "rows": rows}}
+    rows, scores, sensors = _scored_rows(model, theta, pr, sub_rec, errors, failed)
+    every = np.ones(idx.size, dtype=bool)
+    summary = summarise(scores, every, failed)
+    if sensors is not None:
+        summary["sensors"] = sensors.summary(every, failed)
+    return {"check": {"summary": summary, "rows": rows}}
+
+
+def _scored_rows(model, theta, pr, rec, errors, failed):
+    """Every row's answer, the tool rows' scores and the body sensors' (None without), of a prediction ``pr``."""
+    td = model.tool_dof
+    tool = model.without_sensors()
+    tool_pr = PredictiveRows(pr.mean[:, :td], pr.cov[:, :td, :td], pr.success, pr.message)
+    scores = score_rows(tool.y_measured, tool_pr.mean, tool_pr.cov)
+    sensors = _sensor_scores(model, theta, pr, rec, ~failed)
+    return _rows(rec, tool, tool_pr, scores, errors, sensors), scores, sensors
 
 
 def held_out_report(answer: dict) -> str:
@@ -388,9 +495,15 @@ def held_out_report(answer: dict) -> str:
     s = c["summary"]
     if not s["n"]:
         return f"  held out        {s['n_failed']} check rows, none predicted"
-    return (f"  held out        {s['n']} check rows: position error mean {s['mean_error_position_mm']:.4g} mm, median "
-            f"{s['median_error_position_mm']:.4g}, p95 {s['p95_error_position_mm']:.4g}; inside their 90 % region "
-            f"{100 * s['coverage_90']:.1f} %")
+    lines = [f"  held out        {s['n']} check rows: position error mean {s['mean_error_position_mm']:.4g} mm, median "
+             f"{s['median_error_position_mm']:.4g}, p95 {s['p95_error_position_mm']:.4g}; inside their 90 % region "
+             f"{100 * s['coverage_90']:.1f} %"]
+    for b, t in s.get("sensors", {}).items():
+        if t["n"]:
+            lines.append(f"  held out        sensor on {b!r}: tilt error mean {1e3 * t['mean_error_tilt_rad']:.4g} mrad, "
+                         f"p95 {1e3 * t['p95_error_tilt_rad']:.4g} (sigma {1e3 * t['sigma_tilt_rad']:.3g}); inside "
+                         f"their 90 % region {100 * t['coverage_90']:.1f} %")
+    return "\n".join(lines)
 
 
 def _no_frame_to_fit(rec: Recording) -> InputError:

@@ -19,7 +19,7 @@ from .mounts import SensorMounts, sensor_base
 from .rows import SensorSet
 
 __all__ = ["SENSOR_COLUMN", "SensorMounts", "SensorSet", "attach_sensors", "sensor_readings", "sensor_rows",
-           "sensor_jacobian", "sensor_actuator_jacobian", "sensor_rotation_rows", "sensor_base"]
+           "sensor_jacobian", "sensor_actuator_jacobian", "predicted_readings", "sensor_rotation_rows", "sensor_base"]
 
 
 def attach_sensors(machine, rec, q: NDArray):
@@ -57,7 +57,9 @@ def attach_sensors(machine, rec, q: NDArray):
     frames = tuple(inner.body_frame(b) for b in bodies)
     R_nom, _ = inner.body_rotations(q, None, list(frames))
     u = np.stack([readings[b] for b in bodies], axis=1)
-    sensors = SensorSet.start(bodies, frames, u, readings.get("base"), R_nom)
+    # the nominal mountings from the fit rows only: a held-out check reading must not shape its own prediction
+    fit = np.flatnonzero(~np.asarray(rec.is_check, dtype=bool))
+    sensors = SensorSet.start(bodies, frames, u, readings.get("base"), R_nom, rows=fit)
     nz = inner.noise
     tol = ()
     for t in sensors.turn:  # two tilts and (where fitted) the turn of each sensor, then the level
@@ -81,6 +83,13 @@ def sensor_rows(machine, sensors: SensorSet, q: NDArray, theta: NDArray) -> NDAr
     chain, th_m, th_s, _ = _split(machine, theta)
     R, Jb = chain.body_rotations(q, th_m, list(sensors.frames))
     return sensors.rows(sensors.bent(R, Jb)[0], th_s)
+
+
+def predicted_readings(machine, sensors: SensorSet, q: NDArray, theta: NDArray) -> NDArray:
+    """Predicted unit readings (N, S, 3) of the sensors, each in its own frame, sign as recorded."""
+    chain, th_m, th_s, _ = _split(machine, theta)
+    R, Jb = chain.body_rotations(q, th_m, list(sensors.frames))
+    return sensors.readings(sensors.bent(R, Jb)[0], th_s)
 
 
 def sensor_jacobian(machine, sensors: SensorSet, q: NDArray, theta: NDArray) -> NDArray:

@@ -14,12 +14,19 @@ from numpy.typing import NDArray
 
 from ..errors import RecordingError
 
-__all__ = ["SENSOR_COLUMN", "sensor_readings"]
+__all__ = ["SENSOR_COLUMN", "sensor_readings", "is_body_measurement"]
 
 #: ``accel.<body>.<axis>``: a body name may itself contain dots (a URDF link name)
 SENSOR_COLUMN = re.compile(r"accel\.(?P<body>.+)\.(?P<axis>[xyz])")
 #: The same in any case (``Accel.base.X``): a sensor spelled otherwise, refused rather than read as a channel.
 _ANY_CASE = re.compile(SENSOR_COLUMN.pattern, re.IGNORECASE)
+
+
+def is_body_measurement(column: str) -> bool:
+    """Whether ``column`` is a reading of a sensor on a body other than the base: a measurement (section 8), not a
+    condition the machine runs under (a base sensor's gravity is one), so never an input that explains residuals."""
+    m = SENSOR_COLUMN.fullmatch(column)
+    return m is not None and m["body"] != "base"
 
 
 def _near_miss(col: str, bodies: tuple[str, ...]) -> str | None:

@@ -197,7 +197,8 @@ class SensorSet:
                        bend=None if self.bend is None else self.bend[idx])
 
     @classmethod
-    def start(cls, bodies, frames, readings: NDArray, base_reading: NDArray | None, body_R: NDArray) -> "SensorSet":
+    def start(cls, bodies, frames, readings: NDArray, base_reading: NDArray | None, body_R: NDArray,
+              rows=None) -> "SensorSet":
         """The sensors with their nominal mountings fixed from the data at the nominal geometry.
 
         Parameters
@@ -210,26 +211,31 @@ class SensorSet:
             Unit readings of a base sensor.
         body_R : ndarray, shape (n, S, 3, 3)
             The bodies' orientations at the nominal geometry.
+        rows : array_like of int, optional
+            The poses the nominal mountings and the sign convention are fixed
+            from (default: all): a recording's ``fit`` rows, so that held-out
+            ``check`` readings shape nothing that predicts them.
         """
         u = np.asarray(readings, dtype=float)
+        use = np.arange(u.shape[0]) if rows is None or np.size(rows) == 0 else np.asarray(rows)
         flipped = False
         if base_reading is not None:
             b = np.asarray(base_reading, dtype=float)
-            if np.median(b @ UP) < 0:  # the other sign convention (reads down): every sensor alike
+            if np.median(b[use] @ UP) < 0:  # the other sign convention (reads down): every sensor alike
                 b, u, flipped = -b, -u, True
-            R0b = smallest_rotation(_mean_dir(b), UP)
+            R0b = smallest_rotation(_mean_dir(b[use]), UP)
             g0 = b @ R0b.T
         else:
             g0 = np.broadcast_to(UP, (u.shape[0], 3)).copy()
-        E_g, gnames = tilt_pair(_mean_dir(g0))
+        E_g, gnames = tilt_pair(_mean_dir(g0[use]))
         names = []
         R0, E, turns = [], [], []
         for s, body in enumerate(bodies):
-            up_body = np.einsum("nji,nj->ni", body_R[:, s], g0)  # R_b^T g0
-            R, fit_turn = _nominal_mount(u[:, s], up_body)
+            up_body = np.einsum("nji,nj->ni", body_R[use, s], g0[use])  # R_b^T g0
+            R, fit_turn = _nominal_mount(u[use, s], up_body)
             R0.append(R)
             turns.append(fit_turn)
-            mean = _mean_dir(u[:, s])
+            mean = _mean_dir(u[use, s])
             e, mnames = tilt_pair(mean)
             E.append(np.column_stack([e, mean]))
             if fit_turn:
@@ -272,6 +278,14 @@ class SensorSet:
     def _tiled(self, arr: NDArray, n_rows: int) -> NDArray:
         reps = n_rows // arr.shape[0]
         return np.tile(arr, (reps,) + (1,) * (arr.ndim - 1)) if reps > 1 else arr
+
+    def readings(self, body_R: NDArray, theta_s: NDArray) -> NDArray:
+        """Predicted unit readings (N, S, 3), in each sensor's frame and the recording's sign, for body
+        orientations (N, S, 3, 3) and sensor parameters (k,) or (N, k): what :meth:`rows` projects."""
+        n_rows = body_R.shape[0]
+        _, g, _, _, M = self._parts(theta_s, n_rows)
+        u = np.einsum("nsij,nsj->nsi", M, np.einsum("nsji,nj->nsi", body_R, g))
+        return -u if self.flipped else u
 
     def rows(self, body_R: NDArray, theta_s: NDArray) -> NDArray:
         """Predicted rows, shape (N, 2 S), rad, for body orientations (N, S, 3, 3) and sensor parameters (k,) or (N, k)."""

@@ -221,3 +221,15 @@ def test_a_missing_discrepancy_channel_says_how_to_give_it(bumped):
     assert np.all(np.isfinite(with_temp.tool_offset(model.q, {"temp_C": 21.0})))
     with pytest.raises(InputError, match=r"discrepancy input 'q9': the machine has actuators q1..q3"):
         dc_replace(disc, inputs=tuple(["q9"] + inputs[1:])).tool_offset(model.q, {})
+
+
+def test_default_inputs_leave_out_body_sensor_readings_but_keep_the_base_sensors():
+    """A reading of a sensor on a body is a measurement of the outcome (docs/formats.md section 8), not an input."""
+    from types import SimpleNamespace
+
+    from bayescal.discrepancy.fit import default_inputs
+
+    rng = np.random.default_rng(0)
+    aux = {k: rng.normal(size=5) for k in ("accel.base.x", "accel.joint2.x", "accel.upper_link.z", "temp_C", "pose_id")}
+    model = SimpleNamespace(pose_q=np.zeros((5, 2)), aux=aux)
+    assert default_inputs(model) == ("q1", "q2", "accel.base.x", "temp_C")

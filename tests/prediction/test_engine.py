@@ -138,3 +138,28 @@ def test_calibration_std_written_is_read_back(prs3):
     C = np.array([[4.0, 1.0], [1.0, 9.0]]) * 1e-6
     back = machine_from_text(prs3.to_toml(None) + "\n" + _record_text(C, ["tool.point.x", "tool.point.y"])).calibration
     np.testing.assert_allclose(back.std, [2e-3, 3e-3])
+
+
+def test_per_component_factors_equal_one_factor_when_equal_and_act_apart(prs3):
+    """noise_factor and variance_factor per measured component (a tool's scale, a sensor's 1): equal to the scalar
+    when all are equal, and a factor on one component leaves the other components' variances alone."""
+    sim = simulate_recording(prs3, 12, seed=4, dof=3)
+    rec = replace(sim.recording, role=tuple(["fit"] * 8 + ["check"] * 4))
+    session = prepare_session(prs3, rec, frame="fit")
+    model = session.model
+    geo = np.arange(6, model.n_params)
+    C = np.diag((0.3 * model.machine.tolerance[geo]) ** 2)
+    kw = dict(machine_index=geo, session_index=np.arange(6), fit_rows=~rec.is_check)
+    a = predictive_rows(model, np.zeros(model.n_params), C, noise_factor=2.0, variance_factor=1.5, **kw)
+    b = predictive_rows(model, np.zeros(model.n_params), C, noise_factor=np.full(3, 2.0),
+                        variance_factor=np.full(3, 1.5), **kw)
+    np.testing.assert_allclose(b.cov, a.cov, rtol=1e-12)
+    # without a session fit the components' noises do not mix: a factor on z leaves x and y alone
+    kw0 = dict(machine_index=geo)
+    a0 = predictive_rows(model, np.zeros(model.n_params), C, noise_factor=2.0, variance_factor=1.5, **kw0)
+    c = predictive_rows(model, np.zeros(model.n_params), C, noise_factor=[2.0, 2.0, 50.0],
+                        variance_factor=[1.5, 1.5, 1.0], **kw0)
+    np.testing.assert_allclose(c.cov[:, :2, :2], a0.cov[:, :2, :2], rtol=1e-12)
+    sig2 = model.row_sigma[:, 2] ** 2
+    np.testing.assert_allclose(c.cov[:, 2, 2], (a0.cov[:, 2, 2] - 3.0 * sig2) / 1.5 + 50.0 * sig2, rtol=1e-10)
+    np.testing.assert_allclose(c.cov[:, :2, 2], a0.cov[:, :2, 2] / np.sqrt(1.5), rtol=1e-10)
