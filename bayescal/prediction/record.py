@@ -206,8 +206,19 @@ def record_from_result(machine, names_all, free, covariance, *, noise_scale: flo
     if not sel or not np.all(np.isfinite(C[np.ix_(sel, sel)])):
         return None
     Cs = C[np.ix_(sel, sel)]
-    return CalibrationRecord(tuple(all_names[i] for i in sel), 0.5 * (Cs + Cs.T), float(noise_scale), method,
-                             float(variance_factor))
+    names = [all_names[i] for i in sel]
+    if method == "ls" and not extra_names:  # (a discrepancy needs a prior: least squares carries none)
+        # least squares fixes the parameters it cannot tell from the free ones (the gauge,
+        # bayescal.identifiability): the free ones absorbed their effect, so a prediction does not depend on their
+        # true values and they are exact given that choice. Left out, predict would give them their tolerance
+        # (covariance_with_prior) and count the absorbed effect twice (the 3-PRS example's z std 0.034 -> 0.060 mm)
+        from ..machines.framed import is_frame_parameter
+
+        fixed = [n for n in machine.layout.names if n not in set(names) and not is_frame_parameter(n)
+                 and n in set(names_all)]
+        names += fixed
+        Cs = np.pad(Cs, ((0, len(fixed)), (0, len(fixed))))
+    return CalibrationRecord(tuple(names), 0.5 * (Cs + Cs.T), float(noise_scale), method, float(variance_factor))
 
 
 def unknown_parameters_message(path: str, missing) -> str:

@@ -70,3 +70,18 @@ def test_no_tolerance_for_a_missing_parameter_is_refused():
     assert missing == ("b",)
     with pytest.raises(MachineFileError, match=r"m.toml: key 'calibration.parameters': .*\(b\)"):
         covariance_with_prior(rec, ["a", "b"], [1.0, 0.0], "m.toml")
+
+
+def test_least_squares_records_its_gauge_fixed_parameters_as_exact(tmp_path):
+    """The parameters least squares fixed (the gauge: the free ones absorbed them) are in its record at zero
+    variance, so predict does not give them their tolerance and count their effect twice."""
+    cal = tmp_path / "ls.toml"
+    from bayescal.cli import main
+
+    # (least squares on the example is judged not plausible, exit 1; --force writes it all the same)
+    main(["identify", str(ROOT / "examples" / "prs3" / "recording.csv"), "--machine", str(PRS3_FILE),
+          "--method", "ls", "--write-machine", str(cal), "--quiet", "--force"])
+    m = load_machine(cal)
+    assert set(m.calibration.names) == set(m.layout.names)
+    res = predict_recording(m, read_recording(ROOT / "examples" / "prs3" / "recording.csv"))
+    assert not any("tolerances" in n for n in res.notes)

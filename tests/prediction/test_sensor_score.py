@@ -108,7 +108,11 @@ def test_predicted_std_is_the_covariance_propagated_by_finite_differences():
     C = (A @ A.T / len(ROT) + np.eye(len(ROT))) * (2e-4) ** 2 / 2
     truth, tool = _true_readings(QS)
     rec = _recording(truth, tool)
-    cal = calibration_toml(CalibrationRecord(tuple(ROT), C, 1.0, "map"))
+    # the record holds every parameter: the others exact (a record that lacks one gives it its tolerance)
+    idx = [names.index(n) for n in ROT]
+    C_all = np.zeros((len(names), len(names)))
+    C_all[np.ix_(idx, idx)] = C
+    cal = calibration_toml(CalibrationRecord(tuple(names), C_all, 1.0, "map"))
     res = predict_recording(machine_from_text(base.to_toml(None) + "\n" + cal), rec)
     h = 1e-6
 
