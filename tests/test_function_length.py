@@ -28,7 +28,6 @@ ALLOWED = {
     "design/exact_decision.py:exact_design_below": 92,
     "bayes/tool_grid.py:tool_grid": 92,
     "bayes/mcmc.py:sample_posterior": 92,
-    "prediction/recording.py:predict_recording": 91,
     "design/relations.py:plan_relations": 91,
     "prediction/engine.py:predictive_rows": 89,
     "bayes/priors.py:empirical_bayes_map": 87,

@@ -205,25 +205,13 @@ def diagnose(
             return diagnose(machine, recording, **again, _noise=s.noise)
     again["_noise"] = s.noise  # a rerun (outliers retested) keeps the noise tested once
     cands, skipped = _candidates(s, g)
-    # excluded poses are never held out: their residual would be the gross error, not the model's
-    perm = s.kept[np.random.default_rng(seed).permutation(s.kept.size)]
-    folds = [np.sort(perm[i::n_folds]) for i in range(n_folds)]
+    folds = _folds(s, seed, n_folds)
     cv0 = _cv_rms(s.model, [], folds, g.fit0.theta, None)
     single = _single_trials(s.model, cands, skipped, folds, g.fit0)
     selected, cur_fit, cur_cv = _forward_selection(s, cands, single, folds, g.fit0, cv0)
     v = _verdict(s, g, selected, cur_fit)
-    if s.tilt_scale != 1.0 and selected and _tilt is None:
-        # the geometry-only fit's tilt misfit may be the physics now modelled, not the sensors' noise: diagnose
-        # again at the scale the tilt rows support with the effects (bayescal/diagnose/tilt_noise.py)
-        tilt = tilt_scale_with_effects(s.model, [(c.effect, c.features) for c in selected], cur_fit, s.tilt_scale)
-        if tilt < 0.5 * s.tilt_scale:
-            rerun = diagnose(machine, recording, **{**again, "_tilt": tilt})
-            # kept where the sensors at their own noise still support what was found; an effect that the precise
-            # tilt rows push out of its physical range (unknown link masses fitted at the links' middles) is the
-            # effect's simplification showing, and the diagnosis at the first scale stands
-            if set(rerun.selected) >= {c.effect.name for c in selected}:
-                return rerun
-
+    if _tilt is None and (rerun := _tilt_rerun(s, selected, cur_fit, machine, recording, again)) is not None:
+        return rerun
     if s.screen is not None and _screen is None and selected:
         # outliers are judged against the final model; if that names other poses, diagnose once more
         final = retest_with_effects(s.base_model, [(c.effect, c.features) for c in selected], cur_fit, s.screen)
@@ -245,6 +233,30 @@ def diagnose(
             return diagnose(machine, recording, **again, _screen=final, _disc_retested=True)
     found = _Found(cands, tuple(skipped), single, selected, cur_fit, cv0, cur_cv, disc_trial, final_model)
     return _diagnosis(s, g, v, found, recording, seed)
+
+
+def _folds(s: "_Setup", seed: int, n_folds: int) -> list[NDArray]:
+    """The cross-validation's folds of poses, seeded; excluded poses are never held out (their residual would be
+    the gross error, not the model's)."""
+    perm = s.kept[np.random.default_rng(seed).permutation(s.kept.size)]
+    return [np.sort(perm[i::n_folds]) for i in range(n_folds)]
+
+
+def _tilt_rerun(s: "_Setup", selected, cur_fit: EffectFit, machine, recording, again: dict):
+    """The diagnosis again at the tilt rows' own scale with the effects selected, where it keeps them; else None.
+
+    The geometry-only fit's tilt misfit may be the physics now modelled, not the sensors' noise
+    (bayescal/diagnose/tilt_noise.py).  The rerun is kept where the sensors at their own noise still support
+    what was found; an effect that the precise tilt rows push out of its physical range (unknown link masses
+    fitted at the links' middles) is the effect's simplification showing, and the first diagnosis stands.
+    """
+    if s.tilt_scale == 1.0 or not selected:
+        return None
+    tilt = tilt_scale_with_effects(s.model, [(c.effect, c.features) for c in selected], cur_fit, s.tilt_scale)
+    if tilt >= 0.5 * s.tilt_scale:
+        return None
+    rerun = diagnose(machine, recording, **{**again, "_tilt": tilt})
+    return rerun if set(rerun.selected) >= {c.effect.name for c in selected} else None
 
 
 def _noise_tested(s: "_Setup", g: "_Geometric") -> "_Setup":

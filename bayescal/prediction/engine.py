@@ -68,6 +68,24 @@ class PredictiveRows:
         return np.sqrt(np.clip(np.einsum("nii->ni", self.cov), 0.0, None))
 
 
+def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArray) -> tuple[NDArray, NDArray]:
+    """``(G, extra)``: the parameters' Jacobian less what the session's refit absorbs, and the session estimate's noise.
+
+    ``Js`` (n, dof, s) of the session's parameters, ``Jm`` (n, dof, k) of the calibrated ones, ``sig`` the rows'
+    sigma, ``c`` the per-component noise factor, ``fr`` the rows the session is fitted on.
+    """
+    dof = Js.shape[1]
+    rows = int(fr.sum()) * dof
+    As = (Js[fr] / sig[fr][:, :, None]).reshape(rows, Js.shape[2])
+    Am = (Jm[fr] / sig[fr][:, :, None]).reshape(rows, Jm.shape[2])  # explicit rows: no machine parameter is fine
+    Minv = np.linalg.pinv(As.T @ As)
+    G = Jm - Js @ (Minv @ (As.T @ Am))
+    # the session's estimate's own noise: Minv A^T diag(c) A Minv (c Minv for one factor on every row)
+    c_rows = np.tile(c, int(fr.sum()))
+    Cs = Minv @ ((As.T * c_rows) @ As) @ Minv
+    return G, (Js @ Cs) @ np.swapaxes(Js, 1, 2)
+
+
 def predictive_rows(
     model,
     theta: NDArray,
@@ -143,22 +161,10 @@ def predictive_rows(
     sig = np.asarray(sub.row_sigma, dtype=float)
     c = np.broadcast_to(np.asarray(noise_factor, dtype=float), (dof,))
     noise = np.einsum("ni,ij->nij", sig**2 * c, np.eye(dof))
-    G = Jm
-    extra = np.zeros_like(D)
+    G, extra = Jm, np.zeros_like(D)
     if session_index is not None and np.size(session_index):
-        s_idx = np.asarray(session_index, dtype=int)
-        Js = J[:, :, s_idx]
         fr = np.ones(sub.n_poses, dtype=bool) if fit_rows is None else np.asarray(fit_rows, dtype=bool)[ok]
-        rows = int(fr.sum()) * dof
-        As = (Js[fr] / sig[fr][:, :, None]).reshape(rows, s_idx.size)
-        Am = (Jm[fr] / sig[fr][:, :, None]).reshape(rows, Jm.shape[2])  # explicit rows: no machine parameter is fine
-        Minv = np.linalg.pinv(As.T @ As)
-        K = Minv @ (As.T @ Am)
-        G = Jm - Js @ K
-        # the session's estimate's own noise: Minv A^T diag(c) A Minv (c Minv for one factor on every row)
-        c_rows = np.tile(c, int(fr.sum()))
-        Cs = Minv @ ((As.T * c_rows) @ As) @ Minv
-        extra = (Js @ Cs) @ np.swapaxes(Js, 1, 2)
+        G, extra = _session_terms(J[:, :, np.asarray(session_index, dtype=int)], Jm, sig, c, fr)
     # batched products (einsum over two contracted indices would loop in Python-free but unblocked C)
     k = np.sqrt(np.broadcast_to(np.asarray(variance_factor, dtype=float), (dof,)))
     cov_ok = np.outer(k, k) * ((G @ C) @ np.swapaxes(G, 1, 2) + extra + D + noise)
