@@ -2,7 +2,7 @@
 
 The front door (:mod:`bayescal.api`): ``load``, ``calibrate``, ``predict``,
 ``grid``, ``diagnose``, ``plan``, ``compare``, ``simulate_session``,
-``load_klipper``: the command line's own policy as functions.  The central object
+``compensate``, ``load_klipper``: the command line's own policy as functions.  The central object
 is a :class:`MeasurementModel` ``y = h(q, theta)`` with its analytic
 Jacobian; every solver, filter, sampler and study consumes it.
 
@@ -40,6 +40,7 @@ __all__ = [
     "plan",
     "compare",
     "simulate_session",
+    "compensate",
     "plan_next_session",
 ]
 
@@ -48,7 +49,7 @@ _lazy_getattr, __dir__ = lazy_attributes(__name__, {
     "KINDS": ".machines", "Machine": ".machines", "Prs3": ".machines", "Raspm": ".machines",
     "load_machine": ".machines.files", "MeasurementModel": ".measurement",
     "load": ".api", "load_klipper": ".api", "calibrate": ".api", "predict": ".api", "grid": ".api", "plan": ".api",
-    "simulate_session": ".api",
+    "simulate_session": ".api", "compensate": ".api",
     "plan_next_session": ".api",
 })
 

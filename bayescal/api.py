@@ -28,7 +28,7 @@ from .io.recording import Recording
 from .machines.base import Machine
 
 __all__ = ["load", "load_klipper", "calibrate", "predict", "grid", "diagnose", "plan", "compare", "simulate_session",
-           "plan_next_session"]
+           "compensate", "plan_next_session"]
 
 
 def _machine(machine) -> Machine:
@@ -317,6 +317,26 @@ def simulate_session(machine: str | os.PathLike | Machine, n: int | None = None,
     from .simulated import simulate_files
 
     return simulate_files(machine, n, **options)
+
+
+def compensate(**options):
+    """Build a bilinear compensation grid from measured errors (or read one) and evaluate it, as ``bayescal compensate``.
+
+    Parameters
+    ----------
+    **options
+        Of :func:`bayescal.compensation.compensate_files`: ``errors`` (an x,z,ex,ez table, mm) with
+        ``x_range``, ``z_range`` (mm), ``n``, ``node_std`` (mm); or ``grid`` (a grid CSV); and ``evaluate``
+        (fresh points' errors).
+
+    Returns
+    -------
+    bayescal.compensation.Compensation
+        ``grid`` (``report()``, :func:`bayescal.compensation.write_grid`), ``evaluation`` (what ``--json`` writes).
+    """
+    from .compensation import compensate_files
+
+    return compensate_files(**options)
 
 
 def plan_next_session(machine: str | os.PathLike | Machine, recording, n: int, *, condition: str | None = None,

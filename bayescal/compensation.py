@@ -34,7 +34,8 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import InputError, RecordingError
 from .io.answers import write_text_atomic
 
-__all__ = ["CompensationGrid", "build_grid", "read_grid", "write_grid", "table_interpolator", "evaluate_grid", "GRID_COLUMNS"]
+__all__ = ["CompensationGrid", "build_grid", "read_grid", "write_grid", "table_interpolator", "evaluate_grid", "GRID_COLUMNS",
+           "Compensation", "compensate_files", "read_error_table"]
 
 GRID_COLUMNS = ("i", "j", "x", "z", "ex", "ez", "std_ex", "std_ez")
 
@@ -329,3 +330,77 @@ def read_grid(path: str | os.PathLike, *, text: str | None = None) -> Compensati
     except InputError as exc:
         raise RecordingError(path, None, None, str(exc)) from None
     return grid
+
+
+def read_error_table(path: str | os.PathLike) -> NDArray:
+    """A table of measured residual errors: a CSV with the header ``x,z,ex,ez`` (mm), one point per row.
+
+    Returns
+    -------
+    ndarray, shape (n, 4)
+        ``x, z, ex, ez`` per point (mm).
+    """
+    from .errors import RecordingError
+    from .io.recording import parse_table, read_csv_rows
+
+    cols = ["x", "z", "ex", "ez"]
+    header, _, rows = read_csv_rows(str(path), None, "a CSV x,z,ex,ez")
+    if header != cols:
+        raise RecordingError(str(path), 1, None, "expected the header x,z,ex,ez")
+    if not rows:
+        raise RecordingError(str(path), 2, None, "no data rows")
+    return parse_table(str(path), cols, rows)
+
+
+@dataclass(frozen=True)
+class Compensation:
+    """What ``bayescal compensate`` computes: a grid (built or read) and, with fresh points, its evaluation.
+
+    Attributes
+    ----------
+    grid : CompensationGrid
+    built : bool
+        Built from an error table (else read from a grid file).
+    evaluation : dict or None
+        :func:`evaluate_grid` on the fresh points (what ``--json`` writes).
+    """
+
+    grid: CompensationGrid
+    built: bool
+    evaluation: dict | None
+
+
+def compensate_files(*, errors: str | os.PathLike | None = None, grid: str | os.PathLike | None = None,
+                     evaluate: str | os.PathLike | None = None, x_range=None, z_range=None, n: int = 5,
+                     node_std: float | None = None) -> Compensation:
+    """Build a BIC grid from measured errors, or read one, and evaluate it on fresh points, as ``bayescal compensate``.
+
+    Parameters
+    ----------
+    errors : path, optional
+        Error table (:func:`read_error_table`) to build the grid from, over ``x_range`` and ``z_range``
+        ((min, max), mm) with ``n`` nodes per axis and ``node_std`` (mm) the measured nodes' one-sigma.
+    grid : path, optional
+        A grid CSV to evaluate instead (module docstring).
+    evaluate : path, optional
+        Error table of fresh points: their errors before and after compensation.
+
+    Returns
+    -------
+    Compensation
+    """
+    from .errors import InputError
+
+    if errors is not None and grid is not None:
+        raise InputError("errors (--errors) builds a grid and grid (--grid) reads one; give one of them")
+    if errors is not None:
+        if not x_range or not z_range:
+            raise InputError("x_range and z_range (--x-range, --z-range) are required with errors (--errors)")
+        table = read_error_table(errors)
+        g = build_grid(x_range, z_range, table_interpolator(str(errors), table), n=n, std=node_std)
+    elif grid is not None:
+        g = read_grid(grid)
+    else:
+        raise InputError("give errors (--errors, build a grid) or grid (--grid, evaluate one)")
+    ev = evaluate_grid(g, read_error_table(evaluate), str(evaluate)) if evaluate is not None else None
+    return Compensation(g, errors is not None, ev)

@@ -533,3 +533,26 @@ def test_simulate_at_a_plan_and_its_refusals(tmp_path):
         n = options.pop("n", None)
         with pytest.raises(bayescal.InputError, match=match):
             bayescal.simulate_session(PRS3_FILE, n, **options)
+
+
+def test_compensate_gives_the_grid_and_json_bayescal_compensate_writes(tmp_path):
+    from bayescal.compensation import write_grid
+    from bayescal.io.answers import json_text
+
+    X, Z = np.meshgrid(np.linspace(-300, 300, 7), np.linspace(-200, 200, 7))
+    f = lambda x, z: (1e-4 * x + 2e-4 * z, -1e-4 * x * z / 200)  # noqa: E731
+    rows = ["x,z,ex,ez"] + [f"{x},{z},{f(x, z)[0]},{f(x, z)[1]}" for x, z in zip(X.ravel(), Z.ravel())]
+    (tmp_path / "e.csv").write_text("\n".join(rows) + "\n")
+    xs, zs = np.linspace(-250, 250, 9), np.linspace(-150, 150, 9)
+    (tmp_path / "f.csv").write_text("\n".join(["x,z,ex,ez"] + [f"{x},{z},{f(x, z)[0]},{f(x, z)[1]}"
+                                                             for x, z in zip(xs, zs)]) + "\n")
+    c = bayescal.compensate(errors=tmp_path / "e.csv", x_range=(-300, 300), z_range=(-200, 200), n=4,
+                            node_std=0.001, evaluate=tmp_path / "f.csv")
+    assert main(["compensate", "--errors", str(tmp_path / "e.csv"), "--x-range", "-300", "300", "--z-range", "-200",
+                 "200", "--n", "4", "--node-std", "0.001", "--out", str(tmp_path / "g.csv"), "--evaluate",
+                 str(tmp_path / "f.csv"), "--json", str(tmp_path / "a.json")]) == 0
+    write_grid(tmp_path / "mine.csv", c.grid)
+    assert (tmp_path / "mine.csv").read_text() == (tmp_path / "g.csv").read_text()
+    assert json_text(c.evaluation) == (tmp_path / "a.json").read_text()
+    with pytest.raises(bayescal.InputError, match=r"errors \(--errors\) builds a grid and grid \(--grid\) reads one"):
+        bayescal.compensate(errors=tmp_path / "e.csv", grid=tmp_path / "g.csv")

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-
-from ..compensation import build_grid, evaluate_grid, read_grid, table_interpolator, write_grid
-from ..errors import InputError
 from . import SUMMARIES
 from .outputs import add_output_options, write_json, write_report
 
@@ -46,38 +43,20 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _table(path):
-    from ..errors import RecordingError
-    from ..io.recording import parse_table, read_csv_rows
-
-    cols = ["x", "z", "ex", "ez"]
-    header, _, rows = read_csv_rows(str(path), None, "a CSV x,z,ex,ez")
-    if header != cols:
-        raise RecordingError(path, 1, None, "expected the header x,z,ex,ez")
-    if not rows:
-        raise RecordingError(path, 2, None, "no data rows")
-    return parse_table(str(path), cols, rows)
-
-
 def run(args) -> int:
+    """The library's :func:`bayescal.compensation.compensate_files`, written and printed."""
+    from ..compensation import compensate_files, write_grid
     from . import EXIT_OK
 
-    if args.errors:
-        if not args.x_range or not args.z_range:
-            raise InputError("--x-range and --z-range are required with --errors")
-        t = _table(args.errors)
-        grid = build_grid(args.x_range, args.z_range, table_interpolator(args.errors, t), n=args.n, std=args.node_std)
+    c = compensate_files(errors=args.errors, grid=args.grid, evaluate=args.evaluate, x_range=args.x_range,
+                         z_range=args.z_range, n=args.n, node_std=args.node_std)
+    if c.built:
         if args.out:  # before printing: a closed stdout (`| head`) must not cost the grid
-            write_grid(args.out, grid)
-        print(grid.report())
-    elif args.grid:
-        grid = read_grid(args.grid)
-    else:
-        raise InputError("give --errors (build a grid) or --grid (evaluate one)")
-    ans = None
-    if args.evaluate:
-        ans = evaluate_grid(grid, _table(args.evaluate), args.evaluate)
+            write_grid(args.out, c.grid)
+        print(c.grid.report())
+    ans = c.evaluation
+    if ans is not None:
         write_json(args, ans)
         print(f"fresh points: max |error| {ans['max_before_mm']:.4f} mm -> {ans['max_after_mm']:.4f} mm after BIC")
-    write_report(args, "compensate", grid, evaluation=ans)
+    write_report(args, "compensate", c.grid, evaluation=ans)
     return EXIT_OK
