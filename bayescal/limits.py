@@ -135,9 +135,9 @@ def _budget_from_env() -> float | None:
         value = float(text[: len(text) - len(unit)]) * _SUFFIX[unit]
     except ValueError:
         value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise InputError(f"environment variable {BUDGET_ENV}: expected a positive number of bytes (suffix K, M or "
-                         f"G allowed, e.g. 2G), got {text!r}")
+    if not (math.isfinite(value) and value >= 1):  # 1e-300 was taken, and requests refused for "0 bytes set"
+        raise InputError(f"environment variable {BUDGET_ENV}: expected a positive number of bytes, at least 1 (suffix "
+                         f"K, M or G allowed, e.g. 2G), got {text!r}")
     return value
 
 
