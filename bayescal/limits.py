@@ -10,7 +10,8 @@ message that states the limit (docs/cli.md, "Limits"):
   :data:`SIGMA_ANGLE_RANGE` rad (:func:`sigma_problem`): a sigma of 1e-200
   divides every residual into overflow, one of a metre is no instrument;
 * an auxiliary channel of known meaning is at least its
-  :data:`AUX_LOWER_BOUNDS` (no negative payload or elapsed time);
+  :data:`AUX_LOWER_BOUNDS` (no negative payload or elapsed time) and at most
+  its :data:`AUX_UPPER_BOUNDS` (no payload of 1e300 kg);
 * a number in a machine file (a length, an angle, a tolerance, an effect's
   value) is at most :data:`MAX_FILE_NUMBER` in magnitude
   (:func:`file_number_problem`): 1e300 is a typo that overflows the
@@ -35,7 +36,9 @@ from .errors import InputError
 
 __all__ = [
     "SEED_MAX", "check_seed", "SIGMA_POSITION_RANGE", "SIGMA_ANGLE_RANGE", "sigma_problem", "memory_budget",
-    "check_memory", "check_count", "AUX_LOWER_BOUNDS", "BUDGET_ENV", "FIT_COPIES", "fit_memory", "check_fit_memory", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "LAM_RANGE", "lam_problem", "check_lam",
+    "check_memory", "check_count", "AUX_LOWER_BOUNDS", "AUX_UPPER_BOUNDS", "BUDGET_ENV", "FIT_COPIES", "fit_memory",
+    "check_fit_memory", "finite_real", "MAX_FILE_NUMBER", "file_number_problem", "MAX_LAM", "LAM_RANGE", "lam_problem",
+    "check_lam",
 ]
 
 #: Largest random seed (numpy's legacy RandomState, which emcee draws from, takes 32 bits).
@@ -62,6 +65,9 @@ def file_number_problem(value: float) -> str | None:
 #: The smallest value of an auxiliary channel that is physics: no negative payload, nothing below absolute zero,
 #: no negative elapsed time (``grid --aux`` values and the recording's channels, docs/formats.md section E5).
 AUX_LOWER_BOUNDS = {"payload_kg": 0.0, "temp_C": -273.15, "time_s": 0.0}
+#: The largest value of an auxiliary channel that is a calibration's physics: a payload of 100 t, a machine at
+#: 1000 degC (a payload of 1e300 kg passed, and the effects' fits died in an eigenvalue solver's traceback).
+AUX_UPPER_BOUNDS = {"payload_kg": 1e5, "temp_C": 1e3}
 
 
 #: Largest ridge parameter: the prior's std is the tolerances over sqrt(lam), so 1e12 already holds every
@@ -151,9 +157,9 @@ def _budget_from_env() -> float | None:
         value = float(text[: len(text) - len(unit)]) * _SUFFIX[unit]
     except ValueError:
         value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise InputError(f"environment variable {BUDGET_ENV}: expected a positive number of bytes (suffix K, M or "
-                         f"G allowed, e.g. 2G), got {text!r}")
+    if not (math.isfinite(value) and value >= 1):  # 1e-300 was taken, and requests refused for "0 bytes set"
+        raise InputError(f"environment variable {BUDGET_ENV}: expected a positive number of bytes, at least 1 (suffix "
+                         f"K, M or G allowed, e.g. 2G), got {text!r}")
     return value
 
 

@@ -35,11 +35,30 @@ PROGRESS_DELAY = 5.0
 #: Environment variable that turns the command line's progress lines off (``off``, ``0``, ``no`` or ``false``):
 #: for scripts that compare what a command writes on stderr from run to run.
 PROGRESS_ENV = "BAYESCAL_PROGRESS"
+#: Its values, case and surrounding blanks aside (unset or empty: on).
+PROGRESS_OFF = ("off", "0", "no", "false")
+PROGRESS_ON = ("", "on", "1", "yes", "true")
 
 
 def progress_wanted() -> bool:
-    """Whether :data:`PROGRESS_ENV` leaves the progress lines on (it does unless it says off)."""
-    return os.environ.get(PROGRESS_ENV, "").strip().lower() not in ("off", "0", "no", "false")
+    """Whether :data:`PROGRESS_ENV` leaves the progress lines on (unset, empty or on) or turns them off.
+
+    Raises
+    ------
+    InputError
+        For any other value: a typo (``BAYESCAL_PROGRESS=of``) left the lines on, silently.
+    """
+    from .errors import InputError
+
+    raw = os.environ.get(PROGRESS_ENV, "")
+    value = raw.strip().lower()
+    if value in PROGRESS_OFF:
+        return False
+    if value in PROGRESS_ON:
+        return True
+    shown = raw if len(raw) <= 40 else raw[:40] + "..."
+    raise InputError(f"environment variable {PROGRESS_ENV}: expected off, 0, no or false (no progress lines) or on, "
+                     f"1, yes or true, got {shown!r}")
 
 
 def report(message: str | Callable[[], str]) -> None:

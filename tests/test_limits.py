@@ -62,3 +62,18 @@ def test_ridge_parameter_range(lam, ok):
     from bayescal.limits import lam_problem
 
     assert (lam_problem(lam) is None) == ok
+
+
+@pytest.mark.parametrize("value", ["abc", "-1", "0", "1e400", "inf", "nan", "1e-300", "0.5", "100MB", "0x10"])
+def test_a_memory_budget_that_is_no_size_is_refused(monkeypatch, value):
+    from bayescal.errors import InputError
+
+    monkeypatch.setenv("BAYESCAL_MEMORY_BUDGET", value)
+    with pytest.raises(InputError, match="environment variable BAYESCAL_MEMORY_BUDGET: expected a positive number"):
+        memory_budget()
+
+
+@pytest.mark.parametrize("value,size", [("1", 1.0), (" 2G ", 2.0 * 2**30), ("2g", 2.0 * 2**30), ("1.5K", 1536.0)])
+def test_a_memory_budget_that_is_a_size_is_taken(monkeypatch, value, size):
+    monkeypatch.setenv("BAYESCAL_MEMORY_BUDGET", value)
+    assert memory_budget() == size

@@ -5,8 +5,11 @@ from __future__ import annotations
 import io
 import time
 
+import pytest
+
 import bayescal
 from bayescal.identify import identify
+from bayescal import progress
 from bayescal.progress import StderrProgress, report, reporting
 
 from .conftest import PRS3_FILE, ROOT
@@ -78,3 +81,25 @@ def test_the_command_line_writes_lines_unless_quiet(monkeypatch, capsys):
     monkeypatch.setenv(progress.PROGRESS_ENV, "off")
     assert main(args) == 0
     assert "Gauss-Newton" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value,wanted", [("off", False), (" FALSE ", False), ("0", False), ("", True), ("on", True),
+                                          ("Yes", True)])
+def test_progress_env_values(monkeypatch, value, wanted):
+    monkeypatch.setenv(progress.PROGRESS_ENV, value)
+    assert progress.progress_wanted() is wanted
+
+
+@pytest.mark.parametrize("value", ["abc", "of", "-1", "1e400", "a\nb"])
+def test_an_unknown_progress_value_is_refused_in_one_line(monkeypatch, capsys, value):
+    from bayescal.cli import main
+    from bayescal.errors import InputError
+    from tests.conftest import PRS3_FILE
+
+    monkeypatch.setenv(progress.PROGRESS_ENV, value)
+    with pytest.raises(InputError, match="BAYESCAL_PROGRESS"):
+        progress.progress_wanted()
+    assert main(["simulate", "--machine", str(PRS3_FILE), "--poses", "3", "--seed", "1", "--out", "/nonexistent/x.csv",
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "environment variable BAYESCAL_PROGRESS" in err

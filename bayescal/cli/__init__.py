@@ -108,13 +108,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from ..io.safe_paths import run_scope
         from ..progress import reporting
-        from .outputs import check_option_values, check_run_paths, progress_sink
+        from .outputs import check_option_values, check_run_paths, progress_sink, run_paths
 
         # option values, output paths and formats before any computation; within the run no
         # output may replace a file it read (bayescal.io.safe_paths)
         check_option_values(args)
         check_run_paths(args)
-        with warnings.catch_warnings(), run_scope(), reporting(progress_sink(args)):
+        # ... and an input found only by reading another (a hybrid's module, a URDF) that is an output: when read
+        with warnings.catch_warnings(), run_scope(run_paths(args)[1]), reporting(progress_sink(args)):
             # numerical trouble is reported in the result and the exit code, not as a warning dump
             warnings.simplefilter("ignore")
             return int(args.func(args))

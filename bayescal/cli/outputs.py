@@ -110,9 +110,12 @@ def check_run_paths(args: argparse.Namespace) -> None:
 
 
 def check_option_values(args: argparse.Namespace) -> None:
-    """Values every command refuses alike: an empty value, a seed outside 0..2**32-1, a number that is NaN or infinite."""
+    """Values every command refuses alike: an empty value, a seed outside 0..2**32-1, a number that is NaN or infinite,
+    a ``BAYESCAL_PROGRESS`` that says neither on nor off."""
     from ..limits import check_seed
+    from ..progress import progress_wanted
 
+    progress_wanted()  # BAYESCAL_PROGRESS: a value it does not know is refused, also when no line would be written
     _check_no_empty_value(getattr(args, "argv", None) or [])
     if getattr(args, "seed", None) is not None:
         check_seed(args.seed, "--seed")

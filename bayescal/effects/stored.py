@@ -623,9 +623,10 @@ class StoredEffectsTransform:
 def parse_aux_values(items: list[str] | None) -> dict[str, float]:
     """``["payload_kg=5", "temp_C=25"]`` -> ``{"payload_kg": 5.0, "temp_C": 25.0}`` (the ``--aux NAME=VALUE`` options).
 
-    Values are bounded (:data:`AUX_LOWER_BOUNDS` from below, :data:`~bayescal.limits.MAX_FILE_NUMBER` in magnitude).
+    Values are bounded (:data:`AUX_LOWER_BOUNDS` from below, :data:`~bayescal.limits.AUX_UPPER_BOUNDS` from above,
+    other channels :data:`~bayescal.limits.MAX_FILE_NUMBER` in magnitude).
     """
-    from ..limits import MAX_FILE_NUMBER
+    from ..limits import AUX_UPPER_BOUNDS, MAX_FILE_NUMBER
 
     out: dict[str, float] = {}
     for item in items or []:
@@ -640,9 +641,10 @@ def parse_aux_values(items: list[str] | None) -> dict[str, float]:
         if name in out:
             raise InputError(f"--aux: channel {name} given twice")
         low = AUX_LOWER_BOUNDS.get(name, -MAX_FILE_NUMBER)
-        if not low <= v <= MAX_FILE_NUMBER:
+        high = AUX_UPPER_BOUNDS.get(name, MAX_FILE_NUMBER)
+        if not low <= v <= high:
             # payload_kg=-1e6 or 1e300 moved the drives off the machine, and the error blamed the grid's --range
-            raise InputError(f"--aux {item}: expected {name} from {low:g} to {MAX_FILE_NUMBER:g}")
+            raise InputError(f"--aux {item}: expected {name} from {low:g} to {high:g}")
         out[name] = v
     return out
 

@@ -401,7 +401,8 @@ def check_channels(path: str, aux: dict, station=None, lines=None) -> None:
 
     A channel of :data:`bayescal.limits.AUX_LOWER_BOUNDS` below its bound
     (a negative ``payload_kg`` or ``time_s``, a ``temp_C`` below absolute
-    zero), and a ``time_s`` that goes backwards down the rows of a station:
+    zero) or above its :data:`~bayescal.limits.AUX_UPPER_BOUNDS` bound (a
+    ``payload_kg`` of 1e300), and a ``time_s`` that goes backwards down the rows of a station:
     rows are in the order they were measured (section 2), so the elapsed
     time cannot fall.  RecordingError naming the line and column.
 
@@ -414,7 +415,7 @@ def check_channels(path: str, aux: dict, station=None, lines=None) -> None:
     lines : array_like of int, optional
         The CSV line of each row (default: 2, 3, ...).
     """
-    from ..limits import AUX_LOWER_BOUNDS
+    from ..limits import AUX_LOWER_BOUNDS, AUX_UPPER_BOUNDS
 
     n = len(next(iter(aux.values()))) if aux else 0
     lines = np.arange(2, n + 2) if lines is None else np.asarray(lines, dtype=int)
@@ -424,6 +425,12 @@ def check_channels(path: str, aux: dict, station=None, lines=None) -> None:
             i = int(bad[0])
             raise RecordingError(path, int(lines[i]), name, f"{v[i]:g} is below {low:g}; expected {_MEANING[name]} "
                                  f">= {low:g}")
+    for name, high in AUX_UPPER_BOUNDS.items():
+        v = aux.get(name)
+        if v is not None and (bad := np.flatnonzero(np.asarray(v) > high)).size:
+            i = int(bad[0])
+            raise RecordingError(path, int(lines[i]), name, f"{v[i]:g} is above {high:g}; expected {_MEANING[name]} "
+                                 f"from {AUX_LOWER_BOUNDS[name]:g} to {high:g}")
     t = aux.get("time_s")
     if t is None:
         return

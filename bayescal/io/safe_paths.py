@@ -90,6 +90,7 @@ class _Run:
 
     inputs: dict = field(default_factory=dict)  # (st_dev, st_ino) -> the path as given
     stdin: bytes | None = None
+    outputs: dict = field(default_factory=dict)  # (st_dev, st_ino) -> (label, path) of the run's declared outputs
 
 
 _RUN: contextvars.ContextVar[_Run | None] = contextvars.ContextVar("bayescal_run", default=None)
@@ -98,9 +99,24 @@ _PROCESS = _Run()
 
 
 @contextlib.contextmanager
-def run_scope() -> Iterator[None]:
-    """Within this block every input read is remembered and no output may replace it (the command line's run)."""
-    token = _RUN.set(_Run())
+def run_scope(outputs: Mapping[str, str | os.PathLike] | None = None) -> Iterator[None]:
+    """Within this block every input read is remembered and no output may replace it (the command line's run).
+
+    ``outputs`` (label -> path, as for :func:`check_outputs`) are the files the run will write: an input
+    read within the block that *is* one of them (a hybrid's module file, the URDF a machine file names,
+    any file found only by reading another) is refused when it is read, before any computation, instead
+    of when the output is written.
+    """
+    run = _Run()
+    for label, path in (outputs or {}).items():
+        if path is None or not str(path) or _is_stdin(str(path)):
+            continue
+        try:
+            st = os.stat(path)
+        except OSError:  # not there yet: no input can be it
+            continue
+        run.outputs.setdefault((st.st_dev, st.st_ino), (label, str(path)))
+    token = _RUN.set(run)
     try:
         yield
     finally:
@@ -191,7 +207,12 @@ def read_input_bytes(
         raise err(f"more than the limit of {format_bytes(limit)} for {what}")
     run = _RUN.get()
     if protect and run is not None:
-        run.inputs.setdefault((st.st_dev, st.st_ino), name)
+        key = (st.st_dev, st.st_ino)
+        if key in run.outputs:  # found by reading another input: refused now, before any computation
+            label, out = run.outputs[key]
+            raise InputError(f"{label} {out}: is {name}, an input of this run ({what}); an output must not replace "
+                             "an input (choose another path)")
+        run.inputs.setdefault(key, name)
     return data
 
 

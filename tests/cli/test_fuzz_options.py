@@ -143,3 +143,31 @@ def test_output_paths(d, option, target):
     assert (d / "m.toml").read_bytes() == PRS3_FILE.read_bytes()
     if target not in ("",):
         assert code == 2
+
+
+@CLI
+@given(st.fixed_dictionaries({}, optional={
+    "--nodes": INTS, "--seed": INTS, "--range": st.sampled_from(["q1=450:550", "q1=550:450", "x=0:1", "q9=0:1", "q1=nan:1",
+                                                                 "q1", "=:", "q1=1e300:1e301"]),
+    "--aux": st.sampled_from(["payload_kg=5", "temp_C=nan", "nope=1", "payload_kg", "=", "payload_kg=1e400"]),
+    "--space": st.sampled_from(["auto", "tool", "actuator", "x"]), "--free": TEXT,
+    "--method": st.sampled_from(["map", "kalman", "ls"]), "--steps": INTS}))
+def test_grid_options(d, opts):
+    argv = ["grid", d / "r.csv", "--machine", d / "m.toml", "--quiet", "--out", d / "g.csv"]
+    opts.setdefault("--nodes", "2")
+    for k, v in opts.items():
+        argv += [k, v]
+    check(argv)
+
+
+@CLI
+@given(st.fixed_dictionaries({}, optional={
+    "--dof": st.sampled_from(["6", "5", "3", "4", "x"]), "--frame": st.sampled_from(["base", "fit", "x"]),
+    "--json": st.sampled_from(["p.json", "r.csv", "m.toml", ""])}))
+def test_predict_options(d, opts):
+    argv = ["predict", d / "r.csv", "--machine", d / "m.toml", "--quiet"]
+    for k, v in opts.items():
+        argv += [k, d / v if k == "--json" and v else v]
+    check(argv)
+    assert (d / "r.csv").read_bytes() == (ROOT / "examples" / "prs3" / "recording.csv").read_bytes()
+    assert (d / "m.toml").read_bytes() == PRS3_FILE.read_bytes()

@@ -245,7 +245,7 @@ def test_effect_values_beyond_the_file_limit_are_refused(tmp_path):
     assert err.value.key == 'effect.joint_compliance."compliance.q2"'
 
 
-@pytest.mark.parametrize("item, match", [("payload_kg=-1e6", "payload_kg from 0 to"), ("payload_kg=1e300", "payload_kg from 0 to 1e\\+09"),
+@pytest.mark.parametrize("item, match", [("payload_kg=-1e6", "payload_kg from 0 to"), ("payload_kg=1e300", "payload_kg from 0 to 100000"),
                                          ("temp_C=-300", "temp_C from -273.15"), ("time_s=-1", "time_s from 0")])
 def test_aux_values_outside_physics_are_refused(item, match):
     # grid --aux payload_kg=-1e6 moved the drives off the machine and the error blamed the grid's --range

@@ -199,6 +199,10 @@ H = "q1,q2,q3,x,y,z"
     ("payload_kg", ["5", "0", "-2", "4"], 4, "payload_kg", r"-2 is below 0; expected a payload mass in kg >= 0"),
     ("time_s", ["-1", "30", "60", "90"], 2, "time_s", r"-1 is below 0; expected an elapsed time in s >= 0"),
     ("temp_C", ["20", "-300", "21", "22"], 3, "temp_C", r"below -273.15"),
+    # a payload of 1e300 kg passed, and diagnose and plan --separate died in an eigenvalue solver (issue 30 probe)
+    ("payload_kg", ["5", "1e300", "1e5", "0"], 3, "payload_kg", r"1e\+300 is above 100000; expected a payload mass in kg "
+                                                              r"from 0 to 100000"),
+    ("temp_C", ["20", "21", "5000", "22"], 4, "temp_C", r"5000 is above 1000"),
     ("time_s", ["0", "30", "60", "45"], 5, "time_s", r"time goes backwards: 45 s after 60 s on line 4; expected the rows "
                                                       r"in the order they were measured"),
 ])
@@ -220,3 +224,14 @@ def test_time_runs_per_station_and_may_stand_still():
     assert (err.value.row, err.value.column) == (6, "time_s")
     # other channels take any finite value: the contract gives them no meaning
     assert read_recording("r.csv", text=f"{H},pose_id,strain\n1,2,3,4,5,6,-3,-1e3\n").aux["pose_id"][0] == -3
+
+
+def test_the_channel_bounds_hold_at_their_ends_and_for_grid_aux():
+    from bayescal.effects.stored import parse_aux_values
+    from bayescal.errors import InputError
+
+    rec = read_recording("r.csv", text=f"{H},payload_kg,temp_C\n1,2,3,4,5,6,1e5,1000\n1,2,3,4,5,6,0,-273.15\n")
+    assert rec.aux["payload_kg"].tolist() == [1e5, 0.0]
+    assert parse_aux_values(["payload_kg=1e5"]) == {"payload_kg": 1e5}
+    with pytest.raises(InputError, match="expected payload_kg from 0 to 100000"):
+        parse_aux_values(["payload_kg=1e300"])

@@ -3,6 +3,7 @@ calibration tables), includes, comments, the block's precedence rules; and a fuz
 
 from __future__ import annotations
 
+from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
@@ -128,10 +129,10 @@ _TOKENS = ["[printer]", "[stepper_a]", "[delta_calibrate]", "[include x.cfg]", "
            "kinematics: delta", "delta_radius = 100", "arm_length: 215", "height0 = 1", "height0_pos = 1,2,3",
            "height2 = nan", "distance0 = 1e300", "  continued", "\tvalue", "#*# ", "#*#", AUTOSAVE_HEADER, "; c", "# c",
            "=", ":", "[", "]", "key", "a = b ; c", "é", "\x00", "\r", "\ufeff", "[include ../x.cfg]",
-           "height00 = 1", "height" + "7" * 4400 + "_pos = 1,2,3", "gear_ratio: 1:0", "microsteps: 1e400"]
+           "height00 = 1", "[include nope.cfg]", "[include nope/*.cfg]", "height" + "7" * 4400 + "_pos = 1,2,3", "gear_ratio: 1:0", "microsteps: 1e400"]
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=60, deadline=timedelta(seconds=5), derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(st.one_of(st.sampled_from(_TOKENS), st.text(max_size=12)), max_size=25))
 def test_fuzz_lines_end_in_a_config_or_a_bayescal_error(tmp_path_factory, parts):
     folder = tmp_path_factory.getbasetemp() / "fuzz_lines"
@@ -144,7 +145,7 @@ def test_fuzz_lines_end_in_a_config_or_a_bayescal_error(tmp_path_factory, parts)
         pass
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40, deadline=timedelta(seconds=5), derandomize=True)
 @given(st.binary(max_size=300))
 def test_fuzz_bytes_end_in_a_config_or_a_bayescal_error(tmp_path_factory, data):
     path = tmp_path_factory.getbasetemp() / "fuzz_bytes.cfg"
