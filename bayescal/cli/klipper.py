@@ -22,9 +22,10 @@ the end of the file) and write
 The config is read as Klipper reads it: [include ...] files and globs
 relative to the including file, '#' and ';' comments, values continued on
 indented lines, the SAVE_CONFIG block (a key set above it wins). An include
-without wildcards that names no file is an error, as in Klipper (a glob may
-match nothing); --skip-missing-includes reads the config without it, with a
-note (a published config's fluidd.cfg). Errors name the file, line,
+without wildcards that names no file is skipped with a note (a published
+config's fluidd.cfg seldom travels with it; a key then missing names it);
+--missing-includes error refuses it, as Klipper does (a glob may match
+nothing either way). Errors name the file, line,
 section and key: include cycles, include trees beyond 200 files or 12
 levels, text that is not UTF-8, files that are not regular, saved entries
 with gaps, values that are not finite or plausible.
@@ -61,9 +62,12 @@ def register(sub) -> None:
                    help="one-sigma noise of a caliper distance, mm (default 0.05); a weight against the heights")
     p.add_argument("--json", metavar="PATH", help="write a summary (geometry read, step distances, counts, files read, notes) as JSON")
     p.add_argument("--quiet", action="store_true")
-    p.add_argument("--skip-missing-includes", action="store_true",
-                   help="read the config without an [include FILE] that names no file (a published config's "
-                   "fluidd.cfg), with a note; default: an error, as Klipper refuses to start without it")
+    p.add_argument("--missing-includes", choices=("skip", "error"), default="skip",
+                   help="an [include FILE] that names no file: skip it with a note (default; a published config's "
+                   "fluidd.cfg seldom travels with it, and a key then missing names it) or refuse it, as Klipper "
+                   "refuses to start without it")
+    p.add_argument("--skip-missing-includes", dest="missing_includes", action="store_const", const="skip",
+                   help="the same as --missing-includes skip (the default)")
     p.set_defaults(func=run)
 
 
@@ -73,7 +77,7 @@ def run(args) -> int:
     from . import EXIT_OK
 
     setup = load_klipper(args.config, sigma_height=args.sigma_height, sigma_distance=args.sigma_distance,
-                         missing_includes="skip" if args.skip_missing_includes else "error")
+                         missing_includes=args.missing_includes)
     setup.write(args.out)
     if args.json:
         write_json_atomic(args.json, setup.to_dict(args.out))

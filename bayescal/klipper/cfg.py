@@ -242,7 +242,7 @@ def _sections(parser: configparser.RawConfigParser) -> dict:
     return {sec: dict(parser.items(sec)) for sec in parser.sections()}
 
 
-def _config(text: str, path: str, folder, missing_includes: str = "error") -> KlipperConfig:
+def _config(text: str, path: str, folder, missing_includes: str = "skip") -> KlipperConfig:
     split = split_autosave(text, path)
     source = config_source(split.regular, path, folder, missing_includes=missing_includes)
     parser, origin = _parser(), {}
@@ -262,7 +262,7 @@ def _config(text: str, path: str, folder, missing_includes: str = "error") -> Kl
 
 
 def parse_klipper_text(text: str, path: str = "<memory>", *, base_dir: str | os.PathLike | None = None,
-                       missing_includes: str = "error") -> KlipperConfig:
+                       missing_includes: str = "skip") -> KlipperConfig:
     """Parse Klipper config text; ``base_dir`` resolves ``[include ...]`` (None: includes not followed).
 
     ``missing_includes`` as for :func:`read_klipper_config` (with ``base_dir`` None every include is
@@ -276,23 +276,25 @@ def parse_klipper_text(text: str, path: str = "<memory>", *, base_dir: str | os.
     return _config(normalize_text(text, path), path, base_dir, missing_includes)
 
 
-def read_klipper_config(path: str | os.PathLike, *, missing_includes: str = "error") -> KlipperConfig:
+def read_klipper_config(path: str | os.PathLike, *, missing_includes: str = "skip") -> KlipperConfig:
     """Read a Klipper ``printer.cfg`` with its includes and SAVE_CONFIG block, as Klipper does.
 
     Parameters
     ----------
     path : str or PathLike
     missing_includes : {"error", "skip"}
-        An ``[include FILE]`` without wildcards that names no file: ``"error"`` (Klipper's rule, the
-        default) refuses it naming the including file, its line and the path; ``"skip"`` reads the config
-        without it and lists it in ``missing_includes`` (a published config's ``fluidd.cfg``). A glob that
-        matches nothing is accepted either way, as by Klipper.
+        An ``[include FILE]`` without wildcards that names no file: ``"skip"`` (the default) reads the
+        config without it, lists it in ``missing_includes`` and in :meth:`KlipperConfig.notes`, and names it
+        where a key the calibration needs is then missing (a published config's ``fluidd.cfg`` or
+        ``mainsail.cfg`` seldom travels with it, and holds no calibration); ``"error"`` refuses it as
+        Klipper does, naming the including file, its line and the path. A glob that matches nothing is
+        accepted either way, as by Klipper.
 
     Raises
     ------
     KlipperConfigError
         For a file that is missing, not a regular file, not UTF-8 text, or
-        not a config ``configparser`` accepts; for a missing include (above),
+        not a config ``configparser`` accepts; for a missing include (with ``"error"``),
         an include cycle, or an include tree beyond bayescal's limits
         (:mod:`bayescal.klipper.source`); naming the file and line.
     """

@@ -108,7 +108,7 @@ class KlipperSetup:
 
 
 def load_klipper(config: str | os.PathLike, *, sigma_height: float | None = None,
-                 sigma_distance: float | None = None, missing_includes: str = "error") -> KlipperSetup:
+                 sigma_distance: float | None = None, missing_includes: str = "skip") -> KlipperSetup:
     """Read a Klipper delta printer's config and saved DELTA_CALIBRATE, as ``bayescal klipper`` does.
 
     Parameters
@@ -119,9 +119,10 @@ def load_klipper(config: str | os.PathLike, *, sigma_height: float | None = None
         One-sigma noise of a probe height and of a caliper distance, mm (defaults
         :data:`bayescal.klipper.printer.SIGMA_HEIGHT`, :data:`~bayescal.klipper.printer.SIGMA_DISTANCE`):
         weights of heights against distances.
-    missing_includes : {"error", "skip"}
-        An ``[include FILE]`` without wildcards that names no file: an error, as Klipper refuses to start
-        without it, or skipped with a note (a published config whose included file did not travel).
+    missing_includes : {"skip", "error"}
+        An ``[include FILE]`` without wildcards that names no file: skipped with a note (the default: a
+        published config's UI include seldom travels with it; a key then missing names it), or an error as
+        Klipper refuses to start without it.
 
     Returns
     -------

@@ -16,13 +16,14 @@ Klipper's rules (``klippy/configfile.py``, in our own words):
 * the text between two includes is parsed as one piece, into the same parser,
   in order: a value set later overrides one set earlier.
 
-An include without wildcards that names no file is an error, as in Klipper
+An include without wildcards that names no file is skipped and remembered
+(a published ``printer.cfg`` often names a UI include, ``fluidd.cfg`` or
+``mainsail.cfg``, that does not travel with it and holds no calibration):
+the reader's notes name it, and a key that is then missing is reported with
+the include it may have come from.  Asked to (``missing_includes="error"``,
+``bayescal klipper --missing-includes error``) it is an error, as in Klipper
 (``Include file ... does not exist``), naming the including file, its line
-and the missing path.  A published ``printer.cfg`` often names a UI include
-(``fluidd.cfg``, ``mainsail.cfg``) that does not travel with it; asked to
-(``missing_includes="skip"``, ``bayescal klipper --skip-missing-includes``),
-bayescal skips such an include and remembers it, and a key that is then
-missing is reported with the include it may have come from.
+and the missing path.
 
 What bayescal does differently, and why:
 
@@ -216,7 +217,7 @@ def _matches(spec: str, path: str, line: int, folder: str, walk: _Walk) -> list[
         target = os.path.join(folder, spec)
         if not walk.skip_missing:  # Klipper: "Include file '...' does not exist"; a glob may match nothing
             raise _error(path, line, f"[include {spec}]: {target} does not exist (Klipper refuses to start without "
-                                     "it); expected an existing file or a glob pattern (--skip-missing-includes, "
+                                     "it); expected an existing file or a glob pattern (--missing-includes skip, "
                                      "missing_includes='skip', reads the config without it)")
         walk.missing.append(MissingInclude(path, line, target))
     return sorted(names)
@@ -263,7 +264,7 @@ def normalize_text(text: str, path: str = "<memory>") -> str:
 
 
 def config_source(text: str, path: str, folder: str | os.PathLike | None, *,
-                  missing_includes: str = "error") -> ConfigSource:
+                  missing_includes: str = "skip") -> ConfigSource:
     """The regular part ``text`` of the config ``path`` with its includes, as chunks in parse order.
 
     ``folder`` resolves relative includes (Klipper: the config file's folder);

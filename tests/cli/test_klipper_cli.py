@@ -48,13 +48,13 @@ def test_a_multi_line_bed_mesh_used_to_be_refused(tmp_path, capsys):
     assert capsys.readouterr().err == ""
 
 
-def test_missing_include_is_an_error_or_with_the_option_a_note(tmp_path, capsys):
+def test_missing_include_is_a_note_or_with_the_option_an_error(tmp_path, capsys):
     main_text = synth.MAIN.replace("[include steppers.cfg]", "[include steppers.cfg]\n[include fluidd.cfg]")
     path = synth.write_config(tmp_path, main=main_text)
-    assert main(["klipper", str(path), "--out", str(tmp_path / "o")]) == 2
+    assert main(["klipper", str(path), "--out", str(tmp_path / "o"), "--missing-includes", "error"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{path} line 5: [include fluidd.cfg]: {tmp_path / 'fluidd.cfg'} does not exist" in err
     assert not (tmp_path / "o").exists()
-    assert main(["klipper", str(path), "--out", str(tmp_path / "o"), "--skip-missing-includes"]) == 0
+    assert main(["klipper", str(path), "--out", str(tmp_path / "o")]) == 0  # the default: skipped with a note
     out = capsys.readouterr().out
     assert f"note: [include] at {path} line 5: {tmp_path / 'fluidd.cfg'} not found; skipped" in out

@@ -21,7 +21,7 @@ pytestmark = pytest.mark.skipif(not POST.exists(), reason="../shared/data/real/d
 @pytest.fixture(scope="module")
 def q5(tmp_path_factory):
     d = tmp_path_factory.mktemp("q5")
-    assert main(["klipper", str(POST), "--out", str(d), "--quiet", "--skip-missing-includes"]) == 0
+    assert main(["klipper", str(POST), "--out", str(d), "--quiet"]) == 0
     return d / "machine.toml", d / "recording.csv", d
 
 

@@ -13,11 +13,11 @@ from bayescal.klipper.cfg import KlipperConfigError, read_klipper_config
 from bayescal.klipper.source import MAX_INCLUDE_DEPTH, MAX_INCLUDED_FILES
 
 
-def _refused(path: Path, capsys) -> str:
+def _refused(path: Path, capsys, *options: str) -> str:
     """The one-line error of `bayescal klipper` on ``path`` (exit 2), also raised by the reader."""
     with pytest.raises(KlipperConfigError):
-        read_klipper_config(path)
-    assert main(["klipper", str(path), "--out", str(path.parent / "out")]) == 2
+        read_klipper_config(path, missing_includes="error" if "error" in options else "skip")
+    assert main(["klipper", str(path), "--out", str(path.parent / "out"), *options]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
     return err
@@ -111,10 +111,10 @@ def test_a_wildcard_may_match_nothing_a_plain_name_must_exist(tmp_path, capsys):
     assert read_klipper_config(tmp_path / "printer.cfg").sections == {"printer": {"kinematics": "delta"}}
     (tmp_path / "printer.cfg").write_text("[include none/*.cfg]\n[include fluidd.cfg]\n[printer]\nkinematics: delta\n")
     with pytest.raises(KlipperConfigError, match="line 2: .include fluidd.cfg.: .*fluidd.cfg does not exist"):
-        read_klipper_config(tmp_path / "printer.cfg")
-    err = _refused(tmp_path / "printer.cfg", capsys)
+        read_klipper_config(tmp_path / "printer.cfg", missing_includes="error")
+    err = _refused(tmp_path / "printer.cfg", capsys, "--missing-includes", "error")
     assert f"{tmp_path / 'printer.cfg'} line 2" in err and str(tmp_path / "fluidd.cfg") in err
-    cfg = read_klipper_config(tmp_path / "printer.cfg", missing_includes="skip")
+    cfg = read_klipper_config(tmp_path / "printer.cfg")  # skipped by default, remembered
     assert [(m.line, Path(m.target).name) for m in cfg.missing_includes] == [(2, "fluidd.cfg")]
     assert cfg.sections == {"printer": {"kinematics": "delta"}}
 
@@ -123,7 +123,7 @@ def test_a_missing_include_further_down_names_the_including_file(tmp_path, capsy
     (tmp_path / "printer.cfg").write_text("[printer]\nkinematics: delta\n[include sub/a.cfg]\n")
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "a.cfg").write_text("# steppers\n\n[include b.cfg]\n")
-    err = _refused(tmp_path / "printer.cfg", capsys)
+    err = _refused(tmp_path / "printer.cfg", capsys, "--missing-includes", "error")
     assert f"{tmp_path / 'sub' / 'a.cfg'} line 3: [include b.cfg]: {tmp_path / 'sub' / 'b.cfg'} does not exist" in err
 
 
