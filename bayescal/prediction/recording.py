@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..contract import scale_noise
 from ..errors import InputError
@@ -103,10 +104,7 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     -------
     PredictionResult
     """
-    from ..identify.gauss_newton import identify
-    from ..instrument.plausibility import frame_answer
     from ..instrument.prepare import prepare_session
-
     from ..sensors import sensor_readings
     from ..sensors.mounts import sensor_base
 
@@ -129,41 +127,13 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
             usable[:] = False
             fit_rows[:] = False
     names = fm.layout.names
-    n_session = fm.n_frame if frame == "fit" else 0
-    theta = np.zeros(fm.n_params)
-    frame_free: list[int] = []
     notes = []
-    frames = {}
-    if n_session:
-        fitted = [k for k, label in enumerate(fm.stations) if label not in session.unfitted_stations]
-        frame_free = [6 * k + c for k in fitted for c in range(6)]
-        if not frame_free:
-            raise _no_frame_to_fit(rec)
-        theta, fit_ok = _fit_frames(model, theta, frame_free, fit_rows, disc, identify)
-        if not fit_ok:
-            raise InputError(f"{rec.path}: the instrument frame(s) could not be fitted on the fit rows")
-        free = np.zeros(fm.n_params, dtype=bool)
-        free[:n_session] = True
-        frames = frame_answer(fm, theta, free, None)
-        if session.unfitted_stations and "frames" in frames:
-            frames = {"frames": {k: v for k, v in frames["frames"].items() if k not in session.unfitted_stations}}
+    theta, frame_free, frames = _session_frames(session, rec, fit_rows, disc, frame)
     C, machine_index, noise_factor, kappa, note = _machine_covariance(machine, fm, names, disc)
     if note:
         notes.append(note)
-    idx = np.flatnonzero(usable)
-    pr = PredictiveRows(np.full((rec.n_poses, model.dof), np.nan), np.full((rec.n_poses, model.dof, model.dof), np.nan),
-                        np.zeros(rec.n_poses, dtype=bool), ("",) * rec.n_poses)
-    if idx.size:
-        sub = model.subset(idx)
-        got = predictive_rows(sub, theta, C, machine_index=machine_index, noise_factor=noise_factor, discrepancy=disc,
-                              session_index=np.array(frame_free) if n_session else None, fit_rows=fit_rows[idx],
-                              variance_factor=kappa)
-        mean, cov, ok = pr.mean.copy(), pr.cov.copy(), pr.success.copy()
-        mean[idx], cov[idx], ok[idx] = got.mean, got.cov, got.success
-        msgs = list(pr.message)
-        for k, i in enumerate(idx):
-            msgs[i] = got.message[k]
-        pr = PredictiveRows(mean, cov, ok, tuple(msgs))
+    pr = _usable_rows(model, usable, theta, C, fit_rows, disc, frame_free,
+                      dict(machine_index=machine_index, noise_factor=noise_factor, variance_factor=kappa))
     for i in np.flatnonzero(usable & ~pr.success):
         errors[i] = f"cannot be predicted: {pr.message[i] or 'the pose does not solve'}"
     failed = np.array([e is not None for e in errors])
@@ -173,6 +143,53 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     if disc is None:
         notes.append("no [discrepancy] in the machine file: the prediction is the kinematic model's")
     return PredictionResult(machine.name, tuple(rows), summary, frames, tuple(notes))
+
+
+def _session_frames(session, rec, fit_rows, disc, frame: str) -> tuple[NDArray, list[int], dict]:
+    """``frame="fit"``: each station's instrument frame fitted on its ``fit`` rows, the machine held fixed.
+
+    Returns the parameters (frames first, the machine's at zero: its record is nominal plus errors), the
+    indices of the frames' parameters fitted, and the answer's ``frames`` block ({} for ``frame="base"``).
+    """
+    from ..identify.gauss_newton import identify
+    from ..instrument.plausibility import frame_answer
+
+    fm, model = session.machine, session.model
+    n_session = fm.n_frame if frame == "fit" else 0
+    theta = np.zeros(fm.n_params)
+    if not n_session:
+        return theta, [], {}
+    fitted = [k for k, label in enumerate(fm.stations) if label not in session.unfitted_stations]
+    frame_free = [6 * k + c for k in fitted for c in range(6)]
+    if not frame_free:
+        raise _no_frame_to_fit(rec)
+    theta, fit_ok = _fit_frames(model, theta, frame_free, fit_rows, disc, identify)
+    if not fit_ok:
+        raise InputError(f"{rec.path}: the instrument frame(s) could not be fitted on the fit rows")
+    free = np.zeros(fm.n_params, dtype=bool)
+    free[:n_session] = True
+    frames = frame_answer(fm, theta, free, None)
+    if session.unfitted_stations and "frames" in frames:
+        frames = {"frames": {k: v for k, v in frames["frames"].items() if k not in session.unfitted_stations}}
+    return theta, frame_free, frames
+
+
+def _usable_rows(model, usable, theta, C, fit_rows, disc, frame_free, kw) -> PredictiveRows:
+    """The predictive rows of the ``usable`` rows (the others NaN, not successful); ``kw``: the machine's covariance terms."""
+    n = usable.size  # the recording's rows
+    idx = np.flatnonzero(usable)
+    pr = PredictiveRows(np.full((n, model.dof), np.nan), np.full((n, model.dof, model.dof), np.nan),
+                        np.zeros(n, dtype=bool), ("",) * n)
+    if not idx.size:
+        return pr
+    got = predictive_rows(model.subset(idx), theta, C, discrepancy=disc,
+                          session_index=np.array(frame_free) if frame_free else None, fit_rows=fit_rows[idx], **kw)
+    mean, cov, ok = pr.mean.copy(), pr.cov.copy(), pr.success.copy()
+    mean[idx], cov[idx], ok[idx] = got.mean, got.cov, got.success
+    msgs = list(pr.message)
+    for k, i in enumerate(idx):
+        msgs[i] = got.message[k]
+    return PredictiveRows(mean, cov, ok, tuple(msgs))
 
 
 def _fit_frames(model, theta, frame_free, fit_rows, disc, identify):
@@ -331,6 +348,8 @@ def score_held_out_result(res, session, *, effects=None, covariance=None, discre
     dict
         As :func:`score_held_out`.
     """
+    from ..measurement import MeasurementModel
+
     rec = session.recording
     if not rec.is_check.any():
         return {}
