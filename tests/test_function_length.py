@@ -19,7 +19,6 @@ ALLOWED = {
     "identify/choose.py:choose_linear": 133,
     "compare/result.py:compare_methods": 110,
     "design/plan.py:plan_poses": 108,
-    "identify/ceiling.py:choice_ceiling": 103,
     "design/select.py:greedy_select": 93,
     "design/exact_decision.py:exact_design_below": 92,
     "bayes/tool_grid.py:tool_grid": 92,
@@ -30,12 +29,9 @@ ALLOWED = {
     "iteration.py:gauss_newton": 86,
     "diagnose/core.py:diagnose": 86,
     "identify/gauss_newton.py:identify": 85,
-    "identifiability.py:analyse_identifiability": 84,
-    "instrument/plausibility.py:assess_plausibility": 83,
     "diagnose/locate.py:locate": 83,
     "bayes/kalman.py:kalman_filter": 83,
     "bayes/grid.py:compensation_grid": 83,
-    "measurement.py:MeasurementModel.from_recording": 82,
     "design/exact_bound.py:cell_relaxation": 81,
 }
 
