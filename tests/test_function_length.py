@@ -29,10 +29,6 @@ ALLOWED = {
     "iteration.py:gauss_newton": 86,
     "diagnose/core.py:diagnose": 86,
     "identify/gauss_newton.py:identify": 85,
-    "diagnose/locate.py:locate": 83,
-    "bayes/kalman.py:kalman_filter": 83,
-    "bayes/grid.py:compensation_grid": 83,
-    "design/exact_bound.py:cell_relaxation": 81,
 }
 
 
