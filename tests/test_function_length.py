@@ -24,11 +24,6 @@ ALLOWED = {
     "bayes/tool_grid.py:tool_grid": 92,
     "bayes/mcmc.py:sample_posterior": 92,
     "design/relations.py:plan_relations": 91,
-    "prediction/engine.py:predictive_rows": 89,
-    "bayes/priors.py:empirical_bayes_map": 87,
-    "iteration.py:gauss_newton": 86,
-    "diagnose/core.py:diagnose": 86,
-    "identify/gauss_newton.py:identify": 85,
 }
 
 

@@ -118,8 +118,7 @@ def predictive_rows(
     pred = model.predict(theta)
     ok = np.asarray(pred.success, dtype=bool)
     msg = tuple("" if s else str(m) for s, m in zip(ok, pred.poses.message))
-    mean = np.full((n, dof), np.nan)
-    cov = np.full((n, dof, dof), np.nan)
+    mean, cov = np.full((n, dof), np.nan), np.full((n, dof, dof), np.nan)
     if not ok.any():
         return PredictiveRows(mean, cov, ok, msg)
     sub = model if ok.all() else model.subset(np.flatnonzero(ok))
@@ -142,18 +141,26 @@ def predictive_rows(
     G = Jm
     extra = np.zeros_like(D)
     if session_index is not None and np.size(session_index):
-        s_idx = np.asarray(session_index, dtype=int)
-        Js = J[:, :, s_idx]
         fr = np.ones(sub.n_poses, dtype=bool) if fit_rows is None else np.asarray(fit_rows, dtype=bool)[ok]
-        rows = int(fr.sum()) * dof
-        As = (Js[fr] / sig[fr][:, :, None]).reshape(rows, s_idx.size)
-        Am = (Jm[fr] / sig[fr][:, :, None]).reshape(rows, Jm.shape[2])  # explicit rows: no machine parameter is fine
-        Minv = np.linalg.pinv(As.T @ As)
-        K = Minv @ (As.T @ Am)
-        G = Jm - Js @ K
-        extra = noise_factor * (Js @ Minv) @ np.swapaxes(Js, 1, 2)
+        G, extra = _session_frame_terms(J, Jm, sig, np.asarray(session_index, dtype=int), fr, noise_factor)
     # batched products (einsum over two contracted indices would loop in Python-free but unblocked C)
     cov_ok = variance_factor * ((G @ C) @ np.swapaxes(G, 1, 2) + extra + D + noise)
     mean[ok] = mu
     cov[ok] = 0.5 * (cov_ok + np.swapaxes(cov_ok, 1, 2))
     return PredictiveRows(mean, cov, ok, msg)
+
+
+def _session_frame_terms(J: NDArray, Jm: NDArray, sig: NDArray, s_idx: NDArray, fr: NDArray, noise_factor: float):
+    """The rows' sensitivity once the session's frames are refitted on the ``fr`` rows, and the frames' own term.
+
+    Returns ``G = Jm - Js K`` (the frames absorb what they can of a parameter change) and the covariance the
+    frames' fit adds, ``noise_factor * Js M^-1 Js^T`` (mm^2, rad^2).
+    """
+    dof = J.shape[1]
+    Js = J[:, :, s_idx]
+    rows = int(fr.sum()) * dof
+    As = (Js[fr] / sig[fr][:, :, None]).reshape(rows, s_idx.size)
+    Am = (Jm[fr] / sig[fr][:, :, None]).reshape(rows, Jm.shape[2])  # explicit rows: no machine parameter is fine
+    Minv = np.linalg.pinv(As.T @ As)
+    K = Minv @ (As.T @ Am)
+    return Jm - Js @ K, noise_factor * (Js @ Minv) @ np.swapaxes(Js, 1, 2)
