@@ -19,11 +19,8 @@ ALLOWED = {
     "identify/choose.py:choose_linear": 133,
     "compare/result.py:compare_methods": 110,
     "design/plan.py:plan_poses": 108,
-    "design/select.py:greedy_select": 93,
     "design/exact_decision.py:exact_design_below": 92,
-    "bayes/tool_grid.py:tool_grid": 92,
     "bayes/mcmc.py:sample_posterior": 92,
-    "design/relations.py:plan_relations": 91,
 }
 
 
