@@ -19,7 +19,6 @@ ALLOWED = {
     "identify/choose.py:choose_linear": 133,
     "compare/result.py:compare_methods": 110,
     "design/plan.py:plan_poses": 108,
-    "design/exact_decision.py:exact_design_below": 92,
     "bayes/mcmc.py:sample_posterior": 92,
 }
 
