@@ -227,8 +227,29 @@ def analyse_identifiability(
     Js = np.where(norms > 1e-12 * max(norms.max(initial=0.0), 1e-300), J / safe, 0.0)
     s_all = np.linalg.svd(Js[:, order], compute_uv=False)
     rank = int(np.sum(s_all > rtol * s_all[0])) if s_all.size and s_all[0] > 0 else 0
+    kept, fixed = _greedy_columns(Js, norms, order, rank, rtol)
+    names = layout.names
+    combos, relations, no_effect = _fixed_relations(J, kept, fixed, norms, safe, layout)
+    s_kept = np.linalg.svd(Js[:, kept], compute_uv=False) if kept else np.array([np.nan])
+    return Identifiability(
+        singular_values=s_all,
+        rank=rank,
+        kept=tuple(names[j] for j in kept),
+        fixed=tuple(names[j] for j in fixed),
+        combinations=tuple(combos),
+        condition_number=float(s_kept[0] / s_kept[-1]) if kept else float("inf"),
+        kept_index=np.array(sorted(kept), dtype=int),
+        fixed_index=np.array(sorted(fixed), dtype=int),
+        no_effect_index=np.array(sorted(no_effect), dtype=int),
+        relations=tuple(relations),
+    )
+
+
+def _greedy_columns(Js: NDArray, norms: NDArray, order: NDArray, rank: int, rtol: float) -> tuple[list[int], list[int]]:
+    """The columns kept (in priority ``order``, each independent of those before) and the ones fixed."""
+    P = Js.shape[1]
     kept: list[int] = []
-    Q_all = np.zeros((J.shape[0], P), order="F")  # the kept columns' orthonormal basis, filled in place
+    Q_all = np.zeros((Js.shape[0], P), order="F")  # the kept columns' orthonormal basis, filled in place
     fixed: list[int] = []
     for j in order:
         if norms[j] <= 1e-12 * max(norms.max(), 1e-300):
@@ -246,6 +267,11 @@ def analyse_identifiability(
     # the greedy pass keeps at most `rank` columns; trim if round-off let one more through
     while len(kept) > rank:
         fixed.append(kept.pop())
+    return kept, fixed
+
+
+def _fixed_relations(J: NDArray, kept: list[int], fixed: list[int], norms: NDArray, safe: NDArray, layout):
+    """In words, what each fixed parameter looks like to the measurement: ``(combos, relations, no_effect)``."""
     combos, relations, no_effect = [], [], []
     names, units = layout.names, layout.units
     seen = [j for j in fixed if norms[j] > 1e-12 * max(norms.max(), 1e-300)]
@@ -263,16 +289,4 @@ def analyse_identifiability(
         terms = ", ".join(f"{names[kept[i]]} by {c[i]:+.4g} {units[kept[i]]}" for i in big[np.argsort(-np.abs(c[big]) * safe[np.array(kept)[big]])])
         relations.append(f"{names[j]}: a change of 1 {units[j]} looks the same to the measurement as changing {terms}")
         combos.append(relations[-1] + "; fixed at nominal, only the combination is identified")
-    s_kept = np.linalg.svd(Js[:, kept], compute_uv=False) if kept else np.array([np.nan])
-    return Identifiability(
-        singular_values=s_all,
-        rank=rank,
-        kept=tuple(names[j] for j in kept),
-        fixed=tuple(names[j] for j in fixed),
-        combinations=tuple(combos),
-        condition_number=float(s_kept[0] / s_kept[-1]) if kept else float("inf"),
-        kept_index=np.array(sorted(kept), dtype=int),
-        fixed_index=np.array(sorted(fixed), dtype=int),
-        no_effect_index=np.array(sorted(no_effect), dtype=int),
-        relations=tuple(relations),
-    )
+    return combos, relations, no_effect

@@ -270,23 +270,14 @@ def gauss_newton(
         except Refused as exc:
             return end(it, False, str(exc), "refused")
         size = _size(prop.step, scale)
-        if not np.isfinite(size):
-            return end(it, False, "diverged: the step is not finite", "diverged")
-        full = prop.target if prop.target is not None else x + prop.step
-        if _size(full, scale) > control.bound:
-            return end(it, False, f"diverged: the estimate grew beyond {control.bound:.0e}{unit}", "diverged")
+        if (diverged := _diverged(prop, x, size, scale, control.bound, unit)) is not None:
+            return end(it, False, diverged, "diverged")
         share = min(1.0, 2.0 * share) if control.remember else 1.0
         # a proposal that already passes the convergence tests is taken whatever it does to the cost (round-off)
         new_x, new_cost, new_state, share, failure = _line_search(x, cost, state, prop, share, evaluate, control,
                                                                   _converged(prop, size, xtol, dtol), failures)
         if new_x is None:
-            if failure is not None:  # no trial could be evaluated
-                return end(it, False, f"diverged: {failure}", "unsolvable")
-            predicted = "" if prop.predicted is None else f", predicted decrease {prop.predicted:.2e}"
-            detail = f"step {size:.2e}{unit}{predicted}, cost {cost:.6g}"
-            if _at_floor(prop, size, xtol, dtol):
-                return end(it, True, f"no step lowers the cost: at the round-off floor ({detail})", "floor")
-            return end(it, False, f"no step lowers the cost ({detail})", "no_descent")
+            return end(it, *_no_step(prop, size, cost, failure, xtol, dtol, unit))
         previous = cost
         x, cost, state = new_x, new_cost, new_state
         history.append(x)
@@ -297,3 +288,24 @@ def gauss_newton(
         if _converged(prop, size, xtol, dtol) or floor:
             return end(it, True, "", "converged")
     return end(max_iter, False, f"did not converge in {max_iter} iterations (last step {size:.2e}{unit})", "max_iter")
+
+
+def _diverged(prop, x: NDArray, size: float, scale, bound: float, unit: str) -> str | None:
+    """Why a proposed step diverges (not finite, or the estimate beyond ``bound``), or None."""
+    if not np.isfinite(size):
+        return "diverged: the step is not finite"
+    full = prop.target if prop.target is not None else x + prop.step
+    if _size(full, scale) > bound:
+        return f"diverged: the estimate grew beyond {bound:.0e}{unit}"
+    return None
+
+
+def _no_step(prop, size: float, cost: float, failure, xtol: float, dtol: float, unit: str) -> tuple[bool, str, str]:
+    """``(success, message, reason)`` when no trial of the line search lowered the cost."""
+    if failure is not None:  # no trial could be evaluated
+        return False, f"diverged: {failure}", "unsolvable"
+    predicted = "" if prop.predicted is None else f", predicted decrease {prop.predicted:.2e}"
+    detail = f"step {size:.2e}{unit}{predicted}, cost {cost:.6g}"
+    if _at_floor(prop, size, xtol, dtol):
+        return True, f"no step lowers the cost: at the round-off floor ({detail})", "floor"
+    return False, f"no step lowers the cost ({detail})", "no_descent"

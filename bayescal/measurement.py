@@ -184,29 +184,7 @@ class MeasurementModel:
             raise InputError(f"dof={dof} asked for, but {rec.path} holds a {have}-DOF measurement")
         R_meas = so3_exp(rec.rotvec) if rec.rotvec is not None else None
         guess = machine.guess_from_measurement(rec.q, rec.position, R_meas, rec.axis)
-        q = rec.q
-        offset, bend = None, {}
-        if machine.effects:
-            # the machine file's [effect.*] tables at their stored values: the kinematics sees the
-            # actuator positions the effects make of the commanded ones, and the tool the perturbation
-            # of those that move it, so every consumer applies them
-            from .effects.stored import effect_delta_q_and_x
-            if machine.framed:
-                # loads and growth live in the base frame: evaluate the effects on the base machine
-                # (started from its own assembly, since the measured poses are in the instrument frame)
-                base = machine.base_machine()
-                poses = base.forward(q, None)
-                poses = poses if poses.success.all() else None
-            else:
-                base = machine
-                poses = machine.forward(q, None, guess=guess) if guess is not None else None
-            dq, offset = effect_delta_q_and_x(base, machine.effects, q, dict(rec.aux), poses=poses)
-            if sensors:  # a structure that bends turns the bodies tilt sensors sit on (as the joint fit models it)
-                from .effects.stored import effect_body_rotation
-
-                bend = effect_body_rotation(base, machine.effects, q, dict(rec.aux), poses=poses)
-            q = q + dq
-            guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
+        q, guess, offset, bend = _with_stored_effects(machine, rec, guess, R_meas, sensors)
         from .sensors import attach_sensors
 
         # the mountings start from the commanded poses, as the joint fit of geometry and effects starts them (its
@@ -641,3 +619,35 @@ def _tile_poses(p: ToolPoses, reps: int) -> ToolPoses:
     return ToolPoses(
         np.tile(p.position, (reps, 1)), np.tile(p.rotation, (reps, 1, 1)), np.tile(p.success, reps), p.message * reps, tiled
     )
+
+
+def _with_stored_effects(machine: Machine, rec: Recording, guess, R_meas, sensors: bool):
+    """The machine file's effects at their stored values: ``(q, guess, pose_offset, bend)`` of a recording.
+
+    Without effects: the commanded ``q``, ``guess`` as given, no tool perturbation and no body turn.
+    """
+    q = rec.q
+    if not machine.effects:
+        return q, guess, None, {}
+    bend = {}
+    # the machine file's [effect.*] tables at their stored values: the kinematics sees the
+    # actuator positions the effects make of the commanded ones, and the tool the perturbation
+    # of those that move it, so every consumer applies them
+    from .effects.stored import effect_delta_q_and_x
+    if machine.framed:
+        # loads and growth live in the base frame: evaluate the effects on the base machine
+        # (started from its own assembly, since the measured poses are in the instrument frame)
+        base = machine.base_machine()
+        poses = base.forward(q, None)
+        poses = poses if poses.success.all() else None
+    else:
+        base = machine
+        poses = machine.forward(q, None, guess=guess) if guess is not None else None
+    dq, offset = effect_delta_q_and_x(base, machine.effects, q, dict(rec.aux), poses=poses)
+    if sensors:  # a structure that bends turns the bodies tilt sensors sit on (as the joint fit models it)
+        from .effects.stored import effect_body_rotation
+
+        bend = effect_body_rotation(base, machine.effects, q, dict(rec.aux), poses=poses)
+    q = q + dq
+    guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
+    return q, guess, offset, bend

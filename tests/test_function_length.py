@@ -16,31 +16,9 @@ MAX_LINES = 80
 #: The functions still over the limit, with their length when the limit came: each may only shrink, and leaves the
 #: list once it is within the limit (split into helpers with one job each, behaviour unchanged).
 ALLOWED = {
-    "identify/target_rule.py:calibrate_target_rule": 135,
     "identify/choose.py:choose_linear": 133,
-    "compare/result.py:compare_methods": 110,
     "design/plan.py:plan_poses": 108,
-    "identify/calibrate.py:calibrate": 106,
-    "identify/ceiling.py:choice_ceiling": 103,
-    "io/constraints.py:read_constraints": 102,
-    "effects/check.py:check_effect": 98,
-    "design/select.py:greedy_select": 93,
-    "design/exact_decision.py:exact_design_below": 92,
-    "bayes/tool_grid.py:tool_grid": 92,
     "bayes/mcmc.py:sample_posterior": 92,
-    "design/relations.py:plan_relations": 91,
-    "prediction/engine.py:predictive_rows": 89,
-    "bayes/priors.py:empirical_bayes_map": 87,
-    "iteration.py:gauss_newton": 86,
-    "diagnose/core.py:diagnose": 86,
-    "identify/gauss_newton.py:identify": 85,
-    "identifiability.py:analyse_identifiability": 84,
-    "instrument/plausibility.py:assess_plausibility": 83,
-    "diagnose/locate.py:locate": 83,
-    "bayes/kalman.py:kalman_filter": 83,
-    "bayes/grid.py:compensation_grid": 83,
-    "measurement.py:MeasurementModel.from_recording": 82,
-    "design/exact_bound.py:cell_relaxation": 81,
 }
 
 

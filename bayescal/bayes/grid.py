@@ -199,15 +199,7 @@ def compensation_grid(
     CompensationGrid
     """
     theta = machine.check_theta(theta)
-    if axes is None:
-        if machine.q_limits is None:
-            raise InputError(f"{machine.source}: no [workspace] q_limits to span a grid; add them to the machine file "
-                             "(or, in the library, pass axes)")
-        check_grid_size(machine, n, "actuator", n_samples=0 if samples is None else len(samples))
-        axes = tuple(np.linspace(lo, hi, n) for lo, hi in machine.q_limits)
-    axes = tuple(np.asarray(a, dtype=float) for a in axes)
-    if len(axes) != machine.n_actuators:
-        raise InputError(f"axes: expected {machine.n_actuators} (one per actuator), got {len(axes)}")
+    axes = _grid_axes(machine, axes, n, samples)
     q_cmd = actuator_nodes(axes)
     shape = tuple(a.size for a in axes) + (3,)
     nominal = machine.forward(q_cmd, None)
@@ -239,3 +231,17 @@ def compensation_grid(
         std=std.reshape(shape),
         source=source,
     )
+
+
+def _grid_axes(machine, axes, n: int, samples) -> tuple[NDArray, ...]:
+    """One node axis per actuator: ``axes`` as given, or ``n`` nodes spanning each ``q_limits`` (checked)."""
+    if axes is None:
+        if machine.q_limits is None:
+            raise InputError(f"{machine.source}: no [workspace] q_limits to span a grid; add them to the machine file "
+                             "(or, in the library, pass axes)")
+        check_grid_size(machine, n, "actuator", n_samples=0 if samples is None else len(samples))
+        axes = tuple(np.linspace(lo, hi, n) for lo, hi in machine.q_limits)
+    axes = tuple(np.asarray(a, dtype=float) for a in axes)
+    if len(axes) != machine.n_actuators:
+        raise InputError(f"axes: expected {machine.n_actuators} (one per actuator), got {len(axes)}")
+    return axes

@@ -249,12 +249,7 @@ def kalman_filter(
     machine = model.machine
     prior = prior_from_machine(machine) if prior is None else prior
     idx, ida = resolve_free(model, free, prior.mean, prior=True)  # the filter starts from the prior
-    frac = np.broadcast_to(np.asarray(process_noise, dtype=float), (idx.size,))
-    if np.any(frac < 0) or not np.all(np.isfinite(frac)) or np.any(frac > MAX_PROCESS_NOISE):
-        # 1e300 overflowed the state covariance (a ValueError from inside the update, not a refusal)
-        raise InputError(f"process_noise: expected finite values from 0 to {MAX_PROCESS_NOISE:g} (the random-walk std "
-                         f"per pose step as a fraction of the prior std), got {process_noise!r}")
-    qn = frac * prior.std[idx]
+    qn = _process_noise(process_noise, idx.size) * prior.std[idx]
     run = _run_filter(model, variant, prior, idx, qn, alpha)
     theta = _full_theta(prior.mean.copy(), idx, run.means[-1])
     means, covs = np.array(run.means), np.array(run.covariances)
@@ -289,6 +284,16 @@ def kalman_filter(
         decided_by_prior=() if ida is None else ida.decided_by_prior,
         determined=determined_at(model, theta, free_mask, pred),
     )
+
+
+def _process_noise(process_noise, n: int) -> NDArray:
+    """The random-walk std per pose step as a fraction of the prior std, one per state parameter (checked)."""
+    frac = np.broadcast_to(np.asarray(process_noise, dtype=float), (n,))
+    if np.any(frac < 0) or not np.all(np.isfinite(frac)) or np.any(frac > MAX_PROCESS_NOISE):
+        # 1e300 overflowed the state covariance (a ValueError from inside the update, not a refusal)
+        raise InputError(f"process_noise: expected finite values from 0 to {MAX_PROCESS_NOISE:g} (the random-walk std "
+                         f"per pose step as a fraction of the prior std), got {process_noise!r}")
+    return frac
 
 
 def _full_theta(base: NDArray, idx: NDArray, x: ArrayLike) -> NDArray:

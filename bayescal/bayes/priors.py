@@ -269,6 +269,11 @@ def empirical_bayes_map(
         res = fit(c, res.theta, idx)  # warm start; the covariance is the Laplace one at this c
         if not moved:
             break
+    return _scaled_answer(res, first, c, rounds)
+
+
+def _scaled_answer(res, first, c: float, rounds: int):
+    """The last fit of :func:`empirical_bayes_map` labelled with its prior scale ``c`` (and, failed, only that)."""
     if not res.success:
         return replace(res, extras={**res.extras, "prior_scale": c, "prior_scale_rounds": rounds})
     # later rounds start from the earlier solution: report "before" against the start, and say which prior

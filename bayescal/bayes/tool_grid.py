@@ -317,6 +317,32 @@ def tool_grid(
     from .grid import check_grid_size
 
     check_grid_size(machine, n, "tool", n_samples=0 if samples is None else len(samples))
+    axes, nodes, q, ctrl = _reachable_nodes(machine, n, ranges)
+    nominal = machine.forward(q, None)
+    # where the drives really stand at each node under the stated aux (the same rule as the actuator grid)
+    q_act, dq_dtheta = machine.node_actuators(q, theta, aux)
+    est = machine.forward(q_act, theta, guess=nominal)
+    if not est.success.all():
+        i = int(np.flatnonzero(~est.success)[0])
+        raise InputError(f"grid node {i + 1} (q = {q[i].tolist()}) cannot be solved with the identified errors; narrow the grid with --range")
+    # against the nominal point actually commanded: equal to the node on the controlled axes, and the
+    # right reference on an axis the actuators do not set (there the node coordinate is only a mean)
+    error = est.position - nominal.position
+    dx = machine.node_tool_offset(q, theta, aux)
+    if dx is not None:  # effects that move the tool, not the drives (a column bending under its load)
+        error = error + dx[:, :3]
+    std, source = tool_point_std_at(machine, q_act, theta, free, covariance=covariance, samples=samples, caller="tool_grid",
+                                    dq_dtheta=dq_dtheta)
+    shape = tuple(a.size for a in axes) + (3,)
+    return ToolGrid(machine.name, axes, q, error.reshape(shape), std.reshape(shape), source, nominal.position, ctrl)
+
+
+def _reachable_nodes(machine, n: int, ranges: dict | None):
+    """The grid's node axes, tool-point nodes (mm), their actuator positions and the controlled axes.
+
+    The default box shrinks about its middle until every node is reachable; a range the user gave is kept
+    (InputError naming the first node that cannot be reached).
+    """
     box = tool_box(machine)
     for name, (lo, hi) in (ranges or {}).items():
         a = "xyz".index(name)
@@ -347,20 +373,4 @@ def tool_grid(
             f"q_limits; narrow the grid with --range x=LO:HI, --range y=LO:HI or --range z=LO:HI (mm; box now "
             + ", ".join(f"{c} {lo:.4g}:{hi:.4g}" for c, (lo, hi) in zip("xyz", box)) + ")"
         )
-    nominal = machine.forward(q, None)
-    # where the drives really stand at each node under the stated aux (the same rule as the actuator grid)
-    q_act, dq_dtheta = machine.node_actuators(q, theta, aux)
-    est = machine.forward(q_act, theta, guess=nominal)
-    if not est.success.all():
-        i = int(np.flatnonzero(~est.success)[0])
-        raise InputError(f"grid node {i + 1} (q = {q[i].tolist()}) cannot be solved with the identified errors; narrow the grid with --range")
-    # against the nominal point actually commanded: equal to the node on the controlled axes, and the
-    # right reference on an axis the actuators do not set (there the node coordinate is only a mean)
-    error = est.position - nominal.position
-    dx = machine.node_tool_offset(q, theta, aux)
-    if dx is not None:  # effects that move the tool, not the drives (a column bending under its load)
-        error = error + dx[:, :3]
-    std, source = tool_point_std_at(machine, q_act, theta, free, covariance=covariance, samples=samples, caller="tool_grid",
-                                    dq_dtheta=dq_dtheta)
-    shape = tuple(a.size for a in axes) + (3,)
-    return ToolGrid(machine.name, axes, q, error.reshape(shape), std.reshape(shape), source, nominal.position, ctrl)
+    return axes, nodes, q, ctrl

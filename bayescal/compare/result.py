@@ -216,6 +216,18 @@ def compare_methods(
     -------
     Comparison
     """
+    _check_options(machine, methods, trials, seed, tolerance_scale, retries, free, n_poses, n_eval)
+    rec_text, rec_name, n_poses, dof = _recording_parts(machine, recording, n_poses, dof)
+    config = CompareConfig(machine_text=machine.to_toml(), methods=methods, trials=int(trials), dof=int(dof),
+                           n_poses=int(n_poses), n_eval=int(n_eval), seed=int(seed), free=free,
+                           tolerance_scale=float(tolerance_scale), recording_text=rec_text, recording=rec_name)
+    records, info = run_trials(config, out=out, workers=workers, dask_workers=dask_workers, scheduler=scheduler,
+                               retries=retries, progress=progress)
+    return comparison_from_records(records, config, metric=metric, alpha=alpha, machine_name=machine.name, info=info)
+
+
+def _check_options(machine, methods: str, trials, seed, tolerance_scale, retries, free, n_poses, n_eval) -> None:
+    """InputError naming the first option of :func:`compare_methods` it cannot take (before any trial runs)."""
     from ..limits import check_seed
     from .methods import parse_methods
 
@@ -244,6 +256,10 @@ def compare_methods(
             raise InputError(f"{name}: expected a positive whole number of poses, got {value!r}")
     if machine.q_limits is None:
         raise InputError(f"{machine.source}: the machine file has no [workspace] q_limits; a comparison draws poses there")
+
+
+def _recording_parts(machine, recording, n_poses, dof):
+    """``(text, name, n_poses, dof)`` of a comparison's recording, read and checked (empty without one; dof 6)."""
     rec_text = rec_name = ""
     if recording is not None:
         from ..models import model_from_recording, read_any_recording
@@ -257,9 +273,4 @@ def compare_methods(
         n_poses, dof = model.n_poses, model.tool_dof  # the tool's DOF (body sensors apart)
     elif dof is None:
         dof = 6
-    config = CompareConfig(machine_text=machine.to_toml(), methods=methods, trials=int(trials), dof=int(dof),
-                           n_poses=int(n_poses), n_eval=int(n_eval), seed=int(seed), free=free,
-                           tolerance_scale=float(tolerance_scale), recording_text=rec_text, recording=rec_name)
-    records, info = run_trials(config, out=out, workers=workers, dask_workers=dask_workers, scheduler=scheduler,
-                               retries=retries, progress=progress)
-    return comparison_from_records(records, config, metric=metric, alpha=alpha, machine_name=machine.name, info=info)
+    return rec_text, rec_name, n_poses, dof

@@ -215,14 +215,7 @@ def cell_relaxation(
     M0 = np.eye(L)
     S = np.linalg.inv(M0)
     d = _d(BB, S @ Q @ S)
-    w = np.zeros(N)
-    for g in np.flatnonzero(totals > 0):
-        idx = np.flatnonzero(groups == g)
-        s = 0.0 if start is None else float(np.sum(start[idx]))
-        if s > 0:  # a parent's relaxed optimum, rescaled: a child of a search node starts next to it
-            w[idx] = np.maximum(start[idx], 0.0) * (totals[g] / s)
-        else:  # the cell's weight on its most informative candidate
-            w[idx[np.argmax(d[idx])]] = totals[g]
+    w = _start_weights(d, groups, totals, start)
     lower, f = -np.inf, np.inf
     for _ in range(int(outer)):
         S = np.linalg.inv(M0 + np.tensordot(w, BB, 1))
@@ -244,6 +237,19 @@ def cell_relaxation(
         active = np.union1d(np.flatnonzero(w > 0), np.concatenate(new) if new else np.zeros(0, np.int64))
         w[active] = _pairwise(BB[active], groups[active], Q, M0, w[active], int(inner), 0.1 * rtol)
     return float(lower), f, w
+
+
+def _start_weights(d: NDArray, groups: NDArray, totals: NDArray, start: NDArray | None) -> NDArray:
+    """Where :func:`cell_relaxation` starts: a parent's optimum rescaled to each cell's total, else its best candidate."""
+    w = np.zeros(d.size)
+    for g in np.flatnonzero(totals > 0):
+        idx = np.flatnonzero(groups == g)
+        s = 0.0 if start is None else float(np.sum(start[idx]))
+        if s > 0:  # a parent's relaxed optimum, rescaled: a child of a search node starts next to it
+            w[idx] = np.maximum(start[idx], 0.0) * (totals[g] / s)
+        else:  # the cell's weight on its most informative candidate
+            w[idx[np.argmax(d[idx])]] = totals[g]
+    return w
 
 
 def checked_design_problem(blocks: NDArray, Q: NDArray, n: int) -> tuple[NDArray, NDArray]:

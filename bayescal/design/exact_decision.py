@@ -199,14 +199,8 @@ def exact_design_below(
     ExactDesignDecision
     """
     blocks, Q = checked_design_problem(blocks, Q, n)
-    coords = np.asarray(coords, dtype=float)
+    coords = _checked_search(coords, blocks.shape[0], threshold_mse, max_nodes)
     N = blocks.shape[0]
-    if not (np.isfinite(threshold_mse) and threshold_mse > 0):
-        raise InputError(f"threshold_mse: expected a positive finite E[MSE] in mm^2, got {threshold_mse}")
-    if coords.ndim != 2 or coords.shape[0] != N or not np.all(np.isfinite(coords)):
-        raise InputError(f"coords: expected finite coordinates of shape ({N}, m), got {coords.shape}")
-    if int(max_nodes) < 1:
-        raise InputError(f"max_nodes: expected >= 1, got {max_nodes}")
     n = int(n)
     BB = np.einsum("nki,nkj->nij", blocks, blocks)
     stats = {"nodes": 0, "closed": 0, "depth": 0}
@@ -242,15 +236,7 @@ def exact_design_below(
         f_rounded = _design_mse(BB, Q, rounded)
         if f_rounded < threshold_mse:
             return decision(True, rounded, f_rounded)
-        live = [g for g, t in enumerate(counts) if t > 0]
-        spread = [_spread(cells[g], coords, w) for g in live]
-        order = sorted(range(len(live)), key=lambda i: (-spread[i], -cells[live[i]].size))
-        parts = None
-        for i in order:
-            parts = _split(cells[live[i]], coords, w, BB)
-            if parts is not None:
-                g = live[i]
-                break
+        g, parts = _cell_to_split(cells, counts, coords, w, BB)
         if parts is None:
             # every cell with poses is one pose: the node is the exact design ``rounded``, already above the threshold
             stats["closed"] += 1
@@ -262,3 +248,30 @@ def exact_design_below(
         for c in sorted(range(t + 1), key=lambda c: abs(c - wa), reverse=True):
             stack.append((cells[:g] + [a, b] + cells[g + 1:], counts[:g] + [c, t - c] + counts[g + 1:], w, depth + 1))
     return decision(False)
+
+
+def _checked_search(coords, N: int, threshold_mse: float, max_nodes) -> NDArray:
+    """The candidates' coordinates as floats, or InputError naming what :func:`exact_design_below` refuses."""
+    coords = np.asarray(coords, dtype=float)
+    if not (np.isfinite(threshold_mse) and threshold_mse > 0):
+        raise InputError(f"threshold_mse: expected a positive finite E[MSE] in mm^2, got {threshold_mse}")
+    if coords.ndim != 2 or coords.shape[0] != N or not np.all(np.isfinite(coords)):
+        raise InputError(f"coords: expected finite coordinates of shape ({N}, m), got {coords.shape}")
+    if int(max_nodes) < 1:
+        raise InputError(f"max_nodes: expected >= 1, got {max_nodes}")
+    return coords
+
+
+def _cell_to_split(cells, counts, coords: NDArray, w: NDArray, BB: NDArray):
+    """The cell with poses to divide next (the widest spread of relaxed weight first) and its two parts.
+
+    ``(None, None)`` when every cell with poses is one candidate.
+    """
+    live = [g for g, t in enumerate(counts) if t > 0]
+    spread = [_spread(cells[g], coords, w) for g in live]
+    order = sorted(range(len(live)), key=lambda i: (-spread[i], -cells[live[i]].size))
+    for i in order:
+        parts = _split(cells[live[i]], coords, w, BB)
+        if parts is not None:
+            return live[i], parts
+    return None, None

@@ -258,22 +258,7 @@ def plan_relations(
     seed, n_output : int
         Workspace poses for criterion I's output weight.
     """
-    from .plan import METHODS, default_method
-
-    criterion = check_criterion(criterion)
-    method = default_method(criterion) if method is None else method
-    if method not in METHODS:
-        raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
-    if method == "relaxed" and criterion != "I":
-        raise InputError(f"method 'relaxed': only for criterion I, got {criterion}")
-    repeats = (method == "relaxed") if repeats is None else bool(repeats)
-    if n < 1:
-        raise InputError(f"n: expected a positive number of measurements, got {n}")
-    # a noise of 0 or -1 mm, a negative shortest distance: planned without a word
-    if sigma is not None and (problem := sigma_problem(sigma, "position")) is not None:
-        raise InputError(f"sigma (--sigma): {problem}")
-    if not (math.isfinite(min_distance) and min_distance >= 0):
-        raise InputError(f"min_distance (--min-distance): expected a length >= 0 in mm, got {min_distance!r}")
+    criterion, method, repeats = _checked_options(criterion, method, repeats, n, sigma, min_distance)
     check_relations_size(machine, measure, radius, radius / 4 if spacing is None else spacing)
     if centre is None:
         centre = machine.forward(machine.home_q()[None, :]).position[0]
@@ -310,6 +295,27 @@ def plan_relations(
         std_planned=tol * np.sqrt(np.diag(np.linalg.inv(M))), fixed_given=fixed(A_g), fixed_planned=fixed(A_all),
         criterion=criterion, utility_given=float(ld0), utility_planned=float(ld1),
     )
+
+
+def _checked_options(criterion, method, repeats, n, sigma, min_distance) -> tuple[str, str, bool]:
+    """:func:`plan_relations`'s criterion, method and repeats resolved, or InputError naming the option."""
+    from .plan import METHODS, default_method
+
+    criterion = check_criterion(criterion)
+    method = default_method(criterion) if method is None else method
+    if method not in METHODS:
+        raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    if method == "relaxed" and criterion != "I":
+        raise InputError(f"method 'relaxed': only for criterion I, got {criterion}")
+    repeats = (method == "relaxed") if repeats is None else bool(repeats)
+    if n < 1:
+        raise InputError(f"n: expected a positive number of measurements, got {n}")
+    # a noise of 0 or -1 mm, a negative shortest distance: planned without a word
+    if sigma is not None and (problem := sigma_problem(sigma, "position")) is not None:
+        raise InputError(f"sigma (--sigma): {problem}")
+    if not (math.isfinite(min_distance) and min_distance >= 0):
+        raise InputError(f"min_distance (--min-distance): expected a length >= 0 in mm, got {min_distance!r}")
+    return criterion, method, repeats
 
 
 def relation_output_weight(machine: Machine, n: int, rng: np.random.Generator) -> NDArray:

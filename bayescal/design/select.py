@@ -211,26 +211,7 @@ def greedy_select(
             bound = gains.copy()
             j = int(np.argmax(gains))
         else:
-            Minv = _inverse(M)
-            fresh = np.zeros(N, dtype=bool)
-            fresh[excluded()] = True
-            # candidates by decreasing bound, sorted once per step: re-evaluated gains only shrink,
-            # so the order of the not yet re-evaluated ones stays valid
-            order = np.argsort(-bound, kind="stable")
-            order = order[~fresh[order]]
-            pos, size = 0, chunk
-            while True:
-                todo = order[pos:pos + size]
-                pos += todo.size
-                size *= 2  # geometric chunks: at most about twice the work of evaluating everything
-                if todo.size:
-                    bound[todo] = candidate_gains(blocks[todo], M, use, Minv=Minv)
-                    fresh[todo] = True
-                best_fresh = np.where(fresh, bound, -np.inf)
-                best_fresh[excluded()] = -np.inf
-                j = int(np.argmax(best_fresh))
-                if pos >= order.size or best_fresh[j] >= bound[order[pos]]:
-                    break
+            j = _lazy_pick(blocks, M, use, bound, excluded(), chunk)
         if bound is not None and not repeats:
             bound[j] = -np.inf
         selected.append(j)
@@ -302,3 +283,30 @@ def brute_force_greedy(
         selected.append(best)
         M = M + blocks[best].T @ blocks[best]
     return np.array(selected, dtype=int)
+
+
+def _lazy_pick(blocks: NDArray, M: NDArray, use: str, bound: NDArray, excluded: NDArray, chunk: int) -> int:
+    """The lazy greedy step: re-evaluate the largest upper bounds (in growing chunks) until the best is fresh.
+
+    ``bound`` (upper bounds of the log-det gains) is updated in place with the gains re-evaluated.
+    """
+    Minv = _inverse(M)
+    fresh = np.zeros(blocks.shape[0], dtype=bool)
+    fresh[excluded] = True
+    # candidates by decreasing bound, sorted once per step: re-evaluated gains only shrink,
+    # so the order of the not yet re-evaluated ones stays valid
+    order = np.argsort(-bound, kind="stable")
+    order = order[~fresh[order]]
+    pos, size = 0, chunk
+    while True:
+        todo = order[pos:pos + size]
+        pos += todo.size
+        size *= 2  # geometric chunks: at most about twice the work of evaluating everything
+        if todo.size:
+            bound[todo] = candidate_gains(blocks[todo], M, use, Minv=Minv)
+            fresh[todo] = True
+        best_fresh = np.where(fresh, bound, -np.inf)
+        best_fresh[excluded] = -np.inf
+        j = int(np.argmax(best_fresh))
+        if pos >= order.size or best_fresh[j] >= bound[order[pos]]:
+            return j

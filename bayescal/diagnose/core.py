@@ -205,7 +205,7 @@ def diagnose(
             return diagnose(machine, recording, **again, _noise=s.noise)
     again["_noise"] = s.noise  # a rerun (outliers retested) keeps the noise tested once
     cands, skipped = _candidates(s, g)
-    folds = _folds(s, seed, n_folds)
+    folds = _folds(s.kept, seed, n_folds)
     cv0 = _cv_rms(s.model, [], folds, g.fit0.theta, None)
     single = _single_trials(s.model, cands, skipped, folds, g.fit0)
     selected, cur_fit, cur_cv = _forward_selection(s, cands, single, folds, g.fit0, cv0)
@@ -218,12 +218,7 @@ def diagnose(
         if final is not None:
             return diagnose(machine, recording, **again, _screen=final, _disc_retested=_disc_retested)
 
-    # the last step (bayescal/diagnose/discrepancy.py): a mismatch no effect explains is modelled all the same
-    located_sig = g.location.strongest is not None and g.location.strongest.significant
-    disc_trial, final_model = None, _final_model(s.machine, recording, s.model, selected, cur_fit, s.settings, s.screen)
-    if (v.p_final < P_MISMATCH or located_sig) and final_model is not None:
-        disc_trial = try_discrepancy(final_model, cur_fit.theta, folds, cur_cv, location=g.location,
-                                     units=s.machine.actuator_units, seed=seed)
+    disc_trial, final_model = _discrepancy_trial(s, g, v, recording, selected, cur_fit, folds, cur_cv, seed)
     kept_disc = disc_trial is not None and disc_trial.kept
     if kept_disc and s.screen is not None and not _disc_retested:
         # poses the discrepancy explains are physics, not gross errors: judge the outliers against it
@@ -235,11 +230,24 @@ def diagnose(
     return _diagnosis(s, g, v, found, recording, seed)
 
 
-def _folds(s: "_Setup", seed: int, n_folds: int) -> list[NDArray]:
-    """The cross-validation's folds of poses, seeded; excluded poses are never held out (their residual would be
+def _folds(kept: NDArray, seed: int, n_folds: int) -> list[NDArray]:
+    """The cross-validation folds over the kept poses (excluded poses are never held out: their residual would be
     the gross error, not the model's)."""
-    perm = s.kept[np.random.default_rng(seed).permutation(s.kept.size)]
+    perm = kept[np.random.default_rng(seed).permutation(kept.size)]
     return [np.sort(perm[i::n_folds]) for i in range(n_folds)]
+
+
+def _discrepancy_trial(s, g, v, recording, selected, cur_fit, folds, cur_cv, seed):
+    """The last step (bayescal/diagnose/discrepancy.py): a mismatch no effect explains is modelled all the same.
+
+    Returns the discrepancy trial (None when there is no mismatch to model) and the final model.
+    """
+    located_sig = g.location.strongest is not None and g.location.strongest.significant
+    disc_trial, final_model = None, _final_model(s.machine, recording, s.model, selected, cur_fit, s.settings, s.screen)
+    if (v.p_final < P_MISMATCH or located_sig) and final_model is not None:
+        disc_trial = try_discrepancy(final_model, cur_fit.theta, folds, cur_cv, location=g.location,
+                                     units=s.machine.actuator_units, seed=seed)
+    return disc_trial, final_model
 
 
 def _tilt_rerun(s: "_Setup", selected, cur_fit: EffectFit, machine, recording, again: dict):

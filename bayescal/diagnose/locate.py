@@ -182,14 +182,7 @@ def locate(
         t = blocks.test(v)
         out.append([name, kind, t.strength, t.p_value, detail, v])
     units = ("mm",) * m if units is None else tuple(units)
-    bands = {}
-    for u in dict.fromkeys(units):
-        # the largest stroke among the actuators of this unit, as for the screw_periodic_error effect
-        span = float(max(np.ptp(q[:, j]) for j in range(m) if units[j] == u))
-        full = PITCH_RANGES[u]
-        # only pitches that repeat at least twice in the stroke
-        prange = admissible_pitch_range(span, full) or (full[0], full[0])
-        bands[u] = (pitch_grid(span, prange), n_independent_frequencies(span, prange))
+    bands = _pitch_bands(q, units)
     for i in range(m):
         freqs, M = bands[units[i]]
         power = periodogram(q[:, i], dq_residual[:, i], freqs)
@@ -202,3 +195,17 @@ def locate(
     # significant dependences first, strongest first; then the rest by strength
     deps.sort(key=lambda d: (not d.significant, -d.strength))
     return Location(tuple(deps), residual_whitened, dq_residual)
+
+
+def _pitch_bands(q: NDArray, units: tuple[str, ...]) -> dict:
+    """Per actuator unit, the pitch grid searched and its number of independent frequencies."""
+    m = q.shape[1]
+    bands = {}
+    for u in dict.fromkeys(units):
+        # the largest stroke among the actuators of this unit, as for the screw_periodic_error effect
+        span = float(max(np.ptp(q[:, j]) for j in range(m) if units[j] == u))
+        full = PITCH_RANGES[u]
+        # only pitches that repeat at least twice in the stroke
+        prange = admissible_pitch_range(span, full) or (full[0], full[0])
+        bands[u] = (pitch_grid(span, prange), n_independent_frequencies(span, prange))
+    return bands

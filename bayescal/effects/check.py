@@ -47,12 +47,7 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
     def fail(msg):
         raise EffectCheckError(f"effect {effect.name or type(effect).__name__}: {msg}")
 
-    if not _NAME.match(effect.name or ""):
-        fail("name: expected a snake_case stable name")
-    if not (type(effect).__doc__ or "").strip() or "Physics" not in type(effect).__doc__:
-        fail("the class docstring must state the physics ('Physics: ...') and its usual magnitude")
-    if not effect.magnitude_unit:
-        fail("magnitude_unit is empty")
+    _check_declaration(effect, fail)
     rng = np.random.default_rng(seed)
     aux = {} if aux is None else aux
     why = effect.not_applicable(machine, aux)
@@ -65,14 +60,7 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
     if not isinstance(feats, Features):
         fail("features() must return a Features")
     params = effect.params(machine, feats)
-    if not params:
-        fail("no parameters")
-    names = [p.name for p in params]
-    if len(set(names)) != len(names):
-        fail(f"duplicate parameter names {names}")
-    for p in params:
-        if not _PARAM.match(p.name) or not p.unit or not (p.prior_sd > 0 and np.isfinite(p.prior_sd)):
-            fail(f"parameter {p.name!r}: expected a dotted snake_case name, a unit and a positive prior_sd")
+    _check_params(params, fail)
     K = len(params)
     mean = np.array([p.prior_mean for p in params])
     sd = np.array([p.prior_sd for p in params])
@@ -84,18 +72,7 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
     if lin.all() and np.max(np.abs(dq0)) > 0:
         fail("delta_q must vanish when every parameter is zero")
     eta = mean + sd * rng.uniform(0.2, 1.0, K)
-    J = effect.delta_q_jacobian(feats, eta)
-    if J.shape != q.shape + (K,):
-        fail(f"delta_q_jacobian: expected shape {q.shape + (K,)}, got {J.shape}")
-    Jfd = np.empty_like(J)
-    for k in range(K):
-        h = 1e-4 * sd[k]
-        e = np.zeros(K)
-        e[k] = h
-        Jfd[..., k] = (effect.delta_q(feats, eta + e) - effect.delta_q(feats, eta - e)) / (2 * h)
-    scale = max(np.max(np.abs(Jfd)), 1e-300)
-    if np.max(np.abs(J - Jfd)) > rtol * scale:
-        fail(f"delta_q_jacobian differs from finite differences by {np.max(np.abs(J - Jfd)) / scale:.1e} (relative)")
+    _check_delta_q_jacobian(effect, feats, eta, sd, q.shape, rtol, fail)
     if effect.geometry_dependent:
         _check_geometry_dependence(effect, machine, feats, eta, theta, rng, rtol, fail)
     if effect.moves_tool:
@@ -106,6 +83,51 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
     sub = feats.subset(idx)
     if not np.allclose(effect.delta_q(sub, eta), effect.delta_q(feats, eta)[idx]):
         fail("Features.subset does not give the subset's delta_q")
+    _check_binding(effect, machine, feats, eta, q, theta, aux, idx, fail)
+
+
+def _check_declaration(effect: Effect, fail) -> None:
+    """A stable snake_case name, a class docstring stating the physics, a magnitude unit."""
+    if not _NAME.match(effect.name or ""):
+        fail("name: expected a snake_case stable name")
+    if not (type(effect).__doc__ or "").strip() or "Physics" not in type(effect).__doc__:
+        fail("the class docstring must state the physics ('Physics: ...') and its usual magnitude")
+    if not effect.magnitude_unit:
+        fail("magnitude_unit is empty")
+
+
+def _check_params(params, fail) -> None:
+    """At least one parameter; distinct dotted snake_case names, each with a unit and a positive finite prior width."""
+    if not params:
+        fail("no parameters")
+    names = [p.name for p in params]
+    if len(set(names)) != len(names):
+        fail(f"duplicate parameter names {names}")
+    for p in params:
+        if not _PARAM.match(p.name) or not p.unit or not (p.prior_sd > 0 and np.isfinite(p.prior_sd)):
+            fail(f"parameter {p.name!r}: expected a dotted snake_case name, a unit and a positive prior_sd")
+
+
+def _check_delta_q_jacobian(effect: Effect, feats: Features, eta, sd, q_shape, rtol: float, fail) -> None:
+    """``delta_q_jacobian`` of shape ``q_shape + (K,)`` and within ``rtol`` of central differences of ``delta_q``."""
+    K = eta.size
+    J = effect.delta_q_jacobian(feats, eta)
+    if J.shape != q_shape + (K,):
+        fail(f"delta_q_jacobian: expected shape {q_shape + (K,)}, got {J.shape}")
+    Jfd = np.empty_like(J)
+    for k in range(K):
+        h = 1e-4 * sd[k]
+        e = np.zeros(K)
+        e[k] = h
+        Jfd[..., k] = (effect.delta_q(feats, eta + e) - effect.delta_q(feats, eta - e)) / (2 * h)
+    scale = max(np.max(np.abs(Jfd)), 1e-300)
+    if np.max(np.abs(J - Jfd)) > rtol * scale:
+        fail(f"delta_q_jacobian differs from finite differences by {np.max(np.abs(J - Jfd)) / scale:.1e} (relative)")
+
+
+def _check_binding(effect: Effect, machine: Machine, feats: Features, eta, q, theta, aux, idx, fail) -> None:
+    """The bound effect as a PoseTransform: ``q`` moved by ``delta_q``, ``theta`` kept, the tool by ``delta_x``."""
+    n_poses = q.shape[0]
     bound = effect.bind(machine, eta)
     q2, th2 = bound.transform(q, np.broadcast_to(theta, (n_poses, machine.n_params)).copy(), aux, np.arange(n_poses))
     if not np.allclose(q2, q + effect.delta_q(feats, eta), rtol=0, atol=1e-12):
@@ -113,7 +135,7 @@ def check_effect(effect: Effect, machine: Machine, *, aux: dict | None = None, n
     if not np.array_equal(th2, np.broadcast_to(theta, th2.shape)):
         fail("the bound effect's transform changed theta")
     if effect.moves_tool:
-        if not np.allclose(effect.delta_x(sub, eta), effect.delta_x(feats, eta)[idx]):
+        if not np.allclose(effect.delta_x(feats.subset(idx), eta), effect.delta_x(feats, eta)[idx]):
             fail("Features.subset does not give the subset's delta_x")
         off = bound.pose_offset(q, np.broadcast_to(theta, (n_poses, machine.n_params)).copy(), aux, np.arange(n_poses))
         if off is None or not np.allclose(off, effect.delta_x(feats, eta), rtol=0, atol=1e-12):

@@ -377,42 +377,13 @@ def calibrate(
     _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlier_kw)
     kw = dict(lam=lam, k=k, free=free, rule=rule, prior_scale=prior_scale, max_iter=max_iter,
               outlier_kw={"robust": robust, **outlier_kw}, fit_effects=fit_effects)
-    res, handling, choice = _fit_once(model, method, **kw)
-    tilt = tilt_noise_check(model, res)
-    if tilt is not None and noise == "auto" and tilt.contradicted and res.success:
-        # the body sensors' sigma_tilt is contradicted by their own rows: rescaled on its own, and the fit redone,
-        # before the noise test (one scale for every row let a default sigma_tilt twenty times too small raise the
-        # position sigmas tenfold and spoil the geometry: held-out 0.044 against 0.0069 mm without the sensors)
-        model = with_tilt_scale(model, tilt.scale)
-        res, handling, choice = _fit_once(model, method, **kw)
-    groups = tool_group_checks(model, res, stated=noise_stated(model), weights=None if handling is None else handling.weights)
-    rescaled = {}
-    if noise == "auto" and res.success and group_scales(groups):
-        # sigma_position and sigma_angle contradicted apart (group_noise.py): one scale for every row would leave
-        # the positions 10^4 times underweighted when only sigma_position is stated 100 times too large
-        model, (res, handling, choice), rescaled = _with_group_scales(model, method, kw, group_scales(groups),
-                                                                      (res, handling, choice))
+    model, (res, handling, choice), blocks = _fit_with_row_groups(model, method, kw, noise)
     first = noise_check_of(model, res)
-    # the row groups' own tests, kept in the answer through every refit below
-    blocks = {}
-    if tilt is not None:
-        blocks["tilt_noise"] = {**tilt.to_dict(), "scale_used": tilt.scale if tilt.contradicted and noise == "auto"
-                                else 1.0}
-    if groups is not None:
-        blocks["tool_noise"] = {**{name: c.to_dict() for name, c in groups.items()}, "scale_used": dict(rescaled)}
     res = replace(res, extras={**res.extras, **blocks})
     if discrepancy != "off" and res.success:
-        # a noise not stated: the sigmas are weights and lam the noise-to-prior ratio; on the sigma the residuals
-        # support, the geometry's prior is a prior (its std the tolerances times that scale over sqrt(lam)) before
-        # it decides with the discrepancy's what each may take
-        base = first.scale if first.verdict == "not_stated" and noise == "auto" else 1.0
-        model_d = scale_noise(model, base)
-        got = _with_discrepancy(model_d, method, kw, (res, handling, choice), discrepancy, discrepancy_inputs, noise,
-                                lam_scale=base**2)
+        got = _discrepancy_answer(model, method, kw, (res, handling, choice), first, discrepancy, discrepancy_inputs,
+                                  noise)
         if got is not None:
-            if base != 1.0:
-                got = replace(got, noise=first, noise_scale=got.noise_scale * base, model=model)
-                got = replace(got, result=replace(got.result, extras={**got.result.extras, **got.noise_dict()}))
             return got
         note = "considered, not supported by the data (--discrepancy auto)"
     else:
@@ -430,6 +401,50 @@ def calibrate(
     cal = replace(cal, result=replace(res, extras={**res.extras, **blocks, **cal.noise_dict(), **cal.discrepancy_dict()}),
                   model=model)
     return cal.with_variance_factor(model)
+
+
+def _fit_with_row_groups(model, method, kw, noise):
+    """The first fit, with the body sensors' tilt sigma and the tool's position and angle sigmas rescaled apart.
+
+    Returns the model (its row groups' sigmas as used), the fit ``(res, handling, choice)`` and the answer's
+    ``tilt_noise`` / ``tool_noise`` blocks (the row groups' own tests, kept in the answer through every refit).
+    """
+    res, handling, choice = _fit_once(model, method, **kw)
+    tilt = tilt_noise_check(model, res)
+    if tilt is not None and noise == "auto" and tilt.contradicted and res.success:
+        # the body sensors' sigma_tilt is contradicted by their own rows: rescaled on its own, and the fit redone,
+        # before the noise test (one scale for every row let a default sigma_tilt twenty times too small raise the
+        # position sigmas tenfold and spoil the geometry: held-out 0.044 against 0.0069 mm without the sensors)
+        model = with_tilt_scale(model, tilt.scale)
+        res, handling, choice = _fit_once(model, method, **kw)
+    groups = tool_group_checks(model, res, stated=noise_stated(model), weights=None if handling is None else handling.weights)
+    rescaled = {}
+    if noise == "auto" and res.success and group_scales(groups):
+        # sigma_position and sigma_angle contradicted apart (group_noise.py): one scale for every row would leave
+        # the positions 10^4 times underweighted when only sigma_position is stated 100 times too large
+        model, (res, handling, choice), rescaled = _with_group_scales(model, method, kw, group_scales(groups),
+                                                                      (res, handling, choice))
+    blocks = {}
+    if tilt is not None:
+        blocks["tilt_noise"] = {**tilt.to_dict(), "scale_used": tilt.scale if tilt.contradicted and noise == "auto"
+                                else 1.0}
+    if groups is not None:
+        blocks["tool_noise"] = {**{name: c.to_dict() for name, c in groups.items()}, "scale_used": dict(rescaled)}
+    return model, (res, handling, choice), blocks
+
+
+def _discrepancy_answer(model, method, kw, fit, first, discrepancy, discrepancy_inputs, noise):
+    """The calibration with a model discrepancy (step 4 of the module docstring); None when ``auto`` finds none."""
+    # a noise not stated: the sigmas are weights and lam the noise-to-prior ratio; on the sigma the residuals
+    # support, the geometry's prior is a prior (its std the tolerances times that scale over sqrt(lam)) before
+    # it decides with the discrepancy's what each may take
+    base = first.scale if first.verdict == "not_stated" and noise == "auto" else 1.0
+    model_d = scale_noise(model, base)
+    got = _with_discrepancy(model_d, method, kw, fit, discrepancy, discrepancy_inputs, noise, lam_scale=base**2)
+    if got is not None and base != 1.0:
+        got = replace(got, noise=first, noise_scale=got.noise_scale * base, model=model)
+        got = replace(got, result=replace(got.result, extras={**got.result.extras, **got.noise_dict()}))
+    return got
 
 
 def _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlier_kw) -> None:

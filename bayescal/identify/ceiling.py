@@ -90,6 +90,45 @@ class ChoiceCeiling:
                 "n_data": self.n_data, "n_posterior": self.n_posterior}
 
 
+def _checked_problem(A, G, ratio, n_data, n_posterior) -> tuple[NDArray, NDArray]:
+    """``A`` and ``G`` as float matrices of matching columns, or InputError naming what :func:`choice_ceiling` refuses."""
+    A = np.asarray(A, dtype=float)
+    G = np.asarray(G, dtype=float)
+    if A.ndim != 2 or G.ndim != 2 or G.shape[1] != A.shape[1]:
+        raise InputError(f"A, G: expected shapes (N, p) and (M, p), got {A.shape} and {G.shape}")
+    if ratio < 1.0:
+        raise InputError(f"ratio: expected >= 1, got {ratio}")
+    if n_data < 1 or n_posterior < 2:
+        raise InputError(f"n_data, n_posterior: expected >= 1 and >= 2, got {n_data} and {n_posterior}")
+    return A, G
+
+
+def _candidate_filters(method: str, values: NDArray, s: NDArray) -> NDArray:
+    """Filter factors (n_values, rank) of every candidate ``lambda`` (ridge) or ``k`` (TSVD)."""
+    if method == "ridge":
+        lams = values.astype(float)
+        if np.any(lams <= 0):
+            raise InputError("values: ridge lambdas must be positive")
+        return s[None, :] ** 2 / (s[None, :] ** 2 + lams[:, None])
+    if method == "tsvd":
+        ks = values.astype(int)
+        if np.any(ks < 1) or np.any(ks > s.size):
+            raise InputError(f"values: k must be from 1 to {s.size}")
+        return (np.arange(s.size)[None, :] < ks[:, None]).astype(float)
+    raise InputError(f"method: expected 'ridge' or 'tsvd', got {method!r}")
+
+
+def _fixed_indices(values: NDArray, fixed: dict | None) -> dict[str, int]:
+    """Index into ``values`` of each fixed value to report, or InputError naming one that is not a candidate."""
+    fixed_idx = {}
+    for label, v in dict(fixed or {}).items():
+        hit = np.flatnonzero(np.isclose(values.astype(float), float(v), rtol=1e-12, atol=0.0))
+        if hit.size == 0:
+            raise InputError(f"fixed[{label!r}]: {v} is not one of the candidate values")
+        fixed_idx[label] = int(hit[0])
+    return fixed_idx
+
+
 def choice_ceiling(
     A: ArrayLike,
     G: ArrayLike,
@@ -133,37 +172,13 @@ def choice_ceiling(
     -------
     ChoiceCeiling
     """
-    A = np.asarray(A, dtype=float)
-    G = np.asarray(G, dtype=float)
-    if A.ndim != 2 or G.ndim != 2 or G.shape[1] != A.shape[1]:
-        raise InputError(f"A, G: expected shapes (N, p) and (M, p), got {A.shape} and {G.shape}")
-    if ratio < 1.0:
-        raise InputError(f"ratio: expected >= 1, got {ratio}")
-    if n_data < 1 or n_posterior < 2:
-        raise InputError(f"n_data, n_posterior: expected >= 1 and >= 2, got {n_data} and {n_posterior}")
+    A, G = _checked_problem(A, G, ratio, n_data, n_posterior)
     p = A.shape[1]
     # only s and V are needed: the data are simulated in the singular coordinates
     _, s, Vt_full = np.linalg.svd(A, full_matrices=True)
     values = np.asarray(values)
-    if method == "ridge":
-        lams = values.astype(float)
-        if np.any(lams <= 0):
-            raise InputError("values: ridge lambdas must be positive")
-        F = s[None, :] ** 2 / (s[None, :] ** 2 + lams[:, None])
-    elif method == "tsvd":
-        ks = values.astype(int)
-        if np.any(ks < 1) or np.any(ks > s.size):
-            raise InputError(f"values: k must be from 1 to {s.size}")
-        F = (np.arange(s.size)[None, :] < ks[:, None]).astype(float)
-    else:
-        raise InputError(f"method: expected 'ridge' or 'tsvd', got {method!r}")
-    fixed = dict(fixed or {})
-    fixed_idx = {}
-    for label, v in fixed.items():
-        hit = np.flatnonzero(np.isclose(values.astype(float), float(v), rtol=1e-12, atol=0.0))
-        if hit.size == 0:
-            raise InputError(f"fixed[{label!r}]: {v} is not one of the candidate values")
-        fixed_idx[label] = int(hit[0])
+    F = _candidate_filters(method, values, s)
+    fixed_idx = _fixed_indices(values, fixed)
     inv_s = np.where(s > 1e-12 * s[0], 1.0 / np.where(s > 0, s, 1.0), 0.0)
     # posterior N(m, Sigma) in the right singular vectors: independent per direction
     post_sd = 1.0 / np.sqrt(s**2 + 1.0)

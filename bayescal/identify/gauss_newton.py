@@ -277,10 +277,7 @@ def identify(
         prior_mean = model.machine.prior_mean  # a view's parameters centred elsewhere (effects); None: zero
     theta, S_all = _start(model, theta0, scale)
     # the start's prediction and linearisation serve the automatic free set and the first step
-    pred = model.predict(theta)
-    if not pred.success.all():
-        i = int(np.flatnonzero(~pred.success)[0])
-        raise InputError(f"pose {i + 1} (q = {model.q[i].tolist()}): {pred.poses.message[i]} at the start geometry")
+    pred = _start_prediction(model, theta)
     r, J = whitened_system(model, theta, pred)
     # a prior (ridge, map) or a truncation in the tolerance-scaled metric (tsvd) decides the directions
     # the data do not see, so "auto" leaves them to it instead of fixing parameters (resolve_free)
@@ -288,14 +285,31 @@ def identify(
                             system=(pred, r, J))
     _check_size(model, method, solver, lam, k, idx.size)
     S = S_all[idx]
-    # ridge/MAP solve for the deviation from the prior mean c (phi = c + x)
-    c = np.zeros(idx.size) if prior_mean is None else np.asarray(prior_mean, dtype=float).reshape(P)[idx] / S
-    basis = None  # TSVD: the fixed subspace V_k, in scaled coordinates
-    if method == "tsvd":
-        basis = np.linalg.svd(J[:, idx] * S, full_matrices=False)[2][: int(k)].T
+    c, basis = _centre_and_basis(method, k, J, idx, S, prior_mean, P)
     res_before = model.residual(pred)
     it = _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol)
     return _result(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before)
+
+
+def _start_prediction(model, theta: NDArray):
+    """The model's prediction at the start; InputError naming the first pose that does not solve there."""
+    pred = model.predict(theta)
+    if not pred.success.all():
+        i = int(np.flatnonzero(~pred.success)[0])
+        raise InputError(f"pose {i + 1} (q = {model.q[i].tolist()}): {pred.poses.message[i]} at the start geometry")
+    return pred
+
+
+def _centre_and_basis(method: str, k, J: NDArray, idx: NDArray, S: NDArray, prior_mean, P: int):
+    """The prior mean in scaled coordinates ``c`` (ridge/MAP solve for phi = c + x) and TSVD's fixed subspace.
+
+    ``basis`` is V_k in scaled coordinates (None for the other methods).
+    """
+    c = np.zeros(idx.size) if prior_mean is None else np.asarray(prior_mean, dtype=float).reshape(P)[idx] / S
+    basis = None
+    if method == "tsvd":
+        basis = np.linalg.svd(J[:, idx] * S, full_matrices=False)[2][: int(k)].T
+    return c, basis
 
 
 def _start(model, theta0, scale) -> tuple[NDArray, NDArray]:

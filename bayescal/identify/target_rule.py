@@ -595,23 +595,18 @@ def calibrate_target_rule(
     n_draws : int
         Posterior draws per scale when the rule is applied to a recording's data.
     calibration_draws : int
-        Posterior draws per scale for each simulated data set (the first
-        ``calibration_draws`` of the ``n_draws`` the rule would take).  Fewer
-        than ``n_draws``: the calibration averages its data sets' values, so
-        their Monte Carlo error shrinks with the number of data sets, while
-        the sample of data sets sets its accuracy.  At 200 draws the weights
-        move far less than between calibration seeds at 600, and the chosen
-        ``k`` of the bundled 3-PRS and of the 444-pose 7-R arm of
-        ``benchmarks/identify_scale.py`` is the same for seeds 0-2
-        (``benchmarks/README.md``); the rule applied to the recording keeps
-        ``n_draws``, where the Monte Carlo error of one data set decides.
+        Posterior draws per scale for each simulated data set (the first ``calibration_draws`` of the
+        ``n_draws`` the rule would take).  Fewer than ``n_draws``: the calibration averages its data sets'
+        values, so their Monte Carlo error shrinks with the number of data sets, while the sample of data sets
+        sets its accuracy.  At 200 draws the weights move far less than between calibration seeds at 600, and
+        the chosen ``k`` of the bundled 3-PRS and of the 444-pose 7-R arm of ``benchmarks/identify_scale.py`` is
+        the same for seeds 0-2 (``benchmarks/README.md``); the rule applied to the recording keeps ``n_draws``,
+        where the Monte Carlo error of one data set decides.
     margin : float
-        Every target tightened by this on the calibration sample (0.004: 0.4
-        point of gap or tail share, 0.004 of regret, about one or two
-        standard errors of a cell's estimate over 400 data sets).  It only
-        changes the weights when the second programme runs (it shifts every
-        constraint of the first alike); chosen on the 3-PRS 5-DOF situation
-        of ``studies/choice_rules.py`` in an exploratory run with other seeds
+        Every target tightened by this on the calibration sample (0.004: 0.4 point of gap or tail share, 0.004
+        of regret, about one or two standard errors of a cell's estimate over 400 data sets).  It only changes
+        the weights when the second programme runs (it shifts every constraint of the first alike); chosen on
+        the 3-PRS 5-DOF situation of ``studies/choice_rules.py`` in an exploratory run with other seeds
         (docs/regularisation.md).
     seed : int
 
@@ -619,6 +614,26 @@ def calibrate_target_rule(
     -------
     TargetRule
     """
+    scales = _checked_scales(scales, margin, n_data, n_draws, calibration_draws)
+    targets = default_targets(method) if targets is None else targets
+    design = rule_design(A, method, grid, output_map)
+    S = len(scales)
+    phi, logd = _simulated_values(design, method, scales, targets, int(n_data), int(calibration_draws), seed)
+    w = _density_weights(logd)
+    lam, value, relax, programme = _target_programme(phi, w, targets, margin)
+    rule = TargetRule(method=method, grid=np.asarray(design.grid), scales=scales, weights=lam.reshape(S, 3),
+                      targets=targets, relaxed=tuple(float(x) for x in relax), shortfall=value, calibration={},
+                      n_draws=int(n_draws), seed=int(seed), fingerprint=_fingerprint(design))
+    choice = np.argmin(_lagrangian(rule.weights, w, phi), axis=1)
+    per_scale = {f"{c:g}": _achieved(phi[:, j], choice, w[:, j]) for j, c in enumerate(scales)}
+    calibration = {"per_scale": per_scale, "programme": programme, "n_data": int(n_data), "n_draws": int(n_draws),
+                   "calibration_draws": int(calibration_draws),
+                   "margin": float(margin), "seed": int(seed)}
+    return TargetRule(**{**rule.__dict__, "calibration": calibration})
+
+
+def _checked_scales(scales, margin, n_data, n_draws, calibration_draws) -> tuple[float, ...]:
+    """The truth scales as floats, or InputError naming the option of :func:`calibrate_target_rule` out of range."""
     scales = tuple(float(c) for c in scales)
     if not scales or any(not c > 0 for c in scales):
         raise InputError(f"scales: expected positive tolerance multiples, got {scales}")
@@ -627,14 +642,21 @@ def calibrate_target_rule(
     if int(n_data) < 10 or int(n_draws) < 50 or int(calibration_draws) < 50:
         raise InputError(f"n_data, n_draws, calibration_draws: expected at least 10, 50 and 50, got {n_data}, "
                          f"{n_draws}, {calibration_draws}")
-    targets = default_targets(method) if targets is None else targets
-    design = rule_design(A, method, grid, output_map)
+    return scales
+
+
+def _simulated_values(design, method, scales, targets, n_data: int, calibration_draws: int, seed):
+    """``n_data`` simulated data sets per scale, valued under every scale's posterior.
+
+    Returns ``phi`` (n, S, n_candidates, 3) of :func:`candidate_values` and the data sets' log densities
+    under each scale ``logd`` (n, S).
+    """
     s, p, S = design.s, design.p, len(scales)
     rng = np.random.default_rng([seed, 1])
-    n = int(n_data) * S
+    n = n_data * S
     phi = np.empty((n, S, design.F.shape[0], 3))
     logd = np.empty((n, S))
-    drawn_at = np.repeat(np.arange(S), int(n_data))
+    drawn_at = np.repeat(np.arange(S), n_data)
     betas = np.empty((n, s.size))
     for i in range(n):
         c = scales[drawn_at[i]]
@@ -645,13 +667,17 @@ def calibrate_target_rule(
     if method == "tsvd":  # several data sets per call: the same numbers as one by one, less overhead
         block = 16
         for i0 in range(0, n, block):
-            z0 = np.stack([np.random.default_rng([seed, 3, i]).standard_normal((int(calibration_draws), p))
+            z0 = np.stack([np.random.default_rng([seed, 3, i]).standard_normal((calibration_draws, p))
                            for i in range(i0, min(i0 + block, n))])
             phi[i0:i0 + block] = _tsvd_values(design, betas[i0:i0 + block], scales, z0, targets)
     else:
         for i in range(n):
-            phi[i] = candidate_values(design, betas[i], scales, targets, int(calibration_draws), [seed, 3, i])
-    w = _density_weights(logd)
+            phi[i] = candidate_values(design, betas[i], scales, targets, calibration_draws, [seed, 3, i])
+    return phi, logd
+
+
+def _target_programme(phi, w, targets, margin):
+    """The rule's weights: ``(lam, value, relax, programme)`` of the minimax over the (relaxed, tightened) targets."""
     # the least tail any rule can have at each scale, knowing it (E_c[min_v t_cv], estimated like the
     # constraint rows: the pooled data sets reweighted to scale c): where it is above the target, that
     # target is relaxed to it, so an impossible target does not drag the others down (gap and regret
@@ -676,13 +702,5 @@ def calibrate_target_rule(
             programme = "minimax over every target (the scales not relaxed cannot all be met together)"
         else:
             (lam, value), programme = second, "targets of the scales not relaxed met first"
-    rule = TargetRule(method=method, grid=np.asarray(design.grid), scales=scales, weights=lam.reshape(S, 3),
-                      targets=targets, relaxed=tuple(float(x) for x in relax), shortfall=value, calibration={},
-                      n_draws=int(n_draws), seed=int(seed), fingerprint=_fingerprint(design))
-    choice = np.argmin(_lagrangian(rule.weights, w, phi), axis=1)
-    per_scale = {f"{c:g}": _achieved(phi[:, j], choice, w[:, j]) for j, c in enumerate(scales)}
-    calibration = {"per_scale": per_scale, "programme": programme, "n_data": int(n_data), "n_draws": int(n_draws),
-                   "calibration_draws": int(calibration_draws),
-                   "margin": float(margin), "seed": int(seed)}
-    return TargetRule(**{**rule.__dict__, "calibration": calibration})
+    return lam, value, relax, programme
 

@@ -153,14 +153,8 @@ def assess_plausibility(
     n_rows, n_free = n_distinct * model.dof, int(free.sum())
     n_eff = float(n_free) if effective_params is None else float(effective_params)
     if flagged.size:
-        order = flagged[np.argsort(-ratio[flagged])]
-        shown = ", ".join(f"{names[j]} = {theta[j]:.4g} {units[j]} ({ratio[j]:.0f} tolerances)" for j in order[:6])
-        more = f" and {order.size - 6} more" if order.size > 6 else ""
-        reasons.append(f"{order.size} identified errors lie beyond {PLAUSIBLE_SIGMAS:g} tolerances: {shown}{more}")
-        params = [
-            {"name": names[j], "value": float(theta[j]), "unit": units[j], "tolerance": float(tol[j]), "sigmas": float(ratio[j])}
-            for j in order
-        ]
+        reason, params = _beyond_tolerance(flagged, theta, ratio, tol, names, units)
+        reasons.append(reason)
     if n_rows - n_eff < 1.0:  # less than one residual degree of freedom (a prior fits ~n_rows effective parameters)
         what = (f"{n_free} identified parameters" if effective_params is None
                 else f"{n_eff:.1f} effective parameters (the hat matrix's trace under the prior, {n_free} estimated)")
@@ -188,6 +182,19 @@ def assess_plausibility(
     if out:
         causes.append(out)
     return Plausibility(False, tuple(reasons), tuple(causes), tuple(params))
+
+
+def _beyond_tolerance(flagged, theta, ratio, tol, names, units) -> tuple[str, list[dict]]:
+    """The reason naming the ``flagged`` errors (the largest six, in tolerances) and their answer entries."""
+    order = flagged[np.argsort(-ratio[flagged])]
+    shown = ", ".join(f"{names[j]} = {theta[j]:.4g} {units[j]} ({ratio[j]:.0f} tolerances)" for j in order[:6])
+    more = f" and {order.size - 6} more" if order.size > 6 else ""
+    reason = f"{order.size} identified errors lie beyond {PLAUSIBLE_SIGMAS:g} tolerances: {shown}{more}"
+    params = [
+        {"name": names[j], "value": float(theta[j]), "unit": units[j], "tolerance": float(tol[j]), "sigmas": float(ratio[j])}
+        for j in order
+    ]
+    return reason, params
 
 
 def _recording_causes(check: FrameCheck | None) -> list[str]:

@@ -221,26 +221,9 @@ def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> Con
     path = str(path)
     header, seen, rows = read_csv_rows(path, text, "a constraint recording (CSV)")
     header, seen, unit_scale, file_col = _length_columns(path, header, seen)
-    for col in ("measure", "value"):
-        if col not in seen:
-            raise RecordingError(path, 1, col, "missing column; a constraint recording has measure, a_q1..a_qN, [b_q1..b_qN], value")
-    a_nums = _actuator_columns(path, seen, _AQ, "a_q")
-    if not a_nums:
-        raise RecordingError(path, 1, None, "no actuator columns; expected a_q1, a_q2, ...")
-    b_nums = _actuator_columns(path, seen, _BQ, "b_q")
-    if b_nums and b_nums != a_nums:
-        raise RecordingError(path, 1, None, f"b_q1..b_q{len(b_nums)} but a_q1..a_q{len(a_nums)}; expected as many b as a columns")
-    if not rows:
-        raise RecordingError(path, 2, None, "no data rows; expected one row per measurement")
+    a_nums, b_nums, aux_cols = _constraint_columns(path, header, seen, rows)
     N = len(a_nums)
     n = len(rows)
-    known = {"measure", "value", "pivot", "sigma_position"} | {f"a_q{k}" for k in a_nums} | {f"b_q{k}" for k in b_nums}
-    aux_cols = [h for h in header if h not in known]
-    for label in ("station", "role"):
-        if label in aux_cols:
-            # read as a numeric channel, the first label was "expected a number, got 'check'"
-            raise RecordingError(path, 1, label, f"a {label} column is read in pose recordings only (docs/formats.md "
-                                 "section 8); a constraint recording's other columns are numeric auxiliary channels")
     measure: list[str] = []
     qa = np.empty((n, N))
     qb = np.full((n, N), np.nan)
@@ -257,48 +240,91 @@ def read_constraints(path: str | os.PathLike, *, text: str | None = None) -> Con
         if m not in MEASURES:
             raise RecordingError(path, line, "measure", f"expected one of {', '.join(MEASURES)}, got {m!r}")
         measure.append(m)
-        for k in range(N):
-            qa[i, k] = parse_number(cell(f"a_q{k + 1}"), path, line, f"a_q{k + 1}")
-        if m == "distance":
-            if not b_nums:
-                raise RecordingError(path, 1, "b_q1", f"line {line} is a distance, but the file has no b_q1..b_q{N} columns")
-            for k in range(N):
-                qb[i, k] = parse_number(cell(f"b_q{k + 1}"), path, line, f"b_q{k + 1}")
-        else:
-            for k in b_nums:
-                if cell(f"b_q{k}") != "":
-                    raise RecordingError(path, line, f"b_q{k}", f"a {m} row has no pose b; expected an empty cell")
-        v = parse_number(cell("value"), path, line, file_col["value"])
-        if m != "height" and v <= 0:
-            raise RecordingError(path, line, file_col["value"], f"a {m} must be positive, got {v!r}")
-        value[i] = v * unit_scale["value"]
-        if abs(value[i]) > MAX_FILE_NUMBER:  # 1e300 ran into a noise estimate of inf
-            raise RecordingError(path, line, file_col["value"], f"{value[i]:g} mm; expected a length within "
-                                 f"+-{MAX_FILE_NUMBER:g} mm")
+        _read_poses(cell, path, line, m, N, b_nums, qa[i], qb[i])
+        value[i] = _read_value(cell, path, line, m, file_col["value"], unit_scale["value"])
         if m == "distance" and np.array_equal(qa[i], qb[i]):
             # a pose's distance to itself is 0 whatever the geometry: the row carries no information, only an outlier
             raise RecordingError(path, line, "b_q1", f"a distance between pose a and the same pose b (q = {qa[i].tolist()}); "
                                  "expected two different poses")
-        pid = cell("pivot") if "pivot" in seen else (DEFAULT_PIVOT if m == "ballbar" else "")
-        if m == "ballbar":
-            if not _PIVOT_ID.match(pid):
-                raise RecordingError(path, line, "pivot", f"expected a pivot id of letters, digits, _ or -, got {pid!r}")
-        elif pid != "":
-            raise RecordingError(path, line, "pivot", f"a {m} row has no pivot; expected an empty cell")
-        pivot.append(pid if m == "ballbar" else "")
+        pivot.append(_read_pivot(cell, "pivot" in seen, path, line, m))
         if sigma is not None:
-            col = file_col["sigma_position"]
-            s = parse_number(cell("sigma_position"), path, line, col)
-            if s <= 0:
-                raise RecordingError(path, line, col, f"expected a positive one-sigma noise, got {s!r}")
-            sigma[i] = s * unit_scale["sigma_position"]
-            if (problem := sigma_problem(float(sigma[i]), "position")) is not None:  # bayescal.limits
-                raise RecordingError(path, line, col, problem)
+            sigma[i] = _read_sigma(cell, path, line, file_col["sigma_position"], unit_scale["sigma_position"])
         for h in aux_cols:
             aux[h][i] = parse_number(cell(h), path, line, h)
     return ConstraintRecording(
         measure=tuple(measure), qa=qa, qb=qb, value=value, pivot=tuple(pivot), sigma=sigma, aux=aux, path=path
     )
+
+
+def _constraint_columns(path: str, header, seen: dict, rows) -> tuple[list[int], list[int], list[str]]:
+    """The ``a_q`` and ``b_q`` numbers and the auxiliary columns of a constraint recording, its header checked."""
+    for col in ("measure", "value"):
+        if col not in seen:
+            raise RecordingError(path, 1, col, "missing column; a constraint recording has measure, a_q1..a_qN, [b_q1..b_qN], value")
+    a_nums = _actuator_columns(path, seen, _AQ, "a_q")
+    if not a_nums:
+        raise RecordingError(path, 1, None, "no actuator columns; expected a_q1, a_q2, ...")
+    b_nums = _actuator_columns(path, seen, _BQ, "b_q")
+    if b_nums and b_nums != a_nums:
+        raise RecordingError(path, 1, None, f"b_q1..b_q{len(b_nums)} but a_q1..a_q{len(a_nums)}; expected as many b as a columns")
+    if not rows:
+        raise RecordingError(path, 2, None, "no data rows; expected one row per measurement")
+    known = {"measure", "value", "pivot", "sigma_position"} | {f"a_q{k}" for k in a_nums} | {f"b_q{k}" for k in b_nums}
+    aux_cols = [h for h in header if h not in known]
+    for label in ("station", "role"):
+        if label in aux_cols:
+            # read as a numeric channel, the first label was "expected a number, got 'check'"
+            raise RecordingError(path, 1, label, f"a {label} column is read in pose recordings only (docs/formats.md "
+                                 "section 8); a constraint recording's other columns are numeric auxiliary channels")
+    return a_nums, b_nums, aux_cols
+
+
+def _read_poses(cell, path: str, line: int, m: str, N: int, b_nums, qa_i: NDArray, qb_i: NDArray) -> None:
+    """A row's pose a into ``qa_i`` and, for a distance, pose b into ``qb_i`` (other rows: empty ``b_q`` cells)."""
+    for k in range(N):
+        qa_i[k] = parse_number(cell(f"a_q{k + 1}"), path, line, f"a_q{k + 1}")
+    if m == "distance":
+        if not b_nums:
+            raise RecordingError(path, 1, "b_q1", f"line {line} is a distance, but the file has no b_q1..b_q{N} columns")
+        for k in range(N):
+            qb_i[k] = parse_number(cell(f"b_q{k + 1}"), path, line, f"b_q{k + 1}")
+    else:
+        for k in b_nums:
+            if cell(f"b_q{k}") != "":
+                raise RecordingError(path, line, f"b_q{k}", f"a {m} row has no pose b; expected an empty cell")
+
+
+def _read_value(cell, path: str, line: int, m: str, col: str, scale: float) -> float:
+    """A row's measured value in mm (positive but for a height, within the file limit)."""
+    v = parse_number(cell("value"), path, line, col)
+    if m != "height" and v <= 0:
+        raise RecordingError(path, line, col, f"a {m} must be positive, got {v!r}")
+    v = v * scale
+    if abs(v) > MAX_FILE_NUMBER:  # 1e300 ran into a noise estimate of inf
+        raise RecordingError(path, line, col, f"{v:g} mm; expected a length within +-{MAX_FILE_NUMBER:g} mm")
+    return v
+
+
+def _read_pivot(cell, has_column: bool, path: str, line: int, m: str) -> str:
+    """A ballbar row's pivot id (the default pivot without the column); "" for the other rows."""
+    pid = cell("pivot") if has_column else (DEFAULT_PIVOT if m == "ballbar" else "")
+    if m == "ballbar":
+        if not _PIVOT_ID.match(pid):
+            raise RecordingError(path, line, "pivot", f"expected a pivot id of letters, digits, _ or -, got {pid!r}")
+    elif pid != "":
+        raise RecordingError(path, line, "pivot", f"a {m} row has no pivot; expected an empty cell")
+    return pid if m == "ballbar" else ""
+
+
+def _read_sigma(cell, path: str, line: int, col: str, scale: float) -> float:
+    """A row's stated one-sigma noise in mm (positive, within :func:`bayescal.limits.sigma_problem`'s range)."""
+    s = parse_number(cell("sigma_position"), path, line, col)
+    if s <= 0:
+        raise RecordingError(path, line, col, f"expected a positive one-sigma noise, got {s!r}")
+    s = s * scale
+    if (problem := sigma_problem(float(s), "position")) is not None:  # bayescal.limits
+        raise RecordingError(path, line, col, problem)
+    return s
 
 
 def constraints_to_csv(rec: ConstraintRecording) -> str:

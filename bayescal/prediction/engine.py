@@ -86,6 +86,16 @@ def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArr
     return G, (Js @ Cs) @ np.swapaxes(Js, 1, 2)
 
 
+def _with_discrepancy(discrepancy, sub, theta, sub_pred, J, Jm, residual_variance: bool):
+    """``(mean, Jm, D)``: the rows' mean with the discrepancy's, its weights' columns appended to ``Jm``, and ``D``,
+    the discrepancy's prior variance its inducing points do not carry (zeros without one or when not asked)."""
+    dof = J.shape[1]
+    if discrepancy is None:
+        return sub_pred.y.copy(), Jm, np.zeros((sub.n_poses, dof, dof))
+    dmean, F, D = discrepancy.rows(sub, theta, sub_pred, J=J)
+    return sub_pred.y + dmean, np.concatenate([Jm, F], axis=2), D if residual_variance else np.zeros_like(D)
+
+
 def predictive_rows(
     model,
     theta: NDArray,
@@ -139,22 +149,14 @@ def predictive_rows(
     pred = model.predict(theta)
     ok = np.asarray(pred.success, dtype=bool)
     msg = tuple("" if s else str(m) for s, m in zip(ok, pred.poses.message))
-    mean = np.full((n, dof), np.nan)
-    cov = np.full((n, dof, dof), np.nan)
+    mean, cov = np.full((n, dof), np.nan), np.full((n, dof, dof), np.nan)
     if not ok.any():
         return PredictiveRows(mean, cov, ok, msg)
     sub = model if ok.all() else model.subset(np.flatnonzero(ok))
     sub_pred = pred if ok.all() else sub.predict(theta)
     J = sub.jacobian(theta, sub_pred)  # (n_ok, dof, P)
     Jm = J[:, :, machine_index]
-    mu = sub_pred.y.copy()
-    D = np.zeros((sub.n_poses, dof, dof))
-    if discrepancy is not None:
-        dmean, F, D = discrepancy.rows(sub, theta, sub_pred, J=J)
-        mu = mu + dmean
-        if not residual_variance:
-            D = np.zeros_like(D)
-        Jm = np.concatenate([Jm, F], axis=2)
+    mu, Jm, D = _with_discrepancy(discrepancy, sub, theta, sub_pred, J, Jm, residual_variance)
     C = np.asarray(covariance, dtype=float)
     if C.shape != (Jm.shape[2],) * 2:
         raise InputError(f"predictive_rows: covariance of shape {C.shape} for {Jm.shape[2]} parameters and weights")
@@ -171,3 +173,4 @@ def predictive_rows(
     mean[ok] = mu
     cov[ok] = 0.5 * (cov_ok + np.swapaxes(cov_ok, 1, 2))
     return PredictiveRows(mean, cov, ok, msg)
+
