@@ -472,6 +472,18 @@ MAP_STEP_CONTROL = StepControl(descent=True, halvings=7, remember=True)
 #: (the diagnosis benchmark at 1,000 poses: 144 against 141); 1e-4 took 28 % more there, 1e-6 a third more over
 #: the diagnosis tests, for changes of the cost below 1e-3.
 MAP_DTOL = 1e-3
+#: Poses from which :func:`fit_map` with effects starts from a fit of every :data:`COARSE_STRIDE`-th row
+#: (:func:`_coarse_start`).  An effect that multiplies two unknowns (a compliance and a mass) makes the cost a
+#: curved valley whose width shrinks like one over the root of the poses, and Gauss-Newton crawls along it in
+#: steps that shrink alike: on the 3-PRS recording of benchmarks/diagnose_speed.py (backlash concealed) the
+#: joint-compliance fit took 24 iterations at 10,000 poses, about 32 at 20,000 and 40,000, and did not converge
+#: in 40 (189 s of CPU, a third of the diagnosis) at 100,000.  A quarter of the rows crawls most of the valley
+#: at a quarter of the cost: at 40,000 poses the full fit then took 19 iterations (29 s CPU, after 6 s for the
+#: coarse fit) instead of about 32.  Below this the fit is unchanged (every test and the 1,000 and 10,000 pose
+#: benchmark diagnoses give identical answers).
+COARSE_START_POSES = 20_000
+#: Every how many rows the coarse start fits (a quarter of the rows, spread over the whole recording).
+COARSE_STRIDE = 4
 
 
 def fit_map(
@@ -523,6 +535,8 @@ def fit_map(
     P, K = joint.P, joint.K
     theta = np.zeros(P) if theta0 is None else np.asarray(theta0, float).copy()
     eta = np.array([p.start_value for p in joint.params]) if eta0 is None else np.asarray(eta0, float).copy()
+    if K and model.n_poses >= COARSE_START_POSES:
+        theta, eta = _coarse_start(model, effects, theta, eta, max_iter, xtol)
     out = gauss_newton(np.concatenate([theta, eta]), joint.state(theta, eta, None), joint.at, joint.propose,
                        control=MAP_STEP_CONTROL, scale=joint.scale, max_iter=max_iter, xtol=xtol, dtol=MAP_DTOL,
                        unit="prior sigmas", failures=(KinematicsError,))
@@ -538,6 +552,30 @@ def fit_map(
         chi2=state.chi2, prior_term=state.prior, singular_values=s, n_rows=state.rw.size, success=out.success,
         message=out.message, iterations=out.iterations, covariance=full,
     )
+
+
+def _coarse_start(model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray, eta: NDArray,
+                  max_iter: int, xtol: float) -> tuple[NDArray, NDArray]:
+    """Where :func:`fit_map` of a large recording starts: the fit of every :data:`COARSE_STRIDE`-th row from ``(theta, eta)``.
+
+    That fit starts from a fit of a quarter of its rows in turn while it has
+    :data:`COARSE_START_POSES` rows or more.  The start from it is only a
+    start: the full fit iterates to the same tests.  Its answer differs by
+    the convergence tolerance where the cost has one minimum; where it has
+    several, the full fit may settle in the one the coarse fit found.  The
+    start is given back unchanged when a pose of the coarse fit does not
+    assemble (the full fit then reports it its own way).
+    """
+    rows = np.arange(0, model.n_poses, COARSE_STRIDE)
+    poses = model.poses_of(rows)
+    try:
+        fit = fit_map(model.subset(rows), [(e, f.subset(poses)) for e, f in effects], theta0=theta, eta0=eta,
+                      max_iter=max_iter, xtol=xtol)
+    except KinematicsError:
+        return theta, eta
+    if not (np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.eta))):
+        return theta, eta
+    return fit.theta, fit.eta
 
 
 def joint_system(model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray,

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lombscargle
@@ -45,16 +48,45 @@ def n_independent_frequencies(q_span: float, pitch_range=PITCH_RANGE_MM) -> floa
     return max(q_span * (1.0 / pitch_range[0] - 1.0 / pitch_range[1]), 1.0)
 
 
+#: Periodograms kept by content (:func:`periodogram`): a diagnosis asks for each actuator's twice, in the
+#: location tests and for the periodic effect's start pitch, and at 100,000 poses each costs seconds.
+_CACHE: OrderedDict = OrderedDict()
+_CACHE_SIZE = 16
+
+
+def _key(*arrays: NDArray) -> bytes:
+    h = hashlib.blake2b(digest_size=20)
+    for a in arrays:
+        h.update(str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.digest()
+
+
 def periodogram(q: NDArray, y: NDArray, freqs: NDArray) -> NDArray:
     """Normalised generalised Lomb-Scargle power (0..1) of ``y`` sampled at ``q``, per frequency (cycles/unit of q).
 
     The floating-mean form (Zechmeister and Kuerster 2009), so an offset
-    left in ``y`` does not leak into the low frequencies.
+    left in ``y`` does not leak into the low frequencies.  The last few
+    answers are kept by the content of ``q``, ``y`` and ``freqs`` (a copy is
+    returned), so asking again for the same data costs a hash.
     """
     y = np.asarray(y, float)
+    q, freqs = np.asarray(q, float), np.asarray(freqs, float)
+    key = _key(q, y, freqs)
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key].copy()
+    power = _periodogram(q, y, freqs)
+    _CACHE[key] = power.copy()
+    if len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return power
+
+
+def _periodogram(q: NDArray, y: NDArray, freqs: NDArray) -> NDArray:
     if np.ptp(y) == 0:
         return np.zeros(len(freqs))
-    q, w = np.asarray(q, float), 2 * np.pi * np.asarray(freqs, float)
+    w = 2 * np.pi * freqs
     # lombscargle holds several (samples x frequencies) arrays at once: 1.4 GB for 50,000 poses and
     # 500 frequencies.  Frequencies are independent (the normalisation is per data set), so chunks
     # of about _CHUNK elements give the same powers in bounded memory.

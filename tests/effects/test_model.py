@@ -70,3 +70,31 @@ def test_joint_system_is_the_whitened_residual_and_its_jacobian_in_prior_units(p
     h = 1e-6
     fd = np.column_stack([(rows(x / scale + h * e) - rows(x / scale - h * e)) / (2 * h) for e in np.eye(scale.size)])
     np.testing.assert_allclose(A, -fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
+
+
+def test_coarse_start_reaches_the_same_optimum_and_is_used_only_on_large_recordings(prs3, monkeypatch):
+    """fit_map from COARSE_START_POSES poses on starts from a fit of every COARSE_STRIDE-th row: the same
+    optimum as the plain fit (joint compliance, bilinear in compliances and masses), and below the threshold
+    the coarse fit never runs (the answers of every smaller recording are unchanged)."""
+    import bayescal.effects.model as em
+    from bayescal.effects.simulate import simulate_with_effects
+
+    sim = simulate_with_effects(prs3, 160, seed=5, dof=6, effects=[("joint_compliance", 1.0)], record=("payload_kg",))
+    model = MeasurementModel.from_recording(prs3, sim.recording)
+    fit0 = fit_map(model)
+    eff = get_effect("joint_compliance")
+    pred = model.predict(fit0.theta)
+    f = eff.features(prs3, model.q, fit0.theta, dict(sim.recording.aux), None, pred.poses)
+    calls = []
+    real = em._coarse_start
+    monkeypatch.setattr(em, "_coarse_start", lambda *a: calls.append(a[0].n_poses) or real(*a))
+    plain = fit_map(model, [(eff, f)], theta0=fit0.theta)
+    assert calls == []  # 160 poses: far below the threshold
+    monkeypatch.setattr(em, "COARSE_START_POSES", 40)
+    coarse = fit_map(model, [(eff, f)], theta0=fit0.theta)
+    assert calls == [160, 40]  # 160 -> every 4th row (40) -> every 4th of those (10 rows: below, fitted plainly)
+    assert plain.success and coarse.success, (plain.message, coarse.message)
+    # the same minimum: costs within the stop test's 1e-3 chi-square units (twice: either may stop short)
+    assert abs((plain.chi2 + plain.prior_term) - (coarse.chi2 + coarse.prior_term)) < 2e-3
+    sd = np.sqrt(np.diag(plain.cov_eta))
+    np.testing.assert_array_less(np.abs(plain.eta - coarse.eta), 0.05 * sd)
