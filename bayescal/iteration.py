@@ -36,7 +36,8 @@ test stop a fit far from its optimum (tests/test_iteration.py: a curved
 valley under 6,000 constant rows).
 
 A step is accepted by its :class:`StepControl`: with ``descent`` only when
-the cost does not rise (beyond round-off), else whenever it can be evaluated;
+the cost (or the caller's ``merit``, a regularised fit's penalised cost) does
+not rise (beyond round-off), else whenever it can be evaluated;
 a proposal that already passes the convergence tests is taken as it is.  A
 step that is not accepted is halved, from the full step or, with
 ``remember``, from twice the share the last iteration took.  When no halving
@@ -116,12 +117,18 @@ class StepControl:
         saves the evaluations of halving down to it again.
     bound : float
         Divergence: a point beyond this many ``scale`` from zero.
+    merit : callable, optional
+        ``merit(x, state, cost)``: what a step under ``descent`` must not
+        raise, when that is not the cost itself (a regularised fit, whose
+        chi-square may rise where the prior pulls: the penalised cost its
+        fixed point minimises).  The stop tests stay on the cost.
     """
 
     descent: bool = False
     halvings: int = 12
     remember: bool = False
     bound: float = np.inf
+    merit: Callable[[NDArray, Any, float], float] | None = None
 
 
 @dataclass
@@ -178,6 +185,8 @@ def _line_search(x, cost, state, prop: Proposal, share: float, evaluate, control
     trial's message if every trial failed to evaluate (else None).
     """
     failure, evaluated = None, False
+    merit = control.merit
+    level = cost if merit is None else merit(x, state, cost)
     for h in range(control.halvings + 1):
         trial = prop.target if (share == 1.0 and prop.target is not None) else x + share * prop.step
         try:
@@ -186,7 +195,8 @@ def _line_search(x, cost, state, prop: Proposal, share: float, evaluate, control
             failure = str(exc)
         else:
             evaluated = True
-            if not control.descent or converged or new_cost <= cost * (1.0 + ROUNDOFF):
+            new_level = new_cost if merit is None else merit(trial, new_state, new_cost)
+            if not control.descent or converged or new_level <= level * (1.0 + ROUNDOFF):
                 return trial, float(new_cost), new_state, share, None
         if h < control.halvings:
             share = share / 2.0

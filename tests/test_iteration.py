@@ -140,6 +140,26 @@ def test_descent_halves_a_step_that_raises_the_cost_and_remembers_the_share():
     assert out.iterations == 2
 
 
+def test_descent_compares_the_merit_when_one_is_given_and_stops_on_the_cost():
+    """A ridge-like merit, cost + (x / 2)^2 (minimum at x = 8), refuses a step the cost alone accepts."""
+    x0, start, evaluate = _line()
+    calls = []
+
+    def merit(x, state, cost):
+        calls.append((x[0], cost))
+        return cost + (x[0] / 2.0) ** 2
+
+    out = gauss_newton(x0, start, evaluate, lambda x, r: Proposal(step=np.array([18.0 - x[0]])),
+                       control=StepControl(descent=True, halvings=3, merit=merit), max_iter=1)
+    # the full step to 18: cost 64 < 100 but merit 64 + 81 = 145 > 100, refused; the half step to 9: merit 21.25 taken
+    assert out.x[0] == 9.0 and out.cost == 1.0
+    assert calls == [(0.0, 100.0), (18.0, 64.0), (9.0, 1.0)]
+    # without the merit the full step is taken (the cost alone falls)
+    plain = gauss_newton(x0, start, evaluate, lambda x, r: Proposal(step=np.array([18.0 - x[0]])),
+                         control=StepControl(descent=True, halvings=3), max_iter=1)
+    assert plain.x[0] == 18.0 and plain.costs == [100.0, 64.0]
+
+
 def test_descent_with_no_step_lowering_the_cost_fails_unless_at_the_floor():
     x0, start, evaluate = _line()
     away = gauss_newton(x0, start, evaluate, lambda x, r: Proposal(step=-np.ones(1), predicted=1.0),

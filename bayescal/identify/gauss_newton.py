@@ -16,6 +16,14 @@ that fixed subspace.  (The seed applies its filters to the increment
 instead; on the total deviation the regularised solution does not depend on
 the number of iterations, and a fixed TSVD subspace cannot flip between
 nearly equal singular values from one iteration to the next.)
+
+Ridge and MAP take a step only where it does not raise the cost their fixed
+point minimises, ``|W (y - h)|^2 + lam |phi - c|^2`` with ``c`` the prior
+mean (halved otherwise): a model whose prediction is a product of
+unknowns (an effect's compliance times a link mass,
+:mod:`bayescal.effects.joint_model`) makes full steps overshoot, and
+accepting every one cycled without converging.  LS and TSVD take every
+step that can be evaluated (docs/architecture.md says why).
 """
 
 from __future__ import annotations
@@ -452,14 +460,27 @@ class _Iterated:
 def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol) -> _Iterated:
     """Gauss-Newton steps of ``method`` in the scaled coordinates ``phi = theta[idx] / S`` until convergence.
 
-    Every step that can be solved is taken in full, so that the iteration and
-    its fixed point are the filtered solve's; a full step of an
+    LS and TSVD take every step that can be solved in full, so that the
+    iteration and its fixed point are the filtered solve's; a full step of an
     ill-conditioned problem can leave the assembly (a pose with no solution),
     and only then is it halved (:func:`bayescal.iteration.gauss_newton`).
+    Ridge and MAP (``lam > 0``) measure each step by the cost their fixed
+    point minimises, the chi-square plus ``lam |phi - c|^2``, and halve a step
+    that raises it: their fixed point is unchanged, and a model bilinear in
+    its unknowns (a bending compliance times a link mass) no longer cycles
+    around it (the chi-square alone may rise where the prior pulls, so it
+    cannot be the test).  The stop tests and ``cost_history`` stay on the
+    chi-square: where full steps lower the penalised cost, the iteration is
+    the one before, to the last bit.
     """
     machine = model.machine
     phi0 = theta[idx] / S
     last = {}  # the last solve, for the divergence message's condition number
+    prior = solver == "ridge" and bool(lam)  # the cost the fixed point minimises has the prior's term
+
+    def penalised(theta_new, state, chi2) -> float:
+        d = theta_new[idx] / S - c
+        return chi2 + lam * float(d @ d)
 
     def evaluate(theta_new, state):
         pred_new = model.predict(theta_new, guess=state[0].poses)
@@ -498,7 +519,8 @@ def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis,
 
     scale = np.full(theta.size, np.inf)  # fixed parameters never move
     scale[idx] = S
-    out = gauss_newton(theta, (float(r @ r), (pred, r, J)), evaluate, propose, control=StepControl(bound=1e6),
+    control = StepControl(descent=prior, bound=1e6, merit=penalised if prior else None)
+    out = gauss_newton(theta, (float(r @ r), (pred, r, J)), evaluate, propose, control=control,
                        scale=scale, max_iter=max_iter, xtol=xtol, unit="tolerances", failures=(KinematicsError,))
     message = out.message
     if out.reason == "diverged":
