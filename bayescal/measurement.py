@@ -24,6 +24,7 @@ this object and never on a machine directly.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -207,11 +208,15 @@ class MeasurementModel:
                 bend = effect_body_rotation(base, machine.effects, q, dict(rec.aux), poses=poses)
             q = q + dq
             guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
-        from .sensors import attach_sensors
-
         # the mountings start from the commanded poses, as the joint fit of geometry and effects starts them (its
         # dq changes with the effects' values): one parametrisation whatever the tables hold
-        machine, sensor_set = attach_sensors(machine, rec, rec.q) if sensors else (machine, None)
+        sensor_set = None
+        # no channel to read and no mounting to replace (a SensorMounts view exists only once its module is
+        # loaded): nothing to attach, and the sensors package is not imported (a tenth of a small fit's time)
+        if sensors and (rec.aux or "bayescal.sensors.mounts" in sys.modules):
+            from .sensors import attach_sensors
+
+            machine, sensor_set = attach_sensors(machine, rec, rec.q)
         if sensor_set is not None and (turns := sensor_set.per_sensor(bend)) is not None:
             sensor_set = sensor_set.with_bend(turns)
         tool_dof = dof

@@ -140,6 +140,23 @@ def _cross(w: NDArray, a: NDArray) -> NDArray:
     return out
 
 
+def _cross_joints(w: NDArray, a: NDArray) -> NDArray:
+    """:func:`_cross` for every joint at once: ``w`` (n, m, 3, c), ``a`` (n, m, 3); shape (n, m, 3, c)."""
+    a0, a1, a2 = a[..., 0, None], a[..., 1, None], a[..., 2, None]
+    out = np.empty(np.broadcast_shapes(w.shape, a.shape + (1,)))
+    out[..., 0, :] = w[..., 1, :] * a2 - w[..., 2, :] * a1
+    out[..., 1, :] = w[..., 2, :] * a0 - w[..., 0, :] * a2
+    out[..., 2, :] = w[..., 0, :] * a1 - w[..., 1, :] * a0
+    return out
+
+
+def _put(Jj: NDArray, cols, pos: NDArray, rot: NDArray | None) -> None:
+    """Write every joint's position (n, m, 3[, c]) and rotation rows into ``Jj`` (n, 6, m, 9) at columns ``cols``."""
+    Jj[:, :3, :, cols] = np.moveaxis(pos, 2, 1)
+    if rot is not None:
+        Jj[:, 3:, :, cols] = np.moveaxis(rot, 2, 1)
+
+
 #: The last chain of each machine (:meth:`Serial._memo_chain`); weak, so a machine's memo goes with it.
 _CHAINS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 #: Poses times joints up to which a chain is remembered (its frames: about 300 bytes per joint and pose).
@@ -619,23 +636,22 @@ class Serial(Machine):
         n, m = q.shape[0], self.n_joints
         c = self._memo_chain(q, self.check_theta(theta, n))
         J = np.zeros((n, 6, self.n_params))
-        W = rpy_rates(c.rpy)  # (g, m, 3, 3) (g = 1: one geometry for every pose), columns in the parent frame
-        for k in range(m):
-            o = _PER_JOINT * k
-            J[:, :3, o], J[:, 3:, o] = self._motion_columns(c, k)
-            arm = c.p_tool - c.p_joint[:, k]
-            if self.joint_type[k] == "revolute":
-                Jl = left_jacobian(c.axis[:, k] * c.qe[:, k, None])
-                w = c.R_joint[:, k] @ Jl @ (c.daxis[:, k] * c.qe[:, k, None, None])  # (n, 3, 2)
-                J[:, 3:, o + 1 : o + 3] = w
-                J[:, :3, o + 1 : o + 3] = _cross(w, arm)
-            else:
-                J[:, :3, o + 1 : o + 3] = c.R_joint[:, k] @ (c.daxis[:, k] * c.qe[:, k, None, None])
-            J[:, :3, o + 3 : o + 6] = c.R_parent[:, k]
-            w = c.R_parent[:, k] @ W[:, k]
-            J[:, 3:, o + 6 : o + 9] = w
-            J[:, :3, o + 6 : o + 9] = _cross(w, arm)
         t = _PER_JOINT * m
+        # every joint at once (the joints' columns do not depend on one another): a Python loop over the
+        # joints of small (n, 3, 3) products cost more in numpy's per-call overhead than the arithmetic
+        Jj = J[:, :, :t].reshape(n, 6, m, _PER_JOINT)  # a view: writes land in J
+        rev = np.array([jt == "revolute" for jt in self.joint_type])[None, :, None]  # (1, m, 1)
+        arm = c.p_tool[:, None] - c.p_joint  # (n, m, 3)
+        a_base = np.einsum("nkij,nkj->nki", c.R_joint, np.broadcast_to(c.axis, c.p_joint.shape))
+        _put(Jj, 0, np.where(rev, _cross_joints(a_base[..., None], arm)[..., 0], a_base),
+             np.where(rev, a_base, 0.0))
+        tilt = c.daxis * c.qe[:, :, None, None]  # (n, m, 3, 2)
+        w = c.R_joint @ left_jacobian(c.axis * c.qe[:, :, None]) @ tilt
+        rev4 = rev[..., None]
+        _put(Jj, slice(1, 3), np.where(rev4, _cross_joints(w, arm), c.R_joint @ tilt), np.where(rev4, w, 0.0))
+        _put(Jj, slice(3, 6), c.R_parent, None)
+        w = c.R_parent @ rpy_rates(c.rpy)  # rpy rates' columns in the parent frame
+        _put(Jj, slice(6, 9), _cross_joints(w, arm), w)
         J[:, :3, t : t + 3] = c.R_end
         J[:, 3:, t + 3 : t + 6] = c.R_end @ rpy_rates(c.tool_rpy)
         return J
