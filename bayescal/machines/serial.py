@@ -122,7 +122,9 @@ def mimic_problem(mimic: tuple, i: int) -> str | None:
 
 def _rotate(R: NDArray, v: NDArray) -> NDArray:
     """``R_i v_i`` for rotations (n, 3, 3) and vectors (n, 3) or (1, 3) (one vector for every pose), shape (n, 3)."""
-    return np.einsum("nij,nj->ni", R, np.broadcast_to(v, (R.shape[0], 3)))
+    if v.shape[0] == 1 and R.shape[0] != 1:
+        return np.einsum("nij,j->ni", R, v[0])  # one vector: no broadcast copy
+    return np.einsum("nij,nj->ni", R, v)
 
 
 def _cross(w: NDArray, a: NDArray) -> NDArray:
@@ -551,13 +553,15 @@ class Serial(Machine):
         p_after = np.empty((n, m, 3))
         R = np.broadcast_to(np.eye(3), (n, 3, 3))
         p = np.zeros((n, 3))
+        # every revolute joint's rotation in one call (elementwise, the same values as one joint at a time)
+        R_q = so3_exp(axis * qe[:, :, None])
         for k in range(m):
             R_parent[:, k] = R
             p = p + _rotate(R, origin[:, k])
             R = R @ R_fix[:, k]
             R_joint[:, k], p_joint[:, k] = R, p
             if self.joint_type[k] == "revolute":
-                R = R @ so3_exp(axis[:, k] * qe[:, k, None])
+                R = R @ R_q[:, k]
             else:
                 p = p + _rotate(R, axis[:, k] * qe[:, k, None])
             R_after[:, k], p_after[:, k] = R, p
