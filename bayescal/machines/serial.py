@@ -50,7 +50,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from ..geometry import left_jacobian, rpy_from_matrix, rpy_matrix, so3_exp, tilt_axes, tilted_direction
+from ..geometry import _cross_basis, left_jacobian, rpy_from_matrix, rpy_matrix, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
@@ -140,6 +140,20 @@ def _cross(w: NDArray, a: NDArray) -> NDArray:
     out[:, 1] = w[:, 2] * a0 - w[:, 0] * a2
     out[:, 2] = w[:, 0] * a1 - w[:, 1] * a0
     return out
+
+
+def _tilted_axes(u0: NDArray, G: NDArray, tilt: NDArray) -> tuple[NDArray, NDArray]:
+    """:func:`~bayescal.geometry.tilted_direction` of every axis at once: ``u0`` (m, 3), ``G`` (m, 3, 2), ``tilt`` (g, m, 2).
+
+    ``G`` holds each axis's two tilt directions (``e_a x u0``, ``e_b x u0``:
+    ``tilted_direction``'s derivative at zero tilt); the arithmetic is
+    ``tilted_direction``'s, one numpy call per step for all axes.
+    """
+    n = u0 + (tilt[..., None, :] @ np.swapaxes(G, -1, -2))[..., 0, :]
+    norm = np.linalg.norm(n, axis=-1)[..., None]
+    u = n / norm
+    P = (np.eye(3) - u[..., :, None] * u[..., None, :]) / norm[..., None]
+    return u, P @ G
 
 
 def _cross_joints(w: NDArray, a: NDArray) -> NDArray:
@@ -360,6 +374,9 @@ class Serial(Machine):
         object.__setattr__(self, "tool_point", np.asarray(self.tool_point, dtype=float).reshape(3))
         object.__setattr__(self, "tool_rpy", np.asarray(self.tool_rpy, dtype=float).reshape(3))
         object.__setattr__(self, "_tilt", tuple(tilt_axes(a) for a in self.axis))
+        # every axis's tilt directions (m, 3, 2), as tilted_direction forms them: the chain tilts all axes at once
+        object.__setattr__(self, "_tilt_g", np.array([[_cross_basis(t[0], a), _cross_basis(t[1], a)] for a, t in
+                                                      zip(self.axis, self._tilt)]).reshape(m, 2, 3).swapaxes(1, 2))
         specs = []
         for i, jt in enumerate(self.joint_type):
             j = f"joint{i + 1}"
@@ -540,10 +557,7 @@ class Serial(Machine):
         ttool = th[:, _PER_JOINT * m :]
         origin = self.origin[None] + tj[:, :, 3:6]
         rpy = self.rpy[None] + tj[:, :, 6:9]
-        axis = np.empty((g, m, 3))
-        daxis = np.empty((g, m, 3, 2))
-        for k in range(m):
-            axis[:, k], daxis[:, k] = tilted_direction(self.axis[k], self._tilt[k], tj[:, k, 1:3])
+        axis, daxis = _tilted_axes(self.axis, self._tilt_g, tj[:, :, 1:3])
         qe = q @ self._q_map.T + self._q_shift + tj[:, :, 0]
         R_fix = rpy_matrix(rpy)
         R_parent = np.empty((n, m, 3, 3))
