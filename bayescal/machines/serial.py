@@ -168,9 +168,9 @@ def _cross_joints(w: NDArray, a: NDArray) -> NDArray:
 
 def _put(Jj: NDArray, cols, pos: NDArray, rot: NDArray | None) -> None:
     """Write every joint's position (n, m, 3[, c]) and rotation rows into ``Jj`` (n, 6, m, 9) at columns ``cols``."""
-    Jj[:, :3, :, cols] = np.moveaxis(pos, 2, 1)
+    Jj[:, :3, :, cols] = pos.swapaxes(1, 2)  # (n, 3, m[, c]); swapaxes: no axis normalisation per call
     if rot is not None:
-        Jj[:, 3:, :, cols] = np.moveaxis(rot, 2, 1)
+        Jj[:, 3:, :, cols] = rot.swapaxes(1, 2)
 
 
 #: The last chain of each machine (:meth:`Serial._memo_chain`); weak, so a machine's memo goes with it.
