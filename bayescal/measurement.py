@@ -210,13 +210,7 @@ class MeasurementModel:
             guess = machine.guess_from_measurement(q, rec.position, R_meas, rec.axis)
         # the mountings start from the commanded poses, as the joint fit of geometry and effects starts them (its
         # dq changes with the effects' values): one parametrisation whatever the tables hold
-        sensor_set = None
-        # no channel to read and no mounting to replace (a SensorMounts view exists only once its module is
-        # loaded): nothing to attach, and the sensors package is not imported (a tenth of a small fit's time)
-        if sensors and (rec.aux or "bayescal.sensors.mounts" in sys.modules):
-            from .sensors import attach_sensors
-
-            machine, sensor_set = attach_sensors(machine, rec, rec.q)
+        machine, sensor_set = _attach_sensors(machine, rec) if sensors else (machine, None)
         if sensor_set is not None and (turns := sensor_set.per_sensor(bend)) is not None:
             sensor_set = sensor_set.with_bend(turns)
         tool_dof = dof
@@ -501,6 +495,20 @@ class MeasurementModel:
             out["tilt"] = float(np.sqrt(np.mean(tilt**2)))
         return out
 
+
+
+def _attach_sensors(machine: Machine, rec: Recording):
+    """:func:`bayescal.sensors.attach_sensors` at the commanded positions, skipped when it has nothing to do.
+
+    No channel to read and no mounting to replace (a SensorMounts view
+    exists only once its module is loaded): the machine unchanged, and the
+    sensors package is not imported (a tenth of a small fit's time).
+    """
+    if not rec.aux and "bayescal.sensors.mounts" not in sys.modules:
+        return machine, None
+    from .sensors import attach_sensors
+
+    return attach_sensors(machine, rec, rec.q)
 
 def pose_offset_rows(model, theta, prediction, dX: NDArray) -> NDArray:
     """Measurement-row derivative of base-frame tool-pose perturbations of every solved pose.

@@ -39,7 +39,6 @@ ALLOWED = {
     "diagnose/locate.py:locate": 83,
     "bayes/kalman.py:kalman_filter": 83,
     "bayes/grid.py:compensation_grid": 83,
-    "measurement.py:MeasurementModel.from_recording": 82,
     "design/exact_bound.py:cell_relaxation": 81,
 }
 
