@@ -76,14 +76,14 @@ class Calibration(BaseCalibration):
 
 model = pin.buildModelFromUrdf(a["urdf"])
 robot = pin.RobotWrapper(model)
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 c = Calibration(robot, a["config"])
 c.calib_config["known_baseframe"] = False
 c.calib_config["known_tipframe"] = False
 c.initialize()
 c.solve(plotting=False, enable_logging=False)
-t = time.perf_counter() - t0
-out = {"seconds": t, "nfev": int(getattr(c.LM_result, "nfev", -1)), "n_params": len(c.calib_config["param_name"]),
+t, tc = time.perf_counter() - t0, time.process_time() - c0
+out = {"seconds": t, "cpu": tc, "nfev": int(getattr(c.LM_result, "nfev", -1)), "n_params": len(c.calib_config["param_name"]),
        "status": str(c.STATUS)}
 def predict(q):
     cfg = dict(c.calib_config, NbSample=len(q))
@@ -139,11 +139,11 @@ from bayescal.instrument import prepare_model
 from bayescal.io import read_recording
 from bayescal.machines.files import load_machine
 machine = load_machine(a["machine"]); rec = read_recording(a["recording"])
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 m2, model, _ = prepare_model(machine, rec, frame="fit")
 res = identify(model, method="ls")
-t = time.perf_counter() - t0
-out = {"seconds": t, "iterations": int(res.iterations), "n_params": int(res.free.sum()), "success": bool(res.success),
+t, tc = time.perf_counter() - t0, time.process_time() - c0
+out = {"seconds": t, "cpu": tc, "iterations": int(res.iterations), "n_params": int(res.free.sum()), "success": bool(res.success),
        "fit": m2.forward(model.q, res.theta).position.tolist()}
 if a.get("fresh_q"):
     out["fresh"] = m2.forward(np.asarray(a["fresh_q"]), res.theta).position.tolist()
@@ -239,8 +239,9 @@ def prepare(examples: Path, work: Path, bench_python: str, sizes) -> dict:
     return problems
 
 
-def run(problems: dict, bench_python: str, repeats: int) -> dict:
-    todo = [(name, who) for name in problems for who in ("bayescal", "figaroh")]
+def run(problems: dict, bench_python: str, repeats: int, baseline: Path | None = None) -> dict:
+    who_all = ("bayescal", "figaroh") + (("baseline",) if baseline else ())
+    todo = [(name, who) for name in problems for who in who_all]
     runs = {k: [] for k in todo}
     for r in range(repeats):
         order = todo[r % len(todo):] + todo[: r % len(todo)]  # interleaved, the order rotated
@@ -250,8 +251,9 @@ def run(problems: dict, bench_python: str, repeats: int) -> dict:
                 runs[(name, who)].append(_child(bench_python, FIGAROH_CHILD, {
                     "urdf": str(p["urdf"]), "config": str(p["config"]), "fresh_q": p["fresh_q"]}))
             else:
+                root = baseline if who == "baseline" else ROOT
                 runs[(name, who)].append(_child(sys.executable, BAYESCAL_CHILD, {
-                    "root": str(ROOT), "machine": str(p["machine"]), "recording": str(p["recording"]),
+                    "root": str(root), "machine": str(p["machine"]), "recording": str(p["recording"]),
                     "fresh_q": p["fresh_q"]}, env_root=True))
     return runs
 
@@ -262,17 +264,18 @@ def report(problems: dict, runs: dict) -> str:
     sys.path.insert(0, str(ROOT))
     from bayescal.io import read_recording
 
-    lines = ["| problem | contestant | time median [s] (range) | process wall [s] | peak [MB] | evaluations | "
-             "fit RMS [mm] | fresh poses vs truth: max / RMS [mm] | ratio |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| problem | contestant | time median [s] (range) | CPU median [s] (range) | process wall [s] | peak [MB] | "
+             "evaluations | fit RMS [mm] | fresh poses vs truth: max / RMS [mm] | ratio (time) | ratio (CPU) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, p in problems.items():
         meas = read_recording(p["recording"]).position
-        med = {}
-        for who in ("bayescal", "figaroh"):
+        med, cpu = {}, {}
+        whos = [w for w in ("bayescal", "figaroh", "baseline") if (name, w) in runs]
+        for who in whos:
             rs = runs[(name, who)]
-            t = [x["seconds"] for x in rs]
-            med[who] = statistics.median(t)
-        for who in ("bayescal", "figaroh"):
+            med[who] = statistics.median(x["seconds"] for x in rs)
+            cpu[who] = statistics.median(x["cpu"] for x in rs)
+        for who in whos:
             rs = runs[(name, who)]
             last = rs[-1]
             fit = np.asarray(last["fit"]) * (1000.0 if who == "figaroh" else 1.0)
@@ -283,12 +286,14 @@ def report(problems: dict, runs: dict) -> str:
                 e = np.linalg.norm(f - np.asarray(p["fresh_p"]), axis=1)
                 acc = f"{e.max():.3f} / {np.sqrt(np.mean(e**2)):.3f}"
             evals = (f"{last['iterations']} GN iterations" + ("" if last["success"] else ", not converged")
-                     if who == "bayescal" else f"{last['nfev']} cost evaluations (last fit), status {last['status']}")
+                     if who != "figaroh" else f"{last['nfev']} cost evaluations (last fit), status {last['status']}")
             t = [x["seconds"] for x in rs]
+            tc = [x["cpu"] for x in rs]
             lines.append(f"| {name} ({p['n']} poses) | {who} ({last['n_params']} parameters) | {med[who]:.3f} "
-                         f"({min(t):.3f}-{max(t):.3f}) | {statistics.median(x['wall'] for x in rs):.2f} | "
+                         f"({min(t):.3f}-{max(t):.3f}) | {cpu[who]:.3f} ({min(tc):.3f}-{max(tc):.3f}) | "
+                         f"{statistics.median(x['wall'] for x in rs):.2f} | "
                          f"{max(x['peak_mb'] for x in rs):.0f} | {evals} | {rms:.4f} | {acc} | "
-                         f"{med[who] / med['bayescal']:.1f}x |")
+                         f"{med[who] / med['bayescal']:.1f}x | {cpu[who] / cpu['bayescal']:.1f}x |")
     return "\n".join(lines)
 
 
@@ -300,11 +305,14 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default="200,2000", help="simulated recordings, poses (default 200,2000)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--baseline", type=Path, default=None,
+                    help="another bayescal checkout (e.g. a git worktree of the previous commit), run as a third "
+                         "contestant interleaved with the others: the before/after of a change in one run")
     args = ap.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",") if s]
     problems = prepare(args.examples, args.out, args.bench_python, sizes)
     load0 = os.getloadavg()[0]
-    runs = run(problems, args.bench_python, args.repeats)
+    runs = run(problems, args.bench_python, args.repeats, args.baseline)
     text = (f"FIGAROH against bayescal, {args.repeats} interleaved rounds, load {load0:.2f} at start, "
             f"{os.getloadavg()[0]:.2f} at end, OPENBLAS_NUM_THREADS=1\n\n" + report(problems, runs))
     print(text)

@@ -50,7 +50,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from ..geometry import left_jacobian, rpy_from_matrix, rpy_matrix, so3_exp, tilt_axes, tilted_direction
+from ..geometry import _cross_basis, left_jacobian, rpy_from_matrix, rpy_matrix, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
@@ -122,7 +122,9 @@ def mimic_problem(mimic: tuple, i: int) -> str | None:
 
 def _rotate(R: NDArray, v: NDArray) -> NDArray:
     """``R_i v_i`` for rotations (n, 3, 3) and vectors (n, 3) or (1, 3) (one vector for every pose), shape (n, 3)."""
-    return np.einsum("nij,nj->ni", R, np.broadcast_to(v, (R.shape[0], 3)))
+    if v.shape[0] == 1 and R.shape[0] != 1:
+        return np.einsum("nij,j->ni", R, v[0])  # one vector: no broadcast copy
+    return np.einsum("nij,nj->ni", R, v)
 
 
 def _cross(w: NDArray, a: NDArray) -> NDArray:
@@ -138,6 +140,37 @@ def _cross(w: NDArray, a: NDArray) -> NDArray:
     out[:, 1] = w[:, 2] * a0 - w[:, 0] * a2
     out[:, 2] = w[:, 0] * a1 - w[:, 1] * a0
     return out
+
+
+def _tilted_axes(u0: NDArray, G: NDArray, tilt: NDArray) -> tuple[NDArray, NDArray]:
+    """:func:`~bayescal.geometry.tilted_direction` of every axis at once: ``u0`` (m, 3), ``G`` (m, 3, 2), ``tilt`` (g, m, 2).
+
+    ``G`` holds each axis's two tilt directions (``e_a x u0``, ``e_b x u0``:
+    ``tilted_direction``'s derivative at zero tilt); the arithmetic is
+    ``tilted_direction``'s, one numpy call per step for all axes.
+    """
+    n = u0 + (tilt[..., None, :] @ np.swapaxes(G, -1, -2))[..., 0, :]
+    norm = np.linalg.norm(n, axis=-1)[..., None]
+    u = n / norm
+    P = (np.eye(3) - u[..., :, None] * u[..., None, :]) / norm[..., None]
+    return u, P @ G
+
+
+def _cross_joints(w: NDArray, a: NDArray) -> NDArray:
+    """:func:`_cross` for every joint at once: ``w`` (n, m, 3, c), ``a`` (n, m, 3); shape (n, m, 3, c)."""
+    a0, a1, a2 = a[..., 0, None], a[..., 1, None], a[..., 2, None]
+    out = np.empty(np.broadcast_shapes(w.shape, a.shape + (1,)))
+    out[..., 0, :] = w[..., 1, :] * a2 - w[..., 2, :] * a1
+    out[..., 1, :] = w[..., 2, :] * a0 - w[..., 0, :] * a2
+    out[..., 2, :] = w[..., 0, :] * a1 - w[..., 1, :] * a0
+    return out
+
+
+def _put(Jj: NDArray, cols, pos: NDArray, rot: NDArray | None) -> None:
+    """Write every joint's position (n, m, 3[, c]) and rotation rows into ``Jj`` (n, 6, m, 9) at columns ``cols``."""
+    Jj[:, :3, :, cols] = pos.swapaxes(1, 2)  # (n, 3, m[, c]); swapaxes: no axis normalisation per call
+    if rot is not None:
+        Jj[:, 3:, :, cols] = rot.swapaxes(1, 2)
 
 
 #: The last chain of each machine (:meth:`Serial._memo_chain`); weak, so a machine's memo goes with it.
@@ -341,6 +374,9 @@ class Serial(Machine):
         object.__setattr__(self, "tool_point", np.asarray(self.tool_point, dtype=float).reshape(3))
         object.__setattr__(self, "tool_rpy", np.asarray(self.tool_rpy, dtype=float).reshape(3))
         object.__setattr__(self, "_tilt", tuple(tilt_axes(a) for a in self.axis))
+        # every axis's tilt directions (m, 3, 2), as tilted_direction forms them: the chain tilts all axes at once
+        object.__setattr__(self, "_tilt_g", np.array([[_cross_basis(t[0], a), _cross_basis(t[1], a)] for a, t in
+                                                      zip(self.axis, self._tilt)]).reshape(m, 2, 3).swapaxes(1, 2))
         specs = []
         for i, jt in enumerate(self.joint_type):
             j = f"joint{i + 1}"
@@ -521,10 +557,7 @@ class Serial(Machine):
         ttool = th[:, _PER_JOINT * m :]
         origin = self.origin[None] + tj[:, :, 3:6]
         rpy = self.rpy[None] + tj[:, :, 6:9]
-        axis = np.empty((g, m, 3))
-        daxis = np.empty((g, m, 3, 2))
-        for k in range(m):
-            axis[:, k], daxis[:, k] = tilted_direction(self.axis[k], self._tilt[k], tj[:, k, 1:3])
+        axis, daxis = _tilted_axes(self.axis, self._tilt_g, tj[:, :, 1:3])
         qe = q @ self._q_map.T + self._q_shift + tj[:, :, 0]
         R_fix = rpy_matrix(rpy)
         R_parent = np.empty((n, m, 3, 3))
@@ -534,13 +567,15 @@ class Serial(Machine):
         p_after = np.empty((n, m, 3))
         R = np.broadcast_to(np.eye(3), (n, 3, 3))
         p = np.zeros((n, 3))
+        # every revolute joint's rotation in one call (elementwise, the same values as one joint at a time)
+        R_q = so3_exp(axis * qe[:, :, None])
         for k in range(m):
             R_parent[:, k] = R
             p = p + _rotate(R, origin[:, k])
             R = R @ R_fix[:, k]
             R_joint[:, k], p_joint[:, k] = R, p
             if self.joint_type[k] == "revolute":
-                R = R @ so3_exp(axis[:, k] * qe[:, k, None])
+                R = R @ R_q[:, k]
             else:
                 p = p + _rotate(R, axis[:, k] * qe[:, k, None])
             R_after[:, k], p_after[:, k] = R, p
@@ -619,23 +654,22 @@ class Serial(Machine):
         n, m = q.shape[0], self.n_joints
         c = self._memo_chain(q, self.check_theta(theta, n))
         J = np.zeros((n, 6, self.n_params))
-        W = rpy_rates(c.rpy)  # (g, m, 3, 3) (g = 1: one geometry for every pose), columns in the parent frame
-        for k in range(m):
-            o = _PER_JOINT * k
-            J[:, :3, o], J[:, 3:, o] = self._motion_columns(c, k)
-            arm = c.p_tool - c.p_joint[:, k]
-            if self.joint_type[k] == "revolute":
-                Jl = left_jacobian(c.axis[:, k] * c.qe[:, k, None])
-                w = c.R_joint[:, k] @ Jl @ (c.daxis[:, k] * c.qe[:, k, None, None])  # (n, 3, 2)
-                J[:, 3:, o + 1 : o + 3] = w
-                J[:, :3, o + 1 : o + 3] = _cross(w, arm)
-            else:
-                J[:, :3, o + 1 : o + 3] = c.R_joint[:, k] @ (c.daxis[:, k] * c.qe[:, k, None, None])
-            J[:, :3, o + 3 : o + 6] = c.R_parent[:, k]
-            w = c.R_parent[:, k] @ W[:, k]
-            J[:, 3:, o + 6 : o + 9] = w
-            J[:, :3, o + 6 : o + 9] = _cross(w, arm)
         t = _PER_JOINT * m
+        # every joint at once (the joints' columns do not depend on one another): a Python loop over the
+        # joints of small (n, 3, 3) products cost more in numpy's per-call overhead than the arithmetic
+        Jj = J[:, :, :t].reshape(n, 6, m, _PER_JOINT)  # a view: writes land in J
+        rev = np.array([jt == "revolute" for jt in self.joint_type])[None, :, None]  # (1, m, 1)
+        arm = c.p_tool[:, None] - c.p_joint  # (n, m, 3)
+        a_base = np.einsum("nkij,nkj->nki", c.R_joint, np.broadcast_to(c.axis, c.p_joint.shape))
+        _put(Jj, 0, np.where(rev, _cross_joints(a_base[..., None], arm)[..., 0], a_base),
+             np.where(rev, a_base, 0.0))
+        tilt = c.daxis * c.qe[:, :, None, None]  # (n, m, 3, 2)
+        w = c.R_joint @ left_jacobian(c.axis * c.qe[:, :, None]) @ tilt
+        rev4 = rev[..., None]
+        _put(Jj, slice(1, 3), np.where(rev4, _cross_joints(w, arm), c.R_joint @ tilt), np.where(rev4, w, 0.0))
+        _put(Jj, slice(3, 6), c.R_parent, None)
+        w = c.R_parent @ rpy_rates(c.rpy)  # rpy rates' columns in the parent frame
+        _put(Jj, slice(6, 9), _cross_joints(w, arm), w)
         J[:, :3, t : t + 3] = c.R_end
         J[:, 3:, t + 3 : t + 6] = c.R_end @ rpy_rates(c.tool_rpy)
         return J
