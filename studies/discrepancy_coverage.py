@@ -33,7 +33,6 @@ recordings.  Means with their standard errors over the repetitions.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 from dataclasses import dataclass

@@ -54,7 +54,6 @@ from ..machines.base import Machine
 from ..machines.framed import InstrumentFrame, is_frame_parameter
 from ..identify.noise import distinct_rows
 from ..measurement import MeasurementModel
-from ..stats import posterior_effective_params  # noqa: F401  (its home was here)
 from .alignment import FrameCheck
 
 __all__ = ["Plausibility", "assess_plausibility", "frame_answer", "judge_fit", "refuse_implausible", "PLAUSIBLE_SIGMAS"]

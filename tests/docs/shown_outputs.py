@@ -186,7 +186,7 @@ def compare(shown: list[str], actual: list[str]) -> str | None:
         at = next((k for k in starts if all(_line_matches(s, actual[k + j]) for j, s in enumerate(seg))), None)
         if at is None:
             near = actual[pos: pos + len(seg) + 3]
-            return f"shown:\n  " + "\n  ".join(seg) + "\nnot found" + (" after a gap" if gap else " at output line "
+            return "shown:\n  " + "\n  ".join(seg) + "\nnot found" + (" after a gap" if gap else " at output line "
                                                                       f"{pos + 1}") + "; the output there:\n  " + "\n  ".join(near)
         pos, gap = at + len(seg), False
     if not gap and any(line.strip() for line in actual[pos:]):

@@ -7,7 +7,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bayescal.geometry import so3_exp, so3_log
 from bayescal.identify import identify
 from bayescal.instrument.prepare import prepare_session
 from bayescal.machines.files import machine_from_text
