@@ -270,14 +270,9 @@ def check_replaceable(path: str | os.PathLike, label: str = "") -> None:
     or replaces a link.  ``label`` (an option, ``"--json"``) prefixes the message.
     """
     where = f"{label} {path}" if label else str(path)
-    try:
-        st = os.lstat(path)
-    except FileNotFoundError:
+    st = _lstat(path, where, "file")
+    if st is None:
         return
-    except NotADirectoryError:
-        raise InputError(f"{where}: a part of the path before the file name is not a folder") from None
-    except OSError as exc:
-        raise InputError(f"{where}: cannot be checked ({exc.strerror or exc})") from None
     if stat.S_ISLNK(st.st_mode):
         raise InputError(f"{where}: is a symbolic link; outputs are written only to regular files, never through or "
                          "over a link (remove the link, or give the path it points to)")
@@ -291,6 +286,18 @@ def check_replaceable(path: str | os.PathLike, label: str = "") -> None:
                          "(choose another path)")
 
 
+def _lstat(path, where: str, name: str):
+    """``os.lstat(path)``, None when nothing is there; InputError (naming ``where``) when it cannot be checked."""
+    try:
+        return os.lstat(path)
+    except FileNotFoundError:
+        return None
+    except NotADirectoryError:
+        raise InputError(f"{where}: a part of the path before the {name} name is not a folder") from None
+    except OSError as exc:
+        raise InputError(f"{where}: cannot be checked ({exc.strerror or exc})") from None
+
+
 def check_output_folder(path: str | os.PathLike, label: str = "") -> None:
     """Raise InputError when the output folder ``path`` is a symbolic link or exists and is not a folder.
 
@@ -299,14 +306,9 @@ def check_output_folder(path: str | os.PathLike, label: str = "") -> None:
     (:func:`check_replaceable`). A folder that does not exist is fine (it is created).
     """
     where = f"{label} {path}" if label else str(path)
-    try:
-        st = os.lstat(path)
-    except FileNotFoundError:
+    st = _lstat(path, where, "folder")
+    if st is None:
         return
-    except NotADirectoryError:
-        raise InputError(f"{where}: a part of the path before the folder name is not a folder") from None
-    except OSError as exc:
-        raise InputError(f"{where}: cannot be checked ({exc.strerror or exc})") from None
     if stat.S_ISLNK(st.st_mode):
         raise InputError(f"{where}: is a symbolic link; output files are written only into real folders, never "
                          "through a link (remove the link, or give the folder it points to)")
