@@ -33,6 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import InputError, RecordingError
 from .io.answers import write_text_atomic
+from .notebook import ShowsReport
 
 __all__ = ["CompensationGrid", "build_grid", "read_grid", "write_grid", "table_interpolator", "evaluate_grid", "GRID_COLUMNS",
            "Compensation", "compensate_files", "read_error_table"]
@@ -46,7 +47,7 @@ _BYTES_PER_NODE = 8 * 32
 
 
 @dataclass(frozen=True)
-class CompensationGrid:
+class CompensationGrid(ShowsReport):
     """Node errors on a rectangular grid.
 
     Attributes

@@ -556,3 +556,19 @@ def test_compensate_gives_the_grid_and_json_bayescal_compensate_writes(tmp_path)
     assert json_text(c.evaluation) == (tmp_path / "a.json").read_text()
     with pytest.raises(bayescal.InputError, match=r"errors \(--errors\) builds a grid and grid \(--grid\) reads one"):
         bayescal.compensate(errors=tmp_path / "e.csv", grid=tmp_path / "g.csv")
+
+
+def test_every_answer_shows_its_report_in_a_notebook(tmp_path):
+    """A notebook cell ending in an answer shows the text the command prints (escaped, preformatted)."""
+    from html import escape
+
+    answers = [
+        bayescal.predict(PRS3_FILE, REC),
+        bayescal.grid(bayescal.load(PRS3_FILE, REC), nodes=3),
+        bayescal.plan(PRS3_FILE, 6, n_candidates=200, n_random=0),
+        bayescal.plan(ROOT / "examples" / "delta" / "machine.toml", 3, measure="height"),
+        bayescal.compare(PRS3_FILE, methods="map", trials=2, poses=24, n_eval=10, progress=False),
+    ]
+    for a in answers:
+        html = a._repr_html_()
+        assert html.startswith("<pre>") and escape(a.report()) in html, type(a).__name__

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from ..notebook import ShowsReport
 
 __all__ = ["GridAnswer", "recording_grid", "grid_space", "check_grid_ranges", "base_frame_parts", "GRID_METHODS",
            "GRID_DRAWS"]
@@ -46,7 +47,7 @@ GRID_DRAWS = 400
 
 
 @dataclass(frozen=True)
-class GridAnswer:
+class GridAnswer(ShowsReport):
     """The answer of :func:`recording_grid`.
 
     Attributes

@@ -13,6 +13,7 @@ from ..machines.base import Machine
 from ..stats import PairedComparison, compare_pairs, summarise
 from .runner import run_trials
 from .trial import METRICS, CompareConfig
+from ..notebook import ShowsReport
 
 __all__ = ["Comparison", "compare_methods", "comparison_from_records"]
 
@@ -20,7 +21,7 @@ _UNITS = {"rms_position": ("um", 1e3), "max_position": ("um", 1e3), "rms_angle":
 
 
 @dataclass(frozen=True)
-class Comparison:
+class Comparison(ShowsReport):
     """A Monte Carlo comparison of identification methods.
 
     Attributes

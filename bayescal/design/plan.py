@@ -15,6 +15,7 @@ from ..measurement import rows_per_pose
 from .candidates import CandidateSet, draw_candidates
 from .criteria import PRIOR_BASED, CRITERIA, check_criterion, criteria_from_singular_values, eig_value, i_value, utility_kind
 from .select import Selection, exchange_refine, greedy_select
+from ..notebook import ShowsReport
 
 #: Selection methods: greedy + DETMAX exchange, or (criterion I) the Frank-Wolfe relaxed design rounded
 #: and improved by exchanges on a pool (bayescal.design.rounding).
@@ -29,7 +30,7 @@ DELTA_REL = 1e-9
 
 
 @dataclass(frozen=True)
-class PosePlan:
+class PosePlan(ShowsReport):
     """A planned measurement session.
 
     Attributes

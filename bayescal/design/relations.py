@@ -36,6 +36,7 @@ from ..machines.base import Machine
 from ..constraints.simulate import solve_q_for_points
 from .criteria import check_criterion
 from .select import greedy_select
+from ..notebook import ShowsReport
 
 __all__ = ["RelationPlan", "grid_points", "relation_candidates", "plan_relations", "relation_plan_csv", "MEASURES",
            "relation_output_weight", "relaxed_relations"]
@@ -148,7 +149,7 @@ def _given_rows(machine: Machine, given: ConstraintRecording) -> NDArray:
 
 
 @dataclass(frozen=True)
-class RelationPlan:
+class RelationPlan(ShowsReport):
     """Planned heights or distances, and what they add to the measurements already taken.
 
     Attributes

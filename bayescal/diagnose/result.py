@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .locate import ChannelDependence, Location
+from ..notebook import ShowsReport
 
 __all__ = ["EffectTrial", "Diagnosis", "ParameterValue"]
 
@@ -56,7 +57,7 @@ class EffectTrial:
 
 
 @dataclass(frozen=True)
-class Diagnosis:
+class Diagnosis(ShowsReport):
     """What the diagnosis found.
 
     Attributes

@@ -36,6 +36,7 @@ from ..effects.conditions import Condition
 from ..effects.model import EffectFit, joint_information
 from ..errors import InputError, KinematicsError
 from ..measurement import MeasurementModel
+from ..notebook import ShowsReport
 
 __all__ = ["SeparatingSession", "SessionDesign", "SessionPlan", "separating_sessions", "MAX_POSES", "WORTH"]
 
@@ -176,7 +177,7 @@ class SeparatingSession:
 
 
 @dataclass(frozen=True)
-class SessionPlan:
+class SessionPlan(ShowsReport):
     """Poses of a second session, in the order to measure them, with the channels to set and record.
 
     Attributes

@@ -27,12 +27,13 @@ from ..machines.base import Machine
 from .engine import PredictiveRows, predictive_rows
 from .score import REGION_LEVEL, score_rows, summarise
 from .sensor_score import sensor_report_lines
+from ..notebook import ShowsReport
 
 __all__ = ["PredictionResult", "predict_recording"]
 
 
 @dataclass(frozen=True)
-class PredictionResult:
+class PredictionResult(ShowsReport):
     """The answer of :func:`predict_recording` (docs/formats.md section 8).
 
     Attributes
