@@ -244,8 +244,8 @@ def _check_options(machine, methods: str, trials, seed, tolerance_scale, retries
     check_seed(seed, "seed")
     if not (np.isfinite(tolerance_scale) and tolerance_scale > 0):
         raise InputError(f"tolerance_scale (--tolerance-scale): expected a positive number, got {tolerance_scale!r}")
-    if int(trials) != trials or trials < 1:
-        raise InputError(f"trials: expected a positive integer, got {trials!r}")
+    if isinstance(trials, bool) or not isinstance(trials, (int, np.integer)) or trials < 1:
+        raise InputError(f"trials (--trials): expected a positive whole number, got {trials!r}")
     from ..limits import check_memory
 
     # every trial's record is kept (and saved): about a kilobyte per method

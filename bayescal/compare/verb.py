@@ -63,8 +63,6 @@ def compare_files(machine: str | os.PathLike | Machine, *, methods: str = "ls,ri
             "(docs/real-instruments.md), so compare methods in the base frame")
     if frame != "base":
         raise InputError(f"frame (--frame): expected 'base', got {frame!r}")
-    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
-        raise InputError(f"trials (--trials): expected a positive whole number, got {trials!r}")
     if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0 < alpha < 1:
         raise InputError(f"alpha (--alpha): expected a number between 0 and 1, got {alpha!r}")
     if recording is not None and poses is not None:
