@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import MachineFileError
 from ..limits import file_number_problem
 
-__all__ = ["read_toml", "parse_toml_text", "TomlTable", "format_toml_value", "UNIT_NORM_TOL"]
+__all__ = ["read_toml", "parse_toml_text", "TomlTable", "format_toml_value", "toml_key", "UNIT_NORM_TOL"]
 
 #: How far from 1 the norm of a unit vector in a machine file may be (it is then normalised).
 UNIT_NORM_TOL = 1e-4
@@ -176,6 +176,14 @@ class TomlTable:
 
 
 _TOML_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
+def toml_key(key: str) -> str:
+    """A TOML key: bare where TOML allows (letters, digits, ``_``, ``-``), else a quoted basic string.
+
+    A dotted name such as ``chain2.link_length`` is quoted: bare, TOML would read it as a nested table.
+    """
+    return key if key and all(c.isascii() and (c.isalnum() or c in "_-") for c in key) else _toml_string(key)
 
 
 def _toml_string(s: str) -> str:

@@ -20,7 +20,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError, MachineFileError
 from ..geometry import so3_exp, so3_log
+from ..io.machine_file import toml_key
 from ..params import ParamLayout
+from .tolerance import ToleranceKeyError
 
 __all__ = ["Machine", "RedundantKinematics", "ToolPoses", "MeasurementNoise", "map_state", "ActuatorUnit", "ACTUATOR_UNITS", "WeightBodies", "BodyInertials", "offset_poses", "KINDS", "machine_from_table"]
 
@@ -756,4 +758,8 @@ def machine_from_table(doc, path: str) -> Machine:
     kind = doc.string("kind")
     if kind not in KINDS:
         raise MachineFileError(path, "kind", f"unknown kind {kind!r}; expected one of: {', '.join(KINDS)}")
-    return KINDS[kind].from_toml(doc, path)
+    try:
+        return KINDS[kind].from_toml(doc, path)
+    except ToleranceKeyError as e:
+        # a per-parameter tolerance is checked against the parameters the geometry has, once it is built
+        raise doc.error(f"tolerance.{toml_key(e.key)}", e.expected) from None

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from ..io.machine_file import TomlTable, format_toml_value
+from ..io.machine_file import TomlTable, format_toml_value, toml_key
 from ..limits import sigma_problem
 from .base import MeasurementNoise
+from .tolerance import is_parameter_key
 
 __all__ = ["read_noise", "read_q_limits", "read_tolerance", "common_toml"]
 
@@ -57,18 +58,34 @@ def read_q_limits(doc: TomlTable, n_actuators: int) -> NDArray | None:
 
 
 def read_tolerance(doc: TomlTable, defaults: dict[str, float]) -> dict[str, float]:
-    """One-sigma tolerance per parameter group from the optional ``[tolerance]`` table.
+    """One-sigma tolerances from the optional ``[tolerance]`` table (mm or rad).
 
-    Keys are the parameter groups (``defaults``' keys, mm or rad); missing
-    keys take the documented defaults.
+    Keys are the parameter groups (``defaults``' keys; missing ones take the
+    documented defaults) and, overriding its group's for one parameter, a
+    parameter's name: quoted (``"chain2.link_length" = 0.5``) or not (TOML
+    reads ``chain2.link_length = 0.5`` as a nested table, flattened here).
+    Whether a parameter key names a parameter of the machine is checked when
+    the machine is built (:func:`bayescal.machines.tolerance.tolerance_vector`).
     """
     t = doc.table("tolerance", required=False)
     values = dict(defaults)
     if t is not None:
-        t.reject_unknown(set(defaults))
-        for k in t.keys():
-            values[k] = t.number(k, positive=True)
+        for key, table, leaf in _tolerance_entries(t, ""):
+            if not is_parameter_key(key) and key not in defaults:
+                raise t.error(key, f"unknown key; expected one of: {', '.join(sorted(defaults))}, or a parameter's "
+                                   f"name (a key with a dot, e.g. \"tool.point.x\" = 0.1)")
+            values[key] = table.number(leaf, positive=True)
     return values
+
+
+def _tolerance_entries(t: TomlTable, stem: str):
+    """``(dotted key, table, leaf key)`` of every number in ``t``, nested tables (unquoted dotted keys) flattened."""
+    for key in list(t.keys()):
+        name = f"{stem}{key}"
+        if isinstance(t.data[key], dict):
+            yield from _tolerance_entries(TomlTable(t.data[key], t.path, t._key(key)), f"{name}.")
+        else:
+            yield name, t, key
 
 
 def common_toml(machine, tolerance_groups: dict[str, float]) -> str:
@@ -88,5 +105,7 @@ def common_toml(machine, tolerance_groups: dict[str, float]) -> str:
     if machine.q_limits is not None:
         out += ["[workspace]", f"q_limits = {format_toml_value(machine.q_limits)}", ""]
     if tolerance_groups:
-        out += ["[tolerance]"] + [f"{k} = {format_toml_value(v)}" for k, v in tolerance_groups.items()] + [""]
+        # a parameter's own tolerance is written with its name quoted (a bare dotted key would be a nested table)
+        out += ["[tolerance]"] + [f"{toml_key(k)} = {format_toml_value(v)}"
+                                  for k, v in tolerance_groups.items()] + [""]
     return "\n".join(out)

@@ -42,6 +42,7 @@ from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
+from .tolerance import tolerance_vector
 from .prs3 import _condition_numbers
 
 __all__ = ["LinearDelta", "DELTA_TOLERANCE_DEFAULTS"]
@@ -136,7 +137,7 @@ class LinearDelta(Machine):
             specs += [ParamSpec(f"{c}.arm_length", "mm", "arm_length")]
         specs += [ParamSpec(f"tool.point.{x}", "mm", "tool_point") for x in _XYZ]
         object.__setattr__(self, "layout", ParamLayout(tuple(specs)))
-        object.__setattr__(self, "tolerance", np.array([self.tolerance_groups[s.group] for s in specs]))
+        object.__setattr__(self, "tolerance", tolerance_vector(specs, self.tolerance_groups))
 
     @property
     def n_actuators(self) -> int:

@@ -30,6 +30,7 @@ from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
+from .tolerance import tolerance_vector
 from .construct import kabsch
 
 __all__ = ["Prs3", "PRS3_TOLERANCE_DEFAULTS"]
@@ -156,7 +157,7 @@ class Prs3(Machine):
             specs += [ParamSpec(f"{c}.link_length", "mm", "link_length")]
         specs += [ParamSpec(f"tool.point.{x}", "mm", "tool_point") for x in _XYZ]
         object.__setattr__(self, "layout", ParamLayout(tuple(specs)))
-        tol = np.array([self.tolerance_groups[s.group] for s in specs])
+        tol = tolerance_vector(specs, self.tolerance_groups)
         object.__setattr__(self, "tolerance", tol)
 
     # ----------------------------------------------------------------- set-up

@@ -46,6 +46,7 @@ from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
+from .tolerance import tolerance_vector
 
 __all__ = ["Raspm", "RASPM_TOLERANCE_DEFAULTS", "PlanarState", "rot2", "drot2"]
 
@@ -161,7 +162,7 @@ class Raspm(Machine):
         tcol = np.array([len(specs), len(specs) + 1])
         specs += [ParamSpec(f"tool.point.{x}", "mm", "tool_point") for x in "xz"]
         object.__setattr__(self, "layout", ParamLayout(tuple(specs)))
-        object.__setattr__(self, "tolerance", np.array([self.tolerance_groups[s.group] for s in specs]))
+        object.__setattr__(self, "tolerance", tolerance_vector(specs, self.tolerance_groups))
         object.__setattr__(self, "_cols", (ja, sl, tcol))
 
     # ----------------------------------------------------------------- set-up

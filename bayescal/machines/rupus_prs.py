@@ -67,6 +67,7 @@ from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import Machine, MeasurementNoise, ToolPoses
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
+from .tolerance import tolerance_vector
 from .construct import circle_intersections, kabsch, rotate_vectors, trilaterate
 
 __all__ = ["RupusPrs", "RUPUS_TOLERANCE_DEFAULTS", "rotate_about"]
@@ -259,7 +260,7 @@ class RupusPrs(Machine):
         specs += xyz(f"{c}.universal_center", "universal_center")
         specs += [ParamSpec(f"tool.point.{x}", "mm", "tool_point") for x in _XYZ]
         object.__setattr__(self, "layout", ParamLayout(tuple(specs)))
-        object.__setattr__(self, "tolerance", np.array([self.tolerance_groups[s.group] for s in specs]))
+        object.__setattr__(self, "tolerance", tolerance_vector(specs, self.tolerance_groups))
 
     # ----------------------------------------------------------------- set-up
     @property

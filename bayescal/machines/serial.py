@@ -55,6 +55,7 @@ from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
+from .tolerance import tolerance_vector
 from .urdf import chain_from_urdf
 
 __all__ = ["Serial", "ChainFrames", "SERIAL_TOLERANCE_DEFAULTS", "JOINT_TYPES", "rpy_matrix", "rpy_from_matrix", "mimic_problem"]
@@ -390,7 +391,7 @@ class Serial(Machine):
         specs += [ParamSpec(f"tool.point.{x}", "mm", "tool_point") for x in _XYZ]
         specs += [ParamSpec(f"tool.rpy.{x}", "rad", "tool_rpy") for x in _RPY]
         object.__setattr__(self, "layout", ParamLayout(tuple(specs)))
-        object.__setattr__(self, "tolerance", np.array([self.tolerance_groups[s.group] for s in specs]))
+        object.__setattr__(self, "tolerance", tolerance_vector(specs, self.tolerance_groups))
 
     def _set_mimic(self, m: int) -> None:
         """Check the mimic entries and build the joint positions' map ``q_joint = A q + b`` from the actuators."""
