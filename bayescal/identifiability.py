@@ -84,6 +84,18 @@ class Identifiability:
     relations: tuple[str, ...] = ()
     decided_by_prior: tuple[str, ...] = ()
 
+    def holding(self, held: NDArray, names: tuple[str, ...]) -> "Identifiability":
+        """The same analysis with the parameters ``held`` (indices) held fixed by the user: out of the kept set.
+
+        They are not counted as fixed (the measurement may see them); the
+        results name them apart, as ``held``.
+        """
+        held = np.asarray(held, dtype=int)
+        if held.size == 0:
+            return self
+        kept = np.setdiff1d(self.kept_index, held)
+        return replace(self, kept=tuple(names[j] for j in kept), kept_index=kept)
+
     def with_prior(self, names: tuple[str, ...]) -> "Identifiability":
         """The parameter set for an estimator with a prior: fix only what the measurement does not see.
 

@@ -42,6 +42,8 @@ CASES = {
     "delta, heights and distances": (_delta_distances, {}, []),
     "3-PRS, ridge lam=auto": (lambda tmp: (PRS3_FILE, REC), {"method": "ridge", "lam": "auto"},
                               ["--method", "ridge", "--lam", "auto"]),
+    "3-PRS, two parameters held": (lambda tmp: (PRS3_FILE, REC), {"fix": ["chain2.link_length", "tool.point.z"]},
+                                   ["--fix", "chain2.link_length,tool.point.z"]),
 }
 
 

@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from ..identify import resolve_free
 from ..identify.gauss_newton import determined_at
+from ..identify.free import held_names
 from .accuracy import evaluation_poses, tool_point_jacobian, workspace_accuracy
 from .priors import GaussianPrior, prior_from_machine
 from ..identify.result import covariance_dict, decided_by_prior_lines
@@ -97,6 +98,8 @@ class FilterResult(PosteriorMembers):
     message: str = ""
     fixed: tuple[str, ...] = ()
     unidentifiable: tuple[str, ...] = ()
+    #: Parameters the user held at the prior mean (``fix``), whatever the data see.
+    held: tuple[str, ...] = ()
     #: Combinations the data do not separate that the prior decides (``free="auto"``: estimated, not fixed).
     decided_by_prior: tuple[str, ...] = ()
     extras: dict = field(default_factory=dict)
@@ -161,6 +164,7 @@ class FilterResult(PosteriorMembers):
             "covariance_kind": "Kalman filter state covariance",
             "covariance": covariance_dict(self.names, self.units, self.free, self.covariance),
             "fixed": list(self.fixed),
+            "held": list(self.held),
             "unidentifiable": list(self.unidentifiable),
             "decided_by_prior": list(self.decided_by_prior),
             "strong_correlations": [
@@ -200,6 +204,8 @@ class FilterResult(PosteriorMembers):
         lines.append(f"  within 10% of the final accuracy after {k} poses: measuring more than that buys little")
         pairs = strong_correlations(self.covariance, self.free_names)
         lines += parameter_table(parameter_list(self.names, self.units, self.theta, self.std, self.free, self.determined), pairs)
+        if self.held:
+            lines += ["", f"  held at the prior mean (fix): {', '.join(self.held)}"]
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, held at the prior mean: {', '.join(self.fixed)}"]
         lines += decided_by_prior_lines(self.decided_by_prior)
@@ -279,7 +285,8 @@ def kalman_filter(
         tool_dof=model.tool_dof,
         success=run.success,
         message=run.message,
-        fixed=tuple(nm for nm, fr in zip(machine.layout.names, free_mask) if not fr),
+        fixed=tuple(nm for nm, fr in zip(machine.layout.names, free_mask) if not fr and nm not in held_names(free)),
+        held=held_names(free),
         unidentifiable=() if ida is None else ida.combinations,
         decided_by_prior=() if ida is None else ida.decided_by_prior,
         determined=determined_at(model, theta, free_mask, pred),

@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from ..identify import IdentificationResult, identify
 from ..identify.choose import evidence_lambda, linearised_problem
+from ..identify.free import same_free
 from ..machines.base import Machine
 from ..measurement import MeasurementModel
 
@@ -266,7 +267,7 @@ def empirical_bayes_map(
         c_new = float(np.clip(1.0 / np.sqrt(evidence_lambda(A, z, noise_known=known)), lo, hi))
         moved = abs(np.log(c_new / c)) >= np.log(1.05)
         c = c_new
-        res = fit(c, res.theta, idx)  # warm start; the covariance is the Laplace one at this c
+        res = fit(c, res.theta, same_free(res))  # warm start; the covariance is the Laplace one at this c
         if not moved:
             break
     return _scaled_answer(res, first, c, rounds)

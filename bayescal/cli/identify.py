@@ -125,6 +125,11 @@ def register(sub) -> None:
              "the measurement sees), 'all', or comma-separated names",
     )
     p.add_argument(
+        "--fix", metavar="NAMES",
+        help="comma-separated parameter names held at nominal (not identified, zero variance), as lmfit's "
+             "vary=False; with --free auto the identifiable set is chosen among the others",
+    )
+    p.add_argument(
         "--prior-scale", choices=PRIOR_SCALES, default=None,
         help="map: the prior's scale: 'empirical' (one factor on the machine file's tolerances, estimated from the "
              "data) or 'tolerance' (the tolerances as they are); default: empirical with at least 3 measured "
@@ -235,6 +240,7 @@ def run(args) -> int:
 
         serial_part(machine, what="--write-urdf: a URDF")  # InputError (exit 2) for other kinds, before any fit
     free = free_arg(args.free)
+    fix = name_list(args.fix) if args.fix is not None else None
     _check_method_arguments(args)
     if args.fit_effects:
         model = joint_effects_model(args, machine, rec, model)
@@ -243,7 +249,7 @@ def run(args) -> int:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
         # the noise test, the outliers, the filter or sampler and the whole answer: one library call
-        answer = calibrate_bayes(model, method=args.method, free=free, max_iter=args.max_iter, noise=args.noise,
+        answer = calibrate_bayes(model, method=args.method, free=free, fix=fix, max_iter=args.max_iter, noise=args.noise,
                                  fit_effects=args.fit_effects, machine=machine, check=check, session=session,
                                  **okw, **bayes_options(args))
         return run_bayes(args, machine, answer)
@@ -258,7 +264,7 @@ def run(args) -> int:
     # ... and the whole answer (pivots, instrument frame, plausibility, held-out rows), as bayescal.calibrate gives it
     cal, extra, held_out = calibration_answer(
         model, machine, method=args.method, session=session, check=check, lam=args.lam, k=args.k, free=free,
-        rule=args.rule, prior_scale=args.prior_scale, max_iter=args.max_iter, noise=args.noise,
+        fix=fix, rule=args.rule, prior_scale=args.prior_scale, max_iter=args.max_iter, noise=args.noise,
         fit_effects=args.fit_effects, discrepancy=args.discrepancy,
         discrepancy_inputs=name_list(args.discrepancy_inputs) if args.discrepancy_inputs else None, **okw)
     res, choice, plaus = cal.result, cal.choice, cal.plausibility

@@ -37,6 +37,7 @@ from ..contract import scale_noise, whiten
 from ..errors import InputError
 from ..limits import check_lam, finite_real
 from ..measurement import MeasurementModel
+from .free import with_fixed
 from .group_noise import group_report, group_scales, tool_group_checks, with_group_scales
 from .noise import NoiseCheck, check_noise, distinct_rows
 from .result import IdentificationResult
@@ -179,7 +180,7 @@ class Calibration:
         return record_from_result(machine, res.names, res.free, res.covariance, noise_scale=self.noise_scale,
                                   method=res.method, extra_names=extra,
                                   extra_cov=self.joint_covariance if self.discrepancy is not None else None,
-                                  variance_factor=self.variance_factor)
+                                  variance_factor=self.variance_factor, held=res.held)
 
     def discrepancy_dict(self) -> dict:
         """The answer's ``discrepancy`` block ({} when none was considered)."""
@@ -331,6 +332,7 @@ def calibrate(
     lam: float | str | None = None,
     k: int | str | None = None,
     free="auto",
+    fix=None,
     rule: str | None = None,
     prior_scale: str | None = None,
     max_iter: int = 50,
@@ -353,6 +355,8 @@ def calibrate(
     k : int or "auto"
         TSVD rank; required for tsvd.
     free : "auto", "all" or names
+    fix : sequence of str, optional
+        Held at nominal (lmfit's ``vary=False``; zero variance in ``[calibration]``), ``auto`` choosing among the rest.
     rule : str, optional
         Rule for ``"auto"`` (:data:`bayescal.identify.choose.RULE_NAMES`).
     prior_scale : "empirical", "tolerance" or None
@@ -375,7 +379,7 @@ def calibrate(
     Calibration
     """
     _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlier_kw)
-    kw = dict(lam=lam, k=k, free=free, rule=rule, prior_scale=prior_scale, max_iter=max_iter,
+    kw = dict(lam=lam, k=k, free=with_fixed(free, fix), rule=rule, prior_scale=prior_scale, max_iter=max_iter,
               outlier_kw={"robust": robust, **outlier_kw}, fit_effects=fit_effects)
     model, (res, handling, choice), blocks = _fit_with_row_groups(model, method, kw, noise)
     first = noise_check_of(model, res)
@@ -453,7 +457,7 @@ def _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlie
         raise InputError(f"method: expected one of {', '.join(DETERMINISTIC_METHODS)}, got {method!r}")
     bad = sorted(set(outlier_kw) - set(OUTLIER_OPTIONS))
     if bad:
-        raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, rule, "
+        raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, fix, rule, "
                          f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
                          f"{', '.join(OUTLIER_OPTIONS)}")
     if lam is not None:

@@ -40,6 +40,7 @@ from ..limits import check_fit_memory, check_lam
 from ..identifiability import STRUCTURAL_RTOL, analyse_identifiability, priority_order
 from ..iteration import Proposal, Refused, StepControl, gauss_newton
 from ..measurement import MeasurementModel
+from .free import Free, held_index, held_names
 from .result import IdentificationResult
 from .solvers import LS_RCOND, filtered_solve
 
@@ -59,7 +60,8 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool 
     Parameters
     ----------
     model : MeasurementModel
-    free : "auto", "all", None (= "auto") or a sequence of names or indices
+    free : "auto", "all", None (= "auto"), a sequence of names or indices, or a :class:`~bayescal.identify.free.Free`
+        (one of those less the names it holds fixed: with "auto" the identifiable set is chosen among the rest)
     theta0 : ndarray, shape (P,)
         Where the identifiability is analysed.
     prior : bool
@@ -81,6 +83,9 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool 
     (ndarray of int, Identifiability or None)
     """
     layout = model.machine.layout
+    held = np.zeros(0, dtype=int)
+    if isinstance(free, Free):
+        held, free = held_index(layout, free.fix), free.base
     if free is None or (isinstance(free, str) and free == "auto"):
         if system is not None:
             J = system[2]
@@ -92,17 +97,25 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool 
         geometry = model.machine.geometry_part[1]
         nuisance = np.setdiff1d(np.arange(len(layout)), geometry)
         order = priority_order(model.machine.tolerance, layout.units, nuisance=nuisance)
-        ida = analyse_identifiability(J, layout, candidates=order)
+        # parameters held fixed are no candidates: the identifiable set is chosen among the others
+        ida = analyse_identifiability(J, layout, candidates=order[~np.isin(order, held)])
         if prior:
             ida = ida.with_prior(layout.names)
+        ida = ida.holding(held, layout.names)
+        if ida.kept_index.size == 0:
+            raise InputError("free: no parameter left to identify (every parameter the measurement sees is fixed)")
         return ida.kept_index, ida
     if isinstance(free, str) and free == "all":
-        return np.arange(len(layout)), None
-    idx = np.array([layout.index(f) if isinstance(f, str) else int(f) for f in free], dtype=int)
+        idx = np.setdiff1d(np.arange(len(layout)), held)
+    else:
+        idx = np.array([layout.index(f) if isinstance(f, str) else int(f) for f in free], dtype=int)
+        if np.unique(idx).size != idx.size:
+            raise InputError("free: parameters listed twice")
+        if np.isin(idx, held).any():
+            both = [layout.names[j] for j in idx[np.isin(idx, held)]]
+            raise InputError(f"fix: {', '.join(both)} also listed in free; expected each parameter in one of them")
     if idx.size == 0:
         raise InputError("free: expected at least one parameter to identify")
-    if np.unique(idx).size != idx.size:
-        raise InputError("free: parameters listed twice")
     return np.sort(idx), None
 
 
@@ -296,7 +309,8 @@ def identify(
     c, basis = _centre_and_basis(method, k, J, idx, S, prior_mean, P)
     res_before = model.residual(pred)
     it = _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol)
-    return _result(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before)
+    held = held_names(free)
+    return _result(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before, held)
 
 
 def _start_prediction(model, theta: NDArray):
@@ -373,7 +387,8 @@ def _check_size(model, method: str, solver: str, lam, k, n_free: int) -> None:
                          f"got {k!r}")
 
 
-def _result(model, method, solver, lam, k, it: "_Iterated", idx, S, c, basis, ida, res_before) -> IdentificationResult:
+def _result(model, method, solver, lam, k, it: "_Iterated", idx, S, c, basis, ida, res_before,
+            held=()) -> IdentificationResult:
     """The answer at the iteration's end: covariance and singular values from the final linearisation."""
     machine = model.machine
     P = machine.n_params
@@ -430,7 +445,8 @@ def _result(model, method, solver, lam, k, it: "_Iterated", idx, S, c, basis, id
         cost_history=np.array(it.costs),
         success=it.success,
         message=it.message,
-        fixed=tuple(n for n, f in zip(machine.layout.names, free_mask) if not f),
+        fixed=tuple(n for n, f in zip(machine.layout.names, free_mask) if not f and n not in held),
+        held=tuple(held),
         unidentifiable=() if ida is None else ida.combinations,
         decided_by_prior=() if ida is None else ida.decided_by_prior,
         dof=model.dof,

@@ -93,7 +93,9 @@ class IdentificationResult:
     success : bool
     message : str
     fixed : tuple of str
-        Parameters held at nominal, and ``unidentifiable`` explains why.
+        Parameters the data cannot identify, held at nominal, and ``unidentifiable`` explains why.
+    held : tuple of str
+        Parameters the user held at nominal (``fix``), whatever the data see.
     unidentifiable : tuple of str
     decided_by_prior : tuple of str
         Combinations the data do not separate that the prior decided (map,
@@ -144,6 +146,7 @@ class IdentificationResult:
     fixed: tuple[str, ...] = ()
     unidentifiable: tuple[str, ...] = ()
     decided_by_prior: tuple[str, ...] = ()
+    held: tuple[str, ...] = ()
     dof: int = 6
     n_poses: int = 0
     chi2: float = float("nan")
@@ -277,6 +280,7 @@ class IdentificationResult:
             "covariance_kind": self.covariance_kind,
             "covariance": covariance_dict(self.names, self.units, self.free, self.covariance),
             "fixed": list(self.fixed),
+            "held": list(self.held),
             "unidentifiable": list(self.unidentifiable),
             "decided_by_prior": list(self.decided_by_prior),
             "strong_correlations": [{"a": a, "b": b, "correlation": c} for a, b, c in self.correlations()],
@@ -344,6 +348,8 @@ class IdentificationResult:
             lines += [f"    {a} ~ {b}: {c:+.3f}" for a, b, c in corr[:15]]
             if len(corr) > 15:
                 lines.append(f"    ... and {len(corr) - 15} more")
+        if self.held:
+            lines += ["", f"  held at nominal (fix): {', '.join(self.held)}"]
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, fixed at nominal: {', '.join(self.fixed)}"]
             lines += [f"    - {c}" for c in self.unidentifiable[:max_combinations]]

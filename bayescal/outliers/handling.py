@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 from ..identify.gauss_newton import identify
+from ..identify.free import same_free
 from ..measurement import MeasurementModel
 from .stats import ALPHA, DEFAULT_NU, LOSSES, MAX_FRACTION, PoseTest, describe_loss, irls_weights, pose_test, weighted_model
 
@@ -175,7 +176,7 @@ class Refits:
         if self.first is None:
             self.first = identify(model, theta0=theta0, **self.kw)
             return self.first
-        kw = {**self.kw, "free": np.flatnonzero(self.first.free)}
+        kw = {**self.kw, "free": same_free(self.first)}
         res = identify(model, theta0=theta0, **kw)
         return replace(res, unidentifiable=self.first.unidentifiable, decided_by_prior=self.first.decided_by_prior)
 

@@ -181,7 +181,8 @@ def _check_covariance(t: TomlTable, names: list, C: NDArray) -> None:
 
 
 def record_from_result(machine, names_all, free, covariance, *, noise_scale: float = 1.0, method: str = "",
-                       extra_names=(), extra_cov=None, variance_factor: float = 1.0) -> CalibrationRecord | None:
+                       extra_names=(), extra_cov=None, variance_factor: float = 1.0,
+                       held=()) -> CalibrationRecord | None:
     """The record of an identification: the covariance of the machine's own parameters among the free ones.
 
     Parameters
@@ -195,6 +196,9 @@ def record_from_result(machine, names_all, free, covariance, *, noise_scale: flo
     extra_names, extra_cov :
         A joint covariance to use instead (discrepancy weights appended): ``extra_cov`` over
         ``[free names..., extra_names...]``.
+    held : sequence of str
+        Parameters the user held at nominal (``fix``): stated known, so recorded at zero variance (left out,
+        predict would give them their tolerance).
     """
     if covariance is None and extra_cov is None:
         return None
@@ -207,6 +211,9 @@ def record_from_result(machine, names_all, free, covariance, *, noise_scale: flo
         return None
     Cs = C[np.ix_(sel, sel)]
     names = [all_names[i] for i in sel]
+    pinned = [n for n in held if n in keep_names and n not in set(names)]
+    names += pinned
+    Cs = np.pad(Cs, ((0, len(pinned)), (0, len(pinned))))
     if method == "ls" and not extra_names:  # (a discrepancy needs a prior: least squares carries none)
         # least squares fixes the parameters it cannot tell from the free ones (the gauge,
         # bayescal.identifiability): the free ones absorbed their effect, so a prediction does not depend on their
