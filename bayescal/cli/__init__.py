@@ -54,9 +54,13 @@ class _Parser(argparse.ArgumentParser):
     A value that starts with a minus sign and a number is a value, not an option: argparse (3.12) took
     ``--pivot -10,0,80``, ``--centre -5,0,0`` and ``--x-range -3e2 3e2`` for options and refused them
     ("expected one argument"); no option of bayescal starts with a digit.
+
+    Options are spelled out: argparse's prefix matching would let a script's ``--fi`` mean ``--figures``
+    today and be refused as ambiguous once ``--fix`` exists, or ``--lam`` reach an option added later.
     """
 
     def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?([,:;].*)?$")
 
