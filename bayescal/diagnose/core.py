@@ -664,14 +664,16 @@ def _final_model(machine, recording, model, selected, fit: EffectFit, settings, 
 
 
 def _record(machine, final_model, fit: EffectFit, disc_trial):
-    """The ``[calibration]`` record the calibrated machine carries (its covariance, noise scale, variance factor)."""
+    """The ``[calibration]`` record the calibrated machine carries (its covariance, noise scale, variance factor).
+
+    The selected effects' parameters are in it, jointly with the geometry: a prediction through a fitted effect
+    (a tip sensor's tilt under bending) is no surer than its parameters (``predict`` propagates them).
+    """
     from ..discrepancy import weight_names
     from ..prediction.loo import loo_variance_factor
     from ..prediction.record import record_from_result
 
     P = machine.n_params
-    free = np.ones(P, dtype=bool)
-    names = machine.layout.names
     if disc_trial is not None and disc_trial.kept:
         f = disc_trial.fit
         scale = float(np.sqrt(f.noise_factor))
@@ -690,6 +692,48 @@ def _record(machine, final_model, fit: EffectFit, disc_trial):
             kappa, _ = loo_variance_factor(scaled, theta, cov, machine_index=np.arange(P), discrepancy=disc)
         except (np.linalg.LinAlgError, ValueError, KinematicsError):
             kappa = 1.0
-    return record_from_result(machine.base_machine(), names, free, cov[:P, :P] if not extra else None,
-                              noise_scale=scale, method="diagnose", extra_names=extra,
-                              extra_cov=cov if extra else None, variance_factor=kappa)
+    eff = tuple(f"effect.{e}.{p.name}" for e, sl in fit.effect_slices for p in fit.params[sl])
+    joint = _with_effect_block(cov, fit, P, len(extra)) if eff and fit.covariance is not None else None
+    names = tuple(machine.layout.names) + (eff if joint is not None else ())
+    free = np.ones(len(names), dtype=bool)
+    if joint is None:
+        joint = cov if extra else cov[:P, :P]
+    return record_from_result(machine.base_machine(), names, free, None if extra else joint, noise_scale=scale,
+                              method="diagnose", extra_names=extra, extra_cov=joint if extra else None,
+                              variance_factor=kappa, effect_names=names[P:])
+
+
+def _with_effect_block(cov: NDArray, fit: EffectFit, P: int, W: int) -> NDArray | None:
+    """The covariance over ``[geometry (P), effect parameters (K), discrepancy weights (W)]``.
+
+    ``cov`` is over the geometry and the weights (the discrepancy's joint fit, effects held at their values) or the
+    geometry alone; ``fit.covariance`` is the effects' joint fit over ``[geometry, effects]``. Given the geometry,
+    the effects are ``eta = B g + e`` with ``B = C_eg C_gg^-1`` and ``e`` of the conditional covariance
+    ``C_ee - B C_ge`` (the effects' fit, scaled by its noise; the fit's nuisance parameters marginalised out):
+    the joint covariance of ``(g, w, B g + e)`` is
+    positive semi-definite by construction and keeps the trade between an effect and the geometry (a compliance
+    against a link length). None when the effects' fit does not give it.
+    """
+    K = len(fit.params)
+    full = fit.covariance * _scale2(fit)
+    if K == 0 or full.shape[0] < P + K:
+        return None
+    # the fit's vector is [geometry (P), the model's nuisance parameters (body sensors' mountings), effects (K)]:
+    # the marginal over the geometry and the effects is their block
+    keep = np.r_[np.arange(P), full.shape[0] - K + np.arange(K)]
+    C = full[np.ix_(keep, keep)]
+    try:
+        B = np.linalg.solve(C[:P, :P], C[:P, P:]).T
+    except np.linalg.LinAlgError:
+        return None
+    Ce = C[P:, P:] - B @ C[:P, P:]
+    Ce = 0.5 * (Ce + Ce.T)
+    D = np.asarray(cov, dtype=float)[: P + W, : P + W]  # geometry then weights
+    out = np.zeros((P + K + W,) * 2)
+    order = np.r_[np.arange(P), P + K + np.arange(W)]  # where D's rows go
+    out[np.ix_(order, order)] = D
+    cross = B @ D[:P, :]  # cov(eta, (g, w))
+    out[P:P + K, order] = cross
+    out[order, P:P + K] = cross.T
+    out[P:P + K, P:P + K] = B @ D[:P, :P] @ B.T + Ce
+    return out if np.all(np.isfinite(out)) else None

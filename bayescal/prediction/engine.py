@@ -8,9 +8,10 @@ row's predictive distribution is Gaussian with
 
 where
 
-* ``C`` is the covariance of the machine's parameters (and of the
-  discrepancy's weights, jointly; :mod:`bayescal.prediction.record`) and ``G``
-  their columns of the row Jacobian (with the discrepancy's features);
+* ``C`` is the covariance of the machine's parameters (and of its effect
+  tables' parameters and the discrepancy's weights, jointly;
+  :mod:`bayescal.prediction.record`) and ``G`` their columns of the row
+  Jacobian (with the effects' columns and the discrepancy's features);
 * the session's own parameters ``s`` (the instrument frames of
   ``predict --frame fit``) are fitted on the recording's ``fit`` rows with
   the machine held fixed.  A change ``d`` of the machine's parameters is
@@ -96,6 +97,14 @@ def _with_discrepancy(discrepancy, sub, theta, sub_pred, J, Jm, residual_varianc
     return sub_pred.y + dmean, np.concatenate([Jm, F], axis=2), D if residual_variance else np.zeros_like(D)
 
 
+def _columns(J: NDArray, machine_index: NDArray, extra_columns: NDArray | None, ok: NDArray) -> NDArray:
+    """The machine's parameters' columns of the solved rows, then the further parameters' (effect tables')."""
+    Jm = J[:, :, machine_index]
+    if extra_columns is None:
+        return Jm
+    return np.concatenate([Jm, np.asarray(extra_columns, dtype=float)[ok]], axis=2)
+
+
 def predictive_rows(
     model,
     theta: NDArray,
@@ -108,6 +117,7 @@ def predictive_rows(
     fit_rows: NDArray | None = None,
     variance_factor: float = 1.0,
     residual_variance: bool = True,
+    extra_columns: NDArray | None = None,
 ) -> PredictiveRows:
     """The predictive distribution of every row of ``model`` (module docstring).
 
@@ -138,13 +148,15 @@ def predictive_rows(
     residual_variance : bool
         Add ``D``, the discrepancy's prior variance its inducing points do not
         carry (False: the parameters' part alone, the hat matrix of a fit).
+    extra_columns : ndarray, shape (n, dof, m), optional
+        Derivatives by ``m`` parameters beyond the machine's (``[effect.*]`` tables'): ``covariance``
+        is over the ``machine_index`` parameters, these, then the discrepancy's weights.
 
     Returns
     -------
     PredictiveRows
     """
-    theta = np.asarray(theta, dtype=float)
-    machine_index = np.asarray(machine_index, dtype=int)
+    theta, machine_index = np.asarray(theta, dtype=float), np.asarray(machine_index, dtype=int)
     n, dof = model.n_poses, model.dof
     pred = model.predict(theta)
     ok = np.asarray(pred.success, dtype=bool)
@@ -155,7 +167,7 @@ def predictive_rows(
     sub = model if ok.all() else model.subset(np.flatnonzero(ok))
     sub_pred = pred if ok.all() else sub.predict(theta)
     J = sub.jacobian(theta, sub_pred)  # (n_ok, dof, P)
-    Jm = J[:, :, machine_index]
+    Jm = _columns(J, machine_index, extra_columns, ok)
     mu, Jm, D = _with_discrepancy(discrepancy, sub, theta, sub_pred, J, Jm, residual_variance)
     C = np.asarray(covariance, dtype=float)
     if C.shape != (Jm.shape[2],) * 2:

@@ -39,7 +39,10 @@ from ..errors import MachineFileError
 from ..io.machine_file import TomlTable, format_toml_value
 
 __all__ = ["CalibrationRecord", "calibration_toml", "read_calibration", "covariance_with_prior",
-           "unknown_parameters_message"]
+           "unknown_parameters_message", "effect_parameter_names", "EFFECT_PREFIX"]
+
+#: How the record names an ``[effect.*]`` table's parameter (as the joint model's layout does).
+EFFECT_PREFIX = "effect."
 
 #: Largest covariance a machine file may carry (parameters): 4,000 gives 128 MB of float64.
 MAX_PARAMETERS = 4000
@@ -182,13 +185,14 @@ def _check_covariance(t: TomlTable, names: list, C: NDArray) -> None:
 
 def record_from_result(machine, names_all, free, covariance, *, noise_scale: float = 1.0, method: str = "",
                        extra_names=(), extra_cov=None, variance_factor: float = 1.0,
-                       held=()) -> CalibrationRecord | None:
+                       held=(), effect_names=()) -> CalibrationRecord | None:
     """The record of an identification: the covariance of the machine's own parameters among the free ones.
 
     Parameters
     ----------
     machine : Machine
-        The machine written (its layout names are those kept: frames, pivots and effect parameters drop out).
+        The machine written: its layout names are kept, and the parameters of its ``[effect.*]`` tables
+        (``effect.<effect>.<parameter>``, fitted with the geometry); frames and pivots drop out.
     names_all : sequence of str
         The model's parameter names (layout order).
     free : ndarray of bool
@@ -199,10 +203,12 @@ def record_from_result(machine, names_all, free, covariance, *, noise_scale: flo
     held : sequence of str
         Parameters the user held at nominal (``fix``): stated known, so recorded at zero variance (left out,
         predict would give them their tolerance).
+    effect_names : sequence of str
+        Effect parameters to keep besides those of ``machine``'s own tables (a diagnosis writes its tables later).
     """
     if covariance is None and extra_cov is None:
         return None
-    keep_names = set(machine.layout.names)
+    keep_names = set(machine.layout.names) | set(effect_parameter_names(machine.effects)) | set(effect_names)
     free_names = [n for n, f in zip(names_all, np.asarray(free, dtype=bool)) if f]
     C = np.asarray(covariance if extra_cov is None else extra_cov, dtype=float)
     all_names = free_names + list(extra_names)
@@ -226,6 +232,11 @@ def record_from_result(machine, names_all, free, covariance, *, noise_scale: flo
         names += fixed
         Cs = np.pad(Cs, ((0, len(fixed)), (0, len(fixed))))
     return CalibrationRecord(tuple(names), 0.5 * (Cs + Cs.T), float(noise_scale), method, float(variance_factor))
+
+
+def effect_parameter_names(effects) -> tuple[str, ...]:
+    """``effect.<effect>.<parameter>`` of every value of the ``[effect.*]`` tables ``effects`` (StoredEffect)."""
+    return tuple(f"{EFFECT_PREFIX}{st.name}.{k}" for st in effects for k, _ in st.values)
 
 
 def unknown_parameters_message(path: str, missing) -> str:

@@ -149,16 +149,18 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     sensor_free = _sensor_index(model)
     if sensor_free.size:
         theta = _fit_mountings(model, theta, sensor_free, fit_rows, rec)
-    C, machine_index, noise_factor, kappa, note = _machine_covariance(machine, fm, names, disc)
+    C, machine_index, noise_factor, kappa, note, eff = _machine_covariance(machine, fm, names, disc)
     if note:
         notes.append(note)
+    extra = _effect_columns(machine, rec, (dof, frame, model), theta, eff) if eff else None
     # the calibration's noise scale and leave-one-out factor are the tool rows' (the sensors' sigma is the file's)
     td = model.tool_dof
     per_row = lambda v: np.r_[np.full(td, v), np.ones(model.dof - td)]  # noqa: E731
     session_index = np.array(frame_free + sensor_free.tolist(), dtype=int)
     pr = _predict_usable(model, theta, C, usable, fit_rows, machine_index=machine_index,
                          noise_factor=per_row(noise_factor), discrepancy=disc,
-                         session_index=session_index if session_index.size else None, variance_factor=per_row(kappa))
+                         session_index=session_index if session_index.size else None, variance_factor=per_row(kappa),
+                         extra_columns=extra)
     for i in np.flatnonzero(usable & ~pr.success):
         errors[i] = f"cannot be predicted: {pr.message[i] or 'the pose does not solve'}"
     failed = np.array([e is not None for e in errors])
@@ -227,6 +229,8 @@ def _predict_usable(model, theta, C, usable, fit_rows, **kw) -> PredictiveRows:
     idx = np.flatnonzero(usable)
     if not idx.size:
         return pr
+    if kw.get("extra_columns") is not None:
+        kw = {**kw, "extra_columns": kw["extra_columns"][idx]}
     got = predictive_rows(model.subset(idx), theta, C, fit_rows=fit_rows[idx], **kw)
     mean, cov, ok = pr.mean.copy(), pr.cov.copy(), pr.success.copy()
     mean[idx], cov[idx], ok[idx] = got.mean, got.cov, got.success
@@ -294,19 +298,22 @@ def _machine_covariance(machine, fm, names, disc):
         k = len(wnames)
         note = ("no [calibration] in the machine file: its parameters are taken as exact; the intervals carry the "
                 "instrument noise" + (" and the discrepancy's prior" if disc is not None else ""))
-        return np.eye(k) if k else np.zeros((0, 0)), np.zeros(0, dtype=int), 1.0, 1.0, note
+        return np.eye(k) if k else np.zeros((0, 0)), np.zeros(0, dtype=int), 1.0, 1.0, note, ()
     from ..machines.framed import is_frame_parameter
-    from .record import covariance_with_prior, unknown_parameters_message
+    from .record import covariance_with_prior, effect_parameter_names, unknown_parameters_message
 
     # the machine's own parameters (a session's instrument frame is fitted, not calibrated): those the record
     # lacks keep their prior, the tolerance (bayescal.prediction.record.covariance_with_prior)
     own = [n for n in machine.layout.names if n in pos and not is_frame_parameter(n)]
     geo = [n for n in record.names if n in pos] + [n for n in own if n not in set(record.names)]
+    # the effect tables' parameters the record holds: their columns come from the effects (_effect_columns)
+    eff = [n for n in record.names if n in set(effect_parameter_names(machine.effects))]
     tol = np.asarray(fm.tolerance, dtype=float)
-    prior = [tol[pos[n]] for n in geo] + [1.0] * len(wnames)  # weights the record lacks: N(0, I)
-    C, missing = covariance_with_prior(record, geo + list(wnames), prior, machine.source)
+    # weights the record lacks: N(0, I); effect parameters are all in the record (no prior needed)
+    prior = [tol[pos[n]] for n in geo] + [1.0] * (len(eff) + len(wnames))
+    C, missing = covariance_with_prior(record, geo + eff + list(wnames), prior, machine.source)
     notes = []
-    lost = [n for n in record.names if n not in pos and not n.startswith("discrepancy.")]
+    lost = [n for n in record.names if n not in pos and n not in set(eff) and not n.startswith("discrepancy.")]
     if lost:
         notes.append(f"{len(lost)} parameter(s) of [calibration] are not this machine's and were left out: "
                      f"{', '.join(lost[:4])}")
@@ -314,7 +321,45 @@ def _machine_covariance(machine, fm, names, disc):
         notes.append(unknown_parameters_message(machine.source, unheld))
     note = "; ".join(notes)
     return (C, np.array([pos[n] for n in geo], dtype=int), float(record.noise_scale) ** 2,
-            float(record.variance_factor), note)
+            float(record.variance_factor), note, tuple(eff))
+
+
+def _effect_columns(machine, rec, session_args, theta, names) -> np.ndarray:
+    """d rows / d (effect parameter) of every row, by central differences of the whole session, shape (n, dof, m).
+
+    Each of ``names`` (``effect.<effect>.<parameter>``) is moved by a hundredth of its calibrated std either
+    way in the machine's ``[effect.*]`` table and the session rebuilt as :func:`predict_recording` builds it
+    (the effects reach the rows through the actuators, the tool's offset and the body sensors alike), the
+    session's parameters ``theta`` held. Rows that fail either way are NaN (they fail unperturbed too).
+    An effect's rows are smooth in its parameters (a compliance times a load): the difference is exact to
+    O(h^2), far below the std it multiplies.
+    """
+    dof, frame, model = session_args
+    record = machine.calibration
+    std = dict(zip(record.names, record.std))
+    cols = np.full((model.n_poses, model.dof, len(names)), np.nan)
+    for k, name in enumerate(names):
+        h = 0.01 * std[name] if std[name] > 0 else 0.0
+        if h == 0.0:
+            cols[:, :, k] = 0.0
+            continue
+        ys = []
+        for sign in (1.0, -1.0):
+            moved = machine.with_effects(_moved_tables(machine.effects, name, sign * h))
+            got, _ = _session(moved, rec, dof, frame)
+            pred = got.model.predict(theta)
+            ys.append(np.where(np.asarray(pred.success)[:, None], pred.y, np.nan))
+        cols[:, :, k] = (ys[0] - ys[1]) / (2 * h)
+    return cols
+
+
+def _moved_tables(effects, name: str, step: float) -> tuple:
+    """``effects`` (StoredEffect) with parameter ``name`` (``effect.<effect>.<parameter>``) moved by ``step``."""
+    out = []
+    for st in effects:
+        values = tuple((k, v + step if f"effect.{st.name}.{k}" == name else v) for k, v in st.values)
+        out.append(replace(st, values=values))
+    return tuple(out)
 
 
 def _rows(rec, model, pr, scores, errors, sensors=None) -> list[dict]:

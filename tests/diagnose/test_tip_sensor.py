@@ -120,3 +120,15 @@ def test_the_tip_sensor_shrinks_the_written_geometrys_uncertainty(study):
     assert u1 > d1.confound.geometric_tool_std_um  # still above a geometry-only calibration's: not free
     # the written machines predict fresh poses of the bent truth; the sensor's makes no worse a machine
     assert err1 < 1.05 * err0 and err1 < 120.0
+
+
+def test_the_written_record_carries_the_bending_parameters_with_the_geometry(study):
+    # predict propagates an effect's parameters only if the record holds them (with their trade against the
+    # geometry): their block's std equals the diagnosis' own, and the joint covariance is a covariance
+    d1 = study["with"][0]
+    rec = d1.record
+    eff = [n for n in rec.names if n.startswith("effect.gravity_deflection.")]
+    assert "effect.gravity_deflection.bending.joint1" in eff
+    j = rec.names.index("effect.gravity_deflection.bending.joint1")
+    assert rec.std[j] == pytest.approx(_bending(d1).std, rel=1e-6)
+    assert np.linalg.eigvalsh(rec.covariance).min() > -1e-9 * np.diag(rec.covariance).max()
