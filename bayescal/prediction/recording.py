@@ -155,7 +155,7 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     extra = _effect_columns(machine, rec, (dof, frame, model), theta, eff) if eff else None
     # the calibration's noise scale and leave-one-out factor are the tool rows' (the sensors' sigma is the file's)
     td = model.tool_dof
-    per_row = lambda v, s=1.0: np.r_[np.full(td, v), np.full(model.dof - td, s)]  # noqa: E731
+    per_row = lambda v, s=1.0: np.r_[np.full(td, v), np.broadcast_to(s, (model.dof - td,))]  # noqa: E731
     session_index = np.array(frame_free + sensor_free.tolist(), dtype=int)
     kw = dict(machine_index=machine_index, noise_factor=per_row(noise_factor), discrepancy=disc,
               session_index=session_index if session_index.size else None, extra_columns=extra)
@@ -325,85 +325,95 @@ def _machine_covariance(machine, fm, names, disc):
 
 
 def _predict_with_sensor_test(model, args, kw, factor, n_mount: int, notes: list) -> PredictiveRows:
-    """The usable rows' prediction, the sensor rows widened where their fit rows say so (:func:`sensor_noise_test`).
+    """The usable rows' prediction, each sensor's rows widened where its fit rows say so (:func:`sensor_noise_test`).
 
-    ``factor(s)`` is the per-component variance factor with ``s`` on the sensor rows; a widening adds its note.
+    ``factor(s)`` is the per-component variance factor with ``s`` (one per sensor row) on the sensor rows; each
+    widening adds its note.
     """
     pr = _predict_usable(model, *args, variance_factor=factor(1.0), **kw)
-    test = sensor_noise_test(model, pr, args[3], n_mount) if n_mount else None
-    if test is None or test.widen <= 1.0:
+    tests = sensor_noise_test(model, pr, args[3], n_mount) if n_mount else ()
+    if not any(t.widen > 1.0 for t in tests):
         return pr
-    notes.append(test.note())
-    return _predict_usable(model, *args, variance_factor=factor(test.widen), **kw)
+    notes.extend(t.note() for t in tests if t.widen > 1.0)
+    return _predict_usable(model, *args, variance_factor=factor(np.repeat([t.widen for t in tests], 2)), **kw)
 
 
 @dataclass(frozen=True)
 class SensorNoiseTest:
-    """The body sensors' stated noise tested on the session's ``fit`` rows (their mountings fitted there).
+    """One body sensor's stated noise tested on the session's ``fit`` rows (its mounting fitted there).
 
     Attributes
     ----------
+    body : str
     chi2 : float
-        Sum over the fit rows' tilt components of the squared residual over its predictive variance.
+        Sum over the fit rows' two tilt components of the squared residual over its predictive variance.
     dof : int
-        The components less the mounting parameters fitted on them.
+        The components less the mounting parameters fitted on them (the sensors' share).
     p_value : float
         Upper tail of ``chi2`` under chi-square(``dof``).
     widen : float
-        Factor on the sensor rows' predictive variance: ``chi2 / dof`` where ``p_value`` is below
+        Factor on the sensor's rows' predictive variance: ``chi2 / dof`` where ``p_value`` is below
         :data:`SENSOR_TEST_ALPHA`, else 1.
     """
 
+    body: str
     chi2: float
     dof: int
     p_value: float
     widen: float
 
     def note(self) -> str:
-        return (f"the body sensors' tilt rows scatter {np.sqrt(self.widen):.3g} times their predicted std on the fit "
-                f"rows (chi-square {self.chi2:.4g} on {self.dof} degrees of freedom, p = {self.p_value:.2g}): their "
-                f"regions are widened by that, on every row (the machine file's sigma_tilt and the model of what "
-                f"moves the sensors' bodies, neither tested by the calibration, do not account for them)")
+        return (f"the sensor on {self.body!r}: its tilt rows scatter {np.sqrt(self.widen):.3g} times their predicted "
+                f"std on the fit rows (chi-square {self.chi2:.4g} on {self.dof} degrees of freedom, p = "
+                f"{self.p_value:.2g}): its regions are widened by that, on every row (the machine file's sigma_tilt "
+                f"and the model of what moves the sensor's body, neither tested by the calibration, do not account "
+                f"for them)")
 
 
 #: Level of the sensor rows' test below which their variance is widened (:func:`sensor_noise_test`).
 SENSOR_TEST_ALPHA = 0.01
 
 
-def sensor_noise_test(model, pr: PredictiveRows, fit_rows: np.ndarray, n_mount: int) -> SensorNoiseTest | None:
-    """Test the body sensors' tilt rows of the ``fit`` rows against their predictive distribution.
+def sensor_noise_test(model, pr: PredictiveRows, fit_rows: np.ndarray, n_mount: int) -> tuple[SensorNoiseTest, ...]:
+    """Test each body sensor's tilt rows of the ``fit`` rows against their predictive distribution.
 
     A calibrated machine's noise scale and leave-one-out factor are those of the tool's rows; a sensor on a moving
     body is predicted through the file's ``sigma_tilt`` and the effects that move its body, which no calibration
-    tested. The session's ``fit`` rows, on which its mountings are fitted, are the evidence: where their
-    standardised tilt residuals are larger than chance allows (chi-square test at :data:`SENSOR_TEST_ALPHA`), every
-    sensor row's variance is multiplied by ``chi2 / dof`` (Birge's ratio). None without fit rows to test.
+    tested. The session's ``fit`` rows, on which the mountings are fitted, are the evidence: where a sensor's
+    standardised tilt residuals are larger than chance allows (chi-square test at :data:`SENSOR_TEST_ALPHA`), each
+    of its rows' variance is multiplied by ``chi2 / dof`` (Birge's ratio). Sensors apart: a noisy accelerometer
+    beside a precise inclinometer is widened alone. Empty without fit rows to test.
 
     Parameters
     ----------
     model : MeasurementModel
-        With sensor rows after the tool's (``tool_dof`` on).
+        With two tilt rows per sensor after the tool's (``tool_dof`` on), sensors in ``model.sensors.bodies``' order.
     pr : PredictiveRows
         Of every row of ``model``.
     fit_rows : ndarray of bool
     n_mount : int
-        Mounting parameters fitted on the fit rows (degrees of freedom taken).
+        Mounting parameters fitted on the fit rows (degrees of freedom taken, shared equally by the sensors).
     """
     from scipy.stats import chi2 as chi2_dist
 
     td = model.tool_dof
     use = np.asarray(fit_rows, dtype=bool) & np.asarray(pr.success, dtype=bool)
     if td >= model.dof or not use.any():
-        return None
-    r = (np.asarray(model.y_measured, dtype=float) - pr.mean)[use, td:]
-    var = np.einsum("nii->ni", pr.cov)[use, td:]
-    z2 = r**2 / var
-    dof = int(z2.size) - int(n_mount)
-    if dof < 3 or not np.all(np.isfinite(z2)):
-        return None
-    total = float(z2.sum())
-    p = float(chi2_dist.sf(total, dof))
-    return SensorNoiseTest(total, dof, p, max(1.0, total / dof) if p < SENSOR_TEST_ALPHA else 1.0)
+        return ()
+    bodies = tuple(model.sensors.bodies)
+    z2 = ((np.asarray(model.y_measured, dtype=float) - pr.mean)[use, td:] ** 2
+          / np.einsum("nii->ni", pr.cov)[use, td:])
+    out = []
+    for k, body in enumerate(bodies):
+        part = z2[:, 2 * k:2 * k + 2]
+        dof = int(part.size) - int(round(n_mount / len(bodies)))
+        if dof < 3 or not np.all(np.isfinite(part)):
+            out.append(SensorNoiseTest(body, float("nan"), max(dof, 0), float("nan"), 1.0))
+            continue
+        total = float(part.sum())
+        p = float(chi2_dist.sf(total, dof))
+        out.append(SensorNoiseTest(body, total, dof, p, max(1.0, total / dof) if p < SENSOR_TEST_ALPHA else 1.0))
+    return tuple(out)
 
 
 def _effect_columns(machine, rec, session_args, theta, names) -> np.ndarray:

@@ -201,7 +201,7 @@ def _noisy_readings(truth, tool, noise, seed):
     rng = np.random.default_rng(seed)
     aux = {}
     for body, (u, _) in truth.items():
-        v = u + rng.normal(size=u.shape) * noise
+        v = u + rng.normal(size=u.shape) * (noise[body] if isinstance(noise, dict) else noise)
         aux.update({f"accel.{body}.{a}": G * v[:, i] for i, a in enumerate("xyz")})
     return Recording(q=QS, position=tool, aux=aux, role=tuple(np.where(CHECK, "check", "fit")))
 
@@ -228,3 +228,16 @@ def test_sensor_rows_are_widened_by_their_fit_rows_only_when_they_show_it(true_n
     else:
         assert all(widened)
         assert 0.855 <= np.mean(inside) <= 0.945
+
+
+def test_a_noisy_sensor_is_widened_alone():
+    """The column's sensor four times noisier than stated, the arm's as stated: only the column's rows widen."""
+    machine = machine_from_text(machine_text(JOINTS, sigma_tilt=1e-5, sigma_position=0.05))
+    truth, tool = _true_readings(QS)
+    res = predict_recording(machine, _noisy_readings(truth, tool, {"joint2": 4e-5, "joint3": 1e-5}, 3))
+    notes = [n for n in res.notes if "tilt rows scatter" in n]
+    assert len(notes) == 1 and notes[0].startswith("the sensor on 'joint2'")
+    rows = res.to_dict()["rows"]
+    std2 = np.array([r["sensors"]["joint2"]["std"] for r in rows])
+    std3 = np.array([r["sensors"]["joint3"]["std"] for r in rows])
+    assert np.median(std2) > 3 * np.median(std3)  # 4e-5 against 1e-5, each as its fit rows say
