@@ -349,6 +349,23 @@ def test_calibrate_mcmc_writes_the_json_identify_writes(tmp_path):
     assert '"seconds": ' in out.read_text() and clock(json_text(cal.to_dict())) == clock(out.read_text())
     assert cal.result.success and cal.to_dict()["noise"]["verdict"] == json.loads(out.read_text())["noise"]["verdict"]
     assert cal.write_machine(tmp_path / "lib.toml")[0].read_bytes() == written.read_bytes()
+    # the posterior's covariance goes with the machine (predict took an MCMC calibration as exact)
+    record = bayescal.load_machine(written).calibration
+    assert record is not None and record.method == "mcmc"
+    free = [n for n, f in zip(cal.result.names, cal.result.free) if f]
+    np.testing.assert_allclose(record.covariance_for(free), cal.result.covariance, rtol=1e-9, atol=1e-30)
+
+
+def test_a_kalman_calibration_carries_its_covariance_to_predict(tmp_path):
+    # the filter's final covariance is the calibration's uncertainty: written into [calibration], and predict's
+    # regions then agree with those of the MAP it linearises (the same prior and data; EKF to about a percent)
+    written = {}
+    for method in ("kalman", "map"):
+        cal = bayescal.calibrate(bayescal.load(PRS3_FILE, REC), method=method)
+        path = cal.write_machine(tmp_path / f"{method}.toml")[0]
+        assert bayescal.load_machine(path).calibration.method == method
+        written[method] = np.array([r["std"] for r in bayescal.predict(path, REC).to_dict()["rows"]])
+    np.testing.assert_allclose(written["kalman"], written["map"], rtol=0.02)
 
 
 def test_calibrate_fits_effect_tables_as_identify_fit_effects_does(tmp_path):

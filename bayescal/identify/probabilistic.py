@@ -220,5 +220,22 @@ def calibrate_bayes(model, *, method: str, free="auto", fix=None, max_iter: int 
     scale, kappa = (1.0, 1.0) if noise_cal is None else (noise_cal.noise_scale, noise_cal.variance_factor)
     held_out = (score_held_out_result(res, session, noise_scale=scale, variance_factor=kappa)
                 if session is not None and not fit_effects else {})
-    return BayesCalibration(res, handling, plaus, frame, held_out, noise_cal, with_fitted_effects(machine, model, res),
-                            model)
+    written = with_fitted_effects(machine, model, res)
+    return BayesCalibration(res, handling, plaus, frame, held_out, noise_cal,
+                            _with_record(written, res, method, scale, kappa), model)
+
+
+def _with_record(machine, res, method: str, scale: float, kappa: float):
+    """The written machine carrying the filter's or the posterior's covariance as its ``[calibration]``.
+
+    Without it ``predict`` took a Kalman or MCMC calibration as exact, the methods whose answer is the
+    uncertainty. The noise scale and leave-one-out factor are those of the MAP the method started from.
+    """
+    from ..prediction.record import record_from_result
+
+    cov = getattr(res, "covariance", None)
+    if cov is None or not res.success:
+        return machine
+    record = record_from_result(machine.base_machine(), res.names, res.free, cov, noise_scale=scale, method=method,
+                                variance_factor=kappa, held=tuple(getattr(res, "held", ())))
+    return machine if record is None else machine.with_calibration(record, machine.discrepancy)
