@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..contract import scale_noise
 from ..errors import InputError
@@ -155,12 +156,12 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     extra = _effect_columns(machine, rec, (dof, frame, model), theta, eff) if eff else None
     # the calibration's noise scale and leave-one-out factor are the tool rows' (the sensors' sigma is the file's)
     td = model.tool_dof
-    per_row = lambda v, s=1.0: np.r_[np.full(td, v), np.broadcast_to(s, (model.dof - td,))]  # noqa: E731
+    per_row = lambda v, s=1.0: np.r_[np.broadcast_to(v, (td,)), np.broadcast_to(s, (model.dof - td,))]  # noqa: E731
     session_index = np.array(frame_free + sensor_free.tolist(), dtype=int)
     kw = dict(machine_index=machine_index, noise_factor=per_row(noise_factor), discrepancy=disc,
               session_index=session_index if session_index.size else None, extra_columns=extra)
-    pr = _predict_with_sensor_test(model, (theta, C, usable, fit_rows), kw, lambda s: per_row(kappa, s),
-                                   sensor_free.size, notes)
+    pr = _predict_with_row_tests(model, (theta, C, usable, fit_rows), kw, lambda t, s: per_row(kappa * t, s),
+                                 (len(frame_free), sensor_free.size), notes)
     for i in np.flatnonzero(usable & ~pr.success):
         errors[i] = f"cannot be predicted: {pr.message[i] or 'the pose does not solve'}"
     failed = np.array([e is not None for e in errors])
@@ -324,96 +325,110 @@ def _machine_covariance(machine, fm, names, disc):
             float(record.variance_factor), note, tuple(eff))
 
 
-def _predict_with_sensor_test(model, args, kw, factor, n_mount: int, notes: list) -> PredictiveRows:
-    """The usable rows' prediction, each sensor's rows widened where its fit rows say so (:func:`sensor_noise_test`).
+def _predict_with_row_tests(model, args, kw, factor, n_session: tuple[int, int], notes: list) -> PredictiveRows:
+    """The usable rows' prediction, each row group widened where its fit rows say so (:func:`row_group_tests`).
 
-    ``factor(s)`` is the per-component variance factor with ``s`` (one per sensor row) on the sensor rows; each
-    widening adds its note.
+    ``factor(t, s)`` is the per-component variance factor with ``t`` on the tool's rows and ``s`` (one per sensor
+    row) on the sensors'; each widening adds its note.
     """
-    pr = _predict_usable(model, *args, variance_factor=factor(1.0), **kw)
-    tests = sensor_noise_test(model, pr, args[3], n_mount) if n_mount else ()
+    pr = _predict_usable(model, *args, variance_factor=factor(1.0, 1.0), **kw)
+    tests = row_group_tests(model, pr, args[3], *n_session)
     if not any(t.widen > 1.0 for t in tests):
         return pr
     notes.extend(t.note() for t in tests if t.widen > 1.0)
-    return _predict_usable(model, *args, variance_factor=factor(np.repeat([t.widen for t in tests], 2)), **kw)
+    tool, sensors = tests[0].widen, np.repeat([t.widen for t in tests[1:]], 2)
+    return _predict_usable(model, *args, variance_factor=factor(tool, sensors if sensors.size else 1.0), **kw)
 
 
 @dataclass(frozen=True)
-class SensorNoiseTest:
-    """One body sensor's stated noise tested on the session's ``fit`` rows (its mounting fitted there).
+class RowGroupTest:
+    """One group of rows (the tool's, or one body sensor's) tested on the session's ``fit`` rows.
 
     Attributes
     ----------
-    body : str
+    group : str
+        ``"tool"`` or the sensor's body.
     chi2 : float
-        Sum over the fit rows' two tilt components of the squared residual over its predictive variance.
+        Sum over the fit rows of the squared Mahalanobis distance of the group's residual under its predictive
+        covariance.
     dof : int
-        The components less the mounting parameters fitted on them (the sensors' share).
+        The group's components over the fit rows less the session's parameters fitted on them (its share).
     p_value : float
         Upper tail of ``chi2`` under chi-square(``dof``).
     widen : float
-        Factor on the sensor's rows' predictive variance: ``chi2 / dof`` where ``p_value`` is below
-        :data:`SENSOR_TEST_ALPHA`, else 1.
+        Factor on the group's predictive covariance: ``chi2 / dof`` where ``p_value`` is below
+        :data:`ROW_TEST_ALPHA`, else 1.
     """
 
-    body: str
+    group: str
     chi2: float
     dof: int
     p_value: float
     widen: float
 
     def note(self) -> str:
-        return (f"the sensor on {self.body!r}: its tilt rows scatter {np.sqrt(self.widen):.3g} times their predicted "
-                f"std on the fit rows (chi-square {self.chi2:.4g} on {self.dof} degrees of freedom, p = "
-                f"{self.p_value:.2g}): its regions are widened by that, on every row (the machine file's sigma_tilt "
-                f"and the model of what moves the sensor's body, neither tested by the calibration, do not account "
-                f"for them)")
+        what, why = (("the tool's rows", "the calibration's noise and uncertainty do not cover this session")
+                     if self.group == "tool" else
+                     (f"the sensor on {self.group!r}: its tilt rows", "the machine file's sigma_tilt and the model of "
+                      "what moves the sensor's body, neither tested by the calibration, do not account for them"))
+        return (f"{what} scatter {np.sqrt(self.widen):.3g} times their predicted std on the fit rows (chi-square "
+                f"{self.chi2:.4g} on {self.dof} degrees of freedom, p = {self.p_value:.2g}): their regions are "
+                f"widened by that, on every row ({why})")
 
 
-#: Level of the sensor rows' test below which their variance is widened (:func:`sensor_noise_test`).
-SENSOR_TEST_ALPHA = 0.01
+#: Level of the fit rows' test below which a row group's covariance is widened (:func:`row_group_tests`).
+ROW_TEST_ALPHA = 0.01
 
 
-def sensor_noise_test(model, pr: PredictiveRows, fit_rows: np.ndarray, n_mount: int) -> tuple[SensorNoiseTest, ...]:
-    """Test each body sensor's tilt rows of the ``fit`` rows against their predictive distribution.
+def row_group_tests(model, pr: PredictiveRows, fit_rows: np.ndarray, n_frame: int, n_mount: int) -> tuple[RowGroupTest, ...]:
+    """Test the tool's rows and each body sensor's rows of the ``fit`` rows against their predictive distribution.
 
-    A calibrated machine's noise scale and leave-one-out factor are those of the tool's rows; a sensor on a moving
-    body is predicted through the file's ``sigma_tilt`` and the effects that move its body, which no calibration
-    tested. The session's ``fit`` rows, on which the mountings are fitted, are the evidence: where a sensor's
-    standardised tilt residuals are larger than chance allows (chi-square test at :data:`SENSOR_TEST_ALPHA`), each
-    of its rows' variance is multiplied by ``chi2 / dof`` (Birge's ratio). Sensors apart: a noisy accelerometer
-    beside a precise inclinometer is widened alone. Empty without fit rows to test.
+    The session's ``fit`` rows, on which its frames and mountings are fitted, are evidence about the session that
+    no calibration saw: a sensor on a moving body is predicted through the file's ``sigma_tilt`` and the effects
+    that move its body, which no calibration tested; the tool's rows through the calibration's noise scale and
+    leave-one-out factor, which another day's instrument or machine need not share. Where a group's squared
+    Mahalanobis distances sum to more than chance allows (chi-square test at :data:`ROW_TEST_ALPHA`), its
+    predictive covariance is multiplied by ``chi2 / dof`` (Birge's ratio) on every row. Groups apart: a noisy
+    accelerometer beside a precise inclinometer is widened alone. Never narrowed.
 
     Parameters
     ----------
     model : MeasurementModel
-        With two tilt rows per sensor after the tool's (``tool_dof`` on), sensors in ``model.sensors.bodies``' order.
+        The tool's ``tool_dof`` rows, then two tilt rows per sensor in ``model.sensors.bodies``' order.
     pr : PredictiveRows
         Of every row of ``model``.
     fit_rows : ndarray of bool
-    n_mount : int
-        Mounting parameters fitted on the fit rows (degrees of freedom taken, shared equally by the sensors).
-    """
-    from scipy.stats import chi2 as chi2_dist
+    n_frame, n_mount : int
+        The instrument frames' and the mountings' parameters fitted on the fit rows (degrees of freedom taken;
+        the mountings' shared equally by the sensors).
 
+    Returns
+    -------
+    tuple of RowGroupTest
+        The tool's first, then one per sensor (a group without enough fit rows: ``widen`` 1 and NaN statistics).
+    """
     td = model.tool_dof
     use = np.asarray(fit_rows, dtype=bool) & np.asarray(pr.success, dtype=bool)
-    if td >= model.dof or not use.any():
-        return ()
-    bodies = tuple(model.sensors.bodies)
-    z2 = ((np.asarray(model.y_measured, dtype=float) - pr.mean)[use, td:] ** 2
-          / np.einsum("nii->ni", pr.cov)[use, td:])
-    out = []
-    for k, body in enumerate(bodies):
-        part = z2[:, 2 * k:2 * k + 2]
-        dof = int(part.size) - int(round(n_mount / len(bodies)))
-        if dof < 3 or not np.all(np.isfinite(part)):
-            out.append(SensorNoiseTest(body, float("nan"), max(dof, 0), float("nan"), 1.0))
-            continue
-        total = float(part.sum())
-        p = float(chi2_dist.sf(total, dof))
-        out.append(SensorNoiseTest(body, total, dof, p, max(1.0, total / dof) if p < SENSOR_TEST_ALPHA else 1.0))
-    return tuple(out)
+    bodies = tuple(model.sensors.bodies) if td < model.dof else ()
+    groups = [("tool", slice(0, td), n_frame)] + [(b, slice(td + 2 * k, td + 2 * k + 2), n_mount / len(bodies))
+                                                  for k, b in enumerate(bodies)]
+    r = (np.asarray(model.y_measured, dtype=float) - pr.mean)[use]
+    return tuple(_group_test(name, r[:, sl], pr.cov[use][:, sl, sl], taken) for name, sl, taken in groups)
+
+
+def _group_test(name: str, r: NDArray, S: NDArray, taken: float) -> RowGroupTest:
+    """:class:`RowGroupTest` of residuals ``r`` (n, k) under covariances ``S`` (n, k, k)."""
+    from scipy.stats import chi2 as chi2_dist
+
+    dof = int(r.size) - int(round(taken))
+    if dof < 3 or not (np.all(np.isfinite(r)) and np.all(np.isfinite(S))):
+        return RowGroupTest(name, float("nan"), max(dof, 0), float("nan"), 1.0)
+    try:
+        total = float(np.einsum("ni,ni->", r, np.linalg.solve(S, r[:, :, None])[:, :, 0]))
+    except np.linalg.LinAlgError:
+        return RowGroupTest(name, float("nan"), dof, float("nan"), 1.0)
+    p = float(chi2_dist.sf(total, dof))
+    return RowGroupTest(name, total, dof, p, max(1.0, total / dof) if p < ROW_TEST_ALPHA else 1.0)
 
 
 def _effect_columns(machine, rec, session_args, theta, names) -> np.ndarray:

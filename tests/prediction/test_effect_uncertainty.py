@@ -27,12 +27,14 @@ EFFECT_STD = np.array([1.0, 0.5, 2.0, 3.0, 2.0, 1e-4, 2e-4])
 
 
 def _recording():
-    """session b's poses and base inclinometer, measured in the base frame (tool rows only, no stations)."""
+    """session b's poses and base inclinometer (tool rows only, no stations), every row a check row."""
     rec = read_recording(FOLDER / "session_b.csv")
     keep = np.arange(0, rec.n_poses, 3)
     rec = rec.subset(keep)
     aux = {k: v for k, v in rec.aux.items() if k.startswith("accel.base")}
-    return replace(rec, aux=aux, station=None)
+    # every row held out: the measured values (station frames, not the base frame) take no part, and no fit row
+    # tests the predictive regions (predict widens those its fit rows contradict)
+    return replace(rec, aux=aux, station=None, role=("check",) * rec.n_poses)
 
 
 def _machine(names, cov, geometry_names):
