@@ -282,6 +282,9 @@ def _scaled_answer(res, first, c: float, rounds: int):
     if kind == res.covariance_kind:
         kind += f" (prior: tolerances x {c:.3g}, empirical Bayes)"
     # lam relative to the tolerance scaling (as ridge's): the noise-to-prior variance ratio 1 / c^2
+    # the rounds refit at the first fit's free set (indices): its account of what the data do not identify, of
+    # what the prior decides and of what the user held is the answer's
     return replace(res, lam=1.0 / c**2, rms_before=first.rms_before, residuals_before=first.residuals_before,
-                   covariance_kind=kind,
+                   covariance_kind=kind, fixed=first.fixed, held=first.held, unidentifiable=first.unidentifiable,
+                   decided_by_prior=first.decided_by_prior,
                    extras={**res.extras, "prior_scale": c, "prior_scale_rounds": rounds})
