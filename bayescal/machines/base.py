@@ -403,6 +403,14 @@ class Machine(ABC):
         """The machine in its base frame, without nuisance views (instrument frame, body sensors' mountings)."""
         return self
 
+    def without_sensor_mounts(self) -> "Machine":
+        """This machine without a body-sensor mountings view around it (itself when it has none).
+
+        A model built again for another recording replaces the sensors' parameters rather than appending a
+        second set (:class:`bayescal.sensors.mounts.SensorMounts` overrides it).
+        """
+        return self
+
     def check_theta(self, theta: ArrayLike | None, n_poses: int | None = None) -> NDArray:
         """``theta`` as an array of shape ``(P,)`` or ``(n_poses, P)``; zeros if None."""
         if theta is None:

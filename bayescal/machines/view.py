@@ -84,6 +84,10 @@ class MachineView(Machine):
     def wrapped(self) -> Machine:
         """The machine this view wraps (itself possibly a view)."""
 
+    def without_sensor_mounts(self) -> Machine:
+        """This view itself: only a body-sensor mountings view unwraps (its own override)."""
+        return self
+
     @property
     def n_params(self) -> int:
         """Parameters of the view: its layout's (the machine's and the view's own)."""

@@ -38,10 +38,13 @@ class SensorMounts(AppendedParameters):
         """The machine under the mountings: a sensor's mounting is the measurement's, not the machine's."""
         return self.base.base_machine()
 
+    def without_sensor_mounts(self) -> Machine:
+        return self.base
+
     def appended(self):
         return tuple(ParamSpec(n, "rad", "sensor_mount") for n in self.names), np.asarray(self.tolerances, dtype=float)
 
 
 def sensor_base(machine) -> Machine:
     """The machine under a :class:`SensorMounts` view (the machine itself otherwise)."""
-    return machine.base if isinstance(machine, SensorMounts) else machine
+    return machine.without_sensor_mounts()
