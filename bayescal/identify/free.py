@@ -10,6 +10,7 @@ passes ``free`` on gets it.
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -61,7 +62,9 @@ def held_index(layout: ParamLayout, fix: Sequence[str]) -> NDArray:
     out = []
     for name in fix:
         if name not in layout.names:
-            raise InputError(f"fix: unknown parameter '{name}'; expected one of: {', '.join(layout.names)}")
+            close = difflib.get_close_matches(name, layout.names, n=1)
+            hint = f"did you mean '{close[0]}'? " if close else ""
+            raise InputError(f"fix: unknown parameter '{name}'; {hint}expected one of: {', '.join(layout.names)}")
         if layout.index(name) in out:
             raise InputError(f"fix: '{name}' listed twice")
         out.append(layout.index(name))

@@ -93,7 +93,7 @@ def test_holding_one_side_of_a_gauge_identifies_the_other(model):
 
 
 @pytest.mark.parametrize("free, fix, words", [
-    ("auto", ["chain2.link_lenght"], "fix: unknown parameter 'chain2.link_lenght'"),
+    ("auto", ["chain2.link_lenght"], "fix: unknown parameter 'chain2.link_lenght'; did you mean 'chain2.link_length'"),
     (["chain2.link_length", "tool.point.z"], ["tool.point.z"], "tool.point.z also listed in free"),
     ("all", ["tool.point.z", "tool.point.z"], "listed twice"),
 ])
