@@ -250,6 +250,9 @@ GRID_CASES = {
     "3-PRS with a compliance table, tool space, 25 kg": (
         _prs3_with_compliance, {}, {"nodes": 3, "space": "tool", "aux": {"payload_kg": 25.0}},
         ["--nodes", "3", "--space", "tool", "--aux", "payload_kg=25"]),
+    "3-PRS, map, the links held": (lambda tmp: (PRS3_FILE, REC), {},
+                                   {"nodes": 3, "fix": [f"chain{i}.link_length" for i in (1, 2, 3)]},
+                                   ["--nodes", "3", "--fix", "chain1.link_length,chain2.link_length,chain3.link_length"]),
 }
 
 
@@ -274,6 +277,11 @@ def test_grid_gives_the_json_grid_writes_byte_for_byte(tmp_path, case):
         assert ans["axes"]["q1"] == [460.0, 500.0, 540.0]
     if "compliance" in case:
         assert ans["effects"] == ["joint_compliance"] and ans["aux"] == {"payload_kg": 25.0}
+    if "fix" in options:
+        # the links held at nominal: not estimated, so no column of the grid's covariance
+        res = g.identification
+        assert res.held == tuple(options["fix"])
+        assert not any(f for n, f in zip(res.names, res.free) if n in options["fix"])
 
 
 def test_grid_from_posterior_draws_gives_the_json_grid_writes(tmp_path):

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from ..identify.free import Free, with_fixed
 from ..notebook import ShowsReport
 
 __all__ = ["GridAnswer", "recording_grid", "grid_space", "check_grid_ranges", "base_frame_parts", "GRID_METHODS",
@@ -220,8 +221,10 @@ def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str
     opts = {}
     if method == "mcmc":
         opts = {"steps": steps, "seed": seed, "surrogate": surrogate}
-        if free == "all":
+        if isinstance(free, str) and free == "all":
             free = "auto"  # sampling parameters the measurement does not see only explores the prior
+        elif isinstance(free, Free) and free.base == "all":
+            free = Free("auto", free.fix)
     cal = calibrate_bayes(model, method=method, free=free, fit_effects=fit_effects, check=check, **opts)
     res, plaus = cal.result, cal.plausibility
     if method == "kalman":
@@ -233,7 +236,7 @@ def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str
 
 def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, space: str = "auto",
                    ranges: dict | None = None, aux: dict | None = None, steps: int = 1000, surrogate: str = "none",
-                   seed: int = 0, fit_effects: bool = False) -> GridAnswer:
+                   seed: int = 0, fit_effects: bool = False, fix=None) -> GridAnswer:
     """Identify a recording's errors and span a compensation grid with its std, as ``bayescal grid`` does.
 
     Parameters
@@ -257,6 +260,8 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
     fit_effects : bool
         map, mcmc: the effect tables' parameters are identified with the geometry (needs a pose recording
         from :func:`bayescal.load`).
+    fix : sequence of str, optional
+        Parameters held at nominal (:func:`bayescal.identify.calibrate.calibrate`): no std of theirs in the grid.
 
     Returns
     -------
@@ -283,7 +288,7 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
         from ..effects.joint_model import joint_effects_model
 
         model = joint_effects_model(model, rec, method=method)
-    res, kw, plaus = _identify(model, method, free, steps=steps, seed=seed, surrogate=surrogate,
+    res, kw, plaus = _identify(model, method, with_fixed(free, fix), steps=steps, seed=seed, surrogate=surrogate,
                                fit_effects=fit_effects, check=check)
     effects = {"effects": tuple(e.name for e in machine.effects), "aux": aux, "effects_fitted": bool(fit_effects),
                "plausibility": plaus}

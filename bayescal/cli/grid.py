@@ -6,7 +6,7 @@ import argparse
 
 from ..errors import InputError
 from . import SUMMARIES
-from .inputs import add_frame_argument, free_arg, inputs_with_session
+from .inputs import add_frame_argument, free_arg, inputs_with_session, name_list
 from .outputs import add_output_options, say, write_json, write_report
 
 HELP = """\
@@ -78,6 +78,7 @@ def register(sub) -> None:
     p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
     p.add_argument("--method", choices=("map", "kalman", "mcmc"), default="map", help="how to identify (default map)")
     p.add_argument("--free", default="all", help="'all' (default), 'auto' or comma-separated names")
+    p.add_argument("--fix", metavar="NAMES", help="comma-separated parameters held at nominal (identify --fix)")
     p.add_argument("--nodes", type=int, default=9, help="nodes per actuator within q_limits (default 9)")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), help="use only this much of the measurement")
     p.add_argument("--steps", type=int, default=1000, help="mcmc: steps per walker (default 1000)")
@@ -127,7 +128,8 @@ def run(args) -> int:
     # the checks, the identification and the grid: one library call, so a notebook gets this grid and JSON
     answer = recording_grid(session if session is not None else model, method=args.method, free=free_arg(args.free),
                             nodes=args.nodes, space=args.space, ranges=ranges, aux=aux, steps=args.steps,
-                            surrogate=args.surrogate, seed=args.seed, fit_effects=args.fit_effects)
+                            surrogate=args.surrogate, seed=args.seed, fit_effects=args.fit_effects,
+                            fix=name_list(args.fix) if args.fix is not None else None)
     res, grid = answer.identification, answer.grid
     if grid is None:
         if not args.quiet:
