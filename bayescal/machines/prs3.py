@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..geometry import skew, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
-from .base import Machine, MeasurementNoise, ToolPoses
+from .base import Machine, MeasurementNoise, ToolPoses, geometry_blocks
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
 from .construct import kabsch
 
@@ -213,6 +213,12 @@ class Prs3(Machine):
             # not once per pose (the tilted directions alone cost more than a Newton step at 10,000 poses)
             one = self._geometry(theta[:1])
             return _Geometry(**{k: np.broadcast_to(v, (n,) + v.shape[1:]) for k, v in vars(one).items()})
+        blocks = geometry_blocks(theta)
+        if blocks is not None:
+            # a sampler's walkers, each repeated over every pose: once per walker (the tilted directions cost
+            # as much as a Newton step when computed per row)
+            one = self._geometry(theta[blocks[0]])
+            return _Geometry(**{k: np.repeat(v, blocks[1], axis=0) for k, v in vars(one).items()})
         th = theta[:, : 3 * _PER_CHAIN].reshape(n, 3, _PER_CHAIN)
         a = self.sphere_center[None] + th[:, :, 0:3]
         B = self.rail_origin[None] + th[:, :, 3:6]
