@@ -15,15 +15,18 @@ with one likelihood term per pose ``i``.  It is sampled with
   burn-in is short);
 * with a mixture of moves (see :mod:`bayescal.bayes.moves`): an
   independence Metropolis-Hastings move proposing from a multivariate t
-  around the MAP with the Laplace covariance, pushed through that bent map
-  (0.9; nearly independent draws when the posterior is close to Gaussian
-  or curved only along prior-decided directions, in any dimension) and the
+  around the MAP with the Laplace covariance, pushed through that bent map,
+  with the map's Gaussian mixed in (0.9 Gaussian + 0.1 t) where draws of
+  the t show the posterior's tails are no heavier than the Gaussian's
+  (:func:`~bayescal.bayes.moves.choose_proposal`) (0.9; nearly independent
+  draws when the posterior is close to Gaussian or curved only along
+  prior-decided directions, in any dimension) and the
   differential-evolution moves ``DEMove`` (0.07) and the corrected DE
   snooker move (0.03), which keep the chain moving where the Laplace
-  approximation is poor.  The integrated autocorrelation time is about 2.6
-  steps on the 3-PRS example, against about 125 with DE + snooker alone and
-  several hundred with emcee's default stretch move (see
-  ``benchmarks/mcmc_ess.py``).
+  approximation is poor.  The integrated autocorrelation time is about 1.4
+  steps on the 3-PRS example (3.1 with the t alone), against about 125
+  with DE + snooker alone and several hundred with emcee's default stretch
+  move (see ``benchmarks/mcmc_ess.py``).
 
 Convergence is judged on the chain after burn-in with arviz's rank-normalised
 R-hat and bulk/tail effective sample sizes (walkers as chains), and emcee's
@@ -62,6 +65,7 @@ from .linear import linearisation_error, linearise
 from .moves import choose_proposal, default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
 from ..identify.result import covariance_dict, decided_by_prior_lines
+from ..measurement import MeasurementModel
 from ..stats import posterior_effective_params
 from .summary import PosteriorMembers, parameter_list, parameter_table, strong_correlations
 
@@ -242,9 +246,17 @@ class PosteriorResult(PosteriorMembers):
         c = self.proposal_check
         if c is None:
             return ""
-        kept = "kept" if self.bent_directions else "dropped"
-        return (f" (bend {kept}: importance efficiency {c['bent']:.2f} bent, {c['straight']:.2f} straight, "
-                f"{c['draws']} draws)")
+        if c.get("bent") is None:
+            notes = [f"importance efficiency {c['straight']:.2f}"]
+        else:
+            kept = "kept" if self.bent_directions else "dropped"
+            notes = [f"bend {kept}: importance efficiency {c['bent']:.2f} bent, {c['straight']:.2f} straight"]
+        gw = c.get("gaussian_weight")
+        if gw is not None and c.get("largest_weight_t") is not None:
+            what = f"proposal {gw:g} Gaussian + {1 - gw:g} t" if gw else "proposal t alone"
+            notes.append(f"{what}: largest weight {np.exp(c['largest_weight_mixture']):.3g} mixed, "
+                         f"{np.exp(c['largest_weight_t']):.3g} t")
+        return f" ({'; '.join(notes)}; {c['draws']} draws)"
 
     def report(self) -> str:
         status = "converged" if self.success else "NOT CONVERGED: posterior not reported"
@@ -283,7 +295,10 @@ def log_posterior_function(model, prior: GaussianPrior, idx: NDArray, *, guess=N
     All walkers go through one ``model.predict`` call (stacked theta).
     Poses that cannot be solved give ``-inf``.  The parameters outside
     ``idx`` are held at ``base`` (default the prior mean; the sampler holds
-    them where its MAP did, :func:`sample_posterior`).
+    them where its MAP did, :func:`sample_posterior`).  ``guess`` warm-starts
+    the forward kinematics: solved poses (tiled over the walkers), or a
+    callable ``thetas (W, P) -> ToolPoses`` of ``W * n_poses`` rows (a
+    machine's ``tangent_guesses``).
     """
     n_poses, dof = model.n_poses, model.dof
     sig = model.row_sigma
@@ -297,7 +312,7 @@ def log_posterior_function(model, prior: GaussianPrior, idx: NDArray, *, guess=N
         W = X.shape[0]
         th = np.tile(base, (W, 1))
         th[:, idx] = X
-        pred = model.predict(np.repeat(th, n_poses, axis=0), guess=guess)
+        pred = model.predict(np.repeat(th, n_poses, axis=0), guess=guess(th) if callable(guess) else guess)
         r = ((pred.y.reshape(W, n_poses, dof) - y[None]) / sig).astype(float)
         ll = -0.5 * np.sum(r**2, axis=2) + const[None, :]
         ll[~pred.success.reshape(W, n_poses)] = -np.inf
@@ -418,7 +433,7 @@ def sample_posterior(
     map_pred = model.predict(start.theta)
     # the parameters not sampled stay where the MAP held them (its start: the model's theta_start, e.g. a
     # machine file's effect values, else the prior mean), the same values the answer reports
-    log_prob = log_posterior_function(model, prior, idx, guess=map_pred.poses, base=start.theta)
+    log_prob = log_posterior_function(model, prior, idx, guess=_warm_starts(model, start.theta, map_pred), base=start.theta)
     moves, bend, proposal_check = _proposal(model, prior, idx, start, map_pred, log_prob, moves, n_walkers, seed)
     p0 = _starting_points(model.machine, prior, idx, start, bend, log_prob, n_walkers, rng)
     sampler, seconds = _run_chain(model, idx, start, log_prob, moves, p0, n_steps=n_steps, seed=seed,
@@ -430,6 +445,20 @@ def sample_posterior(
     if surrogate == "linear":
         res = _surrogate_checked(res, exact, prior, idx, start, rng)
     return res
+
+
+def _warm_starts(model, theta: NDArray, pred):
+    """The forward kinematics' start for the walkers: the MAP's poses, or first-order guesses near them.
+
+    A plain measurement model on a machine that offers ``tangent_guesses``
+    (the 3-PRS) starts every walker's solve a Newton step closer than the
+    MAP's poses; any other model, or a MAP pose that did not solve, keeps the
+    MAP's poses.
+    """
+    tangent = getattr(model.machine, "tangent_guesses", None)
+    if tangent is None or not isinstance(model, MeasurementModel) or not np.all(pred.poses.success):
+        return pred.poses
+    return tangent(model.q, theta, pred.poses)
 
 
 def _check_run_options(surrogate: str, checkpoint, checkpoint_every: int, resume: bool) -> None:
@@ -494,12 +523,13 @@ def _proposal(model, prior, idx, start, map_pred, log_prob, moves, n_walkers: in
         # extrapolation far worse than no bend: importance weights of draws from both decide (one call each).
         bend = bent_laplace(log_posterior_gradient(model, prior, idx, guess=map_pred.poses, base=start.theta), start.theta[idx],
                             start.covariance, prior.std[idx])
-        proposal_check = None
-        if bend.bent:
-            check = np.random.RandomState(np.random.SeedSequence([seed, 7]).generate_state(1)[0])
-            bend, proposal_check = choose_proposal(lambda X: log_prob(X)[:, 0], start.theta[idx], start.covariance,
-                                                   bend, max(4 * n_walkers, 200), check)
-        moves = default_moves(start.theta[idx], start.covariance, bend=bend)
+        # the same draws say whether the proposal's Gaussian may be mixed in (choose_proposal): accepted about
+        # twice as often where the posterior is nearly Gaussian, not used where its tails are heavier
+        check = np.random.RandomState(np.random.SeedSequence([seed, 7]).generate_state(1)[0])
+        bend, proposal_check = choose_proposal(lambda X: log_prob(X)[:, 0], start.theta[idx], start.covariance,
+                                               bend, max(4 * n_walkers, 200), check)
+        moves = default_moves(start.theta[idx], start.covariance, bend=bend,
+                              gaussian_weight=proposal_check["gaussian_weight"])
     else:  # the caller's moves: the walkers start on the plain Laplace approximation
         bend = BentLaplace.linear(start.theta[idx], np.linalg.cholesky(start.covariance))
         proposal_check = None

@@ -240,6 +240,36 @@ def map_state(fn, state, *others):
     return state
 
 
+def geometry_blocks(theta: NDArray) -> tuple[NDArray, NDArray] | None:
+    """Where stacked geometries start in per-pose parameter rows, if they repeat in blocks.
+
+    A sampler evaluates many parameter vectors in one call by repeating each
+    over every pose (:meth:`bayescal.measurement.MeasurementModel.predict`):
+    a kind's per-geometry arrays (tilted axes, fixed rotations) are then
+    computed once per block and repeated (``np.repeat(a, runs, axis=0)``),
+    not once per row.
+
+    Parameters
+    ----------
+    theta : ndarray, shape (n, P)
+
+    Returns
+    -------
+    (starts, runs) or None
+        The first row of each run of equal rows and the run lengths, when
+        there are at most a quarter as many runs as rows; else None.
+    """
+    n = theta.shape[0]
+    if theta.ndim != 2 or n < 4:
+        return None
+    first = np.ones(n, dtype=bool)
+    np.any(theta[1:] != theta[:-1], axis=1, out=first[1:])
+    starts = np.flatnonzero(first)
+    if 4 * starts.size > n:
+        return None
+    return starts, np.diff(np.append(starts, n))
+
+
 #: Machine kinds by the ``kind`` string of the machine file; every subclass of :class:`Machine` that
 #: sets a ``kind`` adds itself (a new kind plugs in by being defined).
 KINDS: dict[str, type["Machine"]] = {}

@@ -58,7 +58,7 @@ from ..errors import InputError, MachineFileError
 from ..geometry import left_jacobian, skew, so3_exp, so3_log
 from ..io.machine_file import format_toml_value
 from ..params import ParamLayout, ParamSpec
-from .base import Machine, ToolPoses
+from .base import Machine, ToolPoses, geometry_blocks
 from .view import Forwarded, MachineView
 
 __all__ = ["Frame", "InstrumentFrame", "FRAME_NAMES", "FRAME_TOLERANCE", "instrument_toml",
@@ -368,6 +368,10 @@ class InstrumentFrame(MachineView):
         if not self.fit:
             return self.frame0.origin, self.frame0.rotation
         if self.n_stations == 1:
+            blocks = geometry_blocks(tf) if np.ndim(tf) == 2 else None
+            if blocks is not None:  # a sampler's walkers, each repeated over every pose: one rotation per walker
+                o, R = self._frame_arrays(tf[blocks[0]])
+                return np.repeat(o, blocks[1], axis=0), np.repeat(R, blocks[1], axis=0)
             return self.frame0.origin + tf[..., :3], so3_exp(tf[..., 3:]) @ self.frame0.rotation
         tfp, st = self._pose_frame_params(tf, n)
         return self._o0[st] + tfp[..., :3], so3_exp(tfp[..., 3:]) @ self._R0[st]

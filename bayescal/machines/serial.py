@@ -53,7 +53,7 @@ from ..errors import InputError
 from ..geometry import _cross_basis, left_jacobian, rpy_from_matrix, rpy_matrix, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
-from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies
+from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies, geometry_blocks
 from .common import common_toml, read_noise, read_q_limits, read_tolerance
 from .tolerance import tolerance_vector
 from .urdf import chain_from_urdf
@@ -558,9 +558,16 @@ class Serial(Machine):
         ttool = th[:, _PER_JOINT * m :]
         origin = self.origin[None] + tj[:, :, 3:6]
         rpy = self.rpy[None] + tj[:, :, 6:9]
-        axis, daxis = _tilted_axes(self.axis, self._tilt_g, tj[:, :, 1:3])
+        tool_rpy = self.tool_rpy[None] + ttool[:, 3:]
+        blocks = geometry_blocks(th)
+        if blocks is None:
+            axis, daxis = _tilted_axes(self.axis, self._tilt_g, tj[:, :, 1:3])
+            R_fix, R_tool_fix = rpy_matrix(rpy), rpy_matrix(tool_rpy)
+        else:  # a sampler's walkers, each repeated over every pose: the geometry's rotations once per walker
+            first, runs = blocks
+            axis, daxis = (np.repeat(a, runs, axis=0) for a in _tilted_axes(self.axis, self._tilt_g, tj[first, :, 1:3]))
+            R_fix, R_tool_fix = (np.repeat(rpy_matrix(a[first]), runs, axis=0) for a in (rpy, tool_rpy))
         qe = q @ self._q_map.T + self._q_shift + tj[:, :, 0]
-        R_fix = rpy_matrix(rpy)
         R_parent = np.empty((n, m, 3, 3))
         R_joint = np.empty((n, m, 3, 3))
         p_joint = np.empty((n, m, 3))
@@ -580,11 +587,10 @@ class Serial(Machine):
             else:
                 p = p + _rotate(R, axis[:, k] * qe[:, k, None])
             R_after[:, k], p_after[:, k] = R, p
-        tool_rpy = self.tool_rpy[None] + ttool[:, 3:]
         p_tool = p + _rotate(R, self.tool_point[None] + ttool[:, :3])
         return _Chain(
             R_parent=R_parent, R_joint=R_joint, p_joint=p_joint, rpy=rpy, axis=axis, daxis=daxis, qe=qe,
-            R_end=R, R_after=R_after, p_after=p_after, tool_rpy=tool_rpy, p_tool=p_tool, R_tool=R @ rpy_matrix(tool_rpy),
+            R_end=R, R_after=R_after, p_after=p_after, tool_rpy=tool_rpy, p_tool=p_tool, R_tool=R @ R_tool_fix,
         )
 
     def _memo_chain(self, q: NDArray, theta: NDArray) -> _Chain:
@@ -627,7 +633,8 @@ class Serial(Machine):
         n = q.shape[0]
         c = self._memo_chain(q, self.check_theta(theta, n))
         ok = np.isfinite(c.p_tool).all(axis=1) & np.isfinite(c.R_tool).all(axis=(1, 2))
-        msgs = tuple("" if o else "non-finite joint positions or geometry" for o in ok)
+        # one message per pose: a sampler's call has tens of thousands, nearly always all fine
+        msgs = ("",) * n if ok.all() else tuple("" if o else "non-finite joint positions or geometry" for o in ok)
         return ToolPoses(position=c.p_tool.copy(), rotation=c.R_tool.copy(), success=ok, message=msgs, state=None)
 
     def _motion_columns(self, c: _Chain, k: int) -> tuple[NDArray, NDArray]:

@@ -125,6 +125,25 @@ def test_vectorised_log_prob_matches_one_by_one(prs3, sim6):
     assert both.shape == (3, 1 + model.n_poses)
 
 
+def test_first_order_warm_starts_give_the_same_log_posterior(prs3, sim6):
+    # what sample_posterior does on the 3-PRS: every walker's solve starts from the MAP's poses moved to first order
+    from bayescal.bayes.mcmc import _warm_starts
+
+    model = MeasurementModel.from_recording(prs3, sim6.recording).subset(np.arange(8))
+    prior = prior_from_machine(prs3)
+    idx = np.arange(prs3.n_params)
+    theta0 = prior.sample(1, np.random.default_rng(1))[0] * 0.2
+    pred = model.predict(theta0)
+    warm = _warm_starts(model, theta0, pred)
+    assert callable(warm)  # the 3-PRS offers them; a linearised model does not
+    assert _warm_starts(linearise(model, theta0), theta0, pred) is pred.poses
+    X = theta0 + prior.sample(5, np.random.default_rng(2)) * 0.3
+    plain = log_posterior_function(model, prior, idx, guess=pred.poses, base=theta0)(X)
+    tangent = log_posterior_function(model, prior, idx, guess=warm, base=theta0)(X)
+    assert np.isfinite(plain).all()
+    np.testing.assert_allclose(tangent, plain, rtol=1e-10)
+
+
 def test_linear_surrogate_on_the_machine(prs3, sim6):
     model = MeasurementModel.from_recording(prs3, sim6.recording, dof=3).subset(np.arange(8))
     res = sample_posterior(model, free=FREE, n_walkers=10, n_steps=500, seed=2, surrogate="linear")

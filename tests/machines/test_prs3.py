@@ -133,3 +133,26 @@ def test_recording_of_the_other_assembly_branch_without_the_assembly_key(prs3, r
         model = MeasurementModel.from_recording(flipped, Recording(q=-q, position=truth.position, rotvec=rotvec))
         pred = model.predict(None)
         assert pred.poses.success.all() and np.abs(model.residual(pred)).max() < 1e-8
+
+
+def test_tangent_guesses_are_first_order_and_solve_to_the_same_poses(prs3, rng):
+    q = prs3.sample_q(12, rng)
+    theta0 = rng.normal(size=prs3.n_params) * prs3.tolerance
+    guesses = prs3.tangent_guesses(q, theta0, prs3.forward(q, theta0))
+    step = rng.normal(size=(3, prs3.n_params)) * prs3.tolerance  # three walkers, stacked as a sampler stacks them
+    solved = [prs3.forward(np.tile(q, (3, 1)), np.repeat(theta0 + s * step, 12, axis=0)) for s in (1.0, 0.5)]
+    err = []
+    for s, exact in zip((1.0, 0.5), solved):
+        g = guesses(theta0 + s * step)
+        assert g.position.shape == (36, 3) and g.state.p.shape == (36, 3)
+        err.append(max(np.abs(g.state.p - exact.state.p).max(), np.abs(g.position - exact.position).max(),
+                       100.0 * np.abs(so3_log(g.rotation @ np.swapaxes(exact.rotation, 1, 2))).max()))
+    moved = np.abs(solved[0].position - np.tile(prs3.forward(q, theta0).position, (3, 1))).max()
+    # first order: far closer than the unmoved poses, and the error quarters when the step halves
+    assert err[0] < 0.02 * moved
+    assert 0.15 < err[1] / err[0] < 0.35, err
+    # a start only: Newton from it reaches the cold solve's poses
+    warm = prs3.forward(np.tile(q, (3, 1)), np.repeat(theta0 + step, 12, axis=0), guess=guesses(theta0 + step))
+    assert warm.success.all()
+    np.testing.assert_allclose(warm.position, solved[0].position, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(warm.rotation, solved[0].rotation, rtol=0, atol=1e-12)
