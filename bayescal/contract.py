@@ -200,6 +200,8 @@ class Result(Protocol):
         Rows per measurement and measurements.
     fixed, unidentifiable, decided_by_prior : tuple of str
         Parameters held at nominal, why, and the combinations the prior decided.
+    held : tuple of str
+        Parameters the user held fixed (``fix``), apart from ``fixed``.
     determined : ndarray of bool, shape (P,), or None
         Which estimated parameters the data determine alone (None: all of them).
     tool_dof : int or None
@@ -234,6 +236,7 @@ class Result(Protocol):
     fixed: tuple
     unidentifiable: tuple
     decided_by_prior: tuple
+    held: tuple
     determined: NDArray | None
     tool_dof: int | None
 

@@ -148,6 +148,8 @@ class PosteriorResult(PosteriorMembers):
     unidentifiable: tuple[str, ...] = ()
     #: Combinations the data do not separate that the prior decides (``free="auto"``: sampled, not fixed).
     decided_by_prior: tuple[str, ...] = ()
+    #: Parameters the user held where the MAP held them (``fix``), whatever the data see.
+    held: tuple[str, ...] = ()
     #: The Laplace approximation the walkers started on and the independence move proposed from (bent_laplace.py).
     bend: BentLaplace | None = field(default=None, repr=False)
     #: Importance-sampling ESS fractions of the straight and the bent proposal (``{"draws", "straight",
@@ -214,6 +216,7 @@ class PosteriorResult(PosteriorMembers):
             "n_poses": self.n_poses,
             "covariance_kind": "posterior sample covariance (emcee)" if ok else "none: posterior not converged",
             "fixed": list(self.fixed),
+            "held": list(self.held),
             "unidentifiable": list(self.unidentifiable),
             "decided_by_prior": list(self.decided_by_prior),
             "convergence": {
@@ -283,6 +286,8 @@ class PosteriorResult(PosteriorMembers):
             rows, strong_correlations(self.covariance, self.free_names),
             {"q05": self.quantiles[0], "q95": self.quantiles[2], "R-hat": self.rhat},
         )
+        if self.held:
+            lines += ["", f"  held at the prior mean (fix): {', '.join(self.held)}"]
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, held at the prior mean: {', '.join(self.fixed)}"]
         lines += decided_by_prior_lines(self.decided_by_prior)
@@ -670,6 +675,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         tree=tree,
         seconds=seconds,
         fixed=start.fixed,
+        held=start.held,
         determined=getattr(start, "determined", None),
         unidentifiable=start.unidentifiable,
         decided_by_prior=start.decided_by_prior,

@@ -43,10 +43,12 @@ def test_held_parameters_stay_at_nominal_and_are_named_as_held(model, method, op
     assert "held at nominal (fix): chain2.link_length, chain1.rail_origin.z" in cal.report()
 
 
-def test_kalman_holds_them_at_the_prior_mean(model):
-    res = calibrate_bayes(model, method="kalman", fix=list(HELD), robust="off").result
+@pytest.mark.parametrize("method, options", [("kalman", {}), ("mcmc", {"steps": 200, "surrogate": "linear"})])
+def test_kalman_and_mcmc_hold_them_at_the_prior_mean(model, method, options):
+    res = calibrate_bayes(model, method=method, fix=list(HELD), robust="off", **options).result
     j = model.machine.layout.index(HELD[0])
     assert res.theta[j] == 0.0 and not res.free[j] and res.held == HELD and HELD[0] not in res.fixed
+    assert res.to_dict()["held"] == list(HELD) and "(fix): chain2.link_length, chain1.rail_origin.z" in res.report()
 
 
 def test_map_with_a_parameter_held_is_the_posterior_of_the_others(model):
