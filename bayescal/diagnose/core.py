@@ -28,6 +28,8 @@ Decision rule (docs/diagnose.md):
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property, partial
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,7 +38,8 @@ from scipy.stats import chi2 as chi2_dist
 from ..contract import scale_noise, whiten
 from ..effects import EFFECTS, get_effect
 from ..effects.base import Effect, Features
-from ..effects.model import EffectFit, actuator_residual, effect_residual, fit_map, linear_fold_residuals
+from ..effects.model import (COARSE_START_POSES, EffectFit, actuator_residual, effect_residual, fit_map,
+                             linear_fold_residuals)
 from ..errors import InputError, KinematicsError
 from ..identify.noise import distinct_measurements
 from ..io.recording import Recording
@@ -82,15 +85,17 @@ class _Candidate:
 LINEAR_CV_POSES = 2_000
 
 
-def _cv_rms(model: MeasurementModel, cands: list[_Candidate], folds: list[NDArray], theta0, eta0) -> float:
+def _cv_rms(model: MeasurementModel, cands: list[_Candidate], folds: list[NDArray], theta0, eta0,
+            system: tuple | None = None) -> float:
     """K-fold leave-poses-out position RMS (mm): fit on the other folds, predict the held-out poses.
 
-    From :data:`LINEAR_CV_POSES` poses on, each fold's fit is linearised at the full fit ``theta0, eta0``.
+    From :data:`LINEAR_CV_POSES` poses on, each fold's fit is linearised at the full fit ``theta0, eta0``
+    (whose whitened system ``system`` the caller may have: :attr:`EffectFit.system`).
     """
     n = model.n_poses
     if n >= LINEAR_CV_POSES:
         eta = np.zeros(0) if eta0 is None else eta0
-        res = linear_fold_residuals(model, [(c.effect, c.features) for c in cands], theta0, eta, folds)
+        res = linear_fold_residuals(model, [(c.effect, c.features) for c in cands], theta0, eta, folds, system)
         return float(np.sqrt(sum(float(np.sum(r[:, :3] ** 2)) for r in res) / sum(len(t) for t in folds)))
     sq, count = 0.0, 0
     for test in folds:
@@ -158,6 +163,7 @@ def diagnose(
     n_perm: int | None = None,
     effect_settings: dict[str, dict] | None = None,
     _screen=None, _disc_retested: bool = False, _noise: NoiseSettling | None = None, _tilt: float | None = None,
+    _warm: dict | None = None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -207,17 +213,15 @@ def diagnose(
     cands, skipped = _candidates(s, g)
     folds = _folds(s.kept, seed, n_folds)
     cv0 = _cv_rms(s.model, [], folds, g.fit0.theta, None)
-    single = _single_trials(s.model, cands, skipped, folds, g.fit0)
-    selected, cur_fit, cur_cv = _forward_selection(s, cands, single, folds, g.fit0, cv0)
+    tried: dict = {}  # every fit with effects, by the effects' names: where a rerun's fits start
+    single = _single_trials(s.model, cands, skipped, folds, g.fit0, _warm, tried)
+    selected, cur_fit, cur_cv = _forward_selection(s, cands, single, folds, g.fit0, cv0, _warm, tried)
     v = _verdict(s, g, selected, cur_fit)
     if _tilt is None and (rerun := _tilt_rerun(s, selected, cur_fit, machine, recording, again)) is not None:
         return rerun
-    if s.screen is not None and _screen is None and selected:
-        # outliers are judged against the final model; if that names other poses, diagnose once more
-        final = retest_with_effects(s.base_model, [(c.effect, c.features) for c in selected], cur_fit, s.screen)
-        if final is not None:
-            return diagnose(machine, recording, **again, _screen=final, _disc_retested=_disc_retested)
-
+    again["_warm"] = tried  # an outlier rerun starts its fits from this pass's (large recordings, _start)
+    if _screen is None and (final := _outliers_retested(s, selected, cur_fit)) is not None:
+        return diagnose(machine, recording, **again, _screen=final, _disc_retested=_disc_retested)
     disc_trial, final_model = _discrepancy_trial(s, g, v, recording, selected, cur_fit, folds, cur_cv, seed)
     kept_disc = disc_trial is not None and disc_trial.kept
     if kept_disc and s.screen is not None and not _disc_retested:
@@ -228,6 +232,16 @@ def diagnose(
             return diagnose(machine, recording, **again, _screen=final, _disc_retested=True)
     found = _Found(cands, tuple(skipped), single, selected, cur_fit, cv0, cur_cv, disc_trial, final_model)
     return _diagnosis(s, g, v, found, recording, seed)
+
+
+def _outliers_retested(s: "_Setup", selected: list, cur_fit: EffectFit):
+    """The screen to diagnose again with, when the outliers judged against the final model are other poses; else None.
+
+    The screen judged the poses by the geometric model alone (docs/outliers.md, "In the diagnosis").
+    """
+    if s.screen is None or not selected:
+        return None
+    return retest_with_effects(s.base_model, [(c.effect, c.features) for c in selected], cur_fit, s.screen)
 
 
 def _folds(kept: NDArray, seed: int, n_folds: int) -> list[NDArray]:
@@ -407,12 +421,21 @@ def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_f
 
 @dataclass(frozen=True)
 class _Geometric:
-    """The geometry-only fit, the actuator-space residual and where the mismatch sits."""
+    """The geometry-only fit, the actuator-space residual and where the mismatch sits.
+
+    The location tests run when :attr:`location` is first asked for: a pass that ends in a rerun (outliers
+    retested, the noise or the tilt rows rescaled) never asks, and at 100,000 poses they cost 43 s of CPU.
+    """
 
     fit0: EffectFit
     dq_res: NDArray
-    location: object  # Location
+    locate: Callable[[], object]  # the location tests, run once on demand
     inputs: tuple  # the model's effect_inputs at fit0: (machine, theta, poses)
+
+    @cached_property
+    def location(self):
+        """The :class:`~bayescal.diagnose.locate.Location` of the geometric fit's residuals."""
+        return self.locate()
 
 
 def _geometric_stage(s: _Setup, seed: int) -> _Geometric:
@@ -433,9 +456,10 @@ def _geometric_stage(s: _Setup, seed: int) -> _Geometric:
     direction = approach_direction(model.pose_q, model.pose_order)[: model.n_poses]
     # a body sensor's reading is a measurement of the outcome, not a condition: no channel to locate a mismatch on
     channels = {k: v for k, v in s.aux.items() if not is_body_measurement(k)}
-    location = locate(model.q, whiten(model, fit0.residual), dq_res, channels, model.region(pred0), seed=seed,
-                      direction=direction, units=s.machine.actuator_units)
-    return _Geometric(fit0, dq_res, location, model.effect_inputs(fit0.theta, pred0))
+    rw, region = whiten(model, fit0.residual), model.region(pred0)
+    where = partial(locate, model.q, rw, dq_res, channels, region, seed=seed, direction=direction,
+                    units=s.machine.actuator_units)
+    return _Geometric(fit0, dq_res, where, model.effect_inputs(fit0.theta, pred0))
 
 
 def _candidates(s: _Setup, g: _Geometric) -> tuple[list[_Candidate], list[tuple[str, str]]]:
@@ -480,24 +504,45 @@ def _features(s: _Setup, g: _Geometric, eff: Effect, pose_aux: dict) -> Features
     return eff.refine(f, model.q, g.dq_res)
 
 
-def _single_trials(model, cands: list[_Candidate], skipped: list, folds, fit0: EffectFit) -> dict:
+#: Poses from which the diagnosis takes two shortcuts that move its answer only within the fits' stop tests
+#: (docs/diagnose.md "Large recordings"); below, nothing changes.  (1) A rerun of the diagnosis (the outliers
+#: judged against the final model were other poses) starts each fit from the first pass's fit of the same
+#: effects, without the coarse start: the poses changed are a few of many, so that fit is within a few steps of
+#: the rerun's optimum.  From the coarse start instead, the fit of a quarter of the rows walks away to its own
+#: optimum and the full fit crawls back (at 100,000 poses on the speed benchmark's recording the rerun's
+#: joint-compliance fit took 20, 13 and 14 iterations, as the first pass's; 7 from the first pass's fit).
+#: (2) A candidate's cross-validation linearises the folds at the fit's own whitened system
+#: (:attr:`EffectFit.system`) instead of solving the poses again there: the two differ by round-off.
+LARGE_POSES = COARSE_START_POSES
+
+
+def _start(warm: dict | None, names: tuple, n_params: int, n_poses: int, theta0, eta0=None) -> dict:
+    """``fit_map``'s start for the effects ``names``: ``theta0, eta0``, or in a rerun of a large recording the
+    earlier pass's fit of the same effects (:data:`LARGE_POSES`), with no coarse start."""
+    prev = None if warm is None or n_poses < LARGE_POSES else warm.get(names)
+    if prev is None or prev.eta.size != n_params:
+        return dict(theta0=theta0, eta0=eta0)
+    return dict(theta0=prev.theta, eta0=prev.eta, coarse=False)
+
+
+def _single_trials(model, cands: list[_Candidate], skipped: list, folds, fit0: EffectFit, warm: dict | None = None,
+                   tried: dict | None = None) -> dict:
     """Each candidate fitted alone with the geometry: ``{name: (fit, evidence, CV RMS)}``.
 
-    A candidate whose fit fails or needs non-physical values leaves ``cands`` for ``skipped``.
+    A candidate whose fit fails or needs non-physical values leaves ``cands`` for ``skipped``.  Each fit starts
+    from the geometric fit, or from ``warm``'s (:func:`_start`); ``tried`` collects the fits by ``(name,)``.
     """
     single: dict[str, tuple[EffectFit, float, float]] = {}
     total = len(cands)
     for i, c in enumerate(list(cands), 1):
         report(lambda: f"fitting candidate effect {i} of {total} ({c.effect.name})")
         try:
-            fit = fit_map(model, [(c.effect, c.features)], theta0=fit0.theta)
-            why = c.effect.inadmissible(c.features, fit.eta) or _nonphysical(fit, [c])
-            if why is None:
-                ev = _evidence(fit, fit0, c.penalty)
-                cv = _cv_rms(model, [c], folds, fit.theta, fit.eta)
+            fit, ev, cv, why = _single_trial(model, c, folds, fit0, warm)
         except KinematicsError as exc:
             # the fitted effect moved a pose out of the workspace: it cannot be the explanation
-            why = f"fit failed: {exc}"
+            fit, why = None, f"fit failed: {exc}"
+        if fit is not None and tried is not None:
+            tried[(c.effect.name,)] = fit
         if why is not None:
             skipped.append((c.effect.name, why))
             cands.remove(c)
@@ -506,22 +551,49 @@ def _single_trials(model, cands: list[_Candidate], skipped: list, folds, fit0: E
     return single
 
 
-def _combined(s: _Setup, selected: list[_Candidate], c: _Candidate, cur_fit: EffectFit):
-    """``c`` fitted together with the effects already selected: (fit, evidence), or None when that fails."""
+def _single_trial(model, c: _Candidate, folds, fit0: EffectFit, warm: dict | None):
+    """``c`` fitted alone with the geometry: ``(fit, evidence, CV RMS, None)``, or ``(fit, None, None, why)`` when
+    its values are inadmissible or non-physical.  KinematicsError when a pose fails."""
+    k = len(c.effect.params(model.machine, c.features))
+    large = model.n_poses >= LARGE_POSES
+    fit = fit_map(model, [(c.effect, c.features)], **_start(warm, (c.effect.name,), k, model.n_poses, fit0.theta),
+                  keep_system=large)
+    system, fit = fit.system, replace(fit, system=None)  # the system is rows x parameters: kept no longer than needed
+    why = c.effect.inadmissible(c.features, fit.eta) or _nonphysical(fit, [c])
+    if why is not None:
+        return fit, None, None, why
+    return fit, _evidence(fit, fit0, c.penalty), _cv_rms(model, [c], folds, fit.theta, fit.eta, system), None
+
+
+def _combined(s: _Setup, selected: list[_Candidate], c: _Candidate, cur_fit: EffectFit, warm: dict | None = None,
+              tried: dict | None = None):
+    """``c`` fitted together with the effects already selected: (fit, evidence), or None when that fails.
+
+    The fit starts from ``cur_fit`` and ``c``'s start values, or from ``warm``'s (:func:`_start`); ``tried``
+    collects it by the effects' names.
+    """
     combo = selected + [c]
+    names = tuple(x.effect.name for x in combo)
+    eta0 = np.concatenate([cur_fit.eta, [p.start_value for p in c.effect.params(s.machine, c.features)]])
     try:
-        fit = fit_map(s.model, [(x.effect, x.features) for x in combo], theta0=cur_fit.theta,
-                      eta0=np.concatenate([cur_fit.eta, [p.start_value for p in c.effect.params(s.machine, c.features)]]))
+        fit = fit_map(s.model, [(x.effect, x.features) for x in combo],
+                      **_start(warm, names, eta0.size, s.model.n_poses, cur_fit.theta, eta0))
     except KinematicsError:
         return None
+    if tried is not None:
+        tried[names] = fit
     sl = dict(fit.effect_slices)[c.effect.name]
     if c.effect.inadmissible(c.features, fit.eta[sl]) is not None or _nonphysical(fit, combo) is not None:
         return None  # a combination that needs non-physical values of any member is no explanation
     return fit, _evidence(fit, cur_fit, c.penalty)
 
 
-def _forward_selection(s: _Setup, cands, single, folds, fit0: EffectFit, cv0: float):
-    """Greedy forward selection: the most evident effect while it is decisive and lowers the CV RMS."""
+def _forward_selection(s: _Setup, cands, single, folds, fit0: EffectFit, cv0: float, warm: dict | None = None,
+                       tried: dict | None = None):
+    """Greedy forward selection: the most evident effect while it is decisive and lowers the CV RMS.
+
+    ``warm`` and ``tried`` as for :func:`_combined`.
+    """
     selected: list[_Candidate] = []
     cur_fit, cur_cv = fit0, cv0
     remaining = list(cands)
@@ -534,7 +606,7 @@ def _forward_selection(s: _Setup, cands, single, folds, fit0: EffectFit, cv0: fl
             elif single[c.effect.name][1] < DECISIVE:
                 continue  # not decisive alone: not worth a combined fit
             else:
-                both = _combined(s, selected, c, cur_fit)
+                both = _combined(s, selected, c, cur_fit, warm, tried)
                 if both is None:
                     continue
                 (fit, ev), cv = both, None

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..discrepancy import DiscrepancyFit, fit_discrepancy
+from ..discrepancy.fit import fold_fits
 from ..errors import InputError, KinematicsError
 
 __all__ = ["DiscrepancyTrial", "try_discrepancy", "resembles"]
@@ -124,15 +125,11 @@ def try_discrepancy(model, theta, folds, rms_cv_before: float, *, location=None,
 
 
 def _cv_rms(model, theta, free, sd, fitted: DiscrepancyFit, folds) -> float:
-    """Leave-folds-out position RMS (mm) with the discrepancy: geometry and weights refitted on each training fold."""
+    """Leave-folds-out position RMS (mm) with the discrepancy: geometry and weights refitted on each training fold
+    (:func:`bayescal.discrepancy.fit.fold_fits`: the recording solved once for all folds)."""
     sq, count = 0.0, 0
-    n = model.n_poses
-    hyper = fitted.discrepancy
     idx = np.flatnonzero(free)
-    for test in folds:
-        train = np.setdiff1d(np.arange(n), test)
-        tr = model.subset(train)
-        f = fit_discrepancy(tr, theta, free, sd, hyper=hyper, noise_factor=fitted.noise_factor)
+    for test, f in zip(folds, fold_fits(model, theta, free, sd, fitted.discrepancy, fitted.noise_factor, folds)):
         th = theta.copy()
         th[idx] += f.dtheta
         te = model.subset(test)

@@ -56,7 +56,8 @@ from ..errors import InputError
 from .kernel import JITTER, farthest_points, nystrom_features, se_kernel
 from .model import OUTPUT_NAMES, Discrepancy, discrepancy_inputs, output_rows_map
 
-__all__ = ["DiscrepancyFit", "fit_discrepancy", "default_inputs", "joint_design", "MIN_EVIDENCE_GAIN", "MAX_HYPER_POSES"]
+__all__ = ["DiscrepancyFit", "fit_discrepancy", "fold_fits", "default_inputs", "joint_design", "MIN_EVIDENCE_GAIN",
+           "MAX_HYPER_POSES"]
 
 #: Log Bayes factor (in nats) a discrepancy must gain over the geometry alone to be kept.  The gain is a
 #: maximised likelihood ratio over a handful of hyperparameters, so on recordings without a mismatch it
@@ -184,6 +185,27 @@ class _Problem:
             M[p + a * m:p + (a + 1) * m, :p] = AF.T
         b = np.concatenate([self.Atr, (np.einsum("no,nj->oj", self.Gr, phi) * s[:, None]).reshape(-1)])
         return M, b
+
+    def rows(self, poses: NDArray) -> "_Problem":
+        """The problem of the poses ``poses`` alone (the training poses of a fold), from this one's pose-wise pieces.
+
+        Every piece but the sums over rows is the pose's own (its residual, Jacobian rows, output map and
+        inputs), so these are the numbers a problem built on ``model.subset(poses)`` has; the sums are formed
+        as that one forms them.
+        """
+        poses = np.asarray(poses, dtype=int)
+        out = object.__new__(_Problem)
+        n, dof = poses.size, self.dof
+        rows = (poses[:, None] * dof + np.arange(dof)[None, :]).reshape(-1)
+        out.n, out.dof, out.N, out.n_out = n, dof, n * dof, self.n_out
+        # in this one's memory order: BLAS sums A^T r in another order for another layout (round-off apart)
+        out.XA = np.asarray(self.XA[rows], order="F" if self.XA.flags.f_contiguous else "C")
+        out.r0, out.r = self.r0[rows], self.r[rows]
+        out.g, out.H, out.Gr, out.Z = self.g[poses], self.H[poses], self.Gr[poses], self.Z[poses]
+        out.coupled = np.any(out.g != 0.0, axis=0)
+        out.AtA = out.XA.T @ out.XA
+        out.Atr = out.XA.T @ out.r
+        return out
 
     def null(self) -> tuple[NDArray, NDArray]:
         """``M``, ``b`` of the geometry alone (no discrepancy)."""
@@ -348,6 +370,56 @@ def fit_discrepancy(model, theta, free, prior_sd, *, prior_mean=None, inputs=Non
                             prior_sd, shift)
             return _posterior(model, prob, hyper, free_idx, prior_sd, shift, float(noise_factor), hyper.log_evidence_gain)
         return _fit(model, theta, free_idx, prior_sd, shift, inputs, n_inducing, fit_noise, seed, maxiter)
+
+
+def fold_fits(model, theta, free, prior_sd, hyper: Discrepancy, noise_factor: float, folds) -> list[DiscrepancyFit]:
+    """The joint posterior on each fold's training poses at the hyperparameters ``hyper``: a cross-validation's fits.
+
+    The same fits as ``fit_discrepancy(model.subset(train), theta, free, prior_sd, hyper=hyper,
+    noise_factor=noise_factor)`` with ``train`` every pose not in the fold, number for number: the recording
+    is solved and differentiated once at ``theta`` and each training set's rows are taken from that
+    (:meth:`_Problem.rows`), instead of once per fold (at 100,000 poses about 2 s of CPU a fold).
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The calibrated recording (one pose per row).
+    theta : ndarray, shape (P,)
+    free : ndarray of bool, shape (P,)
+    prior_sd : ndarray, shape (n_free,)
+    hyper : Discrepancy
+        Its inputs, standardisation, inducing points, length and output scales are kept.
+    noise_factor : float
+    folds : sequence of ndarray of int
+        The held-out poses of each fold.
+
+    Returns
+    -------
+    list of DiscrepancyFit
+        One per fold.
+
+    Raises
+    ------
+    InputError
+        A pose cannot be solved at ``theta`` (every pose trains some fold), or no measured values.
+    """
+    theta = np.asarray(theta, dtype=float)
+    free_idx = np.flatnonzero(free) if np.asarray(free).dtype == bool else np.asarray(free, dtype=int)
+    prior_sd = np.asarray(prior_sd, dtype=float).reshape(free_idx.size)
+    if np.any(~np.isfinite(prior_sd)) or np.any(prior_sd <= 0):
+        raise InputError("fit_discrepancy: the geometry's prior std must be finite and positive (a method with a prior)")
+    shift = np.zeros(free_idx.size) - theta[free_idx]  # as fit_discrepancy forms it (the prior mean: nominal)
+    if model.y_measured is None:
+        raise InputError("fit_discrepancy: the model has no measured values")
+    n = model.n_poses
+    with threadpool_limits(1):
+        pred = model.predict(theta)
+        if not pred.success.all():
+            raise InputError("fit_discrepancy: a pose cannot be solved at the calibrated geometry")
+        prob = _Problem(model, theta, pred, free_idx, hyper.inputs, hyper.outputs, hyper.center, hyper.scale,
+                        prior_sd, shift)
+        return [_posterior(model, prob.rows(np.setdiff1d(np.arange(n), test)), hyper, free_idx, prior_sd, shift,
+                           float(noise_factor), hyper.log_evidence_gain) for test in folds]
 
 
 def _fit(model, theta, free_idx, prior_sd, shift, inputs, n_inducing, fit_noise, seed, maxiter) -> DiscrepancyFit:

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from ..contract import whiten
 from ..errors import KinematicsError
-from ..iteration import Proposal, StepControl, gauss_newton
+from ..iteration import ROUNDOFF, Proposal, StepControl, gauss_newton
 from ..machines.base import ToolPoses, map_state
 from ..measurement import MeasurementModel, Prediction, pose_offset_rows
 from .base import Effect, EffectParam, Features
@@ -71,6 +71,12 @@ class EffectFit:
         Laplace posterior covariance of ``(theta, eta)`` together, in their
         units (unit noise scale): how far the geometry trades off against
         the effects (:mod:`bayescal.diagnose.confound`).
+    system : tuple of ndarray, or None
+        ``(A, rw)``: the whitened, scaled Jacobian at the fit (rows, P + K)
+        and the whitened residual, when :func:`fit_map` was asked to keep
+        them (``keep_system``); None otherwise.  Large (rows times
+        parameters): drop it (``dataclasses.replace(fit, system=None)``)
+        once used.
     """
 
     theta: NDArray
@@ -87,6 +93,7 @@ class EffectFit:
     message: str
     iterations: int
     covariance: NDArray | None = None
+    system: tuple | None = None
 
     @property
     def edf(self) -> float:
@@ -473,7 +480,10 @@ MAP_STEP_CONTROL = StepControl(descent=True, halvings=7, remember=True)
 #: the diagnosis tests, for changes of the cost below 1e-3.
 MAP_DTOL = 1e-3
 #: Poses from which :func:`fit_map` with effects starts from a fit of every :data:`COARSE_STRIDE`-th row
-#: (:func:`_coarse_start`).  An effect that multiplies two unknowns (a compliance and a mass) makes the cost a
+#: (:func:`_coarse_start`) where the full Gauss-Newton step from its start raises the cost (:func:`_curved`;
+#: elsewhere the coarse fit only cost time: at 100,000 poses the periodic-screw fit took 11, 8 and 8
+#: iterations from it, 39 s of CPU, and 6 from its own start, 24 s; the thermal one 17 s against 14 s).
+#: An effect that multiplies two unknowns (a compliance and a mass) makes the cost a
 #: curved valley whose width shrinks like one over the root of the poses, and Gauss-Newton crawls along it in
 #: steps that shrink alike: on the 3-PRS recording of benchmarks/diagnose_speed.py (backlash concealed) the
 #: joint-compliance fit took 24 iterations at 10,000 poses, about 32 at 20,000 and 40,000, and did not converge
@@ -494,6 +504,8 @@ def fit_map(
     eta0: NDArray | None = None,
     max_iter: int = 40,
     xtol: float = 1e-4,
+    coarse: bool = True,
+    keep_system: bool = False,
 ) -> EffectFit:
     """Joint MAP fit of geometric errors and effect parameters (see the module docstring).
 
@@ -513,6 +525,14 @@ def fit_map(
         with :data:`MAP_STEP_CONTROL`).  ``success`` is False when no step
         lowers the cost from a point that is not converged, or after
         ``max_iter`` iterations.
+    coarse : bool
+        From :data:`COARSE_START_POSES` poses on, start from a fit of every
+        :data:`COARSE_STRIDE`-th row (:func:`_coarse_start`); False starts
+        from ``theta0, eta0`` themselves, for a start already nearer the
+        optimum than the coarse fit's (a fit of nearly the same rows).
+    keep_system : bool
+        Keep the whitened system at the fit in :attr:`EffectFit.system` (for
+        :func:`linear_fold_residuals`, which then need not evaluate it again).
 
     Returns
     -------
@@ -535,14 +555,17 @@ def fit_map(
     P, K = joint.P, joint.K
     theta = np.zeros(P) if theta0 is None else np.asarray(theta0, float).copy()
     eta = np.array([p.start_value for p in joint.params]) if eta0 is None else np.asarray(eta0, float).copy()
-    if K and model.n_poses >= COARSE_START_POSES:
+    start = joint.state(theta, eta, None)
+    if coarse and K and model.n_poses >= COARSE_START_POSES and _curved(joint, theta, eta, start):
         theta, eta = _coarse_start(model, effects, theta, eta, max_iter, xtol)
-    out = gauss_newton(np.concatenate([theta, eta]), joint.state(theta, eta, None), joint.at, joint.propose,
+        start = joint.state(theta, eta, None)
+    out = gauss_newton(np.concatenate([theta, eta]), start, joint.at, joint.propose,
                        control=MAP_STEP_CONTROL, scale=joint.scale, max_iter=max_iter, xtol=xtol, dtol=MAP_DTOL,
                        unit="prior sigmas", failures=(KinematicsError,))
     state = out.state
     theta, eta = out.x[:P], out.x[P:]
-    AtA = _gram(state.system())
+    A = state.system()
+    AtA = _gram(A)
     s = np.sqrt(np.clip(np.linalg.eigvalsh(AtA), 0, None))[::-1]
     full = np.linalg.inv(AtA + np.eye(P + K)) * np.outer(joint.scale, joint.scale)
     cov = full[P:, P:]
@@ -551,7 +574,27 @@ def fit_map(
         theta=theta, eta=eta, params=joint.params, effect_slices=names, cov_eta=cov, residual=state.r,
         chi2=state.chi2, prior_term=state.prior, singular_values=s, n_rows=state.rw.size, success=out.success,
         message=out.message, iterations=out.iterations, covariance=full,
+        system=(A, state.rw) if keep_system else None,
     )
+
+
+def _curved(joint: "_Joint", theta: NDArray, eta: NDArray, start: tuple) -> bool:
+    """Whether the full Gauss-Newton step from ``start`` (``joint.state`` at ``theta, eta``) raises the cost.
+
+    The sign of a curved valley (:data:`COARSE_START_POSES`): where the first full step lowers the cost the
+    fit is left to Gauss-Newton from its own start.  The system computed here stays in the start's state for
+    the fit's first step.
+    """
+    cost, state = start
+    x = np.concatenate([theta, eta])
+    try:
+        prop = joint.propose(x, state)
+        if prop.predicted < MAP_DTOL:
+            return False
+        trial, _ = joint.at(x + prop.step, state)
+    except (KinematicsError, np.linalg.LinAlgError):
+        return True
+    return not trial <= cost * (1.0 + ROUNDOFF)
 
 
 def _coarse_start(model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray, eta: NDArray,
@@ -606,7 +649,7 @@ def joint_system(model: MeasurementModel, effects: Sequence[tuple[Effect, Featur
 
 
 def linear_fold_residuals(model: MeasurementModel, effects: Sequence[tuple[Effect, Features]], theta: NDArray,
-                          eta: NDArray, folds: Sequence[NDArray]) -> list[NDArray]:
+                          eta: NDArray, folds: Sequence[NDArray], system: tuple | None = None) -> list[NDArray]:
     """Held-out residuals of a K-fold cross-validation, each fold's fit one Gauss-Newton step from the full fit.
 
     At the full fit ``(theta, eta)`` (the MAP of every row) the whitened
@@ -628,6 +671,11 @@ def linear_fold_residuals(model: MeasurementModel, effects: Sequence[tuple[Effec
         The full fit.
     folds : sequence of ndarray of int
         Held-out rows of each fold.
+    system : (ndarray, ndarray), optional
+        The whitened system ``(A, rw)`` at ``(theta, eta)`` when the caller
+        has it (:attr:`EffectFit.system` of the full fit); evaluated here
+        otherwise (the two differ by the kinematics' round-off: the fit's
+        poses were solved from its last iterate's, these from scratch).
 
     Returns
     -------
@@ -636,8 +684,11 @@ def linear_fold_residuals(model: MeasurementModel, effects: Sequence[tuple[Effec
     """
     joint = _Joint.of(model, effects)
     theta, eta = np.asarray(theta, float), np.asarray(eta, float)
-    sub, pred, _, rw, _, _ = joint.evaluate(theta, eta, None)
-    A = joint.system(sub, pred, theta, eta)
+    if system is None:
+        sub, pred, _, rw, _, _ = joint.evaluate(theta, eta, None)
+        A = joint.system(sub, pred, theta, eta)
+    else:
+        A, rw = system
     dof = model.dof
     prior = joint.mu - np.concatenate([theta, eta]) / joint.scale
     G, g, eye = _gram(A), A.T @ rw, np.eye(A.shape[1])

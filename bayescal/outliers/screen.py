@@ -23,6 +23,9 @@ When the diagnosis selects effects, the poses are tested again against the
 final model (:func:`retest_with_effects`); if that names other poses, the
 diagnosis is run once more with those excluded (a warm-up's first poses are
 physics, not outliers, and a gross pose the geometric misfit hid is found).
+The screen keeps every round's geometric fit (:attr:`OutlierScreen.fits`):
+a retest that names the poses of one of its rounds hands that fit on as the
+rerun's first.
 
 If more than :data:`MAX_FRACTION` of the poses would be flagged, the most
 outlying of them alone is taken out and the screen looks again (at most
@@ -34,7 +37,7 @@ proceeds on every pose (the answer says so).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -75,13 +78,26 @@ class OutlierScreen:
         What was done (the answer's ``outlier_handling``).
     fit : EffectFit or None
         The geometric MAP fit of the weighted model (the diagnosis's first
-        fit), when the screen ended on it; None otherwise.
+        fit), when the screen ended on it or had fitted it in an earlier round
+        (a retest that names the poses of an earlier round); None otherwise.
+    fits : tuple of (ndarray of bool, EffectFit)
+        Every geometric fit the screen made, with the poses it excluded:
+        a rerun whose retest names one of these sets starts from that fit
+        (it is the fit the rerun would make, bit for bit).
     """
 
     test: PoseTest
     excluded: NDArray
     action: str
     fit: object = None
+    fits: tuple = ()
+
+    def fit_for(self, excluded: NDArray):
+        """The geometric fit this screen made with exactly ``excluded`` poses out, or None."""
+        for mask, fit in self.fits:
+            if np.array_equal(mask, excluded):
+                return fit
+        return None
 
     @property
     def weights(self) -> NDArray:
@@ -134,9 +150,11 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
     free = np.ones(model.n_params, dtype=bool)
     test = fit = None
     stepped = 0
+    fits = []  # every round's fit with the poses it left out (OutlierScreen.fits)
     for _ in range(MAX_ROUNDS + MAX_STEPS):
         weights = exclusion_weights(excluded)
         fit = fit_map(weighted_model(model, weights if excluded.any() else None))
+        fits.append((excluded.copy(), fit))
         test = pose_test(model, fit.theta, free, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=lines)
         # an excluded pose is tested by its residual against the fit of the others, so it stays out only
         # while that still flags it: a gross reading that dragged the first fit makes innocent poses
@@ -155,11 +173,10 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
                 stepped += 1
                 fit = None
                 continue
-            return OutlierScreen(
-                test=test, excluded=np.zeros(n, dtype=bool),
-                action=f"none excluded: {int(new.sum())} of {n} poses stand out, more than {MAX_FRACTION:.0%}; "
-                "that is structure, not a few bad poses",
-            )
+            none = OutlierScreen(test, np.zeros(n, dtype=bool), "", fits=tuple(fits))
+            return replace(none, fit=none.fit_for(none.excluded),
+                           action=f"none excluded: {int(new.sum())} of {n} poses stand out, more than "
+                           f"{MAX_FRACTION:.0%}; that is structure, not a few bad poses")
         if np.array_equal(new, excluded):
             break
         excluded, fit = new, None
@@ -167,7 +184,7 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
         action = _EXCLUDED
     else:
         action = "no pose flagged; every pose used"
-    return OutlierScreen(test=test, excluded=excluded, action=action, fit=fit)
+    return OutlierScreen(test=test, excluded=excluded, action=action, fit=fit, fits=tuple(fits))
 
 
 def retest_with_effects(
@@ -255,4 +272,5 @@ def _retest(model: MeasurementModel, A: NDArray, r: NDArray, screen: OutlierScre
         action = f"{_EXCLUDED}; {judged}"
     else:
         action = f"no pose flagged, {judged} ({released}); every pose used"
-    return OutlierScreen(test=test, excluded=flagged.copy(), action=action)
+    # the geometric fit with these poses out, when the screen made it: the rerun's first fit, as it would make it
+    return OutlierScreen(test=test, excluded=flagged.copy(), action=action, fit=screen.fit_for(flagged), fits=screen.fits)

@@ -240,3 +240,66 @@ def test_recording_of_another_machine_is_a_clear_error(prs3):
     short = machine_from_text(PRS3_FILE.read_text().replace("link_length    = 400.0", "link_length    = 120.0"), "short.toml")
     with pytest.raises(InputError, match=r"short\.toml cannot solve this recording.*pose 1.*check the machine file"):
         diagnose(short, sim.recording)
+
+
+@pytest.fixture(scope="module")
+def warmup_with_beam_breaks(prs3):
+    """A thermal warm-up with three gross poses: the geometric screen over-flags, the retest against the final
+    model names the three, and the diagnosis runs again (tests/outliers/test_screen.py)."""
+    from dataclasses import replace
+
+    sim = simulate_with_effects(prs3, 100, seed=20, dof=6, effects=[("thermal_expansion", 25.0)], record=("temp_C",))
+    rng = np.random.default_rng(0)
+    pos = sim.recording.position.copy()
+    for i in (30, 55, 80):
+        d = rng.normal(size=3)
+        pos[i] += 10 ** rng.uniform(1.0, 2.0) * prs3.noise.sigma_position * d / np.linalg.norm(d)
+    return replace(sim.recording, position=pos)
+
+
+def test_a_rerun_runs_the_location_tests_once(prs3, warmup_with_beam_breaks, monkeypatch):
+    """The first pass of a diagnosis that is run again (outliers retested) never asks for its location tests."""
+    import bayescal.diagnose.core as core
+
+    calls = []
+    real = core.locate
+    monkeypatch.setattr(core, "locate", lambda *a, **k: calls.append(a[0].shape[0]) or real(*a, **k))
+    passes = []
+    real_diagnose = core.diagnose
+    monkeypatch.setattr(core, "diagnose", lambda *a, **k: passes.append(k.get("_screen")) or real_diagnose(*a, **k))
+    d = core.diagnose(prs3, warmup_with_beam_breaks, seed=1)
+    assert len(passes) == 2 and passes[1] is not None  # the first pass and the rerun with the retested screen
+    assert calls == [100]
+    assert d.verdict == "thermal_expansion" and [o["line"] for o in d.to_dict()["outliers"]] == [32, 57, 82]
+    assert d.location.channels and d.location.strongest.significant
+
+
+def test_a_large_recordings_rerun_starts_its_fits_from_the_first_pass(prs3, warmup_with_beam_breaks, monkeypatch):
+    """From LARGE_POSES poses a rerun's fits start from the first pass's fits of the same effects, with no coarse
+    start; the answer moves within the fits' stop tests only (here: 100 poses with the threshold lowered)."""
+    import bayescal.diagnose.core as core
+
+    ref = core.diagnose(prs3, warmup_with_beam_breaks, seed=1)
+    starts = []
+    real = core.fit_map
+
+    def spy(model, effects=(), **kw):
+        fit = real(model, effects, **kw)
+        if effects and model.n_poses == 100:  # the candidates' fits (not the cross-validation's folds)
+            starts.append((tuple(e.name for e, _ in effects), kw.get("coarse", True), kw.get("theta0"), fit))
+        return fit
+
+    monkeypatch.setattr(core, "fit_map", spy)
+    monkeypatch.setattr(core, "LARGE_POSES", 50)
+    d = core.diagnose(prs3, warmup_with_beam_breaks, seed=1)
+    first = {names: fit for names, coarse, _, fit in starts[: len(starts) // 2]}
+    rerun = starts[len(starts) // 2:]
+    assert [names for names, *_ in rerun] == list(first)  # every fit of the first pass, again
+    for names, coarse, theta0, _ in rerun:
+        assert coarse is False and np.array_equal(theta0, first[names].theta)
+    assert d.verdict == ref.verdict and d.selected == ref.selected
+    assert d.to_dict()["outliers"] == ref.to_dict()["outliers"]
+    for t, r in zip(d.effects, ref.effects):
+        assert t.name == r.name and t.evidence == pytest.approx(r.evidence, abs=0.02)
+        for p, q in zip(t.parameters, r.parameters):
+            assert abs(p.value - q.value) < 0.05 * q.std

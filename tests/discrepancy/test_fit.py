@@ -233,3 +233,34 @@ def test_default_inputs_leave_out_body_sensor_readings_but_keep_the_base_sensors
     aux = {k: rng.normal(size=5) for k in ("accel.base.x", "accel.joint2.x", "accel.upper_link.z", "temp_C", "pose_id")}
     model = SimpleNamespace(pose_q=np.zeros((5, 2)), aux=aux)
     assert default_inputs(model) == ("q1", "q2", "accel.base.x", "temp_C")
+
+
+@pytest.mark.parametrize("dof", [3, 6])
+def test_fold_fits_are_the_fits_of_each_training_subset_number_for_number(prs3, bumped, dof):
+    """fold_fits solves the recording once and takes each fold's training rows from it: the same numbers, bit for
+    bit, as fit_discrepancy on model.subset(train) (every piece but the sums over rows is the pose's own)."""
+    if dof == 3:
+        model = bumped[0]
+    else:
+        sim = simulate_recording(prs3, 150, seed=22, dof=6)
+        model = MeasurementModel.from_recording(prs3, replace(sim.recording, position=sim.recording.position
+                                                               + _bump(sim.recording.q)))
+    theta = calibrate(model, method="map", prior_scale="tolerance", robust="off", noise="stated").result.theta
+    free = np.ones(model.n_params, dtype=bool)
+    sd = np.asarray(prs3.tolerance, dtype=float)
+    hyper = fit_discrepancy(model, theta, free, sd, seed=1)
+    folds = [np.sort(np.random.default_rng(3).permutation(model.n_poses)[i::5]) for i in range(5)]
+    got = F.fold_fits(model, theta, free, sd, hyper.discrepancy, hyper.noise_factor, folds)
+    assert len(got) == len(folds)
+    for test, f in zip(folds, got):
+        train = np.setdiff1d(np.arange(model.n_poses), test)
+        ref = fit_discrepancy(model.subset(train), theta, free, sd, hyper=hyper.discrepancy,
+                              noise_factor=hyper.noise_factor)
+        assert np.array_equal(f.dtheta, ref.dtheta)
+        assert np.array_equal(f.discrepancy.weights, ref.discrepancy.weights)
+        assert np.array_equal(f.covariance, ref.covariance)
+        assert f.chi2 == ref.chi2 and f.effective_params == ref.effective_params
+        assert f.discrepancy.explained == ref.discrepancy.explained
+    # and a fold's fit is not the full fit's (the training rows matter)
+    assert not np.allclose(got[0].dtheta, F.fit_discrepancy(model, theta, free, sd, hyper=hyper.discrepancy,
+                                                            noise_factor=hyper.noise_factor).dtheta)

@@ -98,3 +98,57 @@ def test_coarse_start_reaches_the_same_optimum_and_is_used_only_on_large_recordi
     assert abs((plain.chi2 + plain.prior_term) - (coarse.chi2 + coarse.prior_term)) < 2e-3
     sd = np.sqrt(np.diag(plain.cov_eta))
     np.testing.assert_array_less(np.abs(plain.eta - coarse.eta), 0.05 * sd)
+
+
+def _backlash_model(prs3, n=120, seed=6):
+    from bayescal.effects.simulate import simulate_with_effects
+
+    sim = simulate_with_effects(prs3, n, seed=seed, dof=6, effects=[("backlash", 20.0)], record=("payload_kg",))
+    model = MeasurementModel.from_recording(prs3, sim.recording)
+    fit0 = fit_map(model)
+    eff = get_effect("backlash")
+    f = eff.features(prs3, model.q, fit0.theta, dict(sim.recording.aux), None, model.predict(fit0.theta).poses)
+    return model, fit0, eff, f
+
+
+def test_coarse_start_only_where_the_first_full_step_is_refused(prs3, monkeypatch):
+    """A fit whose first full Gauss-Newton step lowers the cost (backlash: a straight valley) is left to its own
+    start even above COARSE_START_POSES, and gives the plain fit bit for bit; the probe's system is reused."""
+    import bayescal.effects.model as em
+
+    model, fit0, eff, f = _backlash_model(prs3)
+    plain = fit_map(model, [(eff, f)], theta0=fit0.theta)
+    calls = []
+    real = em._coarse_start
+    monkeypatch.setattr(em, "_coarse_start", lambda *a: calls.append(a[0].n_poses) or real(*a))
+    monkeypatch.setattr(em, "COARSE_START_POSES", 40)
+    again = fit_map(model, [(eff, f)], theta0=fit0.theta)
+    assert calls == []
+    assert np.array_equal(again.theta, plain.theta) and np.array_equal(again.eta, plain.eta)
+    assert again.iterations == plain.iterations and again.chi2 == plain.chi2
+    # the probe itself: from the geometric fit and the start values, and at the optimum (nothing left to step),
+    # no refused step; the joint-compliance fit's first full step is refused (the coarse-start test above)
+    joint = em._Joint.of(model, [(eff, f)])
+    eta0 = np.array([p.start_value for p in joint.params])
+    assert not em._curved(joint, fit0.theta, eta0, joint.state(fit0.theta, eta0, None))
+    assert not em._curved(joint, plain.theta, plain.eta, joint.state(plain.theta, plain.eta, None))
+
+
+def test_kept_system_is_the_fits_own_and_gives_the_same_folds(prs3):
+    """fit_map(keep_system=True) hands out the whitened system at its answer; the linearised folds from it equal
+    those that evaluate the system again at that point (to the kinematics' round-off)."""
+    from bayescal.effects.model import joint_system, linear_fold_residuals
+
+    model, fit0, eff, f = _backlash_model(prs3)
+    fit = fit_map(model, [(eff, f)], theta0=fit0.theta, keep_system=True)
+    assert fit_map(model, [(eff, f)], theta0=fit0.theta).system is None
+    A, rw = fit.system
+    A2, rw2 = joint_system(model, [(eff, f)], fit.theta, fit.eta)
+    np.testing.assert_allclose(A, A2, rtol=1e-9, atol=1e-9 * np.abs(A2).max())
+    np.testing.assert_allclose(rw, rw2, rtol=1e-9, atol=1e-9)
+    assert float(rw @ rw) == pytest.approx(fit.chi2, rel=1e-12)
+    folds = [np.arange(i, model.n_poses, 4) for i in range(4)]
+    got = linear_fold_residuals(model, [(eff, f)], fit.theta, fit.eta, folds, fit.system)
+    ref = linear_fold_residuals(model, [(eff, f)], fit.theta, fit.eta, folds)
+    for g, r in zip(got, ref):
+        np.testing.assert_allclose(g, r, rtol=1e-8, atol=1e-12)

@@ -73,3 +73,31 @@ def test_physics_tails_are_not_outliers_when_judged_against_the_final_model(prs3
     assert d.verdict == "thermal_expansion"
     assert [o["line"] for o in d.to_dict()["outliers"]] == list(bad + 2)
     assert "judged against the geometry with thermal_expansion" in d.to_dict()["outlier_handling"]
+
+
+def test_the_screen_keeps_each_rounds_fit_and_a_retest_naming_its_poses_starts_from_it(prs3):
+    """Every geometric fit of the screen is kept with the poses it left out; a retest whose poses are those of a
+    round hands that fit on (the rerun's first fit, bit for bit), and one naming other poses none."""
+    from bayescal.effects.model import fit_map
+    from bayescal.outliers.screen import _retest
+    from bayescal.outliers.stats import exclusion_weights, weighted_model
+
+    sim = simulate_with_effects(prs3, 100, seed=20, dof=6, effects=[("thermal_expansion", 25.0)], record=("temp_C",))
+    rec = _beam_breaks(sim.recording, np.array([30, 55, 80]), prs3.noise.sigma_position, np.random.default_rng(0))
+    model = MeasurementModel.from_recording(prs3, rec)
+    screen = screen_outliers(model)
+    assert len(screen.fits) >= 2 and not screen.fits[0][0].any()  # the first round excludes nothing
+    for mask, fit in screen.fits:
+        again = fit_map(weighted_model(model, exclusion_weights(mask) if mask.any() else None))
+        assert np.array_equal(fit.theta, again.theta) and fit.chi2 == again.chi2
+        assert screen.fit_for(mask) is fit
+    assert screen.fit is screen.fits[-1][1] and np.array_equal(screen.fits[-1][0], screen.excluded)
+    other = screen.excluded.copy()
+    other[0] = not other[0]
+    assert screen.fit_for(other) is None
+    # a retest on a linear system in which no pose stands out: it names the first round's poses (none)
+    rng = np.random.default_rng(4)
+    A, r = rng.normal(size=(600, 5)), rng.normal(size=600)
+    new = _retest(model, A, r, screen, alpha=0.01, judged="judged here", released="released")
+    assert new is not None and not new.excluded.any()
+    assert new.fit is screen.fits[0][1] and new.fits == screen.fits
