@@ -25,6 +25,9 @@ __all__ = [
 ]
 
 _SMALL = 1e-8
+#: The identity, read-only: added to every Rodrigues-type formula (the same values as a fresh ``np.eye(3)``).
+_EYE = np.eye(3)
+_EYE.setflags(write=False)
 #: Angle (rad) above which so3_log reads the axis from the symmetric part of R.
 _NEAR_PI = 3.0
 
@@ -39,17 +42,43 @@ def skew(w: ArrayLike) -> NDArray:
     return out
 
 
+def _norms(v: NDArray) -> NDArray:
+    """``numpy.linalg.norm(v, axis=-1)`` for real ``v``: its arithmetic (the same values), without its dispatch."""
+    return np.sqrt(np.add.reduce(v * v, axis=(-1,)))
+
+
+def _branches(th: NDArray, small: NDArray) -> tuple[NDArray, int]:
+    """``(th with 1 where small, how many entries are small)`` for :func:`_where_small`."""
+    k = int(np.count_nonzero(small))
+    return (np.where(small, 1.0, th) if 0 < k else th), k
+
+
+def _where_small(small: NDArray, k: int, near_zero, away) -> NDArray:
+    """``numpy.where(small, near_zero(), away())``, evaluating only the branches some entry takes.
+
+    The values are the same bit for bit (``numpy.where`` copies the chosen
+    branch); on the small arrays of a kinematic chain the branch no entry
+    takes cost more numpy calls than the arithmetic of the other.
+    ``k`` is the number of small entries (:func:`_branches`).
+    """
+    if k == 0:
+        return away()
+    if k == small.size:
+        return near_zero()
+    return np.where(small, near_zero(), away())
+
+
 def so3_exp(w: ArrayLike) -> NDArray:
     """Rotation matrix of a rotation vector (axis times angle, rad), Rodrigues' formula."""
     w = np.asarray(w, dtype=float)
-    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    th = _norms(w)[..., None, None]
     K = skew(w)
     small = th < _SMALL
-    th_safe = np.where(small, 1.0, th)
+    th_safe, k = _branches(th, small)
     # Taylor series below _SMALL keeps full precision where sin(th)/th cancels.
-    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(th_safe) / th_safe)
-    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(th_safe)) / th_safe**2)
-    return np.eye(3) + a * K + b * (K @ K)
+    a = _where_small(small, k, lambda: 1.0 - th**2 / 6.0, lambda: np.sin(th_safe) / th_safe)
+    b = _where_small(small, k, lambda: 0.5 - th**2 / 24.0, lambda: (1.0 - np.cos(th_safe)) / th_safe**2)
+    return _EYE + a * K + b * (K @ K)
 
 
 def so3_log(R: ArrayLike) -> NDArray:
@@ -62,8 +91,8 @@ def so3_log(R: ArrayLike) -> NDArray:
         axis=-1,
     )
     small = th < 1e-6
-    th_safe = np.where(small, 1.0, th)
-    fac = np.where(small, 0.5 + th**2 / 12.0, th_safe / (2.0 * np.sin(th_safe)))
+    th_safe, k = _branches(th, small)
+    fac = _where_small(small, k, lambda: 0.5 + th**2 / 12.0, lambda: th_safe / (2.0 * np.sin(th_safe)))
     out = fac[..., None] * v
     near_pi = th > _NEAR_PI
     if np.any(near_pi):
@@ -84,28 +113,28 @@ def so3_log(R: ArrayLike) -> NDArray:
 def left_jacobian(phi: ArrayLike) -> NDArray:
     """Left Jacobian of SO(3): ``exp([phi + d]x) = exp([J_l(phi) d]x) exp([phi]x) + O(d^2)``, shape (..., 3, 3)."""
     phi = np.asarray(phi, dtype=float)
-    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    th = _norms(phi)[..., None, None]
     K = skew(phi)
     small = th < 1e-5
-    ts = np.where(small, 1.0, th)
-    a = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
-    b = np.where(small, 1.0 / 6.0 - th**2 / 120.0, (ts - np.sin(ts)) / ts**3)
-    return np.eye(3) + a * K + b * (K @ K)
+    ts, k = _branches(th, small)
+    a = _where_small(small, k, lambda: 0.5 - th**2 / 24.0, lambda: (1.0 - np.cos(ts)) / ts**2)
+    b = _where_small(small, k, lambda: 1.0 / 6.0 - th**2 / 120.0, lambda: (ts - np.sin(ts)) / ts**3)
+    return _EYE + a * K + b * (K @ K)
 
 
 def left_jacobian_inverse(phi: ArrayLike) -> NDArray:
     """Inverse left Jacobian of SO(3): ``log(exp(d) exp(phi)) = phi + J_l^-1(phi) d + O(d^2)``."""
     phi = np.asarray(phi, dtype=float)
-    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    th = _norms(phi)[..., None, None]
     K = skew(phi)
     small = th < 1e-5
-    th_safe = np.where(small, 1.0, th)
-    c = np.where(
-        small,
-        1.0 / 12.0 + th**2 / 720.0,
-        1.0 / th_safe**2 - (1.0 + np.cos(th_safe)) / (2.0 * th_safe * np.sin(th_safe)),
+    th_safe, k = _branches(th, small)
+    c = _where_small(
+        small, k,
+        lambda: 1.0 / 12.0 + th**2 / 720.0,
+        lambda: 1.0 / th_safe**2 - (1.0 + np.cos(th_safe)) / (2.0 * th_safe * np.sin(th_safe)),
     )
-    return np.eye(3) - 0.5 * K + c * (K @ K)
+    return _EYE - 0.5 * K + c * (K @ K)
 
 
 def right_jacobian_inverse(phi: ArrayLike) -> NDArray:

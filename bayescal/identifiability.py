@@ -263,16 +263,18 @@ def _greedy_columns(Js: NDArray, norms: NDArray, order: NDArray, rank: int, rtol
     kept: list[int] = []
     Q_all = np.zeros((Js.shape[0], P), order="F")  # the kept columns' orthonormal basis, filled in place
     fixed: list[int] = []
-    for j in order:
-        if norms[j] <= 1e-12 * max(norms.max(), 1e-300):
+    zero = 1e-12 * max(norms.max(), 1e-300)
+    for j in order.tolist():
+        if norms[j] <= zero:
             fixed.append(j)
             continue
         Q = Q_all[:, : len(kept)]
         c = Js[:, j]
         res = c - Q @ (Q.T @ c)
         res = res - Q @ (Q.T @ res)  # re-orthogonalise (classical Gram-Schmidt twice)
-        if np.linalg.norm(res) > 10 * rtol:
-            Q_all[:, len(kept)] = res / np.linalg.norm(res)
+        size = np.sqrt(res.dot(res))  # numpy.linalg.norm's arithmetic, once
+        if size > 10 * rtol:
+            Q_all[:, len(kept)] = res / size
             kept.append(j)
         else:
             fixed.append(j)
@@ -286,19 +288,28 @@ def _fixed_relations(J: NDArray, kept: list[int], fixed: list[int], norms: NDArr
     """In words, what each fixed parameter looks like to the measurement: ``(combos, relations, no_effect)``."""
     combos, relations, no_effect = [], [], []
     names, units = layout.names, layout.units
-    seen = [j for j in fixed if norms[j] > 1e-12 * max(norms.max(), 1e-300)]
+    zero = 1e-12 * max(norms.max(), 1e-300)
+    seen = [j for j in fixed if norms[j] > zero]
     # J_j = J_K c: changing theta_j by 1 looks like changing the kept ones by c; one factorisation for every
     # fixed column (column by column it was a sixth of identifying a 23-pose arm)
     C = np.linalg.lstsq(J[:, kept], J[:, seen], rcond=None)[0] if seen and kept else np.zeros((len(kept), len(seen)))
-    coef = dict(zip(seen, C.T))
+    col = {j: i for i, j in enumerate(seen)}
+    # every column's terms at once: those that matter, and the order they are named in (largest effect first)
+    size = np.abs(C) * safe[kept][:, None]
+    # one row per fixed column (the same values as column by column); the coefficients as Python floats, whose
+    # digits are numpy's scalars' and which format faster
+    big, key, coefs = (size > 1e-6 * norms[seen]).T.copy(), (-size).T.copy(), C.T.tolist()
+    before, after = [f"{names[k]} by " for k in kept], [f" {units[k]}" for k in kept]  # each kept parameter's term
     for j in fixed:
-        if j not in coef:
+        if j not in col:
             combos.append(f"{names[j]} does not affect the measurement at these poses")
             no_effect.append(j)
             continue
-        c = coef[j]
-        big = np.flatnonzero(np.abs(c) * safe[kept] > 1e-6 * norms[j])
-        terms = ", ".join(f"{names[kept[i]]} by {c[i]:+.4g} {units[kept[i]]}" for i in big[np.argsort(-np.abs(c[big]) * safe[np.array(kept)[big]])])
+        i = col[j]
+        terms_at = big[i].nonzero()[0]
+        cl = coefs[i]
+        order = terms_at[key[i][terms_at].argsort()].tolist()
+        terms = ", ".join(before[k] + format(cl[k], "+.4g") + after[k] for k in order)
         relations.append(f"{names[j]}: a change of 1 {units[j]} looks the same to the measurement as changing {terms}")
         combos.append(relations[-1] + "; fixed at nominal, only the combination is identified")
     return combos, relations, no_effect

@@ -174,7 +174,8 @@ class Iterated:
 
 def _size(v: NDArray, scale) -> float:
     """Largest entry of ``|v| / scale``."""
-    return float(np.max(np.abs(v / scale))) if np.size(v) else 0.0
+    v = np.asarray(v)
+    return float(np.abs(v / scale).max()) if v.size else 0.0
 
 
 def _line_search(x, cost, state, prop: Proposal, share: float, evaluate, control: StepControl, converged: bool,

@@ -254,7 +254,12 @@ class MeasurementModel:
         """
         if self.pose_sigma is not None:
             return self.pose_sigma
-        return np.broadcast_to(self.sigma, (self.n_poses, self.dof))
+        # formed once (the model is immutable; a read-only view): every step of a fit whitens with it twice
+        got = self.__dict__.get("_row_sigma")
+        if got is None:
+            got = np.broadcast_to(self.sigma, (self.n_poses, self.dof))
+            object.__setattr__(self, "_row_sigma", got)
+        return got
 
     def with_pose_sigma(self, pose_sigma: NDArray | None) -> "MeasurementModel":
         """The same model with other per-pose noise (None: the machine's)."""
@@ -407,13 +412,30 @@ class MeasurementModel:
         ``t_k . (J_w x n)`` = ``-t_k^T [n]x J_w`` (5-DOF), where ``J_w`` is the
         platform's small-rotation Jacobian.
         """
-        Jt = self.machine.tool_jacobian(self.q, theta, prediction.poses)
+        return self.jacobian_columns(theta, prediction, None)
+
+    def jacobian_columns(self, theta: ArrayLike | None, prediction: Prediction, columns: NDArray | None) -> NDArray:
+        """:meth:`jacobian`'s ``columns`` (increasing indices; None: all), shape (n_poses, dof, len(columns)).
+
+        The same values as the whole Jacobian's; the machine computes only
+        what the columns need (:meth:`Machine.tool_jacobian_columns`): a fit
+        of the identifiable subset asks for these at every step.
+        """
+        if columns is not None and len(columns) < 2:
+            # with one column the rows' products below are matrix-vector ones, which numpy computes another way
+            # (other round-off: seen on the UR10's last column); the whole Jacobian's column keeps the values
+            return self.jacobian_columns(theta, prediction, None)[:, :, columns]
+        if columns is None:
+            Jt = self.machine.tool_jacobian(self.q, theta, prediction.poses)
+        else:
+            Jt = self.machine.tool_jacobian_columns(self.q, theta, prediction.poses, columns)
         J = self.rows_jacobian(Jt, prediction)
         if self.sensors is not None:
             from .sensors import sensor_jacobian
 
             th = self.machine.check_theta(theta)
-            J[:, self.tool_dof :] = sensor_jacobian(self.machine, self.sensors, self.q, th)
+            Js = sensor_jacobian(self.machine, self.sensors, self.q, th)
+            J[:, self.tool_dof :] = Js if columns is None else Js[:, :, columns]
         return J
 
     def rows_jacobian(self, Jt: NDArray, prediction: Prediction) -> NDArray:

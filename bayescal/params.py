@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,15 +49,16 @@ class ParamLayout:
     def __iter__(self):
         return iter(self.specs)
 
-    @property
+    # the layout is immutable: its names, units and groups are read many times a fit, and formed once
+    @cached_property
     def names(self) -> tuple[str, ...]:
         return tuple(s.name for s in self.specs)
 
-    @property
+    @cached_property
     def units(self) -> tuple[str, ...]:
         return tuple(s.unit for s in self.specs)
 
-    @property
+    @cached_property
     def groups(self) -> tuple[str, ...]:
         return tuple(s.group for s in self.specs)
 

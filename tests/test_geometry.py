@@ -109,3 +109,26 @@ def test_left_jacobian_against_finite_differences_and_its_inverse(scale):
         # exp(phi + d) exp(phi)^T = exp([J d]x): its rotation vector over h is J's column k
         col = so3_log(so3_exp(phi + d) @ so3_exp(phi).T) / h
         np.testing.assert_allclose(col, J[:, k], atol=1e-6)
+
+
+def test_a_stack_of_small_and_large_angles_gives_each_row_what_it_gives_alone():
+    """The Rodrigues-type formulas evaluate only the branches (Taylor series near zero, closed form elsewhere)
+    some row takes (issue 32): a stack mixing both, all small, all large, gives row by row, bit for bit, what
+    each vector gives alone; at zero the identity, and so3_log of one matrix a vector."""
+    from bayescal.geometry import left_jacobian, left_jacobian_inverse, so3_exp, so3_log
+
+    rng = np.random.default_rng(4)
+    scales = np.array([1.0, 1e-9, 2.0, 0.0, 1e-6, 3e-5, 3.1])[:, None]
+    stacks = [rng.normal(size=(7, 3)) * scales, rng.normal(size=(4, 3)) * 1e-10, rng.normal(size=(4, 3))]
+    for w in stacks:
+        for f in (so3_exp, left_jacobian, left_jacobian_inverse):
+            whole = f(w)
+            for i in range(len(w)):
+                assert np.array_equal(whole[i], f(w[i])), (f.__name__, i)
+        R = so3_exp(w)
+        logs = so3_log(R)
+        for i in range(len(w)):
+            assert np.array_equal(logs[i], so3_log(R[i]))
+    for f in (so3_exp, left_jacobian, left_jacobian_inverse):
+        assert np.array_equal(f(np.zeros(3)), np.eye(3))
+    assert so3_log(np.eye(3)).shape == (3,) and not so3_log(np.eye(3)).any()

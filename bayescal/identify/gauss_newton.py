@@ -47,10 +47,23 @@ from .solvers import LS_RCOND, filtered_solve
 __all__ = ["identify", "resolve_free", "whitened_system", "posterior_covariance", "data_determined", "determined_at"]
 
 
-def whitened_system(model: MeasurementModel, theta: NDArray, prediction) -> tuple[NDArray, NDArray]:
-    """Whitened residual ``W (y - h)`` (N,) and Jacobian ``W J`` (N, P) at ``theta``."""
+def whitened_system(model: MeasurementModel, theta: NDArray, prediction, columns: NDArray | None = None
+                    ) -> tuple[NDArray, NDArray]:
+    """Whitened residual ``W (y - h)`` (N,) and Jacobian ``W J`` (N, P) at ``theta``.
+
+    ``columns`` (increasing indices): only those columns of ``W J`` (N, len(columns)), the same values
+    and layout as the whole one's ``J[:, columns]``; a model that can compute them alone
+    (:meth:`MeasurementModel.jacobian_columns`) does.
+    """
     r = whiten(model, model.residual(prediction)).reshape(-1)
-    J = whiten(model, model.jacobian(theta, prediction)).reshape(-1, model.n_params)
+    if columns is None:
+        J = whiten(model, model.jacobian(theta, prediction)).reshape(-1, model.n_params)
+    else:
+        own = getattr(model, "jacobian_columns", None)
+        Jc = own(theta, prediction, columns) if own is not None else model.jacobian(theta, prediction)[:, :, columns]
+        # laid out as the whole one's J[:, columns] is (numpy's fancy indexing gives Fortran order): the SVD and
+        # the products of a solve take other paths, with other round-off, on the other layout
+        J = np.array(whiten(model, Jc).reshape(-1, len(columns)), order="F")
     return r, J
 
 
@@ -393,8 +406,8 @@ def _result(model, method, solver, lam, k, it: "_Iterated", idx, S, c, basis, id
     machine = model.machine
     P = machine.n_params
     theta, pred, r, J = it.theta, it.pred, it.r, it.J
-    # final linearisation at the solution, for singular values and covariance
-    A = J[:, idx] * S
+    # final linearisation at the solution, for singular values and covariance (J: the free columns)
+    A = J * S
     if basis is None:
         final = filtered_solve(A, r + A @ (theta[idx] / S - c), solver, lam=lam, k=k)
     else:
@@ -465,7 +478,7 @@ class _Iterated:
     theta: NDArray
     pred: object
     r: NDArray
-    J: NDArray
+    J: NDArray  # the whitened Jacobian's free columns (N, len(idx))
     history: list
     costs: list
     success: bool
@@ -504,12 +517,13 @@ def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis,
             i = int(np.flatnonzero(~pred_new.success)[0])
             why = pred_new.poses.message[i]
             raise KinematicsError(f"pose {i + 1} cannot be solved at the updated geometry ({why})")
-        r_new, J_new = whitened_system(model, theta_new, pred_new)
+        # only the free columns: the others are never used, and a serial arm's are whole blocks not computed
+        r_new, J_new = whitened_system(model, theta_new, pred_new, columns=idx)
         return float(r_new @ r_new), (pred_new, r_new, J_new)
 
     def propose(theta, state):
         r, J = state[1], state[2]
-        A = J[:, idx] * S
+        A = J * S
         phi = theta[idx] / S
         if basis is None:
             sol = filtered_solve(A, r + A @ (phi - c), solver, lam=lam, k=k)
@@ -536,7 +550,7 @@ def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis,
     scale = np.full(theta.size, np.inf)  # fixed parameters never move
     scale[idx] = S
     control = StepControl(descent=prior, bound=1e6, merit=penalised if prior else None)
-    out = gauss_newton(theta, (float(r @ r), (pred, r, J)), evaluate, propose, control=control,
+    out = gauss_newton(theta, (float(r @ r), (pred, r, J[:, idx])), evaluate, propose, control=control,
                        scale=scale, max_iter=max_iter, xtol=xtol, unit="tolerances", failures=(KinematicsError,))
     message = out.message
     if out.reason == "diverged":

@@ -97,5 +97,8 @@ def filtered_solve(A: NDArray, z: NDArray, method: str, *, lam: float | None = N
     f = filter_factors(s, method, lam=lam, k=k)
     Utz = U.T @ z
     with np.errstate(divide="ignore", invalid="ignore"):
-        coef = np.where(s > 0, f * Utz / np.where(s > 0, s, 1.0), 0.0)
+        if (s > 0).all():
+            coef = f * Utz / s  # what the guarded form below gives when no singular value is zero (the usual case)
+        else:
+            coef = np.where(s > 0, f * Utz / np.where(s > 0, s, 1.0), 0.0)
     return SvdSolve(x=Vt.T @ coef, s=s, f=f, V=Vt.T, Utz=Utz)

@@ -493,6 +493,18 @@ class Machine(ABC):
             ``R(theta + d) = exp([J_rot d]x) R(theta)``.
         """
 
+    def tool_jacobian_columns(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses,
+                              columns: NDArray) -> NDArray:
+        """Columns ``columns`` of :meth:`tool_jacobian`, shape (n_poses, 6, len(columns)), the same values.
+
+        ``columns``: indices into the layout, increasing.  What a fit of a
+        subset of the parameters asks for at each step.  This default takes
+        them from the whole Jacobian; a kind whose columns come in
+        independent blocks computes only the blocks asked for
+        (:class:`~bayescal.machines.serial.Serial`).
+        """
+        return self.tool_jacobian(q, theta, poses)[:, :, columns]
+
     def actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
         """Derivative of the tool pose with respect to the actuator positions ``q``.
 

@@ -363,10 +363,38 @@ class InstrumentFrame(MachineView):
             return tf[cols], st
         return np.take_along_axis(tf, cols, axis=-1), st
 
+    def _remembered(self, what: str, tf: NDArray, n: int | None, compute):
+        """``compute()``, remembered for the last frame corrections ``tf`` of one parameter vector (P,).
+
+        A Gauss-Newton step asks for the frame at one point three times (the
+        forward kinematics, the Jacobian and its base-frame poses): Rodrigues'
+        formula each time was a tenth of a small fit's Jacobian.  Keyed by the
+        corrections' bytes (and the pose count, which binds the stations);
+        the arrays are read-only, so a caller that writes into them fails
+        loudly instead of corrupting the next answer.
+        """
+        if np.ndim(tf) != 1:
+            return compute()
+        key = (n if self.n_stations > 1 else None, tf.dtype.str, tf.tobytes())
+        memo = self.__dict__.get("_frame_memo")
+        if memo is None or memo[0] != key:
+            memo = (key, {})
+            object.__setattr__(self, "_frame_memo", memo)
+        got = memo[1].get(what)
+        if got is None:
+            got = compute()
+            for a in (got if isinstance(got, tuple) else (got,)):
+                a.setflags(write=False)
+            memo[1][what] = got
+        return got
+
     def _frame_arrays(self, tf: NDArray, n: int | None = None) -> tuple[NDArray, NDArray]:
         """Origin (..., 3) and rotation (..., 3, 3) of every pose's frame, from the frame corrections (..., 6 S) (or none)."""
         if not self.fit:
             return self.frame0.origin, self.frame0.rotation
+        return self._remembered("arrays", tf, n, lambda: self._compute_frame_arrays(tf, n))
+
+    def _compute_frame_arrays(self, tf: NDArray, n: int | None) -> tuple[NDArray, NDArray]:
         if self.n_stations == 1:
             blocks = geometry_blocks(tf) if np.ndim(tf) == 2 else None
             if blocks is not None:  # a sampler's walkers, each repeated over every pose: one rotation per walker
@@ -380,7 +408,9 @@ class InstrumentFrame(MachineView):
         """The same poses in the base frame (``p_base = R p_inst + o``), state kept."""
         n = poses.position.shape[0]
         tf, _ = self.split(theta, n if np.ndim(theta) == 2 else None)
-        o, R = self._frame_arrays(tf, n)
+        return self._to_base(poses, *self._frame_arrays(tf, n))
+
+    def _to_base(self, poses: ToolPoses, o: NDArray, R: NDArray) -> ToolPoses:
         p = np.einsum("...ij,...j->...i", R, poses.position) + o
         Rb = R @ poses.rotation
         return ToolPoses(p, Rb, poses.success, poses.message, poses.state)
@@ -411,32 +441,59 @@ class InstrumentFrame(MachineView):
         ``dp_inst/d(d_o) = -R^T``, ``dp_inst/de = R^T [p_base - o]x J_l``,
         ``dw_inst/de = -R^T J_l`` (``w``: small rotation in the instrument frame).
         """
+        return self._jacobian(q, theta, poses, None)
+
+    def tool_jacobian_columns(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses,
+                              columns: NDArray) -> NDArray:
+        """The frame's columns asked for, then the machine's (its own :meth:`Machine.tool_jacobian_columns`)."""
+        return self._jacobian(q, theta, poses, np.asarray(columns, dtype=int))
+
+    def _jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses, columns: NDArray | None) -> NDArray:
+        """:meth:`tool_jacobian`, or its ``columns`` (increasing; None: all)."""
+        k = self.n_frame
+        if columns is not None and np.count_nonzero(columns >= k) == 1:
+            # one machine column would make the rotations below matrix-vector products, which numpy may compute
+            # another way (other round-off; the same numbers on the examples, but not promised): the whole
+            # Jacobian's column keeps the values
+            return self._jacobian(q, theta, poses, None)[:, :, columns]
         q = self.check_q(q)
         n = q.shape[0]
         tf, tm = self.split(theta, n if np.ndim(theta) == 2 else None)
         o, R = self._frame_arrays(tf, n)
-        base = self.to_base_poses(poses, theta)
-        Jm = self.machine.tool_jacobian(q, tm, base)
+        base = self._to_base(poses, o, R)
+        if columns is None:
+            fc, Jm = None, self.machine.tool_jacobian(q, tm, base)
+        else:
+            fc, Jm = columns[columns < k], self.machine.tool_jacobian_columns(q, tm, base, columns[columns >= k] - k)
+        nf = k if fc is None else fc.size
         Rt = np.broadcast_to(np.swapaxes(R, -1, -2), (n, 3, 3))
-        J = np.zeros((n, 6, self.n_params))
-        k = self.n_frame
-        J[:, :3, k:] = Rt @ Jm[:, :3]
-        J[:, 3:, k:] = Rt @ Jm[:, 3:]
-        if self.fit:
-            tfp, st = self._pose_frame_params(tf, n)
-            Jl = np.broadcast_to(left_jacobian(tfp[..., 3:]), (n, 3, 3))
-            Jf = np.zeros((n, 6, 6))
-            Jf[:, :3, :3] = -Rt
-            Jf[:, :3, 3:6] = Rt @ skew(base.position - o) @ Jl
-            Jf[:, 3:, 3:6] = -Rt @ Jl
-            if st is None:
-                J[:, :, :6] = Jf
-            else:
-                # each pose sees only its own station's frame columns
-                rows = np.arange(n)
-                for c in range(6):
-                    J[rows, :, 6 * st + c] = Jf[:, :, c]
+        J = np.zeros((n, 6, nf + Jm.shape[2]))
+        J[:, :3, nf:] = Rt @ Jm[:, :3]
+        J[:, 3:, nf:] = Rt @ Jm[:, 3:]
+        if self.fit and nf:
+            self._frame_columns(J, tf, n, Rt, base.position - o, fc)
         return J
+
+    def _frame_columns(self, J: NDArray, tf: NDArray, n: int, Rt: NDArray, arm: NDArray, fc: NDArray | None) -> None:
+        """Write the frame's columns ``fc`` (None: all) into the first ``len(fc)`` columns of ``J`` (n, 6, .)."""
+        tfp, st = self._pose_frame_params(tf, n)
+        Jl = np.broadcast_to(self._remembered("left_jacobian", tf, n, lambda: left_jacobian(tfp[..., 3:])), (n, 3, 3))
+        k = self.n_frame
+        whole = fc is None or fc.size == k
+        # one station, all six columns: written in place (the zeros too)
+        Jf = J[:, :, :6] if st is None and whole else np.zeros((n, 6, 6))
+        Jf[:, :3, :3] = -Rt
+        Jf[:, :3, 3:6] = Rt @ skew(arm) @ Jl
+        Jf[:, 3:, 3:6] = -Rt @ Jl
+        if st is not None:
+            # each pose sees only its own station's frame columns
+            F = J[:, :, :k] if whole else np.zeros((n, 6, k))
+            rows = np.arange(n)
+            for c in range(6):
+                F[rows, :, 6 * st + c] = Jf[:, :, c]
+            Jf = F
+        if not whole:
+            J[:, :, : fc.size] = Jf[:, :, fc]
 
     def actuator_jacobian(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses) -> NDArray:
         """The inner machine's actuator Jacobian rotated into the instrument frame, (n, 6, n_actuators)."""

@@ -50,7 +50,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from ..geometry import _cross_basis, left_jacobian, rpy_from_matrix, rpy_matrix, so3_exp, tilt_axes, tilted_direction
+from ..geometry import _cross_basis, _norms, left_jacobian, rpy_from_matrix, rpy_matrix, so3_exp, tilt_axes, tilted_direction
 from ..io.machine_file import TomlTable, format_toml_value
 from ..params import ParamLayout, ParamSpec
 from .base import BodyInertials, Machine, MeasurementNoise, ToolPoses, WeightBodies, geometry_blocks
@@ -75,6 +75,10 @@ JOINT_TYPES = ("revolute", "prismatic")
 _XYZ = "xyz"
 _RPY = "rpy"
 _PER_JOINT = 9  # offset, 2 axis tilts, 3 origin, 3 rpy
+#: The Jacobian's independent column blocks (:meth:`Serial.tool_jacobian_columns`), and the block of each of a
+#: joint's nine columns.
+_BLOCKS = ("offset", "axis tilt", "origin", "rpy", "tool point", "tool rpy")
+_SLOT_BLOCK = (0, 1, 1, 2, 2, 2, 3, 3, 3)
 
 
 def rpy_rates(rpy: NDArray) -> NDArray:
@@ -151,7 +155,7 @@ def _tilted_axes(u0: NDArray, G: NDArray, tilt: NDArray) -> tuple[NDArray, NDArr
     ``tilted_direction``'s, one numpy call per step for all axes.
     """
     n = u0 + (tilt[..., None, :] @ np.swapaxes(G, -1, -2))[..., 0, :]
-    norm = np.linalg.norm(n, axis=-1)[..., None]
+    norm = _norms(n)[..., None]
     u = n / norm
     P = (np.eye(3) - u[..., :, None] * u[..., None, :]) / norm[..., None]
     return u, P @ G
@@ -160,7 +164,8 @@ def _tilted_axes(u0: NDArray, G: NDArray, tilt: NDArray) -> tuple[NDArray, NDArr
 def _cross_joints(w: NDArray, a: NDArray) -> NDArray:
     """:func:`_cross` for every joint at once: ``w`` (n, m, 3, c), ``a`` (n, m, 3); shape (n, m, 3, c)."""
     a0, a1, a2 = a[..., 0, None], a[..., 1, None], a[..., 2, None]
-    out = np.empty(np.broadcast_shapes(w.shape, a.shape + (1,)))
+    # the chain's arrays agree in all but the columns (numpy.broadcast_shapes costs more than the products here)
+    out = np.empty(w.shape if w.shape[:-1] == a.shape else np.broadcast_shapes(w.shape, a.shape + (1,)))
     out[..., 0, :] = w[..., 1, :] * a2 - w[..., 2, :] * a1
     out[..., 1, :] = w[..., 2, :] * a0 - w[..., 0, :] * a2
     out[..., 2, :] = w[..., 0, :] * a1 - w[..., 1, :] * a0
@@ -197,6 +202,10 @@ class _Chain:
     tool_rpy: NDArray  # (n, 3)
     p_tool: NDArray  # (n, 3)
     R_tool: NDArray  # (n, 3, 3)
+    rpy_all: NDArray  # (n, m + 1, 3): rpy, then tool_rpy (both are views of it)
+
+
+_CHAIN_FIELDS = tuple(f.name for f in fields(_Chain))
 
 
 @dataclass(frozen=True)
@@ -375,6 +384,10 @@ class Serial(Machine):
         object.__setattr__(self, "tool_point", np.asarray(self.tool_point, dtype=float).reshape(3))
         object.__setattr__(self, "tool_rpy", np.asarray(self.tool_rpy, dtype=float).reshape(3))
         object.__setattr__(self, "_tilt", tuple(tilt_axes(a) for a in self.axis))
+        revolute = np.array([jt == "revolute" for jt in self.joint_type], dtype=bool)[None, :, None]  # (1, m, 1)
+        revolute.setflags(write=False)
+        object.__setattr__(self, "_revolute", revolute)
+        object.__setattr__(self, "_all_revolute", bool(revolute.all()))
         # every axis's tilt directions (m, 3, 2), as tilted_direction forms them: the chain tilts all axes at once
         object.__setattr__(self, "_tilt_g", np.array([[_cross_basis(t[0], a), _cross_basis(t[1], a)] for a, t in
                                                       zip(self.axis, self._tilt)]).reshape(m, 2, 3).swapaxes(1, 2))
@@ -557,17 +570,21 @@ class Serial(Machine):
         tj = th[:, : _PER_JOINT * m].reshape(g, m, _PER_JOINT)
         ttool = th[:, _PER_JOINT * m :]
         origin = self.origin[None] + tj[:, :, 3:6]
-        rpy = self.rpy[None] + tj[:, :, 6:9]
-        tool_rpy = self.tool_rpy[None] + ttool[:, 3:]
+        # the joints' rpy and the tool's in one array: one rpy_matrix call for all (elementwise, the same values)
+        rpy_all = np.empty((g, m + 1, 3))
+        np.add(self.rpy[None], tj[:, :, 6:9], out=rpy_all[:, :m])
+        np.add(self.tool_rpy[None], ttool[:, 3:], out=rpy_all[:, m])
+        rpy, tool_rpy = rpy_all[:, :m], rpy_all[:, m]
         blocks = geometry_blocks(th)
         if blocks is None:
             axis, daxis = _tilted_axes(self.axis, self._tilt_g, tj[:, :, 1:3])
-            R_fix, R_tool_fix = rpy_matrix(rpy), rpy_matrix(tool_rpy)
+            R_all = rpy_matrix(rpy_all)
         else:  # a sampler's walkers, each repeated over every pose: the geometry's rotations once per walker
             first, runs = blocks
             axis, daxis = (np.repeat(a, runs, axis=0) for a in _tilted_axes(self.axis, self._tilt_g, tj[first, :, 1:3]))
-            R_fix, R_tool_fix = (np.repeat(rpy_matrix(a[first]), runs, axis=0) for a in (rpy, tool_rpy))
+            R_all = np.repeat(rpy_matrix(rpy_all[first]), runs, axis=0)
         qe = q @ self._q_map.T + self._q_shift + tj[:, :, 0]
+        R_fix = R_all[:, :m]
         R_parent = np.empty((n, m, 3, 3))
         R_joint = np.empty((n, m, 3, 3))
         p_joint = np.empty((n, m, 3))
@@ -577,20 +594,24 @@ class Serial(Machine):
         p = np.zeros((n, 3))
         # every revolute joint's rotation in one call (elementwise, the same values as one joint at a time)
         R_q = so3_exp(axis * qe[:, :, None])
+        # each product is written straight into the frame it is (out=: the same products, no copy after each)
         for k in range(m):
-            R_parent[:, k] = R
-            p = p + _rotate(R, origin[:, k])
-            R = R @ R_fix[:, k]
-            R_joint[:, k], p_joint[:, k] = R, p
+            p = np.add(p, _rotate(R, origin[:, k]), out=p_joint[:, k])
+            R = np.matmul(R, R_fix[:, k], out=R_joint[:, k])
             if self.joint_type[k] == "revolute":
-                R = R @ R_q[:, k]
+                R = np.matmul(R, R_q[:, k], out=R_after[:, k])
+                p_after[:, k] = p
             else:
-                p = p + _rotate(R, axis[:, k] * qe[:, k, None])
-            R_after[:, k], p_after[:, k] = R, p
+                p = np.add(p, _rotate(R, axis[:, k] * qe[:, k, None]), out=p_after[:, k])
+                R_after[:, k] = R
+        if m:
+            R_parent[:, 0] = np.eye(3)
+            R_parent[:, 1:] = R_after[:, :-1]  # the frame before joint k is the one after joint k - 1
         p_tool = p + _rotate(R, self.tool_point[None] + ttool[:, :3])
         return _Chain(
             R_parent=R_parent, R_joint=R_joint, p_joint=p_joint, rpy=rpy, axis=axis, daxis=daxis, qe=qe,
-            R_end=R, R_after=R_after, p_after=p_after, tool_rpy=tool_rpy, p_tool=p_tool, R_tool=R @ R_tool_fix,
+            R_end=R, R_after=R_after, p_after=p_after, tool_rpy=tool_rpy, p_tool=p_tool, R_tool=R @ R_all[:, m],
+            rpy_all=rpy_all,
         )
 
     def _memo_chain(self, q: NDArray, theta: NDArray) -> _Chain:
@@ -608,8 +629,8 @@ class Serial(Machine):
             return hit[2]
         c = self._chain(q, theta)
         if q.shape[0] * max(self.n_joints, 1) <= _MEMO_MAX:
-            for f in fields(c):
-                getattr(c, f.name).setflags(write=False)
+            for name in _CHAIN_FIELDS:
+                getattr(c, name).setflags(write=False)
             _CHAINS[self] = (q.copy(), theta.copy(), c)
         return c
 
@@ -633,7 +654,6 @@ class Serial(Machine):
         n = q.shape[0]
         c = self._memo_chain(q, self.check_theta(theta, n))
         ok = np.isfinite(c.p_tool).all(axis=1) & np.isfinite(c.R_tool).all(axis=(1, 2))
-        # one message per pose: a sampler's call has tens of thousands, nearly always all fine
         msgs = ("",) * n if ok.all() else tuple("" if o else "non-finite joint positions or geometry" for o in ok)
         return ToolPoses(position=c.p_tool.copy(), rotation=c.R_tool.copy(), success=ok, message=msgs, state=None)
 
@@ -658,6 +678,26 @@ class Serial(Machine):
         moves it, whatever drives it.
         Returns shape (n_poses, 6, P); see :meth:`Machine.tool_jacobian`.
         """
+        return self._tool_jacobian(q, theta, (True,) * len(_BLOCKS))
+
+    def tool_jacobian_columns(self, q: ArrayLike, theta: ArrayLike | None, poses: ToolPoses,
+                              columns: NDArray) -> NDArray:
+        """:meth:`tool_jacobian`'s ``columns`` (increasing), computing only the blocks they fall in.
+
+        The blocks (:data:`_BLOCKS`: every joint's offsets, axis tilts,
+        origins or rpy, the tool's point or rpy) are independent: a block no
+        column falls in is not computed (an arm's rpy, say, which the
+        identifiable set of a 6-DOF fit usually leaves out).  The values are
+        :meth:`tool_jacobian`'s, bit for bit.
+        """
+        columns = np.asarray(columns, dtype=int)
+        t = _PER_JOINT * self.n_joints
+        blocks = {_SLOT_BLOCK[k] for k in (columns[columns < t] % _PER_JOINT).tolist()}
+        blocks.update(4 if k < 3 else 5 for k in (columns[columns >= t] - t).tolist())
+        return self._tool_jacobian(q, theta, tuple(b in blocks for b in range(len(_BLOCKS))))[:, :, columns]
+
+    def _tool_jacobian(self, q: ArrayLike, theta: ArrayLike | None, need: tuple[bool, ...]) -> NDArray:
+        """:meth:`tool_jacobian` with the blocks :data:`_BLOCKS` that ``need`` leaves out zero (not computed)."""
         q = self.check_q(q)
         n, m = q.shape[0], self.n_joints
         c = self._memo_chain(q, self.check_theta(theta, n))
@@ -666,20 +706,35 @@ class Serial(Machine):
         # every joint at once (the joints' columns do not depend on one another): a Python loop over the
         # joints of small (n, 3, 3) products cost more in numpy's per-call overhead than the arithmetic
         Jj = J[:, :, :t].reshape(n, 6, m, _PER_JOINT)  # a view: writes land in J
-        rev = np.array([jt == "revolute" for jt in self.joint_type])[None, :, None]  # (1, m, 1)
+        rev = self._revolute  # (1, m, 1)
         arm = c.p_tool[:, None] - c.p_joint  # (n, m, 3)
-        a_base = np.einsum("nkij,nkj->nki", c.R_joint, np.broadcast_to(c.axis, c.p_joint.shape))
-        _put(Jj, 0, np.where(rev, _cross_joints(a_base[..., None], arm)[..., 0], a_base),
-             np.where(rev, a_base, 0.0))
-        tilt = c.daxis * c.qe[:, :, None, None]  # (n, m, 3, 2)
-        w = c.R_joint @ left_jacobian(c.axis * c.qe[:, :, None]) @ tilt
-        rev4 = rev[..., None]
-        _put(Jj, slice(1, 3), np.where(rev4, _cross_joints(w, arm), c.R_joint @ tilt), np.where(rev4, w, 0.0))
-        _put(Jj, slice(3, 6), c.R_parent, None)
-        w = c.R_parent @ rpy_rates(c.rpy)  # rpy rates' columns in the parent frame
-        _put(Jj, slice(6, 9), _cross_joints(w, arm), w)
-        J[:, :3, t : t + 3] = c.R_end
-        J[:, 3:, t + 3 : t + 6] = c.R_end @ rpy_rates(c.tool_rpy)
+        if need[0]:
+            a_base = np.einsum("nkij,nkj->nki", c.R_joint, np.broadcast_to(c.axis, c.p_joint.shape))
+            turn = _cross_joints(a_base[..., None], arm)[..., 0]
+            # an arm of revolute joints only (the usual case) takes its columns as they are: np.where copies them
+            if self._all_revolute:
+                _put(Jj, 0, turn, a_base)
+            else:
+                _put(Jj, 0, np.where(rev, turn, a_base), np.where(rev, a_base, 0.0))
+        if need[1]:
+            tilt = c.daxis * c.qe[:, :, None, None]  # (n, m, 3, 2)
+            w = c.R_joint @ left_jacobian(c.axis * c.qe[:, :, None]) @ tilt
+            if self._all_revolute:
+                _put(Jj, slice(1, 3), _cross_joints(w, arm), w)
+            else:
+                rev4 = rev[..., None]
+                _put(Jj, slice(1, 3), np.where(rev4, _cross_joints(w, arm), c.R_joint @ tilt), np.where(rev4, w, 0.0))
+        if need[2]:
+            _put(Jj, slice(3, 6), c.R_parent, None)
+        if need[3] or need[5]:
+            W = rpy_rates(c.rpy_all)  # the joints' and the tool's in one call (elementwise, the same values)
+        if need[3]:
+            w = c.R_parent @ W[:, :m]  # rpy rates' columns in the parent frame
+            _put(Jj, slice(6, 9), _cross_joints(w, arm), w)
+        if need[4]:
+            J[:, :3, t : t + 3] = c.R_end
+        if need[5]:
+            J[:, 3:, t + 3 : t + 6] = c.R_end @ W[:, m]
         return J
 
     def chain_frames(self, q: ArrayLike, theta: ArrayLike | None = None) -> ChainFrames:

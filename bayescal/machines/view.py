@@ -95,6 +95,10 @@ class MachineView(Machine):
 
     #: the machines' own check, against the view's parameter count
     check_theta = Machine.check_theta
+
+    def tool_jacobian_columns(self, q, theta, poses, columns):
+        """Columns of the view's own :meth:`tool_jacobian` (a view that can do better overrides it)."""
+        return self.tool_jacobian(q, theta, poses)[:, :, columns]
     #: a view's parameters are not a serial chain's (ask the machine under it, :attr:`geometry_part`), and a
     #: view is written whole by its ``to_toml`` (a framed hybrid's modules are asked of :attr:`inside`)
     serial_chain = None

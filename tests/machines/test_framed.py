@@ -212,3 +212,55 @@ def test_every_deterministic_method_fits_the_frame(machines, method, kw):
     true_i = (machine.forward(q, sim.theta_true).position - o) @ R
     # what the instrument reads at fresh poses, predicted through the fitted frame
     assert _rms(m.forward(q, res.theta).position, true_i) < 5 * machine.noise.sigma_position
+
+
+def _two_machines():
+    serial = load_machine(ROOT / "examples" / "positioner" / "machine.toml")
+    return serial, load_machine(ROOT / "examples" / "prs3" / "machine.toml")
+
+
+def test_columns_of_the_framed_jacobian_are_the_whole_jacobians_bit_for_bit():
+    """tool_jacobian_columns through a fitted frame (issue 32: a fit asks only for its free columns): the whole
+    Jacobian's columns bit for bit (the whole one is checked against central differences above), one station or
+    two, over a serial chain (which computes only its blocks asked for) and a parallel kind (which slices); any
+    subset, the frame's columns alone, the machine's alone, and one machine column (whose rotation would be a
+    matrix-vector product, other round-off)."""
+    rng = np.random.default_rng(21)
+    for inner in _two_machines():
+        q = inner.sample_q(6, rng)
+        o, R = random_frame(rng)
+        for m in (InstrumentFrame(inner, Frame(o, R), fit=True),
+                  InstrumentFrame(inner, stations=("a", "b"), frames0=(Frame(o, R), Frame.identity()),
+                                  pose_station=np.array([0, 1, 1, 0, 1, 0]))):
+            P, k = m.n_params, m.n_frame
+            theta = rng.normal(size=P) * np.concatenate([[5.0, 5.0, 5.0, 0.3, 0.3, 0.3] * m.n_stations,
+                                                          inner.tolerance])
+            poses = m.forward(q, theta)
+            whole = m.tool_jacobian(q, theta, poses)
+            picks = [np.arange(P), np.arange(k), np.arange(k, P), np.array([k + 2]), np.r_[np.arange(k), k + 1],
+                     np.r_[1, 4, k + 3], np.array([0, 5])]
+            picks += [np.sort(rng.choice(P, size=rng.integers(2, P), replace=False)) for _ in range(8)]
+            for cols in picks:
+                got = m.tool_jacobian_columns(q, theta, poses, cols)
+                assert got.shape == (6, 6, cols.size) and np.array_equal(got, whole[:, :, cols]), (inner.kind, cols)
+
+
+def test_the_remembered_frame_follows_the_parameters():
+    """The frame of the last parameters is remembered (issue 32: a step asks for it three times at one point):
+    other parameters get their own frame, the same ones the same frame as a fresh wrapper's, read-only."""
+    serial, _ = _two_machines()
+    rng = np.random.default_rng(22)
+    o, R = random_frame(rng)
+    m, fresh = InstrumentFrame(serial, Frame(o, R), fit=True), InstrumentFrame(serial, Frame(o, R), fit=True)
+    q = serial.sample_q(4, rng)
+    t1, t2 = (np.concatenate([rng.normal(size=6) * [5, 5, 5, 0.3, 0.3, 0.3], np.zeros(serial.n_params)])
+              for _ in range(2))
+    a, b = m.forward(q, t1), m.forward(q, t2)
+    Jb = m.tool_jacobian(q, t2, b)  # at the remembered frame
+    again = m.forward(q, t1)
+    assert not np.allclose(a.position, b.position)
+    assert np.array_equal(again.position, a.position) and np.array_equal(again.rotation, a.rotation)
+    assert np.array_equal(b.position, fresh.forward(q, t2).position)
+    assert np.array_equal(Jb, fresh.tool_jacobian(q, t2, b))
+    _, R2 = m._frame_arrays(t2[:6], 4)
+    assert not R2.flags.writeable

@@ -283,3 +283,38 @@ def test_written_out_cross_product_is_numpys():
     rng = np.random.default_rng(2)
     w, a = rng.normal(size=(7, 3, 4)), rng.normal(size=(7, 3))
     assert np.array_equal(_cross(w, a), np.cross(w, a[:, :, None], axis=1))
+
+
+def test_columns_of_the_jacobian_are_the_whole_jacobians_bit_for_bit(arm, positioner, monkeypatch):
+    """tool_jacobian_columns (issue 32: a fit asks only for its free columns) gives the whole Jacobian's values,
+    bit for bit, for any subset (the whole one is checked against central differences above), shared or per-pose
+    geometry, with a prismatic joint or revolute joints only; and a block no column falls in is not computed
+    (the rpy rates are not even formed)."""
+    from bayescal.machines import serial
+
+    rng = np.random.default_rng(11)
+    for m in (arm, positioner):
+        q = m.sample_q(7, rng)
+        theta = rng.normal(size=m.n_params) * m.tolerance * 30.0
+        P, t = m.n_params, 9 * m.n_joints
+        names = m.layout.names
+        picks = [np.arange(P), np.array([3]), np.array([0, P - 1]), np.arange(t, P), np.arange(t, t + 3)]
+        picks += [np.array([j for j, n in enumerate(names) if part in n]) for part in
+                  ("offset", "tilt", "origin", "joint2.rpy", ".rpy.")]
+        picks += [np.sort(rng.choice(P, size=rng.integers(2, P), replace=False)) for _ in range(10)]
+        for th in (theta, np.tile(theta, (7, 1))):
+            whole = m.tool_jacobian(q, th, m.forward(q, th))
+            for cols in picks:
+                got = m.tool_jacobian_columns(q, th, None, cols)
+                assert got.shape == (7, 6, cols.size) and np.array_equal(got, whole[:, :, cols]), (m.name, cols)
+    q, theta = arm.sample_q(5, rng), arm.tolerance * 20.0
+    whole = arm.tool_jacobian(q, theta, None)
+    no_rpy = np.array([j for j, n in enumerate(arm.layout.names) if ".rpy." not in n])
+
+    def refuse(rpy):
+        raise AssertionError("the rpy block was computed for columns that leave it out")
+
+    monkeypatch.setattr(serial, "rpy_rates", refuse)
+    assert np.array_equal(arm.tool_jacobian_columns(q, theta, None, no_rpy), whole[:, :, no_rpy])
+    with pytest.raises(AssertionError, match="rpy block"):
+        arm.tool_jacobian(q, theta, None)
