@@ -45,9 +45,10 @@ def run_fingerprint(model, names, *, seed: int, n_walkers: int, surrogate: str, 
     if held is not None:
         h.update(np.ascontiguousarray(np.asarray(held, dtype=float)).tobytes())
     # the sampler's proposal changed (bent Laplace map, then the bend kept only where importance weights say it
-    # helps, 24 November 2026): a chain of an older one must not continue
+    # helps, 24 November 2026; its Gaussian mixed in where the tails allow it, 28 November 2026): a chain of an
+    # older one must not continue
     return {"seed": int(seed), "n_walkers": int(n_walkers), "names": list(names), "surrogate": str(surrogate),
-            "data_sha256": h.hexdigest(), "proposal": "bent-laplace-t-checked"}
+            "data_sha256": h.hexdigest(), "proposal": "bent-laplace-t-checked-gaussian-mixed"}
 
 
 def save_checkpoint(path: str | os.PathLike, backend: emcee.backends.Backend, fingerprint: dict) -> Path:
