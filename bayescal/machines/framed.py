@@ -471,19 +471,25 @@ class InstrumentFrame(MachineView):
         J[:, :3, nf:] = Rt @ Jm[:, :3]
         J[:, 3:, nf:] = Rt @ Jm[:, 3:]
         if self.fit and nf:
-            self._frame_columns(J, tf, n, Rt, base.position - o, fc)
+            self._frame_columns(J, tf, n, R, base.position - o, fc)
         return J
 
-    def _frame_columns(self, J: NDArray, tf: NDArray, n: int, Rt: NDArray, arm: NDArray, fc: NDArray | None) -> None:
-        """Write the frame's columns ``fc`` (None: all) into the first ``len(fc)`` columns of ``J`` (n, 6, .)."""
+    def _frame_columns(self, J: NDArray, tf: NDArray, n: int, R: NDArray, arm: NDArray, fc: NDArray | None) -> None:
+        """Write the frame's columns ``fc`` (None: all) into the first ``len(fc)`` columns of ``J`` (n, 6, .).
+
+        ``R``: the frame's rotation, (3, 3) for one station (then ``R^T`` and
+        ``J_l`` are one matrix each, and what depends on no pose is formed
+        once and broadcast: the same products as pose by pose) or (n, 3, 3).
+        """
         tfp, st = self._pose_frame_params(tf, n)
-        Jl = np.broadcast_to(self._remembered("left_jacobian", tf, n, lambda: left_jacobian(tfp[..., 3:])), (n, 3, 3))
+        Jl = self._remembered("left_jacobian", tf, n, lambda: left_jacobian(tfp[..., 3:]))
+        Rt = np.swapaxes(R, -1, -2)
         k = self.n_frame
         whole = fc is None or fc.size == k
         # one station, all six columns: written in place (the zeros too)
         Jf = J[:, :, :6] if st is None and whole else np.zeros((n, 6, 6))
         Jf[:, :3, :3] = -Rt
-        Jf[:, :3, 3:6] = Rt @ skew(arm) @ Jl
+        Jf[:, :3, 3:6] = np.broadcast_to(Rt, (n, 3, 3)) @ skew(arm) @ Jl
         Jf[:, 3:, 3:6] = -Rt @ Jl
         if st is not None:
             # each pose sees only its own station's frame columns
