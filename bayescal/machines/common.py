@@ -83,7 +83,7 @@ def _tolerance_entries(t: TomlTable, stem: str):
     for key in list(t.keys()):
         name = f"{stem}{key}"
         if isinstance(t.data[key], dict):
-            yield from _tolerance_entries(TomlTable(t.data[key], t.path, t._key(key)), f"{name}.")
+            yield from _tolerance_entries(t.table(key), f"{name}.")
         else:
             yield name, t, key
 
