@@ -126,10 +126,10 @@ def calibrate(data, *, method: str = "map", **options):
         From :func:`load` (its ``check`` rows are then scored as ``identify`` scores them), or a model.
     method : {"map", "ridge", "tsvd", "ls", "kalman", "mcmc"}
     **options
-        Of :func:`bayescal.identify.calibrate.calibrate`: ``lam``, ``k``, ``free``, ``rule``,
+        Of :func:`bayescal.identify.calibrate.calibrate`: ``lam``, ``k``, ``free``, ``fix``, ``bounds``, ``rule``,
         ``prior_scale``, ``robust``, ``noise``, ``discrepancy``, ``discrepancy_inputs``, ``fit_effects``, ...;
-        for kalman and mcmc, of :func:`bayescal.identify.probabilistic.calibrate_bayes`: ``free``,
-        ``noise``, ``robust``, ``variant``, ``process_noise`` (kalman), ``steps``, ``walkers``, ``seed``,
+        for kalman and mcmc, of :func:`bayescal.identify.probabilistic.calibrate_bayes`: ``free``, ``fix``,
+        ``bounds`` (mcmc), ``noise``, ``robust``, ``variant``, ``process_noise`` (kalman), ``steps``, ``walkers``, ``seed``,
         ``surrogate``, ``checkpoint``, ``resume`` (mcmc), ``fit_effects``.  With ``fit_effects=True`` (map,
         mcmc) the machine file's ``[effect.*]`` parameters are identified with the geometry.
 

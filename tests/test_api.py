@@ -44,6 +44,9 @@ CASES = {
                               ["--method", "ridge", "--lam", "auto"]),
     "3-PRS, two parameters held": (lambda tmp: (PRS3_FILE, REC), {"fix": ["chain2.link_length", "tool.point.z"]},
                                    ["--fix", "chain2.link_length,tool.point.z"]),
+    "3-PRS, a bound reached and an open one": (
+        lambda tmp: (PRS3_FILE, REC), {"bounds": {"chain3.sphere_center.z": (-0.06, None), "tool.point.z": (None, 1.0)}},
+        ["--bound", "chain3.sphere_center.z=-0.06:", "--bound", "tool.point.z=:1"]),
 }
 
 
@@ -65,6 +68,9 @@ def test_calibrate_writes_the_json_identify_writes_byte_for_byte(tmp_path, case)
         assert cal.to_dict()["check"]["summary"]["n"] == 51 and "frame" in cal.to_dict()
     if case.startswith("delta"):
         assert "pivots" in cal.to_dict()
+    if "bound" in case:
+        assert cal.to_dict()["at_bound"] == ["chain3.sphere_center.z"]
+        assert cal.to_dict()["bounds"] == {"chain3.sphere_center.z": [-0.06, None], "tool.point.z": [None, 1.0]}
 
 
 def test_a_ballbar_recordings_machine_keeps_its_known_frame_through_either_door(tmp_path):
@@ -253,6 +259,9 @@ GRID_CASES = {
     "3-PRS, map, the links held": (lambda tmp: (PRS3_FILE, REC), {},
                                    {"nodes": 3, "fix": [f"chain{i}.link_length" for i in (1, 2, 3)]},
                                    ["--nodes", "3", "--fix", "chain1.link_length,chain2.link_length,chain3.link_length"]),
+    "3-PRS, map, a bound reached": (lambda tmp: (PRS3_FILE, REC), {},
+                                    {"nodes": 3, "bounds": {"chain3.sphere_center.z": (-0.06, 0.06)}},
+                                    ["--nodes", "3", "--bound", "chain3.sphere_center.z=-0.06:0.06"]),
 }
 
 
@@ -282,6 +291,8 @@ def test_grid_gives_the_json_grid_writes_byte_for_byte(tmp_path, case):
         res = g.identification
         assert res.held == tuple(options["fix"])
         assert not any(f for n, f in zip(res.names, res.free) if n in options["fix"])
+    if "bounds" in options:
+        assert g.identification.at_bound == ("chain3.sphere_center.z",) and ans["bounds"]
 
 
 def test_grid_from_posterior_draws_gives_the_json_grid_writes(tmp_path):

@@ -36,7 +36,7 @@ __all__ = ["save_checkpoint", "load_checkpoint", "run_fingerprint"]
 _KEYS = frozenset({"chain", "log_prob", "accepted", "iteration", "rs_keys", "rs_meta", "rs_cached", "rs_name", "fingerprint"})
 
 
-def run_fingerprint(model, names, *, seed: int, n_walkers: int, surrogate: str, held=None) -> dict:
+def run_fingerprint(model, names, *, seed: int, n_walkers: int, surrogate: str, held=None, bounds=()) -> dict:
     """What must match between a checkpoint and the run resuming it."""
     h = hashlib.sha256()
     for a in (model.y_measured, np.asarray(model.q), np.asarray(model.row_sigma)):
@@ -44,6 +44,8 @@ def run_fingerprint(model, names, *, seed: int, n_walkers: int, surrogate: str, 
     # the parameters not sampled are held where the MAP started (a machine file's effect values): part of the target
     if held is not None:
         h.update(np.ascontiguousarray(np.asarray(held, dtype=float)).tobytes())
+    if bounds:  # the posterior truncated elsewhere is another target
+        h.update(repr(tuple((n, float(a), float(b)) for n, a, b in bounds)).encode())
     # the sampler's proposal changed (bent Laplace map, then the bend kept only where importance weights say it
     # helps, 24 November 2026; its Gaussian mixed in where the tails allow it, 28 November 2026): a chain of an
     # older one must not continue

@@ -64,7 +64,8 @@ from .bent_laplace import BentLaplace, bent_laplace, log_posterior_gradient
 from .linear import linearisation_error, linearise
 from .moves import choose_proposal, default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
-from ..identify.result import covariance_dict, decided_by_prior_lines
+from ..identify.free import bound_arrays, bounds_of
+from ..identify.result import bounds_dict, covariance_dict, decided_by_prior_lines
 from ..measurement import MeasurementModel
 from ..stats import posterior_effective_params
 from .summary import PosteriorMembers, parameter_list, parameter_table, strong_correlations
@@ -150,6 +151,8 @@ class PosteriorResult(PosteriorMembers):
     decided_by_prior: tuple[str, ...] = ()
     #: Parameters the user held where the MAP held them (``fix``), whatever the data see.
     held: tuple[str, ...] = ()
+    #: ``(name, lower, upper)``: the posterior sampled is truncated there (``bounds``).
+    bounds: tuple = ()
     #: The Laplace approximation the walkers started on and the independence move proposed from (bent_laplace.py).
     bend: BentLaplace | None = field(default=None, repr=False)
     #: Importance-sampling ESS fractions of the straight and the bent proposal (``{"draws", "straight",
@@ -217,6 +220,7 @@ class PosteriorResult(PosteriorMembers):
             "covariance_kind": "posterior sample covariance (emcee)" if ok else "none: posterior not converged",
             "fixed": list(self.fixed),
             "held": list(self.held),
+            **bounds_dict(self.bounds, ()),
             "unidentifiable": list(self.unidentifiable),
             "decided_by_prior": list(self.decided_by_prior),
             "convergence": {
@@ -288,6 +292,9 @@ class PosteriorResult(PosteriorMembers):
         )
         if self.held:
             lines += ["", f"  held at the prior mean (fix): {', '.join(self.held)}"]
+        if self.bounds:
+            lines += ["", "  the posterior truncated to: " + ", ".join(
+                f"{n} in [{a:g}, {b:g}]" for n, a, b in self.bounds)]
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, held at the prior mean: {', '.join(self.fixed)}"]
         lines += decided_by_prior_lines(self.decided_by_prior)
@@ -494,10 +501,34 @@ def _map_start(model, prior: GaussianPrior | None, free, theta0):
     if model.y_measured is None:
         raise InputError("sample_posterior: the measurement model has no measured values")
     prior = prior_from_machine(model.machine) if prior is None else prior
+    bounds = bounds_of(free)
+    if bounds:
+        # the target is the posterior truncated to the bounds (the prior's); the chain starts at the bounded MAP
+        prior = prior.within(*bound_arrays(model.machine.layout, bounds))
     start = map_estimate(model, prior=prior, free=free, theta0=theta0)
     if start.covariance is None:
         raise InputError(f"sample_posterior: the MAP start failed ({start.message})")
-    return prior, start
+    return prior, _laplace_on_bounds(model, prior, start)
+
+
+def _laplace_on_bounds(model, prior: GaussianPrior, start):
+    """The bounded MAP with the parameters it put on a bound sampled too: the Laplace covariance over all of them.
+
+    At a bound the MAP's covariance is conditional on the bound; the sampler explores the posterior truncated
+    there, so its walkers and independence proposals start from ``(J^T R^-1 J + P0^-1)^-1`` over every sampled
+    parameter at that point (draws beyond a bound are mirrored or rejected).
+    """
+    if not start.at_bound:
+        return start
+    from ..identify.gauss_newton import whitened_system
+
+    free = start.free.copy()
+    free[[start.names.index(n) for n in start.at_bound]] = True
+    idx = np.flatnonzero(free)
+    _, J = whitened_system(model, start.theta, model.predict(start.theta), columns=idx)
+    A = J * prior.std[idx]
+    cov = np.linalg.inv(A.T @ A + np.eye(idx.size)) * np.outer(prior.std[idx], prior.std[idx])
+    return dataclasses.replace(start, free=free, covariance=0.5 * (cov + cov.T), at_bound=())
 
 
 def _chain_size(n: int, n_walkers: int | None, n_steps: int, burn: int | None) -> tuple[int, bool, int]:
@@ -545,6 +576,11 @@ def _starting_points(machine, prior, idx, start, bend, log_prob, n_walkers: int,
     """The walkers' starting points drawn from ``bend``, each with a positive posterior density."""
     n = idx.size
     p0 = bend.to_x(rng.standard_normal((n_walkers, n)))
+    if start.bounds:
+        # the user's bounds: the Laplace draws mirrored into them (half of a draw's coordinate on a bound falls
+        # beyond it, and redrawing many such coordinates at once rarely lands inside)
+        sub = prior.subset(idx)
+        p0 = mirrored(p0, sub.lower, sub.upper)
     # a start outside the support (below a physical bound of the prior, a pose that does not assemble) would
     # stay stuck there: draw it again
     bad = ~np.isfinite(log_prob(p0)[:, 0])
@@ -565,6 +601,19 @@ def _starting_points(machine, prior, idx, start, bend, log_prob, n_walkers: int,
     return p0
 
 
+def mirrored(x: NDArray, lo: NDArray, hi: NDArray) -> NDArray:
+    """``x`` (..., n) reflected at the bounds ``lo`` and ``hi`` (n,) into ``[lo, hi]`` (infinite sides: no reflection)."""
+    lo = np.broadcast_to(lo, x.shape)
+    hi = np.broadcast_to(hi, x.shape)
+    both = np.isfinite(lo) & np.isfinite(hi)
+    width = np.where(both, hi - lo, 1.0)
+    y = np.mod(np.where(both, x - np.where(both, lo, 0.0), 0.0), 2 * width)
+    inside_both = np.where(both, lo, 0.0) + np.where(y > width, 2 * width - y, y)
+    out = np.where(np.isfinite(lo) & (x < lo), 2 * lo - x, x)
+    out = np.where(np.isfinite(hi) & (out > hi), 2 * hi - out, out)
+    return np.where(both, inside_both, out)
+
+
 def _run_chain(model, idx, start, log_prob, moves, p0, *, n_steps, seed, progress, surrogate, checkpoint,
                checkpoint_every, resume):
     """The emcee sampler run (or resumed from ``checkpoint``) up to ``n_steps``, and its wall time in s."""
@@ -575,7 +624,7 @@ def _run_chain(model, idx, start, log_prob, moves, p0, *, n_steps, seed, progres
 
         names = tuple(model.machine.layout.names[i] for i in idx)
         fingerprint = run_fingerprint(model, names, seed=seed, n_walkers=n_walkers, surrogate=surrogate,
-                                      held=start.theta[~start.free])
+                                      held=start.theta[~start.free], bounds=start.bounds)
     backend = load_checkpoint(checkpoint, fingerprint) if resume else None
     if backend is not None and backend.iteration > n_steps:
         raise InputError(f"--resume: {checkpoint} holds {backend.iteration} steps, more than n_steps = {n_steps}")
@@ -676,6 +725,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         seconds=seconds,
         fixed=start.fixed,
         held=start.held,
+        bounds=start.bounds,
         determined=getattr(start, "determined", None),
         unidentifiable=start.unidentifiable,
         decided_by_prior=start.decided_by_prior,

@@ -60,12 +60,15 @@ class GaussianPrior:
         Only :meth:`logpdf` (what samplers see) applies them; the MAP and its
         Laplace covariance are the untruncated Gaussian's (a diagnosis must be
         able to see a fit beyond a bound, docs/diagnose.md).
+    upper : ndarray, shape (P,), optional
+        Upper bounds (``inf``: none), the user's (:meth:`within`), applied as :attr:`lower` is.
     """
 
     names: tuple[str, ...]
     mean: NDArray
     std: NDArray
     lower: NDArray | None = None
+    upper: NDArray | None = None
 
     @property
     def covariance(self) -> NDArray:
@@ -75,10 +78,17 @@ class GaussianPrior:
         """The marginal prior of parameters ``idx`` (independent, so just a selection)."""
         idx = np.asarray(idx, dtype=int)
         return GaussianPrior(tuple(self.names[i] for i in idx), self.mean[idx], self.std[idx],
-                             None if self.lower is None else self.lower[idx])
+                             None if self.lower is None else self.lower[idx],
+                             None if self.upper is None else self.upper[idx])
+
+    def within(self, lower: NDArray, upper: NDArray) -> "GaussianPrior":
+        """This prior truncated to ``lower <= theta <= upper`` as well (shape (P,) each, infinite: no bound)."""
+        lo = lower if self.lower is None else np.maximum(self.lower, lower)
+        hi = upper if self.upper is None else np.minimum(self.upper, upper)
+        return GaussianPrior(self.names, self.mean, self.std, np.asarray(lo, dtype=float), np.asarray(hi, dtype=float))
 
     def logpdf(self, theta: ArrayLike) -> NDArray:
-        """Log density at ``theta`` of shape (..., P): normalised without :attr:`lower`; ``-inf`` below it.
+        """Log density at ``theta`` of shape (..., P): normalised without the bounds; ``-inf`` beyond them.
 
         With bounds the normalisation of the truncation (a constant) is left
         out: samplers use only differences.
@@ -88,19 +98,23 @@ class GaussianPrior:
         lp = -0.5 * np.sum(z**2, axis=-1) - np.sum(np.log(self.std)) - 0.5 * self.std.size * np.log(2 * np.pi)
         if self.lower is not None:
             lp = np.where(np.any(theta < self.lower, axis=-1), -np.inf, lp)
+        if self.upper is not None:
+            lp = np.where(np.any(theta > self.upper, axis=-1), -np.inf, lp)
         return lp
 
     def sample(self, n: int, rng: np.random.Generator) -> NDArray:
-        """``n`` draws, shape (n, P) (of the truncated Gaussian where :attr:`lower` is set: redrawn until above it)."""
+        """``n`` draws, shape (n, P) (of the truncated Gaussian where a bound is set: redrawn until within it)."""
         out = self.mean + rng.normal(size=(n, self.std.size)) * self.std
-        if self.lower is not None:
+        if self.lower is not None or self.upper is not None:
+            lo = -np.inf if self.lower is None else self.lower
+            hi = np.inf if self.upper is None else self.upper
             for _ in range(1000):
-                bad = out < self.lower
+                bad = (out < lo) | (out > hi)
                 if not bad.any():
                     break
                 out[bad] = (self.mean + rng.normal(size=out.shape) * self.std)[bad]
             else:
-                raise InputError("GaussianPrior.sample: a lower bound lies too far above the mean to sample by redrawing")
+                raise InputError("GaussianPrior.sample: a bound lies too far from the mean to sample by redrawing")
         return out
 
 

@@ -30,7 +30,7 @@ command's grid and JSON:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -101,7 +101,14 @@ class GridAnswer(ShowsReport):
         extra = ({"effects": list(self.effects), "aux": dict(self.aux), "effects_fitted": bool(self.effects_fitted)}
                  if self.effects else {})
         plaus = self.plausibility.to_dict() if self.plausibility is not None else {}
-        return to_jsonable({**self.grid.to_dict(), "method": self.method, **extra, **plaus})
+        return to_jsonable({**self.grid.to_dict(), "method": self.method, **extra, **self._bounds(), **plaus})
+
+    def _bounds(self) -> dict:
+        """The identification's bounds and the parameters it put on one (their std in the grid: none)."""
+        from ..identify.result import bounds_dict
+
+        res = self.identification
+        return bounds_dict(getattr(res, "bounds", ()), getattr(res, "at_bound", ()))
 
     def report(self) -> str:
         """The text ``bayescal grid`` prints."""
@@ -113,6 +120,9 @@ class GridAnswer(ShowsReport):
             at = ", ".join(f"{k} = {v:g}" for k, v in self.aux.items()) or "no auxiliary channel"
             how = "fitted with the geometry, " if self.effects_fitted else ""
             lines.append(f"  effects         {', '.join(self.effects)} {how}applied at {at}")
+        if self._bounds().get("at_bound"):
+            lines.append(f"  on a bound      {', '.join(self._bounds()['at_bound'])} (no std: the grid's std is "
+                         "conditional on them staying there)")
         if self.plausibility is not None:
             lines.append(self.plausibility.report())
         return "\n".join(lines)
@@ -224,7 +234,7 @@ def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str
         if isinstance(free, str) and free == "all":
             free = "auto"  # sampling parameters the measurement does not see only explores the prior
         elif isinstance(free, Free) and free.base == "all":
-            free = Free("auto", free.fix)
+            free = replace(free, base="auto")
     cal = calibrate_bayes(model, method=method, free=free, fit_effects=fit_effects, check=check, **opts)
     res, plaus = cal.result, cal.plausibility
     if method == "kalman":
@@ -236,7 +246,7 @@ def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str
 
 def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, space: str = "auto",
                    ranges: dict | None = None, aux: dict | None = None, steps: int = 1000, surrogate: str = "none",
-                   seed: int = 0, fit_effects: bool = False, fix=None) -> GridAnswer:
+                   seed: int = 0, fit_effects: bool = False, fix=None, bounds=None) -> GridAnswer:
     """Identify a recording's errors and span a compensation grid with its std, as ``bayescal grid`` does.
 
     Parameters
@@ -262,6 +272,8 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
         from :func:`bayescal.load`).
     fix : sequence of str, optional
         Parameters held at nominal (:func:`bayescal.identify.calibrate.calibrate`): no std of theirs in the grid.
+    bounds : mapping, optional
+        ``{name: (lower, upper)}`` (:func:`bayescal.identify.calibrate.calibrate`; map and mcmc).
 
     Returns
     -------
@@ -288,7 +300,7 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
         from ..effects.joint_model import joint_effects_model
 
         model = joint_effects_model(model, rec, method=method)
-    res, kw, plaus = _identify(model, method, with_fixed(free, fix), steps=steps, seed=seed, surrogate=surrogate,
+    res, kw, plaus = _identify(model, method, with_fixed(free, fix, bounds), steps=steps, seed=seed, surrogate=surrogate,
                                fit_effects=fit_effects, check=check)
     effects = {"effects": tuple(e.name for e in machine.effects), "aux": aux, "effects_fitted": bool(fit_effects),
                "plausibility": plaus}

@@ -6,7 +6,7 @@ import argparse
 
 from ..errors import InputError
 from . import SUMMARIES
-from .inputs import add_frame_argument, free_arg, inputs_with_session, name_list
+from .inputs import add_frame_argument, bound_args, free_arg, inputs_with_session, name_list
 from .outputs import add_output_options, say, write_json, write_report
 
 HELP = """\
@@ -79,6 +79,8 @@ def register(sub) -> None:
     p.add_argument("--method", choices=("map", "kalman", "mcmc"), default="map", help="how to identify (default map)")
     p.add_argument("--free", default="all", help="'all' (default), 'auto' or comma-separated names")
     p.add_argument("--fix", metavar="NAMES", help="comma-separated parameters held at nominal (identify --fix)")
+    p.add_argument("--bound", action="append", metavar="NAME=LO:HI",
+                   help="keep a parameter inside [LO, HI] (identify --bound; map and mcmc; repeatable)")
     p.add_argument("--nodes", type=int, default=9, help="nodes per actuator within q_limits (default 9)")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), help="use only this much of the measurement")
     p.add_argument("--steps", type=int, default=1000, help="mcmc: steps per walker (default 1000)")
@@ -129,7 +131,7 @@ def run(args) -> int:
     answer = recording_grid(session if session is not None else model, method=args.method, free=free_arg(args.free),
                             nodes=args.nodes, space=args.space, ranges=ranges, aux=aux, steps=args.steps,
                             surrogate=args.surrogate, seed=args.seed, fit_effects=args.fit_effects,
-                            fix=name_list(args.fix) if args.fix is not None else None)
+                            fix=name_list(args.fix) if args.fix is not None else None, bounds=bound_args(args.bound))
     res, grid = answer.identification, answer.grid
     if grid is None:
         if not args.quiet:

@@ -12,7 +12,7 @@ from ..identify.probabilistic import calibrate_bayes
 from . import SUMMARIES
 from .bayes_identify import METHODS, add_arguments, bayes_options, check_method_options, run_bayes
 from .effect_options import joint_effects_model
-from .inputs import add_frame_argument, free_arg, inputs_with_session, name_list
+from .inputs import add_frame_argument, bound_args, free_arg, inputs_with_session, name_list
 from .instrument import add_force_argument, instrument_report, refusal_note, write_calibrated_files
 from .outlier_options import add_outlier_arguments, outlier_kwargs
 from .outputs import add_output_options, write_json, write_report
@@ -124,11 +124,7 @@ def register(sub) -> None:
         help="parameters to identify: 'auto' (default: ls the identifiable set; methods with a prior every parameter "
              "the measurement sees), 'all', or comma-separated names",
     )
-    p.add_argument(
-        "--fix", metavar="NAMES",
-        help="comma-separated parameter names held at nominal (not identified, zero variance), as lmfit's "
-             "vary=False; with --free auto the identifiable set is chosen among the others",
-    )
+    _add_parameter_arguments(p)
     p.add_argument(
         "--prior-scale", choices=PRIOR_SCALES, default=None,
         help="map: the prior's scale: 'empirical' (one factor on the machine file's tolerances, estimated from the "
@@ -228,6 +224,22 @@ def _check_method_arguments(args) -> None:
         raise InputError(f"--k goes with --method tsvd (got --method {args.method})")
 
 
+def _add_parameter_arguments(p) -> None:
+    """``--fix`` and ``--bound``: parameters held by name and kept inside bounds."""
+    p.add_argument(
+        "--fix", metavar="NAMES",
+        help="comma-separated parameter names held at nominal (not identified, zero variance), as lmfit's "
+             "vary=False; with --free auto the identifiable set is chosen among the others",
+    )
+    p.add_argument(
+        "--bound", action="append", metavar="NAME=LO:HI",
+        help="keep a parameter's error inside [LO, HI], in its unit (lmfit's min/max; repeatable; an empty side is "
+             "open, e.g. --bound effect.deflection.compliance=0:): ls, ridge and map stay inside and name a "
+             "parameter that ends on a bound (no std: the others' covariance is conditional on it), mcmc samples "
+             "the posterior truncated there; tsvd and kalman refuse bounds",
+    )
+
+
 def run(args) -> int:
     from . import EXIT_FAILED, EXIT_OK
 
@@ -241,6 +253,7 @@ def run(args) -> int:
         serial_part(machine, what="--write-urdf: a URDF")  # InputError (exit 2) for other kinds, before any fit
     free = free_arg(args.free)
     fix = name_list(args.fix) if args.fix is not None else None
+    bounds = bound_args(args.bound)
     _check_method_arguments(args)
     if args.fit_effects:
         model = joint_effects_model(args, machine, rec, model)
@@ -249,7 +262,7 @@ def run(args) -> int:
         if args.rule:
             raise InputError("--rule goes with --method ridge --lam auto or --method tsvd --k auto")
         # the noise test, the outliers, the filter or sampler and the whole answer: one library call
-        answer = calibrate_bayes(model, method=args.method, free=free, fix=fix, max_iter=args.max_iter, noise=args.noise,
+        answer = calibrate_bayes(model, method=args.method, free=free, fix=fix, bounds=bounds, max_iter=args.max_iter, noise=args.noise,
                                  fit_effects=args.fit_effects, machine=machine, check=check, session=session,
                                  **okw, **bayes_options(args))
         return run_bayes(args, machine, answer)
@@ -264,7 +277,7 @@ def run(args) -> int:
     # ... and the whole answer (pivots, instrument frame, plausibility, held-out rows), as bayescal.calibrate gives it
     cal, extra, held_out = calibration_answer(
         model, machine, method=args.method, session=session, check=check, lam=args.lam, k=args.k, free=free,
-        fix=fix, rule=args.rule, prior_scale=args.prior_scale, max_iter=args.max_iter, noise=args.noise,
+        fix=fix, bounds=bounds, rule=args.rule, prior_scale=args.prior_scale, max_iter=args.max_iter, noise=args.noise,
         fit_effects=args.fit_effects, discrepancy=args.discrepancy,
         discrepancy_inputs=name_list(args.discrepancy_inputs) if args.discrepancy_inputs else None, **okw)
     res, choice, plaus = cal.result, cal.choice, cal.plausibility

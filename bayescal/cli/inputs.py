@@ -15,6 +15,35 @@ def name_list(text: str) -> list[str]:
     return [s.strip() for s in text.split(",") if s.strip()]
 
 
+def bound_args(texts) -> dict[str, tuple[float, float]] | None:
+    """``--bound NAME=LO:HI`` (repeatable) as ``{name: (lo, hi)}``; an empty side (``NAME=:0.1``) is open.
+
+    Raises
+    ------
+    InputError
+        Naming the argument that is not ``NAME=LO:HI`` with numbers (``inf`` and ``-inf`` allowed).
+    """
+    if not texts:
+        return None
+    from ..errors import InputError
+
+    out = {}
+    for text in texts:
+        name, eq, rng = text.partition("=")
+        lo, colon, hi = rng.partition(":")
+        try:
+            if not (eq and colon and name.strip()):
+                raise ValueError
+            pair = (float(lo) if lo.strip() else None, float(hi) if hi.strip() else None)
+        except ValueError:
+            raise InputError(f"--bound {text!r}: expected NAME=LO:HI in the parameter's unit, e.g. "
+                             "--bound chain1.link_length=-0.1:0.1 (an empty side is open: NAME=0:)") from None
+        if name.strip() in out:
+            raise InputError(f"--bound: '{name.strip()}' given twice")
+        out[name.strip()] = pair
+    return out
+
+
 def free_arg(text: str) -> str | list[str]:
     """``--free``: ``"auto"``, ``"all"`` or a list of parameter names."""
     return text if text in ("auto", "all") else name_list(text)

@@ -180,7 +180,7 @@ class Calibration:
         return record_from_result(machine, res.names, res.free, res.covariance, noise_scale=self.noise_scale,
                                   method=res.method, extra_names=extra,
                                   extra_cov=self.joint_covariance if self.discrepancy is not None else None,
-                                  variance_factor=self.variance_factor, held=res.held)
+                                  variance_factor=self.variance_factor, held=res.held + res.at_bound)
 
     def discrepancy_dict(self) -> dict:
         """The answer's ``discrepancy`` block ({} when none was considered)."""
@@ -333,6 +333,7 @@ def calibrate(
     k: int | str | None = None,
     free="auto",
     fix=None,
+    bounds=None,
     rule: str | None = None,
     prior_scale: str | None = None,
     max_iter: int = 50,
@@ -357,6 +358,11 @@ def calibrate(
     free : "auto", "all" or names
     fix : sequence of str, optional
         Held at nominal (lmfit's ``vary=False``; zero variance in ``[calibration]``), ``auto`` choosing among the rest.
+    bounds : mapping, optional
+        ``{name: (lower, upper)}`` in the parameter's unit (lmfit's ``min`` / ``max``; ``None`` or an infinity for an
+        open side): ls, ridge and map keep the answer inside, a parameter that ends on a bound is named in
+        ``at_bound`` with no std (the others' covariance conditional on it; zero variance in ``[calibration]``).
+        tsvd refuses them.
     rule : str, optional
         Rule for ``"auto"`` (:data:`bayescal.identify.choose.RULE_NAMES`).
     prior_scale : "empirical", "tolerance" or None
@@ -379,7 +385,7 @@ def calibrate(
     Calibration
     """
     _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlier_kw)
-    kw = dict(lam=lam, k=k, free=with_fixed(free, fix), rule=rule, prior_scale=prior_scale, max_iter=max_iter,
+    kw = dict(lam=lam, k=k, free=with_fixed(free, fix, bounds), rule=rule, prior_scale=prior_scale, max_iter=max_iter,
               outlier_kw={"robust": robust, **outlier_kw}, fit_effects=fit_effects)
     model, (res, handling, choice), blocks = _fit_with_row_groups(model, method, kw, noise)
     first = noise_check_of(model, res)
@@ -392,19 +398,24 @@ def calibrate(
         note = "considered, not supported by the data (--discrepancy auto)"
     else:
         note = ""
-    scale = 1.0
-    if noise == "auto" and first.verdict == "not_stated" and res.success:
-        # without a stated noise the sigmas are weights: the fit depends only on their ratio to the prior (which
-        # the empirical prior scale estimates) and its covariance is already scaled; what is carried forward is
-        # the noise the residuals support (the record's noise scale, every prediction's noise)
-        scale = max(first.scale, MIN_UNSTATED_SCALE)
-    elif noise == "auto" and first.contradicted and res.success:
-        res, handling, choice, scale = _with_noise_scale(model, method, kw, max(first.scale, MIN_NOISE_SCALE),
-                                                         (res, handling, choice))
+    res, handling, choice, scale = _noise_scaled(model, method, kw, noise, first, (res, handling, choice))
     cal = Calibration(result=res, handling=handling, choice=choice, noise=first, noise_scale=scale, discrepancy_note=note)
     cal = replace(cal, result=replace(res, extras={**res.extras, **blocks, **cal.noise_dict(), **cal.discrepancy_dict()}),
                   model=model)
     return cal.with_variance_factor(model)
+
+
+def _noise_scaled(model, method, kw, noise: str, first: NoiseCheck, fit) -> tuple:
+    """``fit`` (result, handling, choice) and the noise scale carried forward, refitted where the noise test says."""
+    res = fit[0]
+    if noise == "auto" and first.verdict == "not_stated" and res.success:
+        # without a stated noise the sigmas are weights: the fit depends only on their ratio to the prior (which
+        # the empirical prior scale estimates) and its covariance is already scaled; what is carried forward is
+        # the noise the residuals support (the record's noise scale, every prediction's noise)
+        return (*fit, max(first.scale, MIN_UNSTATED_SCALE))
+    if noise == "auto" and first.contradicted and res.success:
+        return _with_noise_scale(model, method, kw, max(first.scale, MIN_NOISE_SCALE), fit)
+    return (*fit, 1.0)
 
 
 def _fit_with_row_groups(model, method, kw, noise):
@@ -457,7 +468,7 @@ def _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlie
         raise InputError(f"method: expected one of {', '.join(DETERMINISTIC_METHODS)}, got {method!r}")
     bad = sorted(set(outlier_kw) - set(OUTLIER_OPTIONS))
     if bad:
-        raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, fix, rule, "
+        raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, fix, bounds, rule, "
                          f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "
                          f"{', '.join(OUTLIER_OPTIONS)}")
     if lam is not None:

@@ -29,7 +29,7 @@ step that can be evaluated (docs/architecture.md says why).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -40,7 +40,7 @@ from ..limits import check_fit_memory, check_lam
 from ..identifiability import STRUCTURAL_RTOL, analyse_identifiability, priority_order
 from ..iteration import Proposal, Refused, StepControl, gauss_newton
 from ..measurement import MeasurementModel
-from .free import Free, held_index, held_names
+from .free import Free, bound_arrays, bounds_of, held_index, held_names
 from .result import IdentificationResult
 from .solvers import LS_RCOND, filtered_solve
 
@@ -265,35 +265,30 @@ def identify(
     model : MeasurementModel
         With ``y_measured`` (e.g. from :meth:`MeasurementModel.from_recording`).
     method : {"ls", "ridge", "tsvd", "map"}
-        Least squares, ridge estimation or truncated SVD (see the module
-        docstring); ``"map"`` is ridge with ``lam = 1`` (and the columns
-        scaled by the prior standard deviations ``scale``): the maximum a
-        posteriori estimate under the Gaussian prior ``N(prior_mean,
-        diag(scale^2))``, see :mod:`bayescal.bayes.priors`.
+        Least squares, ridge estimation or truncated SVD (see the module docstring); ``"map"`` is ridge with
+        ``lam = 1`` (and the columns scaled by the prior standard deviations ``scale``): the maximum a posteriori
+        estimate under the Gaussian prior ``N(prior_mean, diag(scale^2))``, see :mod:`bayescal.bayes.priors`.
     lam : float, optional
-        Ridge parameter, dimensionless (relative to the whitened,
-        tolerance-scaled matrix); ``lam = 1`` is the MAP estimate under the
-        tolerance prior.  Required for ridge.
+        Ridge parameter, dimensionless (relative to the whitened, tolerance-scaled matrix); ``lam = 1`` is the
+        MAP estimate under the tolerance prior.  Required for ridge.
     k : int, optional
         Number of singular values TSVD keeps.  Required for tsvd.
-    free : sequence of str or int, "auto", "all" or None
-        Parameters to identify.  ``None``/"auto": for LS (and ridge with
-        ``lam = 0``) the identifiable set found by
-        :func:`bayescal.identifiability.analyse_identifiability`, the others
-        staying at ``theta0``; for map, ridge and tsvd every parameter the
-        measurement sees, the prior (tolerance scaling) deciding what the
-        data do not separate (:func:`resolve_free` with ``prior=True``).
+    free : sequence of str or int, "auto", "all", None or Free
+        Parameters to identify.  ``None``/"auto": for LS (and ridge with ``lam = 0``) the identifiable set found by
+        :func:`bayescal.identifiability.analyse_identifiability`, the others staying at ``theta0``; for map, ridge
+        and tsvd every parameter the measurement sees, the prior (tolerance scaling) deciding what the data do
+        not separate (:func:`resolve_free` with ``prior=True``).  A :class:`~bayescal.identify.free.Free` also
+        holds names fixed and carries bounds: the start is moved into them, every step stays inside, and a
+        parameter that ends on one is named in ``at_bound``, the others' covariance conditional on it there.
     theta0 : array_like, shape (P,), optional
-        Start (and value of fixed parameters); by default the model's
-        ``theta_start`` where it has one (:mod:`bayescal.effects.joint_model`),
-        else zeros (nominal).
+        Start (and value of fixed parameters); by default the model's ``theta_start`` where it has one
+        (:mod:`bayescal.effects.joint_model`), else zeros (nominal).
     scale : array_like, shape (P,), optional
-        Column scaling, in parameter units; defaults to the machine's tolerances.
-        For ridge and MAP this is the prior standard deviation.
+        Column scaling, in parameter units; defaults to the machine's tolerances.  For ridge and MAP this is
+        the prior standard deviation.
     prior_mean : array_like, shape (P,), optional
-        Where ridge and MAP shrink to (the prior mean); by default the
-        machine's ``prior_mean`` where a view states one (effect
-        parameters), else nominal (zeros).
+        Where ridge and MAP shrink to (the prior mean); by default the machine's ``prior_mean`` where a view
+        states one (effect parameters), else nominal (zeros).
     max_iter : int
         Gauss-Newton iterations at most.
     xtol : float
@@ -309,7 +304,8 @@ def identify(
     solver, lam = _check_options(model, method, lam, max_iter)
     if prior_mean is None:
         prior_mean = model.machine.prior_mean  # a view's parameters centred elsewhere (effects); None: zero
-    theta, S_all = _start(model, theta0, scale)
+    box = _box(model, method, free)
+    theta, S_all = _start(model, theta0, scale, box)
     # the start's prediction and linearisation serve the automatic free set and the first step
     pred = _start_prediction(model, theta)
     r, J = whitened_system(model, theta, pred)
@@ -321,9 +317,69 @@ def identify(
     S = S_all[idx]
     c, basis = _centre_and_basis(method, k, J, idx, S, prior_mean, P)
     res_before = model.residual(pred)
-    it = _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol)
-    held = held_names(free)
-    return _result(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before, held)
+    it = _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol,
+                  box=None if box is None else (box[0][idx], box[1][idx]))
+    if box is None:
+        return _result(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before, held_names(free))
+    it, keep, at_bound = _on_bounds(it, idx, S, box)
+    res = _result(model, method, solver, lam, k, it, idx[keep], S[keep], c[keep], basis, ida, res_before,
+                  held_names(free), at_bound=tuple(model.machine.layout.names[j] for j in at_bound))
+    return replace(res, bounds=bounds_of(free))
+
+
+def _box(model, method: str, free) -> tuple[NDArray, NDArray] | None:
+    """The bounds ``free`` carries as (lower, upper) arrays (P,), checked; None without any."""
+    bounds = bounds_of(free)
+    if not bounds:
+        return None
+    if method == "tsvd":
+        raise InputError("bounds: tsvd keeps the solution in its k best-determined directions and cannot also keep "
+                         "parameters inside bounds; expected method ls, ridge or map (or mcmc)")
+    layout = model.machine.layout
+    both = sorted(set(held_names(free)) & {b[0] for b in bounds})
+    if both:
+        raise InputError(f"bounds: {', '.join(both)} also held fixed (fix); expected each in one of them")
+    return bound_arrays(layout, bounds)
+
+
+def _on_bounds(it: "_Iterated", idx: NDArray, S: NDArray, box) -> tuple["_Iterated", NDArray, NDArray]:
+    """The iteration's end with the free parameters on a bound put exactly there, the free ones left, those on one.
+
+    A parameter on a bound is not estimated at the answer: its std and the others' covariance are those
+    conditional on it staying there (what a Laplace approximation at a constrained maximum gives).
+    """
+    lo, hi = box[0][idx], box[1][idx]
+    x = it.theta[idx]
+    # within 1e-9 tolerances: the bounded solve lands on the bound to round-off of the scaling
+    on_lo, on_hi = np.abs(x - lo) <= 1e-9 * S, np.abs(x - hi) <= 1e-9 * S
+    theta = it.theta.copy()
+    theta[idx] = np.where(on_lo, lo, np.where(on_hi, hi, x))
+    keep = ~(on_lo | on_hi)
+    return replace(it, theta=theta, J=it.J[:, keep]), keep, idx[~keep]
+
+
+def _within(sol, c: NDArray, S: NDArray, box, lam: float) -> NDArray:
+    """The solve's point ``c + x`` (scaled), or where the bounded solve puts it when that point leaves ``box``."""
+    x = c + sol.x
+    if box is None or not np.any((x * S < box[0]) | (x * S > box[1])):
+        return x
+    return c + _bounded_solve(sol, lam, box[0] / S - c, box[1] / S - c)
+
+
+def _bounded_solve(sol, lam: float, lo: NDArray, hi: NDArray) -> NDArray:
+    """``argmin |A y - z|^2 + lam |y|^2`` over ``lo <= y <= hi``, from the SVD of ``A`` the unbounded solve took.
+
+    ``|A y - z|^2 = |diag(s) V^T y - U^T z|^2 + const``: the bounded problem is solved on that small system
+    (n_free rows, plus ``sqrt(lam) I`` for a prior) by bounded-variable least squares (Stark and Parker 1995,
+    ``scipy.optimize.lsq_linear``), which returns the exact constrained minimiser of this convex problem.
+    """
+    from scipy.optimize import lsq_linear
+
+    M, b = sol.s[:, None] * sol.V.T, sol.Utz
+    if lam:
+        M = np.vstack([M, np.sqrt(lam) * np.eye(M.shape[1])])
+        b = np.concatenate([b, np.zeros(M.shape[1])])
+    return lsq_linear(M, b, bounds=(lo, hi), method="bvls", tol=1e-12).x
 
 
 def _start_prediction(model, theta: NDArray):
@@ -347,8 +403,9 @@ def _centre_and_basis(method: str, k, J: NDArray, idx: NDArray, S: NDArray, prio
     return c, basis
 
 
-def _start(model, theta0, scale) -> tuple[NDArray, NDArray]:
-    """The start ``theta`` (P,) and the column scaling (P,) of :func:`identify`, checked; refused when too large."""
+def _start(model, theta0, scale, box=None) -> tuple[NDArray, NDArray]:
+    """The start ``theta`` (P,), inside ``box``, and the column scaling (P,) of :func:`identify`, checked; refused when
+    too large."""
     machine = model.machine
     P = machine.n_params
     if theta0 is None:
@@ -362,7 +419,7 @@ def _start(model, theta0, scale) -> tuple[NDArray, NDArray]:
     S_all = machine.tolerance if scale is None else np.asarray(scale, dtype=float).reshape(P)
     if np.any(S_all <= 0):
         raise InputError("scale: expected positive values")
-    return theta, S_all
+    return (theta if box is None else np.clip(theta, *box)), S_all
 
 
 def _check_options(model, method: str, lam, max_iter) -> tuple[str, float | None]:
@@ -401,7 +458,7 @@ def _check_size(model, method: str, solver: str, lam, k, n_free: int) -> None:
 
 
 def _result(model, method, solver, lam, k, it: "_Iterated", idx, S, c, basis, ida, res_before,
-            held=()) -> IdentificationResult:
+            held=(), at_bound=()) -> IdentificationResult:
     """The answer at the iteration's end: covariance and singular values from the final linearisation."""
     machine = model.machine
     P = machine.n_params
@@ -458,8 +515,9 @@ def _result(model, method, solver, lam, k, it: "_Iterated", idx, S, c, basis, id
         cost_history=np.array(it.costs),
         success=it.success,
         message=it.message,
-        fixed=tuple(n for n, f in zip(machine.layout.names, free_mask) if not f and n not in held),
+        fixed=tuple(n for n, f in zip(machine.layout.names, free_mask) if not f and n not in held and n not in at_bound),
         held=tuple(held),
+        at_bound=tuple(at_bound),
         unidentifiable=() if ida is None else ida.combinations,
         decided_by_prior=() if ida is None else ida.decided_by_prior,
         dof=model.dof,
@@ -486,7 +544,8 @@ class _Iterated:
     ill_posed: bool
 
 
-def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol) -> _Iterated:
+def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol,
+             box=None) -> _Iterated:
     """Gauss-Newton steps of ``method`` in the scaled coordinates ``phi = theta[idx] / S`` until convergence.
 
     LS and TSVD take every step that can be solved in full, so that the
@@ -501,6 +560,12 @@ def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis,
     cannot be the test).  The stop tests and ``cost_history`` stay on the
     chi-square: where full steps lower the penalised cost, the iteration is
     the one before, to the last bit.
+
+    With ``box`` (the free parameters' lower and upper bounds) a step whose
+    solve leaves the box is solved again with the bounds
+    (:func:`_bounded_solve`); a step that stays inside is the unbounded one,
+    bit for bit, and halving keeps a step inside (the box is convex and the
+    start inside it).
     """
     machine = model.machine
     phi0 = theta[idx] / S
@@ -527,7 +592,7 @@ def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis,
         phi = theta[idx] / S
         if basis is None:
             sol = filtered_solve(A, r + A @ (phi - c), solver, lam=lam, k=k)
-            sol = type(sol)(x=c + sol.x, s=sol.s, f=sol.f, V=sol.V, Utz=sol.Utz)
+            sol = type(sol)(x=_within(sol, c, S, box, lam if prior else 0.0), s=sol.s, f=sol.f, V=sol.V, Utz=sol.Utz)
         else:
             # least squares for the coordinates c of phi = phi0 + V_k c
             sub = filtered_solve(A @ basis, r + A @ (phi - phi0), "ls")

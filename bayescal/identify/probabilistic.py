@@ -30,7 +30,7 @@ from ..contract import scale_noise
 from ..errors import InputError
 from ..limits import finite_real
 from ..outliers import ALPHA, DEFAULT_NU
-from .free import with_fixed
+from .free import bounds_of, with_fixed
 
 __all__ = ["BayesCalibration", "calibrate_bayes", "BAYES_METHODS", "METHOD_OPTIONS", "MIN_STEPS"]
 
@@ -130,7 +130,7 @@ def _method_options(method: str, options: dict) -> dict:
         if name in DETERMINISTIC_OPTIONS:
             raise InputError(f"{name}: goes with method {DETERMINISTIC_OPTIONS[name]}; it does nothing with method "
                              f"{method!r}")
-        raise InputError(f"calibrate: unknown option {name!r} of method {method!r}; expected free, fix, max_iter, noise, "
+        raise InputError(f"calibrate: unknown option {name!r} of method {method!r}; expected free, fix, bounds, max_iter, noise, "
                          f"robust, nu, alpha, lines, fit_effects, {', '.join(own)}")
     got = {**own, **options}
     if method == "mcmc":
@@ -154,7 +154,7 @@ def _run(model, method: str, free, o: dict):
                             checkpoint_every=o["checkpoint_every"], resume=o["resume"])
 
 
-def calibrate_bayes(model, *, method: str, free="auto", fix=None, max_iter: int = 50, noise: str = "auto",
+def calibrate_bayes(model, *, method: str, free="auto", fix=None, bounds=None, max_iter: int = 50, noise: str = "auto",
                     robust: str = "auto", nu: float = DEFAULT_NU, alpha: float = ALPHA, lines=None,
                     fit_effects: bool = False, machine=None, check=None, session=None, **options) -> BayesCalibration:
     """Identify a recording's errors with the Kalman filter or the MCMC sampler, as ``bayescal identify`` does.
@@ -167,6 +167,9 @@ def calibrate_bayes(model, *, method: str, free="auto", fix=None, max_iter: int 
     free : "auto", "all" or names
     fix : sequence of str, optional
         Parameters held at nominal (:func:`bayescal.identify.calibrate.calibrate`).
+    bounds : mapping, optional
+        ``{name: (lower, upper)}``: mcmc samples the posterior truncated there (its MAP passes keep them); the
+        Kalman filter refuses them.
     max_iter : int
         Gauss-Newton iterations of the MAP passes (noise test, outliers).
     noise : {"auto", "stated"}
@@ -198,7 +201,10 @@ def calibrate_bayes(model, *, method: str, free="auto", fix=None, max_iter: int 
     from ..outliers.handling import map_system, robust_map_weights
 
     o = _method_options(method, options)
-    free = with_fixed(free, fix)
+    free = with_fixed(free, fix, bounds)
+    if bounds_of(free) and method == "kalman":
+        raise InputError("bounds: the Kalman filter's answer is a Gaussian and cannot keep parameters inside bounds; "
+                         "expected method map, ridge or ls (a bounded answer) or mcmc (the posterior truncated there)")
     if noise not in ("auto", "stated"):
         raise InputError(f"noise: expected 'auto' or 'stated', got {noise!r}")
     if not (finite_real(alpha) and 0 < alpha < 1):

@@ -96,6 +96,11 @@ class IdentificationResult:
         Parameters the data cannot identify, held at nominal, and ``unidentifiable`` explains why.
     held : tuple of str
         Parameters the user held at nominal (``fix``), whatever the data see.
+    at_bound : tuple of str
+        Parameters the answer put on one of their ``bounds``: not estimated there (no std; the others' covariance
+        is conditional on them staying on the bound).
+    bounds : tuple of (str, float, float)
+        The bounds the fit kept, ``(name, lower, upper)`` in the parameter's unit.
     unidentifiable : tuple of str
     decided_by_prior : tuple of str
         Combinations the data do not separate that the prior decided (map,
@@ -147,6 +152,8 @@ class IdentificationResult:
     unidentifiable: tuple[str, ...] = ()
     decided_by_prior: tuple[str, ...] = ()
     held: tuple[str, ...] = ()
+    at_bound: tuple[str, ...] = ()
+    bounds: tuple = ()
     dof: int = 6
     n_poses: int = 0
     chi2: float = float("nan")
@@ -281,6 +288,7 @@ class IdentificationResult:
             "covariance": covariance_dict(self.names, self.units, self.free, self.covariance),
             "fixed": list(self.fixed),
             "held": list(self.held),
+            **bounds_dict(self.bounds, self.at_bound),
             "unidentifiable": list(self.unidentifiable),
             "decided_by_prior": list(self.decided_by_prior),
             "strong_correlations": [{"a": a, "b": b, "correlation": c} for a, b, c in self.correlations()],
@@ -350,6 +358,7 @@ class IdentificationResult:
                 lines.append(f"    ... and {len(corr) - 15} more")
         if self.held:
             lines += ["", f"  held at nominal (fix): {', '.join(self.held)}"]
+        lines += bound_lines(self.names, self.units, self.theta, self.bounds, self.at_bound)
         if self.fixed:
             lines += ["", f"  not identifiable from these poses, fixed at nominal: {', '.join(self.fixed)}"]
             lines += [f"    - {c}" for c in self.unidentifiable[:max_combinations]]
@@ -370,3 +379,24 @@ def decided_by_prior_lines(combinations, how: str = "", max_combinations: int = 
     names = ", ".join(c.split(":", 1)[0] for c in combinations)
     return ["", f"  not separated by these poses, decided by the prior{how}: {names}"] + [
         f"    - {c}" for c in combinations[:max_combinations]]
+
+
+def bounds_dict(bounds, at_bound) -> dict:
+    """The answer's ``bounds`` (``{name: [lower, upper]}``, ``null`` for an open side) and ``at_bound`` ({} if none)."""
+    if not bounds:
+        return {}
+    side = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731 (JSON has no infinity)
+    return {"bounds": {n: [side(a), side(b)] for n, a, b in bounds}, "at_bound": list(at_bound)}
+
+
+def bound_lines(names, units, theta, bounds, at_bound) -> list[str]:
+    """Report lines: each parameter the answer put on a bound, with the bound, and what its std means."""
+    if not at_bound:
+        return ["", f"  bounds kept, none reached: {', '.join(b[0] for b in bounds)}"] if bounds else []
+    lines = ["", "  on a bound (no std; the others' covariance is conditional on these staying there):"]
+    for name in at_bound:
+        j = list(names).index(name)
+        lo, hi = next((a, b) for n, a, b in bounds if n == name)
+        side = "lower" if theta[j] == lo else "upper"
+        lines.append(f"    {name:<34}{theta[j]:14.6g}  {units[j]}  ({side} bound)")
+    return lines
