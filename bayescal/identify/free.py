@@ -133,7 +133,8 @@ def bound_arrays(layout: ParamLayout, bounds) -> tuple[NDArray, NDArray]:
 
 def _known(layout: ParamLayout, name: str, what: str) -> None:
     if name not in layout.names:
-        close = difflib.get_close_matches(name, layout.names, n=1)
+        # a name written without its prefix (``mass.link3`` for ``effect.gravity_deflection.mass.link3``)
+        close = [n for n in layout.names if n.endswith("." + name)][:1] or difflib.get_close_matches(name, layout.names, n=1)
         hint = f"did you mean '{close[0]}'? " if close else ""
         raise InputError(f"{what}: unknown parameter '{name}'; {hint}expected one of: {', '.join(layout.names)}")
 

@@ -147,6 +147,7 @@ def test_mirrored_reflects_draws_into_the_bounds():
 
 @pytest.mark.parametrize("bounds, match", [
     ({"chain3.sphere_centre.z": (0, 1)}, "unknown parameter 'chain3.sphere_centre.z'; did you mean 'chain3.sphere_center.z'"),
+    ({"point.z": (0, 1)}, "unknown parameter 'point.z'; did you mean 'tool.point.z'"),  # its prefix left out
     ({NAME: (0.1, 0.1)}, "expected lower < upper"),
     ({NAME: (0.1, float("nan"))}, "expected lower < upper"),
     ({NAME: "wide"}, "expected name: \\(lower, upper\\) pairs"),
