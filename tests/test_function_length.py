@@ -15,11 +15,7 @@ MAX_LINES = 80
 
 #: The functions still over the limit, with their length when the limit came: each may only shrink, and leaves the
 #: list once it is within the limit (split into helpers with one job each, behaviour unchanged).
-ALLOWED = {
-    "identify/choose.py:choose_linear": 133,
-    "design/plan.py:plan_poses": 108,
-    "bayes/mcmc.py:sample_posterior": 92,
-}
+ALLOWED: dict[str, int] = {}
 
 
 def function_lengths(root: Path = PACKAGE) -> dict[str, int]:

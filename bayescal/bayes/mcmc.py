@@ -366,23 +366,10 @@ def _tree(model, prior, idx, names, chain, lp, ll) -> object:
 
 
 def sample_posterior(
-    model,
-    *,
-    prior: GaussianPrior | None = None,
-    free: ArrayLike | str | None = None,
-    n_walkers: int | None = None,
-    n_steps: int = 1000,
-    burn: int | None = None,
-    seed: int = 0,
-    progress: bool = False,
-    max_rhat: float = MAX_RHAT,
-    min_ess: float = MIN_ESS,
-    tau_factor: float = TAU_FACTOR,
-    moves=None,
-    surrogate: str = "none",
-    checkpoint: str | os.PathLike | None = None,
-    checkpoint_every: int = 100,
-    resume: bool = False,
+    model, *, prior: GaussianPrior | None = None, free: ArrayLike | str | None = None, n_walkers: int | None = None,
+    n_steps: int = 1000, burn: int | None = None, seed: int = 0, progress: bool = False, max_rhat: float = MAX_RHAT,
+    min_ess: float = MIN_ESS, tau_factor: float = TAU_FACTOR, moves=None, surrogate: str = "none",
+    checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 100, resume: bool = False,
     theta0: ArrayLike | None = None,
 ) -> PosteriorResult:
     """Sample the posterior of the identifiable errors with emcee and check convergence.
@@ -393,8 +380,9 @@ def sample_posterior(
         With measured values.
     prior : GaussianPrior, optional
         Default: the machine's tolerance prior.
-    free : "auto", "all" or names, optional
-        Sampled parameters; the identifiable set by default.
+    free : "auto", "all", names or Free, optional
+        Sampled parameters; the identifiable set by default.  A :class:`~bayescal.identify.free.Free` with bounds:
+        the posterior truncated there.
     n_walkers : int, optional
         Default ``2 * n_free + 2``.
     n_steps : int
@@ -411,22 +399,19 @@ def sample_posterior(
     tau_factor : float
         Chain length after burn-in, in integrated autocorrelation times, at least.
     moves : emcee moves, optional
-        Default :func:`bayescal.bayes.moves.default_moves` with the MAP and its
-        Laplace covariance: independence MH 0.9, ``DEMove`` 0.07, corrected
-        snooker 0.03.
+        Default :func:`bayescal.bayes.moves.default_moves` with the MAP and its Laplace covariance: independence MH
+        0.9, ``DEMove`` 0.07, corrected snooker 0.03.
     surrogate : {"none", "linear"}
-        ``"linear"`` samples the model linearised at the MAP (much faster);
-        the largest linearisation error over 200 posterior draws, in units
-        of the instrument sigma, is then checked (must be < 0.1) and reported.
+        ``"linear"`` samples the model linearised at the MAP (much faster); the largest linearisation error over 200
+        posterior draws, in units of the instrument sigma, is then checked (must be < 0.1) and reported.
     checkpoint : path-like, optional
-        Save the chain and the random state here (.npz, atomically) every
-        ``checkpoint_every`` steps and at the end (:mod:`bayescal.bayes.checkpoint`).
+        Save the chain and the random state here (.npz, atomically) every ``checkpoint_every`` steps and at the end
+        (:mod:`bayescal.bayes.checkpoint`).
     resume : bool
-        Continue the chain saved in ``checkpoint`` up to ``n_steps``: the
-        same draws as an uninterrupted run with the same arguments.
+        Continue the chain saved in ``checkpoint`` up to ``n_steps``: the same draws as an uninterrupted run with the
+        same arguments.
     theta0 : array_like, shape (P,), optional
-        Where the MAP search starts (:func:`~bayescal.bayes.priors.map_estimate`);
-        the prior mean by default.
+        Where the MAP search starts (:func:`~bayescal.bayes.priors.map_estimate`); the prior mean by default.
 
     Returns
     -------

@@ -299,23 +299,10 @@ EXACT_BOUND_MAX_ACTUATORS = 4
 
 
 def plan_poses(
-    machine: Machine,
-    n_poses: int,
-    *,
-    criterion: str = "D",
-    dof: int = 6,
-    n_candidates: int = 20000,
-    seed: int = 0,
-    scaling: str = "tolerance",
-    n_random: int = 20,
-    exchange: bool = True,
-    candidates: CandidateSet | None = None,
-    repeats: bool | None = None,
-    box: bool = True,
-    method: str | None = None,
-    exact_bound: bool = False,
-    certify: float | None = None,
-    certify_nodes: int = 5000,
+    machine: Machine, n_poses: int, *, criterion: str = "D", dof: int = 6, n_candidates: int = 20000, seed: int = 0,
+    scaling: str = "tolerance", n_random: int = 20, exchange: bool = True, candidates: CandidateSet | None = None,
+    repeats: bool | None = None, box: bool = True, method: str | None = None, exact_bound: bool = False,
+    certify: float | None = None, certify_nodes: int = 5000,
 ) -> PosePlan:
     """Plan ``n_poses`` measurement poses that maximise an information criterion.
 
@@ -340,32 +327,25 @@ def plan_poses(
     candidates : CandidateSet, optional
         Use these instead of drawing (``n_candidates`` is then ignored).
     repeats : bool, optional
-        Allow a pose to be planned more than once (measured again).  Default:
-        yes with the relaxed method (the optimal design measure puts weight
-        on a few extreme poses; forbidding repeats cost up to 3 % in
-        ``sqrt(E[MSE])`` at 36 poses on the 3-PRS), no with greedy.
+        Allow a pose to be planned more than once (measured again).  Default: yes with the relaxed method (the optimal
+        design measure puts weight on a few extreme poses; forbidding repeats cost up to 3 % in ``sqrt(E[MSE])`` at 36
+        poses on the 3-PRS), no with greedy.
     method : {"greedy", "relaxed"}, optional
         Default :func:`default_method` (relaxed for I, greedy otherwise).
     box : bool
-        Add the corners, edges and faces of the actuator box to the
-        candidates (:func:`bayescal.design.candidates.box_points`).
+        Add the corners, edges and faces of the actuator box to the candidates
+        (:func:`bayescal.design.candidates.box_points`).
     exact_bound : bool
-        Criterion I only: also certify a lower bound on ``sqrt(E[MSE])`` of
-        every design of ``n_poses`` whole poses
-        (:func:`bayescal.design.exact_bound.exact_design_bound`, orthant
-        cells), tighter than the relaxed bound at few poses; seconds to
-        minutes with 3 actuators, and its cost grows with ``2^m`` cells.
+        Criterion I only: also certify a lower bound on ``sqrt(E[MSE])`` of every design of ``n_poses`` whole poses
+        (:func:`bayescal.design.exact_bound.exact_design_bound`, orthant cells), tighter than the relaxed bound at few
+        poses; seconds to minutes with 3 actuators, and its cost grows with ``2^m`` cells.
     certify : float, optional
-        Criterion I only: prove that the plan's ``sqrt(E[MSE])`` is at most
-        ``1 + certify`` times that of every design of ``n_poses`` whole
-        poses from the candidates (e.g. 0.01: within 1 % of the best), by
-        branch and bound
-        (:func:`bayescal.design.exact_decision.exact_design_below`, cells in
-        fractions of each actuator's stroke).  If the search finds such a
-        design, it becomes the plan and the question is asked again (up to
-        :data:`CERTIFY_ROUNDS` times).  The answer is in ``extras``
-        (``certified``: true, false when the rounds ran out, null when the
-        node budget did).
+        Criterion I only: prove that the plan's ``sqrt(E[MSE])`` is at most ``1 + certify`` times that of every design
+        of ``n_poses`` whole poses from the candidates (e.g. 0.01: within 1 % of the best), by branch and bound
+        (:func:`bayescal.design.exact_decision.exact_design_below`, cells in fractions of each actuator's stroke).  If
+        the search finds such a design, it becomes the plan and the question is asked again (up to
+        :data:`CERTIFY_ROUNDS` times).  The answer is in ``extras`` (``certified``: true, false when the rounds ran
+        out, null when the node budget did).
     certify_nodes : int
         Relaxations allowed per search (``certify``).
 
@@ -383,28 +363,21 @@ def plan_poses(
                                              exact_bound, certify, certify_nodes)
     values = evaluate_selection(cands, sel.index)
     med, beaten = _against_random(cands, values, int(n_poses), n_random, rng)
+    return _pose_plan(machine, cands, sel, values, (med, beaten), criterion=criterion, dof=dof, seed=seed,
+                      n_random=n_random, seconds=time.perf_counter() - t0,
+                      extras=_plan_extras(cands, sel, criterion, method, repeats, bound, exact, certificate))
+
+
+def _pose_plan(machine: Machine, cands: CandidateSet, sel, values: dict, random: tuple, *, criterion: str, dof: int,
+               seed: int, n_random: int, seconds: float, extras: dict) -> PosePlan:
+    """The plan of the selection ``sel`` from ``cands``, with its criteria ``values`` and the random comparison."""
+    med, beaten = random
     return PosePlan(
-        machine_name=machine.name,
-        kind=machine.kind,
-        criterion=criterion,
-        dof=dof,
-        scaling=cands.scaling,
-        q=cands.q[sel.index],
-        candidate_index=sel.index,
-        values=values,
-        random_median=med,
-        random_beaten=beaten,
-        kept=cands.kept,
-        fixed=cands.fixed,
-        n_candidates=cands.n,
-        n_rejected=cands.n_rejected,
-        seed=int(seed),
-        greedy_utility=sel.greedy_utility,
-        utility=sel.utility,
-        swaps=sel.swaps,
-        n_random=int(n_random),
-        seconds=time.perf_counter() - t0,
-        extras=_plan_extras(cands, sel, criterion, method, repeats, bound, exact, certificate),
+        machine_name=machine.name, kind=machine.kind, criterion=criterion, dof=dof, scaling=cands.scaling,
+        q=cands.q[sel.index], candidate_index=sel.index, values=values, random_median=med, random_beaten=beaten,
+        kept=cands.kept, fixed=cands.fixed, n_candidates=cands.n, n_rejected=cands.n_rejected, seed=int(seed),
+        greedy_utility=sel.greedy_utility, utility=sel.utility, swaps=sel.swaps, n_random=int(n_random),
+        seconds=seconds, extras=extras,
     )
 
 

@@ -522,24 +522,11 @@ def _cv_curve(A: NDArray, z: NDArray, groups: NDArray, method: str, grid: NDArra
 
 
 def choose_linear(
-    A: ArrayLike,
-    z: ArrayLike,
-    method: str,
-    *,
-    rule: str | None = None,
-    groups: ArrayLike | None = None,
-    noise_known: bool = True,
-    grid: ArrayLike | None = None,
-    folds: int = 6,
-    seed: int = 0,
-    linearisation: str = "given linear problem",
-    output_map: ArrayLike | None = None,
-    ratio: float = 1.1,
-    n_posterior: int = N_POSTERIOR,
-    integrate_scale: bool = True,
-    hyperprior: ScaleHyperprior | None = None,
-    target_rule: TargetRule | None = None,
-    target_calibration: dict | None = None,
+    A: ArrayLike, z: ArrayLike, method: str, *, rule: str | None = None, groups: ArrayLike | None = None,
+    noise_known: bool = True, grid: ArrayLike | None = None, folds: int = 6, seed: int = 0,
+    linearisation: str = "given linear problem", output_map: ArrayLike | None = None, ratio: float = 1.1,
+    n_posterior: int = N_POSTERIOR, integrate_scale: bool = True, hyperprior: ScaleHyperprior | None = None,
+    target_rule: TargetRule | None = None, target_calibration: dict | None = None,
 ) -> RegularisationChoice:
     """Apply every rule to the linear problem ``A x ~ z`` (rows whitened).
 
@@ -553,14 +540,11 @@ def choose_linear(
     rule : str, optional
         One of :data:`RULES`; :data:`DEFAULT_RULE` by default.
     groups : array_like of int, shape (N,), optional
-        Which pose each row belongs to (cross-validation holds out whole
-        poses).  Default: every row its own group.
+        Which pose each row belongs to (cross-validation holds out whole poses).  Default: every row its own group.
     noise_known : bool
-        Whether the rows are whitened by a known sigma (else the evidence
-        profiles out a noise scale).
+        Whether the rows are whitened by a known sigma (else the evidence profiles out a noise scale).
     grid : array_like, optional
-        ``lam`` values (ridge) or ``k`` values (TSVD); default
-        :func:`lambda_grid` or ``1..p``.
+        ``lam`` values (ridge) or ``k`` values (TSVD); default :func:`lambda_grid` or ``1..p``.
     folds : int
         Cross-validation folds.
     seed : int
@@ -568,37 +552,31 @@ def choose_linear(
     linearisation : str
         Where the linear problem was taken (for the report).
     output_map : array_like, shape (M, p), optional
-        ``G``: the output error of an estimate is ``|G (x_v - x)|`` (for
-        example tool-point Jacobians times the tolerances, mm per scaled
-        unit; only ratios matter).  Default: the scaled parameter error.
+        ``G``: the output error of an estimate is ``|G (x_v - x)|`` (for example tool-point Jacobians times the
+        tolerances, mm per scaled unit; only ratios matter).  Default: the scaled parameter error.
     ratio : float
         The ``success`` rule's event: output error at most ``ratio`` times the best candidate's.
     n_posterior : int
         Posterior draws of the ``success`` rule.
     integrate_scale : bool
-        ``success``: average over the posterior of the prior scale (True)
-        rather than plugging in its evidence maximum.
+        ``success``: average over the posterior of the prior scale (True), else plug in its evidence maximum.
     hyperprior : ScaleHyperprior, optional
-        ``success``: the hyperprior on the prior scale that, times the
-        evidence, gives the posterior of ``lam`` (default
-        :data:`bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`;
+        ``success``: the hyperprior on the prior scale that, times the evidence, gives the posterior of ``lam``
+        (default :data:`bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`;
         :data:`~bayescal.identify.scale_prior.FLAT_HYPERPRIOR` for flat in ``log lam``).
     target_rule : TargetRule, optional
         ``targets``: the rule calibrated for this design (for example by
-        :func:`bayescal.identify.target_rule.calibrate_target_rule`, when
-        many data sets share one design); by default calibrated here (and
-        cached), which it is only when ``rule`` is ``"targets"``.
+        :func:`bayescal.identify.target_rule.calibrate_target_rule`, when many data sets share one design); by default
+        calibrated here (and cached), which it is only when ``rule`` is ``"targets"``.
     target_calibration : dict, optional
-        Keyword arguments of the calibration done here
-        (:func:`~bayescal.identify.target_rule.calibrate_target_rule`: ``n_data``, ``calibration_draws``,
-        ``n_draws``, ``margin``, ``scales``, ``targets``, ``seed``); default its defaults.
+        Keyword arguments of the calibration done here (:func:`~bayescal.identify.target_rule.calibrate_target_rule`:
+        ``n_data``, ``calibration_draws``, ``n_draws``, ``margin``, ``scales``, ``targets``, ``seed``).
 
     Returns
     -------
     RegularisationChoice
-        With ``rule="targets"`` (or ``target_rule``), ``curves["targets_score"]``
-        holds the rule's Lagrangian per candidate and ``target_rule`` its
-        calibration (weights, relaxations, what it achieved on its sample).
+        With ``rule="targets"`` (or ``target_rule``), ``curves["targets_score"]`` holds the rule's Lagrangian per
+        candidate and ``target_rule`` its calibration (weights, relaxations, what it achieved on its sample).
     """
     A, z, rule = _checked_problem(A, z, method, rule)
     N, p = A.shape
@@ -606,54 +584,61 @@ def choose_linear(
     d = _svd(A, z)
     _check_noise_estimable(A, z, d, noise_known, method)
     grid = _candidate_grid(method, d, grid)
+    output_map = _checked_success_options(output_map, ratio, p)
+    success = (output_map, ratio, n_posterior, integrate_scale, DEFAULT_HYPERPRIOR if hyperprior is None else hyperprior)
+    curves, i_disc, K = _rule_curves(A, z, d, groups, method, grid, folds, seed, noise_known, success)
+    picks = _rule_picks(method, curves, i_disc)
+    calibration = None
+    if rule == "targets" or target_rule is not None:
+        picks["targets"], curves["targets_score"], calibration = _targets_pick(
+            A, z, d, method, grid, output_map, noise_known, target_rule, seed, target_calibration or {})
+    cast = float if method == "ridge" else int
+    choices = {r: cast(grid[i]) for r, i in picks.items() if i is not None}
+    if rule not in choices:
+        raise InputError(f"rule {rule!r}: needs at least two poses for cross-validation")
+    return RegularisationChoice(
+        method=method, rule=rule, value=choices[rule], choices=choices, grid=np.asarray(grid), curves=curves,
+        singular_values=d.s, n_rows=N, n_params=p, noise_known=noise_known, linearisation=linearisation, folds=K,
+        target_rule=calibration,
+    )
+
+
+def _rule_curves(A, z, d, groups, method: str, grid, folds: int, seed: int, noise_known: bool, success: tuple):
+    """Every rule's curve over the candidates ``grid`` (the choice's ``curves``), the discrepancy's pick and folds.
+
+    ``success``: ``(output_map, ratio, n_posterior, integrate_scale, hyperprior)`` of the success rule.
+    """
+    N = A.shape[0]
     F = _filters(method, d.s, grid)
     res2, xnorm2, peff, gcv, disc = _fit_curves(d, F, N)
     cv, K = _cv_curve(A, z, groups, method, grid, folds, seed)
     curvature, log_ev, i_disc, extras = _corner_and_evidence(method, d, grid, res2, xnorm2, disc, noise_known)
     lam_ev, risk = _posterior_risk(d, F, noise_known)
     extras["risk_prior_ratio"] = lam_ev
-    output_map = _checked_success_options(output_map, ratio, p)
-    hyperprior = DEFAULT_HYPERPRIOR if hyperprior is None else hyperprior
+    output_map, ratio, n_posterior, integrate_scale, hyperprior = success
     _, succ, exp_ratio = _success_curve(A, d, F, noise_known, output_map, ratio, n_posterior, seed, integrate_scale,
                                         hyperprior)
     extras["success_expected_ratio"] = exp_ratio
-    picks = {
+    curves = dict(residual_norm=np.sqrt(res2), solution_norm=np.sqrt(xnorm2), effective_parameters=peff, gcv=gcv,
+                  cv=cv, discrepancy=disc, log_evidence=log_ev, curvature=curvature, posterior_risk=risk,
+                  success_probability=succ, **extras)
+    return curves, i_disc, K
+
+
+def _rule_picks(method: str, curves: dict, i_disc) -> dict:
+    """The candidate index each rule picks from its curve (None: the rule has no answer, cv with one pose)."""
+    cv, curvature, risk = curves["cv"], curves["curvature"], curves["posterior_risk"]
+    return {
         "cv": int(np.nanargmin(cv)) if np.isfinite(cv).any() else None,
         "lcurve": int(np.argmax(np.where(np.isfinite(curvature), curvature, -np.inf))),
-        "gcv": int(np.argmin(gcv)),
+        "gcv": int(np.argmin(curves["gcv"])),
         "discrepancy": i_disc,
-        "evidence": int(np.argmax(log_ev)),
+        "evidence": int(np.argmax(curves["log_evidence"])),
         # ties (TSVD: directions with beta_i = 0) go to the most regularised value
         "risk": int(np.flatnonzero(risk <= risk.min() * (1 + 1e-12))[0 if method == "tsvd" else -1]),
         # largest probability; ties (common for neighbouring lambdas) to the smaller expected ratio
-        "success": int(np.lexsort((exp_ratio, -succ))[0]),
+        "success": int(np.lexsort((curves["success_expected_ratio"], -curves["success_probability"]))[0]),
     }
-    calibration = None
-    if rule == "targets" or target_rule is not None:
-        picks["targets"], extras["targets_score"], calibration = _targets_pick(
-            A, z, d, method, grid, output_map, noise_known, target_rule, seed, target_calibration or {})
-    cast = float if method == "ridge" else int
-    choices = {r: cast(grid[i]) for r, i in picks.items() if i is not None}
-    if rule not in choices:
-        raise InputError(f"rule {rule!r}: needs at least two poses for cross-validation")
-    curves = {
-        "residual_norm": np.sqrt(res2),
-        "solution_norm": np.sqrt(xnorm2),
-        "effective_parameters": peff,
-        "gcv": gcv,
-        "cv": cv,
-        "discrepancy": disc,
-        "log_evidence": log_ev,
-        "curvature": curvature,
-        "posterior_risk": risk,
-        "success_probability": succ,
-        **extras,
-    }
-    return RegularisationChoice(
-        method=method, rule=rule, value=choices[rule], choices=choices, grid=np.asarray(grid), curves=curves,
-        singular_values=d.s, n_rows=N, n_params=p, noise_known=noise_known, linearisation=linearisation, folds=K,
-        target_rule=calibration,
-    )
 
 
 def _checked_problem(A: ArrayLike, z: ArrayLike, method: str, rule: str | None) -> tuple[NDArray, NDArray, str]:
