@@ -202,6 +202,10 @@ class Result(Protocol):
         Parameters held at nominal, why, and the combinations the prior decided.
     held : tuple of str
         Parameters the user held fixed (``fix``), apart from ``fixed``.
+    bounds : tuple of (str, float, float)
+        The user's bounds the answer kept (``bounds``), ``(name, lower, upper)``.
+    at_bound : tuple of str
+        Parameters the answer put on one of its bounds (not estimated there), apart from ``fixed`` and ``held``.
     determined : ndarray of bool, shape (P,), or None
         Which estimated parameters the data determine alone (None: all of them).
     tool_dof : int or None
@@ -237,6 +241,8 @@ class Result(Protocol):
     unidentifiable: tuple
     decided_by_prior: tuple
     held: tuple
+    bounds: tuple
+    at_bound: tuple
     determined: NDArray | None
     tool_dof: int | None
 

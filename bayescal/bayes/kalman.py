@@ -100,6 +100,9 @@ class FilterResult(PosteriorMembers):
     unidentifiable: tuple[str, ...] = ()
     #: Parameters the user held at the prior mean (``fix``), whatever the data see.
     held: tuple[str, ...] = ()
+    #: A Gaussian answer keeps no bounds (:func:`bayescal.identify.probabilistic.calibrate_bayes` refuses them).
+    bounds: tuple = ()
+    at_bound: tuple[str, ...] = ()
     #: Combinations the data do not separate that the prior decides (``free="auto"``: estimated, not fixed).
     decided_by_prior: tuple[str, ...] = ()
     extras: dict = field(default_factory=dict)

@@ -153,6 +153,8 @@ class PosteriorResult(PosteriorMembers):
     held: tuple[str, ...] = ()
     #: ``(name, lower, upper)``: the posterior sampled is truncated there (``bounds``).
     bounds: tuple = ()
+    #: None: a parameter the posterior is truncated for is sampled, not put on its bound.
+    at_bound: tuple[str, ...] = ()
     #: The Laplace approximation the walkers started on and the independence move proposed from (bent_laplace.py).
     bend: BentLaplace | None = field(default=None, repr=False)
     #: Importance-sampling ESS fractions of the straight and the bent proposal (``{"draws", "straight",

@@ -107,8 +107,7 @@ class GridAnswer(ShowsReport):
         """The identification's bounds and the parameters it put on one (their std in the grid: none)."""
         from ..identify.result import bounds_dict
 
-        res = self.identification
-        return bounds_dict(getattr(res, "bounds", ()), getattr(res, "at_bound", ()))
+        return bounds_dict(self.identification.bounds, self.identification.at_bound)
 
     def report(self) -> str:
         """The text ``bayescal grid`` prints."""

@@ -162,9 +162,7 @@ def same_free(res):
     held, the refit would count them among the parameters the data cannot identify.  The parameters the fit left
     at a bound are free again, within the same bounds: the refit finds its own active set.
     """
-    names = tuple(getattr(res, "names", ()))
-    at_bound = [names.index(n) for n in getattr(res, "at_bound", ())]
+    at_bound = [list(res.names).index(n) for n in res.at_bound]
     idx = np.union1d(np.flatnonzero(res.free), np.array(at_bound, dtype=int)).astype(int)
-    held = tuple(getattr(res, "held", ()))
-    bounds = tuple(getattr(res, "bounds", ()))
+    held, bounds = tuple(res.held), tuple(res.bounds)
     return Free(tuple(int(j) for j in idx), held, bounds) if held or bounds else idx

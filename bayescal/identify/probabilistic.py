@@ -243,5 +243,5 @@ def _with_record(machine, res, method: str, scale: float, kappa: float):
     if cov is None or not res.success:
         return machine
     record = record_from_result(machine.base_machine(), res.names, res.free, cov, noise_scale=scale, method=method,
-                                variance_factor=kappa, held=tuple(getattr(res, "held", ())))
+                                variance_factor=kappa, held=tuple(res.held))
     return machine if record is None else machine.with_calibration(record, machine.discrepancy)
