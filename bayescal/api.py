@@ -161,6 +161,10 @@ def calibrate(data, *, method: str = "map", **options):
         # the outlier test names poses by their line in the recording file (held-out rows skipped)
         options.setdefault("lines", recording_lines(model.n_poses, session.fit_recording))
     check = None if session is None else session.check
+    from .identify.calibrate import DETERMINISTIC_METHODS
+
+    if method not in DETERMINISTIC_METHODS + BAYES_METHODS:
+        raise InputError(f"method: expected one of {', '.join(DETERMINISTIC_METHODS + BAYES_METHODS)}, got {method!r}")
     if method in BAYES_METHODS:
         return calibrate_bayes(model, method=method, machine=machine, check=check, session=session, **options)
     from .identify.answer import calibration_answer
@@ -219,7 +223,9 @@ def grid(data, **options):
         ``write_csv(path)``, ``write_nc_csv(path)`` (tool space).
     """
     from .bayes.recording_grid import recording_grid
+    from .errors import refuse_unknown_options
 
+    refuse_unknown_options("grid", options, recording_grid)
     return recording_grid(data, **options)
 
 

@@ -16,6 +16,7 @@ __all__ = [
     "IdentificationError",
     "BayescalWarning",
     "ConvergenceWarning",
+    "refuse_unknown_options",
 ]
 
 
@@ -85,3 +86,28 @@ class BayescalWarning(UserWarning):
 
 class ConvergenceWarning(BayescalWarning):
     """A numerical solve did not converge; the result says success=False."""
+
+
+def refuse_unknown_options(what: str, options, *functions) -> None:
+    """Refuse an option that none of ``functions`` takes as a keyword, naming it, the closest and the accepted ones.
+
+    A verb that passes ``**options`` on would otherwise end in Python's ``TypeError`` naming an internal function.
+
+    Raises
+    ------
+    InputError
+        ``"{what}: unknown option 'methd' (did you mean 'method'?); expected one of: ..."``.
+    """
+    import difflib
+    import inspect
+
+    known: list[str] = []
+    for f in functions:
+        for name, p in inspect.signature(f).parameters.items():
+            if p.kind == p.KEYWORD_ONLY and not name.startswith("_") and name not in known:
+                known.append(name)
+    bad = [o for o in options if o not in known]
+    if bad:
+        close = difflib.get_close_matches(bad[0], known, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise InputError(f"{what}: unknown option {bad[0]!r}{hint}; expected one of: {', '.join(known)}")

@@ -610,3 +610,25 @@ def test_every_answer_shows_its_report_in_a_notebook(tmp_path):
     for a in answers:
         html = a._repr_html_()
         assert html.startswith("<pre>") and escape(a.report()) in html, type(a).__name__
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda s: bayescal.grid(s, methd="map"), "grid: unknown option 'methd' \\(did you mean 'method'\\?\\)"),
+    (lambda s: bayescal.diagnose(PRS3_FILE, REC, sed=1), "diagnose: unknown option 'sed' \\(did you mean 'seed'\\?\\)"),
+    (lambda s: bayescal.compare(PRS3_FILE, method="ls"), "compare: unknown option 'method' \\(did you mean 'methods'\\?\\)"),
+    (lambda s: bayescal.calibrate(s, method="mapp"), "expected one of ls, ridge, tsvd, map, kalman, mcmc"),
+])
+def test_a_misspelt_option_of_a_verb_is_refused_by_name(call, match):
+    from bayescal.errors import InputError
+
+    with pytest.raises(InputError, match=match):
+        call(bayescal.load(PRS3_FILE, REC))
+
+
+def test_a_bayesian_calibration_has_parameters_by_name_as_a_deterministic_one():
+    cal = bayescal.calibrate(bayescal.load(PRS3_FILE, REC), method="kalman")
+    listed = {p["name"]: p for p in cal.to_dict()["parameters"]}
+    assert set(cal.parameters) == set(listed)
+    for name, p in cal.parameters.items():
+        assert (p.value, p.std, p.unit, p.identified, p.estimated) == tuple(
+            listed[name][k] for k in ("value", "std", "unit", "identified", "estimated"))

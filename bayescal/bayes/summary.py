@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from ..identify.result import STRONG_CORRELATION
+from ..identify.result import STRONG_CORRELATION, ParameterEstimate
 
 __all__ = ["parameter_list", "strong_correlations", "parameter_table", "STRONG_CORRELATION", "PosteriorMembers"]
 
@@ -30,6 +30,12 @@ class PosteriorMembers:
     def poorly_determined(self, factor: float = 10.0) -> tuple[str, ...]:
         """None named: the posterior's spread is the prior's where the data are silent, never beyond it."""
         return ()
+
+    @property
+    def parameters(self) -> tuple[ParameterEstimate, ...]:
+        """Every parameter with value, std, unit, identified and estimated, as the JSON's ``parameters`` list."""
+        return tuple(ParameterEstimate(p["name"], p["value"], p["std"], p["unit"], p["identified"], p["estimated"])
+                     for p in parameter_list(self.names, self.units, self.theta, self.std, self.free, self.determined))
 
 
 def parameter_list(names, units, theta: NDArray, std: NDArray, free: NDArray, determined: NDArray | None = None) -> list[dict]:

@@ -1,4 +1,10 @@
-"""Statistical comparison of identification methods, in-process or distributed (docs/compare.md)."""
+"""Statistical comparison of identification methods, in-process or distributed (docs/compare.md).
+
+Called, ``bayescal.compare(machine, methods="ls,ridge,tsvd", trials=500, recording=None, dof=None, poses=None,
+alpha=0.05, out=None, seed=0, workers=...)`` is the front door's verb :func:`bayescal.api.compare`
+(:func:`~bayescal.compare.verb.compare_files`; its docstring documents the options, and an unknown one is refused
+by name).
+"""
 
 from .methods import METHODS, Method, MethodSpec, parse_methods, register_method, tsvd_snr_rank
 from .result import Comparison, compare_methods, comparison_from_records

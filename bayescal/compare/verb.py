@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..errors import InputError
+from ..errors import InputError, refuse_unknown_options
 from ..machines.base import Machine
 from .result import Comparison, compare_methods
 
@@ -56,6 +56,7 @@ def compare_files(machine: str | os.PathLike | Machine, *, methods: str = "ls,ri
     Comparison
         ``report()``, ``to_dict()`` (what ``--json`` writes), ``failed_everywhere``.
     """
+    refuse_unknown_options("compare", options, compare_files, compare_methods)
     if frame == "fit":
         raise InputError(
             "--frame fit (keyword frame='fit'): compare draws each trial's true machine from the tolerance prior, and an instrument "

@@ -1,4 +1,10 @@
-"""Model-mismatch diagnosis: locate the mismatch, name the missing physics, model it, verify it out of sample."""
+"""Model-mismatch diagnosis: locate the mismatch, name the missing physics, model it, verify it out of sample.
+
+Called, ``bayescal.diagnose(machine, recording, frame="base", effects=None, seed=0, n_folds=5,
+effect_settings=None)`` is the front door's verb :func:`bayescal.api.diagnose` (files or objects in, a
+:class:`~bayescal.diagnose.result.Diagnosis` out; its docstring documents the options, and an unknown one is
+refused by name).
+"""
 
 from .core import DECISIVE, EXPLAINED_FRACTION, P_MISMATCH, diagnose
 from .locate import ChannelDependence, Location, distance_correlation, holm, locate

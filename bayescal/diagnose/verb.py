@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from ..errors import InputError
+from ..errors import InputError, refuse_unknown_options
 from ..io.recording import Recording
 from ..machines import Machine
 from ..machines.files import load_machine
@@ -22,6 +22,7 @@ def diagnose_files(machine: str | os.PathLike | Machine, recording, *, frame: st
     ``check`` rows left out, one instrument frame per station with
     ``frame="fit"``); a constraint recording sees no frame.
     """
+    refuse_unknown_options("diagnose", options, diagnose_files, diagnose_model)
     m = machine if isinstance(machine, Machine) else load_machine(machine)
     rec = read_any_recording(recording) if isinstance(recording, (str, os.PathLike)) else recording
     if isinstance(rec, Recording):

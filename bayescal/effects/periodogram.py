@@ -7,7 +7,6 @@ from collections import OrderedDict
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import lombscargle
 
 __all__ = ["PITCH_RANGE_MM", "PITCH_RANGES", "MIN_PERIODS", "admissible_pitch_range", "pitch_grid", "periodogram", "n_independent_frequencies"]
 
@@ -84,6 +83,9 @@ def periodogram(q: NDArray, y: NDArray, freqs: NDArray) -> NDArray:
 
 
 def _periodogram(q: NDArray, y: NDArray, freqs: NDArray) -> NDArray:
+    # imported here: scipy.signal costs about 1 s of start-up, which every command's --help paid (issue 31)
+    from scipy.signal import lombscargle
+
     if np.ptp(y) == 0:
         return np.zeros(len(freqs))
     w = 2 * np.pi * freqs

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from ..params import ParamLayout
 
-__all__ = ["Free", "with_fixed", "held_index", "held_names", "same_free", "bounds_of", "bound_arrays", "parse_bounds"]
+__all__ = ["Free", "with_fixed", "held_index", "held_names", "same_free", "bounds_of", "bound_arrays", "parse_bounds", "check_name"]
 
 
 @dataclass(frozen=True)
@@ -123,7 +123,7 @@ def bound_arrays(layout: ParamLayout, bounds) -> tuple[NDArray, NDArray]:
     lo, hi = np.full(len(layout), -np.inf), np.full(len(layout), np.inf)
     seen = set()
     for name, a, b in bounds:
-        _known(layout, name, "bounds")
+        check_name(layout, name, "bounds")
         if name in seen:
             raise InputError(f"bounds: '{name}' bounded twice")
         seen.add(name)
@@ -131,7 +131,8 @@ def bound_arrays(layout: ParamLayout, bounds) -> tuple[NDArray, NDArray]:
     return lo, hi
 
 
-def _known(layout: ParamLayout, name: str, what: str) -> None:
+def check_name(layout: ParamLayout, name: str, what: str) -> None:
+    """InputError naming ``what`` (``fix``, ``bounds``, ``free``) when ``name`` is not a parameter, with the closest."""
     if name not in layout.names:
         # a name written without its prefix (``mass.link3`` for ``effect.gravity_deflection.mass.link3``)
         close = [n for n in layout.names if n.endswith("." + name)][:1] or difflib.get_close_matches(name, layout.names, n=1)
@@ -143,7 +144,7 @@ def held_index(layout: ParamLayout, fix: Sequence[str]) -> NDArray:
     """Indices of the names ``fix`` (InputError naming an unknown or repeated one)."""
     out = []
     for name in fix:
-        _known(layout, name, "fix")
+        check_name(layout, name, "fix")
         if layout.index(name) in out:
             raise InputError(f"fix: '{name}' listed twice")
         out.append(layout.index(name))

@@ -40,7 +40,7 @@ from ..limits import check_fit_memory, check_lam
 from ..identifiability import STRUCTURAL_RTOL, analyse_identifiability, priority_order
 from ..iteration import Proposal, Refused, StepControl, gauss_newton
 from ..measurement import MeasurementModel
-from .free import Free, bound_arrays, bounds_of, held_index, held_names
+from .free import Free, bound_arrays, bounds_of, check_name, held_index, held_names
 from .result import IdentificationResult
 from .solvers import LS_RCOND, filtered_solve
 
@@ -121,6 +121,9 @@ def resolve_free(model: MeasurementModel, free, theta0: NDArray, *, prior: bool 
     if isinstance(free, str) and free == "all":
         idx = np.setdiff1d(np.arange(len(layout)), held)
     else:
+        for f in free:
+            if isinstance(f, str):
+                check_name(layout, f, "free")
         idx = np.array([layout.index(f) if isinstance(f, str) else int(f) for f in free], dtype=int)
         if np.unique(idx).size != idx.size:
             raise InputError("free: parameters listed twice")
@@ -305,6 +308,7 @@ def identify(
     if prior_mean is None:
         prior_mean = model.machine.prior_mean  # a view's parameters centred elsewhere (effects); None: zero
     box = _box(model, method, free)
+    asked = (lam, theta0, scale, prior_mean, max_iter, xtol)  # a refit holding parameters on their bounds asks again
     theta, S_all = _start(model, theta0, scale, box)
     # the start's prediction and linearisation serve the automatic free set and the first step
     pred = _start_prediction(model, theta)
@@ -316,15 +320,62 @@ def identify(
     _check_size(model, method, solver, lam, k, idx.size)
     S = S_all[idx]
     c, basis = _centre_and_basis(method, k, J, idx, S, prior_mean, P)
-    res_before = model.residual(pred)
+    # "before" is the start as asked (nominal), also where the bounds moved the start into the box
+    res_before = model.residual(pred) if box is None else _residual_before(model, asked[1], pred)
     it = _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis, max_iter, xtol,
                   box=None if box is None else (box[0][idx], box[1][idx]))
     if box is None:
         return _result(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before, held_names(free))
+    return _bounded_answer(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before, free, box, asked)
+
+
+def _bounded_answer(model, method, solver, lam, k, it, idx, S, c, basis, ida, res_before, free, box, asked):
+    """:func:`identify`'s answer when bounds were given: the parameters on one out of the estimated set."""
     it, keep, at_bound = _on_bounds(it, idx, S, box)
     res = _result(model, method, solver, lam, k, it, idx[keep], S[keep], c[keep], basis, ida, res_before,
                   held_names(free), at_bound=tuple(model.machine.layout.names[j] for j in at_bound))
-    return replace(res, bounds=bounds_of(free))
+    return _held_on_bounds(model, method, k, free, replace(res, bounds=bounds_of(free)), box, ida is not None, asked)
+
+
+def _residual_before(model, theta0, pred) -> NDArray:
+    """Residuals at the start as asked (``theta0``, else the model's own start), before the bounds moved it.
+
+    Falls back to the start inside the bounds (``pred``) when a pose does not solve there.
+    """
+    theta, _ = _start(model, theta0, None)
+    before = model.predict(theta)
+    return model.residual(before if before.success.all() else pred)
+
+
+def _held_on_bounds(model, method: str, k, free, res: IdentificationResult, box, auto: bool, asked):
+    """The bounded answer with the parameters on a bound named there, the free set chosen again without them.
+
+    A parameter on its bound is not estimated: with ``free="auto"`` the identifiable set and the combinations
+    the prior decides are those of the fit holding it there (a gauge the bound settles is no longer one, and
+    least squares may now identify what the bounded parameter hid), so that fit is made, from the start asked,
+    holding them (the same point where the set does not change).  A parameter not estimated at all that the
+    bounds moved from nominal is named on its bound too, not "fixed at nominal".
+    """
+    names = model.machine.layout.names
+    lo, hi = box
+    off = tuple(n for j, n in enumerate(names) if not res.free[j] and n not in res.held and n not in res.at_bound
+                and (res.theta[j] == lo[j] or res.theta[j] == hi[j]))
+    if not (res.at_bound and auto):
+        return replace(res, at_bound=res.at_bound + off, fixed=tuple(n for n in res.fixed if n not in off),
+                       unidentifiable=tuple(u for u in res.unidentifiable if u.split(":")[0] not in off))
+    on = res.at_bound
+    lam, theta0, scale, prior_mean, max_iter, xtol = asked
+    hold = Free(free.base, free.fix + on, tuple(b for b in free.bounds if b[0] not in on))
+    # from the start asked, not from this answer: least squares' values far from nominal (hundreds of tolerances
+    # where the data barely see a direction) are no place to linearise a new free set
+    start = _start(model, theta0, None)[0]
+    start[[names.index(n) for n in on]] = res.theta[[names.index(n) for n in on]]
+    again = identify(model, method=method, lam=lam, k=k, free=hold, theta0=start, scale=scale,
+                     prior_mean=prior_mean, max_iter=max_iter, xtol=xtol)
+    return replace(again, held=tuple(n for n in again.held if n not in on), at_bound=on + again.at_bound,
+                   bounds=res.bounds, rms_before=res.rms_before, residuals_before=res.residuals_before,
+                   iterations=res.iterations + again.iterations, history=np.vstack([res.history, again.history[1:]]),
+                   cost_history=np.concatenate([res.cost_history, again.cost_history[1:]]))
 
 
 def _box(model, method: str, free) -> tuple[NDArray, NDArray] | None:
@@ -548,24 +599,18 @@ def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis,
              box=None) -> _Iterated:
     """Gauss-Newton steps of ``method`` in the scaled coordinates ``phi = theta[idx] / S`` until convergence.
 
-    LS and TSVD take every step that can be solved in full, so that the
-    iteration and its fixed point are the filtered solve's; a full step of an
-    ill-conditioned problem can leave the assembly (a pose with no solution),
-    and only then is it halved (:func:`bayescal.iteration.gauss_newton`).
-    Ridge and MAP (``lam > 0``) measure each step by the cost their fixed
-    point minimises, the chi-square plus ``lam |phi - c|^2``, and halve a step
-    that raises it: their fixed point is unchanged, and a model bilinear in
-    its unknowns (a bending compliance times a link mass) no longer cycles
-    around it (the chi-square alone may rise where the prior pulls, so it
-    cannot be the test).  The stop tests and ``cost_history`` stay on the
-    chi-square: where full steps lower the penalised cost, the iteration is
-    the one before, to the last bit.
+    LS and TSVD take every step that can be solved in full, so that the iteration and its fixed point are the filtered
+    solve's; a full step of an ill-conditioned problem can leave the assembly (a pose with no solution), and only then
+    is it halved (:func:`bayescal.iteration.gauss_newton`). Ridge and MAP (``lam > 0``) measure each step by the cost
+    their fixed point minimises, the chi-square plus ``lam |phi - c|^2``, and halve a step that raises it: their fixed
+    point is unchanged, and a model bilinear in its unknowns (a bending compliance times a link mass) no longer cycles
+    around it (the chi-square alone may rise where the prior pulls, so it cannot be the test).  The stop tests and
+    ``cost_history`` stay on the chi-square: where full steps lower the penalised cost, the iteration is the one
+    before, to the last bit.
 
-    With ``box`` (the free parameters' lower and upper bounds) a step whose
-    solve leaves the box is solved again with the bounds
-    (:func:`_bounded_solve`); a step that stays inside is the unbounded one,
-    bit for bit, and halving keeps a step inside (the box is convex and the
-    start inside it).
+    With ``box`` (the free parameters' lower and upper bounds) a step whose solve leaves the box is solved again with
+    the bounds (:func:`_bounded_solve`); a step that stays inside is the unbounded one, bit for bit, and halving keeps
+    a step inside (the box is convex and the start inside it).
     """
     machine = model.machine
     phi0 = theta[idx] / S
@@ -604,7 +649,8 @@ def _iterate(model, method, solver, lam, k, theta, pred, r, J, idx, S, c, basis,
             raise Refused(
                 f"least squares is ill-posed: the identification matrix is rank deficient "
                 f"(smallest/largest singular value {sol.s[-1] / sol.s[0]:.1e}); the measurement does not "
-                f"separate {names}. Use ridge or tsvd, or let bayescal reduce the parameter set (free='auto')"
+                f"separate {names}. Use ridge or tsvd, or let bayescal reduce the parameter set "
+                "(free='auto', --free auto)"
             )
         # the full step lands on the solve's point itself; a halving moves S (x - phi) of the way (no round-off
         # of theta + (target - theta) in either)

@@ -80,6 +80,11 @@ class BayesCalibration:
     machine: object
     model: object = field(default=None, repr=False, compare=False)
 
+    @property
+    def parameters(self) -> dict:
+        """The parameters by name: value, std, unit, identified (as :attr:`Calibration.parameters`)."""
+        return {p.name: p for p in self.result.parameters}
+
     def to_dict(self) -> dict:
         """The JSON answer of ``bayescal identify --method kalman | mcmc``, in JSON's own types.
 

@@ -37,18 +37,28 @@ def inputs_section(inputs: dict, machine=None) -> dict:
     return section("Inputs", id="inputs", text=[], tables=tables, pre=inputs.get("command"))
 
 
+def _status(d: dict, p: dict) -> str:
+    """How the answer came by a parameter's value: held, on a bound, fixed, decided by the prior in part, or ''."""
+    if p["name"] in (d.get("held") or ()):
+        return "held at nominal (fix)"
+    if p["name"] in (d.get("at_bound") or ()):
+        lo, hi = (d.get("bounds") or {}).get(p["name"], (None, None))
+        return f"on its {'lower' if lo is not None and p['value'] == lo else 'upper'} bound"
+    if not p.get("estimated", p.get("identified", True)):
+        return "fixed at nominal"
+    return "" if p.get("identified", True) else "decided by the prior in part"
+
+
 def _parameters_table(d: dict, poor=(), tolerance=None) -> dict:
     rows, classes = [], []
     for i, p in enumerate(d["parameters"]):
-        flags = []
-        if not p.get("identified", True):
-            flags.append("fixed at nominal")
+        flags = [_status(d, p)] if _status(d, p) else []
         if p["name"] in poor:
             flags.append("! std above 10 tolerances")
         tol = None if tolerance is None else float(tolerance[i])
         rows.append([p["name"], cell(p["value"]), cell(p["std"], ".3g"), p["unit"], cell(tol, ".3g"),
                      cell(None, text="; ".join(flags))])
-        classes.append("fixed" if not p.get("identified", True) else ("flag" if p["name"] in poor else ""))
+        classes.append("fixed" if p["std"] is None else ("flag" if p["name"] in poor else ""))
     return table(["parameter", "value", "std", "unit", "tolerance", "flags"], rows,
                  caption="identified errors (actual minus nominal) with one-sigma uncertainty", id="parameters",
                  row_classes=classes)
@@ -199,7 +209,9 @@ def identify_sections(result, *, machine=None, model=None, choice=None, answer_e
                 text=[] if ok else ["The identification did not succeed: its numbers are shown for diagnosis, not for use."]),
         section("Parameters", id="parameters-section", tables=[_parameters_table(d, poor, tol)],
                 text=["Flags: '! std above 10 tolerances' marks values the data do not determine (not physical errors); "
-                      "'fixed at nominal' marks parameters that were not identified."]),
+                      "'fixed at nominal' marks parameters the data cannot identify, 'held at nominal (fix)' those the "
+                      "user held, 'on its lower/upper bound' those the answer put on a bound (no std: the others' is "
+                      "conditional on them there), 'decided by the prior in part' those the data do not separate."]),
         _correlation_section(d),
         _unidentifiable_section(d),
         _instrument_section(d, answer_extra),

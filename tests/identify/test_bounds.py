@@ -177,3 +177,43 @@ def test_parse_bounds_takes_mappings_triples_and_open_sides():
 def test_the_command_line_refuses_a_bound_it_cannot_read(tmp_path, capsys, arg):
     code = main(["identify", str(EX / "recording.csv"), "--machine", str(EX / "machine.toml"), "--bound", arg])
     assert code == 2 and "expected NAME=LO:HI" in capsys.readouterr().err
+
+
+def test_before_is_nominal_even_where_a_bound_moves_the_start(model):
+    free = calibrate(model, method="map").result
+    far = calibrate(model, method="map", bounds={"chain1.link_length": (0.5, 1.0)}).result
+    assert far.at_bound == ("chain1.link_length",) and far.rms_before == free.rms_before
+
+
+def test_a_bound_settling_a_gauge_is_no_longer_left_to_the_prior(model):
+    """tool.point.z and the sphere centres' z share a gauge: a bound on one settles it, the prior no longer does."""
+    free = identify(model, method="map", free="auto")
+    res = identify(model, method="map", free=with_fixed("auto", None, {NAME: (-0.06, None)}))
+    assert any(d.startswith("tool.point.z:") for d in free.decided_by_prior)
+    assert not any(d.startswith("tool.point.z:") for d in res.decided_by_prior)
+    assert res.identified[res.names.index("tool.point.z")] and not free.identified[free.names.index("tool.point.z")]
+
+
+def test_least_squares_names_a_parameter_it_leaves_on_a_bound_not_fixed_at_nominal(model):
+    # tool.point.z is least squares' gauge parameter: not estimated, it stays at the start, which the bound moved
+    res = identify(model, method="ls", free=with_fixed("auto", None, {"tool.point.z": (0.1, None)}))
+    assert res.at_bound == ("tool.point.z",) and res.theta[res.names.index("tool.point.z")] == 0.1
+    assert "tool.point.z" not in res.fixed and not any(u.startswith("tool.point.z:") for u in res.unidentifiable)
+    assert "(lower bound)" in res.report()
+
+
+def test_the_html_report_names_each_parameter_status():
+    from bayescal.report.kinds import _status
+
+    d = {"held": ["a"], "at_bound": ["b", "c"], "bounds": {"b": [0.0, None], "c": [None, 1.0]}}
+    p = lambda n, v=0.0, e=True, i=True: {"name": n, "value": v, "estimated": e, "identified": i}  # noqa: E731
+    assert _status(d, p("a", e=False, i=False)) == "held at nominal (fix)"
+    assert _status(d, p("b", 0.0, False, False)) == "on its lower bound"
+    assert _status(d, p("c", 1.0, False, False)) == "on its upper bound"
+    assert _status(d, p("x", e=False, i=False)) == "fixed at nominal"
+    assert _status(d, p("y", i=False)) == "decided by the prior in part" and _status(d, p("z")) == ""
+
+
+def test_free_names_are_checked_with_the_closest_suggested(model):
+    with pytest.raises(InputError, match="free: unknown parameter 'chain1.link_lenght'; did you mean 'chain1.link_length'"):
+        identify(model, method="ls", free=["chain1.link_lenght"])
