@@ -207,6 +207,8 @@ class Calibration:
                 f"                  relevance of its inputs (1 / length scale): {shown}")
 
     def noise_report(self) -> str:
+        if not self.result.success:
+            return "  noise           not assessed: the fit did not succeed, so its residuals do not test the noise"
         line = f"  noise           {self.noise.message()}"
         if self.noise_scale != 1.0:
             line += f"\n                  sigma used: {self.noise_scale:.3g} x the stated one"

@@ -309,9 +309,14 @@ class IdentificationResult:
         ]
         if self.message:
             lines.append(f"  message         {self.message}")
+        # least squares (and ridge with lam = 0) has no prior to decide what the data leave open
+        prior = not (self.method == "ls" or (self.method == "ridge" and not self.lam))
         counted = (f"{nident} parameters identified by the data" if nident == nfree else
-                   f"{nfree} parameters estimated: {nident} identified by the data, {nfree - nident} decided by the prior")
-        if nident < self.rank < nfree:
+                   f"{nfree} parameters estimated: {nident} identified by the data, {nfree - nident} "
+                   + ("decided by the prior" if prior else "not separated by the data"))
+        if nident < self.rank < nfree and not prior:
+            counted += f" (the data determine {self.rank} combinations)"
+        elif nident < self.rank < nfree:
             # a parameter counts as identified only when the data determine it alone; with a fitted frame every
             # parameter may share a gauge, while the data still determine `rank` combinations of them
             counted += f" in part (the data determine {self.rank} combinations)"

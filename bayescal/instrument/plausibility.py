@@ -325,6 +325,9 @@ def judge_fit(machine, model, res, check=None) -> tuple[dict, "Plausibility"]:
                                     effective_params=res.prior_effective_params)
     else:
         plaus = Plausibility(False, ("the identified values are not finite",))
+    if not res.success and plaus.plausible:
+        # a failed fit is no calibration, whatever its values look like (an implausible one keeps its likely causes)
+        plaus = Plausibility(False, ("the fit did not succeed (its message says why)",))
     extra = {**frame_answer(machine, theta, res.free, res.covariance), **plaus.to_dict()}
     if check is not None:
         extra["frame_check"] = check.to_dict()
