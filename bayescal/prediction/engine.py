@@ -74,17 +74,29 @@ def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArr
 
     ``Js`` (n, dof, s) of the session's parameters, ``Jm`` (n, dof, k) of the calibrated ones, ``sig`` the rows'
     sigma, ``c`` the per-component noise factor, ``fr`` the rows the session is fitted on.
+
+    The session's least squares is solved through the SVD of its whitened fit rows ``A_s``, columns scaled to
+    unit norm (frames in mm and rad, mountings in rad: the rank decision is then one of directions, not units),
+    never through ``A_s^T A_s``: a sensor's mounting and the level of up are nearly one direction to it (singular
+    value 1e-7 of the largest), whose square sits at round-off of the normal matrix and turned the session's
+    noise term indefinite, its size a matter of the BLAS (tests/prediction/test_session_terms.py). The noise
+    term is built as ``F F^T``, positive semi-definite by construction.
     """
     dof = Js.shape[1]
     rows = int(fr.sum()) * dof
     As = (Js[fr] / sig[fr][:, :, None]).reshape(rows, Js.shape[2])
     Am = (Jm[fr] / sig[fr][:, :, None]).reshape(rows, Jm.shape[2])  # explicit rows: no machine parameter is fine
-    Minv = np.linalg.pinv(As.T @ As)
-    G = Jm - Js @ (Minv @ (As.T @ Am))
-    # the session's estimate's own noise: Minv A^T diag(c) A Minv (c Minv for one factor on every row)
+    norm = np.linalg.norm(As, axis=0)
+    norm = np.where(norm > 0, norm, 1.0)
+    U, s, Vt = np.linalg.svd(As / norm, full_matrices=False)
+    keep = s > (s[0] if s.size else 0.0) * max(As.shape) * np.finfo(float).eps
+    U, B = U[:, keep], (Vt[keep].T / s[keep]) / norm[:, None]  # pinv(A_s) = B U^T
+    G = Jm - Js @ (B @ (U.T @ Am))
+    # the session's estimate's own noise, pinv(A_s) diag(c) pinv(A_s)^T = (B R^T)(B R^T)^T with U^T diag(c) U = R^T R
     c_rows = np.tile(c, int(fr.sum()))
-    Cs = Minv @ ((As.T * c_rows) @ As) @ Minv
-    return G, (Js @ Cs) @ np.swapaxes(Js, 1, 2)
+    R = np.linalg.qr(U * np.sqrt(c_rows)[:, None], mode="r")
+    F = Js @ (B @ R.T)
+    return G, F @ np.swapaxes(F, 1, 2)
 
 
 def _with_discrepancy(discrepancy, sub, theta, sub_pred, J, Jm, residual_variance: bool):
