@@ -120,7 +120,7 @@ class Comparison(ShowsReport):
                 lines.append(f"    {k}: {self.summary[k]['failures']} trials, e.g. {msgs[0][:160]}")
         if self.info:
             lines += ["", f"  ran {self.info.get('ran', 0)} trials ({self.info.get('resumed', 0)} resumed from saved "
-                          f"results) on {self.info.get('backend', '?')} in {self.info.get('seconds', 0):.1f} s"]
+                          f"results), {self.info.get('backend', '?')}, in {self.info.get('seconds', 0):.1f} s"]
         return "\n".join(lines)
 
 
