@@ -86,7 +86,20 @@ def load(machine: str | os.PathLike | Machine, recording: str | os.PathLike | Re
         # a recording too large to fit is refused once its header is read, before its cells are parsed
         recording = read_recording(recording, check_size=fit_size_check(machine, dof=dof, frame=frame,
                                                                          path=str(recording)))
-    return prepare_session(machine, _recording(recording), dof=dof, frame=frame).with_fitted_stations()
+    recording = _recording(recording)
+    _warn_near_reserved(recording)
+    return prepare_session(machine, recording, dof=dof, frame=frame).with_fitted_stations()
+
+
+def _warn_near_reserved(recording) -> None:
+    """A :class:`~bayescal.errors.BayescalWarning` per channel named like a reserved column (``sigma_postion``)."""
+    import warnings
+
+    from .errors import BayescalWarning
+    from .io.recording import near_reserved_columns
+
+    for message in near_reserved_columns(recording):
+        warnings.warn(message, BayescalWarning, stacklevel=3)
 
 
 def load_klipper(config: str | os.PathLike, **options):

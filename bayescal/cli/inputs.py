@@ -152,7 +152,10 @@ def instrument_session(args: argparse.Namespace, machine=None):
     rec = read_recording(args.recording, check_size=fit_size_check(
         machine, dof=getattr(args, "dof", None), frame=getattr(args, "frame", "base"), path=args.recording))
     session = prepare_session(machine, rec, dof=getattr(args, "dof", None), frame=getattr(args, "frame", "base"))
-    warning = None if session.check is None else session.check.warning()
-    if warning and not getattr(args, "quiet", False):
+    from ..io.recording import near_reserved_columns
+
+    warnings = near_reserved_columns(rec) + ([] if session.check is None or not session.check.warning()
+                                             else [session.check.warning()])
+    for warning in [] if getattr(args, "quiet", False) else warnings:
         print(f"bayescal {args.command}: warning: {warning}", file=sys.stderr)
     return session

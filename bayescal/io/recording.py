@@ -392,6 +392,25 @@ def read_recording(path: str | os.PathLike, *, text: str | None = None,
     )
 
 
+def near_reserved_columns(rec: Recording) -> list[str]:
+    """Messages for auxiliary channels whose name is a near miss of a reserved column (``sigma_postion``).
+
+    Any other name is an auxiliary channel (docs/formats.md section 2), so a misspelt ``sigma_position`` or
+    ``station`` would be read silently as a channel and its meaning lost: :func:`bayescal.load` and the commands
+    say so (a warning, not a refusal: a channel may be named so on purpose).
+    """
+    import difflib
+
+    reserved = _POS + _ROT + _AXIS + _SIGMA + ("station", "role") + tuple(_MEANING)
+    out = []
+    for name in (n for n in rec.aux if n not in reserved):  # a channel of known meaning is read as such
+        close = difflib.get_close_matches(name, [r for r in reserved if len(r) >= 4], n=1, cutoff=0.85)
+        if close and len(name) >= 4:
+            out.append(f"{rec.path}: column {name!r} is read as an auxiliary channel; did you mean the reserved "
+                       f"column {close[0]!r}? (docs/formats.md section 2)")
+    return out
+
+
 #: What the channels with a lower bound hold, for messages.
 _MEANING = {"payload_kg": "a payload mass in kg", "temp_C": "a temperature in degC", "time_s": "an elapsed time in s"}
 
