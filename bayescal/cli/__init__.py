@@ -66,7 +66,23 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):  # argparse's hook for every usage error
         # one line, like every other exit-2 error: the hint folded into it
-        self.exit(EXIT_INPUT, f"{self.prog}: error: {_one_line_text(message)}; run '{self.prog} --help' for the options\n")
+        prog, hint = self._unrecognised(message) if message.startswith("unrecognized arguments") else (self.prog, "")
+        self.exit(EXIT_INPUT, f"{prog}: error: {_one_line_text(message)}{hint}; run '{prog} --help' for the options\n")
+
+    def _unrecognised(self, message: str) -> tuple[str, str]:
+        """The command whose options an unknown one was meant for (argparse reports it at the top level) and
+        the closest of them ("did you mean --method?")."""
+        import difflib
+
+        sub = next((a for a in self._actions if isinstance(a, argparse._SubParsersAction)), None)
+        words = message.split(":", 1)[-1].split()
+        argv = getattr(self, "words", sys.argv[1:])  # main's words (tests call main with their own)
+        command = next((sub.choices[w] for w in argv if sub is not None and w in sub.choices), None)
+        if command is None:
+            return self.prog, ""
+        options = [o for a in command._actions for o in a.option_strings if o.startswith("--")]
+        close = difflib.get_close_matches(words[0].split("=")[0], options, n=1) if words else []
+        return command.prog, f" (did you mean {close[0]}?)" if close else ""
 
 
 def build_parser(commands=COMMANDS) -> argparse.ArgumentParser:
@@ -104,6 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
     command = _command_in(words)
     parser = build_parser(() if command is None else (command,))
+    parser.words = words
     args = parser.parse_args(words)
     if not getattr(args, "func", None):
         parser.print_help()

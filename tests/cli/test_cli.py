@@ -182,3 +182,14 @@ def test_values_that_start_with_a_minus_sign_are_values():
     assert list(p.centre) == [-5.0, 0.0, 0.2]
     with pytest.raises(SystemExit):  # an unknown option is still one
         build_parser(("plan",)).parse_args(["plan", "--machine", "m.toml", "--n", "3", "--out", "p.csv", "-x"])
+
+
+def test_a_misspelt_option_names_its_command_and_the_option_meant(capsys):
+    from pathlib import Path
+
+    ex = Path(__file__).resolve().parents[2] / "examples" / "prs3"
+    with pytest.raises(SystemExit) as e:
+        main(["identify", str(ex / "recording.csv"), "--machine", str(ex / "machine.toml"), "--methd", "map"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith("bayescal identify: error: unrecognized arguments: --methd map")
+    assert "(did you mean --method?)" in err and "run 'bayescal identify --help'" in err
