@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..constants import PRIOR_SCALES
 from ..errors import InputError
 from ..identify import IdentificationResult, identify
 from ..identify.choose import evidence_lambda, linearised_problem
@@ -37,11 +38,8 @@ from ..measurement import MeasurementModel
 
 __all__ = ["GaussianPrior", "prior_from_machine", "map_estimate", "empirical_bayes_map", "PRIOR_SCALES"]
 
-#: Values of ``prior_scale`` in :func:`map_estimate`: "tolerance" (the machine
-#: file's tolerances as they are) or "empirical" (one common factor on them,
-#: estimated from the data by the evidence).
-PRIOR_SCALES: tuple[str, ...] = ("tolerance", "empirical")
-
+# PRIOR_SCALES, the values of ``prior_scale`` in map_estimate, is defined in bayescal.constants (the command line
+# offers them without importing numpy) and exported from here as before.
 
 @dataclass(frozen=True)
 class GaussianPrior:

@@ -22,9 +22,10 @@ EXIT_OK, EXIT_FAILED, EXIT_INPUT = 0, 1, 2
 #: Subcommand modules, each with ``register(subparsers)`` setting ``func``.
 COMMANDS = ("identify", "predict", "simulate", "diagnose", "compensate", "grid", "plan", "compare", "klipper")
 
-#: The one-line help of each command in ``bayescal --help``, which imports no command module (each
-#: pulls in numpy and the library it drives); the modules' ``register`` use the same text
-#: (tests/cli/test_cli.py checks).
+#: The one-line help of each command in ``bayescal --help``, which imports no command module; the modules'
+#: ``register`` use the same text (tests/cli/test_cli.py checks).  A command module imports no library module
+#: either until its ``run`` (its parser's choices come from :mod:`bayescal.constants`; issue 31), so
+#: ``bayescal COMMAND --help`` and a usage error load no numpy.
 SUMMARIES = {
     "identify": "identify geometric errors from a recording",
     "predict": "predict a new recording from a calibrated machine, with its uncertainty",

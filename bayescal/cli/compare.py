@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..compare import METHODS, METRICS
-from ..machines.files import load_machine
+from ..constants import COMPARE_METHODS, METRICS
 from . import SUMMARIES
 from .outputs import add_output_options, say, write_json, write_report
 
@@ -49,7 +48,8 @@ examples:
 
 
 def register(sub) -> None:
-    known = "\n".join(f"  {m.name:<8}{m.help}" for m in METHODS.values())
+    # the registry's own methods (bayescal.compare.METHODS describes them by these words), without importing it
+    known = "\n".join(f"  {name:<8}{text}" for name, text in COMPARE_METHODS.items())
     p = sub.add_parser(
         "compare", help=SUMMARIES["compare"], description=HELP.format(methods=known),
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -88,6 +88,7 @@ def register(sub) -> None:
 def run(args) -> int:
     """The library's :func:`bayescal.compare.verb.compare_files`, written and printed."""
     from ..compare.verb import compare_files, write_comparison_folder
+    from ..machines.files import load_machine
     from . import EXIT_FAILED, EXIT_OK
 
     machine = load_machine(args.machine)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..effects import EFFECTS
+from ..constants import EFFECT_NAMES
 from ..errors import InputError
 from . import SUMMARIES
 from .inputs import add_frame_argument, name_list, recording_model
@@ -42,7 +42,7 @@ Verdict none: the geometry-only calibration. Verdict unexplained: the
 geometry fitted with whatever effects were selected (else geometry only),
 with a warning on stderr. Effect tables in the --machine file are not
 applied: every effect is fitted afresh.
-Effects: {", ".join(EFFECTS)}.
+Effects: {", ".join(EFFECT_NAMES)}.
 """
 
 EXAMPLES = """\
@@ -85,6 +85,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from ..diagnose import diagnose
+    from ..effects import EFFECTS
     from . import EXIT_OK
 
     machine, rec, _ = recording_model(args, constraints=True)
@@ -149,6 +150,8 @@ def effect_inputs(machine, items: list[str]) -> dict[str, dict]:
         An item not of the form ``NAME.KEY=VALUE``, an unknown effect or
         input key, a value that is not a number or comma-separated numbers.
     """
+    from ..effects import EFFECTS, get_effect
+
     out: dict[str, dict] = {e.name: dict(e.settings) for e in machine.effects if e.settings}
     for item in items:
         key, sep, value = item.partition("=")
@@ -165,8 +168,6 @@ def effect_inputs(machine, items: list[str]) -> dict[str, dict]:
         except ValueError:
             raise InputError(f"--effect-input {item!r}: expected a number or comma-separated numbers after '='") from None
         out.setdefault(name, {})[k] = nums if len(nums) > 1 else nums[0]
-    from ..effects import get_effect
-
     for name, stated in out.items():
         try:
             get_effect(name, **stated)  # the effect's own checks (a positive mass, a 3-vector, ...)

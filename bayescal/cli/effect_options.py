@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from ..effects.joint_model import FIT_EFFECTS_METHODS, joint_effects_model as _joint_effects_model, with_fitted_effects
-
-__all__ = ["joint_effects_model", "with_fitted_effects", "FIT_EFFECTS_METHODS"]
+__all__ = ["joint_effects_model"]
 
 
 def joint_effects_model(args, machine, rec, model):
     """The joint model of geometry and stored effects for ``--fit-effects`` (the library's checks and messages)."""
+    from ..effects.joint_model import joint_effects_model as _joint_effects_model
+
     return _joint_effects_model(model, rec, method=args.method)

@@ -1,14 +1,15 @@
-"""``bayescal identify``: identify geometric errors from a recording."""
+"""``bayescal identify``: identify geometric errors from a recording.
+
+The parser imports no numpy (issue 31): its choices come from :mod:`bayescal.constants`, and the
+library is imported by :func:`run`.
+"""
 
 from __future__ import annotations
 
 import argparse
 
-from ..bayes.priors import PRIOR_SCALES
+from ..constants import DEFAULT_RULE, PRIOR_SCALES, RULE_NAMES
 from ..errors import InputError
-from ..identify.answer import calibration_answer
-from ..identify.choose import DEFAULT_RULE, RULE_NAMES
-from ..identify.probabilistic import calibrate_bayes
 from . import SUMMARIES
 from .bayes_identify import METHODS, add_arguments, bayes_options, check_method_options, run_bayes
 from .effect_options import joint_effects_model
@@ -16,7 +17,6 @@ from .inputs import add_frame_argument, bound_args, free_arg, inputs_with_sessio
 from .instrument import add_force_argument, instrument_report, refusal_note, write_calibrated_files
 from .outlier_options import add_outlier_arguments, outlier_kwargs
 from .outputs import add_output_options, write_json, write_report
-from ..prediction.recording import held_out_report
 
 HELP = """\
 Identify the geometric errors of a machine from a recording of measured poses.
@@ -241,6 +241,8 @@ def _add_parameter_arguments(p) -> None:
 
 
 def run(args) -> int:
+    from ..identify.answer import calibration_answer
+    from ..identify.probabilistic import calibrate_bayes
     from . import EXIT_FAILED, EXIT_OK
 
     _check_options(args)
@@ -298,6 +300,8 @@ def run(args) -> int:
 
 def _print_answer(args, machine, cal, extra: dict, held_out, figure) -> None:
     """The answer on stdout: the identification, noise, discrepancy, held-out rows, outliers, frame and notes."""
+    from ..prediction.recording import held_out_report
+
     res, handling, choice, plaus = cal.result, cal.handling, cal.choice, cal.plausibility
     print(res.report())
     print(cal.noise_report())

@@ -1,13 +1,18 @@
-"""What several commands read from their arguments: the recording's model and name lists."""
+"""What several commands read from their arguments: the recording's model and name lists.
+
+The parsers' pieces here (:func:`add_frame_argument`, the name lists) import no numpy; the library is
+imported by the functions that read the files (issue 31: ``COMMAND --help`` builds its parser only).
+"""
 
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from ..io import Recording, read_recording
-from ..machines import Machine
-from ..machines.files import load_machine
-from ..measurement import MeasurementModel, check_recording_solves
+if TYPE_CHECKING:
+    from ..io import Recording
+    from ..machines import Machine
+    from ..measurement import MeasurementModel
 
 
 def name_list(text: str) -> list[str]:
@@ -62,6 +67,10 @@ def recording_model(args: argparse.Namespace, *, constraints: bool = False) -> t
     if hasattr(args, "frame"):
         machine, rec, model, _ = instrument_inputs(args, constraints=constraints)
         return machine, rec, model
+    from ..io import read_recording
+    from ..machines.files import load_machine
+    from ..measurement import MeasurementModel, check_recording_solves
+
     machine = load_machine(args.machine)
     constrained = _constraint_inputs(args, machine, constraints)
     if constrained is not None:
@@ -132,6 +141,8 @@ def instrument_inputs(args: argparse.Namespace, *, constraints: bool = False):
 
 def inputs_with_session(args: argparse.Namespace, *, constraints: bool = False):
     """As :func:`instrument_inputs`, plus the :class:`~bayescal.instrument.prepare.Session` (None for constraints)."""
+    from ..machines.files import load_machine
+
     machine = load_machine(args.machine)
     constrained = _constraint_inputs(args, machine, constraints)
     if constrained is not None:
@@ -147,6 +158,8 @@ def instrument_session(args: argparse.Namespace, machine=None):
     import sys
 
     from ..instrument.prepare import fit_size_check, prepare_session
+    from ..io import read_recording
+    from ..machines.files import load_machine
 
     machine = load_machine(args.machine) if machine is None else machine
     rec = read_recording(args.recording, check_size=fit_size_check(

@@ -8,12 +8,13 @@ JSON answer says ``"plausible": false`` with the reasons, the command exits
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
 
-from ..instrument import Plausibility
-from ..instrument.plausibility import judge_fit as judge
+if TYPE_CHECKING:  # no import of the library (numpy) when a parser is built (issue 31)
+    from ..instrument import Plausibility
 
 __all__ = [
-    "add_force_argument", "judge", "may_write_machine", "refusal_note", "instrument_report", "instrument_frame_line",
+    "add_force_argument", "may_write_machine", "refusal_note", "instrument_report", "instrument_frame_line",
 ]
 
 

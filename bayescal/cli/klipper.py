@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from ..io import write_json_atomic
 from . import SUMMARIES
 
 HELP = """\
@@ -73,6 +72,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     """The library's :func:`bayescal.klipper.setup.load_klipper`, written and printed."""
+    from ..io import write_json_atomic
     from ..klipper.setup import load_klipper
     from . import EXIT_OK
 

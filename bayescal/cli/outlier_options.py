@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..outliers import ALPHA, DEFAULT_NU, recording_lines
+from ..constants import DEFAULT_NU, OUTLIER_ALPHA as ALPHA
 
 __all__ = ["add_outlier_arguments", "outlier_kwargs"]
 
@@ -27,6 +27,7 @@ def add_outlier_arguments(p) -> None:
 def outlier_kwargs(args, rec, n_poses: int) -> dict:
     """Keyword arguments of :mod:`bayescal.outliers.handling` from the parsed options."""
     from ..errors import InputError
+    from ..outliers import recording_lines
 
     if not 0 < args.outlier_alpha < 1:
         raise InputError(f"--outlier-alpha: expected a level between 0 and 1, got {args.outlier_alpha!r}")

@@ -11,6 +11,9 @@ two outputs that are one file, a link, device or folder as an output, a
 figure name matplotlib cannot write, or a folder that does not exist
 (unless ``--mkdir``) is an error naming the options, before minutes of
 computing.
+
+Importing this module loads no numpy (every command's parser uses it; issue 31): the library is imported
+where a file is written.
 """
 
 from __future__ import annotations
@@ -22,7 +25,6 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from ..io import write_json_atomic, write_text_atomic
 
 __all__ = [
     "add_output_options", "check_run_paths", "check_option_values", "run_paths", "say", "write_json",
@@ -166,6 +168,8 @@ def write_json(args: argparse.Namespace, data, path: str | None = None) -> Path 
     path = path or getattr(args, "json", None)
     if not path:
         return None
+    from ..io import write_json_atomic
+
     out = write_json_atomic(path, data)
     say(args, f"wrote {out} (JSON answer)")
     return out
@@ -202,6 +206,7 @@ def write_report(args: argparse.Namespace, kind: str, result, **extra) -> Path |
     path = getattr(args, "report", None)
     if not path:
         return None
+    from ..io import write_text_atomic
     from ..report import render_report
 
     html = render_report(kind, result, inputs=run_inputs(args), **extra)

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from ..design import CRITERIA, SCALINGS, write_plan
+from ..constants import CRITERIA, SCALINGS
 from ..errors import InputError
-from ..machines.files import load_machine
 from . import SUMMARIES
 from .outputs import add_output_options, write_json, write_report
 
@@ -200,7 +199,9 @@ def run_separate(args) -> int:
 
 def run(args) -> int:
     """The library's :func:`bayescal.design.verb.plan_files` (or ``plan_next_session``), written and printed."""
+    from ..design import write_plan
     from ..design.verb import plan_files
+    from ..machines.files import load_machine
     from . import EXIT_OK
 
     if args.separate is not None:

@@ -4,6 +4,8 @@ A method is a named callable ``fn(model, *, free, **options) ->
 IdentificationResult``.  Adding a method is one call of
 :func:`register_method` (or one entry in :data:`METHODS`); ``--methods``
 names them, with options after a colon: ``ridge:lam=0.1``, ``tsvd:k=20``.
+The library's own methods are described in :data:`bayescal.constants.COMPARE_METHODS`,
+which ``bayescal compare --help`` lists without importing this module.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..constants import COMPARE_METHODS
 from ..errors import InputError
 from ..identify import identify, resolve_free, whitened_system
 from ..limits import LAM_RANGE, lam_problem
@@ -177,9 +180,10 @@ def _mcmc(model, *, free, steps=400, seed=0, surrogate="linear"):
     return sample_posterior(model, free=free, n_steps=int(steps), seed=int(seed), surrogate=str(surrogate))
 
 
-register_method("ls", _ls, help="Gauss-Newton least squares")
-register_method("ridge", _ridge, lam=1.0, check=_check_ridge, help="ridge towards nominal (lam=1: MAP under the tolerance prior; "
-                "lam=auto chooses lam by a rule, rule=evidence by default)")
+# the descriptions are bayescal.constants.COMPARE_METHODS (``bayescal compare --help`` lists them without importing
+# this module)
+register_method("ls", _ls, help=COMPARE_METHODS["ls"])
+register_method("ridge", _ridge, lam=1.0, check=_check_ridge, help=COMPARE_METHODS["ridge"])
 def _map(model, *, free):
     # what `bayescal identify --method map` answers (bayescal.identify.calibrate: the prior scale from the data
     # where it can be estimated, the outlier test and robust refit, the noise test): a comparison of "map" must
@@ -189,14 +193,10 @@ def _map(model, *, free):
     return calibrate(model, method="map", free=free).result
 
 
-register_method("map", _map, help="MAP as identify --method map computes it (prior scale, outliers, noise test)")
-register_method("tsvd", _tsvd, k="snr", check=_check_tsvd,
-                help="truncated SVD; k=snr keeps singular values > 1 of the tolerance-scaled matrix, k=auto chooses "
-                "k by a rule (rule=cv|lcurve|gcv|discrepancy|evidence|risk)")
-register_method("kalman", _kalman, variant="ekf", check=_check_kalman, help="recursive Kalman filter, one update per pose (variant=ekf|ukf)")
-register_method("mcmc", _mcmc, steps=400, seed=0, surrogate="linear", check=_check_mcmc,
-                help="posterior mean by emcee (steps=400, surrogate=linear|none); a trial whose chain has not "
-                "converged counts as a failure")
+register_method("map", _map, help=COMPARE_METHODS["map"])
+register_method("tsvd", _tsvd, k="snr", check=_check_tsvd, help=COMPARE_METHODS["tsvd"])
+register_method("kalman", _kalman, variant="ekf", check=_check_kalman, help=COMPARE_METHODS["kalman"])
+register_method("mcmc", _mcmc, steps=400, seed=0, surrogate="linear", check=_check_mcmc, help=COMPARE_METHODS["mcmc"])
 
 
 def _value(text: str):

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ..constants import SCALINGS
 from ..contract import whiten
 from ..errors import InputError
 from ..identifiability import analyse_identifiability
@@ -30,7 +31,7 @@ from ..measurement import MeasurementModel
 
 __all__ = ["CandidateSet", "SCALINGS", "box_points", "column_scale", "draw_candidates", "candidate_set_from_jacobian"]
 
-SCALINGS = ("tolerance", "candidates")
+# SCALINGS is defined in bayescal.constants (the command line offers them without importing numpy).
 
 
 @dataclass(frozen=True)

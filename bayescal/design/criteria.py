@@ -56,6 +56,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from ..constants import CRITERIA
 from ..errors import InputError
 
 __all__ = [
@@ -63,8 +64,8 @@ __all__ = [
     "output_weight", "utility",
 ]
 
-#: All criteria, in the order reports list them.
-CRITERIA = ("D", "A", "E", "O1", "O2", "O3", "O4", "O5", "EIG", "I")
+# CRITERIA, all criteria in the order reports list them, is defined in bayescal.constants (the command line offers
+# them without importing numpy) and exported from here as before.
 #: Criteria computed with the tolerance prior (defined for any number of poses).
 PRIOR_BASED = ("EIG", "I")
 #: Criteria that are functions of extreme singular values (no rank-k update formula).

@@ -1,7 +1,9 @@
 """Physical effects beyond the geometric model, as plug-ins to the measurement model.
 
 Adding an effect: one module with an :class:`Effect` subclass, one entry in
-:data:`EFFECTS` (``registry.py``), and :func:`check_effect` must pass for it.
+:data:`EFFECTS` (``registry.py``) and its name in :data:`bayescal.constants.EFFECT_NAMES`
+(the command line lists them without importing the effects), and :func:`check_effect`
+must pass for it.
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ..constants import EFFECT_NAMES
 from ..errors import InputError
 from .backlash import Backlash
 from .base import Effect
@@ -14,11 +15,16 @@ from .thermal_expansion import ThermalExpansion
 
 __all__ = ["EFFECTS", "get_effect"]
 
-#: The library, by stable name (docs/formats.md section 3), in the order they are tried.
-EFFECTS: dict[str, type[Effect]] = {
+_CLASSES: dict[str, type[Effect]] = {
     cls.name: cls for cls in (JointCompliance, ThermalExpansion, Backlash, ScrewPeriodicError, RedundancyPreload,
                               GravityDeflection, GravityBacklash)
 }
+if set(_CLASSES) != set(EFFECT_NAMES):  # a new effect is also named in bayescal.constants (the command line's help)
+    raise ImportError(f"bayescal.constants.EFFECT_NAMES {EFFECT_NAMES} does not name the effect classes {tuple(_CLASSES)}")
+
+#: The library, by stable name (docs/formats.md section 3), in the order they are tried
+#: (:data:`bayescal.constants.EFFECT_NAMES`, which the command line lists without importing the effects).
+EFFECTS: dict[str, type[Effect]] = {name: _CLASSES[name] for name in EFFECT_NAMES}
 
 
 def get_effect(name: str, **settings) -> Effect:

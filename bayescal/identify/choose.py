@@ -83,6 +83,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..constants import CALIBRATED_RULES, DEFAULT_RULE, RULE_NAMES, RULES
 from ..errors import InputError
 from ..limits import LAM_RANGE
 from ..measurement import MeasurementModel
@@ -107,22 +108,8 @@ __all__ = [
     "lambda_posterior",
 ]
 
-#: Rules every call computes, in the order reports list them.
-RULES: tuple[str, ...] = ("cv", "lcurve", "gcv", "discrepancy", "evidence", "risk", "success")
-
-#: Rules that first calibrate on the problem's design (computed only when asked for).
-CALIBRATED_RULES: tuple[str, ...] = ("targets",)
-
-#: Every rule name a caller may ask for.
-RULE_NAMES: tuple[str, ...] = RULES + CALIBRATED_RULES
-
-#: Default rule per method, chosen by ``studies/choice_rules.py`` (400
-#: linear-Gaussian data sets per situation and truth scale; docs/regularisation.md, "Which rule"):
-#: for lambda the Bayes decision for the success event, the prior scale
-#: integrated over :data:`bayescal.identify.scale_prior.DEFAULT_HYPERPRIOR`;
-#: for k the ``targets`` compromise (success alone leaves a long tail of
-#: the ratio where truths are better than the tolerances).
-DEFAULT_RULE: dict[str, str] = {"ridge": "success", "tsvd": "targets"}
+# RULES, CALIBRATED_RULES, RULE_NAMES and DEFAULT_RULE are defined in bayescal.constants (the command line
+# offers them without importing numpy) and exported from here as before.
 
 #: Posterior draws of the ``success`` rule.  With 400 the rule's own Monte
 #: Carlo noise cost 0.3-0.6 point of success probability against the ceiling

@@ -73,6 +73,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ..constants import DEFAULT_NU, OUTLIER_ALPHA
 from ..contract import scale_noise
 from ..distributions import chi2_median, chi2_ppf, chi2_sf, f_sf
 from ..errors import InputError
@@ -94,12 +95,12 @@ __all__ = [
     "recording_lines",
 ]
 
-#: Family-wise level of the outlier test over all poses of a recording.
-ALPHA = 0.01
+#: Family-wise level of the outlier test over all poses of a recording (:data:`bayescal.constants.OUTLIER_ALPHA`;
+#: it and DEFAULT_NU, the degrees of freedom of the Student-t loss, are defined there so that the command line
+#: offers them as defaults without importing numpy).
+ALPHA = OUTLIER_ALPHA
 #: Robust losses of :func:`irls_weights`.
 LOSSES = ("t", "huber")
-#: Degrees of freedom of the Student-t loss.
-DEFAULT_NU = 4.0
 #: More flagged poses than this share of a recording: a model mismatch, not outliers.
 MAX_FRACTION = 0.1
 #: Huber threshold on the whitened pose norm, as a chi quantile of the pose's rows.

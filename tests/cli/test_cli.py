@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from bayescal.cli import main
+from bayescal.cli import COMMANDS, main
 from tests.conftest import PRS3_FILE
 
 
@@ -166,6 +166,61 @@ def test_top_level_help_imports_no_command_and_no_numpy():
         assert f"{name}" in out and SUMMARIES[name] in " ".join(out.split())
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     assert {c.dest: c.help for c in sub._choices_actions} == SUMMARIES
+
+
+#: What a command's parser may import of the package: the command line's own modules, the option names
+#: (bayescal.constants), the errors and the package itself (no library module, which would bring numpy).
+_PARSER_MODULES = ("bayescal", "bayescal._lazy", "bayescal.errors", "bayescal.constants")
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_command_help_and_usage_errors_import_neither_numpy_nor_the_library(command):
+    """`bayescal COMMAND --help` and a usage error build the command's parser only (issue 31): the choices and
+    defaults it shows come from bayescal.constants, and the library (numpy, scipy, ...) is imported by the
+    command's run. An import set, not a timing: the help took 0.6-1.3 s of CPU with them, about 0.05 s without."""
+    import subprocess
+    import sys
+
+    code = (
+        "import contextlib, io, sys\nfrom bayescal.cli import build_parser, main\n"
+        f"build_parser(({command!r},))\n"
+        f"for argv in ([{command!r}, '--help'], [{command!r}, '--no-such-option'], [{command!r}, '--json']):\n"
+        "    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):\n"
+        "        try:\n            main(argv)\n        except SystemExit:\n            pass\n"
+        "heavy = ('numpy', 'scipy', 'matplotlib', 'emcee', 'arviz', 'filterpy', 'dask')\n"
+        "print('HEAVY', sorted(m for m in sys.modules if m.split('.')[0] in heavy and '.' not in m))\n"
+        f"print('LIBRARY', sorted(m for m in sys.modules if m.startswith('bayescal') and m not in {_PARSER_MODULES!r}"
+        " and not m.startswith('bayescal.cli')))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    lines = out.strip().splitlines()
+    assert lines[-2:] == ["HEAVY []", "LIBRARY []"], out
+
+
+def test_the_parsers_names_are_the_librarys():
+    """The names the parsers offer (bayescal.constants) are the ones the library acts on, defined once."""
+    from bayescal import constants
+    from bayescal.bayes.priors import PRIOR_SCALES
+    from bayescal.compare import METHODS, METRICS
+    from bayescal.design import CRITERIA, SCALINGS
+    from bayescal.effects import EFFECTS
+    from bayescal.identify.choose import DEFAULT_RULE, RULE_NAMES
+    from bayescal.outliers import ALPHA, DEFAULT_NU
+
+    assert (PRIOR_SCALES, RULE_NAMES, DEFAULT_RULE, CRITERIA, SCALINGS, METRICS) == (
+        constants.PRIOR_SCALES, constants.RULE_NAMES, constants.DEFAULT_RULE, constants.CRITERIA, constants.SCALINGS,
+        constants.METRICS)
+    assert (ALPHA, DEFAULT_NU) == (constants.OUTLIER_ALPHA, constants.DEFAULT_NU)
+    assert tuple(EFFECTS) == constants.EFFECT_NAMES and all(cls.name == name for name, cls in EFFECTS.items())
+    # compare --help lists these: the registry's own methods (all of them, as a fresh process has it), described by
+    # the same words
+    assert {name: METHODS[name].help for name in constants.COMPARE_METHODS} == constants.COMPARE_METHODS
+    import subprocess
+    import sys
+
+    code = "from bayescal.compare import METHODS\nprint(' '.join(METHODS))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == list(constants.COMPARE_METHODS)
 
 
 def test_values_that_start_with_a_minus_sign_are_values():
