@@ -22,7 +22,8 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from ..params import ParamLayout
 
-__all__ = ["Free", "with_fixed", "held_index", "held_names", "same_free", "bounds_of", "bound_arrays", "parse_bounds", "check_name"]
+__all__ = ["Free", "with_fixed", "held_index", "held_names", "same_free", "bounds_of", "bound_arrays", "parse_bounds",
+           "check_name"]
 
 
 @dataclass(frozen=True)
@@ -100,9 +101,11 @@ def parse_bounds(bounds) -> tuple[tuple[str, float, float], ...]:
                 raise ValueError
         except (TypeError, ValueError, IndexError):
             raise InputError(f"bounds: expected name: (lower, upper) pairs of numbers, got {item!r}") from None
-        if np.isnan(lo) or np.isnan(hi) or not lo < hi:
-            raise InputError(f"bounds: '{name}': expected lower < upper, got ({lo}, {hi}); a parameter held at "
-                             "one value is fix, not a bound")
+        if np.isnan(lo) or np.isnan(hi):
+            raise InputError(f"bounds (--bound): '{name}': expected numbers (or an open side), got ({lo}, {hi})")
+        if not lo < hi:
+            raise InputError(f"bounds (--bound): '{name}': expected lower < upper, got ({lo}, {hi}); a parameter held "
+                             "at one value is fix, not a bound")
         out.append((name, lo, hi))
     return tuple(out)
 
@@ -125,7 +128,7 @@ def bound_arrays(layout: ParamLayout, bounds) -> tuple[NDArray, NDArray]:
     for name, a, b in bounds:
         check_name(layout, name, "bounds")
         if name in seen:
-            raise InputError(f"bounds: '{name}' bounded twice")
+            raise InputError(f"bounds (--bound): '{name}' bounded twice")
         seen.add(name)
         lo[layout.index(name)], hi[layout.index(name)] = a, b
     return lo, hi
@@ -135,7 +138,8 @@ def check_name(layout: ParamLayout, name: str, what: str) -> None:
     """InputError naming ``what`` (``fix``, ``bounds``, ``free``) when ``name`` is not a parameter, with the closest."""
     if name not in layout.names:
         # a name written without its prefix (``mass.link3`` for ``effect.gravity_deflection.mass.link3``)
-        close = [n for n in layout.names if n.endswith("." + name)][:1] or difflib.get_close_matches(name, layout.names, n=1)
+        close = ([n for n in layout.names if n.endswith("." + name)][:1]
+                 or difflib.get_close_matches(name, layout.names, n=1))
         hint = f"did you mean '{close[0]}'? " if close else ""
         raise InputError(f"{what}: unknown parameter '{name}'; {hint}expected one of: {', '.join(layout.names)}")
 

@@ -384,12 +384,13 @@ def _box(model, method: str, free) -> tuple[NDArray, NDArray] | None:
     if not bounds:
         return None
     if method == "tsvd":
-        raise InputError("bounds: tsvd keeps the solution in its k best-determined directions and cannot also keep "
-                         "parameters inside bounds; expected method ls, ridge or map (or mcmc)")
+        raise InputError("bounds (--bound): tsvd keeps the solution in its k best-determined directions and cannot "
+                         "also keep parameters inside bounds; expected method ls, ridge or map (or mcmc)")
     layout = model.machine.layout
     both = sorted(set(held_names(free)) & {b[0] for b in bounds})
     if both:
-        raise InputError(f"bounds: {', '.join(both)} also held fixed (fix); expected each in one of them")
+        raise InputError(f"bounds (--bound): {', '.join(both)} also held fixed (fix, --fix); expected each in one "
+                         "of them")
     return bound_arrays(layout, bounds)
 
 
@@ -566,7 +567,8 @@ def _result(model, method, solver, lam, k, it: "_Iterated", idx, S, c, basis, id
         cost_history=np.array(it.costs),
         success=it.success,
         message=it.message,
-        fixed=tuple(n for n, f in zip(machine.layout.names, free_mask) if not f and n not in held and n not in at_bound),
+        fixed=tuple(n for n, f in zip(machine.layout.names, free_mask)
+                    if not f and n not in held and n not in at_bound),
         held=tuple(held),
         at_bound=tuple(at_bound),
         unidentifiable=() if ida is None else ida.combinations,

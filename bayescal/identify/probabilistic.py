@@ -208,8 +208,9 @@ def calibrate_bayes(model, *, method: str, free="auto", fix=None, bounds=None, m
     o = _method_options(method, options)
     free = with_fixed(free, fix, bounds)
     if bounds_of(free) and method == "kalman":
-        raise InputError("bounds: the Kalman filter's answer is a Gaussian and cannot keep parameters inside bounds; "
-                         "expected method map, ridge or ls (a bounded answer) or mcmc (the posterior truncated there)")
+        raise InputError("bounds (--bound): the Kalman filter's answer is a Gaussian and cannot keep parameters "
+                         "inside bounds; expected method map, ridge or ls (a bounded answer) or mcmc (the posterior "
+                         "truncated there)")
     if noise not in ("auto", "stated"):
         raise InputError(f"noise: expected 'auto' or 'stated', got {noise!r}")
     if not (finite_real(alpha) and 0 < alpha < 1):

@@ -149,7 +149,7 @@ def test_mirrored_reflects_draws_into_the_bounds():
     ({"chain3.sphere_centre.z": (0, 1)}, "unknown parameter 'chain3.sphere_centre.z'; did you mean 'chain3.sphere_center.z'"),
     ({"point.z": (0, 1)}, "unknown parameter 'point.z'; did you mean 'tool.point.z'"),  # its prefix left out
     ({NAME: (0.1, 0.1)}, "expected lower < upper"),
-    ({NAME: (0.1, float("nan"))}, "expected lower < upper"),
+    ({NAME: (0.1, float("nan"))}, "expected numbers \\(or an open side\\)"),
     ({NAME: "wide"}, "expected name: \\(lower, upper\\) pairs"),
     ([(NAME, 0, 1), (NAME, 0, 2)], "bounded twice"),
 ])
