@@ -37,6 +37,11 @@ from .machines.base import Machine, ToolPoses, map_state, offset_poses
 
 __all__ = ["MeasurementModel", "Prediction", "rows_per_pose", "offset_poses", "pose_offset_rows"]
 
+#: Poses per block of the orientation rows' product in :meth:`MeasurementModel.rows_jacobian` (the same values
+#: whatever the blocks; a block's product is memory the allocator reuses, a whole one of 100,000 poses fresh
+#: pages at every call).
+_ROWS_BLOCK = 4096
+
 
 def rows_per_pose(dof: int) -> int:
     """Number of measured components per pose for a 6-, 5- or 3-DOF measurement."""
@@ -461,7 +466,11 @@ class MeasurementModel:
         J = np.zeros((n, self.dof, Jt.shape[2]))
         J[:, :3] = Jt[:, :3]
         if d == 6:
-            J[:, 3:6] = left_jacobian_inverse(prediction.y[:, 3:6]) @ Jt[:, 3:]
+            L = left_jacobian_inverse(prediction.y[:, 3:6])
+            # in blocks of poses: each pose's product is its own, and a block's product (unlike a whole one of
+            # 100,000 poses) is memory the allocator reuses instead of fresh pages
+            for k in range(0, n, _ROWS_BLOCK):
+                J[k : k + _ROWS_BLOCK, 3:6] = L[k : k + _ROWS_BLOCK] @ Jt[k : k + _ROWS_BLOCK, 3:]
         elif d == 5:
             nvec = prediction.poses.rotation[:, :, 2]
             J[:, 3:5] = -np.einsum("nkj,nji,nip->nkp", self._tangent, skew(nvec), Jt[:, 3:])

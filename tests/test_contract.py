@@ -300,3 +300,18 @@ def test_a_result_with_a_wrong_covariance_or_a_missing_member_is_caught(recorded
             return getattr(res, name)
 
     assert check_result(Partial()) == ["missing member(s) of the result contract: prior_effective_params"]
+
+
+def test_whiten_into_the_values_themselves_gives_the_same_values(prs3, rng):
+    """``whiten(model, J, out=J)`` (the joint fit's system, in place) is ``whiten(model, J)`` bit for bit."""
+    from bayescal.contract import whiten
+    from bayescal.effects.simulate import simulate_with_effects
+    from bayescal.measurement import MeasurementModel
+
+    sim = simulate_with_effects(prs3, 9, seed=2, dof=6, effects=[("thermal_expansion", 25.0)], record=("temp_C",))
+    model = MeasurementModel.from_recording(prs3, sim.recording)
+    for shape in ((9, 6), (9, 6, 4)):
+        v = rng.normal(size=shape)
+        want = whiten(model, v)
+        got = whiten(model, v.copy(), out=(w := v.copy()))
+        assert got is w and np.array_equal(got, want)

@@ -152,3 +152,33 @@ def test_kept_system_is_the_fits_own_and_gives_the_same_folds(prs3):
     ref = linear_fold_residuals(model, [(eff, f)], fit.theta, fit.eta, folds)
     for g, r in zip(got, ref):
         np.testing.assert_allclose(g, r, rtol=1e-8, atol=1e-12)
+
+
+@pytest.mark.parametrize("names", [(), ("thermal_expansion",), ("joint_compliance", "backlash")])
+def test_joint_system_filled_in_place_is_the_concatenated_one_bit_for_bit(prs3, names):
+    """The joint fit's system, filled, whitened and scaled in one array (large recordings: no fresh array per
+    step), is ``whiten(concatenate([Jg + Jt] + Je)).reshape(-1, P + K) * scale`` bit for bit."""
+    from bayescal.contract import whiten
+    from bayescal.effects.model import _Joint, effect_columns
+    from bayescal.effects.simulate import simulate_with_effects
+
+    sim = simulate_with_effects(prs3, 15, seed=5, dof=6, effects=[("backlash", 20.0)],
+                                record=("time_s", "temp_C", "payload_kg"))
+    model = MeasurementModel.from_recording(prs3, sim.recording)
+    zero = np.zeros(prs3.n_params)
+    poses = model.predict(zero).poses
+    effects = []
+    for name in names:
+        eff = get_effect(name)
+        effects.append((eff, eff.features(prs3, model.q, zero, dict(sim.recording.aux), None, poses)))
+    joint = _Joint.of(model, effects)
+    rng = np.random.default_rng(3)
+    x = 0.3 * rng.normal(size=joint.scale.size) * joint.scale
+    theta, eta = x[: joint.P], x[joint.P :]
+    sub, pred, *_ = joint.evaluate(theta, eta, None)
+    cols = [sub.jacobian(theta, pred)]
+    if joint.K:
+        Je, Jt = effect_columns(sub, theta, pred, joint.effects, joint.slices, eta)
+        cols = [cols[0] if Jt is None else cols[0] + Jt] + Je
+    want = whiten(model, np.concatenate(cols, axis=2)).reshape(-1, joint.P + joint.K) * joint.scale
+    assert np.array_equal(joint.system(sub, pred, theta, eta), want)

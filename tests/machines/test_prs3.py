@@ -156,3 +156,37 @@ def test_tangent_guesses_are_first_order_and_solve_to_the_same_poses(prs3, rng):
     assert warm.success.all()
     np.testing.assert_allclose(warm.position, solved[0].position, rtol=0, atol=1e-9)
     np.testing.assert_allclose(warm.rotation, solved[0].rotation, rtol=0, atol=1e-12)
+
+
+def _tool_jacobian_unblocked(machine, q, theta, poses):
+    """The tool Jacobian as it was computed before the blocks and the in-place steps (one array per step)."""
+    from bayescal.geometry import skew
+    from bayescal.machines.prs3 import _PER_CHAIN
+
+    n = q.shape[0]
+    g = machine._geometry(machine._theta_rows(theta, n))
+    st = poses.state
+    dx = machine._state_derivative(q, g, st)
+    Rt = np.einsum("nij,nj->ni", st.R, g.t)
+    J = np.empty((n, 6, machine.n_params))
+    J[:, :3] = dx[:, :3] - skew(Rt) @ dx[:, 3:]
+    J[:, :3, 3 * _PER_CHAIN :] += st.R
+    J[:, 3:] = dx[:, 3:]
+    return J
+
+
+@pytest.mark.parametrize("per_pose", [False, True])
+def test_tool_jacobian_in_blocks_is_the_whole_batchs_bit_for_bit(prs3, rng, monkeypatch, per_pose):
+    """Poses in blocks (large recordings, ``_BLOCK``) and the in-place steps give the very same values as one
+    batch of one array per step: every pose's Jacobian is its own."""
+    import bayescal.machines.prs3 as mod
+
+    q = prs3.sample_q(23, rng)
+    shape = (23, prs3.n_params) if per_pose else (prs3.n_params,)
+    theta = rng.normal(size=shape) * prs3.tolerance * 10
+    poses = prs3.forward(q, theta)
+    whole = prs3.tool_jacobian(q, theta, poses)
+    monkeypatch.setattr(mod, "_BLOCK", 5)  # 23 poses: four blocks of 5 and one of 3
+    blocked = prs3.tool_jacobian(q, theta, poses)
+    assert np.array_equal(blocked, whole)
+    assert np.array_equal(whole, _tool_jacobian_unblocked(prs3, q, theta, poses))
