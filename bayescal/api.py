@@ -174,7 +174,7 @@ def calibrate(data, *, method: str = "map", **options):
         # the outlier test names poses by their line in the recording file (held-out rows skipped)
         options.setdefault("lines", recording_lines(model.n_poses, session.fit_recording))
     check = None if session is None else session.check
-    from .identify.calibrate import DETERMINISTIC_METHODS
+    from .constants import DETERMINISTIC_METHODS
 
     if method not in DETERMINISTIC_METHODS + BAYES_METHODS:
         raise InputError(f"method: expected one of {', '.join(DETERMINISTIC_METHODS + BAYES_METHODS)}, got {method!r}")

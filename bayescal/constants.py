@@ -14,8 +14,17 @@ from __future__ import annotations
 
 __all__ = [
     "PRIOR_SCALES", "RULES", "CALIBRATED_RULES", "RULE_NAMES", "DEFAULT_RULE", "OUTLIER_ALPHA", "DEFAULT_NU",
-    "EFFECT_NAMES", "CRITERIA", "SCALINGS", "COMPARE_METHODS", "METRICS",
+    "EFFECT_NAMES", "CRITERIA", "SCALINGS", "COMPARE_METHODS", "METRICS", "DETERMINISTIC_METHODS", "BAYES_METHODS",
+    "GRID_METHODS",
 ]
+
+# ---------------------------------------------------------------- identification methods (bayescal.identify)
+#: The methods :func:`bayescal.identify.calibrate.calibrate` runs (a Gauss-Newton fit each).
+DETERMINISTIC_METHODS: tuple[str, ...] = ("ls", "ridge", "tsvd", "map")
+#: The methods :func:`bayescal.identify.probabilistic.calibrate_bayes` runs (the filter, the sampler).
+BAYES_METHODS: tuple[str, ...] = ("kalman", "mcmc")
+#: The methods a compensation grid's std comes from (:func:`bayescal.bayes.recording_grid.recording_grid`).
+GRID_METHODS: tuple[str, ...] = ("map",) + BAYES_METHODS
 
 # ---------------------------------------------------------------- the prior (bayescal.bayes.priors)
 #: Values of ``prior_scale`` in :func:`bayescal.bayes.priors.map_estimate`: "tolerance" (the machine

@@ -507,15 +507,17 @@ def _laplace_on_bounds(model, prior: GaussianPrior, start):
     """
     if not start.at_bound:
         return start
-    from ..identify.gauss_newton import whitened_system
+    from ..identify.gauss_newton import posterior_covariance, whitened_system
+    from ..identify.solvers import filtered_solve
 
     free = start.free.copy()
     free[[start.names.index(n) for n in start.at_bound]] = True
     idx = np.flatnonzero(free)
-    _, J = whitened_system(model, start.theta, model.predict(start.theta), columns=idx)
-    A = J * prior.std[idx]
-    cov = np.linalg.inv(A.T @ A + np.eye(idx.size)) * np.outer(prior.std[idx], prior.std[idx])
-    return dataclasses.replace(start, free=free, covariance=0.5 * (cov + cov.T), at_bound=())
+    r, J = whitened_system(model, start.theta, model.predict(start.theta), columns=idx)
+    # the MAP's Laplace covariance under the tolerance prior (lam = 1), as identify computes it
+    cov, _ = posterior_covariance(filtered_solve(J * prior.std[idx], r, "ridge", lam=1.0), "map", lam=1.0)
+    return dataclasses.replace(start, free=free, covariance=cov * np.outer(prior.std[idx], prior.std[idx]),
+                               at_bound=())
 
 
 def _chain_size(n: int, n_walkers: int | None, n_steps: int, burn: int | None) -> tuple[int, bool, int]:

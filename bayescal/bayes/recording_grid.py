@@ -34,6 +34,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..constants import GRID_METHODS
 from ..errors import InputError
 from ..identify.free import Free, with_fixed
 from ..notebook import ShowsReport
@@ -42,7 +43,6 @@ __all__ = ["GridAnswer", "recording_grid", "grid_space", "check_grid_ranges", "b
            "GRID_DRAWS"]
 
 #: The identification methods a grid is made from.
-GRID_METHODS = ("map", "kalman", "mcmc")
 #: Posterior draws (about) a grid's std is computed over: the chain is thinned to them.
 GRID_DRAWS = 400
 
@@ -119,8 +119,8 @@ class GridAnswer(ShowsReport):
             at = ", ".join(f"{k} = {v:g}" for k, v in self.aux.items()) or "no auxiliary channel"
             how = "fitted with the geometry, " if self.effects_fitted else ""
             lines.append(f"  effects         {', '.join(self.effects)} {how}applied at {at}")
-        if self._bounds().get("at_bound"):
-            lines.append(f"  on a bound      {', '.join(self._bounds()['at_bound'])} (no std: the grid's std is "
+        if self.identification.at_bound:
+            lines.append(f"  on a bound      {', '.join(self.identification.at_bound)} (no std: the grid's std is "
                          "conditional on them staying there)")
         if self.plausibility is not None:
             lines.append(self.plausibility.report())

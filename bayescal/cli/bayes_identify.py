@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..constants import BAYES_METHODS as METHODS
 from ..errors import InputError
 from .outputs import say, write_json, write_report
 
 __all__ = ["add_arguments", "check_method_options", "bayes_options", "run_bayes", "METHODS"]
 
-METHODS = ("kalman", "mcmc")
 
 
 def add_arguments(p) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..constants import GRID_METHODS
 from ..errors import InputError
 from . import SUMMARIES
 from .inputs import add_frame_argument, bound_args, free_arg, inputs_with_session, name_list
@@ -76,7 +77,7 @@ def register(sub) -> None:
     )
     p.add_argument("recording", help="recording CSV (docs/formats.md section 2, or a constraint recording, section 6)")
     p.add_argument("--machine", required=True, help="machine file TOML with [workspace] q_limits (docs/formats.md section 1)")
-    p.add_argument("--method", choices=("map", "kalman", "mcmc"), default="map", help="how to identify (default map)")
+    p.add_argument("--method", choices=GRID_METHODS, default="map", help="how to identify (default map)")
     p.add_argument("--free", default="all", help="'all' (default), 'auto' or comma-separated names")
     p.add_argument("--fix", metavar="NAMES", help="comma-separated parameters held at nominal (identify --fix)")
     p.add_argument("--bound", action="append", metavar="NAME=LO:HI",

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..constants import DEFAULT_RULE, PRIOR_SCALES, RULE_NAMES
+from ..constants import DEFAULT_RULE, DETERMINISTIC_METHODS, PRIOR_SCALES, RULE_NAMES
 from ..errors import InputError
 from . import SUMMARIES
 from .bayes_identify import METHODS, add_arguments, bayes_options, check_method_options, run_bayes
@@ -106,7 +106,7 @@ def register(sub) -> None:
     )
     p.add_argument("recording", help="recording CSV (docs/formats.md section 2)")
     p.add_argument("--machine", required=True, help="machine file TOML (docs/formats.md section 1)")
-    p.add_argument("--method", choices=("ls", "ridge", "tsvd", "map") + METHODS, default="map",
+    p.add_argument("--method", choices=DETERMINISTIC_METHODS + METHODS, default="map",
                    help="solver (default: map, the MAP estimate under the tolerance prior with its Laplace covariance)")
     p.add_argument(
         "--lam", type=_lam_arg, metavar="LAM|auto",

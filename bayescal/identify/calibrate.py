@@ -33,6 +33,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..constants import DETERMINISTIC_METHODS
 from ..contract import scale_noise, whiten
 from ..errors import InputError
 from ..limits import check_lam, finite_real
@@ -44,7 +45,6 @@ from .result import IdentificationResult
 
 __all__ = ["Calibration", "calibrate", "noise_check_of", "DETERMINISTIC_METHODS"]
 
-DETERMINISTIC_METHODS = ("ls", "ridge", "tsvd", "map")
 #: Rounds of noise-scale re-estimation at most (the scale settles in one for ls and tsvd).
 MAX_NOISE_ROUNDS = 6
 #: Smallest factor on a stated noise: residuals a thousand times below it come from a noise-free (simulated)

@@ -91,16 +91,18 @@ def parse_bounds(bounds) -> tuple[tuple[str, float, float], ...]:
     """
     if bounds is None:
         return ()
-    items = list(bounds.items()) if hasattr(bounds, "items") else list(bounds)
+    # a mapping's items are (name, (lower, upper)); a sequence's entries (name, lower, upper)
+    items = [(k, *v) if isinstance(v, (tuple, list)) else (k, v) for k, v in bounds.items()] \
+        if hasattr(bounds, "items") else list(bounds)
     out = []
     for item in items:
         try:
-            name, pair = (item[0], item[1]) if len(item) == 2 else (item[0], item[1:])
-            lo, hi = (-np.inf if pair[0] is None else float(pair[0]), np.inf if pair[1] is None else float(pair[1]))
-            if len(pair) != 2 or not isinstance(name, str):
+            name, lo, hi = item
+            lo, hi = -np.inf if lo is None else float(lo), np.inf if hi is None else float(hi)
+            if not isinstance(name, str):
                 raise ValueError
-        except (TypeError, ValueError, IndexError):
-            raise InputError(f"bounds: expected name: (lower, upper) pairs of numbers, got {item!r}") from None
+        except (TypeError, ValueError):
+            raise InputError(f"bounds (--bound): expected name: (lower, upper) pairs of numbers, got {item!r}") from None
         if np.isnan(lo) or np.isnan(hi):
             raise InputError(f"bounds (--bound): '{name}': expected numbers (or an open side), got ({lo}, {hi})")
         if not lo < hi:

@@ -34,6 +34,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..constants import DETERMINISTIC_METHODS
 from ..contract import whiten
 from ..errors import ConvergenceWarning, InputError, KinematicsError
 from ..limits import check_fit_memory, check_lam
@@ -478,7 +479,7 @@ def _check_options(model, method: str, lam, max_iter) -> tuple[str, float | None
     """The solver a method uses and its lambda, or InputError naming the argument."""
     if model.y_measured is None:
         raise InputError("identify: the measurement model has no measured values")
-    if method not in ("ls", "ridge", "tsvd", "map"):
+    if method not in DETERMINISTIC_METHODS:
         raise InputError(f"method: expected 'ls', 'ridge', 'tsvd' or 'map', got {method!r}")
     if method == "map":
         if lam is not None and lam != 1:

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..constants import BAYES_METHODS
 from ..contract import scale_noise
 from ..errors import InputError
 from ..limits import finite_real
@@ -34,7 +35,6 @@ from .free import bounds_of, with_fixed
 
 __all__ = ["BayesCalibration", "calibrate_bayes", "BAYES_METHODS", "METHOD_OPTIONS", "MIN_STEPS"]
 
-BAYES_METHODS = ("kalman", "mcmc")
 #: Options of one method, with their defaults (given with the other method they are refused, not ignored).
 METHOD_OPTIONS = {
     "kalman": {"variant": "ekf", "process_noise": 0.0},

@@ -52,7 +52,7 @@ def _status(d: dict, p: dict) -> str:
 def _parameters_table(d: dict, poor=(), tolerance=None) -> dict:
     rows, classes = [], []
     for i, p in enumerate(d["parameters"]):
-        flags = [_status(d, p)] if _status(d, p) else []
+        flags = [s for s in (_status(d, p),) if s]
         if p["name"] in poor:
             flags.append("! std above 10 tolerances")
         tol = None if tolerance is None else float(tolerance[i])
