@@ -139,6 +139,19 @@ class Model(Protocol):
         """The machine a calibration of this model reports and writes (its frame; not the model's pivots)."""
 
 
+def jacobian_into(model, theta, prediction, out: NDArray) -> NDArray:
+    """``model.jacobian(theta, prediction)`` written into ``out`` (shape (n_poses, dof, P); a view of a system).
+
+    A model whose ``jacobian`` takes ``out`` (:class:`bayescal.measurement.MeasurementModel`) writes there
+    directly, a large recording's pose block by pose block: no fresh (n_poses, dof, P) array, whose page
+    faults cost more than its arithmetic at 100,000 poses.  Any other model's answer is copied.
+    """
+    if getattr(model.jacobian, "writes_into", False):
+        return model.jacobian(theta, prediction, out=out)
+    out[...] = model.jacobian(theta, prediction)
+    return out
+
+
 def whiten(model, values: ArrayLike, *, out: NDArray | None = None) -> NDArray:
     """``values`` in units of each row's one-sigma noise: the one place rows are whitened.
 

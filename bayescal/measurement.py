@@ -41,6 +41,11 @@ __all__ = ["MeasurementModel", "Prediction", "rows_per_pose", "offset_poses", "p
 #: whatever the blocks; a block's product is memory the allocator reuses, a whole one of 100,000 poses fresh
 #: pages at every call).
 _ROWS_BLOCK = 4096
+#: Size above which an array is fresh pages at every allocation: glibc hands blocks above its mmap threshold
+#: (at most 32 MiB) back to the kernel when freed, so each new one pays its page faults again (at 100,000
+#: poses a (n, 6, 36) Jacobian is 173 MB: its faults cost more than the arithmetic that fills it).  The
+#: Jacobian of a recording above this is computed in pose blocks (:meth:`MeasurementModel.jacobian_columns`).
+_FRESH_BYTES = 32 * 2**20
 
 
 def rows_per_pose(dof: int) -> int:
@@ -293,7 +298,10 @@ class MeasurementModel:
         g = self.guess
         if g is not None:
             sub_state = map_state(lambda a: a[idx], g.state)
-            g = ToolPoses(g.position[idx], g.rotation[idx], g.success[idx], tuple(np.asarray(g.message, dtype=object)[idx]), sub_state)
+            # the messages of the poses taken only (a large recording's pose blocks: not all of them each time)
+            taken = (np.flatnonzero(idx) if idx.dtype == bool else idx.reshape(-1)).tolist()
+            g = ToolPoses(g.position[idx], g.rotation[idx], g.success[idx], tuple(g.message[i] for i in taken),
+                          sub_state)
         return MeasurementModel(
             machine=self.machine.for_poses(idx),
             q=self.q[idx],
@@ -410,22 +418,39 @@ class MeasurementModel:
             y = np.concatenate([y, sensor_rows(self.machine, self.sensors, q, theta)], axis=1)
         return Prediction(y=y, poses=poses)
 
-    def jacobian(self, theta: ArrayLike | None, prediction: Prediction) -> NDArray:
+    def jacobian(self, theta: ArrayLike | None, prediction: Prediction, *, out: NDArray | None = None) -> NDArray:
         """``dh/dtheta`` at ``theta``, shape (n_poses, dof, P), analytic.
 
         Orientation rows: ``J_l^{-1}(h_rot) J_w`` (6-DOF) and
         ``t_k . (J_w x n)`` = ``-t_k^T [n]x J_w`` (5-DOF), where ``J_w`` is the
-        platform's small-rotation Jacobian.
+        platform's small-rotation Jacobian.  ``out``: an array of that shape
+        (a view of a larger system) to write into and return.
         """
-        return self.jacobian_columns(theta, prediction, None)
+        return self.jacobian_columns(theta, prediction, None, out=out)
 
-    def jacobian_columns(self, theta: ArrayLike | None, prediction: Prediction, columns: NDArray | None) -> NDArray:
+    jacobian.writes_into = True  # bayescal.contract.jacobian_into: takes ``out``
+
+    def jacobian_columns(self, theta: ArrayLike | None, prediction: Prediction, columns: NDArray | None, *,
+                         out: NDArray | None = None) -> NDArray:
         """:meth:`jacobian`'s ``columns`` (increasing indices; None: all), shape (n_poses, dof, len(columns)).
 
         The same values as the whole Jacobian's; the machine computes only
         what the columns need (:meth:`Machine.tool_jacobian_columns`): a fit
-        of the identifiable subset asks for these at every step.
+        of the identifiable subset asks for these at every step.  ``out``:
+        where to write them (returned).
         """
+        k = self.n_params if columns is None else len(columns)
+        if k >= 2 and np.ndim(theta) <= 1 and self.n_poses > _ROWS_BLOCK and self.n_poses * 6 * k * 8 > _FRESH_BYTES:
+            return self._jacobian_blocks(theta, prediction, columns, np.empty((self.n_poses, self.dof, k))
+                                         if out is None else out)
+        J = self._jacobian_whole(theta, prediction, columns)
+        if out is None:
+            return J
+        out[...] = J
+        return out
+
+    def _jacobian_whole(self, theta: ArrayLike | None, prediction: Prediction, columns: NDArray | None) -> NDArray:
+        """:meth:`jacobian_columns` of every pose at once."""
         if columns is not None and len(columns) < 2:
             # with one column the rows' products below are matrix-vector ones, which numpy computes another way
             # (other round-off: seen on the UR10's last column); the whole Jacobian's column keeps the values
@@ -441,6 +466,24 @@ class MeasurementModel:
             th = self.machine.check_theta(theta)
             Js = sensor_jacobian(self.machine, self.sensors, self.q, th)
             J[:, self.tool_dof :] = Js if columns is None else Js[:, :, columns]
+        return J
+
+    def _jacobian_blocks(self, theta: ArrayLike | None, prediction: Prediction, columns: NDArray | None,
+                         J: NDArray) -> NDArray:
+        """:meth:`jacobian_columns` pose block by pose block, into ``J`` (shape (n_poses, dof, k)).
+
+        Every pose's rows are its own (the sub-model of a block's poses gives them bit for bit), and a block's
+        tool Jacobian and rows are memory the allocator reuses: the whole recording's (n_poses, 6, k) tool
+        Jacobian and its rows would be two fresh arrays of pages at every call (:data:`_FRESH_BYTES`).
+        """
+        n, p = self.n_poses, prediction.poses
+        for start in range(0, n, _ROWS_BLOCK):
+            stop = min(start + _ROWS_BLOCK, n)
+            idx = np.arange(start, stop)
+            poses = ToolPoses(p.position[start:stop], p.rotation[start:stop], p.success[start:stop],
+                              tuple(p.message[start:stop]), map_state(lambda a: a[start:stop], p.state))
+            J[start:stop] = self.subset(idx).jacobian_columns(theta, Prediction(prediction.y[start:stop], poses),
+                                                              columns)
         return J
 
     def rows_jacobian(self, Jt: NDArray, prediction: Prediction) -> NDArray:

@@ -89,3 +89,47 @@ def test_a_measured_orientation_far_off_is_named_not_the_position(prs3):
                        r"solving .* from the measured position alone") as err:
         check_recording_solves(model, bad)
     assert (err.value.row, err.value.column) == (7, "rx")
+
+
+def _blocked(model, theta, pred, monkeypatch, columns=None):
+    """``jacobian_columns`` with the pose blocks forced on (blocks of 7 poses)."""
+    import bayescal.measurement as mod
+
+    monkeypatch.setattr(mod, "_ROWS_BLOCK", 7)
+    monkeypatch.setattr(mod, "_FRESH_BYTES", 0)
+    try:
+        return model.jacobian_columns(theta, pred, columns)
+    finally:
+        monkeypatch.undo()
+
+
+@pytest.mark.parametrize("dof", [6, 5, 3])
+def test_jacobian_in_pose_blocks_is_the_whole_ones_bit_for_bit(prs3, rng, monkeypatch, dof):
+    # a large recording's Jacobian is computed block by block (fresh pages otherwise): every pose's rows are
+    # its own, so the blocks must give the very same values, columns asked for or not
+    q = prs3.sample_q(30, rng)  # four blocks of 7 and one of 2
+    model = MeasurementModel(prs3, q, dof)
+    theta = rng.normal(size=prs3.n_params) * prs3.tolerance * 10
+    pred = model.predict(theta)
+    for cols in (None, np.array([0, 3, 17, 35])):
+        whole = model.jacobian_columns(theta, pred, cols)
+        blocked = _blocked(model, theta, pred, monkeypatch, cols)
+        assert blocked.shape == whole.shape
+        assert np.array_equal(blocked, whole)
+
+
+def test_jacobian_in_pose_blocks_with_stations_and_a_body_sensor(monkeypatch):
+    # rebinding per block: a station's frame per pose (machine.for_poses) and a body sensor's rows
+    from bayescal.instrument.prepare import prepare_model
+    from bayescal.machines.files import load_machine
+    from dataclasses import replace
+    from pathlib import Path
+
+    machine = load_machine(Path(__file__).resolve().parents[1] / "examples" / "prs3" / "machine.toml")
+    rec = simulate_recording(machine, 30, seed=4, dof=6).recording
+    labels = np.where(np.arange(30) % 3 == 0, "east", "west")
+    _, model, _ = prepare_model(machine, replace(rec, station=tuple(labels.tolist())), frame="fit")
+    rng = np.random.default_rng(2)
+    theta = rng.normal(size=model.n_params) * np.minimum(model.machine.tolerance, 1.0)
+    pred = model.predict(theta)
+    assert np.array_equal(_blocked(model, theta, pred, monkeypatch), model.jacobian(theta, pred))

@@ -22,13 +22,14 @@ the posterior covariance ``(A^T A + I)^-1`` and the log marginal likelihood
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import weakref
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..contract import whiten
+from ..contract import jacobian_into, whiten
 from ..errors import KinematicsError
 from ..iteration import ROUNDOFF, Proposal, StepControl, gauss_newton
 from ..machines.base import ToolPoses, map_state
@@ -351,6 +352,8 @@ class _Joint:
     params: tuple
     scale: NDArray
     mu: NDArray
+    #: The system's buffer and the state whose system it holds (:meth:`system`); per fit, never compared.
+    workspace: dict = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def of(cls, model: MeasurementModel, effects) -> "_Joint":
@@ -382,30 +385,44 @@ class _Joint:
         phi = np.concatenate([theta, eta]) / self.scale
         return sub, pred, r, rw, float(rw @ rw), float(np.sum((phi - self.mu) ** 2))
 
-    def system(self, sub, pred, theta, eta):
-        """The whitened Jacobian in the scaled coordinates, shape (rows, P + K)."""
-        Jg = sub.jacobian(theta, pred)
-        # The values of ``whiten(concatenate([Jg + Jt] + Je)).reshape(-1, P + K) * scale``, bit for bit, in one
-        # array: at 100,000 poses each fresh (rows x parameters) array costs its page faults again (about 3 ns
-        # an element against 1 for the arithmetic; glibc gives arrays above 32 MB back to the kernel when
-        # freed and reuses smaller ones, so this cost grows faster than the poses from 10,000 on).
-        if self.K:
-            Je, Jt = effect_columns(sub, theta, pred, self.effects, self.slices, eta)
-            J = np.empty(Jg.shape[:2] + (self.P + self.K,))
-            k = Jg.shape[2]
-            if Jt is None:
-                J[:, :, :k] = Jg
-            else:
-                np.add(Jg, Jt, out=J[:, :, :k])
-            for c in Je:
-                J[:, :, k : k + c.shape[2]] = c
-                k += c.shape[2]
-            whiten(self.model, J, out=J)
-        else:
-            J = whiten(self.model, Jg)  # a new array: Jg may be the model's own (a linearised model's constant J)
+    def system(self, sub, pred, theta, eta, owner=None):
+        """The whitened Jacobian in the scaled coordinates, shape (rows, P + K).
+
+        With ``owner`` (a :class:`_State`) the answer is written into this fit's one buffer, which ``owner`` then
+        holds (:meth:`_State.system`): the values of ``whiten(concatenate([Jg + Jt] + Je)).reshape(-1, P + K) *
+        scale``, bit for bit.  At 100,000 poses each fresh (rows x parameters) array costs its page faults
+        again (about 3 ns an element against 1 for the arithmetic; glibc gives arrays above 32 MB back to the
+        kernel when freed and reuses smaller ones, so this cost grows faster than the poses from 10,000 on);
+        one buffer for every iteration of a fit pays them once.
+        """
+        Je, Jt = effect_columns(sub, theta, pred, self.effects, self.slices, eta) if self.K else ([], None)
+        J = self._buffer((sub.n_poses, sub.dof, self.P + self.K), owner)
+        k = self.P
+        jacobian_into(sub, theta, pred, J[:, :, :k])  # written into the system: a model's own J is not touched
+        if Jt is not None:
+            J[:, :, :k] += Jt
+        for c in Je:
+            J[:, :, k : k + c.shape[2]] = c
+            k += c.shape[2]
+        whiten(self.model, J, out=J)
         A = J.reshape(-1, self.P + self.K)
         A *= self.scale
         return A
+
+    def _buffer(self, shape: tuple, owner) -> NDArray:
+        """This fit's system buffer of ``shape``, now ``owner``'s (a new array without an owner)."""
+        if owner is None:
+            return np.empty(shape)
+        held = self.workspace.get("system")
+        if held is None or held.shape != shape:
+            held = self.workspace["system"] = np.empty(shape)
+        self.workspace["owner"] = weakref.ref(owner)
+        return held
+
+    def owns(self, state: "_State") -> bool:
+        """Whether the buffer holds ``state``'s system (no other state's was written into it since)."""
+        ref = self.workspace.get("owner")
+        return ref is not None and ref() is state
 
     def state(self, theta, eta, guess) -> tuple[float, "_State"]:
         """The cost (chi-square plus prior term) and the state at ``(theta, eta)``; KinematicsError if a pose fails."""
@@ -447,9 +464,12 @@ class _State:
     _A: NDArray | None = None
 
     def system(self) -> NDArray:
-        """:meth:`_Joint.system` here, computed once (a trial the line search refuses never needs it)."""
-        if self._A is None:
-            self._A = self.joint.system(self.sub, self.pred, self.theta, self.eta)
+        """:meth:`_Joint.system` here, computed once (a trial the line search refuses never needs it).
+
+        In the fit's one buffer: computed again if another state's system has been written into it since.
+        """
+        if self._A is None or not self.joint.owns(self):
+            self._A = self.joint.system(self.sub, self.pred, self.theta, self.eta, owner=self)
         return self._A
 
 

@@ -182,3 +182,24 @@ def test_joint_system_filled_in_place_is_the_concatenated_one_bit_for_bit(prs3, 
         cols = [cols[0] if Jt is None else cols[0] + Jt] + Je
     want = whiten(model, np.concatenate(cols, axis=2)).reshape(-1, joint.P + joint.K) * joint.scale
     assert np.array_equal(joint.system(sub, pred, theta, eta), want)
+
+
+def test_a_states_system_overwritten_in_the_fits_buffer_is_computed_again(prs3):
+    """The joint fit writes every state's system into one buffer (no fresh pages per step): a state whose
+    system another state's has overwritten gives its own again, equal to a fresh computation bit for bit."""
+    from bayescal.effects.model import _Joint
+
+    model, fit0, eff, f = _backlash_model(prs3, n=40)
+    joint = _Joint.of(model, [(eff, f)])
+    eta = np.array([p.start_value for p in joint.params])
+    _, one = joint.state(fit0.theta, eta, None)
+    _, two = joint.state(fit0.theta * 1.5, eta + 0.3 * joint.scale[joint.P :], None)
+    fresh_one = joint.system(one.sub, one.pred, one.theta, one.eta)  # no owner: a new array
+    A1 = one.system()
+    assert joint.owns(one) and np.array_equal(A1, fresh_one)
+    A2 = two.system()
+    assert joint.owns(two) and not joint.owns(one)
+    assert np.shares_memory(A1, A2)  # the one buffer
+    assert not np.array_equal(A2, fresh_one)
+    again = one.system()
+    assert joint.owns(one) and np.array_equal(again, fresh_one)

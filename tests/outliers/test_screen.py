@@ -101,3 +101,27 @@ def test_the_screen_keeps_each_rounds_fit_and_a_retest_naming_its_poses_starts_f
     new = _retest(model, A, r, screen, alpha=0.01, judged="judged here", released="released")
     assert new is not None and not new.excluded.any()
     assert new.fit is screen.fits[0][1] and new.fits == screen.fits
+
+
+def test_the_screens_later_rounds_start_warm_on_large_recordings_and_agree(prs3, monkeypatch):
+    """From WARM_ROUNDS_POSES poses a round's fit starts from the round before's: the same poses flagged and
+    excluded, every parameter within a small fraction of its posterior std of the rounds' cold fits."""
+    import bayescal.outliers.screen as scr
+
+    sim = simulate_with_effects(prs3, 100, seed=20, dof=6, effects=[("thermal_expansion", 25.0)], record=("temp_C",))
+    rec = _beam_breaks(sim.recording, np.array([30, 55, 80]), prs3.noise.sigma_position, np.random.default_rng(0))
+    model = MeasurementModel.from_recording(prs3, rec)
+    cold = screen_outliers(model)
+    starts = []
+    real = scr.fit_map
+    monkeypatch.setattr(scr, "fit_map", lambda m, **kw: starts.append(kw.get("theta0")) or real(m, **kw))
+    monkeypatch.setattr(scr, "WARM_ROUNDS_POSES", 50)
+    warm = screen_outliers(model)
+    assert len(warm.fits) == len(cold.fits) >= 2
+    assert starts[0] is None and all(s is not None for s in starts[1:])
+    assert np.array_equal(warm.excluded, cold.excluded)
+    for (m_w, f_w), (m_c, f_c) in zip(warm.fits, cold.fits):
+        assert np.array_equal(m_w, m_c)
+        std = np.sqrt(np.diag(f_c.covariance))[: prs3.n_params]
+        assert np.all(np.abs(f_w.theta - f_c.theta) <= 0.05 * std)
+    assert sum(f.iterations for _, f in warm.fits[1:]) < sum(f.iterations for _, f in cold.fits[1:])

@@ -205,3 +205,22 @@ def test_readings_pointing_down_are_read_with_the_other_sign(tmp_path):
     assert down.sensors.flipped and not up.sensors.flipped
     th = rng.normal(size=up.n_params) * up.machine.tolerance
     np.testing.assert_allclose(down.predict(th).y, up.predict(th).y, atol=1e-12)
+
+
+@pytest.mark.parametrize("dof", [3, 6])
+def test_sensor_rows_in_pose_blocks_are_the_whole_ones_bit_for_bit(tmp_path, monkeypatch, dof):
+    # a large recording's Jacobian is computed in pose blocks (bayescal.measurement._FRESH_BYTES): the sensors'
+    # rows of each block's sub-model must be the whole model's
+    import bayescal.measurement as mod
+
+    m = _machine(tmp_path)
+    q = poses(23, 7)
+    aux, tool = _readings(JOINTS, q, [1, 2], [np.eye(3), Rotation.from_rotvec([0.1, 0.5, -0.3]).as_matrix()])
+    rotvec = None if dof == 3 else Rotation.from_matrix(m.forward(q).rotation).as_rotvec()
+    model = MeasurementModel.from_recording(m, Recording(q=q, position=tool, rotvec=rotvec, aux=aux), dof=dof)
+    th = np.random.default_rng(5).normal(size=model.n_params) * model.machine.tolerance * 3
+    pred = model.predict(th)
+    whole = model.jacobian(th, pred)
+    monkeypatch.setattr(mod, "_ROWS_BLOCK", 5)
+    monkeypatch.setattr(mod, "_FRESH_BYTES", 0)
+    assert np.array_equal(model.jacobian(th, pred), whole)
