@@ -22,6 +22,9 @@ separately (docs/compare.md explains how to read it).
 Methods: registry names, comma separated, options after a colon
 (ridge:lam=0.1, tsvd:k=20; several options separated by ';').  Registered:
 {methods}
+A method of your own, added in Python with bayescal.compare.register_method,
+is compared in that Python session (bayescal.compare.compare_methods); this
+command knows the methods above.
 
 With --recording CSV every trial re-measures what that recording measured
 (its poses, or the distance pairs, heights and ballbar circles of a
