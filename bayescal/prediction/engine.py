@@ -177,7 +177,7 @@ def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArr
     # covariance sqrt(c) S (I - Q'_i Q'_i^T) S sqrt(c), built from Q'_i's singular values (1 - sv^2 clipped at
     # zero) so that a row of leverage one has no residual variance there, never a negative one
     sc = sig[fr] * np.sqrt(c)
-    Qi = Qp[: n_fit * dof].reshape(n_fit, dof, -1)
+    Qi = Qp[: n_fit * dof].reshape(n_fit, dof, Qp.shape[1])
     L = sc[:, :, None] * Qi - F[fr]
     V, left = _outside(Qi)
     O = sc[:, :, None] * V

@@ -225,3 +225,20 @@ def test_fit_rows_test_has_its_mean_and_level(machine_scale):
         for t in got:
             T, crit = stats[t.group]
             assert t.chi2 == pytest.approx(T[k], rel=1e-9) and (t.p_value < 0.01) == (T[k] > crit)
+
+
+def test_large_groups_take_their_largest_eigenvalues_by_lanczos(monkeypatch):
+    """Above DENSE_MAX components the null's largest eigenvalues come from products with the whitened covariance
+    (eigsh): the same p-values as all the eigenvalues of the formed matrix."""
+    import bayescal.prediction.row_tests as row_tests
+
+    C = np.eye(8) * 0.3
+    J = _jacobian(machine_scale=3.0)
+    err, y = _sessions(J, C, 2, seed=1)
+    pr = _predicted(J, C)
+    pr = PredictiveRows(y[0] - err[0], pr.cov, pr.success, pr.message, pr.joint)
+    dense = row_group_tests(LinearModel(J, y[0]), pr, ~CHECK)
+    monkeypatch.setattr(row_tests, "DENSE_MAX", 0)
+    lanczos = row_group_tests(LinearModel(J, y[0]), pr, ~CHECK)
+    for a, b in zip(dense, lanczos):
+        assert b.p_value == pytest.approx(a.p_value, rel=1e-8) and b.chi2 == a.chi2
