@@ -181,4 +181,4 @@ def _largest(B: NDArray, V: NDArray, W: NDArray) -> NDArray:
         return (np.einsum("nij,nj->ni", B, x.reshape(n, k)).reshape(N) + Vf @ (W @ (Vf.T @ x)))
 
     op = LinearOperator((N, N), matvec=product, dtype=float)
-    return np.sort(eigsh(op, k=TOP, which="LA", return_eigenvectors=False))[::-1]
+    return np.sort(eigsh(op, k=min(TOP, N - 1), which="LA", return_eigenvectors=False))[::-1]
