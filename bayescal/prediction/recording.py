@@ -201,7 +201,9 @@ def _session_parameters(model, frame_free: list[int], sensor_free: np.ndarray) -
 
     Each with the estimator it was fitted by: the frames least squares (no prior, :func:`_fit_frames`), the
     mountings MAP under their tolerance (:func:`_fit_mountings`), whose prior decides what the fit rows do not
-    see, and so does its variance there.
+    see, and so does its variance there. The engine takes them as one estimator (the least squares of the fit
+    rows stacked on the prior's rows); the two fits made in turn are that estimator because an instrument frame
+    moves no tilt reading and a mounting no tool point (their columns share no row).
     """
     index = np.array(list(frame_free) + sensor_free.tolist(), dtype=int)
     if not index.size:
