@@ -4,7 +4,7 @@ Linearised at the parameters ``theta`` with the analytic Jacobian, every
 row's predictive distribution is Gaussian with
 
     mean = h(theta) + delta_mean,
-    cov  = G C G^T + J_s C_s J_s^T + D + c R,
+    cov  = G C G^T + J_s C_s J_s^T + D + c R          (a row no fit has seen),
 
 where
 
@@ -13,22 +13,40 @@ where
   :mod:`bayescal.prediction.record`) and ``G`` their columns of the row
   Jacobian (with the effects' columns and the discrepancy's features);
 * the session's own parameters ``s`` (the instrument frames of
-  ``predict --frame fit``) are fitted on the recording's ``fit`` rows with
-  the machine held fixed.  A change ``d`` of the machine's parameters is
-  then partly absorbed by the refitted frames,
-  ``d_s = -(A_s^T A_s)^+ A_s^T A_m d`` (whitened fit rows), so each row sees
-  ``G = J_m - J_s K`` with ``K = (A_s^T A_s)^+ A_s^T A_m``: the gauge
-  between frames and geometry is handled, and directions a frame absorbs
-  cost no predictive variance.  The frames' own estimation noise adds
-  ``J_s c (A_s^T A_s)^+ J_s^T``;
+  ``predict --frame fit``, least squares; the body sensors' mountings, MAP
+  under their prior ``N(s_0, diag(tau^2))``) are fitted on the recording's
+  ``fit`` rows with the machine held fixed.  With ``A_s``, ``A_m`` the
+  whitened fit rows' columns and ``P = diag(1/tau)`` (zero rows for the
+  frames) the estimator is the least squares of the augmented system
+  ``[A_s; P]``, ``s_hat = K a + M P s_0`` with ``[K, M] = pinv([A_s; P])``.
+  A change ``d`` of the machine's parameters is partly absorbed by the
+  refitted parameters, ``d_s = -K A_m d``, so each row sees
+  ``G = J_m - J_s K A_m``: the gauge between frames and geometry is
+  handled, and directions a frame absorbs cost no predictive variance.  The
+  estimate's own error, the fit rows' noise through ``K`` and the prior's
+  through ``M`` (the session's true mountings a draw from their prior),
+  adds ``C_s = K diag(c) K^T + M M^T``: where the prior decides a direction
+  (a sensor's mounting and the level of up, nearly one direction to it)
+  its variance is the prior's, not the pseudo-inverse's;
 * ``D`` is the part of the discrepancy's prior its inducing points do not
   carry (far from the calibration's inputs it returns to the prior);
 * ``R`` is the instrument noise of the row (its sigma squared) and ``c``
   the noise factor the calibration's residuals supported.
 
-Rows of ``fit`` poses are scored with the same formula (their own noise
-correlation with the frame fit is neglected: the number that matters is
-that of the ``check`` rows, which no fit has seen).
+A ``fit`` row was itself used to fit ``s``: its residual's noise is
+``e_i - J_s,i K e`` (``e`` the fit rows' noise, whitened by ``sigma``
+alone as the fit weighs them, covariance ``diag(c)``), so its covariance
+is
+
+    G C G^T + D + c R - h_i c S_i - S_i c h_i^T + J_s,i C_s J_s,i^T,
+
+``S_i = diag(sigma_i)`` and ``h_i = J_s,i K_{:, i}`` the row's block of the
+hat matrix (in whitened units, uniform ``c`` and no prior: ``c (I - H_ii)``,
+the textbook residual covariance): the estimate's noise is subtracted, not
+added, and a row that alone decides a direction (leverage one) has no
+residual variance in it.  The fit rows' residuals are correlated through
+the fit and through ``d``; :class:`FitRowsJoint` carries that joint
+covariance for the fit rows' test (:func:`bayescal.prediction.recording.row_group_tests`).
 """
 
 from __future__ import annotations
@@ -40,7 +58,30 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 
-__all__ = ["PredictiveRows", "predictive_rows"]
+__all__ = ["FitRowsJoint", "PredictiveRows", "predictive_rows"]
+
+
+@dataclass(frozen=True)
+class FitRowsJoint:
+    """The joint covariance of the ``fit`` rows' residuals, block diagonal plus low rank.
+
+    ``Cov(r_i, r_j) = [i == j] base_i + U_i W U_j^T`` over the fit rows ``i, j``: ``base`` the noise (and the
+    discrepancy's residual variance) of each row, ``U W U^T`` what correlates the rows (the session's refit and
+    the machine's parameters, common to every row). Its diagonal blocks are the fit rows' ``cov``.
+
+    Attributes
+    ----------
+    base : ndarray, shape (n, dof, dof)
+        mm^2, rad^2 and their products; NaN on the rows no fit used.
+    U : ndarray, shape (n, dof, m)
+        NaN on the rows no fit used.
+    W : ndarray, shape (m, m)
+        Symmetric, maybe indefinite.
+    """
+
+    base: NDArray
+    U: NDArray
+    W: NDArray
 
 
 @dataclass(frozen=True)
@@ -52,16 +93,21 @@ class PredictiveRows:
     mean : ndarray, shape (n, dof)
         mm, then rad.
     cov : ndarray, shape (n, dof, dof)
+        A ``check`` row's predictive covariance; a ``fit`` row's is that of its residual after the session's
+        refit (module docstring). mm^2, rad^2 and their products.
     success : ndarray of bool, shape (n,)
         False where the pose could not be solved (mean and cov are NaN there).
     message : tuple of str
         Why, where it failed.
+    joint : FitRowsJoint, optional
+        The fit rows' residuals' joint covariance (None where not computed).
     """
 
     mean: NDArray
     cov: NDArray
     success: NDArray
     message: tuple[str, ...]
+    joint: FitRowsJoint | None = None
 
     @property
     def std(self) -> NDArray:
@@ -69,34 +115,89 @@ class PredictiveRows:
         return np.sqrt(np.clip(np.einsum("nii->ni", self.cov), 0.0, None))
 
 
-def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArray) -> tuple[NDArray, NDArray]:
-    """``(G, extra)``: the parameters' Jacobian less what the session's refit absorbs, and the session estimate's noise.
+@dataclass(frozen=True)
+class SessionTerms:
+    """What the session's refit on its fit rows does to the rows' covariance (:func:`_session_terms`).
+
+    Attributes
+    ----------
+    G : ndarray, shape (n, dof, k)
+        The calibrated parameters' columns less what the refit absorbs.
+    extra : ndarray, shape (n, dof, dof)
+        ``J_s C_s J_s^T``, the session estimate's error seen by every row (added to a held-out row's noise).
+    fit_noise : ndarray, shape (n_fit, dof, dof)
+        A fit row's residual covariance from the noise and the prior (replacing ``extra`` and the noise).
+    L, Q : ndarray, shape (n_fit, dof, r)
+        Its factors: the fit rows' residuals are ``(L Q'^T + sqrt(c) S E (I - Q' Q'^T)) eta`` with ``eta``
+        white, so ``Cov(r_i, r_j) = [i == j] c S_i^2 + L_i L_j^T - Q_i Q_j^T`` (``Q = sqrt(c) S Q'``).
+    """
+
+    G: NDArray
+    extra: NDArray
+    fit_noise: NDArray
+    L: NDArray
+    Q: NDArray
+
+
+def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArray,
+                   prior_std: NDArray | None = None) -> SessionTerms:
+    """The session's refit terms (module docstring), from the SVD of its augmented whitened fit rows.
 
     ``Js`` (n, dof, s) of the session's parameters, ``Jm`` (n, dof, k) of the calibrated ones, ``sig`` the rows'
-    sigma, ``c`` the per-component noise factor, ``fr`` the rows the session is fitted on.
+    sigma (the fit's weights), ``c`` the per-component noise factor, ``fr`` the rows the session is fitted on,
+    ``prior_std`` (s,) each session parameter's prior std in its unit (inf: none, least squares).
 
-    The session's least squares is solved through the SVD of its whitened fit rows ``A_s``, columns scaled to
-    unit norm (frames in mm and rad, mountings in rad: the rank decision is then one of directions, not units),
-    never through ``A_s^T A_s``: a sensor's mounting and the level of up are nearly one direction to it (singular
-    value 1e-7 of the largest), whose square sits at round-off of the normal matrix and turned the session's
-    noise term indefinite, its size a matter of the BLAS (tests/prediction/test_session_terms.py). The noise
-    term is built as ``F F^T``, positive semi-definite by construction.
+    The estimator is the least squares of ``[A_s; P]`` (``P = diag(1/prior_std)``, its rows for the parameters
+    with a prior): it is solved through the SVD of that augmented matrix, columns scaled to unit norm (frames
+    in mm and rad, mountings in rad: the rank decision is then one of directions, not units), never through its
+    normal matrix: a sensor's mounting and the level of up are nearly one direction to the fit rows (singular
+    value 1e-7 of the largest), whose square sits at round-off of ``A_s^T A_s`` and turned the session's noise
+    term indefinite, its size a matter of the BLAS (tests/prediction/test_session_terms.py). Both noise terms
+    are built from factors, positive semi-definite by construction.
     """
-    dof = Js.shape[1]
-    rows = int(fr.sum()) * dof
-    As = (Js[fr] / sig[fr][:, :, None]).reshape(rows, Js.shape[2])
-    Am = (Jm[fr] / sig[fr][:, :, None]).reshape(rows, Jm.shape[2])  # explicit rows: no machine parameter is fine
-    norm = np.linalg.norm(As, axis=0)
+    n_fit, dof, p = int(fr.sum()), Js.shape[1], Js.shape[2]
+    As = (Js[fr] / sig[fr][:, :, None]).reshape(n_fit * dof, p)
+    Am = (Jm[fr] / sig[fr][:, :, None]).reshape(n_fit * dof, Jm.shape[2])  # explicit rows: no machine parameter is fine
+    std = np.full(p, np.inf) if prior_std is None else np.asarray(prior_std, dtype=float)
+    has = np.isfinite(std) & (std > 0)
+    Aa = np.vstack([As, np.eye(p)[has] / std[has, None]])  # the prior as rows: MAP is their least squares
+    norm = np.linalg.norm(Aa, axis=0)
     norm = np.where(norm > 0, norm, 1.0)
-    U, s, Vt = np.linalg.svd(As / norm, full_matrices=False)
-    keep = s > (s[0] if s.size else 0.0) * max(As.shape) * np.finfo(float).eps
-    U, B = U[:, keep], (Vt[keep].T / s[keep]) / norm[:, None]  # pinv(A_s) = B U^T
-    G = Jm - Js @ (B @ (U.T @ Am))
-    # the session's estimate's own noise, pinv(A_s) diag(c) pinv(A_s)^T = (B R^T)(B R^T)^T with U^T diag(c) U = R^T R
-    c_rows = np.tile(c, int(fr.sum()))
-    R = np.linalg.qr(U * np.sqrt(c_rows)[:, None], mode="r")
+    U, s, Vt = np.linalg.svd(Aa / norm, full_matrices=False)
+    keep = s > (s[0] if s.size else 0.0) * max(Aa.shape) * np.finfo(float).eps
+    U, B = U[:, keep], (Vt[keep].T / s[keep]) / norm[:, None]  # pinv([A_s; P]) = B U^T
+    G = Jm - Js @ (B @ (U[: n_fit * dof].T @ Am))
+    # the estimate's error B U^T diag(c_aug)^(1/2) eta = (B R^T) Q'^T eta, with diag(c_aug)^(1/2) U = Q' R: the
+    # fit rows' noise (factor c) and the prior's (a unit-variance draw per prior row)
+    c_aug = np.r_[np.tile(c, n_fit), np.ones(int(has.sum()))]
+    Qp, R = np.linalg.qr(U * np.sqrt(c_aug)[:, None])
     F = Js @ (B @ R.T)
-    return G, F @ np.swapaxes(F, 1, 2)
+    # a fit row's residual noise is its own, sqrt(c) S E_i eta, less the estimate's seen by it, F_i Q'^T eta: the
+    # own splits into its part along Q' (with the estimate's: L Q'^T eta) and the part orthogonal to Q', of
+    # covariance sqrt(c) S (I - Q'_i Q'_i^T) S sqrt(c), built from Q'_i's singular values (1 - sv^2 clipped at
+    # zero) so that a row of leverage one has no residual variance there, never a negative one
+    sc = sig[fr] * np.sqrt(c)
+    Qi = Qp[: n_fit * dof].reshape(n_fit, dof, Qp.shape[1])
+    L = sc[:, :, None] * Qi - F[fr]
+    V, left = _outside(Qi)
+    O = sc[:, :, None] * V
+    fit_noise = (O * left[:, None, :]) @ np.swapaxes(O, 1, 2) + L @ np.swapaxes(L, 1, 2)
+    return SessionTerms(G, F @ np.swapaxes(F, 1, 2), fit_noise, L, sc[:, :, None] * Qi)
+
+
+def _outside(Qi: NDArray) -> tuple[NDArray, NDArray]:
+    """``(V, w)`` with ``I - Q_i Q_i^T = V_i diag(w_i) V_i^T``, ``Q_i`` (dof, r) each row's block of ``Q'``.
+
+    ``w = (1 - sv)(1 + sv)`` of ``Q_i``'s singular values, clipped at zero (1 beyond them): never negative, where
+    forming ``I - Q_i Q_i^T`` would leave round-off of either sign in a direction the row alone decides.
+    """
+    n, dof, r = Qi.shape
+    if r == 0:
+        return np.broadcast_to(np.eye(dof), (n, dof, dof)), np.ones((n, dof))
+    V, sv, _ = np.linalg.svd(Qi, full_matrices=True)
+    w = np.ones((n, dof))
+    w[:, : sv.shape[1]] = np.clip((1.0 - sv) * (1.0 + sv), 0.0, None)
+    return V, w
 
 
 def _with_discrepancy(discrepancy, sub, theta, sub_pred, J, Jm, residual_variance: bool):
@@ -117,6 +218,31 @@ def _columns(J: NDArray, machine_index: NDArray, extra_columns: NDArray | None, 
     return np.concatenate([Jm, np.asarray(extra_columns, dtype=float)[ok]], axis=2)
 
 
+def _covariances(G, C, D, sig, c, fr, terms: SessionTerms | None) -> tuple[NDArray, FitRowsJoint]:
+    """Every row's covariance (module docstring) before the variance factor, and the fit rows' joint covariance.
+
+    ``G`` (n, dof, k), ``C`` (k, k), ``D`` (n, dof, dof), ``sig`` (n, dof), ``c`` (dof,), ``fr`` (n,) bool the
+    fit rows, ``terms`` the session's refit (None: no session parameter, a fit row's residual is its prediction
+    error).
+    """
+    n, dof = sig.shape
+    noise = np.einsum("ni,ij->nij", sig**2 * c, np.eye(dof))
+    core = (G @ C) @ np.swapaxes(G, 1, 2) + D  # batched products: blocked BLAS, not einsum's loops
+    base = np.full((n, dof, dof), np.nan)
+    base[fr] = noise[fr] + D[fr]
+    if terms is None:
+        U = np.where(fr[:, None, None], G, np.nan)
+        return core + noise, FitRowsJoint(base, U, C)
+    cov = core + terms.extra + noise
+    cov[fr] = core[fr] + terms.fit_noise
+    r, k = terms.L.shape[2], G.shape[2]
+    U = np.full((n, dof, 2 * r + k), np.nan)
+    U[fr] = np.concatenate([terms.L, terms.Q, G[fr]], axis=2)
+    W = np.zeros((2 * r + k,) * 2)
+    W[:r, :r], W[r: 2 * r, r: 2 * r], W[2 * r:, 2 * r:] = np.eye(r), -np.eye(r), C
+    return cov, FitRowsJoint(base, U, W)
+
+
 def predictive_rows(
     model,
     theta: NDArray,
@@ -127,6 +253,7 @@ def predictive_rows(
     discrepancy=None,
     session_index: NDArray | None = None,
     fit_rows: NDArray | None = None,
+    session_prior_std: NDArray | None = None,
     variance_factor: float = 1.0,
     residual_variance: bool = True,
     extra_columns: NDArray | None = None,
@@ -151,9 +278,11 @@ def predictive_rows(
     discrepancy : Discrepancy, optional
         Added to the mean; its weights are the last rows of ``covariance``.
     session_index : ndarray of int, optional
-        Parameters fitted to the session (instrument frames) on ``fit_rows``.
+        Parameters fitted to the session (instrument frames, sensor mountings) on ``fit_rows``.
     fit_rows : ndarray of bool, shape (n,), optional
-        Which rows the session's parameters were fitted on.
+        The rows the session was fitted on (default: every row): ``cov`` is their residual's, ``joint`` theirs.
+    session_prior_std : ndarray, shape (s,), optional
+        Each ``session_index`` parameter's prior std in a MAP fit (mm or rad); ``inf`` (default): least squares.
     variance_factor : float or ndarray, shape (dof,)
         ``kappa`` on the whole covariance (:func:`bayescal.prediction.loo.loo_variance_factor`), or per
         measured component (entry ``(a, b)`` of a row's covariance scaled by ``sqrt(kappa_a kappa_b)``).
@@ -186,15 +315,21 @@ def predictive_rows(
         raise InputError(f"predictive_rows: covariance of shape {C.shape} for {Jm.shape[2]} parameters and weights")
     sig = np.asarray(sub.row_sigma, dtype=float)
     c = np.broadcast_to(np.asarray(noise_factor, dtype=float), (dof,))
-    noise = np.einsum("ni,ij->nij", sig**2 * c, np.eye(dof))
-    G, extra = Jm, np.zeros_like(D)
+    fr = np.ones(sub.n_poses, dtype=bool) if fit_rows is None else np.asarray(fit_rows, dtype=bool)[ok]
+    terms = None
     if session_index is not None and np.size(session_index):
-        fr = np.ones(sub.n_poses, dtype=bool) if fit_rows is None else np.asarray(fit_rows, dtype=bool)[ok]
-        G, extra = _session_terms(J[:, :, np.asarray(session_index, dtype=int)], Jm, sig, c, fr)
-    # batched products (einsum over two contracted indices would loop in Python-free but unblocked C)
-    k = np.sqrt(np.broadcast_to(np.asarray(variance_factor, dtype=float), (dof,)))
-    cov_ok = np.outer(k, k) * ((G @ C) @ np.swapaxes(G, 1, 2) + extra + D + noise)
+        terms = _session_terms(J[:, :, np.asarray(session_index, dtype=int)], Jm, sig, c, fr, session_prior_std)
+    G = Jm if terms is None else terms.G
     mean[ok] = mu
-    cov[ok] = 0.5 * (cov_ok + np.swapaxes(cov_ok, 1, 2))
-    return PredictiveRows(mean, cov, ok, msg)
+    k = np.sqrt(np.broadcast_to(np.asarray(variance_factor, dtype=float), (dof,)))
+    return _scaled(mean, ok, msg, *_covariances(G, C, D, sig, c, fr, terms), k)
 
+
+def _scaled(mean, ok, msg, cov_ok, joint_ok: FitRowsJoint, k) -> PredictiveRows:
+    """The rows' answer: the solved rows' covariances times ``k_a k_b`` (entry ``(a, b)``), NaN on the others."""
+    n, dof = mean.shape
+    cov, base, U = (np.full((n, dof, w), np.nan) for w in (dof, dof, joint_ok.U.shape[2]))
+    cov_ok = np.outer(k, k) * cov_ok
+    cov[ok] = 0.5 * (cov_ok + np.swapaxes(cov_ok, 1, 2))
+    base[ok], U[ok] = np.outer(k, k) * joint_ok.base, k[:, None] * joint_ok.U
+    return PredictiveRows(mean, cov, ok, msg, FitRowsJoint(base, U, joint_ok.W))

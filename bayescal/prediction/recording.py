@@ -18,14 +18,14 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
 from ..contract import scale_noise
 from ..errors import InputError
 from ..geometry import so3_log
 from ..io.recording import Recording
 from ..machines.base import Machine
-from .engine import PredictiveRows, predictive_rows
+from .engine import FitRowsJoint, PredictiveRows, predictive_rows
+from .row_tests import ROW_TEST_ALPHA, RowGroupTest, row_group_tests  # noqa: F401  (their home before)
 from .score import REGION_LEVEL, score_rows, summarise
 from .sensor_score import sensor_report_lines
 from ..notebook import ShowsReport
@@ -157,11 +157,9 @@ def predict_recording(machine: Machine, rec: Recording, *, frame: str = "base", 
     # the calibration's noise scale and leave-one-out factor are the tool rows' (the sensors' sigma is the file's)
     td = model.tool_dof
     per_row = lambda v, s=1.0: np.r_[np.broadcast_to(v, (td,)), np.broadcast_to(s, (model.dof - td,))]  # noqa: E731
-    session_index = np.array(frame_free + sensor_free.tolist(), dtype=int)
     kw = dict(machine_index=machine_index, noise_factor=per_row(noise_factor), discrepancy=disc,
-              session_index=session_index if session_index.size else None, extra_columns=extra)
-    pr = _predict_with_row_tests(model, (theta, C, usable, fit_rows), kw, lambda t, s: per_row(kappa * t, s),
-                                 (len(frame_free), sensor_free.size), notes)
+              extra_columns=extra, **_session_parameters(model, frame_free, sensor_free))
+    pr = _predict_with_row_tests(model, (theta, C, usable, fit_rows), kw, lambda t, s: per_row(kappa * t, s), notes)
     for i in np.flatnonzero(usable & ~pr.success):
         errors[i] = f"cannot be predicted: {pr.message[i] or 'the pose does not solve'}"
     failed = np.array([e is not None for e in errors])
@@ -196,6 +194,22 @@ def _session(machine, rec, dof, frame):
                      "fitted on the fit rows, and the recording has none")
     session = prepare_session(machine, rec, dof=dof, frame=frame, strict=False, sensors=predicted)
     return session, notes
+
+
+def _session_parameters(model, frame_free: list[int], sensor_free: np.ndarray) -> dict:
+    """:func:`predictive_rows`' ``session_index`` and ``session_prior_std``: the frames, then the mountings.
+
+    Each with the estimator it was fitted by: the frames least squares (no prior, :func:`_fit_frames`), the
+    mountings MAP under their tolerance (:func:`_fit_mountings`), whose prior decides what the fit rows do not
+    see, and so does its variance there. The engine takes them as one estimator (the least squares of the fit
+    rows stacked on the prior's rows); the two fits made in turn are that estimator because an instrument frame
+    moves no tilt reading and a mounting no tool point (their columns share no row).
+    """
+    index = np.array(list(frame_free) + sensor_free.tolist(), dtype=int)
+    if not index.size:
+        return {"session_index": None}
+    tol = np.asarray(model.machine.tolerance, dtype=float)
+    return {"session_index": index, "session_prior_std": np.r_[np.full(len(frame_free), np.inf), tol[sensor_free]]}
 
 
 def _sensor_index(model) -> np.ndarray:
@@ -238,7 +252,12 @@ def _predict_usable(model, theta, C, usable, fit_rows, **kw) -> PredictiveRows:
     msgs = list(pr.message)
     for k, i in enumerate(idx):
         msgs[i] = got.message[k]
-    return PredictiveRows(mean, cov, ok, tuple(msgs))
+    j = got.joint
+    if j is None:  # no row solved
+        return PredictiveRows(mean, cov, ok, tuple(msgs))
+    base, U = np.full((n,) + j.base.shape[1:], np.nan), np.full((n,) + j.U.shape[1:], np.nan)
+    base[idx], U[idx] = j.base, j.U
+    return PredictiveRows(mean, cov, ok, tuple(msgs), FitRowsJoint(base, U, j.W))
 
 
 def _sensor_scores(model, theta, pr, rec, predicted):
@@ -325,110 +344,19 @@ def _machine_covariance(machine, fm, names, disc):
             float(record.variance_factor), note, tuple(eff))
 
 
-def _predict_with_row_tests(model, args, kw, factor, n_session: tuple[int, int], notes: list) -> PredictiveRows:
+def _predict_with_row_tests(model, args, kw, factor, notes: list) -> PredictiveRows:
     """The usable rows' prediction, each row group widened where its fit rows say so (:func:`row_group_tests`).
 
     ``factor(t, s)`` is the per-component variance factor with ``t`` on the tool's rows and ``s`` (one per sensor
     row) on the sensors'; each widening adds its note.
     """
     pr = _predict_usable(model, *args, variance_factor=factor(1.0, 1.0), **kw)
-    tests = row_group_tests(model, pr, args[3], *n_session)
+    tests = row_group_tests(model, pr, args[3])
     if not any(t.widen > 1.0 for t in tests):
         return pr
     notes.extend(t.note() for t in tests if t.widen > 1.0)
     tool, sensors = tests[0].widen, np.repeat([t.widen for t in tests[1:]], 2)
     return _predict_usable(model, *args, variance_factor=factor(tool, sensors if sensors.size else 1.0), **kw)
-
-
-@dataclass(frozen=True)
-class RowGroupTest:
-    """One group of rows (the tool's, or one body sensor's) tested on the session's ``fit`` rows.
-
-    Attributes
-    ----------
-    group : str
-        ``"tool"`` or the sensor's body.
-    chi2 : float
-        Sum over the fit rows of the squared Mahalanobis distance of the group's residual under its predictive
-        covariance.
-    dof : int
-        The group's components over the fit rows less the session's parameters fitted on them (its share).
-    p_value : float
-        Upper tail of ``chi2`` under chi-square(``dof``).
-    widen : float
-        Factor on the group's predictive covariance: ``chi2 / dof`` where ``p_value`` is below
-        :data:`ROW_TEST_ALPHA`, else 1.
-    """
-
-    group: str
-    chi2: float
-    dof: int
-    p_value: float
-    widen: float
-
-    def note(self) -> str:
-        what, why = (("the tool's rows", "the calibration's noise and uncertainty do not cover this session")
-                     if self.group == "tool" else
-                     (f"the sensor on {self.group!r}: its tilt rows", "the machine file's sigma_tilt and the model of "
-                      "what moves the sensor's body, neither tested by the calibration, do not account for them"))
-        return (f"{what} scatter {np.sqrt(self.widen):.3g} times their predicted std on the fit rows (chi-square "
-                f"{self.chi2:.4g} on {self.dof} degrees of freedom, p = {self.p_value:.2g}): their regions are "
-                f"widened by that, on every row ({why})")
-
-
-#: Level of the fit rows' test below which a row group's covariance is widened (:func:`row_group_tests`).
-ROW_TEST_ALPHA = 0.01
-
-
-def row_group_tests(model, pr: PredictiveRows, fit_rows: np.ndarray, n_frame: int, n_mount: int) -> tuple[RowGroupTest, ...]:
-    """Test the tool's rows and each body sensor's rows of the ``fit`` rows against their predictive distribution.
-
-    The session's ``fit`` rows, on which its frames and mountings are fitted, are evidence about the session that
-    no calibration saw: a sensor on a moving body is predicted through the file's ``sigma_tilt`` and the effects
-    that move its body, which no calibration tested; the tool's rows through the calibration's noise scale and
-    leave-one-out factor, which another day's instrument or machine need not share. Where a group's squared
-    Mahalanobis distances sum to more than chance allows (chi-square test at :data:`ROW_TEST_ALPHA`), its
-    predictive covariance is multiplied by ``chi2 / dof`` (Birge's ratio) on every row. Groups apart: a noisy
-    accelerometer beside a precise inclinometer is widened alone. Never narrowed.
-
-    Parameters
-    ----------
-    model : MeasurementModel
-        The tool's ``tool_dof`` rows, then two tilt rows per sensor in ``model.sensors.bodies``' order.
-    pr : PredictiveRows
-        Of every row of ``model``.
-    fit_rows : ndarray of bool
-    n_frame, n_mount : int
-        The instrument frames' and the mountings' parameters fitted on the fit rows (degrees of freedom taken;
-        the mountings' shared equally by the sensors).
-
-    Returns
-    -------
-    tuple of RowGroupTest
-        The tool's first, then one per sensor (a group without enough fit rows: ``widen`` 1 and NaN statistics).
-    """
-    td = model.tool_dof
-    use = np.asarray(fit_rows, dtype=bool) & np.asarray(pr.success, dtype=bool)
-    bodies = tuple(model.sensors.bodies) if td < model.dof else ()
-    groups = [("tool", slice(0, td), n_frame)] + [(b, slice(td + 2 * k, td + 2 * k + 2), n_mount / len(bodies))
-                                                  for k, b in enumerate(bodies)]
-    r = (np.asarray(model.y_measured, dtype=float) - pr.mean)[use]
-    return tuple(_group_test(name, r[:, sl], pr.cov[use][:, sl, sl], taken) for name, sl, taken in groups)
-
-
-def _group_test(name: str, r: NDArray, S: NDArray, taken: float) -> RowGroupTest:
-    """:class:`RowGroupTest` of residuals ``r`` (n, k) under covariances ``S`` (n, k, k)."""
-    from scipy.stats import chi2 as chi2_dist
-
-    dof = int(r.size) - int(round(taken))
-    if dof < 3 or not (np.all(np.isfinite(r)) and np.all(np.isfinite(S))):
-        return RowGroupTest(name, float("nan"), max(dof, 0), float("nan"), 1.0)
-    try:
-        total = float(np.einsum("ni,ni->", r, np.linalg.solve(S, r[:, :, None])[:, :, 0]))
-    except np.linalg.LinAlgError:
-        return RowGroupTest(name, float("nan"), dof, float("nan"), 1.0)
-    p = float(chi2_dist.sf(total, dof))
-    return RowGroupTest(name, total, dof, p, max(1.0, total / dof) if p < ROW_TEST_ALPHA else 1.0)
 
 
 def _effect_columns(machine, rec, session_args, theta, names) -> np.ndarray:

@@ -13,7 +13,9 @@ one (rad).  Per sensor and pose this module gives
   along the recorded reading's tangent directions), from
   :func:`bayescal.prediction.engine.predictive_rows` like a tool row's;
 * ``inside_90``: the recorded reading inside its 90 % predictive region,
-  the ellipse ``e^T S^-1 e <= chi2_2(0.90)`` of the two tilt rows.
+  the ellipse ``e^T S^-1 e <= chi2_2(0.90)`` of the two tilt rows (its
+  pseudo-inverse and rank where a fit row's residual has a direction
+  without variance: :func:`bayescal.prediction.score.mahalanobis2`).
 
 Summaries per sensor and role give the mean, median, 95th percentile and
 RMS of the tilt error (rad), the coverage of the 90 % regions and the
@@ -27,8 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ..distributions import chi2_ppf
-from .score import REGION_LEVEL
+from .score import REGION_LEVEL, inside_region, mahalanobis2
 
 __all__ = ["SensorScores", "score_sensor_rows", "sensor_report_lines"]
 
@@ -130,9 +131,11 @@ def score_sensor_rows(sensors, raw: NDArray, predicted_unit: NDArray, mean_rows:
     blocks = np.stack([C[:, 2 * s: 2 * s + 2, 2 * s: 2 * s + 2] for s in range(S)], axis=1)  # (n, S, 2, 2)
     ok = np.all(np.isfinite(e), axis=2) & np.all(np.isfinite(blocks), axis=(2, 3))
     d2 = np.full((n, S), np.nan)
+    inside = np.zeros((n, S), dtype=bool)
     if ok.any():
-        d2[ok] = np.einsum("ki,ki->k", e[ok], np.linalg.solve(blocks[ok], e[ok][:, :, None])[:, :, 0])
-    inside = np.where(ok, d2 <= chi2_ppf(level, 2), False).astype(bool)
+        # a fit row's residual covariance is singular where the row alone decided its mounting: pseudo-inverse
+        d2[ok], rank = mahalanobis2(e[ok], blocks[ok])
+        inside[ok] = inside_region(d2[ok], rank, level)
     std = np.sqrt(np.clip(np.einsum("nsii->nsi", blocks), 0.0, None))
     length = np.linalg.norm(raw, axis=2, keepdims=True)
     return SensorScores(tuple(sensors.bodies), np.asarray(raw, dtype=float), p * length, std, err, inside,

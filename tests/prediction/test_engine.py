@@ -79,6 +79,18 @@ def test_score_rows_counts_the_ellipsoid():
     np.testing.assert_allclose(s.error_position, [2.6, 4.0])
 
 
+def test_score_rows_of_a_row_that_decided_a_direction_alone():
+    """A fit row of leverage one has no residual variance along what it decided: the region is the ellipse of the
+    other two components (chi2_2(0.9) = 4.61), the round-off left along the third is no distance, nothing blows
+    up; a row with no residual variance at all is inside its (point) region."""
+    mean = np.zeros((3, 3))
+    cov = np.stack([np.diag([1.0, 1.0, 1e-30]), np.diag([1.0, 1.0, 0.0]), np.zeros((3, 3))])
+    meas = np.array([[2.0, 0.0, 1e-13], [2.2, 0.0, 0.0], [0.0, 0.0, 1e-15]])
+    s = score_rows(meas, mean, cov)
+    np.testing.assert_allclose(s.mahalanobis2, [4.0, 4.84, 0.0])
+    assert s.inside.tolist() == [True, False, True]
+
+
 def test_calibration_record_round_trips(prs3, rng):
     A = rng.normal(size=(5, 5))
     C = A @ A.T * 1e-4
