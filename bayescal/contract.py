@@ -145,6 +145,21 @@ def jacobian_into(model, theta, prediction, out: NDArray) -> NDArray:
     A model whose ``jacobian`` takes ``out`` (:class:`bayescal.measurement.MeasurementModel`) writes there
     directly, a large recording's pose block by pose block: no fresh (n_poses, dof, P) array, whose page
     faults cost more than its arithmetic at 100,000 poses.  Any other model's answer is copied.
+
+    Parameters
+    ----------
+    model : Model
+    theta : array_like, shape (P,)
+        Parameters (mm, rad) at which ``prediction`` was made.
+    prediction : object
+        ``model.predict(theta)``.
+    out : ndarray, shape (n_poses, dof, P)
+        Where the rows' derivatives (mm or rad per parameter unit) are written; may be a strided view.
+
+    Returns
+    -------
+    ndarray
+        ``out``.
     """
     if getattr(model.jacobian, "writes_into", False):
         return model.jacobian(theta, prediction, out=out)

@@ -82,6 +82,20 @@ def weighted_chi2_sf(x: float, weights: ArrayLike, dofs: ArrayLike) -> float:
     ``1e-10``, where a mean-and-variance match is off by orders of magnitude when a few weights dominate):
     the cumulant generating function ``K(s) = -1/2 sum_j h_j log(1 - 2 w_j s)`` is explicit, the saddlepoint
     ``K'(s) = x`` found by a safeguarded Newton iteration (``K'`` increases in ``s``).
+
+    Parameters
+    ----------
+    x : float
+        Where the upper tail starts, in the sum's units (a sum of squared whitened residuals: dimensionless).
+    weights : array_like, shape (m,)
+        ``w_j``; entries that are not positive (and their ``dofs``) are left out.
+    dofs : array_like, shape (m,)
+        ``h_j``.
+
+    Returns
+    -------
+    float
+        The tail probability, in [0, 1] (1 for ``x <= 0`` or no positive weight).
     """
     from scipy import special
 

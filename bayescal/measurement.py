@@ -295,13 +295,7 @@ class MeasurementModel:
     def subset(self, idx) -> "MeasurementModel":
         """The model restricted to poses ``idx`` (order kept)."""
         idx = np.asarray(idx)
-        g = self.guess
-        if g is not None:
-            sub_state = map_state(lambda a: a[idx], g.state)
-            # the messages of the poses taken only (a large recording's pose blocks: not all of them each time)
-            taken = (np.flatnonzero(idx) if idx.dtype == bool else idx.reshape(-1)).tolist()
-            g = ToolPoses(g.position[idx], g.rotation[idx], g.success[idx], tuple(g.message[i] for i in taken),
-                          sub_state)
+        g = None if self.guess is None else self.guess.take(idx)
         return MeasurementModel(
             machine=self.machine.for_poses(idx),
             q=self.q[idx],
@@ -476,14 +470,11 @@ class MeasurementModel:
         tool Jacobian and rows are memory the allocator reuses: the whole recording's (n_poses, 6, k) tool
         Jacobian and its rows would be two fresh arrays of pages at every call (:data:`_FRESH_BYTES`).
         """
-        n, p = self.n_poses, prediction.poses
+        n = self.n_poses
         for start in range(0, n, _ROWS_BLOCK):
-            stop = min(start + _ROWS_BLOCK, n)
-            idx = np.arange(start, stop)
-            poses = ToolPoses(p.position[start:stop], p.rotation[start:stop], p.success[start:stop],
-                              tuple(p.message[start:stop]), map_state(lambda a: a[start:stop], p.state))
-            J[start:stop] = self.subset(idx).jacobian_columns(theta, Prediction(prediction.y[start:stop], poses),
-                                                              columns)
+            b = slice(start, min(start + _ROWS_BLOCK, n))
+            block = Prediction(prediction.y[b], prediction.poses.take(b))
+            J[b] = self.subset(np.arange(b.start, b.stop)).jacobian_columns(theta, block, columns)
         return J
 
     def rows_jacobian(self, Jt: NDArray, prediction: Prediction) -> NDArray:

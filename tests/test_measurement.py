@@ -133,3 +133,18 @@ def test_jacobian_in_pose_blocks_with_stations_and_a_body_sensor(monkeypatch):
     theta = rng.normal(size=model.n_params) * np.minimum(model.machine.tolerance, 1.0)
     pred = model.predict(theta)
     assert np.array_equal(_blocked(model, theta, pred, monkeypatch), model.jacobian(theta, pred))
+
+
+def test_tool_poses_take_by_indices_mask_or_slice_is_one_selection(prs3, rng):
+    # the one way poses are selected (a model's subset, a recording's pose blocks, an alignment's solved poses)
+    q = prs3.sample_q(9, rng)
+    p = prs3.forward(q)
+    p = type(p)(p.position, p.rotation, p.success, tuple(f"m{i}" for i in range(9)), p.state)
+    mask = np.zeros(9, dtype=bool)
+    mask[2:5] = True
+    for sel in (np.arange(2, 5), mask, slice(2, 5)):
+        t = p.take(sel)
+        assert t.message == ("m2", "m3", "m4")
+        assert np.array_equal(t.position, p.position[2:5]) and np.array_equal(t.rotation, p.rotation[2:5])
+        assert np.array_equal(t.state.p, p.state.p[2:5]) and np.array_equal(t.state.R, p.state.R[2:5])
+    assert p.take(np.array([7, 1])).message == ("m7", "m1")

@@ -452,8 +452,4 @@ def _exchanged(p: NDArray, a: int, b: int) -> NDArray:
 
 def nom_subset(poses, mask):
     """The solved poses ``mask`` (state fields indexed too)."""
-    from ..machines.base import ToolPoses, map_state
-
-    sub = map_state(lambda a: a[mask], poses.state)  # any kind's state, nested ones (hybrid) included
-    return ToolPoses(poses.position[mask], poses.rotation[mask], poses.success[mask],
-                     tuple(np.asarray(poses.message, dtype=object)[mask]), sub)
+    return poses.take(mask)  # any kind's state, nested ones (hybrid) included

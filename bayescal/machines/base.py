@@ -158,6 +158,20 @@ class ToolPoses:
         """Tool axis ``R e_z``, shape (n_poses, 3)."""
         return self.rotation[..., :, 2]
 
+    def take(self, idx) -> "ToolPoses":
+        """The poses ``idx`` (indices, a boolean mask or a slice), the kind's state indexed alike (:func:`map_state`).
+
+        Only the taken poses' messages are read (a large recording's pose blocks take a few of many).
+        """
+        if isinstance(idx, slice):
+            messages = tuple(self.message[idx])
+        else:
+            idx = np.asarray(idx)
+            taken = np.flatnonzero(idx) if idx.dtype == bool else idx.reshape(-1)
+            messages = tuple(self.message[i] for i in taken.tolist())
+        return ToolPoses(self.position[idx], self.rotation[idx], self.success[idx], messages,
+                         map_state(lambda a: a[idx], self.state))
+
 
 @dataclass(frozen=True)
 class WeightBodies:
