@@ -65,6 +65,23 @@ def test_statistic_and_cook_equal_refitting_without_the_pose(lam, weighted):
     assert res.flagged_index[0] == 4
 
 
+def test_ridge_factor_and_svd_routes_agree(monkeypatch):
+    # with a ridge the leverages come from a triangular factor (bayescal.tallqr); the SVD takes over where it declines
+    import bayescal.outliers.stats as st
+
+    rng = np.random.default_rng(8)
+    n, d, p = 400, 3, 7
+    A = rng.normal(size=(n * d, p)) * np.logspace(0, 3, p)
+    z = rng.normal(size=n * d)
+    w = rng.uniform(0.05, 1.0, n)
+    fast = pose_test_linear(A, z, d, lam=0.5, weights=w)
+    monkeypatch.setattr(st, "ridge_factor", lambda *a, **k: None)
+    slow = pose_test_linear(A, z, d, lam=0.5, weights=w)
+    np.testing.assert_allclose(fast.statistic, slow.statistic, rtol=1e-10)
+    np.testing.assert_allclose(fast.leverage, slow.leverage, rtol=1e-10)
+    np.testing.assert_allclose(fast.cooks_distance, slow.cooks_distance, rtol=1e-10)
+
+
 def test_tsvd_statistic_is_least_squares_in_the_kept_subspace_plus_the_prior_of_the_dropped():
     rng = np.random.default_rng(4)
     n, d, p, k = 12, 3, 6, 4
