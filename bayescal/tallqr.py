@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solve_triangular
 
-__all__ = ["ridge_factor", "MAX_CONDITION", "BLOCK_ROWS"]
+__all__ = ["ridge_factor", "ridge_solution", "MAX_CONDITION", "BLOCK_ROWS"]
 
 #: The largest condition number of the augmented matrix (estimated from the first pass's factor) for which
 #: :func:`ridge_factor` answers: a decade below CholeskyQR2's limit of about 1e8.
@@ -83,3 +83,30 @@ def ridge_factor(A: NDArray, lam: float, row_scale: NDArray | None = None) -> ND
     except np.linalg.LinAlgError:
         return None
     return R2 @ R1
+
+
+def ridge_solution(A: NDArray, b: NDArray, lam: float, row_scale: NDArray | None = None) -> NDArray:
+    """``x`` minimising ``|diag(row_scale) (b - A x)|^2 + lam |x|^2``: by :func:`ridge_factor`, else by least squares.
+
+    Parameters
+    ----------
+    A : ndarray, shape (N, p)
+    b : ndarray, shape (N,)
+    lam : float
+        The ridge, > 0.
+    row_scale : ndarray, shape (N,), optional
+        Square roots of the row weights (default 1).
+
+    Returns
+    -------
+    ndarray, shape (p,)
+    """
+    A = np.asarray(A, dtype=float)
+    b = np.asarray(b, dtype=float).reshape(-1)
+    sw = np.ones(A.shape[0]) if row_scale is None else np.asarray(row_scale, dtype=float)
+    R = ridge_factor(A, lam, row_scale)
+    if R is None:  # beyond CholeskyQR2's accuracy: Householder least squares of the augmented system
+        aug = np.vstack([A * sw[:, None], np.sqrt(lam) * np.eye(A.shape[1])])
+        return np.linalg.lstsq(aug, np.concatenate([sw * b, np.zeros(A.shape[1])]), rcond=None)[0]
+    g = A.T @ (sw**2 * b)
+    return solve_triangular(R, solve_triangular(R, g, trans="T"))

@@ -84,3 +84,17 @@ def test_blocks_do_not_change_the_answer(monkeypatch):
     whole = ridge_factor(A, 2.0)
     monkeypatch.setattr(tallqr, "BLOCK_ROWS", 257)
     assert np.allclose(ridge_factor(A, 2.0), whole, rtol=1e-12, atol=1e-12 * np.abs(whole).max())
+
+
+@pytest.mark.parametrize("cond", [1e3, 1e12])  # the triangular factor, and the least-squares route it declines to
+def test_ridge_solution_is_the_regularised_least_squares(cond):
+    from bayescal.tallqr import ridge_solution
+
+    rng = np.random.default_rng(7)
+    A = _system(rng, 600, 8, cond)
+    b = rng.standard_normal(600)
+    sw = rng.uniform(0.3, 1.2, 600)
+    x = ridge_solution(A, b, 0.7, sw)
+    aug = np.vstack([A * sw[:, None], np.sqrt(0.7) * np.eye(8)])
+    ref = np.linalg.lstsq(aug, np.concatenate([sw * b, np.zeros(8)]), rcond=None)[0]
+    assert np.allclose(x, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())

@@ -48,7 +48,7 @@ from ..effects.base import approach_direction
 from ..measurement import MeasurementModel
 from ..models import model_from_recording
 from ..outliers import recording_lines
-from ..outliers.screen import retest_with_discrepancy, retest_with_effects, screen_outliers
+from ..outliers.screen import retest_with_candidates, retest_with_discrepancy, retest_with_effects, screen_outliers
 from ..progress import report
 from ..sensors.columns import is_body_measurement
 from .confound import geometry_confound, written_tool_jacobian
@@ -163,7 +163,7 @@ def diagnose(
     n_perm: int | None = None,
     effect_settings: dict[str, dict] | None = None,
     _screen=None, _disc_retested: bool = False, _noise: NoiseSettling | None = None, _tilt: float | None = None,
-    _warm: dict | None = None,
+    _warm: dict | None = None, _pretested: bool = False,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -211,6 +211,8 @@ def diagnose(
             return diagnose(machine, recording, **again, _noise=s.noise)
     again["_noise"] = s.noise  # a rerun (outliers retested) keeps the noise tested once
     cands, skipped = _candidates(s, g)
+    if _screen is None and (early := _outliers_pretested(s, g, cands)) is not None:
+        return diagnose(machine, recording, **again, _screen=early, _pretested=True)
     folds = _folds(s.kept, seed, n_folds)
     cv0 = _cv_rms(s.model, [], folds, g.fit0.theta, None)
     tried: dict = {}  # every fit with effects, by the effects' names: where a rerun's fits start
@@ -220,28 +222,63 @@ def diagnose(
     if _tilt is None and (rerun := _tilt_rerun(s, selected, cur_fit, machine, recording, again)) is not None:
         return rerun
     again["_warm"] = tried  # an outlier rerun starts its fits from this pass's (large recordings, _start)
-    if _screen is None and (final := _outliers_retested(s, selected, cur_fit)) is not None:
-        return diagnose(machine, recording, **again, _screen=final, _disc_retested=_disc_retested)
-    disc_trial, final_model = _discrepancy_trial(s, g, v, recording, selected, cur_fit, folds, cur_cv, seed)
-    kept_disc = disc_trial is not None and disc_trial.kept
-    if kept_disc and s.screen is not None and not _disc_retested:
-        # poses the discrepancy explains are physics, not gross errors: judge the outliers against it
-        plain = _final_model(s.machine, recording, s.base_model, selected, cur_fit, s.settings, None)
-        final = retest_with_discrepancy(plain, cur_fit.theta, disc_trial.fit, s.screen) if plain is not None else None
+    if _screen is None or _pretested:
+        final, s = _judged_by_final_model(s, selected, cur_fit, _pretested)
         if final is not None:
-            return diagnose(machine, recording, **again, _screen=final, _disc_retested=True)
+            return diagnose(machine, recording, **again, _screen=final, _disc_retested=_disc_retested)
+    disc_trial, final_model = _discrepancy_trial(s, g, v, recording, selected, cur_fit, folds, cur_cv, seed)
+    if not _disc_retested and (final := _discrepancy_retested(s, recording, selected, cur_fit, disc_trial)) is not None:
+        return diagnose(machine, recording, **again, _screen=final, _disc_retested=True)
     found = _Found(cands, tuple(skipped), single, selected, cur_fit, cv0, cur_cv, disc_trial, final_model)
     return _diagnosis(s, g, v, found, recording, seed)
 
 
-def _outliers_retested(s: "_Setup", selected: list, cur_fit: EffectFit):
+def _outliers_retested(s: "_Setup", selected: list, cur_fit: EffectFit, keep_same: bool = False):
     """The screen to diagnose again with, when the outliers judged against the final model are other poses; else None.
 
-    The screen judged the poses by the geometric model alone (docs/outliers.md, "In the diagnosis").
+    The screen judged the poses by the geometric model alone, or by every candidate effect linearised
+    (:func:`_outliers_pretested`; docs/outliers.md, "In the diagnosis").  With no effect selected the final model
+    is the geometry: a screen from the candidates gives way to the geometric one it replaced.
     """
-    if s.screen is None or not selected:
+    if s.screen is None:
         return None
-    return retest_with_effects(s.base_model, [(c.effect, c.features) for c in selected], cur_fit, s.screen)
+    if not selected:
+        return s.screen.replaced
+    return retest_with_effects(s.base_model, [(c.effect, c.features) for c in selected], cur_fit, s.screen,
+                               keep_same=keep_same)
+
+
+def _judged_by_final_model(s: "_Setup", selected: list, cur_fit: EffectFit, pretested: bool):
+    """``(screen, s)``: the screen to diagnose again with when the final model names other poses (else None), and
+    ``s``, whose screen is the final model's test when that names the poses of a screen from the candidates (the
+    answer's outlier test is then the final model's, as after a rerun)."""
+    final = _outliers_retested(s, selected, cur_fit, keep_same=pretested)
+    if final is None or not np.array_equal(final.excluded, s.screen.excluded):
+        return final, s
+    return None, replace(s, screen=final)
+
+
+def _discrepancy_retested(s: "_Setup", recording, selected: list, cur_fit: EffectFit, disc_trial):
+    """The screen to diagnose again with when the kept discrepancy explains poses the screen took out; else None.
+
+    Poses the discrepancy explains are physics, not gross errors: the outliers are judged against it.
+    """
+    if disc_trial is None or not disc_trial.kept or s.screen is None:
+        return None
+    plain = _final_model(s.machine, recording, s.base_model, selected, cur_fit, s.settings, None)
+    return retest_with_discrepancy(plain, cur_fit.theta, disc_trial.fit, s.screen) if plain is not None else None
+
+
+def _outliers_pretested(s: "_Setup", g: "_Geometric", cands: list) -> object:
+    """The screen to diagnose with when the poses judged against every candidate effect, linearised at the
+    geometric fit, are other poses than the geometric screen's; else None (no screen, no candidate).
+
+    The final model judges the poses again (:func:`_outliers_retested`): this spares the pass of fits that a
+    retest naming other poses would make again, where the candidates and the final model agree.
+    """
+    if s.screen is None or not cands:
+        return None
+    return retest_with_candidates(s.base_model, [(c.effect, c.features) for c in cands], g.fit0.theta, s.screen)
 
 
 def _folds(kept: NDArray, seed: int, n_folds: int) -> list[NDArray]:
