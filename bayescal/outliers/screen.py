@@ -63,8 +63,8 @@ from .stats import (
     weighted_model,
 )
 
-__all__ = ["OutlierScreen", "screen_outliers", "retest_with_candidates", "retest_with_effects", "retest_with_discrepancy", "EXCLUDE_FACTOR",
-           "MAX_FRACTION"]
+__all__ = ["OutlierScreen", "screen_outliers", "retest_with_candidates", "retest_with_effects",
+           "retest_with_discrepancy", "EXCLUDE_FACTOR", "MAX_FRACTION"]
 
 MAX_ROUNDS = 3
 #: Poses taken out one at a time when too many stand out at once (a gross pose swamping the fit).
@@ -330,7 +330,8 @@ def retest_with_discrepancy(model: MeasurementModel, theta, fitted, screen: Outl
 
 def _retest(model: MeasurementModel, A: NDArray, r: NDArray, screen: OutlierScreen, *, alpha: float, judged: str,
             released: str, replaced: OutlierScreen | None = None, keep_same: bool = False) -> OutlierScreen | None:
-    """The screen's test redone on a final model's linear system ``A x ~ r``; the new screen, or None if unchanged.
+    """The screen's test redone on a final model's linear system ``A x ~ r``; the new screen, or None if unchanged
+    (with ``keep_same``, the new screen whatever it names; None still when too many stand out).
 
     ``A`` (rows, parameters) is whitened and scaled by the prior std, ``r`` the whitened residual; ridge
     ``lam = 1`` (the prior), the screen's exclusion weights, the robust scale.  More flagged poses than
@@ -346,5 +347,5 @@ def _retest(model: MeasurementModel, A: NDArray, r: NDArray, screen: OutlierScre
     else:
         action = f"no pose flagged, {judged} ({released}); every pose used"
     # the geometric fit with these poses out, when the screen made it: the rerun's first fit, as it would make it
-    return OutlierScreen(test=test, excluded=flagged.copy(), action=action, fit=screen.fit_for(flagged), fits=screen.fits,
-                         replaced=replaced)
+    return OutlierScreen(test=test, excluded=flagged.copy(), action=action, fit=screen.fit_for(flagged),
+                         fits=screen.fits, replaced=replaced)
