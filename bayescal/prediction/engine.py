@@ -44,7 +44,11 @@ is
 hat matrix (in whitened units, uniform ``c`` and no prior: ``c (I - H_ii)``,
 the textbook residual covariance): the estimate's noise is subtracted, not
 added, and a row that alone decides a direction (leverage one) has no
-residual variance in it.  The fit rows' residuals are correlated through
+residual variance in it.  The discrepancy's leftover ``D`` (independent row
+to row) is part of a fit row's error as the noise is: on the fit rows
+``c R + D`` takes the place of ``c R`` in these formulas (a block
+``P_i P_i^T`` in place of ``c S_i^2``), so the refit absorbs its share of
+it and ``C_s`` carries the rest to every row.  The fit rows' residuals are correlated through
 the fit and through ``d``; :class:`FitRowsJoint` carries that joint
 covariance for the fit rows' test (:func:`bayescal.prediction.recording.row_group_tests`).
 """
@@ -128,8 +132,9 @@ class SessionTerms:
     fit_noise : ndarray, shape (n_fit, dof, dof)
         A fit row's residual covariance from the noise and the prior (replacing ``extra`` and the noise).
     L, Q : ndarray, shape (n_fit, dof, r)
-        Its factors: the fit rows' residuals are ``(L Q'^T + sqrt(c) S E (I - Q' Q'^T)) eta`` with ``eta``
-        white, so ``Cov(r_i, r_j) = [i == j] c S_i^2 + L_i L_j^T - Q_i Q_j^T`` (``Q = sqrt(c) S Q'``).
+        Its factors: the fit rows' residuals are ``(L Q'^T + P E (I - Q' Q'^T)) eta`` with ``eta`` white and
+        ``P_i P_i^T = c S_i^2 + D_i`` (``P = sqrt(c) S`` without a discrepancy), so ``Cov(r_i, r_j) = [i == j]
+        P_i P_i^T + L_i L_j^T - Q_i Q_j^T`` (``Q = P Q'``).
     """
 
     G: NDArray
@@ -139,8 +144,23 @@ class SessionTerms:
     Q: NDArray
 
 
+def _own_noise(sig: NDArray, c: NDArray, D: NDArray | None) -> tuple[NDArray | None, NDArray]:
+    """A fit row's own error, its noise and the discrepancy's leftover: ``(M^1/2, P)`` with ``P P^T = c S^2 + D``.
+
+    ``M^1/2`` (n, dof, dof) is the symmetric root of ``M = c I + S^-1 D S^-1`` (the error in the fit's whitened
+    units), ``P = S M^1/2``; ``M^1/2`` is None and ``P`` the diagonal ``sqrt(c) sigma`` (n, dof) without ``D``.
+    """
+    if D is None or not np.any(D):
+        return None, sig * np.sqrt(c)
+    n, dof = sig.shape
+    M = D / (sig[:, :, None] * sig[:, None, :]) + np.diag(c)[None]
+    w, V = np.linalg.eigh(M)
+    root = (V * np.sqrt(np.clip(w, 0.0, None))[:, None, :]) @ np.swapaxes(V, 1, 2)
+    return root, sig[:, :, None] * root
+
+
 def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArray,
-                   prior_std: NDArray | None = None) -> SessionTerms:
+                   prior_std: NDArray | None = None, D: NDArray | None = None) -> SessionTerms:
     """The session's refit terms (module docstring), from the SVD of its augmented whitened fit rows.
 
     ``Js`` (n, dof, s) of the session's parameters, ``Jm`` (n, dof, k) of the calibrated ones, ``sig`` the rows'
@@ -154,6 +174,10 @@ def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArr
     value 1e-7 of the largest), whose square sits at round-off of ``A_s^T A_s`` and turned the session's noise
     term indefinite, its size a matter of the BLAS (tests/prediction/test_session_terms.py). Both noise terms
     are built from factors, positive semi-definite by construction.
+
+    ``D`` (n, dof, dof), the discrepancy's leftover variance of each row (independent row to row), is part of a
+    fit row's error as the noise is: the refit absorbs its share of it too (:func:`_own_noise`), and the
+    estimate's error that every row sees carries the fit rows' share.
     """
     n_fit, dof, p = int(fr.sum()), Js.shape[1], Js.shape[2]
     As = (Js[fr] / sig[fr][:, :, None]).reshape(n_fit * dof, p)
@@ -169,20 +193,25 @@ def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArr
     G = Jm - Js @ (B @ (U[: n_fit * dof].T @ Am))
     # the estimate's error B U^T diag(c_aug)^(1/2) eta = (B R^T) Q'^T eta, with diag(c_aug)^(1/2) U = Q' R: the
     # fit rows' noise (factor c) and the prior's (a unit-variance draw per prior row)
-    c_aug = np.r_[np.tile(c, n_fit), np.ones(int(has.sum()))]
-    Qp, R = np.linalg.qr(U * np.sqrt(c_aug)[:, None])
+    root, P = _own_noise(sig[fr], c, None if D is None else D[fr])
+    if root is None:
+        c_aug = np.r_[np.tile(c, n_fit), np.ones(int(has.sum()))]
+        Qp, R = np.linalg.qr(U * np.sqrt(c_aug)[:, None])
+    else:  # each fit row's block of U turned by its error's root, the prior's rows as they are
+        Uf = (root @ U[: n_fit * dof].reshape(n_fit, dof, -1)).reshape(n_fit * dof, -1)
+        Qp, R = np.linalg.qr(np.vstack([Uf, U[n_fit * dof:]]))
     F = Js @ (B @ R.T)
     # a fit row's residual noise is its own, sqrt(c) S E_i eta, less the estimate's seen by it, F_i Q'^T eta: the
     # own splits into its part along Q' (with the estimate's: L Q'^T eta) and the part orthogonal to Q', of
     # covariance sqrt(c) S (I - Q'_i Q'_i^T) S sqrt(c), built from Q'_i's singular values (1 - sv^2 clipped at
     # zero) so that a row of leverage one has no residual variance there, never a negative one
-    sc = sig[fr] * np.sqrt(c)
     Qi = Qp[: n_fit * dof].reshape(n_fit, dof, Qp.shape[1])
-    L = sc[:, :, None] * Qi - F[fr]
+    PQ = P[:, :, None] * Qi if root is None else P @ Qi
+    L = PQ - F[fr]
     V, left = _outside(Qi)
-    O = sc[:, :, None] * V
+    O = P[:, :, None] * V if root is None else P @ V
     fit_noise = (O * left[:, None, :]) @ np.swapaxes(O, 1, 2) + L @ np.swapaxes(L, 1, 2)
-    return SessionTerms(G, F @ np.swapaxes(F, 1, 2), fit_noise, L, sc[:, :, None] * Qi)
+    return SessionTerms(G, F @ np.swapaxes(F, 1, 2), fit_noise, L, PQ)
 
 
 def _outside(Qi: NDArray) -> tuple[NDArray, NDArray]:
@@ -227,14 +256,15 @@ def _covariances(G, C, D, sig, c, fr, terms: SessionTerms | None) -> tuple[NDArr
     """
     n, dof = sig.shape
     noise = np.einsum("ni,ij->nij", sig**2 * c, np.eye(dof))
-    core = (G @ C) @ np.swapaxes(G, 1, 2) + D  # batched products: blocked BLAS, not einsum's loops
+    gcg = (G @ C) @ np.swapaxes(G, 1, 2)  # batched products: blocked BLAS, not einsum's loops
+    core = gcg + D
     base = np.full((n, dof, dof), np.nan)
     base[fr] = noise[fr] + D[fr]
     if terms is None:
         U = np.where(fr[:, None, None], G, np.nan)
         return core + noise, FitRowsJoint(base, U, C)
     cov = core + terms.extra + noise
-    cov[fr] = core[fr] + terms.fit_noise
+    cov[fr] = gcg[fr] + terms.fit_noise  # D is in a fit row's own error, through the refit (_session_terms)
     r, k = terms.L.shape[2], G.shape[2]
     U = np.full((n, dof, 2 * r + k), np.nan)
     U[fr] = np.concatenate([terms.L, terms.Q, G[fr]], axis=2)
@@ -318,7 +348,7 @@ def predictive_rows(
     fr = np.ones(sub.n_poses, dtype=bool) if fit_rows is None else np.asarray(fit_rows, dtype=bool)[ok]
     terms = None
     if session_index is not None and np.size(session_index):
-        terms = _session_terms(J[:, :, np.asarray(session_index, dtype=int)], Jm, sig, c, fr, session_prior_std)
+        terms = _session_terms(J[:, :, np.asarray(session_index, dtype=int)], Jm, sig, c, fr, session_prior_std, D)
     G = Jm if terms is None else terms.G
     mean[ok] = mu
     k = np.sqrt(np.broadcast_to(np.asarray(variance_factor, dtype=float), (dof,)))
