@@ -239,7 +239,7 @@ def retest_with_candidates(model: MeasurementModel, effects, theta: NDArray, scr
     -------
     OutlierScreen or None
         The screen to diagnose with (its :attr:`~OutlierScreen.replaced` is ``screen``), or None when it
-        names the same poses (or a candidate cannot be evaluated at its start values).
+        names the same poses (or a candidate cannot be evaluated, or differentiated, at its start values).
     """
     if not effects:
         return None
@@ -247,6 +247,8 @@ def retest_with_candidates(model: MeasurementModel, effects, theta: NDArray, scr
     try:
         A, r = joint_system(model, effects, theta, eta)
     except (KinematicsError, InputError):
+        return None
+    if not (np.isfinite(A).all() and np.isfinite(r).all()):  # a candidate without a derivative at its start
         return None
     # the residual of the linearised fit (one Gauss-Newton step of every candidate with the geometry, the screen's
     # weights): the test's deletion formulas take the residual at the fit, not at its start

@@ -125,3 +125,36 @@ def test_the_screens_later_rounds_start_warm_on_large_recordings_and_agree(prs3,
         std = np.sqrt(np.diag(f_c.covariance))[: prs3.n_params]
         assert np.all(np.abs(f_w.theta - f_c.theta) <= 0.05 * std)
     assert sum(f.iterations for _, f in warm.fits[1:]) < sum(f.iterations for _, f in cold.fits[1:])
+
+
+def test_the_candidates_test_declines_what_it_cannot_linearise(prs3, monkeypatch):
+    """A candidate that cannot be evaluated or differentiated at its start values: no test before the fits (the
+    geometric screen stands, the final model still judges), never an error."""
+    import bayescal.outliers.screen as scr
+    from bayescal.errors import KinematicsError
+
+    sim = simulate_with_effects(prs3, 100, seed=20, dof=6, effects=[("thermal_expansion", 25.0)], record=("temp_C",))
+    model = MeasurementModel.from_recording(prs3, sim.recording)
+    screen = screen_outliers(model)
+    assert screen.excluded.any()  # the warm-up's first poses: something the candidates could release
+
+    class _Effect:
+        name = "stub"
+
+        def params(self, machine, features):
+            return ()
+
+    def nan_system(*a):
+        A, r = np.ones((model.n_poses * model.dof, 3)), np.zeros(model.n_poses * model.dof)
+        A[5, 1] = np.nan
+        return A, r
+
+    monkeypatch.setattr(scr, "joint_system", nan_system)
+    assert scr.retest_with_candidates(model, [(_Effect(), None)], screen.fit.theta, screen) is None
+
+    def fails(*a):
+        raise KinematicsError("pose 3 cannot be solved")
+
+    monkeypatch.setattr(scr, "joint_system", fails)
+    assert scr.retest_with_candidates(model, [(_Effect(), None)], screen.fit.theta, screen) is None
+    assert scr.retest_with_candidates(model, [], screen.fit.theta, screen) is None
