@@ -191,8 +191,9 @@ def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArr
     keep = s > (s[0] if s.size else 0.0) * max(Aa.shape) * np.finfo(float).eps
     U, B = U[:, keep], (Vt[keep].T / s[keep]) / norm[:, None]  # pinv([A_s; P]) = B U^T
     G = Jm - Js @ (B @ (U[: n_fit * dof].T @ Am))
-    # the estimate's error B U^T diag(c_aug)^(1/2) eta = (B R^T) Q'^T eta, with diag(c_aug)^(1/2) U = Q' R: the
-    # fit rows' noise (factor c) and the prior's (a unit-variance draw per prior row)
+    # the estimate's error B U^T T eta = (B R^T) Q'^T eta, with T U = Q' R and T the root of the whitened rows'
+    # error covariance (diag(c_aug)^(1/2) without D): the fit rows' noise (factor c, and D) and the prior's (a
+    # unit-variance draw per prior row)
     root, P = _own_noise(sig[fr], c, None if D is None else D[fr])
     if root is None:
         c_aug = np.r_[np.tile(c, n_fit), np.ones(int(has.sum()))]
@@ -201,10 +202,10 @@ def _session_terms(Js: NDArray, Jm: NDArray, sig: NDArray, c: NDArray, fr: NDArr
         Uf = (root @ U[: n_fit * dof].reshape(n_fit, dof, -1)).reshape(n_fit * dof, -1)
         Qp, R = np.linalg.qr(np.vstack([Uf, U[n_fit * dof:]]))
     F = Js @ (B @ R.T)
-    # a fit row's residual noise is its own, sqrt(c) S E_i eta, less the estimate's seen by it, F_i Q'^T eta: the
-    # own splits into its part along Q' (with the estimate's: L Q'^T eta) and the part orthogonal to Q', of
-    # covariance sqrt(c) S (I - Q'_i Q'_i^T) S sqrt(c), built from Q'_i's singular values (1 - sv^2 clipped at
-    # zero) so that a row of leverage one has no residual variance there, never a negative one
+    # a fit row's residual noise is its own, P_i E_i eta (P_i = sqrt(c) S_i without D), less the estimate's seen
+    # by it, F_i Q'^T eta: the own splits into its part along Q' (with the estimate's: L Q'^T eta) and the part
+    # orthogonal to Q', of covariance P_i (I - Q'_i Q'_i^T) P_i^T, built from Q'_i's singular values (1 - sv^2
+    # clipped at zero) so that a row of leverage one has no residual variance there, never a negative one
     Qi = Qp[: n_fit * dof].reshape(n_fit, dof, Qp.shape[1])
     PQ = P[:, :, None] * Qi if root is None else P @ Qi
     L = PQ - F[fr]
