@@ -48,7 +48,13 @@ from ..effects.base import approach_direction
 from ..measurement import MeasurementModel
 from ..models import model_from_recording
 from ..outliers import recording_lines
-from ..outliers.screen import retest_with_candidates, retest_with_discrepancy, retest_with_effects, screen_outliers
+from ..outliers.screen import (
+    complete_screen,
+    first_round,
+    retest_with_candidates,
+    retest_with_discrepancy,
+    retest_with_effects,
+)
 from ..progress import report
 from ..sensors.columns import is_body_measurement
 from .confound import geometry_confound, written_tool_jacobian
@@ -163,7 +169,7 @@ def diagnose(
     n_perm: int | None = None,
     effect_settings: dict[str, dict] | None = None,
     _screen=None, _disc_retested: bool = False, _noise: NoiseSettling | None = None, _tilt: float | None = None,
-    _warm: dict | None = None, _pretested: bool = False,
+    _warm: dict | None = None, _pretested: bool = False, _geometric=None,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -203,7 +209,7 @@ def diagnose(
     if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
         raise InputError(f"n_folds: expected a whole number >= 2 (folds of the cross-validation), got {n_folds!r}")
     again = dict(effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm, effect_settings=effect_settings, _tilt=_tilt)
-    s = _setup(machine, recording, effects, effect_settings, n_folds, _screen, _noise, tilt=_tilt)
+    s = _setup(machine, recording, effects, effect_settings, n_folds, _screen or _geometric, _noise, tilt=_tilt)
     g = _geometric_stage(s, seed)
     if s.noise is None:
         s = _noise_tested(s, g)
@@ -211,8 +217,10 @@ def diagnose(
             return diagnose(machine, recording, **again, _noise=s.noise)
     again["_noise"] = s.noise  # a rerun (outliers retested) keeps the noise tested once
     cands, skipped = _candidates(s, g)
-    if _screen is None and (early := _outliers_pretested(s, g, cands)) is not None:
-        return diagnose(machine, recording, **again, _screen=early, _pretested=True)
+    if _screen is None:
+        s, restart, _pretested = _screened_by_candidates(s, g, cands, _noise)
+        if restart is not None:
+            return diagnose(machine, recording, **{**again, **restart})
     folds = _folds(s.kept, seed, n_folds)
     cv0 = _cv_rms(s.model, [], folds, g.fit0.theta, None)
     tried: dict = {}  # every fit with effects, by the effects' names: where a rerun's fits start
@@ -243,7 +251,7 @@ def _outliers_retested(s: "_Setup", selected: list, cur_fit: EffectFit, keep_sam
     if s.screen is None:
         return None
     if not selected:
-        return s.screen.replaced
+        return None if s.screen.replaced is None else complete_screen(s.base_model, s.screen.replaced)
     return retest_with_effects(s.base_model, [(c.effect, c.features) for c in selected], cur_fit, s.screen,
                                keep_same=keep_same)
 
@@ -267,6 +275,33 @@ def _discrepancy_retested(s: "_Setup", recording, selected: list, cur_fit: Effec
         return None
     plain = _final_model(s.machine, recording, s.base_model, selected, cur_fit, s.settings, None)
     return retest_with_discrepancy(plain, cur_fit.theta, disc_trial.fit, s.screen) if plain is not None else None
+
+
+def _screened_by_candidates(s: "_Setup", g: "_Geometric", cands: list, noise) -> tuple:
+    """``(s, restart, pretested)``: the first pass's setup, the keywords of the pass to run instead (or None), and
+    whether its screen is now the candidates' (:func:`_outliers_pretested`).
+
+    Where the screen's first round flagged poses (``s.screen`` not complete) the candidates judge every pose at
+    once, at the first round's fit (its deletion test needs no round without a gross pose to see it): where
+    they explain them all, the pass goes on with nothing excluded, and the screen's later rounds are never run
+    (at 100,000 poses a refit and a test, 6 s of CPU, and the first pass's stages again, 5 s); where they name
+    poses, the pass starts again with those out, as after the test at the complete screen; where they cannot
+    judge, the screen is completed and the pass starts from it as any other.  The final model judges the poses
+    again in every case (:func:`_judged_by_final_model`).
+    """
+    if s.screen is None or s.screen.complete:
+        early = _outliers_pretested(s, g, cands)
+        return s, (None if early is None else dict(_screen=early, _pretested=True)), False
+    judged = None
+    if cands:
+        judged = retest_with_candidates(s.base_model, [(c.effect, c.features) for c in cands], g.fit0.theta,
+                                        s.screen, keep_same=True)
+    if judged is None:  # too many stand out against the candidates too, or a candidate cannot be linearised
+        return s, dict(_geometric=complete_screen(s.base_model, s.screen), _noise=noise), False
+    if not judged.excluded.any():
+        return replace(s, screen=judged), None, True
+    # gross poses even against the candidates: out of every fit, the noise tested without them
+    return s, dict(_screen=judged, _pretested=True, _noise=noise), False
 
 
 def _outliers_pretested(s: "_Setup", g: "_Geometric", cands: list) -> object:
@@ -446,7 +481,11 @@ def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_f
     base_model = model
     if screen is None:
         try:
-            screen = screen_outliers(model, lines=recording_lines(n, recording))
+            # the first round alone where it flags a few poses: the candidate effects judge them before the
+            # screen's later rounds (diagnose, _screened_by_candidates); otherwise the screen is complete here
+            screen = first_round(model, lines=recording_lines(n, recording))
+            if not screen.test.flagged.any() or screen.test.too_many:
+                screen = complete_screen(model, screen)
         except (KinematicsError, InputError):
             screen = None  # the nominal machine cannot solve the recording: the geometric fit says so
     if screen is not None:

@@ -63,7 +63,7 @@ from .stats import (
     weighted_model,
 )
 
-__all__ = ["OutlierScreen", "screen_outliers", "retest_with_candidates", "retest_with_effects",
+__all__ = ["OutlierScreen", "screen_outliers", "first_round", "complete_screen", "retest_with_candidates", "retest_with_effects",
            "retest_with_discrepancy", "EXCLUDE_FACTOR", "MAX_FRACTION"]
 
 MAX_ROUNDS = 3
@@ -95,6 +95,10 @@ class OutlierScreen:
     replaced : OutlierScreen or None
         The geometric screen this one replaced (:func:`retest_with_candidates`): where a diagnosis that
         selects no effect returns, its final model being the geometry alone.  None for any other screen.
+        It may be the screen's first round alone (``complete`` False): :func:`complete_screen` finishes it.
+    complete : bool
+        False for the first round alone (:func:`first_round`): its test's flagged poses are not excluded yet,
+        and the later rounds are still to run (:func:`complete_screen`).
     """
 
     test: PoseTest
@@ -103,6 +107,7 @@ class OutlierScreen:
     fit: object = None
     fits: tuple = ()
     replaced: object = None
+    complete: bool = True
 
     def fit_for(self, excluded: NDArray):
         """The geometric fit this screen made with exactly ``excluded`` poses out, or None."""
@@ -148,7 +153,8 @@ class OutlierScreen:
 WARM_ROUNDS_POSES = COARSE_START_POSES
 
 
-def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, alpha: float = ALPHA) -> OutlierScreen:
+def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, alpha: float = ALPHA,
+                    first: OutlierScreen | None = None) -> OutlierScreen:
     """Find gross-error poses before the diagnosis (see the module docstring).
 
     Parameters
@@ -159,6 +165,9 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
         CSV line of every pose (default ``i + 2``).
     alpha : float
         Family-wise level over the poses.
+    first : OutlierScreen, optional
+        The first round, made already by :func:`first_round` on the same ``model``, ``lines`` and ``alpha``:
+        the screen goes on from it (the answer is the one without it, bit for bit).
 
     Returns
     -------
@@ -166,16 +175,16 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
     """
     n = model.n_poses
     excluded = np.zeros(n, dtype=bool)
-    free = np.ones(model.n_params, dtype=bool)
     test = fit = None
     stepped = 0
     fits = []  # every round's fit with the poses it left out (OutlierScreen.fits)
     for _ in range(MAX_ROUNDS + MAX_STEPS):
-        weights = exclusion_weights(excluded)
-        start = fits[-1][1].theta if fits and n >= WARM_ROUNDS_POSES and fits[-1][1].success else None
-        fit = fit_map(weighted_model(model, weights if excluded.any() else None), theta0=start)
+        if first is not None and not fits:
+            fit, test = first.fit, first.test
+        else:
+            start = fits[-1][1].theta if fits and n >= WARM_ROUNDS_POSES and fits[-1][1].success else None
+            fit, test = _round(model, excluded, start, lines, alpha)
         fits.append((excluded.copy(), fit))
-        test = pose_test(model, fit.theta, free, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=lines)
         # an excluded pose is tested by its residual against the fit of the others, so it stays out only
         # while that still flags it: a gross reading that dragged the first fit makes innocent poses
         # stand out there (swamping; a few parameters seen by few rows, as distances on a delta), and
@@ -207,8 +216,45 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
     return OutlierScreen(test=test, excluded=excluded, action=action, fit=fit, fits=tuple(fits))
 
 
+def _round(model: MeasurementModel, excluded: NDArray, start, lines, alpha: float):
+    """One round of the screen: the geometric MAP fit with ``excluded`` poses out (from ``start``) and its test."""
+    weights = exclusion_weights(excluded)
+    fit = fit_map(weighted_model(model, weights if excluded.any() else None), theta0=start)
+    free = np.ones(model.n_params, dtype=bool)
+    test = pose_test(model, fit.theta, free, lam=1.0, weights=weights, scale="robust", alpha=alpha, lines=lines)
+    return fit, test
+
+
+def first_round(model: MeasurementModel, *, lines: NDArray | None = None, alpha: float = ALPHA) -> OutlierScreen:
+    """The screen's first round alone: the geometric fit of every pose and its test, nothing excluded yet.
+
+    A diagnosis asks the candidate effects about the poses this round flags before the screen's later
+    rounds refit without them (docs/outliers.md, "In the diagnosis"): where the candidates explain them
+    all, those rounds are never needed.  :func:`complete_screen` finishes it into :func:`screen_outliers`'s
+    answer.
+
+    Returns
+    -------
+    OutlierScreen
+        ``excluded`` all False, ``complete`` False (``test.flagged`` holds the poses the round flagged), ``fit``
+        the round's fit.
+    """
+    n = model.n_poses
+    fit, test = _round(model, np.zeros(n, dtype=bool), None, lines, alpha)
+    return OutlierScreen(test=test, excluded=np.zeros(n, dtype=bool), action="first round of the screen",
+                         fit=fit, fits=((np.zeros(n, dtype=bool), fit),), complete=False)
+
+
+def complete_screen(model: MeasurementModel, screen: OutlierScreen, *, alpha: float = ALPHA) -> OutlierScreen:
+    """``screen`` itself when complete; a first round (:func:`first_round` on ``model``) finished by the later
+    rounds: :func:`screen_outliers`'s answer."""
+    if screen.complete:
+        return screen
+    return screen_outliers(model, lines=screen.test.lines, alpha=alpha, first=screen)
+
+
 def retest_with_candidates(model: MeasurementModel, effects, theta: NDArray, screen: OutlierScreen, *,
-                           alpha: float = ALPHA) -> OutlierScreen | None:
+                           alpha: float = ALPHA, keep_same: bool = False) -> OutlierScreen | None:
     """Test every pose against the geometry with every candidate effect, linearised at the geometric fit.
 
     The screen judged the poses by the geometric model alone, and the
@@ -233,13 +279,16 @@ def retest_with_candidates(model: MeasurementModel, effects, theta: NDArray, scr
     theta : ndarray, shape (P,)
         The geometric fit (mm, rad).
     screen : OutlierScreen
-        The geometric screen.
+        The geometric screen, or its first round alone (:func:`first_round`; nothing excluded yet).
+    keep_same : bool
+        Return the new screen even when it names the screen's poses.
 
     Returns
     -------
     OutlierScreen or None
         The screen to diagnose with (its :attr:`~OutlierScreen.replaced` is ``screen``), or None when it
-        names the same poses (or a candidate cannot be evaluated, or differentiated, at its start values).
+        names the same poses (unless ``keep_same``), when too many stand out, or when a candidate cannot be
+        evaluated, or differentiated, at its start values.
     """
     if not effects:
         return None
@@ -257,7 +306,8 @@ def retest_with_candidates(model: MeasurementModel, effects, theta: NDArray, scr
     names = ", ".join(e.name for e, _ in effects)
     return _retest(model, A, r, screen, alpha=alpha,
                    judged=f"judged against the geometry with every candidate effect ({names}) linearised at the "
-                   "geometric fit", released="the geometric model's misfit alone had flagged some", replaced=screen)
+                   "geometric fit", released="the geometric model's misfit alone had flagged some", replaced=screen,
+                   keep_same=keep_same)
 
 
 def retest_with_effects(

@@ -291,7 +291,7 @@ def test_a_large_recordings_rerun_starts_its_fits_from_the_first_pass(prs3, warm
 
     monkeypatch.setattr(core, "fit_map", spy)
     monkeypatch.setattr(core, "LARGE_POSES", 50)
-    monkeypatch.setattr(core, "_outliers_pretested", lambda *a: None)  # the rerun of the final retest, alone
+    _without_the_candidates_test(monkeypatch)  # the rerun of the final retest, alone
     d = core.diagnose(prs3, warmup_with_beam_breaks, seed=1)
     first = {names: fit for names, coarse, _, fit in starts[: len(starts) // 2]}
     rerun = starts[len(starts) // 2:]
@@ -311,18 +311,29 @@ def test_a_large_recordings_rerun_starts_its_fits_from_the_first_pass(prs3, warm
             assert abs(p.value - q.value) < 0.05 * q.std
 
 
-def test_the_poses_are_judged_against_every_candidate_before_any_fit(prs3, monkeypatch):
-    """The screen's poses are tested against the geometry with every candidate effect (linearised) before the
-    fits: a warm-up's first poses, which the geometric screen flags, are released then, the final model agrees,
-    and no effect is fitted twice.  The answer is the one the rerun after the final retest gives (with the
-    candidates' test switched off; LARGE_POSES lowered so that this rerun starts from the first pass's fits, as
-    on a large recording)."""
+def _without_the_candidates_test(monkeypatch):
+    """Switch off the candidates' test before the fits: the geometric screen complete at once, judged by the final
+    model alone."""
     import bayescal.diagnose.core as core
+    from bayescal.outliers.screen import screen_outliers
+
+    monkeypatch.setattr(core, "first_round", lambda model, **kw: screen_outliers(model, **kw))
+    monkeypatch.setattr(core, "_outliers_pretested", lambda *a: None)
+
+
+def test_the_poses_are_judged_against_every_candidate_before_any_fit(prs3, monkeypatch):
+    """The poses the screen's first round flags are tested against the geometry with every candidate effect
+    (linearised) before the fits: a warm-up's first poses, which the geometric screen flags, are released then,
+    the final model agrees, the screen's later rounds never run and no effect is fitted twice.  The answer is the
+    one the rerun after the final retest gives (with the candidates' test switched off; LARGE_POSES lowered so
+    that this rerun starts from the first pass's fits, as on a large recording)."""
+    import bayescal.diagnose.core as core
+    from bayescal.outliers.screen import complete_screen
 
     sim = simulate_with_effects(prs3, 100, seed=20, dof=6, effects=[("thermal_expansion", 25.0)], record=("temp_C",))
     monkeypatch.setattr(core, "LARGE_POSES", 50)
-    fits, passes = [], []
-    real_fit, real_diagnose = core.fit_map, core.diagnose
+    fits, passes, screened = [], [], []
+    real_fit, real_diagnose, real_screened = core.fit_map, core.diagnose, core._screened_by_candidates
 
     def spy_fit(model, effects=(), **kw):
         if effects and model.n_poses == 100:
@@ -331,9 +342,15 @@ def test_the_poses_are_judged_against_every_candidate_before_any_fit(prs3, monke
 
     monkeypatch.setattr(core, "fit_map", spy_fit)
     monkeypatch.setattr(core, "diagnose", lambda *a, **k: passes.append(k.get("_screen")) or real_diagnose(*a, **k))
+    monkeypatch.setattr(core, "_screened_by_candidates", lambda *a: screened.append(real_screened(*a)) or screened[-1])
     d = core.diagnose(prs3, sim.recording, seed=1)
-    assert len(passes) == 2 and passes[1].replaced is not None  # the first pass stopped before its fits
-    assert np.flatnonzero(passes[1].replaced.excluded).tolist() == [0, 2, 8]  # the geometric screen's warm-up poses
+    assert len(passes) == 1  # one pass: the candidates released every pose the first round flagged
+    (s, restart, pretested), = screened
+    first = s.screen.replaced
+    assert restart is None and pretested and not s.screen.excluded.any()
+    assert not first.complete and first.test.flagged.any() and not first.excluded.any()
+    # the geometric screen's warm-up poses, had its later rounds run
+    assert np.flatnonzero(complete_screen(s.base_model, first).excluded).tolist() == [0, 2, 8]
     assert len(fits) == len(set(fits))  # every fit once
     ans = d.to_dict()
     assert d.verdict == "thermal_expansion" and ans["outliers"] == []
@@ -341,7 +358,7 @@ def test_the_poses_are_judged_against_every_candidate_before_any_fit(prs3, monke
     # without the test before the fits: the first pass fits everything, the final model releases the same poses
     fits.clear()
     passes.clear()
-    monkeypatch.setattr(core, "_outliers_pretested", lambda *a: None)
+    _without_the_candidates_test(monkeypatch)
     ref = core.diagnose(prs3, sim.recording, seed=1)
     assert len(passes) == 2 and len(fits) > len(set(fits))
     assert ref.verdict == d.verdict and ref.selected == d.selected and ref.to_dict()["outliers"] == []
@@ -365,8 +382,8 @@ def test_with_no_effect_selected_the_geometric_screen_comes_back():
 
     import bayescal.diagnose.core as core
 
-    geometric = SimpleNamespace(replaced=None)
+    geometric = SimpleNamespace(replaced=None, complete=True)
     early = SimpleNamespace(replaced=geometric)
-    assert core._outliers_retested(SimpleNamespace(screen=early), [], None) is geometric
-    assert core._outliers_retested(SimpleNamespace(screen=geometric), [], None) is None
+    assert core._outliers_retested(SimpleNamespace(screen=early, base_model=None), [], None) is geometric
+    assert core._outliers_retested(SimpleNamespace(screen=geometric, base_model=None), [], None) is None
     assert core._outliers_retested(SimpleNamespace(screen=None), [], None) is None

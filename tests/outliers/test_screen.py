@@ -103,6 +103,31 @@ def test_the_screen_keeps_each_rounds_fit_and_a_retest_naming_its_poses_starts_f
     assert new.fit is screen.fits[0][1] and new.fits == screen.fits
 
 
+@pytest.mark.parametrize("bad,effects", [([30, 55, 80], [("thermal_expansion", 25.0)]), ([], [])])
+def test_the_first_round_completed_is_the_screen_bit_for_bit(prs3, bad, effects):
+    """The first round alone (what a diagnosis asks the candidates about) excludes nothing and flags what the
+    screen's first round flags; completed, it is the screen's answer, every round's fit and test alike.  A
+    complete screen completes to itself."""
+    from bayescal.outliers.screen import complete_screen, first_round
+
+    sim = simulate_with_effects(prs3, 100, seed=20, dof=6, effects=effects, record=("temp_C",))
+    rec = _beam_breaks(sim.recording, np.array(bad, dtype=int), prs3.noise.sigma_position, np.random.default_rng(0))
+    model = MeasurementModel.from_recording(prs3, rec)
+    lines = np.arange(model.n_poses) + 7
+    ref = screen_outliers(model, lines=lines)
+    first = first_round(model, lines=lines)
+    assert not first.complete and not first.excluded.any() and first.outliers() == []
+    assert np.array_equal(first.test.flagged, ref.fits[1][0] if len(ref.fits) > 1 else ref.excluded)
+    done = complete_screen(model, first)
+    assert done.complete and complete_screen(model, done) is done
+    assert np.array_equal(done.excluded, ref.excluded) and done.action == ref.action and done.outliers() == ref.outliers()
+    assert np.array_equal(done.test.lines, lines) and np.array_equal(done.test.statistic, ref.test.statistic)
+    assert len(done.fits) == len(ref.fits)
+    for (m_d, f_d), (m_r, f_r) in zip(done.fits, ref.fits):
+        assert np.array_equal(m_d, m_r) and np.array_equal(f_d.theta, f_r.theta)
+    assert bool(bad) == (len(ref.fits) > 1) == first.test.flagged.any()  # later rounds for the gross poses only
+
+
 def test_the_screens_later_rounds_start_warm_on_large_recordings_and_agree(prs3, monkeypatch):
     """From WARM_ROUNDS_POSES poses a round's fit starts from the round before's: the same poses flagged and
     excluded, every parameter within a small fraction of its posterior std of the rounds' cold fits."""
