@@ -22,7 +22,10 @@ line (swamping) is released.
 Before any effect is fitted the poses are tested against the geometry with
 every candidate effect, linearised at the geometric fit
 (:func:`retest_with_candidates`): the poses a physical effect explains are
-released before the fits that would otherwise be made twice.  When the
+released before the fits that would otherwise be made twice.  A diagnosis
+asks them right after the screen's first round (:func:`first_round`), at
+that round's fit: where they release every pose it flagged, the later rounds
+never run (:func:`complete_screen` runs them when they are wanted).  When the
 diagnosis selects effects, the poses are tested again against the final
 model (:func:`retest_with_effects`); if that names other poses, the
 diagnosis is run once more with those excluded (a warm-up's first poses are
