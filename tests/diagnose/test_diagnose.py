@@ -387,3 +387,20 @@ def test_with_no_effect_selected_the_geometric_screen_comes_back():
     assert core._outliers_retested(SimpleNamespace(screen=early, base_model=None), [], None) is geometric
     assert core._outliers_retested(SimpleNamespace(screen=geometric, base_model=None), [], None) is None
     assert core._outliers_retested(SimpleNamespace(screen=None), [], None) is None
+
+
+def test_with_no_effect_selected_a_first_round_the_candidates_replaced_is_completed(prs3, warmup_with_beam_breaks):
+    """Where the candidates replaced the screen's first round alone, the geometric screen that comes back is the
+    complete one (its later rounds run then): the poses screen_outliers names, not the first round's nothing."""
+    from types import SimpleNamespace
+
+    import bayescal.diagnose.core as core
+    from bayescal.measurement import MeasurementModel
+    from bayescal.outliers.screen import first_round, screen_outliers
+
+    model = MeasurementModel.from_recording(prs3, warmup_with_beam_breaks)
+    first = first_round(model)
+    assert first.test.flagged.any() and not first.excluded.any()
+    back = core._outliers_retested(SimpleNamespace(screen=SimpleNamespace(replaced=first), base_model=model), [], None)
+    ref = screen_outliers(model)
+    assert back.complete and ref.excluded.any() and np.array_equal(back.excluded, ref.excluded)
