@@ -66,8 +66,8 @@ from .stats import (
     weighted_model,
 )
 
-__all__ = ["OutlierScreen", "screen_outliers", "first_round", "complete_screen", "retest_with_candidates", "retest_with_effects",
-           "retest_with_discrepancy", "EXCLUDE_FACTOR", "MAX_FRACTION"]
+__all__ = ["OutlierScreen", "screen_outliers", "first_round", "complete_screen", "retest_with_candidates",
+           "retest_with_effects", "retest_with_discrepancy", "EXCLUDE_FACTOR", "MAX_FRACTION"]
 
 MAX_ROUNDS = 3
 #: Poses taken out one at a time when too many stand out at once (a gross pose swamping the fit).
