@@ -169,7 +169,7 @@ def diagnose(
     n_perm: int | None = None,
     effect_settings: dict[str, dict] | None = None,
     _screen=None, _disc_retested: bool = False, _noise: NoiseSettling | None = None, _tilt: float | None = None,
-    _warm: dict | None = None, _pretested: bool = False, _geometric=None,
+    _warm: dict | None = None, _pretested: bool = False, _geometric=None, _judge: bool = False,
 ) -> Diagnosis:
     """Locate a model mismatch, name the missing physics, model it and verify it out of sample.
 
@@ -206,8 +206,6 @@ def diagnose(
         Unknown effect names, a forced effect that needs a missing channel,
         too few poses for a forced effect or for cross-validation.
     """
-    if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
-        raise InputError(f"n_folds: expected a whole number >= 2 (folds of the cross-validation), got {n_folds!r}")
     again = dict(effects=effects, seed=seed, n_folds=n_folds, n_perm=n_perm, effect_settings=effect_settings, _tilt=_tilt)
     s = _setup(machine, recording, effects, effect_settings, n_folds, _screen or _geometric, _noise, tilt=_tilt)
     g = _geometric_stage(s, seed)
@@ -230,10 +228,11 @@ def diagnose(
     if _tilt is None and (rerun := _tilt_rerun(s, selected, cur_fit, machine, recording, again)) is not None:
         return rerun
     again["_warm"] = tried  # an outlier rerun starts its fits from this pass's (large recordings, _start)
-    if _screen is None or _pretested:
+    if _screen is None or _pretested or _judge:
         final, s = _judged_by_final_model(s, selected, cur_fit, _pretested)
-        if final is not None:
-            return diagnose(machine, recording, **again, _screen=final, _disc_retested=_disc_retested)
+        if final is not None:  # with no effect selected, the geometric screen: its pass's final model judges too
+            return diagnose(machine, recording, **again, _screen=final, _disc_retested=_disc_retested,
+                            _judge=not selected)
     disc_trial, final_model = _discrepancy_trial(s, g, v, recording, selected, cur_fit, folds, cur_cv, seed)
     if not _disc_retested and (final := _discrepancy_retested(s, recording, selected, cur_fit, disc_trial)) is not None:
         return diagnose(machine, recording, **again, _screen=final, _disc_retested=True)
@@ -451,6 +450,8 @@ class _Setup:
 def _setup(machine: Machine, recording: Recording, effects, effect_settings, n_folds: int, screen,
            noise: NoiseSettling | None = None, tilt: float | None = None) -> _Setup:
     """The geometry-only model of ``recording`` with its sensors' noise tested and gross errors screened."""
+    if isinstance(n_folds, bool) or not isinstance(n_folds, (int, np.integer)) or n_folds < 2:
+        raise InputError(f"n_folds: expected a whole number >= 2 (folds of the cross-validation), got {n_folds!r}")
     # the inputs the machine file states in its [effect.<name>] tables, overridden key by key by those given: the
     # command line and a notebook's bayescal.diagnose(...) on the same file use the same inputs
     settings = {e.name: dict(e.settings) for e in machine.effects if e.settings}

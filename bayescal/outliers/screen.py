@@ -270,7 +270,11 @@ def retest_with_candidates(model: MeasurementModel, effects, theta: NDArray, scr
     only the screen's features again.  The design is the joint fit's at the
     geometric fit and every candidate's start values (prior ``N(0, 1)`` per
     prior std about that point, ridge ``lam = 1``), the residual that of its
-    linear fit there (one Gauss-Newton step).  The final model still
+    linear fit there: a Gauss-Newton step whose prior is centred at that
+    point (the joint fit's step would also pull the geometry and the effects
+    towards their prior means; at the geometric MAP that pull is of the order
+    of the prior's share of the fit, small where the poses outnumber the
+    parameters).  The final model still
     judges the poses: this spares the second pass only where the two agree.
 
     Parameters
@@ -302,7 +306,7 @@ def retest_with_candidates(model: MeasurementModel, effects, theta: NDArray, scr
         return None
     if not (np.isfinite(A).all() and np.isfinite(r).all()):  # a candidate without a derivative at its start
         return None
-    # the residual of the linearised fit (one Gauss-Newton step of every candidate with the geometry, the screen's
+    # the residual of the linearised fit (every candidate with the geometry, ridge about this point, the screen's
     # weights): the test's deletion formulas take the residual at the fit, not at its start
     sw = np.repeat(np.sqrt(screen.weights), model.dof)
     r = r - A @ ridge_solution(A, r, 1.0, sw)

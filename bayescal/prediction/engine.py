@@ -147,8 +147,9 @@ class SessionTerms:
 def _own_noise(sig: NDArray, c: NDArray, D: NDArray | None) -> tuple[NDArray | None, NDArray]:
     """A fit row's own error, its noise and the discrepancy's leftover: ``(M^1/2, P)`` with ``P P^T = c S^2 + D``.
 
-    ``M^1/2`` (n, dof, dof) is the symmetric root of ``M = c I + S^-1 D S^-1`` (the error in the fit's whitened
-    units), ``P = S M^1/2``; ``M^1/2`` is None and ``P`` the diagonal ``sqrt(c) sigma`` (n, dof) without ``D``.
+    ``M^1/2`` (n, dof, dof) is the symmetric root of ``M = diag(c) + S^-1 D S^-1`` (``c`` one factor per
+    component; the error in the fit's whitened units), ``P = S M^1/2``; ``M^1/2`` is None and ``P`` the diagonal
+    ``sqrt(c) sigma`` (n, dof) without ``D``.
     """
     if D is None or not np.any(D):
         return None, sig * np.sqrt(c)

@@ -389,6 +389,31 @@ def test_with_no_effect_selected_the_geometric_screen_comes_back():
     assert core._outliers_retested(SimpleNamespace(screen=None), [], None) is None
 
 
+def test_the_geometric_screen_that_comes_back_is_judged_by_its_passs_final_model(prs3, monkeypatch):
+    """A pass on the candidates' screen that selects no effect runs again on the geometric screen (the thermal
+    warm-up's first poses out); where that pass selects an effect, its final model still judges the poses and
+    releases them (a third pass), as a first pass's would: they are not reported as outliers."""
+    import bayescal.diagnose.core as core
+
+    sim = simulate_with_effects(prs3, 100, seed=20, dof=6, effects=[("thermal_expansion", 25.0)], record=("temp_C",))
+    calls, passes = [], []
+    real_selection, real_diagnose = core._forward_selection, core.diagnose
+
+    def first_selects_nothing(s, cands, single, folds, fit0, cv0, *rest):
+        calls.append(1)
+        return ([], fit0, cv0) if len(calls) == 1 else real_selection(s, cands, single, folds, fit0, cv0, *rest)
+
+    monkeypatch.setattr(core, "_forward_selection", first_selects_nothing)
+    monkeypatch.setattr(core, "diagnose", lambda *a, **k: passes.append(k) or real_diagnose(*a, **k))
+    d = core.diagnose(prs3, sim.recording, seed=1)
+    assert len(passes) == 3
+    geometric = passes[1]["_screen"]
+    assert np.flatnonzero(geometric.excluded).tolist() == [0, 2, 8] and passes[1]["_judge"]
+    ans = d.to_dict()
+    assert d.verdict == "thermal_expansion" and ans["outliers"] == []
+    assert "judged against the geometry with thermal_expansion" in ans["outlier_handling"]
+
+
 def test_with_no_effect_selected_a_first_round_the_candidates_replaced_is_completed(prs3, warmup_with_beam_breaks):
     """Where the candidates replaced the screen's first round alone, the geometric screen that comes back is the
     complete one (its later rounds run then): the poses screen_outliers names, not the first round's nothing."""
