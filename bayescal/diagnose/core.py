@@ -288,13 +288,10 @@ def _screened_by_candidates(s: "_Setup", g: "_Geometric", cands: list, noise) ->
     judge, the screen is completed and the pass starts from it as any other.  The final model judges the poses
     again in every case (:func:`_judged_by_final_model`).
     """
-    if s.screen is None or s.screen.complete:
-        early = _outliers_pretested(s, g, cands)
-        return s, (None if early is None else dict(_screen=early, _pretested=True)), False
-    judged = None
-    if cands:
-        judged = retest_with_candidates(s.base_model, [(c.effect, c.features) for c in cands], g.fit0.theta,
-                                        s.screen, keep_same=True)
+    first = s.screen is not None and not s.screen.complete
+    judged = _outliers_pretested(s, g, cands, first)
+    if not first:
+        return s, (None if judged is None else dict(_screen=judged, _pretested=True)), False
     if judged is None:  # too many stand out against the candidates too, or a candidate cannot be linearised
         return s, dict(_geometric=complete_screen(s.base_model, s.screen), _noise=noise), False
     if not judged.excluded.any():
@@ -303,16 +300,18 @@ def _screened_by_candidates(s: "_Setup", g: "_Geometric", cands: list, noise) ->
     return s, dict(_screen=judged, _pretested=True, _noise=noise), False
 
 
-def _outliers_pretested(s: "_Setup", g: "_Geometric", cands: list) -> object:
+def _outliers_pretested(s: "_Setup", g: "_Geometric", cands: list, keep_same: bool = False) -> object:
     """The screen to diagnose with when the poses judged against every candidate effect, linearised at the
-    geometric fit, are other poses than the geometric screen's; else None (no screen, no candidate).
+    geometric fit, are other poses than the geometric screen's; else None (no screen, no candidate).  With
+    ``keep_same`` (a first round, :func:`_screened_by_candidates`) that screen whatever it names.
 
     The final model judges the poses again (:func:`_outliers_retested`): this spares the pass of fits that a
     retest naming other poses would make again, where the candidates and the final model agree.
     """
     if s.screen is None or not cands:
         return None
-    return retest_with_candidates(s.base_model, [(c.effect, c.features) for c in cands], g.fit0.theta, s.screen)
+    return retest_with_candidates(s.base_model, [(c.effect, c.features) for c in cands], g.fit0.theta, s.screen,
+                                  keep_same=keep_same)
 
 
 def _folds(kept: NDArray, seed: int, n_folds: int) -> list[NDArray]:

@@ -177,6 +177,9 @@ def screen_outliers(model: MeasurementModel, *, lines: NDArray | None = None, al
     OutlierScreen
     """
     n = model.n_poses
+    if first is not None and first.excluded.size != n:
+        raise InputError(f"first: a first round of {first.excluded.size} poses; expected one of this recording's {n} "
+                         "(first_round on the same model)")
     excluded = np.zeros(n, dtype=bool)
     test = fit = None
     stepped = 0
@@ -236,21 +239,49 @@ def first_round(model: MeasurementModel, *, lines: NDArray | None = None, alpha:
     all, those rounds are never needed.  :func:`complete_screen` finishes it into :func:`screen_outliers`'s
     answer.
 
+    Parameters
+    ----------
+    model : MeasurementModel
+        The recording with its instrument noise.
+    lines : ndarray of int, optional
+        CSV line of every pose (default ``i + 2``).
+    alpha : float
+        Family-wise level over the poses.
+
     Returns
     -------
     OutlierScreen
         ``excluded`` all False, ``complete`` False (``test.flagged`` holds the poses the round flagged), ``fit``
         the round's fit.
     """
-    n = model.n_poses
-    fit, test = _round(model, np.zeros(n, dtype=bool), None, lines, alpha)
-    return OutlierScreen(test=test, excluded=np.zeros(n, dtype=bool), action="first round of the screen",
-                         fit=fit, fits=((np.zeros(n, dtype=bool), fit),), complete=False)
+    none = np.zeros(model.n_poses, dtype=bool)
+    fit, test = _round(model, none, None, lines, alpha)
+    return OutlierScreen(test=test, excluded=none, action="first round of the screen", fit=fit,
+                         fits=((none.copy(), fit),), complete=False)
 
 
 def complete_screen(model: MeasurementModel, screen: OutlierScreen, *, alpha: float = ALPHA) -> OutlierScreen:
-    """``screen`` itself when complete; a first round (:func:`first_round` on ``model``) finished by the later
-    rounds: :func:`screen_outliers`'s answer."""
+    """The complete screen: ``screen`` itself when complete, else a first round finished by the later rounds.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The recording :func:`first_round` screened (with its instrument noise).
+    screen : OutlierScreen
+        A complete screen, or a first round (``complete`` False).
+    alpha : float
+        Family-wise level over the poses (the first round's).
+
+    Returns
+    -------
+    OutlierScreen
+        :func:`screen_outliers`'s answer on ``model`` (bit for bit), the CSV lines those of the first round.
+
+    Raises
+    ------
+    InputError
+        ``screen`` screened a recording with another number of poses than ``model``.
+    """
     if screen.complete:
         return screen
     return screen_outliers(model, lines=screen.test.lines, alpha=alpha, first=screen)

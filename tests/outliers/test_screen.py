@@ -127,6 +127,12 @@ def test_the_first_round_completed_is_the_screen_bit_for_bit(prs3, bad, effects)
     for (m_d, f_d), (m_r, f_r) in zip(done.fits, ref.fits):
         assert np.array_equal(m_d, m_r) and np.array_equal(f_d.theta, f_r.theta)
     assert bool(bad) == (len(ref.fits) > 1) == first.test.flagged.any()  # later rounds for the gross poses only
+    if bad:  # a first round of another recording is refused, not finished on this one
+        from bayescal.errors import InputError
+
+        other = first_round(model.subset(np.arange(60)))
+        with pytest.raises(InputError, match="first round of 60 poses; expected one of this recording's 100"):
+            complete_screen(model, other)
 
 
 def test_the_screens_later_rounds_start_warm_on_large_recordings_and_agree(prs3, monkeypatch):
