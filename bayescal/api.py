@@ -143,7 +143,7 @@ def calibrate(data, *, method: str = "map", **options):
         ``prior_scale``, ``robust``, ``noise``, ``discrepancy``, ``discrepancy_inputs``, ``fit_effects``, ...;
         for kalman and mcmc, of :func:`bayescal.identify.probabilistic.calibrate_bayes`: ``free``, ``fix``,
         ``bounds`` (mcmc), ``noise``, ``robust``, ``variant``, ``process_noise`` (kalman), ``steps``, ``walkers``, ``seed``,
-        ``surrogate``, ``checkpoint``, ``resume`` (mcmc), ``fit_effects``.  With ``fit_effects=True`` (map,
+        ``surrogate``, ``checkpoint``, ``resume``, ``ess`` (mcmc: stop at that bulk and tail ESS), ``fit_effects``.  With ``fit_effects=True`` (map,
         mcmc) the machine file's ``[effect.*]`` parameters are identified with the geometry.
 
     Returns

@@ -32,7 +32,9 @@ Contestants (``--repeats`` rounds, interleaved, each in its own process,
 end to end: set-up, JIT compilation, warm-up and sampling all counted;
 imports not):
 
-* bayescal ``sample_posterior`` with its defaults (the command's sampler);
+* bayescal ``sample_posterior`` with its defaults (the command's sampler),
+  or with ``--bayescal-ess N`` until its bulk and tail ESS reach N
+  (``identify --ess N``), for comparisons at equal effective sample size;
 * NumPyro NUTS with its defaults (diagonal mass matrix adapted in warm-up,
   ``--default-warmup`` / ``--default-samples`` per chain, ``--nuts-chains``
   chains one after the other, started at the MAP);
@@ -54,6 +56,7 @@ Run::
 
     python benchmarks/peers_numpyro.py --repeats 3
     python benchmarks/peers_numpyro.py --problems prs3 --repeats 3 --long-samples 2500
+    python benchmarks/peers_numpyro.py --problems prs3 --repeats 2 --bayescal-ess 4000 --nuts-samples 1200 --skip-default
 """
 
 from __future__ import annotations
@@ -112,7 +115,7 @@ from bayescal.machines.files import load_machine
 ex = a["root"] + "/examples/" + a["example"] + "/"
 t1 = time.perf_counter()
 m2, model, _ = prepare_model(load_machine(ex + "machine.toml"), read_recording(ex + "recording.csv"), frame=a["frame"])
-r = sample_posterior(model, free="auto", seed=a["seed"])
+r = sample_posterior(model, free="auto", seed=a["seed"], ess=a["ess"])
 t = time.perf_counter() - t1
 chain = r.tree["posterior"]["theta"].values  # (walkers, draws, n)
 np.save(a["draws"], chain)
@@ -280,7 +283,8 @@ def _contestant(who: str, r: int, prob: dict, data: Path, args) -> dict:
     draws = args.out / f"{prob['name']}_{who}_{r}.npy"
     if who == "bayescal":
         res = _child(sys.executable, BAYESCAL, {"root": str(ROOT), "seed": r, "draws": str(draws),
-                                                "example": prob["example"], "frame": prob["frame"]})
+                                                "example": prob["example"], "frame": prob["frame"],
+                                                "ess": args.bayescal_ess})
     else:
         whitened = who.startswith("nuts-whitened")
         samples = {"nuts": args.default_samples, "nuts-whitened": args.nuts_samples,
@@ -306,7 +310,9 @@ def _table(prob: dict, info: dict, chk: dict, runs: dict, load0: float, args) ->
     long = f" (long: {args.nuts_warmup} + {args.long_samples})" if args.long_samples > 0 else ""
     head = (f"MCMC on {prob['title']} ({info['n_free']} parameters), {args.repeats} interleaved rounds, load "
             f"{load0:.2f} at start, {os.getloadavg()[0]:.2f} at end; end to end (set-up, compilation, warm-up, sampling)")
-    nuts = (f"NUTS: {args.nuts_chains} chains one after the other; default {args.default_warmup} warm-up + "
+    mine = ("bayescal: its default 1,000 steps" if args.bayescal_ess is None else
+            f"bayescal: until bulk and tail ESS >= {args.bayescal_ess:g} (`--ess`)")
+    nuts = (f"{mine}; NUTS: {args.nuts_chains} chains one after the other; default {args.default_warmup} warm-up + "
             f"{args.default_samples} draws per chain, whitened {args.nuts_warmup} + {args.nuts_samples}{long}; jax model "
             f"against bayescal's predict: largest row difference {chk['max_row_difference']:.1e}, Jacobian "
             f"{chk['max_jacobian_difference']:.1e}; bayescal's MAP and Laplace covariance (given to whitened NUTS, "
@@ -350,6 +356,11 @@ def main(argv=None) -> int:
     ap.add_argument("--long-samples", type=int, default=0,
                     help="also run whitened NUTS keeping this many draws per chain (contestant nuts-whitened-long: "
                          "its compilation and warm-up spread over more draws; default 0, not run)")
+    ap.add_argument("--bayescal-ess", type=float, default=None, metavar="N",
+                    help="bayescal stops at bulk and tail ESS N (sample_posterior(ess=N), `identify --ess N`); "
+                         "default: its 1,000 steps")
+    ap.add_argument("--skip-default", action="store_true",
+                    help="do not run NUTS with its defaults (it saturates its tree depth: minutes for no posterior)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
     problems = _problems()
@@ -370,7 +381,8 @@ def main(argv=None) -> int:
         if not (chk["max_row_difference"] < 1e-9 and chk["max_jacobian_difference"] < 1e-6):
             raise SystemExit(f"{name}: the jax model differs from bayescal's predict by {chk['max_row_difference']:.3g} "
                              f"(rows) and {chk['max_jacobian_difference']:.3g} (Jacobian)")
-        todo = ["bayescal", "nuts", "nuts-whitened"] + (["nuts-whitened-long"] if args.long_samples > 0 else [])
+        todo = (["bayescal"] + ([] if args.skip_default else ["nuts"]) + ["nuts-whitened"]
+                + (["nuts-whitened-long"] if args.long_samples > 0 else []))
         runs = {k: [] for k in todo}
         load0 = os.getloadavg()[0]
         for r in range(args.repeats):

@@ -375,6 +375,26 @@ def test_calibrate_mcmc_writes_the_json_identify_writes(tmp_path):
     np.testing.assert_allclose(record.covariance_for(free), cal.result.covariance, rtol=1e-9, atol=1e-30)
 
 
+def test_calibrate_mcmc_stops_at_the_ess_asked_for_as_identify_does(tmp_path):
+    import re
+
+    from bayescal.io.answers import json_text
+
+    cal = bayescal.calibrate(bayescal.load(PRS3_FILE, REC), method="mcmc", steps=2000, ess=1500, surrogate="linear")
+    out = tmp_path / "cli.json"
+    assert main(["identify", str(REC), "--machine", str(PRS3_FILE), "--method", "mcmc", "--steps", "2000",
+                 "--ess", "1500", "--surrogate", "linear", "--json", str(out), "--quiet"]) == 0
+    d = json.loads(out.read_text())
+    assert d["success"] and d["convergence"]["min_ess"] == 1500.0
+    assert d["convergence"]["n_steps"] < 2000 and d["convergence"]["min_ess_bulk"] >= 1500
+    clock = lambda text: re.sub(r'"seconds": [0-9.e+-]+', '"seconds": 0', text)  # noqa: E731
+    assert clock(json_text(cal.to_dict())) == clock(out.read_text())
+    # --ess goes with mcmc only, like --steps
+    assert main(["identify", str(REC), "--machine", str(PRS3_FILE), "--method", "map", "--ess", "1500"]) == 2
+    with pytest.raises(bayescal.InputError, match=r"ess: goes with method .mcmc."):
+        bayescal.calibrate(bayescal.load(PRS3_FILE, REC), method="kalman", ess=1500)
+
+
 def test_a_kalman_calibration_carries_its_covariance_to_predict(tmp_path):
     # the filter's final covariance is the calibration's uncertainty: written into [calibration], and predict's
     # regions then agree with those of the MAP it linearises (the same prior and data; EKF to about a percent)

@@ -64,6 +64,7 @@ from .bent_laplace import BentLaplace, bent_laplace, log_posterior_gradient
 from .linear import linearisation_error, linearise
 from .moves import choose_proposal, default_moves
 from .priors import GaussianPrior, map_estimate, prior_from_machine
+from .stopping import EssStop, checked_ess
 from ..identify.free import bound_arrays, bounds_of
 from ..identify.result import bounds_dict, covariance_dict, decided_by_prior_lines
 from ..measurement import MeasurementModel
@@ -162,6 +163,8 @@ class PosteriorResult(PosteriorMembers):
     proposal_check: dict | None = field(default=None, repr=False)
     #: Which parameters the data determine alone (the MAP's, :attr:`IdentificationResult.determined`).
     determined: NDArray | None = field(default=None, repr=False)
+    #: The bulk and tail ESS the run had to reach (``min_ess``, raised to ``ess`` where a run stops there).
+    min_ess: float = MIN_ESS
 
     method = "mcmc"
     #: ``dof`` is the tool's already (body sensors' tilt rows apart)
@@ -233,6 +236,7 @@ class PosteriorResult(PosteriorMembers):
                 "max_rhat": float(np.max(self.rhat)),
                 "min_ess_bulk": float(np.min(self.ess_bulk)),
                 "min_ess_tail": float(np.min(self.ess_tail)),
+                "min_ess": self.min_ess,
                 "max_tau_steps": float(np.max(self.tau)),
                 "more_steps": self.more_steps,
                 "seconds": self.seconds,
@@ -276,7 +280,7 @@ class PosteriorResult(PosteriorMembers):
             f"acceptance {self.acceptance:.2f}, {self.seconds:.1f} s; proposal bent along {self.bent_directions} "
             f"prior-decided direction(s)" + self._check_note(),
             f"  convergence     max R-hat {np.max(self.rhat):.4f} (<= {MAX_RHAT}), min ESS bulk "
-            f"{np.min(self.ess_bulk):.0f} / tail {np.min(self.ess_tail):.0f} (>= {MIN_ESS:.0f}), "
+            f"{np.min(self.ess_bulk):.0f} / tail {np.min(self.ess_tail):.0f} (>= {self.min_ess:.0f}), "
             f"max autocorrelation time {np.max(self.tau):.0f} steps",
         ]
         if self.message:
@@ -372,7 +376,7 @@ def sample_posterior(
     n_steps: int = 1000, burn: int | None = None, seed: int = 0, progress: bool = False, max_rhat: float = MAX_RHAT,
     min_ess: float = MIN_ESS, tau_factor: float = TAU_FACTOR, moves=None, surrogate: str = "none",
     checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 100, resume: bool = False,
-    theta0: ArrayLike | None = None,
+    theta0: ArrayLike | None = None, ess: float | None = None,
 ) -> PosteriorResult:
     """Sample the posterior of the identifiable errors with emcee and check convergence.
 
@@ -414,20 +418,21 @@ def sample_posterior(
         same arguments.
     theta0 : array_like, shape (P,), optional
         Where the MAP search starts (:func:`~bayescal.bayes.priors.map_estimate`); the prior mean by default.
+    ess : float, optional
+        Stop once every check passes with bulk and tail ESS of at least this (``min_ess`` raised to it), checked as
+        the chain grows by a tenth (:class:`~bayescal.bayes.stopping.EssStop`), ``n_steps`` the most steps; the
+        draws are the first ones of the run that does not stop.  Default: run ``n_steps``.
 
     Returns
     -------
     PosteriorResult
         ``success`` False (and no posterior std) unless every check passes.
     """
-    _check_run_options(surrogate, checkpoint, checkpoint_every, resume)  # before the MAP: nothing computed in vain
+    ess, min_ess = _check_run_options(surrogate, checkpoint, checkpoint_every, resume, ess, min_ess)  # before the MAP
     prior, start = _map_start(model, prior, free, theta0)
     idx = np.flatnonzero(start.free)
-    n = idx.size
-    exact = model
-    if surrogate == "linear":
-        model = linearise(model, start.theta)
-    n_walkers, burn_default, burn = _chain_size(n, n_walkers, n_steps, burn)
+    exact, model = model, (linearise(model, start.theta) if surrogate == "linear" else model)
+    n_walkers, burn_default, burn = _chain_size(idx.size, n_walkers, n_steps, burn)
     rng = np.random.default_rng(seed)
     map_pred = model.predict(start.theta)
     # the parameters not sampled stay where the MAP held them (its start: the model's theta_start, e.g. a
@@ -435,9 +440,11 @@ def sample_posterior(
     log_prob = log_posterior_function(model, prior, idx, guess=_warm_starts(model, start.theta, map_pred), base=start.theta)
     moves, bend, proposal_check = _proposal(model, prior, idx, start, map_pred, log_prob, moves, n_walkers, seed)
     p0 = _starting_points(model.machine, prior, idx, start, bend, log_prob, n_walkers, rng)
-    sampler, seconds = _run_chain(model, idx, start, log_prob, moves, p0, n_steps=n_steps, seed=seed,
-                                  progress=progress, surrogate=surrogate, checkpoint=checkpoint,
-                                  checkpoint_every=checkpoint_every, resume=resume)
+    sampler, seconds = _run_chain(model, idx, start, log_prob, moves, p0, n_steps=n_steps, seed=seed, progress=progress,
+                                  surrogate=surrogate, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                                  resume=resume, stop=_ess_stop(ess, n_walkers, burn_default, burn, max_rhat, min_ess,
+                                                                tau_factor))
+    burn = sampler.iteration // 5 if burn_default else burn  # a run stopped early burns a fifth of what it ran
     res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor,
                      burn_grows=burn_default)
     res = dataclasses.replace(res, bend=bend, proposal_check=proposal_check)
@@ -460,18 +467,23 @@ def _warm_starts(model, theta: NDArray, pred):
     return tangent(model.q, theta, pred.poses)
 
 
-def _check_run_options(surrogate: str, checkpoint, checkpoint_every: int, resume: bool) -> None:
-    """Refuse the surrogate and checkpoint options that cannot work, before anything is computed.
+def _check_run_options(surrogate: str, checkpoint, checkpoint_every: int, resume: bool, ess,
+                       min_ess: float) -> tuple[float | None, float]:
+    """Refuse the surrogate, checkpoint and ESS options that cannot work, before anything is computed.
 
     A fresh run over an existing checkpoint, ``resume`` without a checkpoint
-    or with none there, or ``checkpoint_every`` below 1 step.
+    or with none there, ``checkpoint_every`` below 1 step, an ``ess`` that is
+    not a positive number.  Returns ``ess`` (a float or None) and ``min_ess``
+    raised to it.
     """
+    ess = checked_ess(ess)
+    min_ess = float(min_ess) if ess is None else max(float(min_ess), ess)
     if surrogate not in ("none", "linear"):
         raise InputError(f"surrogate: expected 'none' or 'linear', got {surrogate!r}")
     if resume and checkpoint is None:
         raise InputError("resume: give the checkpoint to resume from")
     if checkpoint is None:
-        return
+        return ess, min_ess
     if checkpoint_every < 1:
         raise InputError(f"checkpoint_every (--checkpoint-every): expected a positive number of steps, got {checkpoint_every}")
     if not resume and os.path.lexists(checkpoint):
@@ -481,6 +493,7 @@ def _check_run_options(surrogate: str, checkpoint, checkpoint_every: int, resume
     if resume and not os.path.exists(checkpoint):
         # as load_checkpoint says it, but before the MAP and the proposal check rather than after them
         raise InputError(f"--resume: {checkpoint}: no checkpoint there (run once with --checkpoint {checkpoint})")
+    return ess, min_ess
 
 
 def _map_start(model, prior: GaussianPrior | None, free, theta0):
@@ -604,8 +617,8 @@ def mirrored(x: NDArray, lo: NDArray, hi: NDArray) -> NDArray:
 
 
 def _run_chain(model, idx, start, log_prob, moves, p0, *, n_steps, seed, progress, surrogate, checkpoint,
-               checkpoint_every, resume):
-    """The emcee sampler run (or resumed from ``checkpoint``) up to ``n_steps``, and its wall time in s."""
+               checkpoint_every, resume, stop: EssStop | None = None):
+    """The emcee sampler run (or resumed from ``checkpoint``) up to ``n_steps`` or ``stop``, and its wall time in s."""
     n_walkers, n = p0.shape
     fingerprint = None  # the options were checked up front (_check_run_options)
     if checkpoint is not None:
@@ -622,12 +635,22 @@ def _run_chain(model, idx, start, log_prob, moves, p0, *, n_steps, seed, progres
         sampler.random_state = np.random.RandomState(seed).get_state()  # emcee seeds from numpy's legacy state
     t0 = time.perf_counter()
     remaining = n_steps - sampler.iteration
+    check = None if stop is None else stop.first_check()
+    while check is not None and check <= sampler.iteration:  # a resumed chain may be long enough already
+        if stop(sampler):
+            remaining = 0
+            break
+        check = stop.next_check(check)
     if remaining > 0:
         # a resumed chain continues from the backend's last state, random state included
         start_state = p0 if sampler.iteration == 0 else sampler.backend.get_last_sample()
         for _ in sampler.sample(start_state, iterations=remaining, progress=progress):
             if checkpoint is not None and sampler.iteration % checkpoint_every == 0:
                 save_checkpoint(checkpoint, sampler.backend, fingerprint)
+            if check is not None and sampler.iteration >= check:
+                if stop(sampler):
+                    break
+                check = stop.next_check(sampler.iteration)
     if checkpoint is not None:
         save_checkpoint(checkpoint, sampler.backend, fingerprint)
     return sampler, time.perf_counter() - t0
@@ -669,9 +692,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
     kept = chain.shape[0]
     tau = _autocorr_time(sampler, burn)
     tree = _tree(model, prior, idx, names, chain, lp, ll)
-    rhat = az.rhat(tree)["theta"].values
-    ess_b = az.ess(tree, method="bulk")["theta"].values
-    ess_t = az.ess(tree, method="tail")["theta"].values
+    rhat, ess_b, ess_t = _diagnostics(tree)
     flat = chain.reshape(-1, n)
     mean = flat.mean(axis=0)
     cov = np.atleast_2d(np.cov(flat, rowvar=False))
@@ -718,7 +739,35 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         determined=getattr(start, "determined", None),
         unidentifiable=start.unidentifiable,
         decided_by_prior=start.decided_by_prior,
+        min_ess=float(min_ess),
     )
+
+
+def _diagnostics(tree) -> tuple[NDArray, NDArray, NDArray]:
+    """Rank-normalised R-hat and bulk and tail ESS per parameter of ``tree``'s ``theta`` (arviz; walkers as chains)."""
+    return (az.rhat(tree)["theta"].values, az.ess(tree, method="bulk")["theta"].values,
+            az.ess(tree, method="tail")["theta"].values)
+
+
+def _ess_stop(ess: float | None, n_walkers: int, burn_default: bool, burn: int, max_rhat: float, min_ess: float,
+              tau_factor: float) -> EssStop | None:
+    """The rule that stops a run at ``ess`` (:mod:`bayescal.bayes.stopping`) by the checks :func:`_summarise` applies.
+
+    None when no ``ess`` is asked for: the run takes its ``n_steps``.
+    """
+    if ess is None:
+        return None
+
+    def passes(sampler, b: int) -> bool:
+        chain = sampler.get_chain(discard=b)
+        tree = az.from_dict({"posterior": {"theta": np.swapaxes(chain, 0, 1)}}, dims={"theta": ["param"]})
+        rhat, ess_b, ess_t = _diagnostics(tree)
+        return _convergence(_autocorr_time(sampler, b), ess_b, ess_t, rhat, chain.shape[0], sampler.iteration,
+                            max_rhat, min_ess, tau_factor, False)[0]
+
+    return EssStop(ess=ess, n_walkers=n_walkers, tau_factor=tau_factor,
+                   burn=(lambda steps: steps // 5) if burn_default else (lambda steps: burn), passes=passes,
+                   tau=_autocorr_time)
 
 
 def _autocorr_time(sampler, burn: int) -> NDArray:

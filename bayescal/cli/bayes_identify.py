@@ -21,6 +21,9 @@ def add_arguments(p) -> None:
         help="kalman: random-walk std per pose, as a fraction of each prior std (default 0: static parameters)",
     )
     g.add_argument("--steps", type=int, default=1000, help="mcmc: steps per walker incl. burn-in (default 1000)")
+    g.add_argument("--ess", type=float, metavar="N",
+                   help="mcmc: stop as soon as every convergence check passes with bulk and tail ESS >= N (checked as "
+                        "the chain grows by a tenth; --steps is then the most steps; e.g. 4000); default: run --steps")
     g.add_argument("--walkers", type=int, help="mcmc: number of walkers (default 2 x parameters + 2)")
     g.add_argument("--seed", type=int, default=0, help="mcmc: random seed (default 0)")
     g.add_argument(
@@ -45,6 +48,7 @@ def add_arguments(p) -> None:
 _METHOD_OPTIONS = (
     ("posterior", "--posterior", "mcmc", lambda v: v is not None),
     ("walkers", "--walkers", "mcmc", lambda v: v is not None),
+    ("ess", "--ess", "mcmc", lambda v: v is not None),
     ("steps", "--steps", "mcmc", lambda v: v != 1000),  # given with map it was ignored, silently (a probe found it)
     ("checkpoint_every", "--checkpoint-every", "mcmc", lambda v: v != 100),
     ("surrogate", "--surrogate", "mcmc", lambda v: v != "none"),
@@ -68,7 +72,8 @@ def bayes_options(args) -> dict:
         return {"variant": args.variant, "process_noise": args.process_noise}
     return {"steps": args.steps, "walkers": args.walkers, "seed": args.seed, "surrogate": args.surrogate,
             "progress": sys.stderr.isatty() if args.progress is None else args.progress,
-            "checkpoint": args.checkpoint, "checkpoint_every": args.checkpoint_every, "resume": args.resume}
+            "checkpoint": args.checkpoint, "checkpoint_every": args.checkpoint_every, "resume": args.resume,
+            "ess": args.ess}
 
 
 def run_bayes(args, machine, answer) -> int:

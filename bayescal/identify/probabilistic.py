@@ -39,7 +39,7 @@ __all__ = ["BayesCalibration", "calibrate_bayes", "BAYES_METHODS", "METHOD_OPTIO
 METHOD_OPTIONS = {
     "kalman": {"variant": "ekf", "process_noise": 0.0},
     "mcmc": {"steps": 1000, "walkers": None, "seed": 0, "progress": False, "surrogate": "none", "checkpoint": None,
-             "checkpoint_every": 100, "resume": False},
+             "checkpoint_every": 100, "resume": False, "ess": None},
 }
 #: Options of the deterministic methods (:func:`bayescal.identify.calibrate.calibrate`), and the methods they go with.
 DETERMINISTIC_OPTIONS = {"lam": "'ridge'", "k": "'tsvd'", "rule": "'ridge' or 'tsvd'", "prior_scale": "'map'",
@@ -156,7 +156,7 @@ def _run(model, method: str, free, o: dict):
 
     return sample_posterior(model, free=free, n_steps=o["steps"], n_walkers=o["walkers"], seed=o["seed"],
                             progress=o["progress"], surrogate=o["surrogate"], checkpoint=o["checkpoint"],
-                            checkpoint_every=o["checkpoint_every"], resume=o["resume"])
+                            checkpoint_every=o["checkpoint_every"], resume=o["resume"], ess=o["ess"])
 
 
 def calibrate_bayes(model, *, method: str, free="auto", fix=None, bounds=None, max_iter: int = 50, noise: str = "auto",

@@ -18,22 +18,11 @@ FREE = ["chain1.link_length", "chain2.link_length", "chain3.link_length", "chain
 
 
 @pytest.fixture(scope="module")
-def problem(prs3, sim6):
-    """Linear model over 6 poses, position only, 4 free parameters: posterior N(m, C) in closed form."""
-    model = MeasurementModel.from_recording(prs3, sim6.recording, dof=3).subset(np.arange(6))
-    lin = linearise(model)
-    rng = np.random.default_rng(17)
-    prior = prior_from_machine(prs3)
-    idx = np.sort(prs3.layout.indices(FREE))  # the sampler keeps the layout order
-    theta = np.zeros(prs3.n_params)
-    theta[idx] = prior.std[idx] * rng.normal(size=idx.size)
-    lin = lin.with_measured(lin.predict(theta).y + rng.normal(size=lin.y0.shape) * lin.sigma)
-    # closed form: x ~ N(m, C), C = (P0^-1 + A^T A)^-1, m = C (P0^-1 mu + A^T z)
-    A = (lin.J[:, :, idx] / lin.sigma[None, :, None]).reshape(-1, idx.size)
-    z = ((lin.y_measured - lin.y0) / lin.sigma).reshape(-1)
-    P0inv = np.diag(1 / prior.std[idx] ** 2)
-    C = np.linalg.inv(P0inv + A.T @ A)
-    return lin, idx, C @ (A.T @ z), C
+def problem(linear_problem):
+    """Linear model over 6 poses, position only, the 4 parameters ``FREE``: posterior N(m, C) in closed form."""
+    lin, idx, m, C, free = linear_problem
+    assert free == FREE
+    return lin, idx, m, C
 
 
 @pytest.fixture(scope="module")
@@ -166,6 +155,10 @@ def test_an_existing_checkpoint_is_not_replaced_by_a_fresh_run(prs3, sim6, tmp_p
     ({"resume": True}, "resume: give the checkpoint"),
     ({"checkpoint": "c.npz", "checkpoint_every": 0}, r"checkpoint_every \(--checkpoint-every\): expected a positive number"),
     ({"checkpoint": "missing.npz", "resume": True}, r"--resume: .*missing.npz: no checkpoint there"),
+    ({"ess": 0}, r"ess \(--ess\): expected a positive effective sample size .*got 0"),
+    ({"ess": float("nan")}, r"ess \(--ess\): expected a positive effective sample size .*got nan"),
+    ({"ess": True}, r"ess \(--ess\): expected a positive effective sample size .*got True"),
+    ({"ess": "4000"}, r"ess \(--ess\): expected a positive effective sample size .*got '4000'"),
 ])
 def test_bad_run_options_are_refused_before_the_map(prs3, sim6, tmp_path, monkeypatch, options, match):
     # review: these were refused only after the MAP and the proposal check (seconds to minutes of work)

@@ -1,0 +1,118 @@
+"""A posterior run that stops at the ESS asked for: the same draws as the full run, the closed form, the refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bayescal.bayes.mcmc import sample_posterior
+from bayescal.bayes.stopping import EssStop, checked_ess
+from bayescal.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def full_and_stopped(linear_problem):
+    lin, idx, m, C, free = linear_problem
+    stopped = sample_posterior(lin, free=free, n_walkers=16, n_steps=1500, seed=5, ess=2000)
+    full = sample_posterior(lin, free=free, n_walkers=16, n_steps=stopped.n_steps, seed=5)
+    return full, stopped
+
+
+def test_a_run_stops_once_the_ess_is_reached_with_the_full_runs_first_draws(full_and_stopped):
+    full, stopped = full_and_stopped
+    assert full.success and stopped.success, (full.message, stopped.message)
+    assert stopped.n_steps < 1500
+    assert np.min(stopped.ess_bulk) >= 2000 and np.min(stopped.ess_tail) >= 2000
+    assert stopped.min_ess == 2000 and full.min_ess == 400
+    # no check draws a random number: the stopped run is the run of that many steps, bit for bit
+    np.testing.assert_array_equal(stopped.tree["posterior"]["theta"].values, full.tree["posterior"]["theta"].values)
+    np.testing.assert_array_equal(stopped.mean, full.mean)
+    # the burn-in is a fifth of what was run, and the answer says what the run had to reach
+    assert stopped.burn == stopped.n_steps // 5
+    assert stopped.to_dict()["convergence"]["min_ess"] == 2000.0
+    assert "(>= 2000)" in stopped.report()
+
+
+def test_the_stopped_posterior_matches_the_closed_form(full_and_stopped, linear_problem):
+    _, stopped = full_and_stopped
+    _, _, m, C, _ = linear_problem
+    sd = np.sqrt(np.diag(C))
+    # Monte Carlo error of the mean: sd / sqrt(ESS); 4 of them is a seeded, generous bound
+    assert np.all(np.abs(stopped.mean - m) < 4 * sd / np.sqrt(stopped.ess_bulk))
+    # the sd of a sample sd is about sd / sqrt(2 ESS): 2,000 effective draws put it within 1.6 %; 6 % is 4 of them
+    np.testing.assert_allclose(np.sqrt(np.diag(stopped.covariance)), sd, rtol=0.06)
+
+
+def test_an_ess_out_of_reach_within_n_steps_is_not_converged(linear_problem):
+    lin, _, _, _, free = linear_problem
+    res = sample_posterior(lin, free=free, n_walkers=16, n_steps=120, seed=5, ess=50_000)
+    assert res.n_steps == 120 and not res.success
+    assert "ESS" in res.message and "< 50000" in res.message and res.more_steps > 0
+    assert np.all(np.isnan(res.std))
+
+
+def test_a_resumed_chain_long_enough_already_stops_at_once(linear_problem, tmp_path):
+    lin, _, _, _, free = linear_problem
+    ck = tmp_path / "c.npz"
+    first = sample_posterior(lin, free=free, n_walkers=16, n_steps=600, seed=3, checkpoint=ck)
+    again = sample_posterior(lin, free=free, n_walkers=16, n_steps=5000, seed=3, checkpoint=ck, resume=True, ess=1000)
+    assert first.success and again.success
+    assert again.n_steps == 600  # no step added to a chain that has what was asked
+    np.testing.assert_array_equal(again.tree["posterior"]["theta"].values, first.tree["posterior"]["theta"].values)
+
+
+class _Chain:
+    """A stand-in for emcee's sampler: only its iteration."""
+
+    def __init__(self, iteration: int):
+        self.iteration = iteration
+
+
+def _rule(tau: float, passes=lambda s, b: True, ess: float = 1000.0, n_walkers: int = 10) -> tuple[EssStop, list]:
+    calls = []
+
+    def full(sampler, burn):
+        calls.append((sampler.iteration, burn))
+        return passes(sampler, burn)
+
+    rule = EssStop(ess=ess, n_walkers=n_walkers, tau_factor=50.0, burn=lambda steps: steps // 5, passes=full,
+                   tau=lambda sampler, burn: np.array([tau, tau / 2]))
+    return rule, calls
+
+
+def test_the_checks_grow_by_a_tenth_from_the_length_independent_draws_would_need():
+    rule, _ = _rule(1.0, ess=1000.0, n_walkers=10)
+    first = rule.first_check()
+    # 100 kept steps of 10 walkers are 1,000 draws; a fifth more is burnt
+    assert first - first // 5 >= 100 and (first - 10) - (first - 10) // 5 < 100
+    assert rule.next_check(50) == 60 and rule.next_check(200) == 220 and rule.next_check(1000) == 1100
+
+
+@pytest.mark.parametrize("steps, tau, expect_full, expect", [
+    (100, 1.0, False, False),    # 80 kept steps: 800 draws, below 1,000 at any tau
+    (200, 1.0, True, True),      # 160 kept steps x 10 walkers / tau 1 = 1,600: the full checks decide
+    (200, 2.0, False, False),    # 160 < 50 tau = 100 is fine, but 1,600 / 2 = 800 < 1,000
+    (200, 4.0, False, False),    # 160 kept steps < 50 x 4
+    (200, np.nan, False, False),  # no autocorrelation time yet
+])
+def test_the_cheap_estimate_gates_the_full_checks(steps, tau, expect_full, expect):
+    rule, calls = _rule(tau)
+    assert rule(_Chain(steps)) is expect
+    assert bool(calls) is expect_full
+    if calls:
+        assert calls == [(steps, steps // 5)]
+
+
+def test_the_full_checks_have_the_last_word():
+    rule, calls = _rule(1.0, passes=lambda s, b: False)
+    assert rule(_Chain(200)) is False and len(calls) == 1
+
+
+@pytest.mark.parametrize("bad", [0, -5, float("inf"), float("nan"), True, "400", [400]])
+def test_bad_ess_is_refused_by_name(bad):
+    with pytest.raises(InputError, match=r"ess \(--ess\): expected a positive effective sample size"):
+        checked_ess(bad)
+
+
+def test_good_ess_is_a_float():
+    assert checked_ess(None) is None and checked_ess(4000) == 4000.0 and isinstance(checked_ess(np.int64(5)), float)
