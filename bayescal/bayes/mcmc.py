@@ -644,11 +644,13 @@ def _run_chain(model, idx, start, log_prob, moves, p0, *, n_steps, seed, progres
     if remaining > 0:
         # a resumed chain continues from the backend's last state, random state included
         start_state = p0 if sampler.iteration == 0 else sampler.backend.get_last_sample()
-        for _ in sampler.sample(start_state, iterations=remaining, progress=progress):
+        steps = sampler.sample(start_state, iterations=remaining, progress=progress)
+        for _ in steps:
             if checkpoint is not None and sampler.iteration % checkpoint_every == 0:
                 save_checkpoint(checkpoint, sampler.backend, fingerprint)
             if check is not None and sampler.iteration >= check:
                 if stop(sampler):
+                    steps.close()  # emcee's progress bar closes with its generator
                     break
                 check = stop.next_check(sampler.iteration)
     if checkpoint is not None:
