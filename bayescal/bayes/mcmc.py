@@ -48,7 +48,6 @@ The samples are kept as an arviz :class:`xarray.DataTree` with groups
 from __future__ import annotations
 
 import dataclasses
-import logging
 import os
 import time
 from dataclasses import dataclass, field
@@ -60,6 +59,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
+from .autocorr import integrated_time
 from .bent_laplace import BentLaplace, bent_laplace, log_posterior_gradient
 from .linear import linearisation_error, linearise
 from .moves import choose_proposal, default_moves
@@ -440,14 +440,14 @@ def sample_posterior(
     log_prob = log_posterior_function(model, prior, idx, guess=_warm_starts(model, start.theta, map_pred), base=start.theta)
     moves, bend, proposal_check = _proposal(model, prior, idx, start, map_pred, log_prob, moves, n_walkers, seed)
     p0 = _starting_points(model.machine, prior, idx, start, bend, log_prob, n_walkers, rng)
+    stop = _ess_stop(ess, n_walkers, burn_default, burn, max_rhat, min_ess, tau_factor)
     sampler, seconds = _run_chain(model, idx, start, log_prob, moves, p0, n_steps=n_steps, seed=seed, progress=progress,
                                   surrogate=surrogate, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
-                                  resume=resume, stop=_ess_stop(ess, n_walkers, burn_default, burn, max_rhat, min_ess,
-                                                                tau_factor))
+                                  resume=resume, stop=stop)
     burn = sampler.iteration // 5 if burn_default else burn  # a run stopped early burns a fifth of what it ran
     res = _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor,
-                     burn_grows=burn_default)
-    res = dataclasses.replace(res, bend=bend, proposal_check=proposal_check)
+                     burn_grows=burn_default, known=None if stop is None else stop.known, bend=bend,
+                     proposal_check=proposal_check)
     if surrogate == "linear":
         res = _surrogate_checked(res, exact, prior, idx, start, rng)
     return res
@@ -684,7 +684,11 @@ def _reference(model, prior) -> NDArray:
 
 
 def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_ess, tau_factor, *,
-               burn_grows: bool = False) -> PosteriorResult:
+               burn_grows: bool = False, known: dict | None = None, **extra) -> PosteriorResult:
+    """The result of the chain ``sampler`` holds after ``burn``; ``extra`` are further fields of the result.
+
+    ``known`` maps ``(steps, burn)`` to the R-hat and ESS a stop check computed for that chain already.
+    """
     machine = model.machine
     names = tuple(machine.layout.names[i] for i in idx)
     chain = sampler.get_chain(discard=burn)
@@ -694,7 +698,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
     kept = chain.shape[0]
     tau = _autocorr_time(sampler, burn)
     tree = _tree(model, prior, idx, names, chain, lp, ll)
-    rhat, ess_b, ess_t = _diagnostics(tree)
+    rhat, ess_b, ess_t = (known or {}).get((n_steps, burn)) or _diagnostics(tree)
     flat = chain.reshape(-1, n)
     mean = flat.mean(axis=0)
     cov = np.atleast_2d(np.cov(flat, rowvar=False))
@@ -742,6 +746,7 @@ def _summarise(model, prior, idx, start, sampler, burn, seconds, max_rhat, min_e
         unidentifiable=start.unidentifiable,
         decided_by_prior=start.decided_by_prior,
         min_ess=float(min_ess),
+        **extra,
     )
 
 
@@ -760,28 +765,26 @@ def _ess_stop(ess: float | None, n_walkers: int, burn_default: bool, burn: int, 
     if ess is None:
         return None
 
+    known: dict = {}
+
     def passes(sampler, b: int) -> bool:
         chain = sampler.get_chain(discard=b)
         tree = az.from_dict({"posterior": {"theta": np.swapaxes(chain, 0, 1)}}, dims={"theta": ["param"]})
-        rhat, ess_b, ess_t = _diagnostics(tree)
+        rhat, ess_b, ess_t = known[(sampler.iteration, b)] = _diagnostics(tree)  # the summary's, if the run stops
         return _convergence(_autocorr_time(sampler, b), ess_b, ess_t, rhat, chain.shape[0], sampler.iteration,
                             max_rhat, min_ess, tau_factor, False)[0]
 
     return EssStop(ess=ess, n_walkers=n_walkers, tau_factor=tau_factor,
                    burn=(lambda steps: steps // 5) if burn_default else (lambda steps: burn), passes=passes,
-                   tau=_autocorr_time)
+                   tau=_autocorr_time, known=known)
 
 
 def _autocorr_time(sampler, burn: int) -> NDArray:
-    """emcee's integrated autocorrelation time per parameter in steps (a too-short chain: not logged, reported)."""
-    # quiet=True reports a too-short chain through emcee's logger; we report it in the result instead
-    log = logging.getLogger("emcee.autocorr")
-    level = log.level
-    log.setLevel(logging.ERROR)
-    try:
-        return np.asarray(sampler.get_autocorr_time(discard=burn, quiet=True), dtype=float)
-    finally:
-        log.setLevel(level)
+    """emcee's integrated autocorrelation time per parameter in steps, vectorised (:mod:`bayescal.bayes.autocorr`).
+
+    A chain too short to trust it is not warned about here: :func:`_convergence` reports it in the result.
+    """
+    return integrated_time(sampler.get_chain(discard=burn))
 
 
 def _convergence(tau, ess_b, ess_t, rhat, kept: int, n_steps: int, max_rhat: float, min_ess: float,

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -72,6 +72,9 @@ class EssStop:
         The full checks (R-hat, bulk and tail ESS, chain length) of the chain after that burn-in.
     tau : Callable[[emcee.EnsembleSampler, int], ndarray]
         Integrated autocorrelation time per parameter (steps) after that burn-in.
+    known : dict
+        Where ``passes`` may keep what it computed, by ``(steps, burn)`` (the summary of a run that stops there
+        takes its R-hat and ESS from it instead of computing them again).
     """
 
     ess: float
@@ -80,6 +83,7 @@ class EssStop:
     burn: Callable[[int], int]
     passes: Callable
     tau: Callable
+    known: dict = field(default_factory=dict, compare=False)
 
     def first_check(self) -> int:
         """Steps of the first check: the length that would reach ``ess`` with independent draws after burn-in."""

@@ -27,10 +27,25 @@ def test_a_run_stops_once_the_ess_is_reached_with_the_full_runs_first_draws(full
     # no check draws a random number: the stopped run is the run of that many steps, bit for bit
     np.testing.assert_array_equal(stopped.tree["posterior"]["theta"].values, full.tree["posterior"]["theta"].values)
     np.testing.assert_array_equal(stopped.mean, full.mean)
+    # the summary took the last check's R-hat and ESS: those the full run computes for the same chain
+    for name in ("rhat", "ess_bulk", "ess_tail", "tau"):
+        np.testing.assert_array_equal(getattr(stopped, name), getattr(full, name))
     # the burn-in is a fifth of what was run, and the answer says what the run had to reach
     assert stopped.burn == stopped.n_steps // 5
     assert stopped.to_dict()["convergence"]["min_ess"] == 2000.0
     assert "(>= 2000)" in stopped.report()
+
+
+def test_the_summary_does_not_compute_the_last_checks_diagnostics_again(linear_problem, monkeypatch):
+    import bayescal.bayes.mcmc as mcmc
+
+    lin, _, _, _, free = linear_problem
+    calls = []
+    diagnostics, summarise = mcmc._diagnostics, mcmc._summarise
+    monkeypatch.setattr(mcmc, "_diagnostics", lambda tree: calls.append("checks") or diagnostics(tree))
+    monkeypatch.setattr(mcmc, "_summarise", lambda *a, **k: calls.append("summary") or summarise(*a, **k))
+    res = sample_posterior(lin, free=free, n_walkers=16, n_steps=1500, seed=5, ess=2000)
+    assert res.success and "checks" in calls and calls[-1] == "summary"
 
 
 def test_the_stopped_posterior_matches_the_closed_form(full_and_stopped, linear_problem):
