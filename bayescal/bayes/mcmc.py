@@ -30,8 +30,10 @@ with one likelihood term per pose ``i``.  It is sampled with
 
 Convergence is judged on the chain after burn-in with arviz's rank-normalised
 R-hat and bulk/tail effective sample sizes (walkers as chains), and emcee's
-integrated autocorrelation time (the chain must be at least ``tau_factor``
-times longer).  A posterior that fails any check is not reported:
+integrated autocorrelation time (:mod:`bayescal.bayes.autocorr`: its estimator,
+vectorised; the chain must be at least ``tau_factor`` times longer).  With
+``ess`` a run stops as soon as these pass with that ESS
+(:mod:`bayescal.bayes.stopping`).  A posterior that fails any check is not reported:
 ``success`` is False and the message says how many more steps to run.
 
 The samples are kept as an arviz :class:`xarray.DataTree` with groups
@@ -104,7 +106,7 @@ class PosteriorResult(PosteriorMembers):
         5 %, 50 % and 95 % posterior quantiles.
     rhat, ess_bulk, ess_tail, tau : ndarray, shape (n_free,)
         Per parameter: rank-normalised R-hat, bulk and tail effective sample
-        size (arviz), integrated autocorrelation time in steps (emcee).
+        size (arviz), integrated autocorrelation time in steps (emcee's estimator).
     n_walkers, n_steps, burn : int
     acceptance : float
         Mean acceptance fraction.
