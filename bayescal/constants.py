@@ -15,7 +15,7 @@ from __future__ import annotations
 __all__ = [
     "PRIOR_SCALES", "RULES", "CALIBRATED_RULES", "RULE_NAMES", "DEFAULT_RULE", "OUTLIER_ALPHA", "DEFAULT_NU",
     "EFFECT_NAMES", "CRITERIA", "SCALINGS", "COMPARE_METHODS", "METRICS", "DETERMINISTIC_METHODS", "BAYES_METHODS",
-    "GRID_METHODS",
+    "GRID_METHODS", "BAYES_METHOD_OPTIONS",
 ]
 
 # ---------------------------------------------------------------- identification methods (bayescal.identify)
@@ -23,6 +23,13 @@ __all__ = [
 DETERMINISTIC_METHODS: tuple[str, ...] = ("ls", "ridge", "tsvd", "map")
 #: The methods :func:`bayescal.identify.probabilistic.calibrate_bayes` runs (the filter, the sampler).
 BAYES_METHODS: tuple[str, ...] = ("kalman", "mcmc")
+#: Options of one of :data:`BAYES_METHODS`, with their defaults (given with another method they are refused, not
+#: ignored; :func:`~bayescal.identify.calibrate.calibrate` names the method they go with).
+BAYES_METHOD_OPTIONS: dict[str, dict] = {
+    "kalman": {"variant": "ekf", "process_noise": 0.0},
+    "mcmc": {"steps": 1000, "walkers": None, "seed": 0, "progress": False, "surrogate": "none", "checkpoint": None,
+             "checkpoint_every": 100, "resume": False, "ess": None},
+}
 #: The methods a compensation grid's std comes from (:func:`bayescal.bayes.recording_grid.recording_grid`).
 GRID_METHODS: tuple[str, ...] = ("map",) + BAYES_METHODS
 

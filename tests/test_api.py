@@ -393,6 +393,10 @@ def test_calibrate_mcmc_stops_at_the_ess_asked_for_as_identify_does(tmp_path):
     assert main(["identify", str(REC), "--machine", str(PRS3_FILE), "--method", "map", "--ess", "1500"]) == 2
     with pytest.raises(bayescal.InputError, match=r"ess: goes with method .mcmc."):
         bayescal.calibrate(bayescal.load(PRS3_FILE, REC), method="kalman", ess=1500)
+    # review: with map it was "unknown option(s) ess", as steps was
+    for name, value in (("ess", 1500), ("steps", 300)):
+        with pytest.raises(bayescal.InputError, match=rf"{name}: goes with method 'mcmc'; it does nothing with method 'map'"):
+            bayescal.calibrate(bayescal.load(PRS3_FILE, REC), method="map", **{name: value})
 
 
 def test_a_kalman_calibration_carries_its_covariance_to_predict(tmp_path):

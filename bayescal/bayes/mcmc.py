@@ -636,28 +636,38 @@ def _run_chain(model, idx, start, log_prob, moves, p0, *, n_steps, seed, progres
     if backend is None:
         sampler.random_state = np.random.RandomState(seed).get_state()  # emcee seeds from numpy's legacy state
     t0 = time.perf_counter()
-    remaining = n_steps - sampler.iteration
-    check = None if stop is None else stop.first_check()
-    while check is not None and check <= sampler.iteration:  # a resumed chain may be long enough already
-        if stop(sampler):
-            remaining = 0
+    # with a stop rule the chain grows one check at a time: emcee reserves its storage for the steps asked of one
+    # call, so a generous cap costs no memory it does not use; a resumed chain is checked where an uninterrupted
+    # run would have been
+    check = None if stop is None else stop.check_from(sampler.iteration)
+    bar = _progress_bar(progress and stop is not None, sampler.iteration, n_steps)
+    while check is None or not (sampler.iteration == check and stop(sampler)):
+        if check is not None and sampler.iteration == check:
+            check = stop.next_check(check)
+        end = n_steps if check is None else min(check, n_steps)
+        if sampler.iteration >= end:
             break
-        check = stop.next_check(check)
-    if remaining > 0:
-        # a resumed chain continues from the backend's last state, random state included
+        # a resumed or continued chain goes on from the backend's last state, random state included
         start_state = p0 if sampler.iteration == 0 else sampler.backend.get_last_sample()
-        steps = sampler.sample(start_state, iterations=remaining, progress=progress)
-        for _ in steps:
+        for _ in sampler.sample(start_state, iterations=end - sampler.iteration, progress=progress and bar is None):
             if checkpoint is not None and sampler.iteration % checkpoint_every == 0:
                 save_checkpoint(checkpoint, sampler.backend, fingerprint)
-            if check is not None and sampler.iteration >= check:
-                if stop(sampler):
-                    steps.close()  # emcee's progress bar closes with its generator
-                    break
-                check = stop.next_check(sampler.iteration)
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
     if checkpoint is not None:
         save_checkpoint(checkpoint, sampler.backend, fingerprint)
     return sampler, time.perf_counter() - t0
+
+
+def _progress_bar(wanted: bool, done: int, n_steps: int):
+    """A tqdm bar over the steps of a run that stops at its ESS (emcee's would restart at every check), or None."""
+    if not wanted:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=n_steps, initial=done, unit="step", desc="sampling (stops at its ESS)")
 
 
 def _surrogate_checked(res: PosteriorResult, exact, prior, idx, start, rng) -> PosteriorResult:
@@ -776,7 +786,7 @@ def _ess_stop(ess: float | None, n_walkers: int, burn_default: bool, burn: int, 
         return _convergence(_autocorr_time(sampler, b), ess_b, ess_t, rhat, chain.shape[0], sampler.iteration,
                             max_rhat, min_ess, tau_factor, False)[0]
 
-    return EssStop(ess=ess, n_walkers=n_walkers, tau_factor=tau_factor,
+    return EssStop(ess=min_ess, n_walkers=n_walkers, tau_factor=tau_factor,
                    burn=(lambda steps: steps // 5) if burn_default else (lambda steps: burn), passes=passes,
                    tau=_autocorr_time, known=known)
 

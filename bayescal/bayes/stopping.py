@@ -9,9 +9,10 @@ ends "not converged: run about N more steps", and the run starts over).
 :func:`bayescal.bayes.mcmc.sample_posterior` pass with the bulk and tail ESS
 asked for, with ``n_steps`` as the most it may take.
 
-The checks run at growing lengths (each a tenth longer than the last), so
-their cost is a small fraction of the sampling and the run overshoots the
-length it needed by about a tenth at most.  Each check first estimates the
+The checks run at growing lengths (each a tenth longer than the last, at
+least 10 steps), so their cost is a small fraction of the sampling and the
+run overshoots the length it needed by about a tenth at most; the chain is
+grown from one check to the next, so emcee reserves no storage beyond it.  Each check first estimates the
 ESS from emcee's integrated autocorrelation time (an FFT per parameter,
 milliseconds), and only when that estimate reaches the target runs the
 rank-normalised R-hat and the bulk and tail ESS of arviz that the answer
@@ -19,10 +20,18 @@ reports.  The chain of a run that stops is the first steps of the run with
 the same seed that does not stop (the checks draw no random numbers).
 
 Stopping when a diagnostic first passes selects, in principle, a run whose
-diagnostics look better than its draws are; with a burn-in that grows with
-the chain and an ESS in the thousands this is well inside the Monte Carlo
-error the ESS states (Jones et al., "Fixed-width output analysis for Markov
-chain Monte Carlo", JASA 101, 2006, on sequential stopping rules).
+diagnostics look better than its draws are, and R-hat is looked at some
+twenty times in a run instead of once.  The rule stops on the effective
+sample size, which Vats, Flegal and Jones ("Multivariate output analysis
+for Markov chain Monte Carlo", Biometrika 106, 2019) justify as a
+sequential stopping rule; with a burn-in that grows with the chain and an
+ESS in the thousands the selection is well inside the Monte Carlo error
+the ESS states (on the linear-Gaussian test problem the stopped means'
+errors over 40 seeds had a variance of 1.05 in units of that error).
+
+A resumed run (a checkpoint) is checked where the uninterrupted run would
+have been: the checks before the saved length are the ones that failed
+when it ran, so it stops where that run stopped, with its draws.
 """
 
 from __future__ import annotations
@@ -89,14 +98,22 @@ class EssStop:
         """Steps of the first check: the length that would reach ``ess`` with independent draws after burn-in."""
         kept = math.ceil(self.ess / self.n_walkers)
         steps = MIN_FIRST
-        while steps - self.burn(steps) < kept:
-            steps += MIN_GAP
+        # a chain ``d`` steps longer keeps at most ``d`` more: jump the shortfall (a few jumps, whatever ``ess``)
+        while (short := kept - (steps - self.burn(steps))) > 0:
+            steps += MIN_GAP * math.ceil(short / MIN_GAP)
         return steps
 
     @staticmethod
     def next_check(steps: int) -> int:
         """Steps of the check after one at ``steps``."""
         return steps + max(MIN_GAP, steps // GROWTH)
+
+    def check_from(self, steps: int) -> int:
+        """The first check at ``steps`` or later (a resumed chain: the checks before it failed when it ran)."""
+        check = self.first_check()
+        while check < steps:
+            check = self.next_check(check)
+        return check
 
     def __call__(self, sampler) -> bool:
         """Whether the chain ``sampler`` holds may stop here."""

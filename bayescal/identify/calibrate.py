@@ -33,7 +33,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..constants import DETERMINISTIC_METHODS
+from ..constants import BAYES_METHOD_OPTIONS, DETERMINISTIC_METHODS
 from ..contract import scale_noise, whiten
 from ..errors import InputError
 from ..limits import check_lam, finite_real
@@ -469,6 +469,9 @@ def _check_options(method, lam, k, rule, prior_scale, noise, discrepancy, outlie
     if method not in DETERMINISTIC_METHODS:
         raise InputError(f"method: expected one of {', '.join(DETERMINISTIC_METHODS)}, got {method!r}")
     bad = sorted(set(outlier_kw) - set(OUTLIER_OPTIONS))
+    other = next(((n, m) for n in bad for m, o in BAYES_METHOD_OPTIONS.items() if n in o), None)
+    if other is not None:  # an mcmc or kalman option (steps, ess, ...): say which method it goes with
+        raise InputError(f"{other[0]}: goes with method {other[1]!r}; it does nothing with method {method!r}")
     if bad:
         raise InputError(f"calibrate: unknown option(s) {', '.join(bad)}; expected method, lam, k, free, fix, bounds, rule, "
                          f"prior_scale, max_iter, robust, noise, fit_effects, discrepancy, discrepancy_inputs, "

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..constants import BAYES_METHODS
+from ..constants import BAYES_METHOD_OPTIONS, BAYES_METHODS
 from ..contract import scale_noise
 from ..errors import InputError
 from ..limits import finite_real
@@ -36,11 +36,7 @@ from .free import bounds_of, with_fixed
 __all__ = ["BayesCalibration", "calibrate_bayes", "BAYES_METHODS", "METHOD_OPTIONS", "MIN_STEPS"]
 
 #: Options of one method, with their defaults (given with the other method they are refused, not ignored).
-METHOD_OPTIONS = {
-    "kalman": {"variant": "ekf", "process_noise": 0.0},
-    "mcmc": {"steps": 1000, "walkers": None, "seed": 0, "progress": False, "surrogate": "none", "checkpoint": None,
-             "checkpoint_every": 100, "resume": False, "ess": None},
-}
+METHOD_OPTIONS = BAYES_METHOD_OPTIONS
 #: Options of the deterministic methods (:func:`bayescal.identify.calibrate.calibrate`), and the methods they go with.
 DETERMINISTIC_OPTIONS = {"lam": "'ridge'", "k": "'tsvd'", "rule": "'ridge' or 'tsvd'", "prior_scale": "'map'",
                          "discrepancy": "'map' or 'ridge'", "discrepancy_inputs": "'map' or 'ridge'"}
