@@ -227,7 +227,7 @@ def grid(data, **options):
     **options
         Of :func:`~bayescal.bayes.recording_grid.recording_grid`: ``method`` ("map", "kalman", "mcmc"),
         ``free``, ``nodes``, ``space`` ("auto", "actuator", "tool"), ``ranges``, ``aux``, ``steps``,
-        ``surrogate``, ``seed``, ``fit_effects``.
+        ``surrogate``, ``seed``, ``ess``, ``fit_effects``.
 
     Returns
     -------

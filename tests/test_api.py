@@ -307,8 +307,23 @@ def test_grid_from_posterior_draws_gives_the_json_grid_writes(tmp_path):
     assert g.to_dict()["std_source"].startswith("sample std over") and 400 <= int(g.grid.source.split()[3]) < 800
 
 
+def test_grid_from_a_posterior_stopped_at_its_ess_gives_the_json_grid_writes(tmp_path):
+    from bayescal.io.answers import json_text
+
+    g = bayescal.grid(bayescal.load(PRS3_FILE, REC), method="mcmc", steps=3000, ess=1500, surrogate="linear", nodes=3)
+    out = tmp_path / "g.json"
+    assert main(["grid", str(REC), "--machine", str(PRS3_FILE), "--method", "mcmc", "--steps", "3000", "--ess", "1500",
+                 "--surrogate", "linear", "--nodes", "3", "--json", str(out), "--quiet"]) == 0
+    assert json_text(g.to_dict()) == out.read_text()
+    post = g.identification
+    assert post.success and post.n_steps < 3000 and post.min_ess == 1500 and post.ess_bulk.min() >= 1500
+    assert main(["grid", str(REC), "--machine", str(PRS3_FILE), "--ess", "1500", "--nodes", "3"]) == 2  # map
+
+
 @pytest.mark.parametrize("options, match", [
     ({"method": "ls"}, r"method \(--method\): expected one of map, kalman, mcmc, got 'ls'"),
+    ({"ess": 1500}, r"ess \(--ess\): goes with method 'mcmc'; it does nothing with method 'map'"),
+    ({"method": "mcmc", "ess": -1}, r"ess \(--ess\): expected a positive effective sample size"),
     ({"ranges": {"x": (0, 1)}}, r"ranges \(--range\) x: actuator space has the axes q1, q2, q3"),
     ({"ranges": {"q1": (540, 460)}}, r"ranges \(--range\) q1=540:460: expected finite LO < HI"),
     ({"aux": {"payload_kg": 5}}, r"aux \(--aux\): .*machine.toml carries no \[effect"),

@@ -38,6 +38,7 @@ from ..constants import GRID_METHODS
 from ..errors import InputError
 from ..identify.free import Free, with_fixed
 from ..notebook import ShowsReport
+from .stopping import checked_ess
 
 __all__ = ["GridAnswer", "recording_grid", "grid_space", "check_grid_ranges", "base_frame_parts", "GRID_METHODS",
            "GRID_DRAWS"]
@@ -213,7 +214,8 @@ def _parts(data):
                      f"{type(data).__name__} {data!r:.80}; for files: bayescal.grid(bayescal.load(machine, recording))")
 
 
-def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str, fit_effects: bool, check=None):
+def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str, fit_effects: bool, check=None,
+              ess: float | None = None):
     """The fit, the grid's keyword for its std (a covariance or thinned draws) and identify's verdict on the fit."""
     if method == "map":
         # identify --method map's own answer (its noise test, outliers and prior scale), so that the grid's
@@ -229,7 +231,7 @@ def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str
 
     opts = {}
     if method == "mcmc":
-        opts = {"steps": steps, "seed": seed, "surrogate": surrogate}
+        opts = {"steps": steps, "seed": seed, "surrogate": surrogate, "ess": ess}
         if isinstance(free, str) and free == "all":
             free = "auto"  # sampling parameters the measurement does not see only explores the prior
         elif isinstance(free, Free) and free.base == "all":
@@ -245,7 +247,8 @@ def _identify(model, method: str, free, *, steps: int, seed: int, surrogate: str
 
 def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, space: str = "auto",
                    ranges: dict | None = None, aux: dict | None = None, steps: int = 1000, surrogate: str = "none",
-                   seed: int = 0, fit_effects: bool = False, fix=None, bounds=None) -> GridAnswer:
+                   seed: int = 0, fit_effects: bool = False, fix=None, bounds=None,
+                   ess: float | None = None) -> GridAnswer:
     """Identify a recording's errors and span a compensation grid with its std, as ``bayescal grid`` does.
 
     Parameters
@@ -273,6 +276,9 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
         Parameters held at nominal (:func:`bayescal.identify.calibrate.calibrate`): no std of theirs in the grid.
     bounds : mapping, optional
         ``{name: (lower, upper)}`` (:func:`bayescal.identify.calibrate.calibrate`; map and mcmc).
+    ess : float, optional
+        mcmc: stop the sampler at this bulk and tail ESS, ``steps`` the most
+        (:func:`bayescal.bayes.mcmc.sample_posterior`); default: run ``steps``.
 
     Returns
     -------
@@ -287,6 +293,9 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
         raise InputError(f"method (--method): expected one of {', '.join(GRID_METHODS)}, got {method!r}")
     if surrogate not in ("none", "linear"):
         raise InputError(f"surrogate (--surrogate): expected 'none' or 'linear', got {surrogate!r}")
+    if ess is not None and method != "mcmc":  # it would be ignored, silently
+        raise InputError(f"ess (--ess): goes with method 'mcmc'; it does nothing with method {method!r}")
+    checked_ess(ess)  # bad input before the identification runs
     machine = model.machine
     aux = _check_aux(machine, aux, (model.aux or {}).keys())
     from .grid import check_grid_size
@@ -300,7 +309,7 @@ def recording_grid(data, *, method: str = "map", free="all", nodes: int = 9, spa
 
         model = joint_effects_model(model, rec, method=method)
     res, kw, plaus = _identify(model, method, with_fixed(free, fix, bounds), steps=steps, seed=seed, surrogate=surrogate,
-                               fit_effects=fit_effects, check=check)
+                               fit_effects=fit_effects, check=check, ess=ess)
     effects = {"effects": tuple(e.name for e in machine.effects), "aux": aux, "effects_fitted": bool(fit_effects),
                "plausibility": plaus}
     if not res.success:

@@ -85,6 +85,9 @@ def register(sub) -> None:
     p.add_argument("--nodes", type=int, default=9, help="nodes per actuator within q_limits (default 9)")
     p.add_argument("--dof", type=int, choices=(6, 5, 3), help="use only this much of the measurement")
     p.add_argument("--steps", type=int, default=1000, help="mcmc: steps per walker (default 1000)")
+    p.add_argument("--ess", type=float, metavar="N",
+                   help="mcmc: stop the sampler once its checks pass with bulk and tail ESS >= N (identify --ess; "
+                        "--steps is then the most steps)")
     p.add_argument("--surrogate", choices=("none", "linear"), default="none", help="mcmc: sample the linearised model")
     p.add_argument("--seed", type=int, default=0, help="mcmc: random seed")
     p.add_argument(
@@ -121,7 +124,8 @@ def run(args) -> int:
     from ..effects.stored import parse_aux_values
 
     aux = parse_aux_values(args.aux)  # bad --aux is bad input before any work
-    for flag, given in (("--steps", args.steps != 1000), ("--surrogate", args.surrogate != "none")):
+    for flag, given in (("--steps", args.steps != 1000), ("--surrogate", args.surrogate != "none"),
+                        ("--ess", args.ess is not None)):
         if given and args.method != "mcmc":  # they were ignored, silently
             raise InputError(f"{flag} goes with --method mcmc; it does nothing with --method {args.method}")
     ranges = _ranges(args.ranges)
@@ -131,7 +135,7 @@ def run(args) -> int:
     # the checks, the identification and the grid: one library call, so a notebook gets this grid and JSON
     answer = recording_grid(session if session is not None else model, method=args.method, free=free_arg(args.free),
                             nodes=args.nodes, space=args.space, ranges=ranges, aux=aux, steps=args.steps,
-                            surrogate=args.surrogate, seed=args.seed, fit_effects=args.fit_effects,
+                            surrogate=args.surrogate, seed=args.seed, fit_effects=args.fit_effects, ess=args.ess,
                             fix=name_list(args.fix) if args.fix is not None else None, bounds=bound_args(args.bound))
     res, grid = answer.identification, answer.grid
     if grid is None:
