@@ -89,8 +89,8 @@ COMPARE_METHODS: dict[str, str] = {
     "tsvd": "truncated SVD; k=snr keeps singular values > 1 of the tolerance-scaled matrix, k=auto chooses k by a "
             "rule (rule=cv|lcurve|gcv|discrepancy|evidence|risk)",
     "kalman": "recursive Kalman filter, one update per pose (variant=ekf|ukf)",
-    "mcmc": "posterior mean by emcee (steps=400, surrogate=linear|none); a trial whose chain has not converged "
-            "counts as a failure",
+    "mcmc": "posterior mean by emcee (steps=400, surrogate=linear|none, ess=N: stop at that ESS); a trial whose "
+            "chain has not converged counts as a failure",
 }
 
 #: Output-error metrics recorded per method and trial.

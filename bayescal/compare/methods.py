@@ -122,6 +122,9 @@ def _check_mcmc(o: dict, label: str) -> None:
         raise _bad(label, "seed", seed, f"an integer from 0 to {SEED_MAX}")
     if o.get("surrogate") not in ("none", "linear"):
         raise _bad(label, "surrogate", o.get("surrogate"), "none or linear")
+    ess = o.get("ess")
+    if ess is not None and not (_is_number(ess) and ess > 0):
+        raise _bad(label, "ess", ess, "a positive effective sample size (the chain stops there, steps the most)")
 
 
 def tsvd_snr_rank(model: MeasurementModel, free) -> int:
@@ -172,12 +175,14 @@ def _kalman(model, *, free, variant="ekf"):
     return kalman_filter(model, variant=str(variant), free=free)
 
 
-def _mcmc(model, *, free, steps=400, seed=0, surrogate="linear"):
+def _mcmc(model, *, free, steps=400, seed=0, surrogate="linear", ess=None):
     # the linear surrogate by default: a comparison runs the sampler once per trial, and the
-    # full model costs minutes per run; the result still reports (and fails on) a poor linearisation
+    # full model costs minutes per run; the result still reports (and fails on) a poor linearisation.
+    # ess: each trial's chain stops at that effective sample size (steps the most), as identify --ess
     from ..bayes.mcmc import sample_posterior
 
-    return sample_posterior(model, free=free, n_steps=int(steps), seed=int(seed), surrogate=str(surrogate))
+    return sample_posterior(model, free=free, n_steps=int(steps), seed=int(seed), surrogate=str(surrogate),
+                            ess=None if ess is None else float(ess))
 
 
 # the descriptions are bayescal.constants.COMPARE_METHODS (``bayescal compare --help`` lists them without importing

@@ -114,7 +114,7 @@ def test_plan_relation_options(d, opts):
 
 @CLI
 @given(st.fixed_dictionaries({"--methods": st.sampled_from(
-    ["ridge:foo=1", "ridge:lam=abc", "tsvd:k=0", "ls:k=3", "mcmc:steps=5", "kalman:variant=x", "nope", ",", "ridge:rule=gcv",
+    ["ridge:foo=1", "ridge:lam=abc", "tsvd:k=0", "ls:k=3", "mcmc:steps=5", "mcmc:ess=0", "mcmc:ess=abc", "kalman:variant=x", "nope", ",", "ridge:rule=gcv",
      "ridge:lam=nan", "tsvd:k=2.5", "ridge;lam=1", "ridge:lam"])}, optional={
     "--trials": INTS, "--poses": INTS, "--eval-poses": INTS, "--alpha": FLOATS, "--tolerance-scale": FLOATS,
     "--seed": INTS}))
