@@ -641,20 +641,26 @@ def _run_chain(model, idx, start, log_prob, moves, p0, *, n_steps, seed, progres
     # run would have been
     check = None if stop is None else stop.check_from(sampler.iteration)
     bar = _progress_bar(progress and stop is not None, sampler.iteration, n_steps)
+    first = True
     while check is None or not (sampler.iteration == check and stop(sampler)):
         if check is not None and sampler.iteration == check:
             check = stop.next_check(check)
         end = n_steps if check is None else min(check, n_steps)
         if sampler.iteration >= end:
             break
-        # a resumed or continued chain goes on from the backend's last state, random state included
+        # a resumed or continued chain goes on from the backend's last state, random state included; emcee's check
+        # of the starting walkers only where the run starts, as one call would make it
         start_state = p0 if sampler.iteration == 0 else sampler.backend.get_last_sample()
-        for _ in sampler.sample(start_state, iterations=end - sampler.iteration, progress=progress and bar is None):
+        for _ in sampler.sample(start_state, iterations=end - sampler.iteration, progress=progress and bar is None,
+                                skip_initial_state_check=not first):
             if checkpoint is not None and sampler.iteration % checkpoint_every == 0:
                 save_checkpoint(checkpoint, sampler.backend, fingerprint)
             if bar is not None:
                 bar.update(1)
+        first = False
     if bar is not None:
+        bar.total = bar.n  # stopped at its ESS: the bar ends full, not at a fraction of the cap
+        bar.refresh()
         bar.close()
     if checkpoint is not None:
         save_checkpoint(checkpoint, sampler.backend, fingerprint)

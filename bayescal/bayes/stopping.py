@@ -12,7 +12,9 @@ asked for, with ``n_steps`` as the most it may take.
 The checks run at growing lengths (each a tenth longer than the last, at
 least 10 steps), so their cost is a small fraction of the sampling and the
 run overshoots the length it needed by about a tenth at most; the chain is
-grown from one check to the next, so emcee reserves no storage beyond it.  Each check first estimates the
+grown from one check to the next, so emcee reserves no storage beyond it
+(each growth copies the chain once; the caller's memory check still charges
+the most steps, the worst case).  Each check first estimates the
 ESS from emcee's integrated autocorrelation time (an FFT per parameter,
 milliseconds), and only when that estimate reaches the target runs the
 rank-normalised R-hat and the bulk and tail ESS of arviz that the answer
@@ -20,8 +22,8 @@ reports.  The chain of a run that stops is the first steps of the run with
 the same seed that does not stop (the checks draw no random numbers).
 
 Stopping when a diagnostic first passes selects, in principle, a run whose
-diagnostics look better than its draws are, and R-hat is looked at some
-twenty times in a run instead of once.  The rule stops on the effective
+diagnostics look better than its draws are: the cheap estimate is looked
+at some twenty times in a run, arviz's R-hat and ESS once or twice.  The rule stops on the effective
 sample size, which Vats, Flegal and Jones ("Multivariate output analysis
 for Markov chain Monte Carlo", Biometrika 106, 2019) justify as a
 sequential stopping rule; with a burn-in that grows with the chain and an

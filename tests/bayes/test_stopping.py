@@ -90,6 +90,24 @@ def test_a_killed_run_resumed_stops_where_the_uninterrupted_run_stopped(full_and
     np.testing.assert_array_equal(again.tree["posterior"]["theta"].values, stopped.tree["posterior"]["theta"].values)
 
 
+def test_a_resumed_chain_already_at_its_cap_adds_no_step(linear_problem, tmp_path):
+    lin, _, _, _, free = linear_problem
+    ck = tmp_path / "c.npz"
+    first = sample_posterior(lin, free=free, n_walkers=16, n_steps=600, seed=3, checkpoint=ck)
+    again = sample_posterior(lin, free=free, n_walkers=16, n_steps=600, seed=3, checkpoint=ck, resume=True, ess=1000)
+    assert first.success and again.success and again.n_steps == 600
+    np.testing.assert_array_equal(again.tree["posterior"]["theta"].values, first.tree["posterior"]["theta"].values)
+
+
+def test_the_progress_bar_of_a_run_that_stops_ends_full(linear_problem, capfd):
+    # emcee's bar would restart at every check; ours runs over the steps and ends at the step the run stopped
+    lin, _, _, _, free = linear_problem
+    res = sample_posterior(lin, free=free, n_walkers=16, n_steps=1500, seed=5, ess=2000, progress=True)
+    err = capfd.readouterr().err
+    last = err.strip().split("\r")[-1]  # what the bar shows when it closes
+    assert "sampling (stops at its ESS)" in last and f"{res.n_steps}/{res.n_steps}" in last and "100%" in last
+
+
 def test_a_generous_cap_reserves_no_storage_it_does_not_use(linear_problem, monkeypatch):
     # review: emcee sized its storage for the whole cap before the first step (2 GB for a cap of 3,000,000 steps)
     import emcee

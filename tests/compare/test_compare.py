@@ -207,14 +207,21 @@ def test_compare_map_is_identify_map():
     assert np.max(np.abs(ridge.theta - got.theta)) > 0  # the old entry's answer differs on this recording
 
 
-def test_mcmc_trials_can_stop_at_an_ess(prs3):
+def test_mcmc_trials_can_stop_at_an_ess(prs3, monkeypatch):
     # each trial's chain stops at the ESS asked for, as identify --ess; the option is checked before any trial
+    import bayescal.bayes.mcmc as mcmc
+
     specs = parse_methods("mcmc:ess=1000;steps=3000")
     assert specs[0].options == (("ess", 1000), ("steps", 3000))
-    for bad in ("mcmc:ess=0", "mcmc:ess=-5", "mcmc:ess=nan", "mcmc:ess=abc"):
+    for bad in ("mcmc:ess=0", "mcmc:ess=-5", "mcmc:ess=nan", "mcmc:ess=inf", "mcmc:ess=abc"):
         with pytest.raises(InputError, match=r"ess"):
             parse_methods(bad)
+    runs = []
+    sample = mcmc.sample_posterior
+    monkeypatch.setattr(mcmc, "sample_posterior", lambda *a, **k: runs.append(r := sample(*a, **k)) or r)
     res = compare_methods(prs3, methods="mcmc:ess=1000;steps=3000", trials=1, dof=6, n_poses=12, n_eval=10, seed=3,
                           progress=False)
     d = res.to_dict()
     assert d["summary"]["mcmc:ess=1000;steps=3000"]["failures"] == 0, d["failure_messages"]
+    # the trial's chain stopped at the ESS, well short of its 3,000 steps
+    assert len(runs) == 1 and runs[0].min_ess == 1000 and runs[0].n_steps < 3000
