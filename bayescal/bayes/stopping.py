@@ -57,7 +57,22 @@ MIN_FIRST = 50
 
 
 def checked_ess(ess) -> float | None:
-    """``ess`` as a float, or None; anything but a finite positive number is refused by name."""
+    """``ess`` as a float, or None; anything but a finite positive number is refused by name.
+
+    Parameters
+    ----------
+    ess : float, int or None
+        Effective sample size asked for (draws; bulk and tail), or None for none.
+
+    Returns
+    -------
+    float or None
+
+    Raises
+    ------
+    InputError
+        Naming ``ess (--ess)`` for a bool, a string, zero, a negative, NaN or infinite value.
+    """
     if ess is None:
         return None
     if isinstance(ess, bool) or not isinstance(ess, (int, float, np.integer, np.floating)) or not (
